@@ -1,0 +1,224 @@
+"""The robot model: an immutable description of the arm, loaded from TOML.
+
+Like pinocchio's ``Model``, a :class:`RobotModel` never changes once loaded;
+every function that needs it takes it explicitly (no globals).  Units inside
+are mm and radians; the TOML file uses degrees where a person types angles.
+
+>>> m = default_robot()
+>>> m.n_joints, float(m.links.sum())
+(12, 2007.0)
+>>> round(float(m.limit_alpha), 6) == round(float(np.deg2rad(60.0)), 6)
+True
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hrm_ctrl.errors import RobotDescriptionError
+
+N_JOINTS = 12
+DEFAULT_ROBOT_RESOURCE = "robot.toml"
+
+
+@dataclass(frozen=True, eq=False)
+class RobotModel:
+    """Immutable robot description (mm, rad).
+
+    Attributes:
+        name: free-form name of the arm.
+        links: link lengths ``l_1 .. l_12`` (mm), shape (12,).
+        outer_diameter: outer diameter of every link (mm), shape (12,).
+        limit_alpha: |alpha_i| must stay below this (rad).
+        limit_theta: |theta_i| must stay below this (rad).
+        base_position: centre of joint 1 in the world frame (mm), shape (3,).
+        base_rotation: world-from-base rotation, shape (3, 3); the arm's zero
+            direction is ``base_rotation @ (1, 0, 0)``.
+        source: where the description came from (file path or resource name).
+        tables: the raw TOML tables the planner does not interpret (for
+            example ``ropes`` and ``motors``), read by the layers that own them.
+    """
+
+    name: str
+    links: np.ndarray
+    outer_diameter: np.ndarray
+    limit_alpha: float
+    limit_theta: float
+    base_position: np.ndarray
+    base_rotation: np.ndarray
+    source: str
+    tables: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.links.shape[0])
+
+    @property
+    def length(self) -> float:
+        """Total length L_sum (mm)."""
+        return float(self.links.sum())
+
+    @property
+    def base_direction(self) -> np.ndarray:
+        """Unit vector of the arm at zero angles (world frame)."""
+        return self.base_rotation[:, 0].copy()
+
+    def to_dict(self) -> dict[str, Any]:
+        """The description as plain JSON-ready values (mm, degrees)."""
+        return {
+            "name": self.name,
+            "links_mm": [float(v) for v in self.links],
+            "outer_diameter_mm": [float(v) for v in self.outer_diameter],
+            "joint_limits_deg": {
+                "alpha": math.degrees(self.limit_alpha),
+                "theta": math.degrees(self.limit_theta),
+            },
+            "base": {
+                "position_mm": [float(v) for v in self.base_position],
+                "rotation": self.base_rotation.tolist(),
+            },
+            "source": self.source,
+        }
+
+
+def _number(value: Any, where: str, *, positive: bool = False, finite: bool = True) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise RobotDescriptionError(f"{where}: expected a number, got {value!r}")
+    x = float(value)
+    if finite and not math.isfinite(x):
+        raise RobotDescriptionError(f"{where}: expected a finite number, got {value!r}")
+    if positive and x <= 0.0:
+        raise RobotDescriptionError(f"{where}: must be > 0, got {value!r}")
+    return x
+
+
+def _table(doc: Mapping[str, Any], key: str, where: str) -> Mapping[str, Any]:
+    if key not in doc:
+        raise RobotDescriptionError(f"{where}: missing table [{key}]")
+    value = doc[key]
+    if not isinstance(value, Mapping):
+        raise RobotDescriptionError(f"{where}: [{key}] must be a table")
+    return value
+
+
+def _require(doc: Mapping[str, Any], key: str, where: str) -> Any:
+    if key not in doc:
+        raise RobotDescriptionError(f"{where}: missing key '{key}'")
+    return doc[key]
+
+
+def base_rotation_from(yaw: float, pitch: float) -> np.ndarray:
+    """World-from-base rotation: yaw about z, then pitch up about the new y.
+
+    >>> R = base_rotation_from(math.pi / 2, 0.0)
+    >>> np.round(R[:, 0], 12).tolist()
+    [0.0, 1.0, 0.0]
+    """
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    cp, sp = math.cos(-pitch), math.sin(-pitch)
+    Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    Ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    return Rz @ Ry
+
+
+def robot_from_dict(doc: Mapping[str, Any], source: str) -> RobotModel:
+    """Validate a parsed robot description and build the model."""
+    where = source
+    name = doc.get("name", "hrm")
+    if not isinstance(name, str):
+        raise RobotDescriptionError(f"{where}: 'name' must be a string")
+
+    links_raw = _require(doc, "links_mm", where)
+    if not isinstance(links_raw, list) or len(links_raw) != N_JOINTS:
+        raise RobotDescriptionError(
+            f"{where}: 'links_mm' must be a list of {N_JOINTS} lengths, got {links_raw!r}"
+        )
+    links = np.array(
+        [_number(v, f"{where}: links_mm[{i}]", positive=True) for i, v in enumerate(links_raw)]
+    )
+
+    od_raw = _require(doc, "outer_diameter_mm", where)
+    if isinstance(od_raw, list):
+        if len(od_raw) != N_JOINTS:
+            raise RobotDescriptionError(
+                f"{where}: 'outer_diameter_mm' list must have {N_JOINTS} values"
+            )
+        od = np.array(
+            [
+                _number(v, f"{where}: outer_diameter_mm[{i}]", positive=True)
+                for i, v in enumerate(od_raw)
+            ]
+        )
+    else:
+        od = np.full(N_JOINTS, _number(od_raw, f"{where}: outer_diameter_mm", positive=True))
+
+    lim = _table(doc, "joint_limits", where)
+    la = _number(_require(lim, "alpha_deg", where), f"{where}: joint_limits.alpha_deg", positive=True)
+    lt = _number(_require(lim, "theta_deg", where), f"{where}: joint_limits.theta_deg", positive=True)
+    for label, v in (("alpha_deg", la), ("theta_deg", lt)):
+        if v >= 90.0:
+            raise RobotDescriptionError(f"{where}: joint_limits.{label} must be < 90, got {v}")
+
+    base = _table(doc, "base", where)
+    pos_raw = _require(base, "position_mm", where)
+    if not isinstance(pos_raw, list) or len(pos_raw) != 3:
+        raise RobotDescriptionError(f"{where}: base.position_mm must be [x, y, z]")
+    pos = np.array([_number(v, f"{where}: base.position_mm[{i}]") for i, v in enumerate(pos_raw)])
+    yaw = _number(base.get("yaw_deg", 0.0), f"{where}: base.yaw_deg")
+    pitch = _number(base.get("pitch_deg", 0.0), f"{where}: base.pitch_deg")
+
+    known = {"name", "links_mm", "outer_diameter_mm", "joint_limits", "base"}
+    tables = {k: v for k, v in doc.items() if k not in known}
+    for arr in (links, od, pos):
+        arr.setflags(write=False)
+    R = base_rotation_from(math.radians(yaw), math.radians(pitch))
+    R.setflags(write=False)
+    return RobotModel(
+        name=name,
+        links=links,
+        outer_diameter=od,
+        limit_alpha=math.radians(la),
+        limit_theta=math.radians(lt),
+        base_position=pos,
+        base_rotation=R,
+        source=source,
+        tables=tables,
+    )
+
+
+def load_robot(path: str | Path | None = None) -> RobotModel:
+    """Load a robot description; ``None`` loads the one shipped with the package.
+
+    Raises :class:`RobotDescriptionError` with a one-line message naming the
+    file and the problem.
+    """
+    if path is None:
+        text = resources.files("hrm_ctrl.data").joinpath(DEFAULT_ROBOT_RESOURCE).read_text()
+        source = f"<default {DEFAULT_ROBOT_RESOURCE}>"
+    else:
+        p = Path(path)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise RobotDescriptionError(f"{p}: robot file not found") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise RobotDescriptionError(f"{p}: cannot read robot file ({exc})") from None
+        source = str(p)
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise RobotDescriptionError(f"{source}: not valid TOML ({exc})") from None
+    return robot_from_dict(doc, source)
+
+
+def default_robot() -> RobotModel:
+    """The robot description shipped with the package (Table 1)."""
+    return load_robot(None)
