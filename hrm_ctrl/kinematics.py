@@ -90,7 +90,9 @@ def frames(
     theta = np.asarray(theta, dtype=float)
     n = model.n_joints
     if alpha.shape[-1:] != (n,) or theta.shape != alpha.shape:
-        raise ValueError(f"alpha and theta must have shape (..., {n}), got {alpha.shape}, {theta.shape}")
+        raise ValueError(
+            f"alpha and theta must have shape (..., {n}), got {alpha.shape}, {theta.shape}"
+        )
     Rj = joint_rotation(alpha, theta)  # (..., 12, 3, 3)
     batch = alpha.shape[:-1]
     R = np.empty((*batch, n, 3, 3))

@@ -161,8 +161,12 @@ def robot_from_dict(doc: Mapping[str, Any], source: str) -> RobotModel:
         od = np.full(N_JOINTS, _number(od_raw, f"{where}: outer_diameter_mm", positive=True))
 
     lim = _table(doc, "joint_limits", where)
-    la = _number(_require(lim, "alpha_deg", where), f"{where}: joint_limits.alpha_deg", positive=True)
-    lt = _number(_require(lim, "theta_deg", where), f"{where}: joint_limits.theta_deg", positive=True)
+    la = _number(
+        _require(lim, "alpha_deg", where), f"{where}: joint_limits.alpha_deg", positive=True
+    )
+    lt = _number(
+        _require(lim, "theta_deg", where), f"{where}: joint_limits.theta_deg", positive=True
+    )
     for label, v in (("alpha_deg", la), ("theta_deg", lt)):
         if v >= 90.0:
             raise RobotDescriptionError(f"{where}: joint_limits.{label} must be < 90, got {v}")

@@ -33,7 +33,9 @@ def _commands() -> list[str]:
 
 
 def build_parser() -> OneLineParser:
-    parser = OneLineParser(prog="hrm", description="Rope-driven hyper-redundant manipulator console")
+    parser = OneLineParser(
+        prog="hrm", description="Rope-driven hyper-redundant manipulator console"
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     sub.required = True
     for name in _commands():

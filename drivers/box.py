@@ -1,0 +1,440 @@
+"""The manipulator box as the host drives it: every bus, every CiA 402 drive.
+
+:class:`DriveBox` opens the buses of a :class:`~drivers.config.BoxConfig`
+(or takes buses already opened), logs each bus's traffic to a python-can log,
+and offers the run sequence:
+
+1. :meth:`DriveBox.bring_up`: refuse when a bus is over its load budget; start
+   the host heartbeat; NMT reset and wait for every node's boot-up (the error
+   lists the missing ones); SDO configuration of every drive in parallel (PDO
+   mappings, heartbeat times, software limits 0x607D from the rope layer,
+   interpolation period = control period, CSP); NMT start; the CiA 402 state
+   machine to OPERATION_ENABLED with a statusword check at every transition.
+2. :meth:`DriveBox.stream`: the cyclic scheduler plays a setpoint source;
+   any watchdog stops every axis (quick stop) within one cycle.
+3. :meth:`DriveBox.finish`: disable operation, NMT pre-operational, stop the
+   host heartbeat.
+4. :meth:`DriveBox.close`: stop receive threads, close the logs, write the run
+   record (JSON, atomically) beside them.
+
+The drivers never know what is at the other end of the wire (drives or a
+simulator): everything goes through python-can buses.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import datetime as dt
+import json
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+import numpy as np
+
+from drivers import cia402 as c
+from drivers import eds_path
+from drivers.bringup import (
+    BootupError,
+    DriveLink,
+    DriveSettings,
+    configure_drive,
+    enable_operation,
+)
+from drivers.busload import BusLoad, check_bus_load
+from drivers.config import BoxConfig
+from drivers.monitor import NodeMonitor, StopCause
+from drivers.scheduler import BusLayout, CyclicScheduler, EventLog, StreamResult
+from drivers.setpoints import LimitChecker, SetpointSource
+from drivers.traffic import BusPort, BusSendError, TrafficLog
+from hrm_ctrl.atomic import write_atomic
+from hrm_ctrl.errors import DriverError, HrmError
+
+RUN_RECORD_FORMAT = "hrm-run/1"
+
+
+class SafetyStop(DriverError):
+    """Streaming was stopped by a watchdog, a limit or a bus failure; every axis got a
+    quick stop.  ``causes`` lists why."""
+
+    def __init__(self, message: str, causes: list[StopCause], result: StreamResult) -> None:
+        super().__init__(message)
+        self.causes = causes
+        self.result = result
+
+
+class _PortNetwork(canopen.Network):
+    """A canopen network whose frames go out through a :class:`BusPort` (logged)."""
+
+    def __init__(self, port: BusPort) -> None:
+        super().__init__(port.bus)
+        self.port = port
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        self.port.send(
+            can.Message(
+                arbitration_id=can_id,
+                data=bytes(data),
+                is_extended_id=can_id > 0x7FF,
+                is_remote_frame=remote,
+            )
+        )
+        self.check()
+
+
+class HeartbeatProducer:
+    """The host's heartbeat (NMT state operational) on every bus, from its own thread,
+    phase-locked to a monotonic clock.  Send failures are reported to the monitor."""
+
+    def __init__(
+        self,
+        ports: Sequence[BusPort],
+        node_id: int,
+        period_s: float,
+        on_error: Callable[[str], None],
+    ) -> None:
+        self.ports = list(ports)
+        self.msg_args = (node_id, c.NMT_STATE_OPERATIONAL)
+        self.period_s = period_s
+        self.on_error = on_error
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="host-heartbeat", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        t_next = time.monotonic()
+        while not self._stop.is_set():
+            for port in self.ports:
+                try:
+                    port.send(c.make_heartbeat(*self.msg_args))
+                except BusSendError as exc:
+                    self.on_error(str(exc))
+            t_next += self.period_s
+            self._stop.wait(max(0.0, t_next - time.monotonic()))
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+
+
+class DriveBox:
+    """Every bus and drive of the box; see the module docstring for the sequence."""
+
+    def __init__(
+        self,
+        config: BoxConfig,
+        actuation: LimitChecker,
+        log_dir: str | Path | None = None,
+        log_suffix: str = ".blf",
+        run_name: str | None = None,
+        buses: Sequence[can.BusABC] | None = None,
+    ) -> None:
+        config.check_motors(actuation.motor_ids)
+        if buses is not None and len(buses) != len(config.buses):
+            raise DriverError(f"{len(config.buses)} buses configured, {len(buses)} given")
+        self.config = config
+        self.actuation = actuation
+        self.control = config.control
+        self.events = EventLog()
+        self.loads: list[BusLoad] = check_bus_load(config)
+        self.run_name = run_name or dt.datetime.now(dt.UTC).strftime("run-%Y%m%dT%H%M%S")
+        self.log_dir = None if log_dir is None else Path(log_dir)
+        self.log_suffix = log_suffix
+        self.record_path: Path | None = None
+        self.results: list[StreamResult] = []
+        self.record_extra: dict[str, Any] = {}
+        self.actual: np.ndarray | None = None
+        self.bringup_s: float | None = None
+        self.enabled = False
+
+        n = len(actuation.motor_ids)
+        self._ports: list[BusPort] = []
+        self._logs: list[TrafficLog] = []
+        self._owned: list[can.BusABC] = []
+        self._networks: list[_PortNetwork] = []
+        self._layouts: list[BusLayout] = []
+        self.links: list[DriveLink | None] = [None] * n
+        labels = [""] * n
+        order = {m: i for i, m in enumerate(actuation.motor_ids)}
+        for b in config.buses:
+            for motor, nid in b.nodes.items():
+                labels[order[motor]] = f"{motor} (bus {b.name} node {nid})"
+        self.monitor = NodeMonitor(
+            labels, self.control.missing_tpdo_cycles, self.control.heartbeat_timeout_ms / 1000.0
+        )
+        try:
+            self._open(buses)
+        except BaseException:
+            self._close_io()
+            raise
+        self.heartbeat = HeartbeatProducer(
+            self._ports,
+            self.control.host_node_id,
+            self.control.host_heartbeat_ms / 1000.0,
+            self._heartbeat_error,
+        )
+        self.scheduler = CyclicScheduler(
+            self._layouts, self.monitor, actuation, self.control.period_s, self.events
+        )
+        self.events.add(
+            "open",
+            f"{len(config.buses)} bus(es), {n} drives, {self.control.rate_hz:g} Hz",
+            bus_loads=[bl.to_dict() for bl in self.loads],
+        )
+
+    # ------------------------------------------------------------------ I/O setup
+    def _open(self, given: Sequence[can.BusABC] | None) -> None:
+        od = canopen.import_od(str(eds_path()))
+        order = {m: i for i, m in enumerate(self.actuation.motor_ids)}
+        for bi, b in enumerate(self.config.buses):
+            if given is not None:
+                bus = given[bi]
+            else:
+                try:
+                    bus = can.Bus(**b.bus_kwargs())
+                except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
+                    raise DriverError(
+                        f"{self.config.source}: buses.{b.name}: cannot open {b.interface} "
+                        f"channel {b.channel!r} ({exc})"
+                    ) from None
+                self._owned.append(bus)
+            log = None
+            if self.log_dir is not None:
+                log = TrafficLog(self.log_dir / f"{self.run_name}_{b.name}{self.log_suffix}")
+                self._logs.append(log)
+            port = BusPort(b.name, bus, log)
+            self._ports.append(port)
+            net = _PortNetwork(port)
+            listeners: list[can.Listener] = [canopen.network.MessageListener(net)]
+            if log is not None:
+                listeners.append(log)
+            idx = np.array([order[m] for m in b.nodes], dtype=np.int64)
+            for motor, nid in b.nodes.items():
+                i = order[motor]
+                node = canopen.RemoteNode(nid, od)
+                net.add_node(node)
+                node.sdo.RESPONSE_TIMEOUT = self.control.sdo_timeout_s
+                self.links[i] = DriveLink(node, b.name, motor)
+                self._subscribe(net, i, nid)
+            net.notifier = can.Notifier(bus, listeners, 0.1)
+            self._networks.append(net)
+            self._layouts.append(
+                BusLayout(port, idx, np.array(list(b.nodes.values())), net.notifier)
+            )
+
+    def _subscribe(self, net: canopen.Network, i: int, nid: int) -> None:
+        mon = self.monitor
+        net.subscribe(c.COB_TPDO1 + nid, lambda _cid, data, _ts: mon.on_tpdo(i, data))
+        net.subscribe(
+            c.COB_NMT_ERROR_CONTROL + nid, lambda _cid, data, _ts: mon.on_heartbeat(i, data)
+        )
+        net.subscribe(c.COB_EMCY + nid, lambda _cid, data, _ts: mon.on_emcy(i, nid, data))
+
+    def _heartbeat_error(self, text: str) -> None:
+        self.events.add("error", f"host heartbeat: {text}")
+        self.monitor.report("send", f"host heartbeat not sent ({text})")
+
+    def _links(self) -> list[DriveLink]:
+        return [link for link in self.links if link is not None]
+
+    def _parallel(self, what: str, fn: Callable[[DriveLink], Any]) -> list[Any]:
+        """Run ``fn`` for every drive at once; raise the first error (all finish first)."""
+        links = self._links()
+        with concurrent.futures.ThreadPoolExecutor(max_workers=min(36, len(links))) as pool:
+            futures = [pool.submit(fn, link) for link in links]
+            concurrent.futures.wait(futures)
+        errors = [f.exception() for f in futures if f.exception() is not None]
+        if errors:
+            first = errors[0]
+            more = f" (and {len(errors) - 1} more drive(s) failed)" if len(errors) > 1 else ""
+            self.events.add("error", f"{what}: {first}{more}")
+            if isinstance(first, HrmError):
+                raise type(first)(f"{first}{more}") from None
+            raise DriverError(f"{what}: {first}{more}") from None
+        return [f.result() for f in futures]
+
+    def send_nmt(self, command: int) -> None:
+        """Broadcast one NMT command on every bus."""
+        for port in self._ports:
+            port.send(c.make_nmt(command, 0))
+
+    # ------------------------------------------------------------------ sequence
+    def bring_up(self) -> np.ndarray:
+        """Reset, configure and enable every drive; return actual positions (counts)."""
+        t_start = time.monotonic()
+        ctl = self.control
+        self.heartbeat.start()
+        self.monitor.reset_boot()
+        self.send_nmt(c.NMT_RESET_NODE)
+        self.events.add("nmt", "NMT reset node sent on every bus")
+        if not self.monitor.boot_event.wait(ctl.bootup_timeout_s):
+            missing = self.monitor.missing_boot()
+            raise BootupError(
+                f"no boot-up within {ctl.bootup_timeout_s:g} s from {len(missing)} node(s): "
+                + ", ".join(missing)
+            )
+        self.events.add("bootup", f"every node booted ({time.monotonic() - t_start:.3f} s)")
+        act = self.actuation
+
+        def settings(link: DriveLink) -> DriveSettings:
+            i = act.motor_ids.index(link.motor)
+            return DriveSettings(
+                period_s=ctl.period_s,
+                host_node_id=ctl.host_node_id,
+                host_heartbeat_timeout_ms=ctl.heartbeat_timeout_ms,
+                node_heartbeat_ms=ctl.node_heartbeat_ms,
+                counts_min=int(act.counts_min[i]),
+                counts_max=int(act.counts_max[i]),
+                following_error_window_counts=ctl.following_error_window_counts,
+                quick_stop_option_code=ctl.quick_stop_option_code,
+            )
+
+        self._parallel("configuration", lambda link: configure_drive(link, settings(link)))
+        self.events.add("configured", "every drive configured by SDO (CSP, PDOs, limits)")
+        self.send_nmt(c.NMT_START_REMOTE_NODE)
+        self.events.add("nmt", "NMT start remote node sent on every bus")
+        try:
+            actual_list = self._parallel(
+                "enable", lambda link: enable_operation(link, ctl.state_timeout_s)
+            )
+        except HrmError:
+            self._abort_enable()
+            raise
+        order = {link.motor: k for k, link in enumerate(self._links())}
+        actual = np.array([actual_list[order[m]] for m in act.motor_ids], dtype=np.int64)
+        self.actual = actual
+        self.enabled = True
+        self.bringup_s = time.monotonic() - t_start
+        self.events.add(
+            "enabled", f"every drive OPERATION_ENABLED in CSP ({self.bringup_s:.3f} s bring-up)"
+        )
+        return actual
+
+    def _abort_enable(self) -> None:
+        """Bring-up failed half-way: quick stop by RPDO to every node, then pre-operational."""
+        hold = self.actual if self.actual is not None else np.zeros(self.monitor.n, np.int64)
+        try:
+            self.scheduler.send_controlword(c.CW_QUICK_STOP, hold)
+            self.send_nmt(c.NMT_ENTER_PRE_OPERATIONAL)
+        except DriverError as exc:
+            self.events.add("error", f"abort after failed enable: {exc}")
+        self.events.add("quick_stop", "bring-up failed: quick stop and NMT pre-operational sent")
+
+    def stream(self, source: SetpointSource, raise_on_stop: bool = True) -> StreamResult:
+        """Play a setpoint source; on any stop cause every axis gets a quick stop and
+        :class:`SafetyStop` is raised (or the result returned with ``raise_on_stop=False``)."""
+        if not self.enabled or self.actual is None:
+            raise DriverError("stream: drives are not enabled (bring_up first)")
+        start = self.actual
+        if self.results:
+            start = self.results[-1].last_targets
+        result = self.scheduler.stream(source, start)
+        self.results.append(result)
+        if result.causes:
+            self.enabled = False
+            if raise_on_stop:
+                first = result.causes[0].text
+                more = f" (+{len(result.causes) - 1} more)" if len(result.causes) > 1 else ""
+                if result.error is not None and result.causes[0].kind == "limit":
+                    raise SafetyStop(f"stopped: {result.error}", result.causes, result)
+                raise SafetyStop(f"stopped: {first}{more}", result.causes, result)
+        return result
+
+    def request_stop(self) -> None:
+        """Ask a running stream to stop (quick stop) at the next cycle (thread-safe)."""
+        self.scheduler.stop_request.set()
+        self.monitor.wake.set()
+
+    def finish(self) -> None:
+        """Orderly end: disable operation (RPDO + SYNC), NMT pre-operational, heartbeat off."""
+        try:
+            if self.enabled:
+                hold = self.results[-1].last_targets if self.results else self.actual
+                if hold is not None:
+                    self.scheduler.send_controlword(c.CW_DISABLE_OPERATION, hold)
+                    time.sleep(2 * self.control.period_s)
+                    self.events.add("disable", "disable operation sent to every drive")
+            self.send_nmt(c.NMT_ENTER_PRE_OPERATIONAL)
+            self.events.add("nmt", "NMT enter pre-operational sent on every bus")
+        finally:
+            self.enabled = False
+            self.heartbeat.stop()
+
+    # ------------------------------------------------------------------ records
+    def record(self) -> dict[str, Any]:
+        """The run record: configuration, sources, events, timing statistics, logs."""
+        return {
+            "format": RUN_RECORD_FORMAT,
+            "run": self.run_name,
+            "written_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+            "config_source": self.config.source,
+            "config": self.config.to_dict(),
+            "motor_ids": list(self.actuation.motor_ids),
+            "bus_loads": [bl.to_dict() for bl in self.loads],
+            "bringup_s": self.bringup_s,
+            "actual_counts_at_enable": None if self.actual is None else self.actual.tolist(),
+            "streams": [r.to_dict() for r in self.results],
+            "events": self.events.to_list(),
+            "emergencies": [e.describe() for e in self.monitor.emergencies],
+            "can_logs": [str(log.path) for log in self._logs],
+            **self.record_extra,
+        }
+
+    def _close_io(self) -> None:
+        for net in self._networks:
+            if net.notifier is not None:
+                net.notifier.stop(1.0)
+        for log in self._logs:
+            log.stop()
+        for bus in self._owned:
+            try:
+                bus.shutdown()
+            except (can.CanError, OSError):
+                pass
+        self._owned = []
+
+    def close(self) -> Path | None:
+        """Stop everything; write the run record (if logging); return its path."""
+        self.heartbeat.stop()
+        self._close_io()
+        if self.log_dir is None:
+            return None
+        path = self.log_dir / f"{self.run_name}.json"
+        write_atomic(path, json.dumps(_jsonable(self.record()), indent=1, allow_nan=False) + "\n")
+        self.record_path = path
+        return path
+
+    def __enter__(self) -> DriveBox:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            if self.enabled:
+                self.finish()
+        finally:
+            self.close()
+
+
+def _jsonable(value: Any) -> Any:
+    """Replace non-finite floats (not JSON) by None, recursively."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return _jsonable(value.item())
+    return value

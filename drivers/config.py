@@ -1,0 +1,359 @@
+"""Bus configuration of the manipulator box (TOML): buses, node ids, control timing.
+
+The file has a ``[control]`` table (rate and safety timing) and one
+``[buses.NAME]`` table per CAN bus: a python-can ``interface``, ``channel`` and
+``bitrate``, optional ``[buses.NAME.options]`` (extra ``can.Bus`` keyword
+arguments) and ``[buses.NAME.nodes]`` mapping each rope motor id to its CANopen
+node id.  The interface is configuration, never code: any name python-can knows
+(built-in or registered under the ``can.interface`` entry point) is accepted.
+
+>>> cfg = load_box_config(None)
+>>> [b.name for b in cfg.buses], cfg.n_motors, cfg.control.rate_hz
+(['can0', 'can1'], 36, 100.0)
+>>> cfg.location("j07r0")
+(1, 1)
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import can
+
+from drivers import default_box_path
+from drivers.cia402 import HOST_HEARTBEAT_NODE_ID, NODE_ID_MAX, NODE_ID_MIN
+from hrm_ctrl.errors import DriverError
+
+
+class BusConfigError(DriverError):
+    """The bus configuration file is missing, malformed or inconsistent."""
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """One CAN bus: how to open it and which rope motors (node ids) sit on it."""
+
+    name: str
+    interface: str
+    channel: str | int
+    bitrate: int
+    options: Mapping[str, Any]
+    nodes: Mapping[str, int]  # rope motor id -> node id, in file order
+
+    @property
+    def motor_ids(self) -> tuple[str, ...]:
+        return tuple(self.nodes)
+
+    @property
+    def node_ids(self) -> tuple[int, ...]:
+        return tuple(self.nodes.values())
+
+    def bus_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for ``can.Bus``.
+
+        >>> BusConfig("b", "virtual", "x", 500_000, {"rx_queue_size": 9}, {}).bus_kwargs()
+        {'interface': 'virtual', 'channel': 'x', 'bitrate': 500000, 'rx_queue_size': 9}
+        """
+        return {
+            "interface": self.interface,
+            "channel": self.channel,
+            "bitrate": self.bitrate,
+            **dict(self.options),
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "interface": self.interface,
+            "channel": self.channel,
+            "bitrate": self.bitrate,
+            "options": dict(self.options),
+            "nodes": dict(self.nodes),
+        }
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """Control-loop timing and safety settings (the ``[control]`` table)."""
+
+    rate_hz: float = 100.0
+    host_node_id: int = HOST_HEARTBEAT_NODE_ID
+    host_heartbeat_ms: int = 100
+    node_heartbeat_ms: int = 100
+    heartbeat_timeout_ms: int = 350
+    missing_tpdo_cycles: int = 3
+    bus_load_limit: float = 0.70
+    bootup_timeout_s: float = 3.0
+    sdo_timeout_s: float = 0.5
+    state_timeout_s: float = 0.5
+    following_error_window_counts: int = 2000
+    quick_stop_option_code: int = 2
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+
+@dataclass(frozen=True)
+class BoxConfig:
+    """Every bus of the box plus the control settings; immutable."""
+
+    buses: tuple[BusConfig, ...]
+    control: ControlConfig
+    source: str
+    _where: Mapping[str, tuple[int, int]] = field(default_factory=dict, repr=False)
+
+    @property
+    def motor_ids(self) -> tuple[str, ...]:
+        """All rope motor ids, bus by bus in file order."""
+        return tuple(m for b in self.buses for m in b.nodes)
+
+    @property
+    def n_motors(self) -> int:
+        return sum(len(b.nodes) for b in self.buses)
+
+    def location(self, motor_id: str) -> tuple[int, int]:
+        """(bus index, node id) of a rope motor."""
+        try:
+            return self._where[motor_id]
+        except KeyError:
+            raise BusConfigError(f"{self.source}: no node for rope motor '{motor_id}'") from None
+
+    def check_motors(self, motor_ids: Sequence[str]) -> None:
+        """Every rope motor of the rope layer has a node, and no node is unknown to it."""
+        missing = [m for m in motor_ids if m not in self._where]
+        extra = [m for m in self._where if m not in set(motor_ids)]
+        if missing:
+            raise BusConfigError(f"{self.source}: no node id for rope motor(s) {missing}")
+        if extra:
+            raise BusConfigError(f"{self.source}: node(s) for unknown rope motor(s) {extra}")
+
+    def with_control(self, **changes: Any) -> BoxConfig:
+        """A copy with some control settings changed (validated again)."""
+        return box_config_from_dict(
+            {**self.to_dict(), "control": {**self.to_dict()["control"], **changes}},
+            self.source,
+        )
+
+    def with_bus_kwargs(self, kwargs: Sequence[Mapping[str, Any]]) -> BoxConfig:
+        """A copy whose buses are opened with other ``can.Bus`` kwargs (same nodes).
+
+        Used to run the same box over virtual or simulated buses.
+        """
+        if len(kwargs) != len(self.buses):
+            raise BusConfigError(f"{self.source}: {len(self.buses)} buses, got {len(kwargs)}")
+        buses = []
+        for b, kw in zip(self.buses, kwargs, strict=True):
+            kw = dict(kw)
+            interface = str(kw.pop("interface"))
+            channel = kw.pop("channel", b.channel)
+            bitrate = int(kw.pop("bitrate", b.bitrate))
+            _check_interface(interface, f"{self.source}: buses.{b.name}.interface")
+            buses.append(
+                replace(b, interface=interface, channel=channel, bitrate=bitrate, options=kw)
+            )
+        return replace(self, buses=tuple(buses))
+
+    def to_dict(self) -> dict[str, Any]:
+        c = self.control
+        return {
+            "control": {k: getattr(c, k) for k in ControlConfig.__dataclass_fields__},
+            "buses": {
+                b.name: {
+                    "interface": b.interface,
+                    "channel": b.channel,
+                    "bitrate": b.bitrate,
+                    "options": dict(b.options),
+                    "nodes": dict(b.nodes),
+                }
+                for b in self.buses
+            },
+        }
+
+
+def known_interfaces() -> set[str]:
+    """python-can interface names: built-in backends plus ``can.interface`` entry points.
+
+    >>> {"virtual", "socketcan", "udp_multicast"} <= known_interfaces()
+    True
+    """
+    names = set(can.interfaces.BACKENDS)
+    try:
+        from importlib.metadata import entry_points
+
+        names |= {e.name for e in entry_points(group="can.interface")}
+    except Exception:  # pragma: no cover - metadata unavailable
+        pass
+    return names
+
+
+def _check_interface(name: Any, where: str) -> str:
+    if not isinstance(name, str) or name not in known_interfaces():
+        raise BusConfigError(
+            f"{where}: unknown python-can interface {name!r} "
+            f"(known: {', '.join(sorted(known_interfaces()))})"
+        )
+    return name
+
+
+_CONTROL_TYPES: dict[str, type] = {
+    "rate_hz": float,
+    "host_node_id": int,
+    "host_heartbeat_ms": int,
+    "node_heartbeat_ms": int,
+    "heartbeat_timeout_ms": int,
+    "missing_tpdo_cycles": int,
+    "bus_load_limit": float,
+    "bootup_timeout_s": float,
+    "sdo_timeout_s": float,
+    "state_timeout_s": float,
+    "following_error_window_counts": int,
+    "quick_stop_option_code": int,
+}
+
+
+def _control_from(doc: Mapping[str, Any], where: str) -> ControlConfig:
+    if not isinstance(doc, Mapping):
+        raise BusConfigError(f"{where}: [control] must be a table")
+    values: dict[str, Any] = {}
+    for key, value in doc.items():
+        w = f"{where}: control.{key}"
+        if key not in _CONTROL_TYPES:
+            raise BusConfigError(f"{w}: unknown key")
+        kind = _CONTROL_TYPES[key]
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise BusConfigError(f"{w}: expected a number, got {value!r}")
+        if kind is int and (not isinstance(value, int) and not float(value).is_integer()):
+            raise BusConfigError(f"{w}: expected an integer, got {value!r}")
+        if not math.isfinite(float(value)):
+            raise BusConfigError(f"{w}: expected a finite number, got {value!r}")
+        values[key] = kind(value)
+    c = ControlConfig(**values)
+    checks = [
+        ("rate_hz", 0 < c.rate_hz <= 10_000, "must be in (0, 10000]"),
+        (
+            "host_node_id",
+            NODE_ID_MIN <= c.host_node_id <= NODE_ID_MAX,
+            f"must be in {NODE_ID_MIN}..{NODE_ID_MAX}",
+        ),
+        ("host_heartbeat_ms", 1 <= c.host_heartbeat_ms <= 0xFFFF, "must be in 1..65535"),
+        ("node_heartbeat_ms", 1 <= c.node_heartbeat_ms <= 0xFFFF, "must be in 1..65535"),
+        (
+            "heartbeat_timeout_ms",
+            max(c.host_heartbeat_ms, c.node_heartbeat_ms) < c.heartbeat_timeout_ms <= 0xFFFF,
+            "must exceed both heartbeat periods (and be <= 65535)",
+        ),
+        ("missing_tpdo_cycles", c.missing_tpdo_cycles >= 1, "must be >= 1"),
+        ("bus_load_limit", 0 < c.bus_load_limit <= 1, "must be in (0, 1]"),
+        ("bootup_timeout_s", c.bootup_timeout_s > 0, "must be > 0"),
+        ("sdo_timeout_s", c.sdo_timeout_s > 0, "must be > 0"),
+        ("state_timeout_s", c.state_timeout_s > 0, "must be > 0"),
+        (
+            "following_error_window_counts",
+            0 <= c.following_error_window_counts <= 0xFFFFFFFF,
+            "must be in 0..4294967295",
+        ),
+        ("quick_stop_option_code", -32768 <= c.quick_stop_option_code <= 32767, "INTEGER16"),
+    ]
+    for key, ok, why in checks:
+        if not ok:
+            raise BusConfigError(f"{where}: control.{key} {why}, got {getattr(c, key)!r}")
+    return c
+
+
+def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
+    """Validate a parsed bus configuration and build a :class:`BoxConfig`."""
+    where = source
+    unknown = set(doc) - {"control", "buses"}
+    if unknown:
+        raise BusConfigError(f"{where}: unknown table(s) {sorted(unknown)}")
+    control = _control_from(doc.get("control", {}), where)
+    buses_doc = doc.get("buses")
+    if not isinstance(buses_doc, Mapping) or not buses_doc:
+        raise BusConfigError(f"{where}: needs at least one [buses.NAME] table")
+    buses: list[BusConfig] = []
+    placed: dict[str, tuple[int, int]] = {}
+    for bi, (name, b) in enumerate(buses_doc.items()):
+        w = f"{where}: buses.{name}"
+        if not isinstance(b, Mapping):
+            raise BusConfigError(f"{w}: must be a table")
+        extra = set(b) - {"interface", "channel", "bitrate", "options", "nodes"}
+        if extra:
+            raise BusConfigError(f"{w}: unknown key(s) {sorted(extra)}")
+        for key in ("interface", "channel", "bitrate", "nodes"):
+            if key not in b:
+                raise BusConfigError(f"{w}: missing key '{key}'")
+        interface = _check_interface(b["interface"], f"{w}.interface")
+        channel = b["channel"]
+        if isinstance(channel, bool) or not isinstance(channel, str | int):
+            raise BusConfigError(f"{w}.channel: expected a string or integer, got {channel!r}")
+        bitrate = b["bitrate"]
+        if (
+            isinstance(bitrate, bool)
+            or not isinstance(bitrate, int)
+            or not 0 < bitrate <= 1_000_000
+        ):
+            raise BusConfigError(f"{w}.bitrate: expected an integer in 1..1000000, got {bitrate!r}")
+        options = b.get("options", {})
+        if not isinstance(options, Mapping):
+            raise BusConfigError(f"{w}.options: must be a table")
+        for key in ("interface", "channel", "bitrate"):
+            if key in options:
+                raise BusConfigError(f"{w}.options.{key}: set it on the bus, not in options")
+        nodes = b["nodes"]
+        if not isinstance(nodes, Mapping) or not nodes:
+            raise BusConfigError(f"{w}.nodes: must be a non-empty table of motor = node id")
+        seen: dict[int, str] = {}
+        for motor, node in nodes.items():
+            wn = f"{w}.nodes.{motor}"
+            if isinstance(node, bool) or not isinstance(node, int):
+                raise BusConfigError(f"{wn}: node id must be an integer, got {node!r}")
+            if not NODE_ID_MIN <= node <= NODE_ID_MAX:
+                raise BusConfigError(f"{wn}: node id {node} outside {NODE_ID_MIN}..{NODE_ID_MAX}")
+            if node == control.host_node_id:
+                raise BusConfigError(
+                    f"{wn}: node id {node} is the host's heartbeat id (control.host_node_id)"
+                )
+            if node in seen:
+                raise BusConfigError(f"{wn}: duplicate node id {node} (also {seen[node]})")
+            if motor in placed:
+                other = list(buses_doc)[placed[motor][0]]
+                raise BusConfigError(f"{wn}: motor '{motor}' is also on bus {other}")
+            seen[node] = motor
+            placed[motor] = (bi, node)
+        buses.append(
+            BusConfig(
+                name=str(name),
+                interface=interface,
+                channel=channel,
+                bitrate=bitrate,
+                options=dict(options),
+                nodes=dict(nodes),
+            )
+        )
+    return BoxConfig(buses=tuple(buses), control=control, source=source, _where=placed)
+
+
+def load_box_config(path: str | Path | None = None) -> BoxConfig:
+    """Load a bus configuration; ``None`` loads the default ``drivers/data/box.toml``.
+
+    Raises :class:`BusConfigError` (one line, naming file and key) on bad input.
+    """
+    p = default_box_path() if path is None else Path(path)
+    source = str(p) if path is not None else f"<default {p.name}>"
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise BusConfigError(f"{p}: bus configuration not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise BusConfigError(f"{p}: cannot read bus configuration ({exc})") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise BusConfigError(f"{source}: not valid TOML ({exc})") from None
+    return box_config_from_dict(doc, source)

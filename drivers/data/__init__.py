@@ -1,0 +1,1 @@
+"""Data shipped with the drivers: the drive EDS and the default bus configuration."""

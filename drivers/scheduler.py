@@ -1,0 +1,392 @@
+"""The cyclic scheduler: one thread, phase-locked to a monotonic clock.
+
+Every control period ``T`` (slot ``k`` is due at ``t0 + k T``; deadlines never
+accumulate drift) the scheduler
+
+1. evaluates every watchdog (:meth:`NodeMonitor.check`): TPDOs of the last SYNC,
+   statuswords, heartbeats, EMCYs, malformed frames;
+2. asks the setpoint source for slot ``k``, checks it against the rope layer's
+   limits (position and speed) and refuses it when out of limits;
+3. sends every node's RPDO (controlword + target position) on every bus, then
+   the SYNC on every bus;
+4. records timing (lateness of the SYNC against its deadline, period jitter,
+   CPU time spent).
+
+Any stop cause makes it send a quick stop (controlword 0x0002 by RPDO, then
+SYNC) to every node of every bus at once, keep doing so for a few cycles until
+the statuswords confirm it, and return the causes; watchdog events that arrive
+between deadlines wake the scheduler immediately, so the quick stop goes out
+within one control period of the event.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import numpy as np
+
+from drivers import cia402 as c
+from drivers.monitor import NodeMonitor, StopCause
+from drivers.setpoints import LimitChecker, SetpointSource
+from drivers.traffic import BusPort, BusSendError
+from hrm_ctrl.errors import HrmError
+
+LATE_THRESHOLD_S = 0.002
+STOP_CONFIRM_CYCLES = 10
+SWITCH_INTERVAL_S = 0.0002  # GIL hand-over while streaming (default 5 ms)
+
+
+@dataclass
+class BusLayout:
+    """The nodes of one bus in the box's global motor order."""
+
+    port: BusPort
+    index: np.ndarray  # global motor indices on this bus
+    node_ids: np.ndarray
+    notifier: can.Notifier | None = None
+
+    def __post_init__(self) -> None:
+        self.rpdo_ids = [c.COB_RPDO1 + int(n) for n in self.node_ids]
+
+    def rpdo_frames(self, controlword: int | np.ndarray, targets: np.ndarray) -> list[can.Message]:
+        """RPDO frames of this bus for global target vector ``targets``."""
+        payload = c.make_rpdo_target_payloads(
+            np.broadcast_to(np.asarray(controlword), (len(self.index),)), targets[self.index]
+        )
+        n = c.RPDO_TARGET_SIZE
+        return [
+            can.Message(
+                arbitration_id=cid,
+                data=payload[n * i : n * i + n],
+                is_extended_id=False,
+                check=False,
+            )
+            for i, cid in enumerate(self.rpdo_ids)
+        ]
+
+
+@dataclass
+class EventLog:
+    """Timestamped events of a run (thread-safe append)."""
+
+    t0: float = field(default_factory=time.monotonic)
+    events: list[dict[str, Any]] = field(default_factory=list)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def add(self, kind: str, text: str, **extra: Any) -> None:
+        with self._lock:
+            self.events.append(
+                {"t_s": round(time.monotonic() - self.t0, 6), "kind": kind, "text": text, **extra}
+            )
+
+    def to_list(self) -> list[dict[str, Any]]:
+        with self._lock:
+            return list(self.events)
+
+
+class CycleStats:
+    """Per-cycle timing of a stream."""
+
+    def __init__(self, period_s: float, late_threshold_s: float = LATE_THRESHOLD_S) -> None:
+        self.period_s = period_s
+        self.late_threshold_s = late_threshold_s
+        self.deadline: list[float] = []
+        self.woke: list[float] = []
+        self.sync_sent: list[float] = []
+        self.cpu_s: list[float] = []
+        self.skipped_slots = 0
+        self.missing_feedback = 0
+        self.process_cpu_s = 0.0
+
+    def add(self, deadline: float, woke: float, sync_sent: float, cpu_s: float) -> None:
+        self.deadline.append(deadline)
+        self.woke.append(woke)
+        self.sync_sent.append(sync_sent)
+        self.cpu_s.append(cpu_s)
+
+    @property
+    def n_cycles(self) -> int:
+        return len(self.deadline)
+
+    def summary(self) -> dict[str, Any]:
+        """Lateness = SYNC sent minus its deadline (wake lateness: scheduler awake minus
+        deadline); jitter = |period - T| between consecutive SYNCs; CPU = scheduler thread
+        time per cycle; process CPU includes receive threads and log writers."""
+        n = self.n_cycles
+        out: dict[str, Any] = {
+            "cycles": n,
+            "period_s": self.period_s,
+            "late_threshold_s": self.late_threshold_s,
+            "skipped_slots": self.skipped_slots,
+            "missing_feedback_node_cycles": self.missing_feedback,
+        }
+        if n == 0:
+            return out
+        late = np.asarray(self.sync_sent) - np.asarray(self.deadline)
+        wake = np.asarray(self.woke) - np.asarray(self.deadline)
+        cpu = np.asarray(self.cpu_s)
+        out.update(
+            {
+                "wake_lateness_p99_s": float(np.percentile(wake, 99)),
+                "wake_lateness_max_s": float(wake.max()),
+                "lateness_p50_s": float(np.percentile(late, 50)),
+                "lateness_p99_s": float(np.percentile(late, 99)),
+                "lateness_max_s": float(late.max()),
+                "late_cycles": int(np.count_nonzero(late > self.late_threshold_s)),
+                "cpu_per_cycle_mean_s": float(cpu.mean()),
+                "cpu_per_cycle_p99_s": float(np.percentile(cpu, 99)),
+                "process_cpu_per_cycle_s": self.process_cpu_s / n,
+            }
+        )
+        if n >= 2:
+            jitter = np.abs(np.diff(np.asarray(self.sync_sent)) - self.period_s)
+            out.update(
+                {
+                    "jitter_p50_s": float(np.percentile(jitter, 50)),
+                    "jitter_p99_s": float(np.percentile(jitter, 99)),
+                    "jitter_max_s": float(jitter.max()),
+                    "drift_s": float(
+                        (self.sync_sent[-1] - self.sync_sent[0])
+                        - (self.deadline[-1] - self.deadline[0])
+                    ),
+                }
+            )
+        return out
+
+
+@dataclass
+class StreamResult:
+    """How a stream ended."""
+
+    completed: bool
+    cycles: int
+    causes: list[StopCause]
+    stats: dict[str, Any]
+    last_targets: np.ndarray
+    stop_latency_s: float | None = None
+    stop_confirmed: bool | None = None
+    final_statuswords: list[int] = field(default_factory=list)
+    error: HrmError | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "completed": self.completed,
+            "cycles": self.cycles,
+            "causes": [x.to_dict() for x in self.causes],
+            "stop_latency_s": self.stop_latency_s,
+            "stop_confirmed": self.stop_confirmed,
+            "final_statuswords": self.final_statuswords,
+            "stats": self.stats,
+            "error": None if self.error is None else str(self.error),
+        }
+
+
+class CyclicScheduler:
+    """Streams setpoints to every node of every bus, one SYNC per control period."""
+
+    def __init__(
+        self,
+        buses: list[BusLayout],
+        monitor: NodeMonitor,
+        limits: LimitChecker,
+        period_s: float,
+        events: EventLog,
+        late_threshold_s: float = LATE_THRESHOLD_S,
+    ) -> None:
+        self.buses = buses
+        self.monitor = monitor
+        self.limits = limits
+        self.period_s = float(period_s)
+        self.events = events
+        self.late_threshold_s = late_threshold_s
+        self.seq = -1  # SYNC sequence number, continues across streams
+        self.stop_request = threading.Event()
+
+    # ------------------------------------------------------------------ sending
+    def _send_all(self, controlword: int, targets: np.ndarray) -> list[StopCause]:
+        """RPDOs on every bus, then SYNC on every bus; send failures become causes
+        (the other buses are still served)."""
+        return self._send_frames([lay.rpdo_frames(controlword, targets) for lay in self.buses])
+
+    def _send_frames(self, frames: list[list[can.Message]]) -> list[StopCause]:
+        failed: list[StopCause] = []
+        ok: list[BusLayout] = []
+        for layout, msgs in zip(self.buses, frames, strict=True):
+            try:
+                layout.port.send_many(msgs)
+                ok.append(layout)
+            except BusSendError as exc:
+                failed.append(StopCause("send", str(exc), None, time.monotonic()))
+        self.seq += 1
+        self.monitor.seq = self.seq
+        for layout in ok:
+            try:
+                layout.port.send(c.make_sync())
+            except BusSendError as exc:
+                failed.append(StopCause("send", str(exc), None, time.monotonic()))
+        return failed
+
+    def send_controlword(self, controlword: int, targets: np.ndarray) -> list[StopCause]:
+        """One RPDO (same controlword for all) + SYNC on every bus, outside streaming."""
+        return self._send_all(controlword, targets)
+
+    # ------------------------------------------------------------------ stopping
+    def _quick_stop(
+        self, causes: list[StopCause], targets: np.ndarray, detected_at: float
+    ) -> tuple[float, bool, list[StopCause]]:
+        extra = self._send_all(c.CW_QUICK_STOP, targets)
+        latency = time.monotonic() - detected_at
+        for cause in causes:
+            self.events.add("stop_cause", cause.text, cause=cause.kind, motor=cause.motor)
+        self.events.add(
+            "quick_stop",
+            f"quick stop sent to every node of every bus {latency * 1000:.2f} ms after detection",
+        )
+        # Keep commanding quick stop until every node's feedback confirms it.
+        confirmed = False
+        t_next = time.monotonic() + self.period_s
+        for _ in range(STOP_CONFIRM_CYCLES):
+            time.sleep(max(0.0, t_next - time.monotonic()))
+            t_next += self.period_s
+            mon = self.monitor
+            fresh = mon.rx_seq >= self.seq
+            states = c.decode_states(mon.statusword)
+            if bool(np.all(fresh & (states != int(c.State402.OPERATION_ENABLED)))):
+                confirmed = True
+                break
+            extra += self._send_all(c.CW_QUICK_STOP, targets)
+        self.events.add(
+            "quick_stop_confirmed" if confirmed else "quick_stop_unconfirmed",
+            "every node left OPERATION_ENABLED"
+            if confirmed
+            else "some nodes did not confirm the quick stop by TPDO",
+        )
+        return latency, confirmed, extra
+
+    # ------------------------------------------------------------------ streaming
+    def stream(self, source: SetpointSource, actual: np.ndarray) -> StreamResult:
+        """Run ``source`` from the actual positions until it ends or something stops it."""
+        T = self.period_s
+        mon = self.monitor
+        source.start(np.asarray(actual, dtype=np.int64), T)
+        stats = CycleStats(T, self.late_threshold_s)
+        last = np.asarray(actual, dtype=np.int64).copy()
+        last_slot: int | None = None
+        sent_since = -1
+        mon.missing_run[:] = 0
+        missing0 = mon.missing_total
+        mon.wake.clear()
+        self.stop_request.clear()
+        t0 = time.monotonic() + 2 * T / 10
+        hb_armed = t0
+        mon.streaming = True
+        self.events.add("stream_start", f"streaming {source.describe()}")
+        cpu0 = time.process_time()
+        k = 0
+        causes: list[StopCause] = []
+        error: HrmError | None = None
+        completed = False
+        old_switch = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        prepared: tuple[int, np.ndarray, list[list[can.Message]]] | None = None
+        try:
+            while True:
+                if prepared is None or prepared[0] != k:
+                    # Setpoint, limit check and frames for slot k, ahead of its deadline.
+                    target = source.setpoint(k)
+                    if target is None:
+                        completed = True
+                        break
+                    dt = T * (k - last_slot) if last_slot is not None else None
+                    try:
+                        self.limits.check_counts(target, previous=last, dt_s=dt)
+                    except HrmError as exc:
+                        error = exc
+                        now = time.monotonic()
+                        causes = [StopCause("limit", f"setpoint refused: {exc}", None, now)]
+                        break
+                    frames = [lay.rpdo_frames(c.CW_ENABLE_OPERATION, target) for lay in self.buses]
+                    prepared = (k, target, frames)
+                deadline = t0 + k * T
+                remaining = deadline - time.monotonic()
+                if remaining > 0 and mon.wake.wait(remaining):
+                    # A watchdog fired between deadlines: react now.
+                    mon.wake.clear()
+                    causes = mon.check(time.monotonic(), -1, None)
+                    if self.stop_request.is_set():
+                        causes.append(
+                            StopCause("operator", "stop requested", None, time.monotonic())
+                        )
+                    if causes:
+                        break
+                    continue
+                th0 = time.thread_time()
+                now = time.monotonic()
+                if now - deadline > T:
+                    skip = int((now - t0) // T) - k
+                    stats.skipped_slots += skip
+                    k += skip
+                    continue
+                causes = mon.check(now, sent_since, hb_armed)
+                for layout in self.buses:
+                    if layout.notifier is not None and layout.notifier.exception is not None:
+                        causes.append(
+                            StopCause(
+                                "receive",
+                                f"bus {layout.port.name}: receive failed "
+                                f"({layout.notifier.exception})",
+                                None,
+                                now,
+                            )
+                        )
+                if self.stop_request.is_set():
+                    causes.append(StopCause("operator", "stop requested", None, now))
+                if causes:
+                    break
+                _, target, frames = prepared
+                failed = self._send_frames(frames)
+                t_sync = time.monotonic()
+                sent_since = self.seq
+                last = target
+                last_slot = k
+                if failed:
+                    causes = failed
+                    break
+                stats.add(deadline, now, t_sync, time.thread_time() - th0)
+                k += 1
+        finally:
+            sys.setswitchinterval(old_switch)
+            stats.process_cpu_s = time.process_time() - cpu0
+            stats.missing_feedback = mon.missing_total - missing0
+        result = StreamResult(
+            completed=completed,
+            cycles=stats.n_cycles,
+            causes=causes,
+            stats={},
+            last_targets=last,
+            error=error,
+        )
+        if causes:
+            unique: dict[tuple[str, str | None], StopCause] = {}
+            for x in causes:
+                unique.setdefault((x.kind, x.motor or x.text), x)
+            causes = list(unique.values())
+            detected = min((x.time_s for x in causes if x.time_s > 0), default=time.monotonic())
+            latency, confirmed, extra = self._quick_stop(causes, last, detected)
+            result.causes = causes + extra
+            result.stop_latency_s = latency
+            result.stop_confirmed = confirmed
+        mon.streaming = False
+        result.stats = stats.summary()
+        result.final_statuswords = [int(v) for v in mon.statusword]
+        self.events.add(
+            "stream_end",
+            "plan completed" if completed else "stopped: " + "; ".join(x.text for x in causes),
+            stats=result.stats,
+        )
+        return result

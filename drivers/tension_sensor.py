@@ -1,0 +1,230 @@
+"""Host-side reader of the rope tension-sensor board (serial line, pyserial).
+
+The board sends one frame per sample (protocol in ``docs/sim.md``):
+``A5 5A | type 01 | L | seq u16 | board time u32 µs | n u8 | flags u8 |
+n x u16 tension (0.01 N, FFFF invalid) | CRC-16/CCITT-FALSE of type..payload``,
+little-endian.  :class:`TensionFrameParser` turns a byte stream into samples
+and resynchronises after garbage: it searches for the sync bytes, checks type,
+length and CRC, and on any mismatch drops one byte and searches again (counting
+what it dropped).  :class:`TensionSensorReader` reads a serial port in a
+thread and hands out the newest sample; :meth:`TensionSensorReader.latest`
+raises :class:`StaleTensionError` when the newest sample is older than
+``stale_after_s`` (board silent, cable pulled, only garbage arriving).
+
+>>> p = TensionFrameParser(n_ropes=2)
+>>> frame = bytes.fromhex('a55a010c0100e80300000200b80b00000618')
+>>> [s.tensions_N.tolist() for s in p.feed(b'\\x00\\xa5junk' + frame)]
+[[30.0, 0.0]]
+>>> p.garbage_bytes, p.frames
+(6, 1)
+"""
+
+from __future__ import annotations
+
+import binascii
+import struct
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from hrm_ctrl.errors import DriverError
+
+SYNC = b"\xa5\x5a"
+FRAME_TENSION = 0x01
+HEADER = struct.Struct("<HIBB")
+TENSION_LSB_N = 0.01
+TENSION_INVALID = 0xFFFF
+DEFAULT_BAUDRATE = 921_600
+
+
+class TensionSensorError(DriverError):
+    """The tension-sensor board cannot be opened or sends unusable data."""
+
+
+class StaleTensionError(TensionSensorError):
+    """No valid tension sample for longer than the allowed age."""
+
+
+@dataclass(frozen=True)
+class TensionSample:
+    """One decoded frame: tensions in N (NaN where the board marks a channel invalid)."""
+
+    seq: int
+    board_time_us: int
+    flags: int
+    tensions_N: np.ndarray
+    received_s: float  # host monotonic time of reception
+
+
+def crc16_ccitt(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE.
+
+    >>> hex(crc16_ccitt(b'123456789'))
+    '0x29b1'
+    """
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+class TensionFrameParser:
+    """Incremental frame parser with resynchronisation (pure: bytes in, samples out)."""
+
+    def __init__(self, n_ropes: int | None = None, max_buffer: int = 4096) -> None:
+        self.n_ropes = n_ropes
+        self._buf = bytearray()
+        self._max = max_buffer
+        self.frames = 0
+        self.garbage_bytes = 0
+        self.crc_errors = 0
+        self.wrong_count = 0
+
+    def feed(self, data: bytes, now_s: float | None = None) -> list[TensionSample]:
+        """Add received bytes; return every complete, valid frame (in order)."""
+        now = time.monotonic() if now_s is None else now_s
+        buf = self._buf
+        buf += data
+        out: list[TensionSample] = []
+        while True:
+            start = buf.find(SYNC)
+            if start < 0:
+                keep = 1 if buf.endswith(SYNC[:1]) else 0
+                self.garbage_bytes += len(buf) - keep
+                del buf[: len(buf) - keep]
+                break
+            if start:
+                self.garbage_bytes += start
+                del buf[:start]
+            if len(buf) < 4:
+                break
+            ftype, length = buf[2], buf[3]
+            if ftype != FRAME_TENSION or length < HEADER.size or (length - HEADER.size) % 2:
+                self._skip()
+                continue
+            total = 4 + length + 2
+            if len(buf) < total:
+                break
+            body = bytes(buf[2 : 4 + length])
+            (crc,) = struct.unpack_from("<H", buf, 4 + length)
+            if crc != crc16_ccitt(body):
+                self.crc_errors += 1
+                self._skip()
+                continue
+            seq, t_us, n, flags = HEADER.unpack_from(body, 2)
+            if n * 2 != length - HEADER.size:
+                self._skip()
+                continue
+            del buf[:total]
+            raw = np.frombuffer(body, dtype="<u2", count=n, offset=2 + HEADER.size)
+            tensions = np.where(raw == TENSION_INVALID, np.nan, raw * TENSION_LSB_N)
+            if self.n_ropes is not None and n != self.n_ropes:
+                self.wrong_count += 1
+                continue
+            self.frames += 1
+            out.append(TensionSample(int(seq), int(t_us), int(flags), tensions, now))
+        if len(buf) > self._max:
+            self.garbage_bytes += len(buf) - self._max
+            del buf[: len(buf) - self._max]
+        return out
+
+    def _skip(self) -> None:
+        self.garbage_bytes += 1
+        del self._buf[:1]
+
+
+class TensionSensorReader:
+    """Reads the board on ``port`` in a thread; :meth:`latest` gives the newest sample.
+
+    Every wait is bounded: the port is read with ``read_timeout_s``; ``latest``
+    never blocks.  Use as a context manager.
+    """
+
+    def __init__(
+        self,
+        port: str,
+        n_ropes: int,
+        *,
+        baudrate: int = DEFAULT_BAUDRATE,
+        stale_after_s: float = 0.05,
+        read_timeout_s: float = 0.01,
+    ) -> None:
+        if not stale_after_s > 0:
+            raise TensionSensorError(f"stale_after_s must be > 0, got {stale_after_s!r}")
+        self.port = port
+        self.n_ropes = int(n_ropes)
+        self.baudrate = int(baudrate)
+        self.stale_after_s = float(stale_after_s)
+        self.read_timeout_s = float(read_timeout_s)
+        self.parser = TensionFrameParser(self.n_ropes)
+        self._latest: TensionSample | None = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._serial: object | None = None
+        self.lost_frames = 0
+        self.read_error: str | None = None
+
+    def open(self) -> TensionSensorReader:
+        import serial  # pyserial
+
+        try:
+            ser = serial.Serial(self.port, self.baudrate, timeout=self.read_timeout_s)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise TensionSensorError(f"tension sensor {self.port}: cannot open ({exc})") from None
+        ser.reset_input_buffer()
+        self._serial = ser
+        self._thread = threading.Thread(target=self._run, name="tension-reader", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+        if self._serial is not None:
+            self._serial.close()  # type: ignore[attr-defined]
+            self._serial = None
+
+    def __enter__(self) -> TensionSensorReader:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _run(self) -> None:
+        ser = self._serial
+        last_seq: int | None = None
+        while not self._stop.is_set():
+            try:
+                data = ser.read(max(1, ser.in_waiting))  # type: ignore[attr-defined]
+            except Exception as exc:  # port vanished: report through latest()
+                self.read_error = str(exc)
+                return
+            if not data:
+                continue
+            for s in self.parser.feed(data):
+                if last_seq is not None:
+                    self.lost_frames += (s.seq - last_seq - 1) & 0xFFFF
+                last_seq = s.seq
+                with self._lock:
+                    self._latest = s
+
+    def latest(self, now_s: float | None = None) -> TensionSample:
+        """The newest valid sample; :class:`StaleTensionError` if it is too old or missing."""
+        now = time.monotonic() if now_s is None else now_s
+        with self._lock:
+            s = self._latest
+        if self.read_error is not None:
+            raise TensionSensorError(f"tension sensor {self.port}: read failed ({self.read_error})")
+        if s is None:
+            raise StaleTensionError(
+                f"tension sensor {self.port}: no valid frame yet "
+                f"({self.parser.garbage_bytes} garbage bytes, {self.parser.crc_errors} CRC errors)"
+            )
+        age = now - s.received_s
+        if age > self.stale_after_s:
+            raise StaleTensionError(
+                f"tension sensor {self.port}: newest frame is {age * 1000:.0f} ms old "
+                f"(limit {self.stale_after_s * 1000:.0f} ms)"
+            )
+        return s

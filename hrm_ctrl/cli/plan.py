@@ -1,0 +1,133 @@
+"""``hrm plan``: plan the arm along a scenario or a path file and report on it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+from hrm_ctrl.errors import PlanningError
+from hrm_ctrl.known_path import KnownPath, load_path_csv
+from hrm_ctrl.model import load_robot
+from hrm_ctrl.planfile import write_plan
+from hrm_ctrl.planner import Plan, PlanOptions, check_limits, plan_path
+from hrm_ctrl.scenarios import SCENARIOS, Scenario, scenario
+
+HELP = "plan the arm along a scenario or a path file (Sec. 3 of the paper) and report on it"
+
+
+def register(p: argparse.ArgumentParser) -> None:
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--scenario", choices=sorted(SCENARIOS), help="a reference scenario")
+    src.add_argument("--path", type=Path, metavar="FILE", help="CSV path file (header x,y,z; mm)")
+    p.add_argument("--robot", type=Path, metavar="FILE", help="robot description (TOML)")
+    p.add_argument("--step", type=float, default=5.0, metavar="MM", help="lambda (default 5 mm)")
+    p.add_argument("--alpha-step", type=float, default=1.0, help="alpha_step of Eq. 11 (0, 1]")
+    p.add_argument("--return", dest="ret", action="store_true", help="back out to the start")
+    p.add_argument("--out", type=Path, metavar="PLAN.json", help="write the plan file")
+    p.add_argument("--plot", type=Path, metavar="DIR", help="write figures (PNG) to DIR")
+    p.add_argument(
+        "--allow-violations",
+        action="store_true",
+        help="write the plan even if it breaks a joint limit",
+    )
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+
+
+def make_plan(args: argparse.Namespace) -> Plan:
+    """Load the inputs named by the arguments and plan (no output written)."""
+    if not (math.isfinite(args.step) and args.step > 0.0):
+        raise PlanningError(f"--step must be > 0 mm, got {args.step}")
+    robot = load_robot(args.robot)
+    sc: Scenario | None = None
+    if args.scenario:
+        sc = scenario(args.scenario)
+        path: KnownPath = sc.path
+    else:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            path = load_path_csv(args.path)
+        for w in caught:
+            print(f"hrm plan: warning: {w.message}", file=sys.stderr)
+    opts = PlanOptions(step=args.step, alpha_step=args.alpha_step, return_to_start=args.ret)
+    return plan_path(robot, path, opts, scenario=sc)
+
+
+def format_report(plan: Plan, name: str) -> str:
+    """The report as lines a person reads."""
+    r: dict[str, Any] = plan.report
+    o = plan.options
+    ret = ", with return" if o.return_to_start else ""
+    rows = [
+        (
+            "tip error vs path",
+            f"max {r['tip_error_mm']:.3g} mm; at the end {r['end_error_mm']:.3g} mm",
+        ),
+        ("joints in the path", f"max {r['joints_off_path_mm']:.3g} mm off the path"),
+        (
+            "links in the path",
+            f"max {r['links_off_path_mm']:.2f} mm off the path (links are chords of the path)",
+        ),
+    ]
+    v = r["first_violation"]
+    if v is None:
+        rows.append(
+            ("joint-limit margin", f"{r['joint_limit_margin_deg']:.2f} deg (all within limits)")
+        )
+    else:
+        rows.append(
+            (
+                "joint limit BROKEN",
+                f"first at step {v['step']} (travel {v['travel_mm']:.1f} mm): "
+                f"joint {v['joint']} {v['angle']} = {v['deg']:.2f} deg",
+            )
+        )
+    mc = r["max_angle_change_deg"]
+    rows.append(
+        ("largest step change", f"{mc['deg']:.2f} deg (step {mc['step']}, joint {mc['joint']})")
+    )
+    it = r["solver_iterations"]
+    rows.append(("solver iterations", f"{it['total']} in all, at most {it['max_per_step']} a step"))
+    if "clearance_mm" in r:
+        c = r["clearance_mm"]
+        if c["min"] is None:
+            rows.append(("clearance", "no link meets an obstacle"))
+        else:
+            verdict = "clear" if c["min"] >= 0 else "COLLISION: the link meets the wall"
+            rows.append(
+                (
+                    "clearance",
+                    f"{c['min']:.2f} mm at step {c['step']}, link {c['link']} ({verdict})",
+                )
+            )
+    rows.append(("planning time", f"{r['plan_time_ms']:.1f} ms"))
+    head = (
+        f"plan: {name}: {r['steps']} steps over {r['path_length_mm']:.2f} mm "
+        f"(step {o.step:g} mm, alpha_step {o.alpha_step:g}{ret})"
+    )
+    return "\n".join([head, *(f"  {k:<22}  {v}" for k, v in rows)])
+
+
+def run(args: argparse.Namespace) -> int:
+    plan = make_plan(args)
+    name = args.scenario or str(args.path)
+    if args.json:
+        print(json.dumps(plan.report, indent=2))
+    else:
+        print(format_report(plan, name))
+    if not args.allow_violations:
+        check_limits(plan)  # raises: nothing written
+    doc = plan.to_dict()
+    if args.out:
+        write_plan(args.out, doc)
+        print(f"plan written to {args.out}")
+    if args.plot:
+        from hrm_ctrl.plots import write_plan_figures
+
+        for f in write_plan_figures(doc, args.plot):
+            print(f"figure written to {f}")
+    return 0

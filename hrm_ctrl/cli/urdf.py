@@ -1,0 +1,46 @@
+"""``hrm urdf``: write the arm as URDF (stdout, or a file with ``--out``).
+
+>>> import argparse
+>>> p = argparse.ArgumentParser(prog="hrm urdf")
+>>> register(p)
+>>> p.parse_args(["--out", "arm.urdf"]).out
+PosixPath('arm.urdf')
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from hrm_ctrl.model import load_robot
+from hrm_ctrl.urdf import robot_urdf, write_robot_urdf
+
+HELP = "write the arm as URDF (each universal joint as two revolute joints)"
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--robot",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="robot description TOML (default: the one shipped with hrm)",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the URDF to FILE (atomically) instead of stdout",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    model = load_robot(args.robot)
+    if args.out is None:
+        sys.stdout.write(robot_urdf(model))
+        return 0
+    path = write_robot_urdf(model, args.out)
+    print(f"wrote {path}", file=sys.stderr)
+    return 0

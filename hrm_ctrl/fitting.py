@@ -1,0 +1,248 @@
+"""Fitting the arm's joint centres onto the backbone, Sec. 3.3.
+
+From the tip towards the base, each joint centre ``O_i`` is the point of the
+backbone polyline at distance ``l_i`` from ``O_{i+1}`` (Steps 1-3): a bisection
+over the polyline's points brackets the crossing between two neighbouring
+points P_{j-1}, P_j, and the exact intersection of the sphere of radius l_i
+with segment P_{j-1}P_j is taken (Fig. 7).  Joint 2 (Step 4) lies on the circle
+where the spheres about O_1 (radius l_1) and O_3 (radius l_2) meet; of its points
+we take the one nearest the backbone point at arc length l_1, which keeps
+joints 1-3 close to the backbone and moves continuously from step to step.
+
+Bisection needs the distance from O_{i+1} to grow monotonically towards the
+base over the bracket; when the polyline folds back (it never does on the
+reference scenarios) the bracket falls back to the nearest crossing along the
+curve, which is what bisection finds whenever it applies.
+
+>>> import numpy as np
+>>> line = np.array([[0.0, 0, 0], [10.0, 0, 0]])
+>>> O = fit_joint_centres(line, np.array([5.0, 5.0]))
+>>> O.round(9).tolist()
+[[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [10.0, 0.0, 0.0]]
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hrm_ctrl.errors import PlanningError
+
+
+def sphere_segment_intersection(C: np.ndarray, P: np.ndarray, Q: np.ndarray, r: float) -> float:
+    """Parameter t in [0, 1] of the point ``P + t (Q - P)`` at distance r from C,
+    where |P - C| >= r > |Q - C| (the crossing nearest P).
+
+    >>> sphere_segment_intersection(np.zeros(3), np.array([2.0, 0, 0]), np.zeros(3), 1.0)
+    0.5
+    """
+    D = Q - P
+    E = P - C
+    a = float(D @ D)
+    b = float(E @ D)
+    c = float(E @ E) - r * r
+    disc = max(b * b - a * c, 0.0)
+    t = (-b - math.sqrt(disc)) / a
+    return min(max(t, 0.0), 1.0)
+
+
+def _bracket(d: np.ndarray, r: float) -> int:
+    """Largest k with d[k] >= r, found by bisection when d decreases monotonically
+    towards the end of the array; otherwise by a scan (the nearest crossing)."""
+    n = len(d)
+    if n == 0 or d[0] < r:
+        return -1
+    if n > 2 and np.all(np.diff(d) <= 1e-12):
+        lo, hi = 0, n - 1  # d[lo] >= r; find the last such index
+        if d[hi] >= r:
+            return hi
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if d[mid] >= r:
+                lo = mid
+            else:
+                hi = mid
+        return lo
+    return int(np.flatnonzero(d >= r)[-1])
+
+
+def circle_point_nearest(
+    O1: np.ndarray, O3: np.ndarray, l1: float, l2: float, ref: np.ndarray
+) -> np.ndarray:
+    """Step 4: the point O2 with |O2 - O1| = l1 and |O3 - O2| = l2 nearest ``ref``.
+
+    >>> O3, ref = np.array([6.0, 0, 0]), np.array([3.0, 0, 9])
+    >>> circle_point_nearest(np.zeros(3), O3, 5.0, 5.0, ref).round(9).tolist()
+    [3.0, 0.0, 4.0]
+    """
+    v = O3 - O1
+    D = float(np.linalg.norm(v))
+    if D > l1 + l2 or D < abs(l1 - l2) or D == 0.0:
+        raise PlanningError(
+            f"joint 2 has no place: O1-O3 is {D:.3f} mm, links 1 and 2 span "
+            f"{abs(l1 - l2):.3f} to {l1 + l2:.3f} mm (backbone too long for the arm)"
+        )
+    n = v / D
+    a = (D * D + l1 * l1 - l2 * l2) / (2.0 * D)
+    r = math.sqrt(max(l1 * l1 - a * a, 0.0))
+    c = O1 + a * n
+    w = ref - c
+    w = w - (w @ n) * n
+    nw = float(np.linalg.norm(w))
+    if nw < 1e-12:  # ref on the axis: any point; take one perpendicular to n
+        w = np.cross(n, [0.0, 0.0, 1.0])
+        if np.linalg.norm(w) < 1e-9:
+            w = np.cross(n, [0.0, 1.0, 0.0])
+        nw = float(np.linalg.norm(w))
+    return c + r * w / nw
+
+
+def point_at_arc(curve: np.ndarray, s: float) -> np.ndarray:
+    """Point of a polyline at arc length s from its first point (clamped)."""
+    seg = np.linalg.norm(np.diff(curve, axis=0), axis=1)
+    cum = np.concatenate(([0.0], np.cumsum(seg)))
+    s = min(max(s, 0.0), float(cum[-1]))
+    j = min(int(np.searchsorted(cum, s, side="right")) - 1, len(seg) - 1)
+    t = (s - cum[j]) / seg[j] if seg[j] > 0 else 0.0
+    return curve[j] + t * (curve[j + 1] - curve[j])
+
+
+def fit_joint_centres(curve: np.ndarray, links: np.ndarray) -> np.ndarray:
+    """Joint centres O_1..O_n and the end point O_{n+1} fitted onto ``curve``
+    (see :func:`fit_joint_centres_on_segments`)."""
+    return fit_joint_centres_on_segments(curve, links)[0]
+
+
+def fit_joint_centres_on_segments(
+    curve: np.ndarray, links: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint centres O_1..O_n and the end point O_{n+1} fitted onto ``curve``, and
+    for each the index k of the curve segment [curve[k], curve[k+1]] it lies on
+    (-1 for O_2, which lies on the circle of Step 4, not on the curve).
+
+    ``curve`` (m, 3) runs from the base (O_1 = curve[0]) to the tip
+    (O_{n+1} = curve[-1]); ``links`` are l_1..l_n.  Joints n..3 by bisection and
+    the exact sphere-segment intersection, joint 2 on the circle of Step 4.
+
+    Raises :class:`PlanningError` when the curve is too short for the arm or
+    too long for joint 2 to close the chain.
+    """
+    n = len(links)
+    O = np.empty((n + 1, 3))
+    seg = np.zeros(n + 1, dtype=np.int64)
+    seg[n] = len(curve) - 2
+    O[n] = curve[-1]
+    O[0] = curve[0]
+    P = curve[-1]
+    j = len(curve) - 2  # P lies on segment [curve[j], curve[j + 1]]
+    for i in range(n - 1, 1, -1):  # O_{i+1} (0-based index i) from O_{i+2}
+        r = float(links[i])
+        d = np.linalg.norm(curve[: j + 1] - P, axis=1)
+        k = _bracket(d, r)
+        if k < 0:
+            raise PlanningError(
+                f"backbone too short: no place for joint {i + 1} at {r:.1f} mm from joint {i + 2}"
+            )
+        nxt = curve[k + 1] if k + 1 <= j else P
+        t = sphere_segment_intersection(P, curve[k], nxt, r)
+        P = curve[k] + t * (nxt - curve[k])
+        O[i] = P
+        seg[i] = k
+        j = k
+    if n >= 2:
+        ref = point_at_arc(curve, float(links[0]))
+        O[1] = circle_point_nearest(O[0], O[2], float(links[0]), float(links[1]), ref)
+        seg[1] = -1
+    return O, seg
+
+
+def circle_points_nearest(
+    O1: np.ndarray, O3: np.ndarray, l1: float, l2: float, ref: np.ndarray
+) -> np.ndarray:
+    """:func:`circle_point_nearest` for many steps at once; arrays of shape (N, 3).
+
+    Returns NaN rows where no circle exists (the caller reports them)."""
+    v = O3 - O1
+    D = np.linalg.norm(v, axis=1)
+    n = v / D[:, None]
+    a = (D * D + l1 * l1 - l2 * l2) / (2.0 * D)
+    r = np.sqrt(np.maximum(l1 * l1 - a * a, 0.0))
+    c = O1 + a[:, None] * n
+    w = ref - c
+    w = w - np.einsum("ij,ij->i", w, n)[:, None] * n
+    nw = np.linalg.norm(w, axis=1)
+    flat = nw < 1e-12
+    if flat.any():
+        alt = np.cross(n[flat], [0.0, 0.0, 1.0])
+        w[flat] = alt
+        nw[flat] = np.linalg.norm(alt, axis=1)
+    out = c + (r / nw)[:, None] * w
+    bad = (D > l1 + l2) | (D < abs(l1 - l2)) | (D == 0.0)
+    out[bad] = np.nan
+    return out
+
+
+def fit_joint_centres_batch(
+    curves: np.ndarray, links: np.ndarray, ref2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sec. 3.3 for N backbones at once.
+
+    ``curves`` (N, m, 3): each from the base (index 0) to the tip (index m - 1);
+    a shorter curve is padded at its end with copies of its tip.  ``ref2`` (N, 3):
+    the reference point that picks joint 2 on its circle (Step 4).  Each joint's
+    bracket is the last curve point, towards the tip, still at distance >= l_i
+    from the joint after it: the bracket bisection finds on a monotone distance
+    (compare :func:`fit_joint_centres`, which bisects, on one curve).
+
+    Returns the joint centres (N, n + 1, 3) and segment indices (N, n + 1).
+    Raises :class:`PlanningError` naming the first step that cannot be fitted.
+    """
+    N, m, _ = curves.shape
+    n = len(links)
+    rows = np.arange(N)
+    idx = np.arange(m)
+    O = np.empty((N, n + 1, 3))
+    seg = np.zeros((N, n + 1), dtype=np.int64)
+    P = curves[:, -1].copy()
+    j = np.full(N, m - 2)
+    O[:, n] = P
+    O[:, 0] = curves[:, 0]
+    seg[:, n] = m - 2
+    for i in range(n - 1, 1, -1):
+        r = float(links[i])
+        d2 = np.einsum("nmk,nmk->nm", curves - P[:, None, :], curves - P[:, None, :])
+        ok = (d2 >= r * r) & (idx[None, :] <= j[:, None])
+        found = ok.any(axis=1)
+        if not found.all():
+            bad = int(np.flatnonzero(~found)[0])
+            raise PlanningError(
+                f"step {bad}: backbone too short, no place for joint {i + 1} "
+                f"at {r:.1f} mm from joint {i + 2}"
+            )
+        k = m - 1 - np.argmax(ok[:, ::-1], axis=1)
+        Ck = curves[rows, k]
+        nxt = np.where((k + 1 <= j)[:, None], curves[rows, np.minimum(k + 1, m - 1)], P)
+        D = nxt - Ck
+        E = Ck - P
+        qa = np.einsum("ij,ij->i", D, D)
+        qb = np.einsum("ij,ij->i", E, D)
+        qc = np.einsum("ij,ij->i", E, E) - r * r
+        t = (-qb - np.sqrt(np.maximum(qb * qb - qa * qc, 0.0))) / np.where(qa > 0, qa, 1.0)
+        t = np.clip(t, 0.0, 1.0)
+        P = Ck + t[:, None] * D
+        O[:, i] = P
+        seg[:, i] = k
+        j = k
+    if n >= 2:
+        O[:, 1] = circle_points_nearest(O[:, 0], O[:, 2], float(links[0]), float(links[1]), ref2)
+        seg[:, 1] = -1
+        bad_rows = np.flatnonzero(np.isnan(O[:, 1, 0]))
+        if len(bad_rows):
+            b = int(bad_rows[0])
+            D = float(np.linalg.norm(O[b, 2] - O[b, 0]))
+            raise PlanningError(
+                f"step {b}: joint 2 has no place: O1-O3 is {D:.3f} mm, links 1 and 2 span "
+                f"up to {links[0] + links[1]:.3f} mm (backbone too long for the arm)"
+            )
+    return O, seg

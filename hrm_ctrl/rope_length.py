@@ -1,0 +1,234 @@
+"""Exact rope length across universal joints, and the coupling sum.
+
+Around joint j the rope's proximal hole is ``p = (r cos phi, r sin phi, -d_p)`` in
+the frame before the joint, its distal hole ``q = (r cos phi, r sin phi, +d_d)`` in
+the frame after it.  The frame after is the frame before rotated by
+``R = Rot_y(alpha) Rot_x(theta)`` (:func:`hrm_ctrl.kinematics.joint_rotation`),
+so the straight rope between the two holes has the exact length
+
+    s = |R q - p|,   s^2 = |p|^2 + |q|^2 - 2 p^T R q.
+
+``p^T R q = sum_ab p_a q_b R_ab`` is linear in the eight non-zero entries of R
+(``R_10 = 0``), so with ``W_ab = p_a q_b`` precomputed per rope and joint, every
+rope across every joint is one small matrix product and a square root.  A rope
+anchored past joint k crosses joints 1..k: its length is the sum of its
+crossings (the coupling).  ``docs/ropes.md`` has the derivation.
+
+>>> s = crossing_length(np.deg2rad(60.0), 0.0, 0.0, 12.0, 12.0, 12.0)
+>>> round(float(s), 4)          # inner rope of a 60 deg bend: 24 mm straight
+8.7846
+>>> round(float(crossing_length(np.deg2rad(60.0), 0.0, np.pi, 12.0, 12.0, 12.0)), 4)
+32.7846
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hrm_ctrl.kinematics import joint_rotation
+from hrm_ctrl.rope_routing import RopeRouting
+
+# Rotation entries (row, col) that p^T R q uses, in feature order.
+_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2))
+N_FEATURES = len(_ENTRIES)
+
+
+def crossing_length(
+    alpha: np.ndarray | float,
+    theta: np.ndarray | float,
+    hole_angle: np.ndarray | float,
+    hole_radius: np.ndarray | float,
+    proximal_disk: np.ndarray | float,
+    distal_disk: np.ndarray | float,
+) -> np.ndarray:
+    """Exact length (mm) of one rope across one joint, ``|R q - p|`` (broadcasts).
+
+    >>> round(float(crossing_length(0.0, 0.0, 1.0, 12.0, 10.0, 14.0)), 12)
+    24.0
+    """
+    phi = np.asarray(hole_angle, dtype=float)
+    r = np.asarray(hole_radius, dtype=float)
+    hx, hy = r * np.cos(phi), r * np.sin(phi)
+    d_p = np.asarray(proximal_disk, dtype=float)
+    d_d = np.asarray(distal_disk, dtype=float)
+    shape = np.broadcast_shapes(hx.shape, d_p.shape, d_d.shape)
+    p = np.stack(np.broadcast_arrays(hx, hy, -d_p), axis=-1).reshape(*shape, 3)
+    q = np.stack(np.broadcast_arrays(hx, hy, d_d), axis=-1).reshape(*shape, 3)
+    R = joint_rotation(np.asarray(alpha, dtype=float), np.asarray(theta, dtype=float))
+    return np.linalg.norm(np.einsum("...ab,...b->...a", R, q) - p, axis=-1)
+
+
+def small_angle_crossing_length(
+    alpha: np.ndarray | float,
+    theta: np.ndarray | float,
+    hole_angle: np.ndarray | float,
+    hole_radius: np.ndarray | float,
+    proximal_disk: np.ndarray | float,
+    distal_disk: np.ndarray | float,
+) -> np.ndarray:
+    """First-order approximation ``d_p + d_d - r (alpha cos phi - theta sin phi)``.
+
+    Only for comparison (``docs/ropes.md``); it is what the exact form replaces.
+
+    >>> round(float(small_angle_crossing_length(0.1, 0.0, 0.0, 12.0, 12.0, 12.0)), 6)
+    22.8
+    """
+    phi = np.asarray(hole_angle, dtype=float)
+    return (
+        np.asarray(proximal_disk)
+        + np.asarray(distal_disk)
+        - np.asarray(hole_radius)
+        * (np.asarray(alpha) * np.cos(phi) - np.asarray(theta) * np.sin(phi))
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class RopeGeometry:
+    """Precomputed coefficients of every rope across every joint (read-only).
+
+    ``W[j, f, m] = p_a q_b`` for feature f = entry (a, b) of joint j's rotation
+    and rope m, zero where rope m does not cross joint j; ``C0[j, m] = |p|^2 + |q|^2``
+    (zero where it does not cross).  ``straight[m]`` is each rope's length on
+    the straight arm.
+    """
+
+    W: np.ndarray  # (12, 8, n)
+    C0: np.ndarray  # (12, n)
+    crosses: np.ndarray  # (12, n) bool
+    straight: np.ndarray  # (n,)
+
+    @property
+    def n_ropes(self) -> int:
+        return int(self.W.shape[-1])
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.W.shape[0])
+
+
+def rope_geometry(routing: RopeRouting) -> RopeGeometry:
+    """Build the coefficient tables of a routing.
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> from hrm_ctrl.rope_routing import routing_from_model
+    >>> g = rope_geometry(routing_from_model(default_robot()))
+    >>> g.W.shape, g.straight[[0, 3, 35]].tolist()     # 24 mm per joint crossed
+    ((12, 8, 36), [24.0, 48.0, 288.0])
+    """
+    n_j = int(routing.proximal_disk.shape[0])
+    n = routing.n_ropes
+    joints = np.arange(n_j)
+    crosses = joints[:, None] <= routing.joint_of_rope[None, :]  # (12, n)
+    r = routing.hole_radius[None, :]
+    px = np.broadcast_to(r * np.cos(routing.hole_angle)[None, :], (n_j, n))
+    py = np.broadcast_to(r * np.sin(routing.hole_angle)[None, :], (n_j, n))
+    pz = np.broadcast_to(-routing.proximal_disk[:, None], (n_j, n))
+    qz = np.broadcast_to(routing.distal_disk[:, None], (n_j, n))
+    p = (px, py, pz)
+    q = (px, py, qz)
+    W = np.stack([p[a] * q[b] for a, b in _ENTRIES], axis=1) * crosses[:, None, :]
+    C0 = (px**2 + py**2 + pz**2 + px**2 + py**2 + qz**2) * crosses
+    straight = ((routing.proximal_disk + routing.distal_disk)[:, None] * crosses).sum(axis=0)
+    for arr in (W, C0, crosses, straight):
+        arr.setflags(write=False)
+    return RopeGeometry(W=W, C0=C0, crosses=crosses, straight=straight)
+
+
+# Each used rotation entry is sign * A * T with A in (1, cos a, sin a), T in (1, cos t, sin t).
+_IA = np.array([1, 2, 2, 0, 0, 2, 1, 1])
+_IT = np.array([0, 2, 1, 1, 2, 0, 2, 1])
+_SIGN = np.array([1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
+
+
+def _trig(alpha: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(values, derivatives) of (1, cos, sin) for alpha and theta, each (2, ..., 3)."""
+    x = np.stack(np.broadcast_arrays(np.asarray(alpha, float), np.asarray(theta, float)))
+    v = np.empty((*x.shape, 3))
+    d = np.empty((*x.shape, 3))
+    v[..., 0] = 1.0
+    np.cos(x, out=v[..., 1])
+    np.sin(x, out=v[..., 2])
+    d[..., 0] = 0.0
+    np.negative(v[..., 2], out=d[..., 1])
+    d[..., 2] = v[..., 1]
+    return v, d
+
+
+def rotation_features(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """The eight used entries of ``Rot_y(alpha) Rot_x(theta)``, shape (..., 8).
+
+    >>> rotation_features(np.zeros(1), np.zeros(1)).tolist()
+    [[1.0, 0.0, 0.0, 1.0, -0.0, -0.0, 0.0, 1.0]]
+    """
+    v, _ = _trig(alpha, theta)
+    return _SIGN * v[0][..., _IA] * v[1][..., _IT]
+
+
+def _features_and_derivatives(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Features, d/dalpha and d/dtheta stacked: shape (3, ..., 8)."""
+    v, d = _trig(alpha, theta)
+    a = np.stack([v[0], d[0], v[0]])[..., _IA]
+    t = np.stack([v[1], v[1], d[1]])[..., _IT]
+    return _SIGN * a * t
+
+
+def segment_lengths(geom: RopeGeometry, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Length of every rope across every joint, shape (..., 12, n); 0 where not crossed."""
+    alpha = np.asarray(alpha, dtype=float)
+    theta = np.asarray(theta, dtype=float)
+    batch = alpha.shape[:-1]
+    F = rotation_features(alpha, theta).reshape(-1, geom.n_joints, N_FEATURES)
+    G = np.matmul(F.transpose(1, 0, 2), geom.W)  # (12, B, n)
+    s2 = geom.C0[:, None, :] - 2.0 * G
+    s = np.sqrt(np.maximum(s2, 0.0))
+    return s.transpose(1, 0, 2).reshape(*batch, geom.n_joints, geom.n_ropes)
+
+
+def rope_lengths(geom: RopeGeometry, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Geometric length (mm) of every rope from the base disk to its anchor, (..., n).
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> from hrm_ctrl.rope_routing import routing_from_model
+    >>> g = rope_geometry(routing_from_model(default_robot()))
+    >>> a = np.zeros(12); a[11] = np.deg2rad(60.0)      # bend only joint 12
+    >>> L = rope_lengths(g, a, np.zeros(12))
+    >>> bool(np.allclose(L[:33], g.straight[:33]))       # ropes of joints 1..11 unchanged
+    True
+    >>> np.round(L[33:] - g.straight[33:], 3).tolist()   # joint 12's ropes, holes at 110+120m deg
+    [0.889, 4.498, -15.033]
+    """
+    alpha = np.asarray(alpha, dtype=float)
+    theta = np.asarray(theta, dtype=float)
+    batch = alpha.shape[:-1]
+    F = rotation_features(alpha, theta).reshape(-1, geom.n_joints, N_FEATURES)
+    G = np.matmul(F.transpose(1, 0, 2), geom.W)  # (12, B, n)
+    G *= -2.0
+    G += geom.C0[:, None, :]
+    np.maximum(G, 0.0, out=G)
+    np.sqrt(G, out=G)
+    return G.sum(axis=0).reshape(*batch, geom.n_ropes)
+
+
+def lengths_and_jacobian(
+    geom: RopeGeometry, alpha: np.ndarray, theta: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rope lengths (B, n), their Jacobian (B, n, 24) and the segments (12, B, n).
+
+    ``alpha``, ``theta`` of shape (B, 12); Jacobian columns (alpha_1, theta_1,
+    alpha_2, ...).  It is block lower triangular: the rope of joint k depends on
+    joints 1..k only, and column block j holds the derivative of the rope's
+    crossing of joint j.
+    """
+    B = alpha.shape[0]
+    n_j, n = geom.n_joints, geom.n_ropes
+    F3 = _features_and_derivatives(alpha, theta)  # (3, B, 12, 8)
+    G = np.matmul(F3.transpose(2, 0, 1, 3).reshape(n_j, 3 * B, N_FEATURES), geom.W)
+    G = G.reshape(n_j, 3, B, n)
+    s = np.sqrt(np.maximum(geom.C0[:, None, :] - 2.0 * G[:, 0], 0.0))  # (12, B, n)
+    safe = np.where(s > 0.0, s, 1.0)
+    J = np.empty((B, n, n_j, 2))
+    J[..., 0] = (-G[:, 1] / safe).transpose(1, 2, 0)
+    J[..., 1] = (-G[:, 2] / safe).transpose(1, 2, 0)
+    return s.sum(axis=0), J.reshape(B, n, 2 * n_j), s

@@ -1,0 +1,398 @@
+"""The simulated manipulator box: a drive simulator for every node of a bus configuration.
+
+:class:`SimBox` opens (or is given) one python-can bus per configured bus,
+creates a :class:`~sim_bus.drive.DriveSim` for every rope motor on it, and runs
+one thread per bus that receives frames, routes them by COB-ID to the drives
+listening to them and ticks the drives' timers every ``tick_s``.  The
+drives' actual positions make the arm (:class:`~sim_bus.arm.SimArm`): true
+joint angles and joint centres, rope tensions.
+
+Frames the box sent itself and gets back (udp_multicast echoes them) are
+ignored: no drive listens to another drive's TPDO, SDO response, heartbeat or
+EMCY COB-IDs.
+
+Fault injection (thread-safe, from tests or ``hrm sim``): :meth:`stop_heartbeat`,
+:meth:`fault_drive`, :meth:`jam`, :meth:`snap_rope`, :meth:`drop_frames`,
+:meth:`delay_frames`, :meth:`set_bus_off`.  On an ``hrm_sim`` wire the frame
+faults act on the wire (both directions, the host sees a bus-off as failing
+sends); on other interfaces the box applies them to the frames it sends and
+(for drops) receives, and a bus-off box neither sends nor listens.
+
+>>> import can
+>>> from sim_bus.config import load_sim_config
+>>> cfg = load_sim_config(None).with_bus_kwargs(
+...     [{"interface": "hrm_sim", "channel": "doc-box-0"},
+...      {"interface": "hrm_sim", "channel": "doc-box-1"}])
+>>> host = can.Bus(interface="hrm_sim", channel="doc-box-0")
+>>> with SimBox(cfg) as box:
+...     boots = sorted({m.arbitration_id for m in iter(lambda: host.recv(0.05), None)})
+>>> len(boots), hex(boots[0]), hex(boots[-1])          # 18 boot-ups on bus can0
+(18, '0x701', '0x712')
+>>> host.shutdown()
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import can
+import numpy as np
+
+import drivers.cia402 as cia
+from hrm_ctrl.actuation import Actuation, load_actuation
+from hrm_ctrl.errors import SimError
+from hrm_ctrl.model import default_robot
+from sim_bus.arm import ArmState, SimArm
+from sim_bus.config import SimConfig
+from sim_bus.drive import EMCY_FOLLOWING_ERROR, DriveParams, DriveSim
+from sim_bus.wire import FrameMatch, SimWireBus
+
+log = logging.getLogger("sim_bus.box")
+
+
+class _BoxBus:
+    """One bus of the box: its python-can bus, drives, routes and box-level faults."""
+
+    def __init__(self, name: str, bus: can.BusABC, owned: bool) -> None:
+        self.name = name
+        self.bus = bus
+        self.owned = owned
+        self.drives: list[DriveSim] = []
+        self.routes: dict[int, list[DriveSim]] = {}
+        self.drop_rules: list[list[Any]] = []  # [match, remaining]
+        self.delay_rules: list[list[Any]] = []  # [match, remaining, delay_s]
+        self.delayed: list[tuple[float, int, can.Message]] = []
+        self.bus_off = False
+        self.seq = 0
+        self.frames_in = 0
+        self.frames_out = 0
+
+    def rebuild_routes(self) -> None:
+        routes: dict[int, list[DriveSim]] = {}
+        for d in self.drives:
+            for cob in d.cob_ids():
+                routes.setdefault(cob, []).append(d)
+        self.routes = routes
+
+    @property
+    def wire(self) -> Any:
+        return self.bus.wire if isinstance(self.bus, SimWireBus) else None
+
+
+def _take(rules: list[list[Any]], msg: can.Message) -> list[Any] | None:
+    for rule in rules:
+        match, remaining = rule[0], rule[1]
+        if remaining is not None and remaining <= 0:
+            continue
+        if match is None or match(msg):
+            if remaining is not None:
+                rule[1] = remaining - 1
+            return rule
+    return None
+
+
+class SimBox:
+    """The simulated box (see the module docstring); a context manager.
+
+    Args:
+        config: buses and nodes (:func:`sim_bus.config.load_sim_config`).
+        buses: already open buses, one per configured bus (else opened from config).
+        actuation: the rope layer (default: the default robot's).
+        max_accel_counts_per_s2 / quick_stop_decel_counts_per_s2: drive ramps; the
+            velocity limit is the rope layer's ``max_rate_counts_per_s``.
+        tick_s: timer resolution of heartbeats and quick stops without SYNC.
+        clock: monotonic clock (s).
+    """
+
+    def __init__(
+        self,
+        config: SimConfig,
+        buses: Sequence[can.BusABC] | None = None,
+        *,
+        actuation: Actuation | None = None,
+        initial_counts: Sequence[int] | np.ndarray | None = None,
+        max_accel_counts_per_s2: float = 2.0e7,
+        quick_stop_decel_counts_per_s2: float = 4.0e7,
+        tension_noise_N: float = 0.05,
+        snap_drift_rad_per_s: float = 0.2,
+        tick_s: float = 0.005,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.config = config
+        self.actuation = actuation if actuation is not None else load_actuation(default_robot())
+        self.clock = clock
+        self.tick_s = float(tick_s)
+        ids = self.actuation.motor_ids
+        unknown = [m for m in config.motor_ids if m not in ids]
+        if unknown:
+            raise SimError(f"{config.source}: rope motor(s) {unknown} unknown to the rope layer")
+        if buses is not None and len(buses) != len(config.buses):
+            raise SimError(f"{config.source}: {len(config.buses)} buses, got {len(buses)}")
+        init = (
+            np.zeros(len(ids), dtype=np.int64)
+            if initial_counts is None
+            else np.asarray(initial_counts, dtype=np.int64)
+        )
+        if init.shape != (len(ids),):
+            raise SimError(f"initial_counts must have {len(ids)} values, got {init.shape}")
+        self._initial = init
+        self._accel = float(max_accel_counts_per_s2)
+        self._qs_decel = float(quick_stop_decel_counts_per_s2)
+        self.arm = SimArm(
+            self.actuation, noise_N=tension_noise_N, snap_drift_rad_per_s=snap_drift_rad_per_s
+        )
+        self._given = list(buses) if buses is not None else None
+        self._buses: list[_BoxBus] = []
+        self.drives: dict[str, DriveSim] = {}
+        self._motor_order: list[tuple[int, DriveSim]] = []
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self.events: list[str] = []
+        self.cpu_s = 0.0
+
+    # ------------------------------------------------------------ life cycle
+    def start(self) -> SimBox:
+        """Open the buses, power on every drive (boot-up frames) and start the threads."""
+        if self._threads:
+            return self
+        now = self.clock()
+        ids = self.actuation.motor_ids
+        vmax = self.actuation.max_rate_counts_per_s
+        try:
+            for k, bcfg in enumerate(self.config.buses):
+                if self._given is not None:
+                    bus, owned = self._given[k], False
+                else:
+                    try:
+                        bus, owned = can.Bus(**bcfg.bus_kwargs()), True
+                    except (can.CanError, OSError, ValueError, ImportError) as exc:
+                        raise SimError(
+                            f"{self.config.source}: cannot open bus {bcfg.name} ({exc})"
+                        ) from None
+                self._buses.append(_BoxBus(bcfg.name, bus, owned))
+            with self._lock:
+                for bb, bcfg in zip(self._buses, self.config.buses, strict=True):
+                    for motor, node in bcfg.nodes.items():
+                        i = ids.index(motor)
+                        params = DriveParams(
+                            max_velocity_counts_per_s=float(vmax[i]),
+                            max_accel_counts_per_s2=self._accel,
+                            quick_stop_decel_counts_per_s2=self._qs_decel,
+                            initial_position_counts=int(self._initial[i]),
+                        )
+                        d = DriveSim(node, self._sender(bb), params, now=now)
+                        d.motor_id = motor  # type: ignore[attr-defined]
+                        bb.drives.append(d)
+                        self.drives[motor] = d
+                    bb.rebuild_routes()
+                self._motor_order = [(ids.index(m), d) for m, d in self.drives.items()]
+        except BaseException:
+            self._close_buses()
+            raise
+        for bb in self._buses:
+            t = threading.Thread(target=self._run_bus, args=(bb,), name=f"simbox:{bb.name}")
+            t.daemon = True
+            self._threads.append(t)
+            t.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop the threads and close the buses the box opened (timeout 2 s each)."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=2.0)
+        self._threads.clear()
+        self._close_buses()
+
+    def _close_buses(self) -> None:
+        for bb in self._buses:
+            if bb.owned:
+                bb.bus.shutdown()
+        self._buses.clear()
+
+    def __enter__(self) -> SimBox:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------ engine
+    def _sender(self, bb: _BoxBus) -> Callable[[can.Message], None]:
+        def send(msg: can.Message) -> None:
+            if bb.bus_off:
+                raise can.CanOperationError(f"box bus {bb.name}: bus off")
+            if bb.wire is None:
+                if _take(bb.drop_rules, msg) is not None:
+                    return
+                rule = _take(bb.delay_rules, msg)
+                if rule is not None:
+                    bb.seq += 1
+                    heapq.heappush(bb.delayed, (self.clock() + rule[2], bb.seq, msg))
+                    return
+            bb.bus.send(msg)
+            bb.frames_out += 1
+
+        return send
+
+    def _run_bus(self, bb: _BoxBus) -> None:
+        next_tick = self.clock()
+        cpu0 = time.thread_time()
+        while not self._stop.is_set():
+            now = self.clock()
+            wake = next_tick
+            if bb.delayed:
+                wake = min(wake, bb.delayed[0][0])
+            try:
+                msg = bb.bus.recv(timeout=min(max(0.0, wake - now), 0.05))
+            except (can.CanError, OSError, ValueError) as exc:
+                self._event(f"bus {bb.name}: receive failed ({exc})")
+                if self._stop.wait(0.05):
+                    break
+                continue
+            with self._lock:
+                now = self.clock()
+                if msg is not None and not bb.bus_off:
+                    self._dispatch(bb, msg, now)
+                if now >= next_tick:
+                    for d in bb.drives:
+                        d.tick(now)
+                    next_tick = max(next_tick + self.tick_s, now)
+                while bb.delayed and bb.delayed[0][0] <= now and not bb.bus_off:
+                    _t, _s, late = heapq.heappop(bb.delayed)
+                    try:
+                        bb.bus.send(late)
+                    except can.CanError:
+                        pass
+            t = time.thread_time()
+            self.cpu_s += t - cpu0
+            cpu0 = t
+
+    def _dispatch(self, bb: _BoxBus, msg: can.Message, now: float) -> None:
+        targets = bb.routes.get(msg.arbitration_id)
+        if not targets:
+            return
+        if bb.wire is None and bb.drop_rules and _take(bb.drop_rules, msg) is not None:
+            return
+        bb.frames_in += 1
+        for d in targets:
+            try:
+                d.handle(msg, now)
+            except Exception as exc:  # a drive must never take the box down
+                self._event(f"drive {bb.name}/{d.node_id}: error handling {msg} ({exc!r})")
+        cob = msg.arbitration_id
+        if cob == cia.COB_NMT or cia.COB_SDO_RX < cob <= cia.COB_SDO_RX + 0x7F:
+            bb.rebuild_routes()
+
+    def _event(self, text: str) -> None:
+        log.warning(text)
+        with self._lock:
+            self.events.append(text)
+
+    # ------------------------------------------------------------ state
+    def counts(self) -> np.ndarray:
+        """Actual motor positions (n,) in the rope layer's motor order (motors without a
+        simulated drive stay where they started)."""
+        out = self._initial.copy()
+        with self._lock:
+            for i, d in self._motor_order:
+                out[i] = d.position_counts
+        return out
+
+    def arm_state(self) -> ArmState:
+        """The arm now: true joint angles and centres, tensions."""
+        return self.arm.state(self.counts(), self.clock())
+
+    def statuswords(self) -> dict[str, int]:
+        with self._lock:
+            return {m: d.statusword for m, d in self.drives.items()}
+
+    def bus_names(self) -> list[str]:
+        return [bb.name for bb in self._buses]
+
+    def _drive(self, motor: str) -> DriveSim:
+        try:
+            return self.drives[motor]
+        except KeyError:
+            raise SimError(f"no simulated drive for rope motor '{motor}'") from None
+
+    def _bus(self, name: str) -> _BoxBus:
+        for bb in self._buses:
+            if bb.name == name:
+                return bb
+        raise SimError(f"no bus '{name}' in the box (have {self.bus_names()})")
+
+    # ------------------------------------------------------------ faults
+    def stop_heartbeat(self, motor: str, stopped: bool = True) -> None:
+        """The drive of ``motor`` stops (or resumes) producing its heartbeat."""
+        with self._lock:
+            self._drive(motor).heartbeat_enabled = not stopped
+        self._event(f"fault: heartbeat of {motor} {'stopped' if stopped else 'resumed'}")
+
+    def fault_drive(self, motor: str, code: int = EMCY_FOLLOWING_ERROR) -> None:
+        """The drive faults now (following error by default) and sends its EMCY."""
+        with self._lock:
+            d = self._drive(motor)
+            if code == EMCY_FOLLOWING_ERROR:
+                d.following_error = True
+            d.inject_fault(code, self.clock())
+        self._event(f"fault: drive {motor} faulted with 0x{code:04X}")
+
+    def jam(self, motor: str, jammed: bool = True) -> None:
+        """The motor stalls: it faults by following error once its target moves away."""
+        with self._lock:
+            self._drive(motor).jammed = jammed
+        self._event(f"fault: motor {motor} {'jammed' if jammed else 'free'}")
+
+    def snap_rope(self, motor: str) -> None:
+        """The rope of ``motor`` breaks: tension 0, its joint drifts."""
+        self.arm.snap(motor, self.clock())
+        self._event(f"fault: rope {motor} snapped")
+
+    def drop_frames(self, bus: str, match: FrameMatch | None = None, count: int | None = 1) -> None:
+        """Lose ``count`` frames (``None``: all) matching ``match`` on bus ``bus``."""
+        bb = self._bus(bus)
+        if bb.wire is not None:
+            bb.wire.drop(match, count)
+        else:
+            with self._lock:
+                bb.drop_rules.append([match, count])
+        self._event(f"fault: drop {count if count is not None else 'all'} frame(s) on {bus}")
+
+    def delay_frames(
+        self, bus: str, delay_s: float, match: FrameMatch | None = None, count: int | None = 1
+    ) -> None:
+        """Delay ``count`` frames matching ``match`` on bus ``bus`` by ``delay_s``."""
+        if not delay_s >= 0:
+            raise SimError(f"delay must be >= 0 s, got {delay_s!r}")
+        bb = self._bus(bus)
+        if bb.wire is not None:
+            bb.wire.delay(delay_s, match, count)
+        else:
+            with self._lock:
+                bb.delay_rules.append([match, count, float(delay_s)])
+        self._event(f"fault: delay frames on {bus} by {delay_s * 1000:.1f} ms")
+
+    def set_bus_off(self, bus: str, off: bool = True) -> None:
+        """Bus ``bus`` goes off (nothing passes) or comes back."""
+        bb = self._bus(bus)
+        if bb.wire is not None:
+            bb.wire.set_bus_off(off)
+        with self._lock:
+            bb.bus_off = off
+            if off:
+                bb.delayed.clear()
+        self._event(f"fault: bus {bus} {'off' if off else 'on'}")
+
+    def clear_frame_faults(self) -> None:
+        with self._lock:
+            for bb in self._buses:
+                bb.drop_rules.clear()
+                bb.delay_rules.clear()
+                if bb.wire is not None:
+                    bb.wire.clear_faults()

@@ -1,0 +1,526 @@
+"""A simulated CAN wire at real bitrate, as a python-can interface (``hrm_sim``).
+
+Every :class:`SimWireBus` opened with the same ``channel`` in one process is a
+node on one shared :class:`SimWire`.  The wire models classical CAN:
+
+* a frame occupies the wire for its length in bits divided by the bitrate;
+  the length counts worst-case bit stuffing by default (``stuffing="worst"``,
+  the figure bus-load budgets use: 135 bits for 8 data bytes with an 11-bit
+  id) or the exact stuff bits of the frame's real bit pattern, CRC included
+  (``stuffing="exact"``);
+* when the wire becomes free, the pending frame with the lowest arbitration
+  key wins (11-bit id before a 29-bit id with the same base id, data before
+  remote); a frame sent onto an idle wire starts at once;
+* every other node receives a frame at the end of its wire time, stamped with
+  that ideal end time; the sender does not get its own frame back unless it
+  asked for ``receive_own_messages=True``.
+
+So a cycle that offers more bits than fit shows up as frames delivered late
+(``SimWire.stats()["max_queue_delay_s"]``), and ``SimWire.bus_load()`` is the
+fraction of wall time the wire was busy.  Fault hooks drop or delay frames
+(:meth:`SimWire.drop`, :meth:`SimWire.delay`) or take the whole wire off the
+bus (:meth:`SimWire.set_bus_off`: every ``send`` raises
+``can.CanOperationError``, nothing is delivered).
+
+>>> frame_bits(can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False))
+135
+>>> frame_bits(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+55
+>>> a = can.Bus(interface="hrm_sim", channel="doc-wire", bitrate=1_000_000)
+>>> b = can.Bus(interface="hrm_sim", channel="doc-wire", bitrate=1_000_000)
+>>> a.send(can.Message(arbitration_id=0x123, data=b"\\x01\\x02", is_extended_id=False))
+>>> m = b.recv(timeout=1.0)
+>>> hex(m.arbitration_id), bytes(m.data)
+('0x123', b'\\x01\\x02')
+>>> a.recv(timeout=0.01) is None                # no echo of one's own frame
+True
+>>> a.shutdown(); b.shutdown()
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import can
+from can.bus import BusState, CanProtocol
+
+from hrm_ctrl.errors import SimError
+
+Stuffing = Literal["worst", "exact"]
+FrameMatch = Callable[[can.Message], bool]
+
+#: bits after the CRC that are never stuffed: CRC delimiter, ACK slot + delimiter, EOF, IFS.
+TRAILER_BITS = 1 + 2 + 7 + 3
+CRC15_POLY = 0x4599
+
+
+class WireConfigError(SimError):
+    """Two nodes disagree about a wire (bitrate), or a wire parameter is invalid."""
+
+
+def _stuffable_bits(msg: can.Message) -> list[int]:
+    """The bit pattern SOF .. CRC (the part subject to stuffing), dominant = 0."""
+    bits: list[int] = [0]  # SOF
+    dlc = 0 if msg.is_remote_frame else len(msg.data)
+    if msg.is_remote_frame:
+        dlc = msg.dlc
+
+    def put(value: int, n: int) -> None:
+        bits.extend((value >> (n - 1 - i)) & 1 for i in range(n))
+
+    rtr = 1 if msg.is_remote_frame else 0
+    if msg.is_extended_id:
+        put(msg.arbitration_id >> 18, 11)
+        put(1, 1)  # SRR
+        put(1, 1)  # IDE
+        put(msg.arbitration_id & 0x3FFFF, 18)
+        put(rtr, 1)
+        put(0, 2)  # r1, r0
+    else:
+        put(msg.arbitration_id, 11)
+        put(rtr, 1)
+        put(0, 1)  # IDE
+        put(0, 1)  # r0
+    put(dlc, 4)
+    if not msg.is_remote_frame:
+        for byte in bytes(msg.data):
+            put(byte, 8)
+    crc = 0
+    for b in bits:
+        nxt = b ^ ((crc >> 14) & 1)
+        crc = (crc << 1) & 0x7FFF
+        if nxt:
+            crc ^= CRC15_POLY
+    put(crc, 15)
+    return bits
+
+
+def stuff_bit_count(bits: list[int]) -> int:
+    """Number of stuff bits a CAN transmitter inserts into ``bits`` (after 5 equal bits).
+
+    >>> stuff_bit_count([0] * 5), stuff_bit_count([0] * 10), stuff_bit_count([0, 1] * 8)
+    (1, 2, 0)
+    """
+    count = 0
+    run = 0
+    last = -1
+    for b in bits:
+        if b == last:
+            run += 1
+        else:
+            last, run = b, 1
+        if run == 5:
+            count += 1
+            last, run = 1 - b, 1  # the stuff bit itself starts a new run
+    return count
+
+
+def frame_bits(msg: can.Message, stuffing: Stuffing = "worst") -> int:
+    """Bits a classical CAN data/remote frame occupies on the wire, interframe space included.
+
+    ``worst``: ``n + floor((n - 1) / 4) + 13`` with ``n`` = 34 + 8·len (11-bit id) or
+    54 + 8·len (29-bit id) stuffable bits.  ``exact``: the stuff bits of the real pattern.
+
+    >>> m = can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False)
+    >>> frame_bits(m), frame_bits(m, "exact") <= 135
+    (135, True)
+    """
+    n_data = 0 if msg.is_remote_frame else len(msg.data)
+    n = (54 if msg.is_extended_id else 34) + 8 * n_data
+    if stuffing == "worst":
+        return n + (n - 1) // 4 + TRAILER_BITS
+    bits = _stuffable_bits(msg)
+    return len(bits) + stuff_bit_count(bits) + TRAILER_BITS
+
+
+def arbitration_key(msg: can.Message) -> tuple[int, int, int, int, int]:
+    """Sort key: the frame that wins arbitration sorts first.
+
+    >>> std = can.Message(arbitration_id=0x100, is_extended_id=False)
+    >>> ext = can.Message(arbitration_id=0x100 << 18, is_extended_id=True)
+    >>> arbitration_key(std) < arbitration_key(ext)
+    True
+    """
+    rtr = 1 if msg.is_remote_frame else 0
+    if msg.is_extended_id:
+        return (msg.arbitration_id >> 18, 1, 1, msg.arbitration_id & 0x3FFFF, rtr)
+    return (msg.arbitration_id, rtr, 0, 0, 0)
+
+
+@dataclass
+class _Rule:
+    kind: Literal["drop", "delay"]
+    match: FrameMatch | None
+    remaining: int | None
+    delay_s: float = 0.0
+
+    def applies(self, msg: can.Message) -> bool:
+        if self.remaining is not None and self.remaining <= 0:
+            return False
+        if self.match is not None and not self.match(msg):
+            return False
+        if self.remaining is not None:
+            self.remaining -= 1
+        return True
+
+
+@dataclass
+class _Pending:
+    t_ready: float
+    seq: int
+    key: tuple[int, int, int, int, int]
+    msg: can.Message
+    sender: SimWireBus | None
+    t_sent: float
+
+
+class SimWire:
+    """One simulated CAN wire (see the module docstring).  Obtain it with :func:`get_wire`
+    or from ``bus.wire``; it lives while at least one :class:`SimWireBus` is open on it."""
+
+    def __init__(
+        self,
+        channel: str,
+        bitrate: int,
+        stuffing: Stuffing = "worst",
+        coalesce_s: float = 0.0,
+    ) -> None:
+        if not isinstance(bitrate, int) or bitrate <= 0:
+            raise WireConfigError(
+                f"hrm_sim channel {channel!r}: bitrate must be > 0, got {bitrate}"
+            )
+        if stuffing not in ("worst", "exact"):
+            raise WireConfigError(
+                f"hrm_sim channel {channel!r}: stuffing must be 'worst' or 'exact'"
+            )
+        self.channel = channel
+        self.bitrate = bitrate
+        self.stuffing: Stuffing = stuffing
+        self.coalesce_s = float(coalesce_s)
+        self._cond = threading.Condition()
+        self._nodes: list[SimWireBus] = []
+        self._pending: list[_Pending] = []
+        self._in_flight: collections.deque[tuple[float, float, _Pending]] = collections.deque()
+        self._free_at = 0.0
+        self._seq = 0
+        self._rules: list[_Rule] = []
+        self._bus_off = False
+        self._stop = False
+        self._busy: collections.deque[tuple[float, float]] = collections.deque()
+        self._wall_offset = time.time() - time.monotonic()
+        self.frames_delivered = 0
+        self.frames_dropped = 0
+        self.bits_sent = 0
+        self.max_delivery_late_s = 0.0
+        self.max_queue_delay_s = 0.0
+        self._late_log: collections.deque[float] | None = None
+        self._thread = threading.Thread(target=self._run, name=f"hrm_sim:{channel}", daemon=True)
+        self._thread.start()
+
+    # ----------------------------------------------------------------- faults
+    def drop(self, match: FrameMatch | None = None, count: int | None = 1) -> None:
+        """Lose the next ``count`` frames matching ``match`` (all frames if ``None``;
+        ``count=None``: every matching frame until :meth:`clear_faults`)."""
+        with self._cond:
+            self._rules.append(_Rule("drop", match, count))
+
+    def delay(self, delay_s: float, match: FrameMatch | None = None, count: int | None = 1) -> None:
+        """Hold the next ``count`` matching frames back ``delay_s`` before they contend."""
+        if not delay_s >= 0.0:
+            raise SimError(f"hrm_sim channel {self.channel!r}: delay must be >= 0 s")
+        with self._cond:
+            self._rules.append(_Rule("delay", match, count, float(delay_s)))
+
+    def set_bus_off(self, off: bool = True) -> None:
+        """Take the wire off the bus (pending frames are lost, sends raise) or back on."""
+        with self._cond:
+            self._bus_off = bool(off)
+            if off:
+                self.frames_dropped += len(self._pending) + len(self._in_flight)
+                self._pending.clear()
+                self._in_flight.clear()
+            self._cond.notify_all()
+
+    def clear_faults(self) -> None:
+        """Remove every drop/delay rule (bus-off stays as set)."""
+        with self._cond:
+            self._rules.clear()
+
+    @property
+    def bus_off(self) -> bool:
+        return self._bus_off
+
+    # ------------------------------------------------------------- statistics
+    def bus_load(self, window_s: float = 1.0) -> float:
+        """Fraction of the last ``window_s`` seconds the wire carried bits (0..1)."""
+        now = time.monotonic()
+        t0 = now - window_s
+        busy = 0.0
+        with self._cond:
+            for start, end in self._busy:
+                lo, hi = max(start, t0), min(end, now)
+                if hi > lo:
+                    busy += hi - lo
+        return busy / window_s
+
+    def record_lateness(self, enabled: bool = True, maxlen: int = 1_000_000) -> None:
+        """Keep each delivered frame's lateness (delivery - ideal end, s) for benchmarks."""
+        with self._cond:
+            self._late_log = collections.deque(maxlen=maxlen) if enabled else None
+
+    def lateness_log(self) -> list[float]:
+        with self._cond:
+            return list(self._late_log) if self._late_log is not None else []
+
+    def stats(self) -> dict[str, Any]:
+        """Counters: frames delivered/dropped, bits, worst delivery lateness and queueing."""
+        with self._cond:
+            return {
+                "channel": self.channel,
+                "bitrate": self.bitrate,
+                "stuffing": self.stuffing,
+                "frames_delivered": self.frames_delivered,
+                "frames_dropped": self.frames_dropped,
+                "bits_sent": self.bits_sent,
+                "max_delivery_late_s": self.max_delivery_late_s,
+                "max_queue_delay_s": self.max_queue_delay_s,
+                "bus_off": self._bus_off,
+                "nodes": len(self._nodes),
+            }
+
+    def frame_time_s(self, msg: can.Message) -> float:
+        """Wire time of ``msg`` at this wire's bitrate and stuffing model."""
+        return frame_bits(msg, self.stuffing) / self.bitrate
+
+    # ---------------------------------------------------------------- nodes
+    def _attach(self, node: SimWireBus) -> None:
+        with self._cond:
+            self._nodes.append(node)
+
+    def _detach(self, node: SimWireBus) -> bool:
+        """Remove a node; True when the wire has no node left (and stops)."""
+        with self._cond:
+            if node in self._nodes:
+                self._nodes.remove(node)
+            for p in self._pending:
+                if p.sender is node:
+                    p.sender = None
+            if not self._nodes:
+                self._stop = True
+                self._cond.notify_all()
+                return True
+            return False
+
+    def _submit(self, msg: can.Message, sender: SimWireBus) -> None:
+        now = time.monotonic()
+        with self._cond:
+            if self._bus_off:
+                raise can.CanOperationError(f"hrm_sim channel {self.channel!r}: bus off")
+            t_ready = now
+            for rule in self._rules:
+                if rule.applies(msg):
+                    if rule.kind == "drop":
+                        self.frames_dropped += 1
+                        return
+                    t_ready += rule.delay_s
+            self._seq += 1
+            self._pending.append(
+                _Pending(t_ready, self._seq, arbitration_key(msg), msg, sender, now)
+            )
+            self._cond.notify_all()
+
+    # ---------------------------------------------------------------- engine
+    def _schedule(self, now: float) -> float | None:
+        """Commit arbitration decisions up to ``now``; return the next decision time."""
+        while self._pending:
+            earliest = min(p.t_ready for p in self._pending)
+            slot = max(self._free_at, earliest)
+            if slot > now:
+                return slot
+            winner = min(
+                (p for p in self._pending if p.t_ready <= slot), key=lambda p: (p.key, p.seq)
+            )
+            self._pending.remove(winner)
+            bits = frame_bits(winner.msg, self.stuffing)
+            end = slot + bits / self.bitrate
+            self._free_at = end
+            self.bits_sent += bits
+            self.max_queue_delay_s = max(self.max_queue_delay_s, slot - winner.t_ready)
+            self._in_flight.append((slot, end, winner))
+            self._busy.append((slot, end))
+            while self._busy and self._busy[0][1] < now - 10.0:
+                self._busy.popleft()
+        return None
+
+    def _deliver(self, now: float) -> list[tuple[SimWireBus, can.Message]]:
+        out: list[tuple[SimWireBus, can.Message]] = []
+        while self._in_flight and self._in_flight[0][1] <= now:
+            _start, end, p = self._in_flight.popleft()
+            late = now - end
+            self.max_delivery_late_s = max(self.max_delivery_late_s, late)
+            if self._late_log is not None:
+                self._late_log.append(late)
+            self.frames_delivered += 1
+            stamp = end + self._wall_offset
+            src = p.msg
+            for node in self._nodes:
+                own = node is p.sender
+                if own and not node.receive_own_messages:
+                    continue
+                out.append(
+                    (
+                        node,
+                        can.Message(
+                            timestamp=stamp,
+                            arbitration_id=src.arbitration_id,
+                            is_extended_id=src.is_extended_id,
+                            is_remote_frame=src.is_remote_frame,
+                            is_error_frame=src.is_error_frame,
+                            dlc=src.dlc,
+                            data=bytes(src.data),
+                            channel=self.channel,
+                            is_rx=not own,
+                            check=False,
+                        ),
+                    )
+                )
+        return out
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                if self._stop:
+                    return
+                now = time.monotonic()
+                next_slot = self._schedule(now)
+                batch = self._deliver(now)
+                wake = [t for t in (next_slot,) if t is not None]
+                if self._in_flight:
+                    wake.append(self._in_flight[0][1] + self.coalesce_s)
+                if not batch:
+                    timeout = max(0.0, min(wake) - time.monotonic()) if wake else None
+                    self._cond.wait(timeout)
+                    continue
+            for node, msg in batch:
+                node._rx.append(msg)
+                node._rx_event.set()
+
+
+_wires: dict[str, SimWire] = {}
+_wires_lock = threading.Lock()
+
+
+def get_wire(channel: str) -> SimWire:
+    """The wire of an open ``hrm_sim`` channel (raises :class:`SimError` if none is open)."""
+    with _wires_lock:
+        wire = _wires.get(str(channel))
+    if wire is None:
+        raise SimError(f"hrm_sim channel {channel!r} is not open")
+    return wire
+
+
+class SimWireBus(can.BusABC):
+    """A node on a simulated CAN wire: ``can.Bus(interface="hrm_sim", channel=..., bitrate=...)``.
+
+    Keyword arguments: ``bitrate`` (default 1 Mbit/s; every node of a channel must agree),
+    ``stuffing`` (``"worst"`` default or ``"exact"``), ``receive_own_messages`` (default
+    False), ``coalesce_s`` (deliver frames in batches up to this much late, default 0).
+    """
+
+    def __init__(
+        self,
+        channel: Any = "hrm_sim0",
+        bitrate: int = 1_000_000,
+        stuffing: Stuffing = "worst",
+        receive_own_messages: bool = False,
+        coalesce_s: float = 0.0,
+        can_filters: Any = None,
+        **kwargs: Any,
+    ) -> None:
+        name = str(channel)
+        with _wires_lock:
+            wire = _wires.get(name)
+            if wire is None:
+                wire = SimWire(name, int(bitrate), stuffing, coalesce_s)
+                _wires[name] = wire
+            elif wire.bitrate != int(bitrate):
+                raise WireConfigError(
+                    f"hrm_sim channel {name!r} runs at {wire.bitrate} bit/s, "
+                    f"a node asked for {bitrate}"
+                )
+            self.wire = wire
+            self.receive_own_messages = bool(receive_own_messages)
+            self._rx: collections.deque[can.Message] = collections.deque()
+            self._rx_event = threading.Event()
+            self._open = True
+            wire._attach(self)
+        self.channel_info = f"hrm_sim wire {name} @ {wire.bitrate} bit/s"
+        self._can_protocol = CanProtocol.CAN_20
+        super().__init__(channel=name, can_filters=can_filters, **kwargs)
+
+    @property
+    def state(self) -> BusState:
+        return BusState.ERROR if self.wire.bus_off else BusState.ACTIVE
+
+    @state.setter
+    def state(self, new_state: BusState) -> None:
+        raise NotImplementedError("hrm_sim: the bus state follows the wire (SimWire.set_bus_off)")
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if not self._open:
+            raise can.CanOperationError("hrm_sim: cannot send on a closed bus")
+        if msg.is_fd:
+            raise can.CanOperationError("hrm_sim: CAN FD frames are not supported")
+        self.wire._submit(msg, self)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if not self._open:
+            raise can.CanOperationError("hrm_sim: cannot receive on a closed bus")
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                return self._rx.popleft(), False
+            except IndexError:
+                pass
+            self._rx_event.clear()
+            if self._rx:
+                continue
+            if deadline is None:
+                self._rx_event.wait()
+            else:
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._rx_event.wait(left):
+                    if self._rx:
+                        continue
+                    return None, False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        if self._open:
+            self._open = False
+            with _wires_lock:
+                if self.wire._detach(self):
+                    _wires.pop(self.wire.channel, None)
+
+    @staticmethod
+    def _detect_available_configs() -> list[dict[str, Any]]:
+        with _wires_lock:
+            return [{"interface": "hrm_sim", "channel": name} for name in _wires]
+
+
+def ideal_cycle_time_s(
+    msgs: list[can.Message], bitrate: int, stuffing: Stuffing = "worst"
+) -> float:
+    """Wire time of a burst of frames sent back to back (s).
+
+    >>> sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
+    >>> round(ideal_cycle_time_s([sync] * 10, 1_000_000) * 1e6)
+    550
+    """
+    return math.fsum(frame_bits(m, stuffing) for m in msgs) / bitrate

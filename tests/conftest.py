@@ -1,0 +1,65 @@
+"""Shared fixtures: the CAN backends this machine has.
+
+``can_backend`` is parametrised over python-can ``virtual`` (everywhere),
+``udp_multicast`` (IPv4 group, ``hop_limit=0`` so nothing leaves the host, a
+UDP port of its own per bus: Linux hands every group on a port to every socket
+bound to that port) and SocketCAN ``vcan0`` (skipped, with the reason, where
+the kernel has no vcan interface, as on the development machine).
+
+Note: a udp_multicast socket also receives the frames it sent itself; code
+under test must tolerate its own frames coming back.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import socket
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+BACKENDS = ("virtual", "udp_multicast", "socketcan")
+_group_counter = itertools.count(1)
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def vcan_available(name: str = "vcan0") -> bool:
+    return Path(f"/sys/class/net/{name}").exists()
+
+
+BusFactory = Callable[[], dict[str, Any]]
+
+
+@pytest.fixture(params=BACKENDS)
+def can_backend(request: pytest.FixtureRequest) -> BusFactory:
+    """A factory: each call returns ``can.Bus`` keyword arguments for a new,
+    isolated bus on this backend (all ends of one bus use the same kwargs)."""
+    kind = request.param
+    if kind == "socketcan":
+        if not vcan_available():
+            pytest.skip(
+                "SocketCAN: no vcan0 on this kernel (modprobe vcan; ip link add vcan0 type vcan)"
+            )
+        return lambda: {"interface": "socketcan", "channel": "vcan0"}
+    if kind == "udp_multicast":
+
+        def udp() -> dict[str, Any]:
+            n = next(_group_counter) % 250 + 1
+            return {
+                "interface": "udp_multicast",
+                "channel": f"239.74.{os.getpid() % 250}.{n}",
+                "port": _free_udp_port(),
+                "hop_limit": 0,
+            }
+
+        return udp
+    return lambda: {"interface": "virtual", "channel": f"hrm-test-{uuid.uuid4().hex[:12]}"}
