@@ -57,7 +57,7 @@ from hrm_ctrl.errors import DriverError, HrmError
 RUN_RECORD_FORMAT = "hrm-run/1"
 
 
-class SafetyStop(DriverError):
+class SafetyStopError(DriverError):
     """Streaming was stopped by a watchdog, a limit or a bus failure; every axis got a
     quick stop.  ``causes`` lists why."""
 
@@ -334,7 +334,7 @@ class DriveBox:
 
     def stream(self, source: SetpointSource, raise_on_stop: bool = True) -> StreamResult:
         """Play a setpoint source; on any stop cause every axis gets a quick stop and
-        :class:`SafetyStop` is raised (or the result returned with ``raise_on_stop=False``)."""
+        :class:`SafetyStopError` is raised (or the result returned with ``raise_on_stop=False``)."""
         if not self.enabled or self.actual is None:
             raise DriverError("stream: drives are not enabled (bring_up first)")
         start = self.actual
@@ -348,8 +348,8 @@ class DriveBox:
                 first = result.causes[0].text
                 more = f" (+{len(result.causes) - 1} more)" if len(result.causes) > 1 else ""
                 if result.error is not None and result.causes[0].kind == "limit":
-                    raise SafetyStop(f"stopped: {result.error}", result.causes, result)
-                raise SafetyStop(f"stopped: {first}{more}", result.causes, result)
+                    raise SafetyStopError(f"stopped: {result.error}", result.causes, result)
+                raise SafetyStopError(f"stopped: {first}{more}", result.causes, result)
         return result
 
     def request_stop(self) -> None:

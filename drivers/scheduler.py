@@ -206,6 +206,7 @@ class CyclicScheduler:
         self.late_threshold_s = late_threshold_s
         self.seq = -1  # SYNC sequence number, continues across streams
         self.stop_request = threading.Event()
+        self.switch_interval_s = SWITCH_INTERVAL_S
 
     # ------------------------------------------------------------------ sending
     def _send_all(self, controlword: int, targets: np.ndarray) -> list[StopCause]:
@@ -292,7 +293,7 @@ class CyclicScheduler:
         error: HrmError | None = None
         completed = False
         old_switch = sys.getswitchinterval()
-        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        sys.setswitchinterval(self.switch_interval_s)
         prepared: tuple[int, np.ndarray, list[list[can.Message]]] | None = None
         try:
             while True:

@@ -126,7 +126,7 @@ def end_point_and_jacobian(
 
     With ``du/dK = (cK cT, -sK cT, 0)`` and ``du/dT = (-sK sT, -cK sT, cT)``,
     ``dX(1)/da1 = l int du/dK sin(2 pi s) ds`` and so on: all of them are one
-    product of the six tangent terms with the three weighted mode shapes.
+    product of five tangent terms with the three weighted mode shapes.
 
     >>> B = ModalBasis(400)
     >>> bd = Boundary(1.0, 0.2, 1.4, -0.1)
@@ -135,19 +135,43 @@ def end_point_and_jacobian(
     >>> bool(np.allclose((Xp - X) / e, J[:, 0], atol=1e-3))
     True
     """
-    K, T = basis.mode_angles(a, b)
-    sK, cK, sT, cT = np.sin(K), np.cos(K), np.sin(T), np.cos(T)
-    terms = np.stack((sK * cT, cK * cT, sT, -sK * sT, -cK * sT))  # (5, Q+1)
-    M = l * (terms @ basis.W)  # (5, 3): columns weight w, w sin2, w cos2
-    X = X0 + M[:3, 0]
-    J = np.array(
-        [
-            [M[1, 1], M[1, 2], M[3, 2]],
-            [-M[0, 1], -M[0, 2], M[4, 2]],
-            [0.0, 0.0, l * (basis.wcos2 @ cT)],
-        ]
-    )
-    return X, J
+    return _EndPoint(basis, b).evaluate(X0, l, np.asarray(a, dtype=float))
+
+
+class _EndPoint:
+    """Per-solve work buffers for Eqs. (5) and (9) at s = 1 (the boundary terms of
+    Eq. (7) precomputed), so one evaluation is a handful of vector operations."""
+
+    def __init__(self, basis: ModalBasis, b: Boundary) -> None:
+        self.basis = basis
+        self.cK = b.b1k * basis.fall + b.b2k * basis.rise
+        self.cT = b.b1t * basis.fall + b.b2t * basis.rise
+        self.SC = np.stack((basis.sin2, basis.cos2))  # (2, Q+1)
+        self.terms = np.empty((5, basis.Q + 1))
+
+    def evaluate(self, X0: np.ndarray, l: float, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        K = a[:2] @ self.SC
+        K += self.cK
+        T = a[2] * self.basis.cos2
+        T += self.cT
+        sK, cK, sT, cT = np.sin(K), np.cos(K), np.sin(T), np.cos(T)
+        t = self.terms
+        np.multiply(sK, cT, out=t[0])
+        np.multiply(cK, cT, out=t[1])
+        t[2] = sT
+        np.multiply(sK, sT, out=t[3])
+        np.multiply(cK, sT, out=t[4])
+        M = t @ self.basis.W  # (5, 3): weights w, w sin2, w cos2
+        M *= l
+        X = X0 + M[:3, 0]
+        J = np.array(
+            [
+                [M[1, 1], M[1, 2], -M[3, 2]],
+                [-M[0, 1], -M[0, 2], -M[4, 2]],
+                [0.0, 0.0, l * float(self.basis.wcos2 @ cT)],
+            ]
+        )
+        return X, J
 
 
 @dataclass(frozen=True)
@@ -160,6 +184,9 @@ class ModalSolution:
     iterations: int
 
 
+_I3 = np.eye(3)
+
+
 def solve_modal_factors(
     basis: ModalBasis,
     X0: np.ndarray,
@@ -168,7 +195,7 @@ def solve_modal_factors(
     b: Boundary,
     a0: np.ndarray | None = None,
     *,
-    tol: float = 1e-9,
+    tol: float = 1e-7,
     max_iter: int = 200,
 ) -> ModalSolution:
     """Modal participation factors a with X(1; a) = X_D (Eq. 8, damped).
@@ -177,6 +204,7 @@ def solve_modal_factors(
     ``(J^T J + mu I) da = -J^T F`` is Eq. (8) with omega = 1 when mu -> 0 and
     a short gradient step when mu is large; mu shrinks after every step that
     lowers |F| and grows after one that does not.  ``a0`` warm-starts it.
+    ``tol`` (mm) is the distance left to the target.
 
     Raises :class:`UnreachableError` when ``|X_D - X0| > l`` (no curve of that
     length reaches), or when the iteration stalls (the mode shapes cannot bend
@@ -192,16 +220,18 @@ def solve_modal_factors(
             f"target {np.round(X_D, 3).tolist()} is {gap:.3f} mm from the base but the "
             f"modal curve is only {l:.3f} mm long"
         )
+    ev = _EndPoint(basis, b)
     a = np.zeros(3) if a0 is None else np.array(a0, dtype=float)
-    X, J = end_point_and_jacobian(basis, X0, l, a, b)
+    X, J = ev.evaluate(X0, l, a)
     F = X - X_D
     f2 = float(F @ F)
     JtJ = J.T @ J
-    mu = 1e-6 * float(np.trace(JtJ)) + 1e-12
+    scale = float(JtJ[0, 0] + JtJ[1, 1] + JtJ[2, 2])
+    mu = 1e-6 * scale + 1e-12
     it = 0
     tol2 = tol * tol
     while f2 > tol2:
-        if it >= max_iter or mu > 1e12 * (float(np.trace(JtJ)) + 1.0):
+        if it >= max_iter or mu > 1e12 * (scale + 1.0):
             raise UnreachableError(
                 f"modal backbone of length {l:.1f} mm cannot reach "
                 f"{np.round(X_D, 3).tolist()} with end angles (K, T) = "
@@ -209,16 +239,16 @@ def solve_modal_factors(
                 f"{math.sqrt(f2):.3g} mm left after {it} iterations"
             )
         it += 1
-        g = J.T @ F
-        da = np.linalg.solve(JtJ + mu * np.eye(3), -g)
-        a_new = a + da
-        X_new, J_new = end_point_and_jacobian(basis, X0, l, a_new, b)
+        a_new = a + np.linalg.solve(JtJ + mu * _I3, -(J.T @ F))
+        X_new, J_new = ev.evaluate(X0, l, a_new)
         F_new = X_new - X_D
         f2_new = float(F_new @ F_new)
         if f2_new < f2:
-            a, X, J, F, f2 = a_new, X_new, J_new, F_new, f2_new
+            a, J, F, f2 = a_new, J_new, F_new, f2_new
+            X = X_new
             JtJ = J.T @ J
-            mu = max(mu * 0.1, 1e-15 * float(np.trace(JtJ)))
+            scale = float(JtJ[0, 0] + JtJ[1, 1] + JtJ[2, 2])
+            mu = max(mu * 0.1, 1e-15 * scale)
         else:
             mu *= 10.0
     return ModalSolution(a=a, end=X, residual=math.sqrt(f2), iterations=it)

@@ -175,7 +175,7 @@ def plan_path(
             if i == 0:
                 sol = solve_modal_cold(basis, X0, A, float(L_m[0]), b)
             else:
-                guess = modal_a[i - 1] if i == 1 else 2.0 * modal_a[i - 1] - modal_a[i - 2]
+                guess = predict_modal_factors(modal_a[:i])
                 try:
                     sol = solve_modal_factors(basis, X0, A, float(L_m[i]), b, a0=guess)
                 except UnreachableError:
@@ -241,6 +241,21 @@ def plan_path(
     plan.report = plan_report(plan, seg, opt.Q)
     plan.report["plan_time_ms"] = (time.perf_counter() - t_start) * 1e3
     return plan
+
+
+def predict_modal_factors(history: np.ndarray) -> np.ndarray:
+    """Warm start for the next step: the last solutions extrapolated (quadratic
+    from three, linear from two, the last one from one).
+
+    >>> predict_modal_factors(np.array([[1.0, 0, 0], [2.0, 0, 0], [4.0, 0, 0]])).tolist()
+    [7.0, 0.0, 0.0]
+    """
+    n = len(history)
+    if n >= 3:
+        return 3.0 * history[-1] - 3.0 * history[-2] + history[-3]
+    if n == 2:
+        return 2.0 * history[-1] - history[-2]
+    return history[-1].copy()
 
 
 def travelled_path_padded(path: KnownPath, travel: np.ndarray) -> np.ndarray:

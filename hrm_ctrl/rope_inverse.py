@@ -39,6 +39,7 @@ import numpy as np
 
 from hrm_ctrl.errors import RopeError
 from hrm_ctrl.rope_length import (
+    N_FEATURES,
     RopeGeometry,
     _features_and_derivatives,
     lengths_and_jacobian,
@@ -47,7 +48,7 @@ from hrm_ctrl.rope_length import (
 )
 
 MAX_ITERATIONS = 30
-STEP_TOL = 1e-12
+STEP_TOL = 1e-10
 SWITCH_TOL = 1e-6  # rad: from squared-length to plain-length Newton
 FALLBACK_RMS_MM = 0.01  # a joint's RMS rope residual above this triggers the robust solve
 MAX_STEP = 0.5  # rad per iteration and angle (keeps Newton inside the joint's range)
@@ -153,7 +154,8 @@ def _sequential_squared(
         t2 = (Lb[:, idx] - prior[:, idx]) ** 2
         xk = np.zeros((B, 2))
         for _ in range(MAX_ITERATIONS):
-            G = _features_and_derivatives(xk[:, 0], xk[:, 1]) @ Wk  # (3, B, n_k)
+            F3 = _features_and_derivatives(xk[:, 0], xk[:, 1]).reshape(B, 3, N_FEATURES)
+            G = F3.transpose(1, 0, 2) @ Wk  # (3, B, n_k)
             g = C0k - 2.0 * G[0] - t2
             ja, jt = -2.0 * G[1], -2.0 * G[2]
             a11, a12, a22 = (ja * ja).sum(1), (ja * jt).sum(1), (jt * jt).sum(1)
@@ -163,7 +165,7 @@ def _sequential_squared(
             d = np.stack([(a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det], axis=1)
             np.clip(d, -MAX_STEP, MAX_STEP, out=d)
             xk += d
-            if float(np.abs(d).max()) < SWITCH_TOL * 1e-4:
+            if float(np.abs(d).max()) < SWITCH_TOL:
                 break
         x[:, k] = xk
         F = rotation_features(xk[:, 0], xk[:, 1])  # (B, 8)

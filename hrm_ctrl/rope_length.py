@@ -136,24 +136,30 @@ def rope_geometry(routing: RopeRouting) -> RopeGeometry:
     return RopeGeometry(W=W, C0=C0, crosses=crosses, straight=straight)
 
 
-# Each used rotation entry is sign * A * T with A in (1, cos a, sin a), T in (1, cos t, sin t).
+# Each used rotation entry is sign * A * T with A in (1, cos a, sin a), T in (1, cos t, sin t);
+# the trig table is (1, cos, sin, -sin, 0) so derivatives are lookups too.
 _IA = np.array([1, 2, 2, 0, 0, 2, 1, 1])
 _IT = np.array([0, 2, 1, 1, 2, 0, 2, 1])
 _SIGN = np.array([1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
+_D = np.array([4, 3, 1])  # d/dx of (1, cos, sin) as indices into the trig table
+_IA3 = np.concatenate([_IA, _D[_IA], _IA])
+_IT3 = np.concatenate([_IT, _IT, _D[_IT]])
+_SIGN3 = np.tile(_SIGN, 3)
 
 
-def _trig(alpha: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(values, derivatives) of (1, cos, sin) for alpha and theta, each (2, ..., 3)."""
-    x = np.stack(np.broadcast_arrays(np.asarray(alpha, float), np.asarray(theta, float)))
-    v = np.empty((*x.shape, 3))
-    d = np.empty((*x.shape, 3))
-    v[..., 0] = 1.0
-    np.cos(x, out=v[..., 1])
-    np.sin(x, out=v[..., 2])
-    d[..., 0] = 0.0
-    np.negative(v[..., 2], out=d[..., 1])
-    d[..., 2] = v[..., 1]
-    return v, d
+def _trig(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Table (1, cos, sin, -sin, 0) of alpha and theta, shape (2, ..., 5)."""
+    alpha = np.asarray(alpha, dtype=float)
+    u = np.empty((2, *alpha.shape, 5))
+    x = u[..., 4]
+    x[0] = alpha
+    x[1] = theta
+    np.cos(x, out=u[..., 1])
+    np.sin(x, out=u[..., 2])
+    np.negative(u[..., 2], out=u[..., 3])
+    u[..., 0] = 1.0
+    u[..., 4] = 0.0
+    return u
 
 
 def rotation_features(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -162,16 +168,14 @@ def rotation_features(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
     >>> rotation_features(np.zeros(1), np.zeros(1)).tolist()
     [[1.0, 0.0, 0.0, 1.0, -0.0, -0.0, 0.0, 1.0]]
     """
-    v, _ = _trig(alpha, theta)
-    return _SIGN * v[0][..., _IA] * v[1][..., _IT]
+    u = _trig(alpha, theta)
+    return _SIGN * u[0][..., _IA] * u[1][..., _IT]
 
 
 def _features_and_derivatives(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """Features, d/dalpha and d/dtheta stacked: shape (3, ..., 8)."""
-    v, d = _trig(alpha, theta)
-    a = np.stack([v[0], d[0], v[0]])[..., _IA]
-    t = np.stack([v[1], v[1], d[1]])[..., _IT]
-    return _SIGN * a * t
+    """Features, d/dalpha and d/dtheta side by side: shape (..., 24)."""
+    u = _trig(alpha, theta)
+    return _SIGN3 * u[0][..., _IA3] * u[1][..., _IT3]
 
 
 def segment_lengths(geom: RopeGeometry, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -223,8 +227,8 @@ def lengths_and_jacobian(
     """
     B = alpha.shape[0]
     n_j, n = geom.n_joints, geom.n_ropes
-    F3 = _features_and_derivatives(alpha, theta)  # (3, B, 12, 8)
-    G = np.matmul(F3.transpose(2, 0, 1, 3).reshape(n_j, 3 * B, N_FEATURES), geom.W)
+    F3 = _features_and_derivatives(alpha, theta).reshape(B, n_j, 3, N_FEATURES)
+    G = np.matmul(F3.transpose(1, 2, 0, 3).reshape(n_j, 3 * B, N_FEATURES), geom.W)
     G = G.reshape(n_j, 3, B, n)
     s = np.sqrt(np.maximum(geom.C0[:, None, :] - 2.0 * G[:, 0], 0.0))  # (12, B, n)
     safe = np.where(s > 0.0, s, 1.0)

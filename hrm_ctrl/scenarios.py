@@ -29,7 +29,7 @@ from hrm_ctrl.errors import PlanningError
 from hrm_ctrl.known_path import KnownPath
 
 BEND_STEP_RAD = math.radians(1.0)
-SAMPLES_PER_LINK = 33
+SAMPLES_PER_LINK = 17  # every <= 11.2 mm along a 179 mm link
 
 
 def arc_points(

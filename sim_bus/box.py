@@ -71,6 +71,7 @@ class _BoxBus:
         self.seq = 0
         self.frames_in = 0
         self.frames_out = 0
+        self.trace: list[tuple[float, list[int]]] | None = None
 
     def rebuild_routes(self) -> None:
         routes: dict[int, list[DriveSim]] = {}
@@ -286,11 +287,16 @@ class SimBox:
             except Exception as exc:  # a drive must never take the box down
                 self._event(f"drive {bb.name}/{d.node_id}: error handling {msg} ({exc!r})")
         cob = msg.arbitration_id
+        if cob == cia.COB_SYNC and bb.trace is not None:
+            bb.trace.append((now, [d.position_counts for d in bb.drives]))
         if cob == cia.COB_NMT or cia.COB_SDO_RX < cob <= cia.COB_SDO_RX + 0x7F:
             bb.rebuild_routes()
 
-    def _event(self, text: str) -> None:
-        log.warning(text)
+    def _fault_event(self, text: str) -> None:
+        self._event(text, logging.INFO)
+
+    def _event(self, text: str, level: int = logging.WARNING) -> None:
+        log.log(level, text)
         with self._lock:
             self.events.append(text)
 
@@ -307,6 +313,28 @@ class SimBox:
     def arm_state(self) -> ArmState:
         """The arm now: true joint angles and centres, tensions."""
         return self.arm.state(self.counts(), self.clock())
+
+    def record_trace(self, enabled: bool = True) -> None:
+        """Start (clearing) or stop recording every drive's position at each SYNC."""
+        with self._lock:
+            for bb in self._buses:
+                bb.trace = [] if enabled else None
+
+    def trace(self) -> tuple[np.ndarray, np.ndarray]:
+        """Recorded SYNC times (k,) (bus 0's clock reading) and actual motor positions
+        (k, n) after each SYNC, in the rope layer's motor order; k is the number of
+        SYNCs every bus has seen."""
+        ids = self.actuation.motor_ids
+        with self._lock:
+            traces = [(bb, list(bb.trace or [])) for bb in self._buses]
+        k = min((len(tr) for _bb, tr in traces), default=0)
+        counts = np.tile(self._initial, (k, 1))
+        times = np.array([t for t, _p in traces[0][1][:k]]) if traces else np.zeros(0)
+        for bb, tr in traces:
+            cols = [ids.index(d.motor_id) for d in bb.drives]  # type: ignore[attr-defined]
+            if k:
+                counts[:, cols] = np.array([p for _t, p in tr[:k]], dtype=np.int64)
+        return times, counts
 
     def statuswords(self) -> dict[str, int]:
         with self._lock:
@@ -332,7 +360,7 @@ class SimBox:
         """The drive of ``motor`` stops (or resumes) producing its heartbeat."""
         with self._lock:
             self._drive(motor).heartbeat_enabled = not stopped
-        self._event(f"fault: heartbeat of {motor} {'stopped' if stopped else 'resumed'}")
+        self._fault_event(f"fault: heartbeat of {motor} {'stopped' if stopped else 'resumed'}")
 
     def fault_drive(self, motor: str, code: int = EMCY_FOLLOWING_ERROR) -> None:
         """The drive faults now (following error by default) and sends its EMCY."""
@@ -341,18 +369,18 @@ class SimBox:
             if code == EMCY_FOLLOWING_ERROR:
                 d.following_error = True
             d.inject_fault(code, self.clock())
-        self._event(f"fault: drive {motor} faulted with 0x{code:04X}")
+        self._fault_event(f"fault: drive {motor} faulted with 0x{code:04X}")
 
     def jam(self, motor: str, jammed: bool = True) -> None:
         """The motor stalls: it faults by following error once its target moves away."""
         with self._lock:
             self._drive(motor).jammed = jammed
-        self._event(f"fault: motor {motor} {'jammed' if jammed else 'free'}")
+        self._fault_event(f"fault: motor {motor} {'jammed' if jammed else 'free'}")
 
     def snap_rope(self, motor: str) -> None:
         """The rope of ``motor`` breaks: tension 0, its joint drifts."""
         self.arm.snap(motor, self.clock())
-        self._event(f"fault: rope {motor} snapped")
+        self._fault_event(f"fault: rope {motor} snapped")
 
     def drop_frames(self, bus: str, match: FrameMatch | None = None, count: int | None = 1) -> None:
         """Lose ``count`` frames (``None``: all) matching ``match`` on bus ``bus``."""
@@ -362,7 +390,7 @@ class SimBox:
         else:
             with self._lock:
                 bb.drop_rules.append([match, count])
-        self._event(f"fault: drop {count if count is not None else 'all'} frame(s) on {bus}")
+        self._fault_event(f"fault: drop {count if count is not None else 'all'} frame(s) on {bus}")
 
     def delay_frames(
         self, bus: str, delay_s: float, match: FrameMatch | None = None, count: int | None = 1
@@ -376,7 +404,7 @@ class SimBox:
         else:
             with self._lock:
                 bb.delay_rules.append([match, count, float(delay_s)])
-        self._event(f"fault: delay frames on {bus} by {delay_s * 1000:.1f} ms")
+        self._fault_event(f"fault: delay frames on {bus} by {delay_s * 1000:.1f} ms")
 
     def set_bus_off(self, bus: str, off: bool = True) -> None:
         """Bus ``bus`` goes off (nothing passes) or comes back."""
@@ -387,7 +415,7 @@ class SimBox:
             bb.bus_off = off
             if off:
                 bb.delayed.clear()
-        self._event(f"fault: bus {bus} {'off' if off else 'on'}")
+        self._fault_event(f"fault: bus {bus} {'off' if off else 'on'}")
 
     def clear_frame_faults(self) -> None:
         with self._lock:

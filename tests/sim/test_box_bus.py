@@ -101,7 +101,9 @@ def test_bootup_sdo_pdo_sync_heartbeat_emcy_on_the_bus(rig: tuple[Host, SimBox])
     host.send(cia.make_nmt(cia.NMT_START_REMOTE_NODE, 0))
     host.sdo(1, cia.make_sdo_download_expedited(1, cia.OD_MODES_OF_OPERATION, 0, b"\x08"))
     for cw in (cia.CW_SHUTDOWN, cia.CW_SWITCH_ON, cia.CW_ENABLE_OPERATION):
-        host.sdo(1, cia.make_sdo_download_expedited(1, cia.OD_CONTROLWORD, 0, struct.pack("<H", cw)))
+        host.sdo(
+            1, cia.make_sdo_download_expedited(1, cia.OD_CONTROLWORD, 0, struct.pack("<H", cw))
+        )
     host.send(cia.make_rpdo_target(1, cia.CW_ENABLE_OPERATION, 800))
     host.send(cia.make_sync())
     t1 = host.expect(lambda m: m.arbitration_id == 0x181)

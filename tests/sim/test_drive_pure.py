@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import struct
 
 import can
@@ -323,7 +324,7 @@ def test_velocity_limit_and_software_position_limit() -> None:
     for _ in range(6):
         out = r.sync()
         positions.append(cia.parse_tpdo(next(m for m in out if m.arbitration_id == 0x185).data))
-    steps = [b[1] - a[1] for a, b in zip(positions, positions[1:], strict=False)]
+    steps = [b[1] - a[1] for a, b in itertools.pairwise(positions)]
     assert max(steps) <= 1000  # 1e5 counts/s * 10 ms
     assert positions[-1][1] == 3000  # clamped at the max limit
     assert positions[-1][0] & cia.SW_INTERNAL_LIMIT_ACTIVE
@@ -349,9 +350,7 @@ def test_following_error_faults_with_emcy_and_fault_reset() -> None:
     n = len(r.sent)
     r.cw(cia.CW_FAULT_RESET)
     assert r.state() == S.SWITCH_ON_DISABLED
-    assert any(
-        m.arbitration_id == 0x085 and bytes(m.data) == bytes(8) for m in r.sent[n:]
-    )
+    assert any(m.arbitration_id == 0x085 and bytes(m.data) == bytes(8) for m in r.sent[n:])
     assert r.read(cia.OD_ERROR_REGISTER)[4] == 0
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import time
 import uuid
 from collections.abc import Iterator
@@ -54,7 +55,7 @@ def test_frames_are_paced_at_the_bitrate(pair: tuple[can.BusABC, can.BusABC]) ->
     elapsed = time.monotonic() - t0
     assert len(got) == 40
     assert elapsed >= 40 * 135e-6  # cannot be faster than the wire
-    gaps = [q.timestamp - p.timestamp for p, q in zip(got, got[1:], strict=False)]
+    gaps = [q.timestamp - p.timestamp for p, q in itertools.pairwise(got)]
     assert all(g > 135e-6 - 1e-6 for g in gaps)  # never closer than one frame's wire time
     assert sorted(gaps)[len(gaps) // 2] == pytest.approx(135e-6, abs=1e-6)  # back to back
     assert a.wire.stats()["max_delivery_late_s"] < 0.005

@@ -1,0 +1,99 @@
+"""``hrm sim``: run the simulated manipulator box as its own process.
+
+Opens every bus of the bus configuration (the drivers' ``box.toml`` format;
+any python-can interface: ``udp_multicast`` with ``hop_limit = 0`` in
+``[buses.NAME.options]`` here, SocketCAN ``vcan0`` where the kernel has it),
+attaches a simulated CiA 402 drive to every node, serves the tension-sensor
+board on a pseudo-terminal and prints JSON lines (``ready`` with the
+pseudo-terminal path first).  See ``docs/sim.md``.
+
+>>> import argparse
+>>> p = argparse.ArgumentParser(prog="hrm sim")
+>>> register(p)
+>>> a = p.parse_args(["--fault", "rope-snap:j05r2@3", "--duration", "10"])
+>>> a.fault, a.duration
+(['rope-snap:j05r2@3'], 10.0)
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from hrm_ctrl.errors import SimError
+
+HELP = "run the simulated manipulator box (CiA 402 drives, arm, tension board) on the buses"
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="bus configuration TOML (default: drivers/data/box.toml)",
+    )
+    parser.add_argument(
+        "--robot",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="robot description TOML (default: the one shipped with hrm)",
+    )
+    parser.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="inject a fault, KIND[:ARG...][@SECONDS], e.g. rope-snap:j05r2@3, "
+        "heartbeat-stop:j01r0@2, drive-fault:j03r1, drop:can0:0x181:all@1, bus-off:can1@4, "
+        "sensor-garbage, sensor-silent@5 (repeatable)",
+    )
+    parser.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+    )
+    parser.add_argument(
+        "--tension-rate",
+        type=float,
+        default=100.0,
+        metavar="HZ",
+        help="tension-sensor frame rate (default 100)",
+    )
+    parser.add_argument(
+        "--control",
+        action="store_true",
+        help="read commands from stdin (fault SPEC, state, trace on|off, trace, stats, quit)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from hrm_ctrl.actuation import load_actuation
+    from hrm_ctrl.model import load_robot
+    from sim_bus.config import load_sim_config
+    from sim_bus.faults import parse_fault
+    from sim_bus.runner import run_box_process
+
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise SimError(f"--duration must be > 0 s, got {args.duration}")
+    if not (math.isfinite(args.tension_rate) and 0 < args.tension_rate <= 10_000):
+        raise SimError(f"--tension-rate must be in (0, 10000] Hz, got {args.tension_rate}")
+    faults = [parse_fault(f) for f in args.fault]
+    config = load_sim_config(args.config)
+    actuation = load_actuation(load_robot(args.robot))
+    known = set(actuation.motor_ids)
+    buses = {b.name for b in config.buses}
+    for f in faults:
+        if f.kind in ("heartbeat-stop", "heartbeat-resume", "drive-fault", "jam", "rope-snap"):
+            if f.args[0] not in config.motor_ids or f.args[0] not in known:
+                raise SimError(f"--fault {f.kind}: no simulated drive for motor '{f.args[0]}'")
+        if f.kind in ("drop", "delay", "bus-off", "bus-on") and f.args[0] not in buses:
+            raise SimError(f"--fault {f.kind}: no bus '{f.args[0]}' (have {sorted(buses)})")
+    return run_box_process(
+        config,
+        actuation=actuation,
+        faults=faults,
+        duration_s=args.duration,
+        tension_rate_hz=args.tension_rate,
+        control=args.control,
+    )

@@ -1,0 +1,157 @@
+"""The box as its own process (``hrm sim``): box + tension board + fault script + control.
+
+The process prints one JSON object per line on stdout:
+
+* ``{"event": "ready", "tension_port": "/dev/pts/N", "buses": [...], "motors": 36, ...}``
+  once every drive has sent its boot-up and the tension board runs;
+* ``{"event": "fault", "fault": "...", "t_s": ...}`` whenever a fault is applied;
+* replies to control commands; ``{"event": "stopped", ...}`` at the end.
+
+With ``control=True`` it reads commands from stdin, one per line:
+``fault SPEC`` (see :mod:`sim_bus.faults`), ``state`` (true arm state now),
+``trace on|off`` / ``trace`` (positions after every SYNC), ``stats``, ``quit``.
+End of stdin also stops the box, so a parent that dies takes the box with it.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any, TextIO
+
+from hrm_ctrl.actuation import Actuation
+from hrm_ctrl.errors import HrmError
+from sim_bus.box import SimBox
+from sim_bus.config import SimConfig
+from sim_bus.faults import Fault, apply_fault, parse_fault
+from sim_bus.tension_board import TensionBoard
+from sim_bus.wire import SimWireBus
+
+
+def _emit(out: TextIO, obj: dict[str, Any]) -> None:
+    out.write(json.dumps(obj, separators=(",", ":")) + "\n")
+    out.flush()
+
+
+def arm_state_json(box: SimBox) -> dict[str, Any]:
+    s = box.arm_state()
+    return {
+        "event": "state",
+        "t_s": s.t,
+        "counts": s.counts.tolist(),
+        "alpha": s.alpha.tolist(),
+        "theta": s.theta.tolist(),
+        "centres": s.centres.round(6).tolist(),
+        "tension_N": s.tension_N.round(3).tolist(),
+        "statuswords": box.statuswords(),
+        "snapped": list(box.arm.snapped),
+    }
+
+
+def stats_json(box: SimBox, board: TensionBoard | None) -> dict[str, Any]:
+    wires = [bb.bus.wire.stats() for bb in box._buses if isinstance(bb.bus, SimWireBus)]
+    return {
+        "event": "stats",
+        "cpu_s": box.cpu_s,
+        "frames_in": {bb.name: bb.frames_in for bb in box._buses},
+        "frames_out": {bb.name: bb.frames_out for bb in box._buses},
+        "wires": wires,
+        "tension_frames": board.frames_sent if board else 0,
+        "events": box.events[-50:],
+    }
+
+
+def run_box_process(
+    config: SimConfig,
+    *,
+    actuation: Actuation | None = None,
+    faults: Sequence[Fault] = (),
+    duration_s: float | None = None,
+    tension_rate_hz: float = 100.0,
+    control: bool = False,
+    out: TextIO = sys.stdout,
+    inp: TextIO = sys.stdin,
+) -> int:
+    """Run the box until ``duration_s``, ``quit``, end of stdin (with ``control``) or
+    SIGTERM/SIGINT.  Returns the exit status (0)."""
+    stop = threading.Event()
+    commands: queue.Queue[str | None] = queue.Queue()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
+    box = SimBox(config, actuation=actuation)
+    board = TensionBoard(lambda: box.arm_state().tension_N, tension_rate_hz)
+    box.start()
+    try:
+        board.start()
+        t0 = time.monotonic()
+        _emit(
+            out,
+            {
+                "event": "ready",
+                "tension_port": board.port,
+                "buses": [
+                    {"name": b.name, "interface": b.interface, "channel": str(b.channel)}
+                    for b in config.buses
+                ],
+                "motors": len(config.motor_ids),
+                "motor_ids": list(box.actuation.motor_ids),
+                "source": config.source,
+            },
+        )
+        if control:
+
+            def read_commands() -> None:
+                for line in inp:
+                    commands.put(line.strip())
+                commands.put(None)
+
+            threading.Thread(target=read_commands, name="sim-control", daemon=True).start()
+        pending = sorted(faults, key=lambda f: f.at_s or 0.0)
+        while not stop.is_set():
+            now = time.monotonic() - t0
+            while pending and (pending[0].at_s or 0.0) <= now:
+                f = pending.pop(0)
+                _emit(out, {"event": "fault", "fault": apply_fault(f, box, board), "t_s": now})
+            if duration_s is not None and now >= duration_s:
+                break
+            try:
+                cmd = commands.get(timeout=0.01)
+            except queue.Empty:
+                continue
+            if cmd is None or cmd == "quit":
+                break
+            try:
+                _command(cmd, box, board, out, now)
+            except HrmError as exc:
+                _emit(out, {"event": "error", "error": str(exc)})
+        _emit(out, {**stats_json(box, board), "event": "stopped"})
+    finally:
+        board.stop()
+        box.stop()
+    return 0
+
+
+def _command(cmd: str, box: SimBox, board: TensionBoard, out: TextIO, now: float) -> None:
+    word, _, rest = cmd.partition(" ")
+    if word == "fault":
+        f = parse_fault(rest)
+        _emit(out, {"event": "fault", "fault": apply_fault(f, box, board), "t_s": now})
+    elif word == "state":
+        _emit(out, arm_state_json(box))
+    elif word == "stats":
+        _emit(out, stats_json(box, board))
+    elif word == "trace":
+        if rest in ("on", "off"):
+            box.record_trace(rest == "on")
+            _emit(out, {"event": "trace", "recording": rest == "on"})
+        else:
+            times, counts = box.trace()
+            _emit(out, {"event": "trace", "t_s": times.tolist(), "counts": counts.tolist()})
+    elif word:
+        _emit(out, {"event": "error", "error": f"unknown command '{word}'"})
