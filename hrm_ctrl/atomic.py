@@ -14,11 +14,20 @@ import tempfile
 from pathlib import Path
 
 
-def write_atomic(path: str | Path, data: str | bytes) -> None:
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def write_atomic(path: str | Path, data: str | bytes, *, make_parents: bool = True) -> None:
     """Write ``data`` to ``path`` through a temporary file in the same folder and
-    ``os.replace``; the folder is created if missing.  Flushed and fsynced."""
+    ``os.replace``; flushed and fsynced, with the usual file mode (0666 less the
+    umask).  The folder is created if missing unless ``make_parents`` is false.
+    Raises ``OSError`` (no partial file is left behind)."""
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
+    if make_parents:
+        p.parent.mkdir(parents=True, exist_ok=True)
     raw = data.encode("utf-8") if isinstance(data, str) else data
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
     try:
@@ -26,6 +35,7 @@ def write_atomic(path: str | Path, data: str | bytes) -> None:
             f.write(raw)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, p)
     except BaseException:
         try:

@@ -23,8 +23,6 @@ Each PNG is written atomically (temp file + ``os.replace``).
 from __future__ import annotations
 
 import io
-import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,9 +33,10 @@ from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from hrm_ctrl.atomic import write_atomic
 from hrm_ctrl.errors import HrmError, PlanFileError
+from hrm_ctrl.planfile import PLAN_FORMAT
 
-PLAN_FORMAT = "hrm-plan/1"
 DPI = 110
 BACKBONE_PNG = "backbone.png"
 ARM_PNG = "arm.png"
@@ -291,20 +290,9 @@ def _png_bytes(fig: Figure) -> bytes:
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
-    tmp: Path | None = None
     try:
-        with tempfile.NamedTemporaryFile(
-            dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False
-        ) as fh:
-            tmp = Path(fh.name)
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        write_atomic(path, data, make_parents=False)
     except OSError as exc:
-        if tmp is not None:
-            tmp.unlink(missing_ok=True)
         raise PlotError(f"{path}: cannot write figure ({exc.strerror or exc})") from None
 
 

@@ -29,13 +29,12 @@ True
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from hrm_ctrl.atomic import write_atomic
 from hrm_ctrl.errors import HrmError
 from hrm_ctrl.model import RobotModel
 
@@ -294,24 +293,8 @@ def write_robot_urdf(
     """
     path = Path(path)
     text = robot_urdf(model, link_mass_kg_per_m)
-    tmp: Path | None = None
     try:
-        with tempfile.NamedTemporaryFile(
-            "w",
-            encoding="utf-8",
-            dir=path.parent,
-            prefix=f".{path.name}.",
-            suffix=".tmp",
-            delete=False,
-        ) as fh:
-            tmp = Path(fh.name)
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        write_atomic(path, text, make_parents=False)
     except OSError as exc:
-        if tmp is not None:
-            tmp.unlink(missing_ok=True)
         raise UrdfWriteError(f"{path}: cannot write URDF ({exc.strerror or exc})") from None
     return path
