@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import concurrent.futures
 import datetime as dt
+import functools
 import json
+import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -44,6 +46,7 @@ from drivers.bringup import (
     DriveSettings,
     configure_drive,
     enable_operation,
+    sdo_write,
 )
 from drivers.busload import BusLoad, check_bus_load
 from drivers.config import BoxConfig
@@ -55,6 +58,7 @@ from hrm_ctrl.atomic import write_atomic
 from hrm_ctrl.errors import DriverError, HrmError
 
 RUN_RECORD_FORMAT = "hrm-run/1"
+log = logging.getLogger("drivers.box")
 
 
 class SafetyStopError(DriverError):
@@ -84,6 +88,27 @@ class _PortNetwork(canopen.Network):
             )
         )
         self.check()
+
+
+class _RxRouter(can.Listener):
+    """Receive path of one bus: TPDOs go straight to the monitor (every cycle, every
+    node: the hot path), everything else to canopen (SDO, heartbeat, EMCY)."""
+
+    def __init__(self, network: canopen.Network) -> None:
+        self.network = network
+        self.fast: dict[int, Callable[[bytes], None]] = {}
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame:
+            return
+        handler = self.fast.get(msg.arbitration_id)
+        if handler is not None:
+            handler(msg.data)
+            return
+        try:
+            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+        except Exception:  # a canopen callback must not stop the receive thread
+            log.exception("canopen callback failed on 0x%03X", msg.arbitration_id)
 
 
 class HeartbeatProducer:
@@ -188,6 +213,7 @@ class DriveBox:
         self.scheduler = CyclicScheduler(
             self._layouts, self.monitor, actuation, self.control.period_s, self.events
         )
+        self.scheduler.realtime_priority = self.control.realtime_priority
         self.events.add(
             "open",
             f"{len(config.buses)} bus(es), {n} drives, {self.control.rate_hz:g} Hz",
@@ -217,7 +243,8 @@ class DriveBox:
             port = BusPort(b.name, bus, log)
             self._ports.append(port)
             net = _PortNetwork(port)
-            listeners: list[can.Listener] = [canopen.network.MessageListener(net)]
+            router = _RxRouter(net)
+            listeners: list[can.Listener] = [router]
             if log is not None:
                 listeners.append(log)
             idx = np.array([order[m] for m in b.nodes], dtype=np.int64)
@@ -228,15 +255,22 @@ class DriveBox:
                 node.sdo.RESPONSE_TIMEOUT = self.control.sdo_timeout_s
                 self.links[i] = DriveLink(node, b.name, motor)
                 self._subscribe(net, i, nid)
+                router.fast[c.COB_TPDO1 + nid] = functools.partial(self.monitor.on_tpdo, i)
             net.notifier = can.Notifier(bus, listeners, 0.1)
             self._networks.append(net)
+            load = self.loads[bi]
             self._layouts.append(
-                BusLayout(port, idx, np.array(list(b.nodes.values())), net.notifier)
+                BusLayout(
+                    port,
+                    idx,
+                    np.array(list(b.nodes.values())),
+                    net.notifier,
+                    burst_s=load.bits_per_cycle / load.bitrate,
+                )
             )
 
     def _subscribe(self, net: canopen.Network, i: int, nid: int) -> None:
         mon = self.monitor
-        net.subscribe(c.COB_TPDO1 + nid, lambda _cid, data, _ts: mon.on_tpdo(i, data))
         net.subscribe(
             c.COB_NMT_ERROR_CONTROL + nid, lambda _cid, data, _ts: mon.on_heartbeat(i, data)
         )
@@ -323,14 +357,20 @@ class DriveBox:
         return actual
 
     def _abort_enable(self) -> None:
-        """Bring-up failed half-way: quick stop by RPDO to every node, then pre-operational."""
-        hold = self.actual if self.actual is not None else np.zeros(self.monitor.n, np.int64)
+        """Bring-up failed half-way: quick stop by SDO to every drive (no target is
+        written), then NMT pre-operational; failures here are logged, the original
+        error is what the caller gets."""
         try:
-            self.scheduler.send_controlword(c.CW_QUICK_STOP, hold)
+            self._parallel(
+                "abort", lambda link: sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_QUICK_STOP)
+            )
+        except HrmError as exc:
+            self.events.add("error", f"quick stop after failed enable: {exc}")
+        try:
             self.send_nmt(c.NMT_ENTER_PRE_OPERATIONAL)
         except DriverError as exc:
-            self.events.add("error", f"abort after failed enable: {exc}")
-        self.events.add("quick_stop", "bring-up failed: quick stop and NMT pre-operational sent")
+            self.events.add("error", f"NMT pre-operational after failed enable: {exc}")
+        self.events.add("quick_stop", "bring-up failed: quick stop (SDO) and NMT pre-operational")
 
     def stream(self, source: SetpointSource, raise_on_stop: bool = True) -> StreamResult:
         """Play a setpoint source; on any stop cause every axis gets a quick stop and

@@ -93,6 +93,7 @@ class ControlConfig:
     state_timeout_s: float = 0.5
     following_error_window_counts: int = 2000
     quick_stop_option_code: int = 2
+    realtime_priority: int = 0  # SCHED_FIFO priority of the scheduler thread (0: normal)
 
     @property
     def period_s(self) -> float:
@@ -214,6 +215,7 @@ _CONTROL_TYPES: dict[str, type] = {
     "state_timeout_s": float,
     "following_error_window_counts": int,
     "quick_stop_option_code": int,
+    "realtime_priority": int,
 }
 
 
@@ -259,6 +261,7 @@ def _control_from(doc: Mapping[str, Any], where: str) -> ControlConfig:
             "must be in 0..4294967295",
         ),
         ("quick_stop_option_code", -32768 <= c.quick_stop_option_code <= 32767, "INTEGER16"),
+        ("realtime_priority", 0 <= c.realtime_priority <= 99, "must be in 0..99"),
     ]
     for key, ok, why in checks:
         if not ok:

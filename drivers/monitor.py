@@ -143,6 +143,14 @@ class NodeMonitor:
         if emcy.error_code != 0:
             self._async_cause("emcy", idx, emcy.describe())
 
+    def drain(self) -> list[StopCause]:
+        """Take the causes queued by the receive callbacks (e.g. before a stream starts)."""
+        out = []
+        while self._async_causes:
+            out.append(self._async_causes.popleft())
+        self.wake.clear()
+        return out
+
     def reset_boot(self) -> None:
         self.booted[:] = False
         self.boot_event.clear()

@@ -21,9 +21,11 @@ within one control period of the event.
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,6 +40,7 @@ from hrm_ctrl.errors import HrmError
 
 LATE_THRESHOLD_S = 0.002
 STOP_CONFIRM_CYCLES = 10
+SYNC_MARGIN_S = 0.0005
 SWITCH_INTERVAL_S = 0.0002  # GIL hand-over while streaming (default 5 ms)
 
 
@@ -49,6 +52,7 @@ class BusLayout:
     index: np.ndarray  # global motor indices on this bus
     node_ids: np.ndarray
     notifier: can.Notifier | None = None
+    burst_s: float = 0.0  # wire time of one cycle's worst-case traffic on this bus
 
     def __post_init__(self) -> None:
         self.rpdo_ids = [c.COB_RPDO1 + int(n) for n in self.node_ids]
@@ -100,6 +104,7 @@ class CycleStats:
         self.sync_sent: list[float] = []
         self.cpu_s: list[float] = []
         self.skipped_slots = 0
+        self.realtime = False
         self.missing_feedback = 0
         self.process_cpu_s = 0.0
 
@@ -123,6 +128,7 @@ class CycleStats:
             "period_s": self.period_s,
             "late_threshold_s": self.late_threshold_s,
             "skipped_slots": self.skipped_slots,
+            "realtime_scheduling": self.realtime,
             "missing_feedback_node_cycles": self.missing_feedback,
         }
         if n == 0:
@@ -157,6 +163,27 @@ class CycleStats:
                 }
             )
         return out
+
+
+def _raise_priority(priority: int) -> Callable[[], None] | None:
+    """Put the calling thread under SCHED_FIFO at ``priority`` (Linux; needs the right);
+    return a function restoring the previous policy, or None when not granted."""
+    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+        return None
+    try:
+        policy = os.sched_getscheduler(0)
+        param = os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError):
+        return None
+
+    def restore() -> None:
+        try:
+            os.sched_setscheduler(0, policy, param)
+        except OSError:
+            pass
+
+    return restore
 
 
 @dataclass
@@ -207,25 +234,30 @@ class CyclicScheduler:
         self.seq = -1  # SYNC sequence number, continues across streams
         self.stop_request = threading.Event()
         self.switch_interval_s = SWITCH_INTERVAL_S
+        self.realtime_priority = 0
 
     # ------------------------------------------------------------------ sending
-    def _send_all(self, controlword: int, targets: np.ndarray) -> list[StopCause]:
-        """RPDOs on every bus, then SYNC on every bus; send failures become causes
-        (the other buses are still served)."""
-        return self._send_frames([lay.rpdo_frames(controlword, targets) for lay in self.buses])
+    @property
+    def sync_delay_s(self) -> float:
+        """Wait between a burst of RPDOs and an immediate SYNC: one cycle's worst-case
+        traffic on the slowest bus plus a margin, so the SYNC (higher priority) cannot
+        overtake RPDOs still queued in a controller that arbitrates by identifier."""
+        return max((lay.burst_s for lay in self.buses), default=0.0) + SYNC_MARGIN_S
 
-    def _send_frames(self, frames: list[list[can.Message]]) -> list[StopCause]:
+    def _send_rpdos(self, frames: list[list[can.Message]]) -> list[StopCause]:
         failed: list[StopCause] = []
-        ok: list[BusLayout] = []
         for layout, msgs in zip(self.buses, frames, strict=True):
             try:
                 layout.port.send_many(msgs)
-                ok.append(layout)
             except BusSendError as exc:
                 failed.append(StopCause("send", str(exc), None, time.monotonic()))
+        return failed
+
+    def _send_syncs(self) -> list[StopCause]:
         self.seq += 1
         self.monitor.seq = self.seq
-        for layout in ok:
+        failed: list[StopCause] = []
+        for layout in self.buses:
             try:
                 layout.port.send(c.make_sync())
             except BusSendError as exc:
@@ -233,20 +265,24 @@ class CyclicScheduler:
         return failed
 
     def send_controlword(self, controlword: int, targets: np.ndarray) -> list[StopCause]:
-        """One RPDO (same controlword for all) + SYNC on every bus, outside streaming."""
-        return self._send_all(controlword, targets)
+        """One RPDO per node (same controlword for all), then after :attr:`sync_delay_s`
+        one SYNC on every bus; send failures are returned (other buses still served)."""
+        failed = self._send_rpdos([lay.rpdo_frames(controlword, targets) for lay in self.buses])
+        time.sleep(self.sync_delay_s)
+        return failed + self._send_syncs()
 
     # ------------------------------------------------------------------ stopping
     def _quick_stop(
         self, causes: list[StopCause], targets: np.ndarray, detected_at: float
     ) -> tuple[float, bool, list[StopCause]]:
-        extra = self._send_all(c.CW_QUICK_STOP, targets)
+        extra = self.send_controlword(c.CW_QUICK_STOP, targets)
         latency = time.monotonic() - detected_at
         for cause in causes:
             self.events.add("stop_cause", cause.text, cause=cause.kind, motor=cause.motor)
         self.events.add(
             "quick_stop",
-            f"quick stop sent to every node of every bus {latency * 1000:.2f} ms after detection",
+            f"quick stop (RPDO + SYNC) sent to every node of every bus {latency * 1000:.2f} ms "
+            "after detection",
         )
         # Keep commanding quick stop until every node's feedback confirms it.
         confirmed = False
@@ -260,7 +296,7 @@ class CyclicScheduler:
             if bool(np.all(fresh & (states != int(c.State402.OPERATION_ENABLED)))):
                 confirmed = True
                 break
-            extra += self._send_all(c.CW_QUICK_STOP, targets)
+            extra += self.send_controlword(c.CW_QUICK_STOP, targets)
         self.events.add(
             "quick_stop_confirmed" if confirmed else "quick_stop_unconfirmed",
             "every node left OPERATION_ENABLED"
@@ -270,100 +306,124 @@ class CyclicScheduler:
         return latency, confirmed, extra
 
     # ------------------------------------------------------------------ streaming
+    def _watchdogs(self, now: float, due_seq: int, hb_armed: float | None) -> list[StopCause]:
+        causes = self.monitor.check(now, due_seq, hb_armed)
+        for layout in self.buses:
+            exc = layout.notifier.exception if layout.notifier is not None else None
+            if exc is not None:
+                causes.append(
+                    StopCause(
+                        "receive", f"bus {layout.port.name}: receive failed ({exc})", None, now
+                    )
+                )
+        if self.stop_request.is_set():
+            causes.append(StopCause("operator", "stop requested", None, now))
+        return causes
+
+    def _next_setpoint(
+        self, source: SetpointSource, k: int, previous: np.ndarray
+    ) -> np.ndarray | None:
+        """Setpoint of SYNC k, checked against the rope layer (raises on a limit)."""
+        target = source.setpoint(k)
+        if target is not None:
+            self.limits.check_counts(target, previous=previous, dt_s=self.period_s)
+        return target
+
     def stream(self, source: SetpointSource, actual: np.ndarray) -> StreamResult:
-        """Run ``source`` from the actual positions until it ends or something stops it."""
+        """Run ``source`` from the actual positions until it ends or something stops it.
+
+        Cycle: at each deadline, watchdogs, then SYNC on every bus (applying the RPDOs
+        sent during the previous period), then the next setpoint is checked and its
+        RPDOs sent; they have the rest of the period to reach the wire before the next
+        SYNC.  Deadlines sit on a fixed grid ``t0 + g T``; if the host falls more than a
+        period behind, grid slots are skipped (counted) but setpoints are never skipped,
+        so the motion slows down rather than jumps.
+        """
         T = self.period_s
         mon = self.monitor
         source.start(np.asarray(actual, dtype=np.int64), T)
         stats = CycleStats(T, self.late_threshold_s)
-        last = np.asarray(actual, dtype=np.int64).copy()
-        last_slot: int | None = None
-        sent_since = -1
+        applied = np.asarray(actual, dtype=np.int64).copy()  # last target a SYNC applied
+        due_seq = -1
         mon.missing_run[:] = 0
         missing0 = mon.missing_total
-        mon.wake.clear()
+        for stale in mon.drain():
+            # Reported while no stream ran (bring-up); the statusword check still applies.
+            self.events.add("before_stream", stale.text, cause=stale.kind, motor=stale.motor)
         self.stop_request.clear()
-        t0 = time.monotonic() + 2 * T / 10
-        hb_armed = t0
         mon.streaming = True
         self.events.add("stream_start", f"streaming {source.describe()}")
-        cpu0 = time.process_time()
-        k = 0
         causes: list[StopCause] = []
         error: HrmError | None = None
         completed = False
         old_switch = sys.getswitchinterval()
         sys.setswitchinterval(self.switch_interval_s)
-        prepared: tuple[int, np.ndarray, list[list[can.Message]]] | None = None
+        restore_sched = _raise_priority(self.realtime_priority)
+        stats.realtime = restore_sched is not None
+        cpu0 = time.process_time()
         try:
-            while True:
-                if prepared is None or prepared[0] != k:
-                    # Setpoint, limit check and frames for slot k, ahead of its deadline.
-                    target = source.setpoint(k)
-                    if target is None:
-                        completed = True
-                        break
-                    dt = T * (k - last_slot) if last_slot is not None else None
-                    try:
-                        self.limits.check_counts(target, previous=last, dt_s=dt)
-                    except HrmError as exc:
-                        error = exc
-                        now = time.monotonic()
-                        causes = [StopCause("limit", f"setpoint refused: {exc}", None, now)]
-                        break
-                    frames = [lay.rpdo_frames(c.CW_ENABLE_OPERATION, target) for lay in self.buses]
-                    prepared = (k, target, frames)
-                deadline = t0 + k * T
+            k = 0
+            try:
+                pending = self._next_setpoint(source, 0, applied)
+            except HrmError as exc:
+                error, pending = exc, None
+                causes = [StopCause("limit", f"setpoint refused: {exc}", None, time.monotonic())]
+            if pending is None:
+                completed = not causes
+            else:
+                causes = self._send_rpdos(
+                    [lay.rpdo_frames(c.CW_ENABLE_OPERATION, pending) for lay in self.buses]
+                )
+            t0 = time.monotonic() + max(self.sync_delay_s, T / 5)
+            hb_armed = t0
+            g = 0
+            while pending is not None and not causes:
+                deadline = t0 + g * T
                 remaining = deadline - time.monotonic()
                 if remaining > 0 and mon.wake.wait(remaining):
                     # A watchdog fired between deadlines: react now.
                     mon.wake.clear()
-                    causes = mon.check(time.monotonic(), -1, None)
-                    if self.stop_request.is_set():
-                        causes.append(
-                            StopCause("operator", "stop requested", None, time.monotonic())
-                        )
-                    if causes:
-                        break
+                    causes = self._watchdogs(time.monotonic(), -1, None)
                     continue
                 th0 = time.thread_time()
                 now = time.monotonic()
                 if now - deadline > T:
-                    skip = int((now - t0) // T) - k
+                    skip = int((now - t0) // T) - g
                     stats.skipped_slots += skip
-                    k += skip
-                    continue
-                causes = mon.check(now, sent_since, hb_armed)
-                for layout in self.buses:
-                    if layout.notifier is not None and layout.notifier.exception is not None:
-                        causes.append(
-                            StopCause(
-                                "receive",
-                                f"bus {layout.port.name}: receive failed "
-                                f"({layout.notifier.exception})",
-                                None,
-                                now,
-                            )
-                        )
-                if self.stop_request.is_set():
-                    causes.append(StopCause("operator", "stop requested", None, now))
+                    g += skip
+                    deadline = t0 + g * T
+                causes = self._watchdogs(now, due_seq, hb_armed)
                 if causes:
                     break
-                _, target, frames = prepared
-                failed = self._send_frames(frames)
+                causes = self._send_syncs()
                 t_sync = time.monotonic()
-                sent_since = self.seq
-                last = target
-                last_slot = k
-                if failed:
-                    causes = failed
+                due_seq = self.seq
+                applied = pending
+                if causes:
                     break
+                try:
+                    pending = self._next_setpoint(source, k + 1, applied)
+                except HrmError as exc:
+                    error = exc
+                    causes = [
+                        StopCause("limit", f"setpoint refused: {exc}", None, time.monotonic())
+                    ]
+                    pending = None
+                if pending is not None:
+                    frames = [lay.rpdo_frames(c.CW_ENABLE_OPERATION, pending) for lay in self.buses]
+                    causes = self._send_rpdos(frames)
+                elif not causes:
+                    completed = True
                 stats.add(deadline, now, t_sync, time.thread_time() - th0)
                 k += 1
+                g += 1
         finally:
             sys.setswitchinterval(old_switch)
+            if restore_sched is not None:
+                restore_sched()
             stats.process_cpu_s = time.process_time() - cpu0
             stats.missing_feedback = mon.missing_total - missing0
+        last = applied
         result = StreamResult(
             completed=completed,
             cycles=stats.n_cycles,

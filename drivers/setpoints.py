@@ -46,6 +46,8 @@ class LimitChecker(Protocol):
 class SetpointSource(Protocol):
     name: str
 
+    def precheck(self, period_s: float) -> None: ...
+
     def start(self, actual_counts: np.ndarray, period_s: float) -> None: ...
 
     def setpoint(self, k: int) -> np.ndarray | None: ...
@@ -60,6 +62,9 @@ class TableSource:
 
     def __init__(self) -> None:
         self.table: np.ndarray = np.zeros((0, 0), dtype=np.int64)
+
+    def precheck(self, period_s: float) -> None:
+        """Refuse what can be refused before the actual positions are known."""
 
     def setpoint(self, k: int) -> np.ndarray | None:
         if k >= self.table.shape[0]:
@@ -83,6 +88,10 @@ class HoldSource(TableSource):
         super().__init__()
         self.n_cycles_wanted = n_cycles
         self.counts = None if counts is None else np.asarray(counts, dtype=np.int64)
+
+    def precheck(self, period_s: float) -> None:
+        if self.counts is not None and self.counts.ndim != 1:
+            raise SetpointError("hold: counts must be one value per motor")
 
     def start(self, actual_counts: np.ndarray, period_s: float) -> None:
         hold = np.asarray(actual_counts if self.counts is None else self.counts, dtype=np.int64)
@@ -145,6 +154,31 @@ class JogSource(TableSource):
         self.velocity = float(velocity_counts_per_s)
         self.duration_s = float(duration_s)
         self.hold_s = float(hold_s)
+
+    def precheck(self, period_s: float) -> None:
+        """Speed within the motor's limit and travel within its range.
+
+        >>> from hrm_ctrl.actuation import load_actuation
+        >>> from hrm_ctrl.model import default_robot
+        >>> jog = JogSource(load_actuation(default_robot()), "j01r0", 1e7, 1.0)
+        >>> jog.precheck(0.01)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        drivers.setpoints.SetpointError: jog j01r0: 10000000 counts/s exceeds the motor's ...
+        """
+        i = self.index
+        vmax = float(self.actuation.max_rate_counts_per_s[i])
+        if abs(self.velocity) > vmax:
+            raise SetpointError(
+                f"jog {self.motor}: {self.velocity:.0f} counts/s exceeds the motor's "
+                f"{vmax:.0f} counts/s"
+            )
+        span = int(self.actuation.counts_max[i]) - int(self.actuation.counts_min[i])
+        if abs(self.velocity) * self.duration_s > span:
+            raise SetpointError(
+                f"jog {self.motor}: {abs(self.velocity) * self.duration_s:.0f} counts exceed the "
+                f"motor's whole range of {span} counts"
+            )
 
     def start(self, actual_counts: np.ndarray, period_s: float) -> None:
         n_move = max(1, round(self.duration_s / period_s))
@@ -235,6 +269,10 @@ class PlanSource(TableSource):
         )
         self.actuation.check_counts(counts, dt_s=period_s)
         return counts
+
+    def precheck(self, period_s: float) -> None:
+        """The whole plan against every rope and joint limit."""
+        self.plan_table(period_s)
 
     def start(self, actual_counts: np.ndarray, period_s: float) -> None:
         body = self.plan_table(period_s)

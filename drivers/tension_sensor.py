@@ -25,6 +25,7 @@ import binascii
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -228,3 +229,80 @@ class TensionSensorReader:
                 f"(limit {self.stale_after_s * 1000:.0f} ms)"
             )
         return s
+
+
+def check_tensions(
+    sample: TensionSample, motor_ids: tuple[str, ...] | list[str], min_N: float, max_N: float
+) -> str | None:
+    """One-line reason when a rope's tension is invalid or outside [min_N, max_N], else None.
+
+    >>> s = TensionSample(0, 0, 0, np.array([30.0, 0.2]), 0.0)
+    >>> check_tensions(s, ["j01r0", "j01r1"], 5.0, 200.0)
+    'rope j01r1: tension 0.2 N below 5 N (slack or broken)'
+    """
+    t = sample.tensions_N
+    if t.shape != (len(motor_ids),):
+        return f"tension sample has {t.size} ropes, expected {len(motor_ids)}"
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        return f"rope {motor_ids[int(bad[0])]}: tension channel invalid"
+    low = np.flatnonzero(t < min_N)
+    if low.size:
+        i = int(low[0])
+        return f"rope {motor_ids[i]}: tension {t[i]:.1f} N below {min_N:g} N (slack or broken)"
+    high = np.flatnonzero(t > max_N)
+    if high.size:
+        i = int(high[0])
+        return f"rope {motor_ids[i]}: tension {t[i]:.1f} N above {max_N:g} N"
+    return None
+
+
+class TensionWatch:
+    """Watchdog thread: every ``period_s`` it checks the reader's newest sample and calls
+    ``on_fault(text)`` once (then stops) when the data is stale or a tension is out of range.
+    """
+
+    def __init__(
+        self,
+        reader: TensionSensorReader,
+        motor_ids: tuple[str, ...] | list[str],
+        on_fault: Callable[[str], None],
+        *,
+        min_N: float = 5.0,
+        max_N: float = 500.0,
+        period_s: float = 0.01,
+        grace_s: float = 0.5,
+    ) -> None:
+        self.reader = reader
+        self.motor_ids = tuple(motor_ids)
+        self.on_fault = on_fault
+        self.min_N, self.max_N = float(min_N), float(max_N)
+        self.period_s = float(period_s)
+        self.grace_s = float(grace_s)
+        self.fault: str | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> TensionWatch:
+        self._thread = threading.Thread(target=self._run, name="tension-watch", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+
+    def _run(self) -> None:
+        t_start = time.monotonic()
+        while not self._stop.wait(self.period_s):
+            try:
+                text = check_tensions(self.reader.latest(), self.motor_ids, self.min_N, self.max_N)
+            except TensionSensorError as exc:
+                if time.monotonic() - t_start < self.grace_s:
+                    continue  # the first frames may still be on their way
+                text = str(exc)
+            if text is not None:
+                self.fault = text
+                self.on_fault(text)
+                return

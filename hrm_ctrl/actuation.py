@@ -27,8 +27,8 @@ import numpy as np
 from hrm_ctrl.errors import RopeError
 from hrm_ctrl.model import RobotModel
 from hrm_ctrl.motor_map import MotorMap, motor_map_from_table, unstretched_length_mm
-from hrm_ctrl.rope_inverse import padded_index, solve_angles
-from hrm_ctrl.rope_length import RopeGeometry, rope_geometry
+from hrm_ctrl.rope_inverse import newton_step, padded_index, solve_angles
+from hrm_ctrl.rope_length import RopeGeometry, lengths_and_jacobian, rope_geometry
 from hrm_ctrl.rope_length import rope_lengths as _rope_lengths
 from hrm_ctrl.rope_routing import RopeRouting, routing_from_model
 
@@ -57,6 +57,9 @@ class Actuation:
     geometry: RopeGeometry
     motors: MotorMap
     pad: np.ndarray
+    pre_c0: np.ndarray  # (n,) counts = pre_c0 - pre_k * length at the pretension
+    pre_k: np.ndarray
+    linear_inverse: np.ndarray  # (24, n): angles ~ linear_inverse @ (L - straight), small angles
 
     @property
     def n_motors(self) -> int:
@@ -89,6 +92,8 @@ class Actuation:
     def check_angles(self, alpha: Any, theta: Any) -> None:
         """Raise :class:`RopeLimitError` naming step and joint for NaN or out-of-limit angles."""
         a, t = self._angles(alpha, theta)
+        if (np.abs(a) < self.robot.limit_alpha).all() and (np.abs(t) < self.robot.limit_theta).all():
+            return
         for name, v, lim in (
             ("alpha", a, self.robot.limit_alpha),
             ("theta", t, self.robot.limit_theta),
@@ -123,16 +128,25 @@ class Actuation:
         travel raise :class:`RopeLimitError` naming step, joint and rope.
         """
         a, t = self._angles(alpha, theta)
-        if check:
-            self.check_angles(a, t)
-        u = unstretched_length_mm(
-            self.routing.box_length + _rope_lengths(self.geometry, a, t),
-            self._tension(tension_N),
-            self.routing.stiffness_EA_N,
-        )
-        counts = self.motors.counts_from_unstretched(u)
-        if check:
-            self.check_counts(counts)
+        if check and a.size and not (
+            np.abs(a).max() < self.robot.limit_alpha and np.abs(t).max() < self.robot.limit_theta
+        ):
+            self.check_angles(a, t)  # raises, naming step and joint
+        L = _rope_lengths(self.geometry, a, t)
+        if tension_N is None:  # pretension: counts are affine in the lengths (precomputed)
+            c = self.pre_c0 - self.pre_k * L
+            counts = np.rint(c, out=c).astype(np.int64)
+        else:
+            u = unstretched_length_mm(
+                self.routing.box_length + L,
+                self._tension(tension_N),
+                self.routing.stiffness_EA_N,
+            )
+            counts = self.motors.counts_from_unstretched(u)
+        if check and not (
+            (counts >= self.counts_min).all() and (counts <= self.counts_max).all()
+        ):
+            self.check_counts(counts)  # raises, naming step and motor
         return counts
 
     def unstretched_from_counts(self, counts: Any) -> np.ndarray:
@@ -158,14 +172,13 @@ class Actuation:
         ``alpha0``/``theta0`` warm-start it.  The residual is measured minus
         modelled geometric length per rope.
         """
-        sol = solve_angles(
-            self.geometry,
-            self.joint_of_motor,
-            self.lengths_from_counts(counts, tension_N),
-            alpha0,
-            theta0,
-            self.pad,
-        )
+        L = self.lengths_from_counts(counts, tension_N)
+        if alpha0 is None and theta0 is None:  # start from the small-angle inverse
+            x0 = (L - self.geometry.straight) @ self.linear_inverse.T
+            lim = np.array([self.robot.limit_alpha, self.robot.limit_theta] * self.robot.n_joints)
+            np.clip(x0, -lim, lim, out=x0)
+            alpha0, theta0 = x0[..., 0::2], x0[..., 1::2]
+        sol = solve_angles(self.geometry, self.joint_of_motor, L, alpha0, theta0, self.pad)
         return sol.alpha, sol.theta, sol.residual
 
     def _counts(self, counts: Any) -> np.ndarray:
@@ -176,20 +189,21 @@ class Actuation:
             raise RopeError("motor counts must be finite")
         return c
 
-    def check_counts(self, counts: Any, previous: Any = None, dt_s: float | None = None) -> None:
+    def check_counts(
+        self, counts: Any, previous: Any = None, dt_s: Any = None
+    ) -> None:
         """Raise :class:`RopeLimitError` for a setpoint outside the position limits or too fast.
 
-        ``counts`` is (n,) or a table (steps, n); for a table the step index is
-        named, and with ``dt_s`` consecutive rows are rate-checked too.
-        ``previous`` (n,) is the setpoint before the first row.
+        ``counts`` is (n,) or a table (steps, n); for a table the step (row) is
+        named.  With ``dt_s`` the change from ``previous`` (n,) to the first row
+        and between consecutive rows is rate-checked; ``dt_s`` is a scalar or, for
+        a table, one interval per change (steps - 1, or steps with ``previous``).
         """
         c = self._counts(counts)
         table = c.reshape(-1, self.n_motors)
         is_table = c.ndim == 2
-        low = table < self.counts_min
-        high = table > self.counts_max
-        if low.any() or high.any():
-            step, i = (int(v) for v in np.argwhere(low | high)[0])
+        if not ((table >= self.counts_min).all() and (table <= self.counts_max).all()):
+            step, i = (int(v) for v in np.argwhere((table < self.counts_min) | (table > self.counts_max))[0])
             where = f"step {step}: " if is_table else ""
             raise RopeLimitError(
                 f"{where}motor {self.motor_label(i)}: setpoint {int(table[step, i])} counts outside "
@@ -198,21 +212,24 @@ class Actuation:
             )
         if dt_s is None:
             return
-        if not dt_s > 0.0:
-            raise RopeError(f"dt_s must be > 0, got {dt_s!r}")
         seq = table
+        first = 1
         if previous is not None:
             seq = np.concatenate([self._counts(previous).reshape(1, -1), table], axis=0)
-        if seq.shape[0] < 2:
+            first = 0
+        n_changes = seq.shape[0] - 1
+        dt = np.asarray(dt_s, dtype=float)
+        if dt.ndim == 0:
+            dt = np.full(n_changes, float(dt))
+        if dt.shape != (n_changes,) or not np.all(dt > 0.0):
+            raise RopeError(f"dt_s must be > 0 s, one per change ({n_changes}), got {dt_s!r}")
+        if n_changes == 0:
             return
-        rate = np.abs(np.diff(seq.astype(np.float64), axis=0)) / dt_s
+        rate = np.abs(np.diff(seq.astype(np.float64), axis=0)) / dt[:, None]
         fast = rate > self.max_rate_counts_per_s
         if fast.any():
             row, i = (int(v) for v in np.argwhere(fast)[0])
-            step = row if previous is None else row - 1
-            where = f"step {step + 1}: " if (is_table or previous is None) else ""
-            if not is_table and previous is not None:
-                where = ""
+            where = f"step {row + first}: " if is_table else ""
             raise RopeLimitError(
                 f"{where}motor {self.motor_label(i)}: moves {rate[row, i]:.0f} counts/s, faster than "
                 f"the motor's {float(self.max_rate_counts_per_s[i]):.0f} counts/s"
@@ -234,11 +251,28 @@ def load_actuation(robot: RobotModel, zero_offsets_counts: Any = None) -> Actuat
     motors = motor_map_from_table(
         robot.tables.get("motors", {}), routing.rope_ids, u_ref, zero_offsets_counts, robot.source
     )
+    scale = 1.0 / (1.0 + routing.pretension_N / routing.stiffness_EA_N)
+    pre_k = motors.direction * motors.counts_per_mm * scale
+    pre_c0 = (
+        motors.zero_offsets_counts
+        + motors.direction * motors.counts_per_mm * motors.u_ref
+        - pre_k * routing.box_length
+    )
+    pad = padded_index(routing.joint_of_rope, robot.n_joints)
+    z = np.zeros((1, robot.n_joints))
+    _, J0, _ = lengths_and_jacobian(geom, z, z)
+    eye = np.eye(routing.n_ropes)
+    lin = np.stack(
+        [newton_step(J0, eye[m][None], pad)[0] for m in range(routing.n_ropes)], axis=1
+    )
     arrays = {
+        "linear_inverse": lin,
+        "pre_c0": pre_c0,
+        "pre_k": pre_k,
         "counts_min": motors.counts_min,
         "counts_max": motors.counts_max,
         "max_rate_counts_per_s": motors.max_rate_counts_per_s,
-        "pad": padded_index(routing.joint_of_rope, robot.n_joints),
+        "pad": pad,
     }
     for arr in arrays.values():
         arr.setflags(write=False)

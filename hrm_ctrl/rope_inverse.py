@@ -36,19 +36,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import dtrtrs as _dtrtrs
 
 from hrm_ctrl.errors import RopeError
 from hrm_ctrl.rope_length import (
-    N_FEATURES,
+    N9,
     RopeGeometry,
-    _features_and_derivatives,
+    _features9,
+    _features27,
     lengths_and_jacobian,
     rope_lengths,
-    rotation_features,
 )
 
 MAX_ITERATIONS = 30
-STEP_TOL = 1e-10
+STEP_TOL = 1e-8  # rad; Newton converges quadratically: the error left is ~1e-16
 SWITCH_TOL = 1e-6  # rad: from squared-length to plain-length Newton
 FALLBACK_RMS_MM = 0.01  # a joint's RMS rope residual above this triggers the robust solve
 MAX_STEP = 0.5  # rad per iteration and angle (keeps Newton inside the joint's range)
@@ -66,6 +67,7 @@ class InverseSolution:
     theta: np.ndarray
     residual: np.ndarray
     iterations: int
+    jacobian: np.ndarray | None = None  # (..., n, 24) at (within a Newton step of) the solution
 
     def joint_residual(self, joint_of_rope: np.ndarray) -> np.ndarray:
         """RMS residual of each joint's own ropes (..., 12) in mm."""
@@ -91,25 +93,39 @@ def padded_index(joint_of_rope: np.ndarray, n_joints: int) -> np.ndarray:
     return out
 
 
-def newton_step(J: np.ndarray, r: np.ndarray, pad: np.ndarray) -> np.ndarray:
-    """One block-forward-substitution Newton step, shape (B, 24), from J (B, n, 24), r (B, n)."""
+def newton_step(
+    J: np.ndarray, r: np.ndarray, pad: np.ndarray, identity_pad: bool | None = None
+) -> np.ndarray:
+    """One block-forward-substitution Newton step, shape (B, 24), from J (B, n, 24), r (B, n).
+
+    ``identity_pad``: whether ``pad`` is the identity layout (every joint the same
+    number of ropes, in order); computed if not given.
+    """
     B, n, n_x = J.shape
     n_j, n_max = pad.shape
     Jr = np.concatenate([J, r[..., None]], axis=2)  # (B, n, 25)
-    if n_j * n_max == n and _is_identity(pad):
+    if identity_pad is None:
+        identity_pad = n_j * n_max == n and _is_identity(pad)
+    if identity_pad:
         Jx = Jr.reshape(B, n_j, n_max, n_x + 1)
     else:
         Jx = np.concatenate([Jr, np.zeros((B, 1, n_x + 1))], axis=1)[:, pad]
-    k = np.arange(n_j)
-    own = Jx[:, :, :, :n_x].reshape(B, n_j, n_max, n_j, 2)[:, k, :, k, :]  # (12, B, n_max, 2)
+    own = Jx[:, :, :, :n_x].reshape(B, n_j, n_max, n_j, 2)[:, _DIAG[:n_j], :, _DIAG[:n_j], :]
     ownT = own.transpose(1, 0, 3, 2)  # (B, 12, 2, n_max)
-    A = ownT @ ownT.transpose(0, 1, 3, 2)
-    det = A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
-    if not np.all(np.abs(det) > 1e-18):
-        raise RopeInverseError("a joint's ropes do not determine its two angles (singular)")
-    P = np.linalg.inv(A) @ ownT  # (B, 12, 2, n_max)
+    try:
+        P = np.linalg.inv(ownT @ own.transpose(1, 0, 2, 3)) @ ownT  # (B, 12, 2, n_max)
+    except np.linalg.LinAlgError:
+        raise RopeInverseError(
+            "a joint's ropes do not determine its two angles (singular)"
+        ) from None
     Mr = (P @ Jx).reshape(B, 2 * n_j, n_x + 1)
+    if B == 1:  # unit lower triangular: LAPACK forward substitution
+        x, info = _dtrtrs(Mr[0, :, :n_x], Mr[0, :, n_x:], lower=1, unitdiag=1)
+        return x.reshape(1, n_x)
     return np.linalg.solve(Mr[..., :n_x], Mr[..., n_x:])[..., 0]
+
+
+_DIAG = np.arange(64)
 
 
 def _is_identity(pad: np.ndarray) -> bool:
@@ -117,47 +133,56 @@ def _is_identity(pad: np.ndarray) -> bool:
 
 
 def _coupled_newton(
-    geom: RopeGeometry, Lb: np.ndarray, x: np.ndarray, pad: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """Newton on the triangular rope equations in mm; returns x, converged (B,), iterations."""
+    geom: RopeGeometry,
+    Lb: np.ndarray,
+    x: np.ndarray,
+    pad: np.ndarray,
+    max_iterations: int = MAX_ITERATIONS,
+    identity_pad: bool | None = None,
+) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    """Newton on the triangular rope equations in mm.
+
+    Returns x, converged (B,), iterations and the Jacobian of the last iteration.
+    """
     B, n_j = x.shape[0], geom.n_joints
     step = np.full(B, np.inf)
     it = 0
-    for it in range(1, MAX_ITERATIONS + 1):
+    J = np.empty(0)
+    for it in range(1, max_iterations + 1):
         s, J, _ = lengths_and_jacobian(geom, x[..., 0], x[..., 1])
-        delta = newton_step(J, Lb - s, pad)
+        delta = newton_step(J, Lb - s, pad, identity_pad)
         np.clip(delta, -MAX_STEP, MAX_STEP, out=delta)
         x += delta.reshape(B, n_j, 2)
         step = np.abs(delta).max(axis=1)
         if float(step.max()) < STEP_TOL:
             break
-    return x, step < 1e-8, it
+    return x, step < 1e-8, it, J
 
 
 def _sequential_squared(
     geom: RopeGeometry, joint_of_rope: np.ndarray, Lb: np.ndarray
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Joint-by-joint Gauss-Newton on squared crossing lengths, from the straight arm.
 
     Slower than :func:`_coupled_newton` (a loop over joints) but free of the
     spurious least-squares minima that plain-length Newton meets near the corners
     of the joint range: the squared crossing ``C0 - 2 W . F(alpha, theta)`` is
-    linear in the rotation entries.
+    linear in the rotation entries.  Returns the angles (B, 12, 2) and whether
+    every joint's iteration converged (B,).
     """
     B, n_j = Lb.shape[0], geom.n_joints
     x = np.zeros((B, n_j, 2))
-    prior = np.zeros_like(Lb)
+    ok = np.ones(B, dtype=bool)
+    prior = np.zeros_like(Lb) + geom.in_link  # constant in-link parts, then crossings
     for k in range(n_j):
         idx = np.flatnonzero(joint_of_rope == k)
-        Wk = geom.W[k][:, idx]
-        C0k = geom.C0[k, idx]
+        W9k = geom.W9[k][:, idx]
         t2 = (Lb[:, idx] - prior[:, idx]) ** 2
         xk = np.zeros((B, 2))
         for _ in range(MAX_ITERATIONS):
-            F3 = _features_and_derivatives(xk[:, 0], xk[:, 1]).reshape(B, 3, N_FEATURES)
-            G = F3.transpose(1, 0, 2) @ Wk  # (3, B, n_k)
-            g = C0k - 2.0 * G[0] - t2
-            ja, jt = -2.0 * G[1], -2.0 * G[2]
+            G = (_features27(xk[:, 0], xk[:, 1]).reshape(B, 3, N9).transpose(1, 0, 2)) @ W9k
+            g = G[0] - t2  # squared crossing minus squared target, (B, n_k)
+            ja, jt = G[1], G[2]
             a11, a12, a22 = (ja * ja).sum(1), (ja * jt).sum(1), (jt * jt).sum(1)
             b1, b2 = -(ja * g).sum(1), -(jt * g).sum(1)
             det = a11 * a22 - a12 * a12
@@ -165,12 +190,12 @@ def _sequential_squared(
             d = np.stack([(a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det], axis=1)
             np.clip(d, -MAX_STEP, MAX_STEP, out=d)
             xk += d
-            if float(np.abs(d).max()) < SWITCH_TOL:
+            if float(np.abs(d).max()) < SWITCH_TOL * 1e-2:
                 break
+        ok &= np.abs(d).max(axis=1) < SWITCH_TOL
         x[:, k] = xk
-        F = rotation_features(xk[:, 0], xk[:, 1])  # (B, 8)
-        prior += np.sqrt(np.maximum(geom.C0[k] - 2.0 * (F @ geom.W[k]), 0.0))
-    return x
+        prior += np.sqrt(np.maximum(_features9(xk[:, 0], xk[:, 1]) @ geom.W9[k], 0.0))
+    return x, ok
 
 
 def solve_angles(
@@ -180,6 +205,9 @@ def solve_angles(
     alpha0: np.ndarray | None = None,
     theta0: np.ndarray | None = None,
     pad: np.ndarray | None = None,
+    *,
+    robust: bool = True,
+    max_iterations: int | None = None,
 ) -> InverseSolution:
     """Joint angles whose geometric rope lengths best match ``lengths`` (..., n) mm.
 
@@ -187,7 +215,10 @@ def solve_angles(
     straight arm).  Where it does not converge or leaves a joint's RMS residual
     above ``FALLBACK_RMS_MM`` (a spurious minimum near the joint-range corners,
     or inconsistent data), the configuration is solved again joint by joint on
-    squared lengths and polished; the better fit is kept.
+    squared lengths and polished; the better fit is kept.  ``robust=False`` skips
+    that second solve (for a warm start already in the right basin, e.g. a filter's
+    estimate, where a faulty rope must not cost the slow path every cycle);
+    ``max_iterations`` caps the Newton steps and accepts the result (tracking).
     Raises :class:`RopeInverseError` on non-finite lengths or no convergence.
     """
     L = np.asarray(lengths, dtype=float)
@@ -208,17 +239,30 @@ def solve_angles(
         x[..., 1] = np.broadcast_to(theta0, (*batch, n_j)).reshape(B, n_j)
     if pad is None:
         pad = padded_index(joint_of_rope, n_j)
-    x, ok, it = _coupled_newton(geom, Lb, x, pad)
+    ident = pad.size == geom.n_ropes and _is_identity(pad)
+    x, ok, it, J = _coupled_newton(geom, Lb, x, pad, max_iterations or MAX_ITERATIONS, ident)
+    if max_iterations is not None:
+        ok[:] = True
     res = Lb - rope_lengths(geom, x[..., 0], x[..., 1])
     rms = _joint_rms(res, joint_of_rope, n_j)
     suspect = ~ok | (rms.max(axis=1) > FALLBACK_RMS_MM)
+    if not robust:
+        suspect[:] = False
     if suspect.any():
-        x2 = _sequential_squared(geom, joint_of_rope, Lb[suspect])
-        x2, ok2, it2 = _coupled_newton(geom, Lb[suspect], x2, pad)
-        res2 = Lb[suspect] - rope_lengths(geom, x2[..., 0], x2[..., 1])
+        Ls = Lb[suspect]
+        x1, ok1 = _sequential_squared(geom, joint_of_rope, Ls)
+        x2, ok2, it2, J2 = _coupled_newton(geom, Ls, x1.copy(), pad, MAX_ITERATIONS, ident)
+        # Inconsistent data (large residuals) can keep the plain-length Newton from
+        # settling; the joint-by-joint fit on squared lengths then stands as the answer.
+        keep1 = ~ok2 & ok1
+        if keep1.any():
+            x2[keep1] = x1[keep1]
+            J2[keep1] = lengths_and_jacobian(geom, x1[keep1][..., 0], x1[keep1][..., 1])[1]
+            ok2 = ok2 | ok1
+        res2 = Ls - rope_lengths(geom, x2[..., 0], x2[..., 1])
         better = ok2 & (~ok[suspect] | ((res2**2).sum(1) < (res[suspect] ** 2).sum(1)))
         sel = np.flatnonzero(suspect)[better]
-        x[sel], res[sel], ok[sel] = x2[better], res2[better], True
+        x[sel], res[sel], ok[sel], J[sel] = x2[better], res2[better], True, J2[better]
         it += it2
     if not ok.all():
         raise RopeInverseError(
@@ -230,6 +274,7 @@ def solve_angles(
         theta=x[..., 1].reshape(*batch, n_j),
         residual=res.reshape(*batch, geom.n_ropes),
         iterations=it,
+        jacobian=J.reshape(*batch, geom.n_ropes, 2 * n_j),
     )
 
 
@@ -237,3 +282,41 @@ def _joint_rms(residual: np.ndarray, joint_of_rope: np.ndarray, n_j: int) -> np.
     """RMS residual of each joint's own ropes, (B, 12) from (B, n)."""
     onehot = (joint_of_rope[:, None] == np.arange(n_j)[None, :]).astype(float)  # (n, 12)
     return np.sqrt((residual**2) @ onehot / onehot.sum(axis=0))
+
+
+def standardized_residual(
+    geom: RopeGeometry,
+    joint_of_rope: np.ndarray,
+    alpha: np.ndarray,
+    theta: np.ndarray,
+    residual: np.ndarray,
+    *,
+    jacobian: np.ndarray | None = None,
+    pad: np.ndarray | None = None,
+) -> np.ndarray:
+    """Each rope's residual divided by ``sqrt(N_mm)``, N the projector onto the part of
+    its joint's rope lengths that the joint's two angles cannot explain (mm), shape (n,).
+
+    For a single faulty rope i (offset e) the standardized residual is largest
+    (``|e| sqrt(N_ii)``) on rope i whenever the fault is identifiable
+    (Cauchy-Schwarz); with three ropes per joint all three are equal, so the
+    fault is located to the joint.  Ropes with ``N_mm = 0`` (two ropes per
+    joint: no redundancy) get 0.  ``jacobian`` (n, 24) at the solution saves
+    recomputing it.
+    """
+    if jacobian is None:
+        _, J, _ = lengths_and_jacobian(geom, np.asarray(alpha)[None], np.asarray(theta)[None])
+        jacobian = J[0]
+    own = np.asarray(joint_of_rope)
+    cols = np.stack([2 * own, 2 * own + 1], axis=1)
+    Jo = np.take_along_axis(jacobian, cols, axis=1)  # (n, 2): each rope's own-joint block row
+    if pad is None:
+        pad = padded_index(own, geom.n_joints)
+    Jp = np.concatenate([Jo, np.zeros((1, 2))])[pad]  # (12, n_max, 2), zero rows padded
+    Ainv = np.linalg.inv(np.einsum("kic,kid->kcd", Jp, Jp))
+    lev = np.einsum("kic,kcd,kid->ki", Jp, Ainv, Jp)  # leverage of each rope in its joint
+    d = np.zeros(geom.n_ropes + 1)
+    d[pad.ravel()] = (1.0 - lev).ravel()
+    d = np.clip(d[:-1], 0.0, None)
+    ok = d > 1e-12
+    return np.where(ok, np.asarray(residual) / np.sqrt(np.where(ok, d, 1.0)), 0.0)

@@ -88,6 +88,10 @@ def small_angle_crossing_length(
 class RopeGeometry:
     """Precomputed coefficients of every rope across every joint (read-only).
 
+    A rope's geometric length runs from the proximal disk of joint 1 to its
+    anchor on the distal disk of its joint: its crossings plus the constant
+    stretches inside the links (``in_link``).
+
     ``W[j, f, m] = p_a q_b`` for feature f = entry (a, b) of joint j's rotation
     and rope m, zero where rope m does not cross joint j; ``C0[j, m] = |p|^2 + |q|^2``
     (zero where it does not cross).  ``straight[m]`` is each rope's length on
@@ -98,6 +102,9 @@ class RopeGeometry:
     C0: np.ndarray  # (12, n)
     crosses: np.ndarray  # (12, n) bool
     straight: np.ndarray  # (n,)
+    W9: np.ndarray  # (12, 9, n): s^2 = sum_f W9[j, f, m] * A_f T_f (signs and C0 folded in)
+    first_rope: np.ndarray  # (12,) ropes first_rope[j]: cross joint j (ropes ordered by joint)
+    in_link: np.ndarray  # (n,) constant length inside the links (mm)
 
     @property
     def n_ropes(self) -> int:
@@ -114,8 +121,8 @@ def rope_geometry(routing: RopeRouting) -> RopeGeometry:
     >>> from hrm_ctrl.model import default_robot
     >>> from hrm_ctrl.rope_routing import routing_from_model
     >>> g = rope_geometry(routing_from_model(default_robot()))
-    >>> g.W.shape, g.straight[[0, 3, 35]].tolist()     # 24 mm per joint crossed
-    ((12, 8, 36), [24.0, 48.0, 288.0])
+    >>> g.W.shape, g.straight[[0, 3, 35]].tolist()   # base disk to anchor, straight arm
+    ((12, 8, 36), [24.0, 203.0, 1895.0])
     """
     n_j = int(routing.proximal_disk.shape[0])
     n = routing.n_ropes
@@ -131,20 +138,32 @@ def rope_geometry(routing: RopeRouting) -> RopeGeometry:
     W = np.stack([p[a] * q[b] for a, b in _ENTRIES], axis=1) * crosses[:, None, :]
     C0 = (px**2 + py**2 + pz**2 + px**2 + py**2 + qz**2) * crosses
     straight = ((routing.proximal_disk + routing.distal_disk)[:, None] * crosses).sum(axis=0)
-    for arr in (W, C0, crosses, straight):
+    straight = straight + routing.in_link
+    W9 = np.concatenate([-2.0 * _SIGN[None, :, None] * W, C0[:, None, :]], axis=1)
+    if np.all(np.diff(routing.joint_of_rope) >= 0):
+        first = np.searchsorted(routing.joint_of_rope, joints)
+    else:
+        first = np.zeros(n_j, dtype=np.int64)
+    in_link = np.array(routing.in_link, dtype=float)
+    arrays = (W, C0, crosses, straight, W9, first, in_link)
+    for arr in arrays:
         arr.setflags(write=False)
-    return RopeGeometry(W=W, C0=C0, crosses=crosses, straight=straight)
+    return RopeGeometry(*arrays)
 
 
 # Each used rotation entry is sign * A * T with A in (1, cos a, sin a), T in (1, cos t, sin t);
-# the trig table is (1, cos, sin, -sin, 0) so derivatives are lookups too.
+# the trig table is (1, cos, sin, -sin, 0) so derivatives are lookups too.  Feature 9 is the
+# constant 1 (A = T = 1) that carries C0.
 _IA = np.array([1, 2, 2, 0, 0, 2, 1, 1])
 _IT = np.array([0, 2, 1, 1, 2, 0, 2, 1])
 _SIGN = np.array([1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
 _D = np.array([4, 3, 1])  # d/dx of (1, cos, sin) as indices into the trig table
-_IA3 = np.concatenate([_IA, _D[_IA], _IA])
-_IT3 = np.concatenate([_IT, _IT, _D[_IT]])
-_SIGN3 = np.tile(_SIGN, 3)
+_IA9 = np.append(_IA, 0)
+_IT9 = np.append(_IT, 0)
+_IA27 = np.concatenate([_IA9, _D[_IA9], _IA9])
+_IT27 = np.concatenate([_IT9, _IT9, _D[_IT9]])
+N9 = 9
+BATCH_CHUNK = 1024
 
 
 def _trig(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -172,10 +191,16 @@ def rotation_features(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return _SIGN * u[0][..., _IA] * u[1][..., _IT]
 
 
-def _features_and_derivatives(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """Features, d/dalpha and d/dtheta side by side: shape (..., 24)."""
+def _features9(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Unsigned products ``A_f T_f`` and the constant 1, shape (..., 9)."""
     u = _trig(alpha, theta)
-    return _SIGN3 * u[0][..., _IA3] * u[1][..., _IT3]
+    return u[0][..., _IA9] * u[1][..., _IT9]
+
+
+def _features27(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """:func:`_features9`, its d/dalpha and d/dtheta side by side: shape (..., 27)."""
+    u = _trig(alpha, theta)
+    return u[0][..., _IA27] * u[1][..., _IT27]
 
 
 def segment_lengths(geom: RopeGeometry, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -183,9 +208,8 @@ def segment_lengths(geom: RopeGeometry, alpha: np.ndarray, theta: np.ndarray) ->
     alpha = np.asarray(alpha, dtype=float)
     theta = np.asarray(theta, dtype=float)
     batch = alpha.shape[:-1]
-    F = rotation_features(alpha, theta).reshape(-1, geom.n_joints, N_FEATURES)
-    G = np.matmul(F.transpose(1, 0, 2), geom.W)  # (12, B, n)
-    s2 = geom.C0[:, None, :] - 2.0 * G
+    F = _features9(alpha, theta).reshape(-1, geom.n_joints, N9)
+    s2 = np.matmul(F.transpose(1, 0, 2), geom.W9)  # (12, B, n)
     s = np.sqrt(np.maximum(s2, 0.0))
     return s.transpose(1, 0, 2).reshape(*batch, geom.n_joints, geom.n_ropes)
 
@@ -206,13 +230,28 @@ def rope_lengths(geom: RopeGeometry, alpha: np.ndarray, theta: np.ndarray) -> np
     alpha = np.asarray(alpha, dtype=float)
     theta = np.asarray(theta, dtype=float)
     batch = alpha.shape[:-1]
-    F = rotation_features(alpha, theta).reshape(-1, geom.n_joints, N_FEATURES)
-    G = np.matmul(F.transpose(1, 0, 2), geom.W)  # (12, B, n)
-    G *= -2.0
-    G += geom.C0[:, None, :]
-    np.maximum(G, 0.0, out=G)
-    np.sqrt(G, out=G)
-    return G.sum(axis=0).reshape(*batch, geom.n_ropes)
+    F = _features9(alpha, theta).reshape(-1, geom.n_joints, N9)
+    B = F.shape[0]
+    if B < 64:
+        G = np.matmul(F.transpose(1, 0, 2), geom.W9)  # (12, B, n)
+        np.maximum(G, 0.0, out=G)
+        np.sqrt(G, out=G)
+        L = G.sum(axis=0)
+        L += geom.in_link
+        return L.reshape(*batch, geom.n_ropes)
+    # Large batches: per joint only the ropes that cross it, in cache-sized chunks.
+    out = np.empty((B, geom.n_ropes))
+    out[:] = geom.in_link
+    for c0 in range(0, B, BATCH_CHUNK):
+        Fc = F[c0 : c0 + BATCH_CHUNK]
+        oc = out[c0 : c0 + BATCH_CHUNK]
+        for j in range(geom.n_joints):
+            f = int(geom.first_rope[j])
+            G = Fc[:, j, :] @ geom.W9[j][:, f:]
+            np.maximum(G, 0.0, out=G)
+            np.sqrt(G, out=G)
+            oc[:, f:] += G
+    return out.reshape(*batch, geom.n_ropes)
 
 
 def lengths_and_jacobian(
@@ -223,16 +262,14 @@ def lengths_and_jacobian(
     ``alpha``, ``theta`` of shape (B, 12); Jacobian columns (alpha_1, theta_1,
     alpha_2, ...).  It is block lower triangular: the rope of joint k depends on
     joints 1..k only, and column block j holds the derivative of the rope's
-    crossing of joint j.
+    crossing of joint j (``d s / d x = (d s^2 / d x) / 2 s``).
     """
     B = alpha.shape[0]
     n_j, n = geom.n_joints, geom.n_ropes
-    F3 = _features_and_derivatives(alpha, theta).reshape(B, n_j, 3, N_FEATURES)
-    G = np.matmul(F3.transpose(1, 2, 0, 3).reshape(n_j, 3 * B, N_FEATURES), geom.W)
+    F3 = _features27(alpha, theta).reshape(B, n_j, 3, N9)
+    G = np.matmul(F3.transpose(1, 2, 0, 3).reshape(n_j, 3 * B, N9), geom.W9)
     G = G.reshape(n_j, 3, B, n)
-    s = np.sqrt(np.maximum(geom.C0[:, None, :] - 2.0 * G[:, 0], 0.0))  # (12, B, n)
-    safe = np.where(s > 0.0, s, 1.0)
-    J = np.empty((B, n, n_j, 2))
-    J[..., 0] = (-G[:, 1] / safe).transpose(1, 2, 0)
-    J[..., 1] = (-G[:, 2] / safe).transpose(1, 2, 0)
-    return s.sum(axis=0), J.reshape(B, n, 2 * n_j), s
+    s = np.sqrt(np.maximum(G[:, 0], 0.0))  # (12, B, n)
+    safe = np.where(s > 0.0, 2.0 * s, 1.0)
+    J = (G[:, 1:] / safe[:, None]).transpose(2, 3, 0, 1).reshape(B, n, 2 * n_j)
+    return s.sum(axis=0) + geom.in_link, J, s

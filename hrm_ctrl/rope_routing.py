@@ -75,6 +75,9 @@ class RopeRouting:
         stiffness_EA_N: (n,) axial rigidity EA of each rope (N).
         box_length: (n,) free rope length inside the box, drum to base (mm).
         pretension_N: tension at which the zero position is defined (N).
+        in_link: (n,) length of each rope inside the links, from the distal disk of
+            joint j to the proximal disk of joint j+1, summed over the links it
+            passes: constant, ``sum_{j<k} (l_j - d_d[j] - d_p[j+1])`` (mm).
     """
 
     rope_ids: tuple[str, ...]
@@ -87,6 +90,7 @@ class RopeRouting:
     stiffness_EA_N: np.ndarray
     box_length: np.ndarray
     pretension_N: float
+    in_link: np.ndarray  # (n,) rope length inside the links, between the joints' disks (mm)
 
     @property
     def n_ropes(self) -> int:
@@ -147,8 +151,38 @@ def _counts(value: Any, n: int, where: str) -> list[int]:
     return out
 
 
+def default_spread(per_joint: Sequence[int], first_deg: float = 0.0) -> list[list[float]]:
+    """Default hole angles (deg): all ropes on evenly spaced slots, each joint's ropes as
+    close as the free slots allow to ``first + k * 360 / (12 n_max) + m * 360 / n_k``.
+
+    With the same number of ropes on every joint this is exactly that formula
+    (10 degree steps for 3 ropes, 7.5 for 4); with mixed numbers no slot is shared.
+
+    >>> default_spread([3, 3], 0.0)
+    [[0.0, 120.0, 240.0], [60.0, 180.0, 300.0]]
+    """
+    n_j, total = len(per_joint), sum(per_joint)
+    slot = 360.0 / total
+    step = 360.0 / (n_j * max(per_joint))
+    free = np.ones(total, dtype=bool)
+    out: list[list[float]] = []
+    for k, n_k in enumerate(per_joint):
+        row = []
+        for m in range(n_k):
+            ideal = (k * step + m * 360.0 / n_k) / slot
+            dist = np.abs((np.arange(total) - ideal + total / 2.0) % total - total / 2.0)
+            i = int(np.argmin(np.where(free, dist, np.inf)))
+            free[i] = False
+            row.append(first_deg + i * slot)
+        out.append(row)
+    return out
+
+
 def routing_from_table(
-    table: Mapping[str, Any], outer_diameter: np.ndarray, source: str = "[ropes]"
+    table: Mapping[str, Any],
+    outer_diameter: np.ndarray,
+    source: str = "[ropes]",
+    links: np.ndarray | None = None,
 ) -> RopeRouting:
     """Validate a ``[ropes]`` table (may be empty: defaults) and build the routing."""
     where = f"{source}: [ropes]"
@@ -207,12 +241,13 @@ def routing_from_table(
             angles.append([_num(v, f"{where}.angles_deg[{k}][{m}]") for m, v in enumerate(row)])
     else:
         first = _num(table.get("first_angle_deg", 0.0), f"{where}.first_angle_deg")
-        step = _num(
-            table.get("joint_step_deg", 360.0 / (n_j * max(per))), f"{where}.joint_step_deg"
-        )
-        angles = [
-            [first + k * step + m * 360.0 / per[k] for m in range(per[k])] for k in range(n_j)
-        ]
+        if "joint_step_deg" in table:
+            step = _num(table["joint_step_deg"], f"{where}.joint_step_deg")
+            angles = [
+                [first + k * step + m * 360.0 / per[k] for m in range(per[k])] for k in range(n_j)
+            ]
+        else:
+            angles = default_spread(per, first)
 
     ids: list[str] = []
     joint: list[int] = []
@@ -226,6 +261,16 @@ def routing_from_table(
     joint_a = np.array(joint, dtype=np.int64)
     r_a = np.full(len(ids), radius)
     _check_holes(ids, joint_a, phi_a, r_a, hole_d, outer_diameter, where)
+    inside = np.zeros(n_j)
+    if links is not None:
+        inside = np.asarray(links, dtype=float)[:-1] - d_d[:-1] - d_p[1:]
+        if np.any(inside <= 0.0):
+            j = int(np.flatnonzero(inside <= 0.0)[0])
+            raise RoutingError(
+                f"{where}: link {j + 1} ({float(links[j]):g} mm) is shorter than the disks "
+                f"of joints {j + 1} and {j + 2} ({d_d[j]:g} + {d_p[j + 1]:g} mm)"
+            )
+    in_link = np.concatenate([[0.0], np.cumsum(inside)])[joint_a]
 
     arrays = {
         "joint_of_rope": joint_a,
@@ -235,6 +280,7 @@ def routing_from_table(
         "distal_disk": d_d,
         "stiffness_EA_N": np.full(len(ids), ea),
         "box_length": np.full(len(ids), box),
+        "in_link": in_link,
     }
     for arr in arrays.values():
         arr.setflags(write=False)
@@ -273,4 +319,6 @@ def _check_holes(
 
 def routing_from_model(model: RobotModel) -> RopeRouting:
     """The routing described by ``model.tables["ropes"]`` (defaults if absent)."""
-    return routing_from_table(model.tables.get("ropes", {}), model.outer_diameter, model.source)
+    return routing_from_table(
+        model.tables.get("ropes", {}), model.outer_diameter, model.source, model.links
+    )

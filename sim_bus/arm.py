@@ -69,6 +69,7 @@ class SimArm:
         self._snapped: dict[int, float] = {}  # motor index -> time of the snap
         self._lock = threading.Lock()
         self._warm: tuple[np.ndarray, np.ndarray] | None = None
+        self._cache: tuple[np.ndarray, tuple[np.ndarray, ...]] | None = None
         pre = np.broadcast_to(
             np.asarray(actuation.routing.pretension_N, dtype=float), (actuation.n_motors,)
         )
@@ -109,15 +110,20 @@ class SimArm:
         with self._lock:
             warm = self._warm
             snapped = dict(self._snapped)
-        a0, t0 = warm if warm is not None else (None, None)
-        alpha, theta, res = act.angles_from_counts(c, self.pretension_N, a0, t0)
-        alpha = np.asarray(alpha, dtype=float).copy()
-        theta = np.asarray(theta, dtype=float).copy()
-        res = np.asarray(res, dtype=float)
-        with self._lock:
-            self._warm = (alpha.copy(), theta.copy())
-        free = act.free_lengths(alpha, theta)
-        tension = np.maximum(self.pretension_N - self.stiffness_EA_N * res / free, 0.0)
+        cache = self._cache
+        if cache is not None and np.array_equal(cache[0], c):
+            alpha, theta, res, tension = (v.copy() for v in cache[1])  # motors did not move
+        else:
+            a0, t0 = warm if warm is not None else (None, None)
+            alpha, theta, res = act.angles_from_counts(c, self.pretension_N, a0, t0)
+            alpha = np.asarray(alpha, dtype=float).copy()
+            theta = np.asarray(theta, dtype=float).copy()
+            res = np.asarray(res, dtype=float)
+            free = act.free_lengths(alpha, theta)
+            tension = np.maximum(self.pretension_N - self.stiffness_EA_N * res / free, 0.0)
+            with self._lock:
+                self._warm = (alpha.copy(), theta.copy())
+            self._cache = (c.copy(), (alpha.copy(), theta.copy(), res.copy(), tension.copy()))
         for i, t_snap in snapped.items():
             j = int(act.joint_of_motor[i])
             alpha[j], theta[j] = self._drift(alpha, theta, i, j, max(0.0, now - t_snap))

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import heapq
 import logging
+import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -54,6 +55,33 @@ from sim_bus.wire import FrameMatch, SimWireBus
 
 log = logging.getLogger("sim_bus.box")
 
+#: Receive buffer asked for on socket-based buses (udp_multicast, socketcan): a Python
+#: process that stalls for 50-100 ms on a loaded machine must not lose frames in the kernel.
+RECEIVE_BUFFER_BYTES = 8 * 1024 * 1024
+
+
+def enlarge_receive_buffer(bus: can.BusABC, size_bytes: int = RECEIVE_BUFFER_BYTES) -> int | None:
+    """Raise the kernel receive buffer of a socket-based python-can bus; returns the new
+    size in bytes, or None when the bus has no socket (virtual, hrm_sim) or refuses.
+
+    udp_multicast delivers every frame as one datagram, and the default buffer (~200 kB)
+    holds only a few cycles of a 36-drive bus: a stalled reader loses frames silently.
+    """
+    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
+    if sock is None:
+        sock = getattr(bus, "socket", None)
+    if not isinstance(sock, socket.socket):
+        return None
+    for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+        if opt is None:
+            continue
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, opt, size_bytes)
+            return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+        except OSError:
+            continue
+    return None
+
 
 class _BoxBus:
     """One bus of the box: its python-can bus, drives, routes and box-level faults."""
@@ -72,6 +100,7 @@ class _BoxBus:
         self.frames_in = 0
         self.frames_out = 0
         self.trace: list[tuple[float, list[int]]] | None = None
+        self.cpu_s = 0.0
 
     def rebuild_routes(self) -> None:
         routes: dict[int, list[DriveSim]] = {}
@@ -121,7 +150,7 @@ class SimBox:
         quick_stop_decel_counts_per_s2: float = 4.0e7,
         tension_noise_N: float = 0.05,
         snap_drift_rad_per_s: float = 0.2,
-        tick_s: float = 0.005,
+        tick_s: float = 0.01,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.config = config
@@ -155,7 +184,8 @@ class SimBox:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.events: list[str] = []
-        self.cpu_s = 0.0
+        self._cpu_closed_s = 0.0
+        self._tension_cache: tuple[float, np.ndarray, tuple[int, ...]] | None = None
 
     # ------------------------------------------------------------ life cycle
     def start(self) -> SimBox:
@@ -176,6 +206,7 @@ class SimBox:
                         raise SimError(
                             f"{self.config.source}: cannot open bus {bcfg.name} ({exc})"
                         ) from None
+                enlarge_receive_buffer(bus)
                 self._buses.append(_BoxBus(bcfg.name, bus, owned))
             with self._lock:
                 for bb, bcfg in zip(self._buses, self.config.buses, strict=True):
@@ -211,7 +242,13 @@ class SimBox:
         self._threads.clear()
         self._close_buses()
 
+    @property
+    def cpu_s(self) -> float:
+        """CPU time (s) the box's bus threads used so far."""
+        return self._cpu_closed_s + sum(bb.cpu_s for bb in self._buses)
+
     def _close_buses(self) -> None:
+        self._cpu_closed_s += sum(bb.cpu_s for bb in self._buses)
         for bb in self._buses:
             if bb.owned:
                 bb.bus.shutdown()
@@ -249,17 +286,21 @@ class SimBox:
             wake = next_tick
             if bb.delayed:
                 wake = min(wake, bb.delayed[0][0])
+            batch: list[can.Message] = []
             try:
                 msg = bb.bus.recv(timeout=min(max(0.0, wake - now), 0.05))
+                while msg is not None:  # drain what is queued: one lock round per burst
+                    batch.append(msg)
+                    msg = bb.bus.recv(timeout=0.0) if len(batch) < 256 else None
             except (can.CanError, OSError, ValueError) as exc:
                 self._event(f"bus {bb.name}: receive failed ({exc})")
                 if self._stop.wait(0.05):
                     break
-                continue
             with self._lock:
                 now = self.clock()
-                if msg is not None and not bb.bus_off:
-                    self._dispatch(bb, msg, now)
+                if not bb.bus_off:
+                    for msg in batch:
+                        self._dispatch(bb, msg, now)
                 if now >= next_tick:
                     for d in bb.drives:
                         d.tick(now)
@@ -271,7 +312,7 @@ class SimBox:
                     except can.CanError:
                         pass
             t = time.thread_time()
-            self.cpu_s += t - cpu0
+            bb.cpu_s += t - cpu0
             cpu0 = t
 
     def _dispatch(self, bb: _BoxBus, msg: can.Message, now: float) -> None:
@@ -335,6 +376,18 @@ class SimBox:
             if k:
                 counts[:, cols] = np.array([p for _t, p in tr[:k]], dtype=np.int64)
         return times, counts
+
+    def tension_N(self, max_age_s: float = 0.05) -> np.ndarray:
+        """Rope tensions (n,) for the tension board: the arm state is recomputed at most
+        every ``max_age_s`` (the rope inverse costs ~1-2 ms; at 100 Hz that would take a
+        large share of the box's CPU), and at once after a rope snaps."""
+        now = self.clock()
+        cached = self._tension_cache
+        if cached is None or now - cached[0] > max_age_s or cached[2] != self.arm.snapped:
+            state = self.arm_state()
+            cached = (now, state.tension_N, self.arm.snapped)
+            self._tension_cache = cached
+        return cached[1]
 
     def statuswords(self) -> dict[str, int]:
         with self._lock:
@@ -416,6 +469,20 @@ class SimBox:
             if off:
                 bb.delayed.clear()
         self._fault_event(f"fault: bus {bus} {'off' if off else 'on'}")
+
+    def reset_faults(self) -> None:
+        """Undo every injected fault: frame faults, bus-off, heartbeats, jams, snapped
+        ropes (the drives keep their state; a host brings them up again)."""
+        self.clear_frame_faults()
+        for bb in list(self._buses):
+            if bb.bus_off:
+                self.set_bus_off(bb.name, False)
+        with self._lock:
+            for d in self.drives.values():
+                d.heartbeat_enabled = True
+                d.jammed = False
+        self.arm.repair()
+        self._fault_event("fault: every fault reset")
 
     def clear_frame_faults(self) -> None:
         with self._lock:

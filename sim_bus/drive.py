@@ -220,6 +220,7 @@ class DriveSim:
             if 0x1000 <= key[0] < 0x2000 and key[0] not in (0x1001,):
                 self.values[key] = _default_value(var, self.node_id)
         self.nmt_state = cia.NMT_STATE_PRE_OPERATIONAL
+        self._pdo_cache: dict[int, tuple[struct.Struct | None, list, int]] = {}
         self._sdo: dict[str, object] | None = None
         self._rpdo_buffer: bytes | None = None
         self._sync_count = 0
@@ -437,9 +438,30 @@ class DriveSim:
             cia.parse_pdo_mapping_entry(int(self.values[(map_index, k)])) for k in range(1, n + 1)
         ]
 
+    def _compiled(self, map_index: int) -> tuple[struct.Struct | None, list, int]:
+        """(struct of the whole PDO or None, [(key, var, nbytes)], total bytes), cached
+        until a PDO parameter is written."""
+        cached = self._pdo_cache.get(map_index)
+        if cached is not None:
+            return cached
+        entries = []
+        fmt = "<"
+        for index, sub, bits in self._mapping(map_index):
+            var = self._objects.get((index, sub))
+            st = var.STRUCT_TYPES.get(var.data_type) if var is not None else None
+            if isinstance(st, struct.Struct) and st.size * 8 == bits:
+                fmt += st.format.lstrip("<")
+            else:
+                fmt = ""
+            entries.append(((index, sub), var, bits // 8))
+        total = sum(n for _k, _v, n in entries)
+        packer = struct.Struct(fmt) if fmt and fmt != "<" else None
+        out = (packer, entries, total)
+        self._pdo_cache[map_index] = out
+        return out
+
     def _on_rpdo(self, data: bytes, now: float) -> None:
-        mapping = self._mapping(cia.OD_RPDO1_MAPPING)
-        need = sum(bits for _i, _s, bits in mapping) // 8
+        need = self._compiled(cia.OD_RPDO1_MAPPING)[2]
         if len(data) < need:
             self._log(f"RPDO of {len(data)} bytes, mapping needs {need}: EMCY 0x8210")
             self._emcy(EMCY_PDO_LENGTH)
@@ -451,17 +473,20 @@ class DriveSim:
             self._apply_rpdo(data, now)
 
     def _apply_rpdo(self, data: bytes, now: float) -> None:
-        offset = 0
-        for index, sub, bits in self._mapping(cia.OD_RPDO1_MAPPING):
-            n = bits // 8
-            var = self._objects.get((index, sub))
-            chunk = data[offset : offset + n]
-            offset += n
+        packer, entries, _total = self._compiled(cia.OD_RPDO1_MAPPING)
+        if packer is not None:
+            decoded = packer.unpack_from(data)
+        else:
+            decoded, offset = [], 0
+            for _key, var, n in entries:
+                chunk = data[offset : offset + n]
+                offset += n
+                decoded.append(var.decode_raw(chunk) if var is not None else None)
+        for (key, var, _n), value in zip(entries, decoded, strict=True):
             if var is None:
                 continue  # dummy entry
-            value = var.decode_raw(chunk)
-            self.values[(index, sub)] = value
-            if (index, sub) == (cia.OD_CONTROLWORD, 0):
+            self.values[key] = value
+            if key == (cia.OD_CONTROLWORD, 0):
                 self._on_controlword(int(value), now)
 
     def _on_sync(self, now: float) -> None:
@@ -483,14 +508,16 @@ class DriveSim:
             self._apply_rpdo(data, now)
 
     def _send_tpdo(self, cob: int) -> None:
-        payload = bytearray()
-        for index, sub, bits in self._mapping(cia.OD_TPDO1_MAPPING):
-            var = self._objects.get((index, sub))
-            if var is None:
-                payload += bytes(bits // 8)
-                continue
-            payload += var.encode_raw(self._live_value((index, sub)))
-        self._send(can.Message(arbitration_id=cob, data=bytes(payload), is_extended_id=False))
+        packer, entries, _total = self._compiled(cia.OD_TPDO1_MAPPING)
+        if packer is not None:
+            payload = packer.pack(*[self._live_value(key) for key, _v, _n in entries])
+        else:
+            parts = [
+                var.encode_raw(self._live_value(key)) if var is not None else bytes(n)
+                for key, var, n in entries
+            ]
+            payload = b"".join(parts)
+        self._send(can.Message(arbitration_id=cob, data=payload, is_extended_id=False))
 
     # ================================================================ motion
     def _advance(self, dt: float, now: float) -> None:
@@ -867,6 +894,8 @@ class DriveSim:
                 raise _SdoAbortError(cia.SDO_ABORT_INVALID_VALUE)
 
     def _after_write(self, index: int, sub: int, value: object, now: float) -> None:
+        if 0x1400 <= index <= 0x1BFF:
+            self._pdo_cache.clear()
         if index == cia.OD_CONTROLWORD:
             self._on_controlword(int(value), now)  # type: ignore[call-overload]
         elif index == cia.OD_PRODUCER_HEARTBEAT_TIME:

@@ -17,6 +17,7 @@ applies at once:
 ``sensor-corrupt[:N]``      the next N frames carry a wrong CRC
 ``sensor-silent``           the tension board goes quiet; ``sensor-resume`` talks again
 ``clear``                   remove frame faults and sensor garbage
+``reset``                   undo every fault (frames, buses, drives, ropes, sensor)
 =========================== =====================================================
 
 >>> parse_fault("drop:can0:0x181:all@2.5")
@@ -50,6 +51,7 @@ KINDS: dict[str, tuple[int, int]] = {
     "sensor-silent": (0, 0),
     "sensor-resume": (0, 0),
     "clear": (0, 0),
+    "reset": (0, 0),
 }
 
 
@@ -154,6 +156,11 @@ def apply_fault(fault: Fault, box: SimBox, board: TensionBoard | None = None) ->
         box.delay_frames(a[0], delay_s, match, count)
     elif k in ("bus-off", "bus-on"):
         box.set_bus_off(a[0], k == "bus-off")
+    elif k == "reset":
+        box.reset_faults()
+        if board is not None:
+            board.inject_garbage(0)
+            board.set_silent(False)
     elif k == "clear":
         box.clear_frame_faults()
         if board is not None:

@@ -32,6 +32,8 @@ from sim_bus.faults import Fault, apply_fault, parse_fault
 from sim_bus.tension_board import TensionBoard
 from sim_bus.wire import SimWireBus
 
+BOX_SWITCH_INTERVAL_S = 2e-4
+
 
 def _emit(out: TextIO, obj: dict[str, Any]) -> None:
     out.write(json.dumps(obj, separators=(",", ":")) + "\n")
@@ -62,6 +64,8 @@ def stats_json(box: SimBox, board: TensionBoard | None) -> dict[str, Any]:
         "frames_out": {bb.name: bb.frames_out for bb in box._buses},
         "wires": wires,
         "tension_frames": board.frames_sent if board else 0,
+        "tension_frames_dropped": board.frames_dropped if board else 0,
+        "tension_errors": board.errors[-5:] if board else [],
         "events": box.events[-50:],
     }
 
@@ -81,11 +85,14 @@ def run_box_process(
     SIGTERM/SIGINT.  Returns the exit status (0)."""
     stop = threading.Event()
     commands: queue.Queue[str | None] = queue.Queue()
+    # The box answers each SYNC from a bus thread while the tension board computes the arm:
+    # with CPython's default 5 ms GIL switch interval every socket send could wait that long.
+    sys.setswitchinterval(BOX_SWITCH_INTERVAL_S)
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
     box = SimBox(config, actuation=actuation)
-    board = TensionBoard(lambda: box.arm_state().tension_N, tension_rate_hz)
+    board = TensionBoard(box.tension_N, tension_rate_hz)
     box.start()
     try:
         board.start()

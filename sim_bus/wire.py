@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import collections
 import math
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -58,6 +59,10 @@ FrameMatch = Callable[[can.Message], bool]
 #: bits after the CRC that are never stuffed: CRC delimiter, ACK slot + delimiter, EOF, IFS.
 TRAILER_BITS = 1 + 2 + 7 + 3
 CRC15_POLY = 0x4599
+#: The wire thread must get the GIL back within a fraction of a frame schedule; CPython's
+#: default switch interval (5 ms) would let any busy thread delay deliveries by that much.
+#: Opening a wire lowers the process's switch interval to this (never raises it).
+GIL_SWITCH_INTERVAL_S = 2e-4
 
 
 class WireConfigError(SimError):
@@ -199,6 +204,8 @@ class SimWire:
             raise WireConfigError(
                 f"hrm_sim channel {channel!r}: stuffing must be 'worst' or 'exact'"
             )
+        if sys.getswitchinterval() > GIL_SWITCH_INTERVAL_S:
+            sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         self.channel = channel
         self.bitrate = bitrate
         self.stuffing: Stuffing = stuffing

@@ -1,0 +1,153 @@
+"""Benchmark of the simulated box: CPU of 36 drives at 100 Hz, and the wire's timing.
+
+A synthetic host thread brings every drive to operation enabled (SDO + NMT +
+controlwords in the RPDO) and then, every 10 ms on a monotonic schedule,
+sends each node's RPDO (a sine setpoint) and a SYNC on both buses and drains
+the TPDOs.  Two runs:
+
+* ``virtual``: the box on python-can virtual buses; ``box_cpu_fraction`` is the
+  CPU time of the box's bus threads (``time.thread_time``) over wall time.
+* ``hrm_sim``: the same on the simulated wire at 1 Mbit/s; every delivered
+  frame's lateness (delivery time minus the ideal end of its wire time) is
+  recorded: p50 / p99 / max, plus the wire threads' share of the process CPU.
+
+Run: ``python benchmarks/bench_sim.py [--seconds 10]``; prints JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import struct
+import threading
+import time
+import uuid
+from typing import Any
+
+import can
+import numpy as np
+
+import drivers.cia402 as cia
+from sim_bus.box import SimBox
+from sim_bus.config import load_sim_config
+from sim_bus.wire import SimWireBus
+
+RATE_HZ = 100.0
+
+
+def _sdo(bus: can.BusABC, node: int, msg: can.Message, timeout_s: float = 1.0) -> bytes:
+    bus.send(msg)
+    deadline = time.monotonic() + timeout_s
+    while (left := deadline - time.monotonic()) > 0:
+        m = bus.recv(left)
+        if m is not None and m.arbitration_id == 0x580 + node:
+            return bytes(m.data)
+    raise TimeoutError(f"node {node}: no SDO answer")
+
+
+def _host(buses: list[can.BusABC], nodes: list[list[int]], seconds: float) -> dict[str, Any]:
+    for bus, ids in zip(buses, nodes, strict=True):
+        for n in ids:
+            _sdo(bus, n, cia.make_sdo_download_expedited(n, cia.OD_MODES_OF_OPERATION, 0, b"\x08"))
+            _sdo(bus, n, cia.make_sdo_download_expedited(n, 0x6065, 0, struct.pack("<I", 10**7)))
+        bus.send(cia.make_nmt(cia.NMT_START_REMOTE_NODE, 0))
+    cpu0 = time.thread_time()
+    t0 = time.monotonic()
+    k = 0
+    tpdos = 0
+    late = 0
+    cws = [cia.CW_SHUTDOWN, cia.CW_SWITCH_ON, cia.CW_ENABLE_OPERATION]
+    while True:
+        k += 1
+        deadline = t0 + k / RATE_HZ
+        if deadline - t0 > seconds:
+            break
+        while (left := deadline - time.monotonic()) > 0:
+            time.sleep(min(left, 0.002))
+        if time.monotonic() - deadline > 0.002:
+            late += 1
+        cw = cws[min(k - 1, 2)]
+        target = int(20000 * math.sin(2 * math.pi * 0.5 * k / RATE_HZ)) if k > 3 else 0
+        for bus, ids in zip(buses, nodes, strict=True):
+            for n in ids:
+                bus.send(cia.make_rpdo_target(n, cw, target))
+            bus.send(cia.make_sync())
+        for bus in buses:
+            while (m := bus.recv(0)) is not None:
+                if 0x181 <= m.arbitration_id <= 0x1FF:
+                    tpdos += 1
+    return {"cycles": k - 1, "tpdos": tpdos, "late_cycles": late, "host_cpu_s": time.thread_time() - cpu0}
+
+
+def run(kind: str, seconds: float) -> dict[str, Any]:
+    tag = uuid.uuid4().hex[:8]
+    kwargs = [{"interface": kind, "channel": f"bench-{tag}-{i}"} for i in range(2)]
+    cfg = load_sim_config(None).with_bus_kwargs(kwargs)
+    hosts = [can.Bus(**kw) for kw in kwargs]
+    if kind == "hrm_sim":
+        for h in hosts:
+            h.wire.record_lateness(True)  # type: ignore[attr-defined]
+    box = SimBox(cfg, tension_noise_N=0.0)
+    box.start()
+    try:
+        nodes = [list(b.nodes.values()) for b in cfg.buses]
+        proc0, wall0, box0 = time.process_time(), time.monotonic(), box.cpu_s
+        host = _host(hosts, nodes, seconds)
+        wall = time.monotonic() - wall0
+        proc = time.process_time() - proc0
+        box_cpu = box.cpu_s - box0
+        states = {cia.decode_state(sw).name for sw in box.statuswords().values()}
+        out: dict[str, Any] = {
+            "interface": kind,
+            "drives": len(box.drives),
+            "rate_hz": RATE_HZ,
+            "seconds": round(wall, 3),
+            "box_cpu_fraction": round(box_cpu / wall, 4),
+            "process_cpu_fraction": round(proc / wall, 4),
+            "host_cpu_fraction": round(host["host_cpu_s"] / wall, 4),
+            "cycles": host["cycles"],
+            "tpdos_received": host["tpdos"],
+            "tpdos_expected": host["cycles"] * len(box.drives),
+            "host_late_cycles": host["late_cycles"],
+            "drive_states": sorted(states),
+        }
+        if kind == "hrm_sim":
+            lat = np.concatenate([np.array(h.wire.lateness_log()) for h in hosts])  # type: ignore[attr-defined]
+            out["wire_frames"] = int(lat.size)
+            out["wire_late_p50_ms"] = round(float(np.percentile(lat, 50)) * 1e3, 4)
+            out["wire_late_p99_ms"] = round(float(np.percentile(lat, 99)) * 1e3, 4)
+            out["wire_late_max_ms"] = round(float(lat.max()) * 1e3, 4)
+            out["wire_frames_late_over_0_5ms"] = int((lat > 0.5e-3).sum())
+            out["wire_bus_load"] = [round(h.wire.bus_load(1.0), 4) for h in hosts]  # type: ignore[attr-defined]
+            out["wire_cpu_fraction_est"] = round(
+                max(0.0, proc - box_cpu - host["host_cpu_s"]) / wall, 4
+            )
+        return out
+    finally:
+        box.stop()
+        for h in hosts:
+            h.shutdown()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=10.0)
+    args = ap.parse_args()
+    results = [run("virtual", args.seconds), run("hrm_sim", args.seconds)]
+    v, w = results
+    summary = {
+        "benchmark": "bench_sim",
+        "box_cpu_fraction_36_drives_100hz": v["box_cpu_fraction"],
+        "box_cpu_target": 0.30,
+        "box_cpu_ok": v["box_cpu_fraction"] <= 0.30,
+        "wire_late_max_ms": w["wire_late_max_ms"],
+        "wire_late_target_ms": 0.5,
+        "wire_timing_ok": w["wire_late_max_ms"] <= 0.5,
+        "runs": results,
+    }
+    print(json.dumps(summary, indent=2))
+
+
+if __name__ == "__main__":
+    main()

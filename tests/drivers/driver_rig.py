@@ -1,0 +1,179 @@
+"""Rigs for the driver tests: a few simulated drives (sim_bus) on every CAN backend.
+
+The drivers talk to the simulated drives only through python-can buses; a
+sniffer bus on every channel records what went over the wire.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+from drivers.box import DriveBox
+from drivers.config import BoxConfig, box_config_from_dict
+from drivers.partial import ActuationSubset
+from hrm_ctrl.actuation import Actuation, load_actuation
+from hrm_ctrl.model import default_robot
+from sim_bus.box import SimBox
+from sim_bus.config import sim_config_from_dict
+
+SMALL_BUSES: tuple[dict[str, int], ...] = ({"j01r0": 1, "j01r1": 2}, {"j07r0": 3})
+
+
+@pytest.fixture(scope="session")
+def actuation() -> Actuation:
+    return load_actuation(default_robot())
+
+
+class Sniffer(can.Listener):
+    """Records every frame seen on a bus (with a receive time)."""
+
+    def __init__(self) -> None:
+        self.frames: list[can.Message] = []
+        self.lock = threading.Lock()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        msg.timestamp = time.time() if not msg.timestamp else msg.timestamp
+        with self.lock:
+            self.frames.append(msg)
+
+    def snapshot(self) -> list[can.Message]:
+        with self.lock:
+            return list(self.frames)
+
+    def clear(self) -> None:
+        with self.lock:
+            self.frames.clear()
+
+
+@dataclass
+class Rig:
+    config: BoxConfig
+    limits: ActuationSubset
+    sim: SimBox
+    sniffers: list[Sniffer]
+    box: DriveBox | None = None
+    cleanup: list[Callable[[], None]] = field(default_factory=list)
+
+    def open_box(self, log_dir: Path | None = None, **kw: Any) -> DriveBox:
+        self.box = DriveBox(self.config, self.limits, log_dir=log_dir, **kw)
+        return self.box
+
+
+def make_config(
+    bus_kwargs: list[dict[str, Any]],
+    buses: tuple[dict[str, int], ...] = SMALL_BUSES,
+    **control: Any,
+) -> BoxConfig:
+    doc: dict[str, Any] = {
+        "control": {"bootup_timeout_s": 2.0, **control},
+        "buses": {},
+    }
+    for k, (kw, nodes) in enumerate(zip(bus_kwargs, buses, strict=True)):
+        kw = dict(kw)
+        doc["buses"][f"bus{k}"] = {
+            "interface": kw.pop("interface"),
+            "channel": kw.pop("channel"),
+            "bitrate": 1_000_000,
+            "options": kw,
+            "nodes": dict(nodes),
+        }
+    return box_config_from_dict(doc, "<test rig>")
+
+
+@pytest.fixture
+def rig_factory(
+    can_backend: Callable[[], dict[str, Any]], actuation: Actuation
+) -> Iterator[Callable[..., Rig]]:
+    rigs: list[Rig] = []
+    opened: list[Any] = []
+
+    def make(
+        buses: tuple[dict[str, int], ...] = SMALL_BUSES,
+        sim_buses: tuple[dict[str, int], ...] | None = None,
+        **control: Any,
+    ) -> Rig:
+        kwargs = [can_backend() for _ in buses]
+        config = make_config(kwargs, buses, **control)
+        sim_cfg = make_config(kwargs, sim_buses or buses, **control)
+        sim = SimBox(sim_config_from_dict(sim_cfg.to_dict(), "<test sim>"), actuation=actuation)
+        sim.start()
+        opened.append(sim.stop)
+        sniffers = []
+        for kw in kwargs:
+            bus = can.Bus(**kw)
+            sn = Sniffer()
+            notifier = can.Notifier(bus, [sn], 0.05)
+            opened.append(bus.shutdown)
+            opened.append(lambda n=notifier: n.stop(1.0))
+            sniffers.append(sn)
+        motors = tuple(m for nodes in buses for m in nodes)
+        rig = Rig(config, ActuationSubset(actuation, motors), sim, sniffers)
+        rigs.append(rig)
+        return rig
+
+    yield make
+    for rig in rigs:
+        if rig.box is not None:
+            try:
+                rig.box.__exit__(None, None, None)
+            except Exception:
+                pass
+    for fn in reversed(opened):
+        try:
+            fn()
+        except Exception:
+            pass
+
+
+def rpdo_targets_per_sync(
+    frames: list[can.Message], node_ids: list[int], start_after: float = 0.0
+) -> list[dict[int, tuple[int, int]]]:
+    """Group the wire's RPDOs by SYNC: for each SYNC, {node: (controlword, target)}
+    of the RPDOs seen since the previous SYNC (a node sending twice raises)."""
+    out: list[dict[int, tuple[int, int]]] = []
+    current: dict[int, tuple[int, int]] = {}
+    for m in frames:
+        if m.timestamp < start_after:
+            continue
+        cid = m.arbitration_id
+        if cid == 0x080:
+            out.append(current)
+            current = {}
+        elif 0x200 < cid <= 0x27F and (cid - 0x200) in node_ids:
+            n = cid - 0x200
+            if n in current:
+                raise AssertionError(f"node {n}: two RPDOs before one SYNC")
+            data = bytes(m.data)
+            current[n] = (
+                int.from_bytes(data[:2], "little"),
+                int.from_bytes(data[2:6], "little", signed=True),
+            )
+    return out
+
+
+def first_time(frames: list[can.Message], pred: Callable[[can.Message], bool]) -> float:
+    for m in frames:
+        if pred(m):
+            return float(m.timestamp)
+    return float("nan")
+
+
+def wait_until(pred: Callable[[], bool], timeout_s: float = 2.0) -> bool:
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        if pred():
+            return True
+        time.sleep(0.005)
+    return pred()
+
+
+__all__ = ["Rig", "Sniffer", "first_time", "make_config", "np", "rpdo_targets_per_sync"]

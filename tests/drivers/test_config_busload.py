@@ -1,0 +1,154 @@
+"""Bus configuration validation and the bus-load budget."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from drivers.busload import BusLoadError, bus_load, check_bus_load, worst_case_frame_bits
+from drivers.config import BusConfigError, ControlConfig, load_box_config
+from hrm_ctrl.actuation import Actuation
+
+GOOD = """
+[control]
+rate_hz = 100
+
+[buses.a]
+interface = "virtual"
+channel = "x"
+bitrate = 1000000
+
+[buses.a.nodes]
+j01r0 = 1
+j01r1 = 2
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "box.toml"
+    p.write_text(text)
+    return p
+
+
+def test_default_config_matches_the_rope_layer(actuation: Actuation) -> None:
+    cfg = load_box_config(None)
+    cfg.check_motors(actuation.motor_ids)
+    assert [len(b.nodes) for b in cfg.buses] == [18, 18]
+    assert {b.bitrate for b in cfg.buses} == {1_000_000}
+    assert cfg.control.rate_hz == 100.0 and cfg.control.bus_load_limit == 0.7
+    loads = check_bus_load(cfg)
+    assert all(0.4 < bl.load < 0.5 for bl in loads)
+
+
+def test_good_file_loads(tmp_path: Path) -> None:
+    cfg = load_box_config(write(tmp_path, GOOD))
+    assert cfg.motor_ids == ("j01r0", "j01r1")
+    assert cfg.buses[0].bus_kwargs() == {"interface": "virtual", "channel": "x", "bitrate": 1000000}
+
+
+@pytest.mark.parametrize(
+    ("edit", "expected"),
+    [
+        (('"virtual"', '"nosuch"'), "a.interface: unknown python-can interface 'nosuch'"),
+        (("j01r1 = 2", "j01r1 = 1"), "buses.a.nodes.j01r1: duplicate node id 1 (also j01r0)"),
+        (("j01r1 = 2", "j01r1 = 0"), "buses.a.nodes.j01r1: node id 0 outside 1..127"),
+        (("j01r1 = 2", "j01r1 = 128"), "buses.a.nodes.j01r1: node id 128 outside 1..127"),
+        (("j01r1 = 2", "j01r1 = 127"), "nodes.j01r1: node id 127 is the host's heartbeat id"),
+        (("j01r1 = 2", 'j01r1 = "2"'), "buses.a.nodes.j01r1: node id must be an integer"),
+        (("bitrate = 1000000", "bitrate = 2000000"), "buses.a.bitrate: expected an integer in 1.."),
+        (("bitrate = 1000000\n", ""), "buses.a: missing key 'bitrate'"),
+        (("rate_hz = 100", "rate_hz = -1"), "control.rate_hz must be in (0, 10000]"),
+        (("rate_hz = 100", "rate_hz = 100\nbogus = 1"), "control.bogus: unknown key"),
+        (("rate_hz = 100", "heartbeat_timeout_ms = 50"), "heartbeat_timeout_ms must exceed"),
+        (("[control]", "[controls]"), "unknown table(s) ['controls']"),
+        (("rate_hz = 100", "rate_hz = = 1"), "not valid TOML"),
+    ],
+)  # fmt: skip
+def test_bad_config_is_one_line_naming_file_and_key(
+    tmp_path: Path, edit: tuple[str, str], expected: str
+) -> None:
+    p = write(tmp_path, GOOD.replace(*edit))
+    with pytest.raises(BusConfigError) as info:
+        load_box_config(p)
+    msg = str(info.value)
+    assert msg.startswith(str(p)), msg
+    assert expected in msg, msg
+    assert "\n" not in msg
+
+
+def test_same_motor_on_two_buses(tmp_path: Path) -> None:
+    text = GOOD + '\n[buses.b]\ninterface = "virtual"\nchannel = "y"\nbitrate = 500000\n'
+    text += "[buses.b.nodes]\nj01r0 = 1\n"
+    with pytest.raises(
+        BusConfigError, match=r"buses\.b\.nodes\.j01r0: motor 'j01r0' is also on bus a"
+    ):
+        load_box_config(write(tmp_path, text))
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(BusConfigError, match="bus configuration not found"):
+        load_box_config(tmp_path / "nope.toml")
+
+
+def test_entry_point_interface_is_known(tmp_path: Path) -> None:
+    cfg = load_box_config(write(tmp_path, GOOD.replace('"virtual"', '"hrm_sim"')))
+    assert cfg.buses[0].interface == "hrm_sim"
+
+
+def test_worst_case_frame_bits() -> None:
+    assert worst_case_frame_bits(8) == 135
+    assert worst_case_frame_bits(0) == 55
+    assert [worst_case_frame_bits(n) for n in range(9)] == sorted(
+        worst_case_frame_bits(n) for n in range(9)
+    )
+    with pytest.raises(Exception, match=r"0\.\.8"):
+        worst_case_frame_bits(9)
+
+
+def test_one_bus_is_over_budget_two_fit() -> None:
+    cfg = load_box_config(None)
+    both = cfg.buses[0].nodes | {f"x{k}": k + 19 for k in range(18)}
+    from dataclasses import replace
+
+    one = replace(cfg.buses[0], nodes=both)
+    assert bus_load(one, cfg.control).load > 0.7
+    assert all(bus_load(b, cfg.control).fits for b in cfg.buses)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(1, 120),
+    bitrate=st.sampled_from([125_000, 250_000, 500_000, 1_000_000]),
+    limit=st.floats(0.2, 1.0),
+)
+def test_highest_rate_that_fits_is_tight(n: int, bitrate: int, limit: float) -> None:
+    cfg = load_box_config(None)
+    from dataclasses import replace
+
+    bus = replace(cfg.buses[0], nodes={f"m{k}": k + 1 for k in range(n)}, bitrate=bitrate)
+    control = replace(cfg.control, bus_load_limit=limit)
+    bl = bus_load(bus, control)
+    if bl.max_rate_hz >= 1:
+        assert bus_load(bus, replace(control, rate_hz=bl.max_rate_hz)).fits
+    above = bus_load(bus, replace(control, rate_hz=bl.max_rate_hz + 1))
+    assert not above.fits
+    assert math.isclose(
+        bl.load * bitrate,
+        bl.bits_per_cycle * control.rate_hz + bl.heartbeat_bits_per_s,
+    )
+
+
+def test_check_bus_load_names_the_bus_and_rate() -> None:
+    cfg = load_box_config(None).with_control(rate_hz=1000.0)
+    with pytest.raises(BusLoadError, match=r"^bus can0: .* highest rate that fits: 163 Hz$"):
+        check_bus_load(cfg)
+
+
+def test_control_defaults_are_consistent() -> None:
+    c = ControlConfig()
+    assert c.period_s == pytest.approx(0.01)
+    assert c.heartbeat_timeout_ms > max(c.host_heartbeat_ms, c.node_heartbeat_ms)

@@ -1,0 +1,193 @@
+"""Every safety trigger stops every node of every bus within one control cycle."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+from driver_rig import Rig, first_time, wait_until
+
+from drivers import cia402 as c
+from drivers.box import DriveBox, SafetyStopError
+from drivers.setpoints import HoldSource, TableSource
+
+PERIOD_S = 0.01
+NODES = ([1, 2], [3])
+
+
+def quick_stop_sync_time(rig: Rig) -> float:
+    """Wall time of the first SYNC after every node of a bus got a quick-stop RPDO,
+    the latest over all buses (NaN if some node never got one)."""
+    latest = 0.0
+    for sn, nodes in zip(rig.sniffers, NODES, strict=True):
+        stopped: set[int] = set()
+        t_sync = float("nan")
+        for m in sn.snapshot():
+            cid = m.arbitration_id
+            if 0x200 < cid <= 0x27F and bytes(m.data[:2]) == c.CW_QUICK_STOP.to_bytes(2, "little"):
+                stopped.add(cid - 0x200)
+            elif cid == 0x80 and stopped >= set(nodes):
+                t_sync = float(m.timestamp)
+                break
+        latest = max(latest, t_sync) if t_sync == t_sync else float("nan")
+        if latest != latest:
+            return latest
+    return latest
+
+
+def stream_with(rig: Rig, action: Callable[[], Any], after_s: float = 0.1) -> SafetyStopError:
+    box = rig.open_box()
+    box.bring_up()
+    timer = threading.Timer(after_s, action)
+    timer.start()
+    try:
+        with pytest.raises(SafetyStopError) as info:
+            box.stream(HoldSource(n_cycles=300))
+    finally:
+        timer.cancel()
+    return info.value
+
+
+def all_left_operation_enabled(rig: Rig) -> bool:
+    states = {c.decode_state(sw) for sw in rig.sim.statuswords().values()}
+    return c.State402.OPERATION_ENABLED not in states
+
+
+def test_emcy_and_fault_stop_every_node_within_one_cycle(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory()
+    err = stream_with(rig, lambda: rig.sim.fault_drive("j07r0"))
+    kinds = {x.kind for x in err.causes}
+    assert "emcy" in kinds, err.causes
+    assert "j07r0" in str(err)
+    frames = rig.sniffers[1].snapshot()
+    t_emcy = first_time(frames, lambda m: m.arbitration_id == 0x83 and any(m.data[:2]))
+    t_stop = quick_stop_sync_time(rig)
+    assert t_stop - t_emcy <= PERIOD_S, t_stop - t_emcy
+    assert err.result.stop_latency_s is not None and err.result.stop_latency_s <= PERIOD_S
+    assert wait_until(lambda: all_left_operation_enabled(rig))
+    assert any(e["kind"] == "quick_stop" for e in rig.box.events.to_list())
+
+
+def test_lost_heartbeat_stops_every_node(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory()
+    err = stream_with(rig, lambda: rig.sim.stop_heartbeat("j01r1"))
+    assert [x.kind for x in err.causes] == ["heartbeat"], err.causes
+    assert "j01r1" in err.causes[0].text
+    frames = rig.sniffers[0].snapshot()
+    hb = [m.timestamp for m in frames if m.arbitration_id == 0x702]
+    t_expiry = hb[-1] + 0.350
+    t_stop = quick_stop_sync_time(rig)
+    # Detected at the first deadline after the timeout expired, stopped at once.
+    assert 0.0 <= t_stop - t_expiry <= PERIOD_S + 0.003, t_stop - t_expiry
+    assert wait_until(lambda: all_left_operation_enabled(rig))
+
+
+def test_missing_tpdo_stops_every_node(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory(missing_tpdo_cycles=2)
+    err = stream_with(
+        rig,
+        lambda: rig.sim.drop_frames("bus0", lambda m: m.arbitration_id == 0x181, count=None),
+    )
+    assert {x.kind for x in err.causes} == {"tpdo_missing"}, err.causes
+    assert "j01r0" in err.causes[0].text and "2 cycle" in err.causes[0].text
+    assert not np.isnan(quick_stop_sync_time(rig))
+    assert wait_until(lambda: all_left_operation_enabled(rig))
+
+
+class RefusingSource(TableSource):
+    """Holds, then asks for a setpoint beyond the software limit at slot 5."""
+
+    name = "refusing"
+
+    def __init__(self, bad: int) -> None:
+        super().__init__()
+        self.bad = bad
+
+    def start(self, actual_counts: np.ndarray, period_s: float) -> None:
+        self.table = np.repeat(actual_counts[None, :], 20, axis=0)
+        self.table[5:, 0] = self.bad
+
+
+def test_setpoint_outside_limits_is_never_sent(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    bad = int(rig.limits.counts_max[0]) + 1
+    with pytest.raises(SafetyStopError) as info:
+        box.stream(RefusingSource(bad))
+    assert info.value.causes[0].kind == "limit"
+    assert "j01r0" in str(info.value) and str(bad) in str(info.value)
+    targets = [
+        int.from_bytes(bytes(m.data[2:6]), "little", signed=True)
+        for m in rig.sniffers[0].snapshot()
+        if m.arbitration_id == 0x201
+    ]
+    assert targets and bad not in targets
+    assert not np.isnan(quick_stop_sync_time(rig))
+
+
+def test_operator_stop(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    threading.Timer(0.05, box.request_stop).start()
+    with pytest.raises(SafetyStopError, match="stop requested"):
+        box.stream(HoldSource(n_cycles=300))
+    assert wait_until(lambda: all_left_operation_enabled(rig))
+
+
+class FlakyBus(can.BusABC):
+    """Delegates to a real bus; ``fail`` makes every send raise like a bus-off."""
+
+    def __init__(self, inner: can.BusABC) -> None:
+        self.inner = inner
+        self.fail = False
+        super().__init__(channel="flaky")
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self.fail:
+            raise can.CanOperationError("bus off")
+        self.inner.send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return self.inner.recv(timeout), False
+
+    def shutdown(self) -> None:
+        self.inner.shutdown()
+        super().shutdown()
+
+
+def test_bus_failing_on_send_stops_the_other_buses(
+    rig_factory: Callable[..., Rig], can_backend: Callable[[], dict[str, Any]]
+) -> None:
+    rig = rig_factory()
+    buses = [FlakyBus(can.Bus(**b.bus_kwargs())) for b in rig.config.buses]
+    box = DriveBox(rig.config, rig.limits, buses=buses)
+    rig.box = box
+    try:
+        box.bring_up()
+
+        def fail() -> None:
+            buses[1].fail = True
+
+        threading.Timer(0.05, fail).start()
+        with pytest.raises(SafetyStopError, match="bus bus1") as info:
+            box.stream(HoldSource(n_cycles=300))
+        assert {x.kind for x in info.value.causes} <= {"send", "tpdo_missing", "heartbeat"}
+        # bus0 still got its quick stop.
+        frames = rig.sniffers[0].snapshot()
+        assert any(m.arbitration_id == 0x201 and bytes(m.data[:2]) == b"\x02\x00" for m in frames)
+        assert wait_until(
+            lambda: c.decode_state(rig.sim.statuswords()["j01r0"]) != c.State402.OPERATION_ENABLED
+        )
+    finally:
+        box.__exit__(None, None, None)
+        rig.box = None
+        for b in buses:
+            b.shutdown()
+    time.sleep(0.01)

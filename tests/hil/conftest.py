@@ -1,0 +1,12 @@
+"""Fixtures of the hardware-in-the-loop tests (helpers live in ``hil_rig``)."""
+
+from hil_rig import (
+    bent_pipe_plan,
+    bus_kind,
+    fault_box,
+    fault_config,
+    full_box,
+    full_config,
+)
+
+__all__ = ["bent_pipe_plan", "bus_kind", "fault_box", "fault_config", "full_box", "full_config"]
