@@ -110,7 +110,8 @@ def start_sim_process(config_path: Path) -> subprocess.Popen[str]:
         stdout=subprocess.PIPE,
         text=True,
     )
-    assert proc.stdout is not None
+    if proc.stdout is None:
+        raise SystemExit("hrm sim: no stdout pipe")
     t_end = time.monotonic() + 30.0
     while time.monotonic() < t_end:
         line = proc.stdout.readline()
@@ -180,9 +181,9 @@ def main() -> None:
                 cpu1 = thread_cpu()
                 sim_cpu = (sim.cpu_s if sim is not None else 0.0) - sim_cpu0
     if proc is not None:
-        assert proc.stdin is not None
-        proc.stdin.write("quit\n")
-        proc.stdin.flush()
+        if proc.stdin is not None:
+            proc.stdin.write("quit\n")
+            proc.stdin.flush()
         try:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:

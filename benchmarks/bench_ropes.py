@@ -9,6 +9,7 @@ Times are medians (and 99th percentiles) of wall-clock repetitions.
 from __future__ import annotations
 
 import json
+import os
 import platform
 import time
 from collections.abc import Callable
@@ -33,6 +34,7 @@ def summary(t: np.ndarray, target: float, unit: str = "us") -> dict[str, float |
     med = float(np.median(t))
     return {
         "median": round(med, 1),
+        "min": round(float(t.min()), 1),
         "p99": round(float(np.percentile(t, 99)), 1),
         "unit": unit,
         "target": target,
@@ -41,6 +43,7 @@ def summary(t: np.ndarray, target: float, unit: str = "us") -> dict[str, float |
 
 
 def main() -> None:
+    load = round(os.getloadavg()[0], 2)
     act = load_actuation(default_robot())
     rng = np.random.default_rng(0)
     lim = np.deg2rad(59.9)
@@ -64,9 +67,7 @@ def main() -> None:
     Am, Tm = A / 2, T / 2
     Cm = act.counts_from_angles(Am, Tm)
     inv_mod = timings_us(lambda i: act.angles_from_counts(Cm[i]), ni)
-    a_err = max(
-        float(np.abs(act.angles_from_counts(C[i])[0] - A[i]).max()) for i in range(100)
-    )
+    a_err = max(float(np.abs(act.angles_from_counts(C[i])[0] - A[i]).max()) for i in range(100))
 
     est = RopeStateEstimator(act, rate_hz=100.0)
     dt = 0.01
@@ -89,6 +90,7 @@ def main() -> None:
                 "benchmark": "ropes",
                 "machine": f"{platform.machine()} {platform.python_implementation()} "
                 f"{platform.python_version()} numpy {np.__version__}",
+                "load_average_1min_at_start": load,
                 "motors": act.n_motors,
                 "forward_1_config_to_counts": summary(fwd, 50.0),
                 "rope_lengths_1_config": summary(lengths, 50.0),

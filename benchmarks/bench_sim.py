@@ -20,7 +20,6 @@ import argparse
 import json
 import math
 import struct
-import threading
 import time
 import uuid
 from typing import Any
@@ -31,7 +30,6 @@ import numpy as np
 import drivers.cia402 as cia
 from sim_bus.box import SimBox
 from sim_bus.config import load_sim_config
-from sim_bus.wire import SimWireBus
 
 RATE_HZ = 100.0
 
@@ -77,7 +75,12 @@ def _host(buses: list[can.BusABC], nodes: list[list[int]], seconds: float) -> di
             while (m := bus.recv(0)) is not None:
                 if 0x181 <= m.arbitration_id <= 0x1FF:
                     tpdos += 1
-    return {"cycles": k - 1, "tpdos": tpdos, "late_cycles": late, "host_cpu_s": time.thread_time() - cpu0}
+    return {
+        "cycles": k - 1,
+        "tpdos": tpdos,
+        "late_cycles": late,
+        "host_cpu_s": time.thread_time() - cpu0,
+    }
 
 
 def run(kind: str, seconds: float) -> dict[str, Any]:

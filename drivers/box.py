@@ -174,7 +174,7 @@ class DriveBox:
         self.control = config.control
         self.events = EventLog()
         self.loads: list[BusLoad] = check_bus_load(config)
-        self.run_name = run_name or dt.datetime.now(dt.UTC).strftime("run-%Y%m%dT%H%M%S")
+        self.run_name = run_name or dt.datetime.now(dt.UTC).strftime("run-%Y%m%dT%H%M%S-%f")
         self.log_dir = None if log_dir is None else Path(log_dir)
         self.log_suffix = log_suffix
         self.record_path: Path | None = None
@@ -224,18 +224,22 @@ class DriveBox:
     def _open(self, given: Sequence[can.BusABC] | None) -> None:
         od = canopen.import_od(str(eds_path()))
         order = {m: i for i, m in enumerate(self.actuation.motor_ids)}
-        for bi, b in enumerate(self.config.buses):
+        opened: list[can.BusABC] = []
+        for bi, b in enumerate(self.config.buses):  # every bus first: no log for a bad one
             if given is not None:
-                bus = given[bi]
-            else:
-                try:
-                    bus = can.Bus(**b.bus_kwargs())
-                except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
-                    raise DriverError(
-                        f"{self.config.source}: buses.{b.name}: cannot open {b.interface} "
-                        f"channel {b.channel!r} ({exc})"
-                    ) from None
-                self._owned.append(bus)
+                opened.append(given[bi])
+                continue
+            try:
+                bus = can.Bus(**b.bus_kwargs())
+            except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
+                raise DriverError(
+                    f"{self.config.source}: buses.{b.name}: cannot open {b.interface} "
+                    f"channel {b.channel!r} ({exc})"
+                ) from None
+            self._owned.append(bus)
+            opened.append(bus)
+        for b, bus in zip(self.config.buses, opened, strict=True):
+            bi = len(self._layouts)
             log = None
             if self.log_dir is not None:
                 log = TrafficLog(self.log_dir / f"{self.run_name}_{b.name}{self.log_suffix}")
@@ -468,7 +472,11 @@ class DriveBox:
 
 
 def _jsonable(value: Any) -> Any:
-    """Replace non-finite floats (not JSON) by None, recursively."""
+    """Replace non-finite floats (not JSON) by None, recursively.
+
+    >>> _jsonable({"a": [1.0, float("nan")], "b": np.int64(3)})
+    {'a': [1.0, None], 'b': 3}
+    """
     if isinstance(value, float):
         return value if np.isfinite(value) else None
     if isinstance(value, dict):

@@ -10,6 +10,12 @@ actual position before operation is enabled.
 
 Every function takes a :class:`DriveLink` (a canopen ``RemoteNode`` plus the
 names needed in messages) and explicit settings; none keeps state.
+
+>>> import canopen
+>>> from drivers import eds_path
+>>> link = DriveLink(canopen.RemoteNode(3, canopen.import_od(str(eds_path()))), "can0", "j01r2")
+>>> link.label
+'j01r2 (bus can0 node 3)'
 """
 
 from __future__ import annotations

@@ -92,7 +92,9 @@ class Actuation:
     def check_angles(self, alpha: Any, theta: Any) -> None:
         """Raise :class:`RopeLimitError` naming step and joint for NaN or out-of-limit angles."""
         a, t = self._angles(alpha, theta)
-        if (np.abs(a) < self.robot.limit_alpha).all() and (np.abs(t) < self.robot.limit_theta).all():
+        if (np.abs(a) < self.robot.limit_alpha).all() and (
+            np.abs(t) < self.robot.limit_theta
+        ).all():
             return
         for name, v, lim in (
             ("alpha", a, self.robot.limit_alpha),
@@ -103,9 +105,14 @@ class Actuation:
                 idx = np.argwhere(bad)[0]
                 where = f"step {int(idx[0])}: " if v.ndim == 2 else ""
                 val = float(v[tuple(idx)])
+                what = (
+                    "is not a finite number"
+                    if not np.isfinite(val)
+                    else f"({np.degrees(val):.2f} deg) is outside the joint limit "
+                    f"+-{np.degrees(lim):.6g} deg"
+                )
                 raise RopeLimitError(
-                    f"{where}joint {int(idx[-1]) + 1}: {name} = {val!r} rad is NaN or outside "
-                    f"+-{lim:.6g} rad"
+                    f"{where}joint {int(idx[-1]) + 1}: {name} = {val:.6g} rad {what}"
                 )
 
     # ---- counts ---------------------------------------------------------------------------
@@ -128,8 +135,13 @@ class Actuation:
         travel raise :class:`RopeLimitError` naming step, joint and rope.
         """
         a, t = self._angles(alpha, theta)
-        if check and a.size and not (
-            np.abs(a).max() < self.robot.limit_alpha and np.abs(t).max() < self.robot.limit_theta
+        if (
+            check
+            and a.size
+            and not (
+                np.abs(a).max() < self.robot.limit_alpha
+                and np.abs(t).max() < self.robot.limit_theta
+            )
         ):
             self.check_angles(a, t)  # raises, naming step and joint
         L = _rope_lengths(self.geometry, a, t)
@@ -143,9 +155,7 @@ class Actuation:
                 self.routing.stiffness_EA_N,
             )
             counts = self.motors.counts_from_unstretched(u)
-        if check and not (
-            (counts >= self.counts_min).all() and (counts <= self.counts_max).all()
-        ):
+        if check and not ((counts >= self.counts_min).all() and (counts <= self.counts_max).all()):
             self.check_counts(counts)  # raises, naming step and motor
         return counts
 
@@ -165,12 +175,16 @@ class Actuation:
         tension_N: Any = None,
         alpha0: Any = None,
         theta0: Any = None,
+        *,
+        robust: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Joint angles from motor counts: ``(alpha (...,12), theta (...,12), residual (...,n) mm)``.
+        """Joint angles from motor counts: ``(alpha (...,12), theta (...,12), residual (...,n))``.
 
         Uses the triangular rope structure (least squares per joint);
         ``alpha0``/``theta0`` warm-start it.  The residual is measured minus
-        modelled geometric length per rope.
+        modelled geometric length per rope.  ``robust=False`` skips the slow
+        joint-by-joint fallback for inconsistent data (see
+        :func:`~hrm_ctrl.rope_inverse.solve_angles`), e.g. when tracking a faulty arm.
         """
         L = self.lengths_from_counts(counts, tension_N)
         if alpha0 is None and theta0 is None:  # start from the small-angle inverse
@@ -178,7 +192,9 @@ class Actuation:
             lim = np.array([self.robot.limit_alpha, self.robot.limit_theta] * self.robot.n_joints)
             np.clip(x0, -lim, lim, out=x0)
             alpha0, theta0 = x0[..., 0::2], x0[..., 1::2]
-        sol = solve_angles(self.geometry, self.joint_of_motor, L, alpha0, theta0, self.pad)
+        sol = solve_angles(
+            self.geometry, self.joint_of_motor, L, alpha0, theta0, self.pad, robust=robust
+        )
         return sol.alpha, sol.theta, sol.residual
 
     def _counts(self, counts: Any) -> np.ndarray:
@@ -189,9 +205,7 @@ class Actuation:
             raise RopeError("motor counts must be finite")
         return c
 
-    def check_counts(
-        self, counts: Any, previous: Any = None, dt_s: Any = None
-    ) -> None:
+    def check_counts(self, counts: Any, previous: Any = None, dt_s: Any = None) -> None:
         """Raise :class:`RopeLimitError` for a setpoint outside the position limits or too fast.
 
         ``counts`` is (n,) or a table (steps, n); for a table the step (row) is
@@ -203,10 +217,14 @@ class Actuation:
         table = c.reshape(-1, self.n_motors)
         is_table = c.ndim == 2
         if not ((table >= self.counts_min).all() and (table <= self.counts_max).all()):
-            step, i = (int(v) for v in np.argwhere((table < self.counts_min) | (table > self.counts_max))[0])
+            step, i = (
+                int(v)
+                for v in np.argwhere((table < self.counts_min) | (table > self.counts_max))[0]
+            )
             where = f"step {step}: " if is_table else ""
             raise RopeLimitError(
-                f"{where}motor {self.motor_label(i)}: setpoint {int(table[step, i])} counts outside "
+                f"{where}motor {self.motor_label(i)}: setpoint {int(table[step, i])} counts "
+                "outside "
                 f"[{int(self.counts_min[i])}, {int(self.counts_max[i])}] (drum travel "
                 f"{self.motors.travel_in_mm:g} mm in / {self.motors.travel_out_mm:g} mm out)"
             )
@@ -231,7 +249,8 @@ class Actuation:
             row, i = (int(v) for v in np.argwhere(fast)[0])
             where = f"step {row + first}: " if is_table else ""
             raise RopeLimitError(
-                f"{where}motor {self.motor_label(i)}: moves {rate[row, i]:.0f} counts/s, faster than "
+                f"{where}motor {self.motor_label(i)}: moves {rate[row, i]:.0f} counts/s, "
+                "faster than "
                 f"the motor's {float(self.max_rate_counts_per_s[i]):.0f} counts/s"
             )
 
@@ -262,9 +281,7 @@ def load_actuation(robot: RobotModel, zero_offsets_counts: Any = None) -> Actuat
     z = np.zeros((1, robot.n_joints))
     _, J0, _ = lengths_and_jacobian(geom, z, z)
     eye = np.eye(routing.n_ropes)
-    lin = np.stack(
-        [newton_step(J0, eye[m][None], pad)[0] for m in range(routing.n_ropes)], axis=1
-    )
+    lin = np.stack([newton_step(J0, eye[m][None], pad)[0] for m in range(routing.n_ropes)], axis=1)
     arrays = {
         "linear_inverse": lin,
         "pre_c0": pre_c0,

@@ -46,7 +46,6 @@ from hrm_ctrl.errors import RopeError
 from hrm_ctrl.rope_inverse import solve_angles, standardized_residual
 from hrm_ctrl.rope_length import lengths_and_jacobian
 
-
 # Ropes of the flagged joint whose figure is within this share of the joint's largest
 # are named (they explain the inconsistency about equally well).
 FLAG_SHARE = 0.8
@@ -100,6 +99,8 @@ class RopeStateEstimator:
         ):
             if not (np.isfinite(v) and v > 0):
                 raise RopeError(f"estimator: {name} must be > 0, got {v!r}")
+        if not (np.isfinite(model_noise_mm) and model_noise_mm >= 0):
+            raise RopeError(f"estimator: model_noise_mm must be >= 0, got {model_noise_mm!r}")
         self.act = actuation
         n_j = actuation.robot.n_joints
         self.n_x = 2 * n_j
@@ -123,18 +124,14 @@ class RopeStateEstimator:
         self._stat = np.ones(n)
         self.initialised = False
 
-    def initialise(
-        self, counts: Any, tension_N: Any = None, angle_sigma: float = 0.01
-    ) -> None:
+    def initialise(self, counts: Any, tension_N: Any = None, angle_sigma: float = 0.01) -> None:
         """Start from the rope inverse of one feedback sample, at rest."""
         a, t, _ = self.act.angles_from_counts(counts, tension_N)
         x = np.zeros((2 * self.n_x, 1))
         x[0 : self.n_x : 2, 0] = a
         x[1 : self.n_x : 2, 0] = t
         self.ekf.x = x
-        self.ekf.P = np.diag(
-            np.r_[np.full(self.n_x, angle_sigma**2), np.full(self.n_x, 0.1**2)]
-        )
+        self.ekf.P = np.diag(np.r_[np.full(self.n_x, angle_sigma**2), np.full(self.n_x, 0.1**2)])
         self._stat = np.ones(self.act.n_motors)
         self.initialised = True
 

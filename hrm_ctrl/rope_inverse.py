@@ -120,7 +120,7 @@ def newton_step(
         ) from None
     Mr = (P @ Jx).reshape(B, 2 * n_j, n_x + 1)
     if B == 1:  # unit lower triangular: LAPACK forward substitution
-        x, info = _dtrtrs(Mr[0, :, :n_x], Mr[0, :, n_x:], lower=1, unitdiag=1)
+        x, _ = _dtrtrs(Mr[0, :, :n_x], Mr[0, :, n_x:], lower=1, unitdiag=1)
         return x.reshape(1, n_x)
     return np.linalg.solve(Mr[..., :n_x], Mr[..., n_x:])[..., 0]
 
@@ -146,9 +146,10 @@ def _coupled_newton(
     """
     B, n_j = x.shape[0], geom.n_joints
     step = np.full(B, np.inf)
-    it = 0
+    iterations = 0
     J = np.empty(0)
     for it in range(1, max_iterations + 1):
+        iterations = it
         s, J, _ = lengths_and_jacobian(geom, x[..., 0], x[..., 1])
         delta = newton_step(J, Lb - s, pad, identity_pad)
         np.clip(delta, -MAX_STEP, MAX_STEP, out=delta)
@@ -156,7 +157,7 @@ def _coupled_newton(
         step = np.abs(delta).max(axis=1)
         if float(step.max()) < STEP_TOL:
             break
-    return x, step < 1e-8, it, J
+    return x, step < STEP_TOL, iterations, J
 
 
 def _sequential_squared(
@@ -179,23 +180,44 @@ def _sequential_squared(
         W9k = geom.W9[k][:, idx]
         t2 = (Lb[:, idx] - prior[:, idx]) ** 2
         xk = np.zeros((B, 2))
-        for _ in range(MAX_ITERATIONS):
-            G = (_features27(xk[:, 0], xk[:, 1]).reshape(B, 3, N9).transpose(1, 0, 2)) @ W9k
-            g = G[0] - t2  # squared crossing minus squared target, (B, n_k)
-            ja, jt = G[1], G[2]
+        mu = np.full(B, 1e-3)  # Levenberg-Marquardt damping, per configuration
+        g, ja, jt = _squared_residual(W9k, t2, xk)
+        cost = (g * g).sum(1)
+        done = np.zeros(B, dtype=bool)
+        for _ in range(4 * MAX_ITERATIONS):
             a11, a12, a22 = (ja * ja).sum(1), (ja * jt).sum(1), (jt * jt).sum(1)
             b1, b2 = -(ja * g).sum(1), -(jt * g).sum(1)
-            det = a11 * a22 - a12 * a12
+            d11, d22 = a11 * (1.0 + mu), a22 * (1.0 + mu)
+            det = d11 * d22 - a12 * a12
             det = np.where(np.abs(det) > 1e-300, det, 1e-300)
-            d = np.stack([(a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det], axis=1)
+            d = np.stack([(d22 * b1 - a12 * b2) / det, (d11 * b2 - a12 * b1) / det], axis=1)
             np.clip(d, -MAX_STEP, MAX_STEP, out=d)
-            xk += d
-            if float(np.abs(d).max()) < SWITCH_TOL * 1e-2:
+            d[done] = 0.0
+            g_new, ja_new, jt_new = _squared_residual(W9k, t2, xk + d)
+            cost_new = (g_new * g_new).sum(1)
+            accept = cost_new <= cost
+            xk[accept] += d[accept]
+            g[accept], ja[accept], jt[accept] = g_new[accept], ja_new[accept], jt_new[accept]
+            small = np.abs(d).max(axis=1) < SWITCH_TOL * 1e-2
+            stalled = accept & (cost - cost_new <= 1e-15 * (1.0 + cost))
+            cost = np.where(accept, cost_new, cost)
+            mu = np.where(accept, mu / 3.0, mu * 4.0)
+            done |= small | stalled | (mu > 1e12)
+            if done.all():
                 break
-        ok &= np.abs(d).max(axis=1) < SWITCH_TOL
+        ok &= done & (mu <= 1e12)
         x[:, k] = xk
         prior += np.sqrt(np.maximum(_features9(xk[:, 0], xk[:, 1]) @ geom.W9[k], 0.0))
     return x, ok
+
+
+def _squared_residual(
+    W9k: np.ndarray, t2: np.ndarray, xk: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Squared own crossings minus squared targets (B, n_k) and their d/dalpha, d/dtheta."""
+    B = xk.shape[0]
+    G = _features27(xk[:, 0], xk[:, 1]).reshape(B, 3, N9).transpose(1, 0, 2) @ W9k
+    return G[0] - t2, G[1], G[2]
 
 
 def solve_angles(
@@ -234,9 +256,9 @@ def solve_angles(
     B = Lb.shape[0]
     x = np.zeros((B, n_j, 2))
     if alpha0 is not None:
-        x[..., 0] = np.broadcast_to(alpha0, (*batch, n_j)).reshape(B, n_j)
+        x[..., 0] = _as_batch(alpha0, batch, B, n_j)
     if theta0 is not None:
-        x[..., 1] = np.broadcast_to(theta0, (*batch, n_j)).reshape(B, n_j)
+        x[..., 1] = _as_batch(theta0, batch, B, n_j)
     if pad is None:
         pad = padded_index(joint_of_rope, n_j)
     ident = pad.size == geom.n_ropes and _is_identity(pad)
@@ -276,6 +298,14 @@ def solve_angles(
         iterations=it,
         jacobian=J.reshape(*batch, geom.n_ropes, 2 * n_j),
     )
+
+
+def _as_batch(v: np.ndarray, batch: tuple[int, ...], B: int, n_j: int) -> np.ndarray:
+    """A warm-start array as (B, 12): same batch shape, or broadcast to it."""
+    v = np.asarray(v, dtype=float)
+    if v.shape == (*batch, n_j):
+        return v.reshape(B, n_j)
+    return np.broadcast_to(v, (*batch, n_j)).reshape(B, n_j)
 
 
 def _joint_rms(residual: np.ndarray, joint_of_rope: np.ndarray, n_j: int) -> np.ndarray:

@@ -489,5 +489,6 @@ class SimBox:
             for bb in self._buses:
                 bb.drop_rules.clear()
                 bb.delay_rules.clear()
+                bb.delayed.clear()  # frames still held back are lost, not sent late
                 if bb.wire is not None:
                     bb.wire.clear_faults()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,6 +80,7 @@ def make_config(
     }
     for k, (kw, nodes) in enumerate(zip(bus_kwargs, buses, strict=True)):
         kw = dict(kw)
+        kw.pop("bitrate", None)
         doc["buses"][f"bus{k}"] = {
             "interface": kw.pop("interface"),
             "channel": kw.pop("channel"),
@@ -89,9 +91,27 @@ def make_config(
     return box_config_from_dict(doc, "<test rig>")
 
 
+@pytest.fixture(params=["shared", "hrm_sim"])
+def bus_backend(
+    request: pytest.FixtureRequest, can_backend: Callable[[], dict[str, Any]]
+) -> Callable[[], dict[str, Any]]:
+    """The shared ``can_backend`` (virtual, udp_multicast, socketcan) plus the project's
+    own ``hrm_sim`` interface: a simulated wire at 1 Mbit/s that delivers frames after
+    their wire time, in identifier order (so frame ordering and bus time are real)."""
+    if request.param == "hrm_sim":
+        if request.node.callspec.params.get("can_backend") != "virtual":
+            pytest.skip("hrm_sim runs once (with the virtual parametrisation)")
+        return lambda: {
+            "interface": "hrm_sim",
+            "channel": f"hrm-drv-{uuid.uuid4().hex[:12]}",
+            "bitrate": 1_000_000,
+        }
+    return can_backend
+
+
 @pytest.fixture
 def rig_factory(
-    can_backend: Callable[[], dict[str, Any]], actuation: Actuation
+    bus_backend: Callable[[], dict[str, Any]], actuation: Actuation
 ) -> Iterator[Callable[..., Rig]]:
     rigs: list[Rig] = []
     opened: list[Any] = []
@@ -101,7 +121,7 @@ def rig_factory(
         sim_buses: tuple[dict[str, int], ...] | None = None,
         **control: Any,
     ) -> Rig:
-        kwargs = [can_backend() for _ in buses]
+        kwargs = [bus_backend() for _ in buses]
         config = make_config(kwargs, buses, **control)
         sim_cfg = make_config(kwargs, sim_buses or buses, **control)
         sim = SimBox(sim_config_from_dict(sim_cfg.to_dict(), "<test sim>"), actuation=actuation)

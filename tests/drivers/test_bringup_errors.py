@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 from driver_rig import Rig, make_config
@@ -97,3 +98,16 @@ def test_unopenable_bus_is_a_one_line_error(actuation: Actuation) -> None:
     with pytest.raises(DriverError) as info:
         DriveBox(cfg, ActuationSubset(actuation, ("j01r0",)))
     assert "buses.bus0: cannot open socketcan channel 'hrm-no-such-if'" in str(info.value)
+
+
+def test_unopenable_second_bus_leaves_no_file(actuation: Actuation, tmp_path: Path) -> None:
+    cfg = make_config(
+        [
+            {"interface": "virtual", "channel": "fine"},
+            {"interface": "socketcan", "channel": "hrm-no-such-if"},
+        ],
+        buses=({"j01r0": 1}, {"j07r0": 1}),
+    )
+    with pytest.raises(DriverError, match=r"buses\.bus1: cannot open"):
+        DriveBox(cfg, ActuationSubset(actuation, ("j01r0", "j07r0")), log_dir=tmp_path)
+    assert list(tmp_path.iterdir()) == []

@@ -191,3 +191,28 @@ def test_bus_failing_on_send_stops_the_other_buses(
         for b in buses:
             b.shutdown()
     time.sleep(0.01)
+
+
+class CrashingSource(TableSource):
+    """Holds, then fails like a bug (or Ctrl-C) in the middle of the stream."""
+
+    name = "crashing"
+
+    def start(self, actual_counts: np.ndarray, period_s: float) -> None:
+        self.table = np.repeat(actual_counts[None, :], 20, axis=0)
+
+    def setpoint(self, k: int) -> np.ndarray | None:
+        if k == 5:
+            raise RuntimeError("boom")
+        return super().setpoint(k)
+
+
+def test_scheduler_crash_still_stops_every_node(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    with pytest.raises(RuntimeError, match="boom"):
+        box.stream(CrashingSource())
+    assert not np.isnan(quick_stop_sync_time(rig))
+    assert wait_until(lambda: all_left_operation_enabled(rig))
+    assert any("scheduler interrupted" in e["text"] for e in box.events.to_list())

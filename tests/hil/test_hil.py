@@ -89,8 +89,17 @@ def run_host(
             watch.stop()
             if timer is not None:
                 timer.join(5.0)
-        time.sleep(0.6)  # drives finish their quick-stop ramps / heartbeat reactions
-        state = box_process.command("state", "state")
+        # drives finish their quick-stop ramps; drives cut off from the host (bus off) stop
+        # on their own when the host heartbeat times out (control.heartbeat_timeout_ms)
+        deadline = time.monotonic() + 2.5
+        while True:
+            state = box_process.command("state", "state")
+            if time.monotonic() > deadline or not any(
+                cia.decode_state(sw) == cia.State402.OPERATION_ENABLED
+                for sw in state["statuswords"].values()
+            ):
+                break
+            time.sleep(0.1)
     record = json.loads(box.record_path.read_text()) if box.record_path else {}
     return HostRun(result, err, record, state["statuswords"], watch.fault)
 

@@ -17,7 +17,9 @@ def default_doc() -> dict[str, Any]:
     return tomllib.loads(text)
 
 
-def robot_with(ropes: dict[str, Any] | None = None, motors: dict[str, Any] | None = None) -> RobotModel:
+def robot_with(
+    ropes: dict[str, Any] | None = None, motors: dict[str, Any] | None = None
+) -> RobotModel:
     """The default robot with some [ropes] / [motors] keys replaced (None value: key removed)."""
     doc = copy.deepcopy(default_doc())
     for name, upd in (("ropes", ropes), ("motors", motors)):
@@ -29,5 +31,7 @@ def robot_with(ropes: dict[str, Any] | None = None, motors: dict[str, Any] | Non
     return robot_from_dict(doc, "<test>")
 
 
-def random_config(rng: np.random.Generator, lim: float, shape: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray]:
+def random_config(
+    rng: np.random.Generator, lim: float, shape: tuple[int, ...] = ()
+) -> tuple[np.ndarray, np.ndarray]:
     return rng.uniform(-lim, lim, (*shape, 12)), rng.uniform(-lim, lim, (*shape, 12))

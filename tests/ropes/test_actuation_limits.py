@@ -31,7 +31,12 @@ def test_zero_offsets_shift_counts_and_limits() -> None:
 
 @pytest.mark.parametrize(
     ("joint", "name", "value"),
-    [(3, "alpha", np.nan), (7, "theta", np.deg2rad(60.0)), (11, "alpha", -1.2), (0, "theta", np.inf)],
+    [
+        (3, "alpha", np.nan),
+        (7, "theta", np.deg2rad(60.0)),
+        (11, "alpha", -1.2),
+        (0, "theta", np.inf),
+    ],
 )
 def test_bad_angles_are_refused_naming_the_joint(
     act: Actuation, joint: int, name: str, value: float
@@ -66,7 +71,7 @@ def test_check_counts_rate(act: Actuation) -> None:
     prev = np.zeros(36, dtype=np.int64)
     nxt = prev.copy()
     nxt[30] = int(act.max_rate_counts_per_s[30] * 0.01) + 2
-    with pytest.raises(RopeLimitError, match="motor j11r0.*faster"):
+    with pytest.raises(RopeLimitError, match=r"motor j11r0.*faster"):
         act.check_counts(nxt, previous=prev, dt_s=0.01)
     act.check_counts(nxt, previous=prev, dt_s=0.02)
     table = np.stack([prev, prev, nxt])

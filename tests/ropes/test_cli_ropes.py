@@ -47,7 +47,9 @@ def write(tmp_path: Path, plan: dict[str, Any], name: str = "plan.json") -> Path
     return p
 
 
-def test_setpoint_table_and_summary(tmp_path: Path, act: Actuation, capsys: pytest.CaptureFixture) -> None:
+def test_setpoint_table_and_summary(
+    tmp_path: Path, act: Actuation, capsys: pytest.CaptureFixture
+) -> None:
     plan = make_plan()
     out = tmp_path / "sp.csv"
     assert main(["ropes", str(write(tmp_path, plan)), "--out", str(out)]) == 0
@@ -89,7 +91,11 @@ def bad_plans() -> list[tuple[str, Any, str]]:
     ]
 
 
-@pytest.mark.parametrize(("label", "plan", "match"), bad_plans(), ids=lambda v: v if isinstance(v, str) and len(v) < 10 else "")
+@pytest.mark.parametrize(
+    ("label", "plan", "match"),
+    bad_plans(),
+    ids=lambda v: v if isinstance(v, str) and len(v) < 10 else "",
+)
 def test_bad_plans_one_line_no_output(
     tmp_path: Path, capsys: pytest.CaptureFixture, label: str, plan: Any, match: str
 ) -> None:

@@ -84,6 +84,8 @@ def test_bad_use(act: Actuation) -> None:
         est.update(np.zeros(36, dtype=np.int64))
     with pytest.raises(RopeError, match="rate_hz"):
         RopeStateEstimator(act, rate_hz=0.0)
+    with pytest.raises(RopeError, match="model_noise_mm"):
+        RopeStateEstimator(act, model_noise_mm=float("nan"))
     est.initialise(np.zeros(36, dtype=np.int64))
     with pytest.raises(RopeError, match="36 motor counts"):
         est.update(np.zeros(35, dtype=np.int64))

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from rope_helpers import robot_with
 
 from hrm_ctrl.actuation import Actuation, load_actuation
 from hrm_ctrl.errors import RopeError
@@ -15,8 +16,6 @@ from hrm_ctrl.motor_map import (
     stretched_length_mm,
     unstretched_length_mm,
 )
-
-from rope_helpers import robot_with
 
 
 def test_counts_per_mm_from_drum_gear_encoder(act: Actuation) -> None:
@@ -62,7 +61,9 @@ def test_stretch_correction_grows_with_tension_and_free_length(act: Actuation) -
 
 def test_stretch_tension_functions_are_inverse() -> None:
     u = unstretched_length_mm(np.array([800.0, 2500.0]), np.array([10.0, 60.0]), 30000.0)
-    np.testing.assert_allclose(stretched_length_mm(u, np.array([10.0, 60.0]), 30000.0), [800.0, 2500.0])
+    np.testing.assert_allclose(
+        stretched_length_mm(u, np.array([10.0, 60.0]), 30000.0), [800.0, 2500.0]
+    )
     np.testing.assert_allclose(rope_tension_N(np.array([800.0, 2500.0]), u, 30000.0), [10.0, 60.0])
     assert float(rope_tension_N(799.0, 800.0, 30000.0)) == 0.0  # slack
 
@@ -78,7 +79,7 @@ def test_direction_and_offsets() -> None:
     assert c[i] == 1000 - c0[i]
     assert c[-1] == c0[-1] - 5
     assert a.counts_min[i] == 1000 - base.counts_max[i]
-    al, th, _ = a.angles_from_counts(c)
+    al, _, _ = a.angles_from_counts(c)
     np.testing.assert_allclose(al, x[0], atol=1e-3)
 
 

@@ -119,3 +119,13 @@ def test_wrong_number_of_counts(act: Actuation) -> None:
 
     with pytest.raises(RopeError, match="expected 36 motor counts"):
         act.angles_from_counts(np.zeros(35, dtype=np.int64))
+
+
+def test_fast_path_without_fallback_agrees_on_consistent_data(act: Actuation) -> None:
+    rng = np.random.default_rng(12)
+    a, t = rng.uniform(-0.8, 0.8, 12), rng.uniform(-0.8, 0.8, 12)
+    c = act.counts_from_angles(a, t)
+    fast = act.angles_from_counts(c, robust=False)
+    slow = act.angles_from_counts(c)
+    np.testing.assert_allclose(fast[0], slow[0], atol=1e-9)
+    np.testing.assert_allclose(fast[2], slow[2], atol=1e-9)

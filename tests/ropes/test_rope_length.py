@@ -61,7 +61,12 @@ def lengths_through_homogeneous(act: Actuation, alpha: np.ndarray, theta: np.nda
             out[m] += np.linalg.norm((q - p)[:3])
             if j < rt.joint_of_rope[m]:
                 nxt = T[j] @ np.array(
-                    [r * np.cos(phi), r * np.sin(phi), model.links[j] - rt.proximal_disk[j + 1], 1.0]
+                    [
+                        r * np.cos(phi),
+                        r * np.sin(phi),
+                        model.links[j] - rt.proximal_disk[j + 1],
+                        1.0,
+                    ]
                 )
                 out[m] += np.linalg.norm((nxt - q)[:3])
     return out

@@ -6,13 +6,12 @@ from typing import Any
 
 import numpy as np
 import pytest
+from rope_helpers import default_doc, robot_with
 
 from hrm_ctrl.actuation import load_actuation
 from hrm_ctrl.errors import HrmError, RopeError
 from hrm_ctrl.model import robot_from_dict
 from hrm_ctrl.rope_routing import RoutingError, routing_from_model
-
-from rope_helpers import default_doc, robot_with
 
 
 def test_default_routing_36_ropes_spread_10_degrees() -> None:
@@ -55,11 +54,20 @@ def _explicit(angles: list[list[float]]) -> dict[str, Any]:
     ("ropes", "match"),
     [
         (
-            _explicit([[0.0, 120.0, 240.0]] + [[10.0 * k, 10.0 * k + 120, 10.0 * k + 240] for k in range(1, 12)]),
+            _explicit(
+                [[0.0, 120.0, 240.0]]
+                + [[10.0 * k, 10.0 * k + 120, 10.0 * k + 240] for k in range(1, 12)]
+            ),
             None,
         ),
         (_explicit([[0.0, 120.0, 240.0]] * 12), "j01r0 and j02r0 share a hole"),
-        (_explicit([[0.0, 120.0, 240.0], [3.0, 123.0, 243.0]] + [[10.0 * k, 10.0 * k + 120, 10.0 * k + 240] for k in range(2, 12)]), "share a hole"),
+        (
+            _explicit(
+                [[0.0, 120.0, 240.0], [3.0, 123.0, 243.0]]
+                + [[10.0 * k, 10.0 * k + 120, 10.0 * k + 240] for k in range(2, 12)]
+            ),
+            "share a hole",
+        ),
         ({"hole_radius_mm": 14.8}, "outside the 30 mm disk"),
         ({"joint_step_deg": 0.0}, "share a hole"),
         ({"per_joint": 1}, "per_joint"),
@@ -70,6 +78,7 @@ def _explicit(angles: list[list[float]]) -> dict[str, Any]:
         ({"distal_disk_mm": [12.0] * 5}, "distal_disk_mm"),
         ({"stiffness_EA_N": "stiff"}, "stiffness_EA_N"),
         ({"colour": "red"}, "unknown key 'colour'"),
+        ({"proximal_disk_mm": 150.0}, r"link 10 \(130 mm\) is shorter than the disks"),
         ({"angles_deg": [[0.0, 120.0]] * 12}, r"angles_deg\[0\]"),
     ],
 )
@@ -87,5 +96,5 @@ def test_bad_routing_is_one_line_rope_error(ropes: dict[str, Any], match: str | 
 def test_thinner_link_rejects_holes_of_the_ropes_passing_it() -> None:
     doc = default_doc()
     doc["outer_diameter_mm"] = [30.0] * 11 + [24.0]
-    with pytest.raises(RoutingError, match="j12r0.*24 mm disk"):
+    with pytest.raises(RoutingError, match=r"j12r0.*24 mm disk"):
         load_actuation(robot_from_dict(doc, "<thin>"))

@@ -416,3 +416,22 @@ def test_tpdo_every_second_sync_and_no_pdo_when_preoperational() -> None:
     r.operational()
     counts = [len([m for m in r.sync() if m.arbitration_id == 0x185]) for _ in range(6)]
     assert counts == [0, 1, 0, 1, 0, 1]
+
+
+def test_jammed_motor_faults_by_following_error_once_the_target_moves() -> None:
+    r = Rig(vmax=1e6, amax=1e10)
+    r.write(cia.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 2000))
+    r.operational()
+    r.enable()
+    r.d.jammed = True
+    target = 0
+    faulted_at = None
+    for k in range(10):
+        target += 500
+        r.rx(cia.make_rpdo_target(NODE, cia.CW_ENABLE_OPERATION, target))
+        out = r.sync()
+        if any(m.arbitration_id == 0x085 for m in out):
+            faulted_at = k
+            break
+    assert faulted_at is not None and 3 <= faulted_at <= 5  # 2000-count window, 500 per cycle
+    assert r.d.position_counts == 0
