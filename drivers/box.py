@@ -242,7 +242,9 @@ class DriveBox:
             bi = len(self._layouts)
             log = None
             if self.log_dir is not None:
-                log = TrafficLog(self.log_dir / f"{self.run_name}_{b.name}{self.log_suffix}")
+                log = TrafficLog(
+                    self.log_dir / f"{self.run_name}_{b.name}{self.log_suffix}", channel=bi + 1
+                )
                 self._logs.append(log)
             port = BusPort(b.name, bus, log)
             self._ports.append(port)
@@ -433,6 +435,8 @@ class DriveBox:
             "events": self.events.to_list(),
             "emergencies": [e.describe() for e in self.monitor.emergencies],
             "can_logs": [str(log.path) for log in self._logs],
+            "can_log_frames": [log.n_frames for log in self._logs],
+            "can_log_errors": [log.first_error for log in self._logs if log.write_errors],
             **self.record_extra,
         }
 

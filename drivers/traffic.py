@@ -41,8 +41,11 @@ class TrafficLog(can.Listener):
     """Thread-safe python-can log of one bus: received frames (listener) and sent
     frames (:meth:`log_sent`), written by a background thread in arrival order."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, channel: int = 1) -> None:
         self.path = Path(path)
+        self.channel = int(channel)  # channel number written in the log (1-based, as in CANalyzer)
+        self.write_errors = 0
+        self.first_error: str | None = None
         if self.path.suffix.lower() not in LOG_SUFFIXES:
             raise DriverError(f"{self.path}: CAN log must end in {' or '.join(LOG_SUFFIXES)}")
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -60,18 +63,27 @@ class TrafficLog(can.Listener):
         self._thread.start()
 
     def on_message_received(self, msg: can.Message) -> None:
+        # Interfaces name channels freely (a virtual bus: any string); logs want a number.
+        msg.channel = self.channel
         self._queue.append(msg)
 
     def log_sent(self, msg: can.Message) -> None:
         """Record a frame the host sent (``is_rx=False``)."""
+        msg.channel = self.channel
         self._queue.append(msg)
 
     def _drain(self) -> None:
         q = self._queue
         write = self._writer.on_message_received
         while q:
-            write(q.popleft())
-            self.n_frames += 1
+            msg = q.popleft()
+            try:
+                write(msg)
+                self.n_frames += 1
+            except Exception as exc:  # one bad frame must not end the log
+                self.write_errors += 1
+                if self.first_error is None:
+                    self.first_error = f"{self.path.name}: cannot log {msg} ({exc})"
 
     def _run(self) -> None:
         while not self._stopping:

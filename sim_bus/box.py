@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import heapq
 import logging
+import math
 import socket
 import threading
 import time
@@ -101,6 +102,7 @@ class _BoxBus:
         self.frames_out = 0
         self.trace: list[tuple[float, list[int]]] | None = None
         self.cpu_s = 0.0
+        self.timers_dirty = True
 
     def rebuild_routes(self) -> None:
         routes: dict[int, list[DriveSim]] = {}
@@ -135,7 +137,8 @@ class SimBox:
         actuation: the rope layer (default: the default robot's).
         max_accel_counts_per_s2 / quick_stop_decel_counts_per_s2: drive ramps; the
             velocity limit is the rope layer's ``max_rate_counts_per_s``.
-        tick_s: timer resolution of heartbeats and quick stops without SYNC.
+        tick_s: longest sleep of a bus thread between drive timer checks (the threads wake
+            at each drive's next heartbeat / consumer deadline anyway).
         clock: monotonic clock (s).
     """
 
@@ -150,7 +153,7 @@ class SimBox:
         quick_stop_decel_counts_per_s2: float = 4.0e7,
         tension_noise_N: float = 0.05,
         snap_drift_rad_per_s: float = 0.2,
-        tick_s: float = 0.01,
+        tick_s: float = 0.05,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.config = config
@@ -301,10 +304,14 @@ class SimBox:
                 if not bb.bus_off:
                     for msg in batch:
                         self._dispatch(bb, msg, now)
-                if now >= next_tick:
+                if now >= next_tick or bb.timers_dirty:
                     for d in bb.drives:
                         d.tick(now)
-                    next_tick = max(next_tick + self.tick_s, now)
+                    # sleep until the earliest drive timer (heartbeat due, consumer timeout,
+                    # quick-stop motion), at most tick_s: no fixed-rate polling of 36 drives
+                    soonest = min((d.next_deadline() for d in bb.drives), default=math.inf)
+                    next_tick = min(max(soonest, now + 1e-4), now + self.tick_s)
+                    bb.timers_dirty = False
                 while bb.delayed and bb.delayed[0][0] <= now and not bb.bus_off:
                     _t, _s, late = heapq.heappop(bb.delayed)
                     try:
@@ -332,6 +339,13 @@ class SimBox:
             bb.trace.append((now, [d.position_counts for d in bb.drives]))
         if cob == cia.COB_NMT or cia.COB_SDO_RX < cob <= cia.COB_SDO_RX + 0x7F:
             bb.rebuild_routes()
+            bb.timers_dirty = True
+        elif cob > cia.COB_NMT_ERROR_CONTROL:  # a heartbeat may start a consumer's watch
+            bb.timers_dirty = True
+
+    def _timers_changed(self) -> None:
+        for bb in self._buses:
+            bb.timers_dirty = True
 
     def _fault_event(self, text: str) -> None:
         self._event(text, logging.INFO)
@@ -340,6 +354,8 @@ class SimBox:
         log.log(level, text)
         with self._lock:
             self.events.append(text)
+            if len(self.events) > 1000:
+                del self.events[:500]
 
     # ------------------------------------------------------------ state
     def counts(self) -> np.ndarray:
@@ -413,6 +429,7 @@ class SimBox:
         """The drive of ``motor`` stops (or resumes) producing its heartbeat."""
         with self._lock:
             self._drive(motor).heartbeat_enabled = not stopped
+            self._timers_changed()
         self._fault_event(f"fault: heartbeat of {motor} {'stopped' if stopped else 'resumed'}")
 
     def fault_drive(self, motor: str, code: int = EMCY_FOLLOWING_ERROR) -> None:
@@ -422,6 +439,7 @@ class SimBox:
             if code == EMCY_FOLLOWING_ERROR:
                 d.following_error = True
             d.inject_fault(code, self.clock())
+            self._timers_changed()
         self._fault_event(f"fault: drive {motor} faulted with 0x{code:04X}")
 
     def jam(self, motor: str, jammed: bool = True) -> None:
@@ -481,6 +499,7 @@ class SimBox:
             for d in self.drives.values():
                 d.heartbeat_enabled = True
                 d.jammed = False
+            self._timers_changed()
         self.arm.repair()
         self._fault_event("fault: every fault reset")
 

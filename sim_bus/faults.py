@@ -16,7 +16,7 @@ applies at once:
 ``sensor-garbage[:BYTES]``  the tension board sends garbage before every frame
 ``sensor-corrupt[:N]``      the next N frames carry a wrong CRC
 ``sensor-silent``           the tension board goes quiet; ``sensor-resume`` talks again
-``clear``                   remove frame faults and sensor garbage
+``clear``                   remove frame faults and sensor garbage / corruption
 ``reset``                   undo every fault (frames, buses, drives, ropes, sensor)
 =========================== =====================================================
 
@@ -160,11 +160,13 @@ def apply_fault(fault: Fault, box: SimBox, board: TensionBoard | None = None) ->
         box.reset_faults()
         if board is not None:
             board.inject_garbage(0)
+            board.corrupt_frames(0)
             board.set_silent(False)
     elif k == "clear":
         box.clear_frame_faults()
         if board is not None:
             board.inject_garbage(0)
+            board.corrupt_frames(0)
     else:
         if board is None:
             raise FaultSpecError(f"fault '{text}': no tension board in this box")

@@ -13,7 +13,9 @@ node on one shared :class:`SimWire`.  The wire models classical CAN:
   remote); a frame sent onto an idle wire starts at once;
 * every other node receives a frame at the end of its wire time, stamped with
   that ideal end time; the sender does not get its own frame back unless it
-  asked for ``receive_own_messages=True``.
+  asked for ``receive_own_messages=True``.  No thread runs the wire: every
+  ``send`` and ``recv`` moves it forward to "now", and a node waiting in
+  ``recv`` sleeps until the next frame ends.
 
 So a cycle that offers more bits than fit shows up as frames delivered late
 (``SimWire.stats()["max_queue_delay_s"]``), and ``SimWire.bus_load()`` is the
@@ -59,8 +61,8 @@ FrameMatch = Callable[[can.Message], bool]
 #: bits after the CRC that are never stuffed: CRC delimiter, ACK slot + delimiter, EOF, IFS.
 TRAILER_BITS = 1 + 2 + 7 + 3
 CRC15_POLY = 0x4599
-#: The wire thread must get the GIL back within a fraction of a frame schedule; CPython's
-#: default switch interval (5 ms) would let any busy thread delay deliveries by that much.
+#: A node waiting for a frame must get the GIL back within a fraction of a frame time;
+#: CPython's default switch interval (5 ms) would let any busy thread delay it by that much.
 #: Opening a wire lowers the process's switch interval to this (never raises it).
 GIL_SWITCH_INTERVAL_S = 2e-4
 
@@ -194,7 +196,6 @@ class SimWire:
         channel: str,
         bitrate: int,
         stuffing: Stuffing = "worst",
-        coalesce_s: float = 0.0,
     ) -> None:
         if not isinstance(bitrate, int) or bitrate <= 0:
             raise WireConfigError(
@@ -209,7 +210,6 @@ class SimWire:
         self.channel = channel
         self.bitrate = bitrate
         self.stuffing: Stuffing = stuffing
-        self.coalesce_s = float(coalesce_s)
         self._cond = threading.Condition()
         self._nodes: list[SimWireBus] = []
         self._pending: list[_Pending] = []
@@ -218,7 +218,6 @@ class SimWire:
         self._seq = 0
         self._rules: list[_Rule] = []
         self._bus_off = False
-        self._stop = False
         self._busy: collections.deque[tuple[float, float]] = collections.deque()
         self._wall_offset = time.time() - time.monotonic()
         self.frames_delivered = 0
@@ -227,8 +226,6 @@ class SimWire:
         self.max_delivery_late_s = 0.0
         self.max_queue_delay_s = 0.0
         self._late_log: collections.deque[float] | None = None
-        self._thread = threading.Thread(target=self._run, name=f"hrm_sim:{channel}", daemon=True)
-        self._thread.start()
 
     # ----------------------------------------------------------------- faults
     def drop(self, match: FrameMatch | None = None, count: int | None = 1) -> None:
@@ -270,6 +267,7 @@ class SimWire:
         t0 = now - window_s
         busy = 0.0
         with self._cond:
+            self._advance(now)
             for start, end in self._busy:
                 lo, hi = max(start, t0), min(end, now)
                 if hi > lo:
@@ -288,6 +286,7 @@ class SimWire:
     def stats(self) -> dict[str, Any]:
         """Counters: frames delivered/dropped, bits, worst delivery lateness and queueing."""
         with self._cond:
+            self._advance(time.monotonic())
             return {
                 "channel": self.channel,
                 "bitrate": self.bitrate,
@@ -318,11 +317,8 @@ class SimWire:
             for p in self._pending:
                 if p.sender is node:
                     p.sender = None
-            if not self._nodes:
-                self._stop = True
-                self._cond.notify_all()
-                return True
-            return False
+            self._cond.notify_all()
+            return not self._nodes
 
     def _submit(self, msg: can.Message, sender: SimWireBus) -> None:
         now = time.monotonic()
@@ -340,7 +336,8 @@ class SimWire:
             self._pending.append(
                 _Pending(t_ready, self._seq, arbitration_key(msg), msg, sender, now)
             )
-            self._cond.notify_all()
+            self._advance(now)
+            self._cond.notify_all()  # waiting receivers recompute when to wake
 
     # ---------------------------------------------------------------- engine
     def _schedule(self, now: float) -> float | None:
@@ -365,8 +362,9 @@ class SimWire:
                 self._busy.popleft()
         return None
 
-    def _deliver(self, now: float) -> list[tuple[SimWireBus, can.Message]]:
-        out: list[tuple[SimWireBus, can.Message]] = []
+    def _deliver(self, now: float) -> int:
+        """Hand every frame whose wire time ended by ``now`` to the other nodes."""
+        n = 0
         while self._in_flight and self._in_flight[0][1] <= now:
             _start, end, p = self._in_flight.popleft()
             late = now - end
@@ -374,49 +372,59 @@ class SimWire:
             if self._late_log is not None:
                 self._late_log.append(late)
             self.frames_delivered += 1
+            n += 1
             stamp = end + self._wall_offset
             src = p.msg
             for node in self._nodes:
                 own = node is p.sender
                 if own and not node.receive_own_messages:
                     continue
-                out.append(
-                    (
-                        node,
-                        can.Message(
-                            timestamp=stamp,
-                            arbitration_id=src.arbitration_id,
-                            is_extended_id=src.is_extended_id,
-                            is_remote_frame=src.is_remote_frame,
-                            is_error_frame=src.is_error_frame,
-                            dlc=src.dlc,
-                            data=bytes(src.data),
-                            channel=self.channel,
-                            is_rx=not own,
-                            check=False,
-                        ),
+                node._rx.append(
+                    can.Message(
+                        timestamp=stamp,
+                        arbitration_id=src.arbitration_id,
+                        is_extended_id=src.is_extended_id,
+                        is_remote_frame=src.is_remote_frame,
+                        is_error_frame=src.is_error_frame,
+                        dlc=src.dlc,
+                        data=bytes(src.data),
+                        channel=self.channel,
+                        is_rx=not own,
+                        check=False,
                     )
                 )
-        return out
+        return n
 
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                if self._stop:
-                    return
+    def _advance(self, now: float) -> float | None:
+        """Run the wire up to ``now`` (caller holds the lock); return the time of the next
+        event (a frame's end or an arbitration decision), None when the wire is idle."""
+        next_slot = self._schedule(now)
+        if self._deliver(now):
+            self._cond.notify_all()
+        times = [t for t in (next_slot,) if t is not None]
+        if self._in_flight:
+            times.append(self._in_flight[0][1])
+        return min(times) if times else None
+
+    def _receive(self, node: SimWireBus, timeout: float | None) -> can.Message | None:
+        """Next frame for ``node``, waiting at most ``timeout`` s (None: forever).
+
+        There is no wire thread: whichever node sends or waits runs the wire forward, and a
+        waiting node sleeps exactly until the next frame ends (or a send changes the plan).
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while True:
                 now = time.monotonic()
-                next_slot = self._schedule(now)
-                batch = self._deliver(now)
-                wake = [t for t in (next_slot,) if t is not None]
-                if self._in_flight:
-                    wake.append(self._in_flight[0][1] + self.coalesce_s)
-                if not batch:
-                    timeout = max(0.0, min(wake) - time.monotonic()) if wake else None
-                    self._cond.wait(timeout)
-                    continue
-            for node, msg in batch:
-                node._rx.append(msg)
-                node._rx_event.set()
+                next_event = self._advance(now)
+                if node._rx:
+                    return node._rx.popleft()
+                if not node._open:
+                    return None
+                waits = [t - now for t in (next_event, deadline) if t is not None]
+                if deadline is not None and deadline <= now:
+                    return None
+                self._cond.wait(max(0.0, min(waits)) if waits else None)
 
 
 _wires: dict[str, SimWire] = {}
@@ -437,7 +445,7 @@ class SimWireBus(can.BusABC):
 
     Keyword arguments: ``bitrate`` (default 1 Mbit/s; every node of a channel must agree),
     ``stuffing`` (``"worst"`` default or ``"exact"``), ``receive_own_messages`` (default
-    False), ``coalesce_s`` (deliver frames in batches up to this much late, default 0).
+    False).
     """
 
     def __init__(
@@ -446,7 +454,6 @@ class SimWireBus(can.BusABC):
         bitrate: int = 1_000_000,
         stuffing: Stuffing = "worst",
         receive_own_messages: bool = False,
-        coalesce_s: float = 0.0,
         can_filters: Any = None,
         **kwargs: Any,
     ) -> None:
@@ -454,7 +461,7 @@ class SimWireBus(can.BusABC):
         with _wires_lock:
             wire = _wires.get(name)
             if wire is None:
-                wire = SimWire(name, int(bitrate), stuffing, coalesce_s)
+                wire = SimWire(name, int(bitrate), stuffing)
                 _wires[name] = wire
             elif wire.bitrate != int(bitrate):
                 raise WireConfigError(
@@ -464,7 +471,6 @@ class SimWireBus(can.BusABC):
             self.wire = wire
             self.receive_own_messages = bool(receive_own_messages)
             self._rx: collections.deque[can.Message] = collections.deque()
-            self._rx_event = threading.Event()
             self._open = True
             wire._attach(self)
         self.channel_info = f"hrm_sim wire {name} @ {wire.bitrate} bit/s"
@@ -489,23 +495,7 @@ class SimWireBus(can.BusABC):
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if not self._open:
             raise can.CanOperationError("hrm_sim: cannot receive on a closed bus")
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while True:
-            try:
-                return self._rx.popleft(), False
-            except IndexError:
-                pass
-            self._rx_event.clear()
-            if self._rx:
-                continue
-            if deadline is None:
-                self._rx_event.wait()
-            else:
-                left = deadline - time.monotonic()
-                if left <= 0 or not self._rx_event.wait(left):
-                    if self._rx:
-                        continue
-                    return None, False
+        return self.wire._receive(self, timeout), False
 
     def shutdown(self) -> None:
         super().shutdown()

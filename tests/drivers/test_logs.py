@@ -76,7 +76,24 @@ def test_log_reads_back_with_the_same_frames(
     for kind in ("open", "bootup", "configured", "enabled", "stream_start", "stream_end"):
         assert kind in kinds
     assert [Path(p).name for p in record["can_logs"]] == [f"t_bus0{suffix}", f"t_bus1{suffix}"]
+    assert record["can_log_errors"] == [] and min(record["can_log_frames"]) > 100
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("suffix", [".blf", ".asc"])
+def test_traffic_log_numbers_channels_whatever_the_interface_calls_them(
+    tmp_path: Path, suffix: str
+) -> None:
+    path = tmp_path / f"x{suffix}"
+    log = TrafficLog(path, channel=2)
+    for k in range(3):
+        msg = can.Message(arbitration_id=0x181 + k, data=bytes([k]), timestamp=1.0 + k)
+        msg.channel = "hrm-drv-2fa1c93b77019999"  # trailing digits overflow a BLF channel
+        log.on_message_received(msg)
+    log.stop()
+    back = list(can.LogReader(path))
+    assert [m.arbitration_id for m in back] == [0x181, 0x182, 0x183]
+    assert log.write_errors == 0
 
 
 def test_traffic_log_rejects_unknown_suffix(tmp_path: Path) -> None:

@@ -200,3 +200,19 @@ def test_fault_stops_every_axis_and_logs_why(
     # the run record says why
     end = [e for e in run.record["events"] if e["kind"] == "stream_end"]
     assert end and "stopped" in end[-1]["text"] and names in end[-1]["text"]
+
+
+def test_sensor_garbage_between_valid_frames_does_not_stop_the_host(
+    fault_box: BoxProcess, fault_config: Path, actuation: Actuation, tmp_path: Path
+) -> None:
+    run = run_host(
+        fault_box,
+        fault_config,
+        actuation,
+        tmp_path,
+        HoldSource(n_cycles=150),
+        fault="sensor-garbage:300",
+        fault_after_s=0.2,
+    )
+    assert run.error is None and run.result is not None and run.result.completed
+    assert run.tension_fault is None

@@ -143,3 +143,18 @@ def test_arm_state_follows_the_drives(rig: tuple[Host, SimBox]) -> None:
     s2 = box.arm_state()
     assert s2.tension_N[0] == 0.0
     assert abs(s2.alpha[0]) + abs(s2.theta[0]) > 0.0
+
+
+def test_receive_buffer_enlarged_on_socket_buses(can_backend: Callable[[], dict[str, Any]]) -> None:
+    from sim_bus.box import enlarge_receive_buffer
+
+    kw = can_backend()
+    bus = can.Bus(**kw)
+    try:
+        size = enlarge_receive_buffer(bus, 4 * 1024 * 1024)
+        if kw["interface"] == "virtual":
+            assert size is None
+        else:
+            assert size is not None and size >= 1024 * 1024
+    finally:
+        bus.shutdown()
