@@ -404,14 +404,23 @@ class DriveBox:
         self.monitor.wake.set()
 
     def finish(self) -> None:
-        """Orderly end: disable operation (RPDO + SYNC), NMT pre-operational, heartbeat off."""
+        """Orderly end: disable operation, NMT pre-operational, heartbeat off.
+
+        After a stream, *disable operation* goes by RPDO + SYNC with the last (checked)
+        targets; if no stream ran, by SDO (no target position is sent at all)."""
         try:
             if self.enabled:
-                hold = self.results[-1].last_targets if self.results else self.actual
-                if hold is not None:
-                    self.scheduler.send_controlword(c.CW_DISABLE_OPERATION, hold)
+                if self.results:
+                    self.scheduler.send_controlword(
+                        c.CW_DISABLE_OPERATION, self.results[-1].last_targets
+                    )
                     time.sleep(2 * self.control.period_s)
-                    self.events.add("disable", "disable operation sent to every drive")
+                else:
+                    self._parallel(
+                        "disable",
+                        lambda link: sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_DISABLE_OPERATION),
+                    )
+                self.events.add("disable", "disable operation sent to every drive")
             self.send_nmt(c.NMT_ENTER_PRE_OPERATIONAL)
             self.events.add("nmt", "NMT enter pre-operational sent on every bus")
         finally:

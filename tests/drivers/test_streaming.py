@@ -121,3 +121,21 @@ def test_rpdos_reach_the_wire_before_their_sync_on_a_priority_arbitrated_bus(
         finally:
             notifier.stop(1.0)
             sniffer_bus.shutdown()
+
+
+def test_finish_without_stream_disables_by_sdo(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    for sn in rig.sniffers:
+        sn.clear()
+    box.finish()
+    assert wait_until(
+        lambda: (
+            {c.decode_state(sw) for sw in rig.sim.statuswords().values()}
+            == {c.State402.SWITCHED_ON}
+        )
+    )
+    # No target position went out: no RPDO at all.
+    frames = [m for sn in rig.sniffers for m in sn.snapshot()]
+    assert not any(0x200 < m.arbitration_id <= 0x27F for m in frames)
