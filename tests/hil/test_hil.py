@@ -24,9 +24,9 @@ from drivers.scheduler import StreamResult
 from drivers.setpoints import HoldSource, PlanSource, interpolate_rows
 from drivers.tension_sensor import TensionSensorReader, TensionWatch
 from hrm_ctrl.actuation import Actuation, load_actuation
-from hrm_ctrl.kinematics import joint_centres
 from hrm_ctrl.model import default_robot
 from sim_bus.box import enlarge_receive_buffer
+from sim_bus.tracking import tracking_error
 
 PLAN_SPEED_MM_PER_S = 120.0
 TENSION_STALE_S = 0.3  # 30 frames at 100 Hz; see hil_rig.HIL_CONTROL for why not tighter
@@ -127,37 +127,16 @@ def test_bent_pipe_plan_true_joint_centres_within_1mm(
     t = np.minimum(np.arange(n_body) * period, source.t_knots[-1])
     k = source.alpha.shape[1]
     ang = interpolate_rows(t, source.t_knots, np.hstack([source.alpha, source.theta]))
-    planned = joint_centres(actuation.robot, ang[:, :k], ang[:, k:])
-    # Which cycle's setpoint each SYNC carried: the drives reach cycle j's setpoint at the
-    # SYNC after it (one cycle of drive lag), but a slot the host skipped when late, or a
-    # frame the loaded udp transport lost, shifts the SYNC count of one bus.  So each bus's
-    # drives are matched to the nearest setpoint row (moving forward), and a trace row is
-    # compared with the plan when every bus sat on the same setpoint row.
-    table = source.table
     cfg = load_box_config(full_config)
     ids = actuation.motor_ids
     cols = [np.array([ids.index(m) for m in b.nodes]) for b in cfg.buses]
-    js = [0] * len(cols)
-    rows: list[tuple[int, int]] = []
-    mixed = 0
-    for i in range(counts.shape[0]):
-        for b, c in enumerate(cols):
-            window = table[js[b] : js[b] + 6][:, c]
-            js[b] += int(np.argmin(np.abs(window - counts[i, c]).max(axis=1)))
-        j = js[0]
-        if len(set(js)) > 1:
-            mixed += 1
-        elif lead + 5 <= j < lead + n_body:  # past the lead-in and the first cycles of lag
-            rows.append((i, j - lead))
-    assert len(rows) > 0.8 * n_body, (len(rows), n_body, mixed)
-    ti, pj = np.array(rows).T
-    a, th, _res = actuation.angles_from_counts(counts[ti])
-    true = joint_centres(actuation.robot, a, th)
-    err_mm = np.linalg.norm(true - planned[pj], axis=-1)
-    assert float(err_mm.max()) < 1.0, f"worst joint-centre error {err_mm.max():.3f} mm"
+    tr = tracking_error(
+        actuation, source.table, lead, (ang[:, :k], ang[:, k:]), counts, cols, settle_cycles=5
+    )
+    assert tr.compared_cycles > 0.8 * n_body, tr
+    assert tr.max_error_mm < 1.0, f"worst joint-centre error {tr.max_error_mm:.3f} mm"
     # and the drive lag itself stays within one cycle: trace row i holds setpoint i-1 or i-2
-    lag = (ti - (pj + lead)).astype(float)
-    assert np.median(lag) <= 2, np.median(lag)
+    assert tr.median_lag_cycles <= 2, tr
     assert run.record["streams"][0]["completed"] is True
 
 
