@@ -154,6 +154,56 @@ class HeartbeatProducer:
             self._thread = None
 
 
+class IdleGuard:
+    """Supervision while the drives are enabled but no stream runs (after bring-up,
+    between streams): heartbeats (timeout and NMT state), EMCYs and boot-ups are checked
+    every control period; any cause → quick stop of every drive and ``on_stop(causes)``."""
+
+    def __init__(
+        self,
+        monitor: NodeMonitor,
+        period_s: float,
+        quick_stop: Callable[[list[StopCause]], None],
+    ) -> None:
+        self.monitor = monitor
+        self.period_s = period_s
+        self.quick_stop = quick_stop
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self.monitor.supervising = True
+        self._thread = threading.Thread(target=self._run, name="idle-guard", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        mon = self.monitor
+        armed = time.monotonic()
+        while not self._stop.is_set():
+            mon.wake.wait(self.period_s)
+            if self._stop.is_set():
+                return
+            mon.wake.clear()
+            causes = mon.check(time.monotonic(), -1, armed)
+            if causes:
+                mon.supervising = False
+                self.quick_stop(causes)
+                return
+
+    def stop(self) -> None:
+        """Stop supervising (before a stream takes over, or at the end)."""
+        self._stop.set()
+        self.monitor.wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        self.monitor.wake.clear()
+        self.monitor.supervising = False
+
+
 class DriveBox:
     """Every bus and drive of the box; see the module docstring for the sequence."""
 
@@ -214,6 +264,8 @@ class DriveBox:
             self._layouts, self.monitor, actuation, self.control.period_s, self.events
         )
         self.scheduler.realtime_priority = self.control.realtime_priority
+        self.guard = IdleGuard(self.monitor, self.control.period_s, self._idle_stop)
+        self.idle_causes: list[StopCause] = []
         self.events.add(
             "open",
             f"{len(config.buses)} bus(es), {n} drives, {self.control.rate_hz:g} Hz",
@@ -360,6 +412,11 @@ class DriveBox:
         self.events.add(
             "enabled", f"every drive OPERATION_ENABLED in CSP ({self.bringup_s:.3f} s bring-up)"
         )
+        for stale in self.monitor.drain():
+            # Reported during bring-up (e.g. the EMCY of a fault that was reset); every
+            # drive has since shown OPERATION_ENABLED.
+            self.events.add("during_bringup", stale.text, cause=stale.kind, motor=stale.motor)
+        self.guard.start()
         return actual
 
     def _abort_enable(self) -> None:
@@ -378,16 +435,51 @@ class DriveBox:
             self.events.add("error", f"NMT pre-operational after failed enable: {exc}")
         self.events.add("quick_stop", "bring-up failed: quick stop (SDO) and NMT pre-operational")
 
+    def _idle_stop(self, causes: list[StopCause]) -> None:
+        """Called by the idle guard: quick stop every drive, remember why."""
+        for cause in causes:
+            self.events.add("stop_cause", cause.text, cause=cause.kind, motor=cause.motor)
+        hold = self.results[-1].last_targets if self.results else self.actual
+        try:
+            if hold is not None and self.results:
+                self.scheduler.send_controlword(c.CW_QUICK_STOP, hold)  # checked targets
+            else:
+                self._parallel(
+                    "quick stop", lambda link: sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_QUICK_STOP)
+                )
+        except HrmError as exc:
+            self.events.add("error", f"idle quick stop: {exc}")
+        self.events.add("quick_stop", "quick stop sent to every drive while idle")
+        self.idle_causes = list(causes)
+        self.enabled = False
+
     def stream(self, source: SetpointSource, raise_on_stop: bool = True) -> StreamResult:
         """Play a setpoint source; on any stop cause every axis gets a quick stop and
         :class:`SafetyStopError` is raised (or the result returned with ``raise_on_stop=False``)."""
+        self.guard.stop()
+        if self.idle_causes:
+            causes = self.idle_causes
+            raise SafetyStopError(
+                f"stopped while idle: {causes[0].text}",
+                causes,
+                StreamResult(False, 0, causes, {}, np.zeros(self.monitor.n, np.int64)),
+            )
         if not self.enabled or self.actual is None:
             raise DriverError("stream: drives are not enabled (bring_up first)")
         start = self.actual
         if self.results:
             start = self.results[-1].last_targets
-        result = self.scheduler.stream(source, start)
+        try:
+            result = self.scheduler.stream(source, start)
+        except BaseException:
+            if self.scheduler.crash_stopped:
+                self.enabled = False  # the scheduler quick-stopped every drive
+            else:
+                self.guard.start()  # the source refused to start: nothing was sent
+            raise
         self.results.append(result)
+        if not result.causes:
+            self.guard.start()
         if result.causes:
             self.enabled = False
             if raise_on_stop:
@@ -408,6 +500,7 @@ class DriveBox:
 
         After a stream, *disable operation* goes by RPDO + SYNC with the last (checked)
         targets; if no stream ran, by SDO (no target position is sent at all)."""
+        self.guard.stop()
         try:
             if self.enabled:
                 if self.results:
@@ -441,6 +534,7 @@ class DriveBox:
             "bringup_s": self.bringup_s,
             "actual_counts_at_enable": None if self.actual is None else self.actual.tolist(),
             "streams": [r.to_dict() for r in self.results],
+            "idle_stop_causes": [x.to_dict() for x in self.idle_causes],
             "events": self.events.to_list(),
             "emergencies": [e.describe() for e in self.monitor.emergencies],
             "can_logs": [str(log.path) for log in self._logs],
@@ -464,6 +558,7 @@ class DriveBox:
 
     def close(self) -> Path | None:
         """Stop everything; write the run record (if logging); return its path."""
+        self.guard.stop()
         self.heartbeat.stop()
         self._close_io()
         if self.log_dir is None:

@@ -77,7 +77,7 @@ class NodeMonitor:
         self.missing_run = np.zeros(n, dtype=np.int64)
         self.missing_total = 0
         self.seq = -1  # SYNC sequence number last sent (set by the scheduler)
-        self.streaming = False
+        self.supervising = False
         self.boot_event = threading.Event()
         self.wake = threading.Event()
         self._async_causes: collections.deque[StopCause] = collections.deque()
@@ -110,7 +110,7 @@ class NodeMonitor:
         self.position[idx] = pos
         self.rx_seq[idx] = self.seq if seq is None else seq
         self.n_tpdo[idx] += 1
-        if sw & SW_FAULT and self.streaming:
+        if sw & SW_FAULT and self.supervising:
             self._async_cause("fault", idx, f"statusword 0x{sw:04X} has the fault bit set")
 
     def on_heartbeat(self, idx: int, data: bytes | bytearray) -> None:
@@ -126,9 +126,9 @@ class NodeMonitor:
             self.booted[idx] = True
             if self.booted.all():
                 self.boot_event.set()
-            if self.streaming:
-                self._async_cause("bootup", idx, "node rebooted (boot-up frame) while streaming")
-        elif self.streaming and state != NMT_STATE_OPERATIONAL:
+            if self.supervising:
+                self._async_cause("bootup", idx, "node rebooted (boot-up frame) while enabled")
+        elif self.supervising and state != NMT_STATE_OPERATIONAL:
             name = NMT_STATE_NAMES.get(state, f"0x{state:02X}")
             self._async_cause("heartbeat", idx, f"heartbeat reports NMT state {name}")
 

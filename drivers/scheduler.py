@@ -249,6 +249,7 @@ class CyclicScheduler:
         self.stop_request = threading.Event()
         self.switch_interval_s = SWITCH_INTERVAL_S
         self.realtime_priority = 0
+        self.crash_stopped = False  # the last stream ended by an exception after a quick stop
 
     # ------------------------------------------------------------------ sending
     @property
@@ -355,6 +356,7 @@ class CyclicScheduler:
         """
         T = self.period_s
         mon = self.monitor
+        self.crash_stopped = False
         source.start(np.asarray(actual, dtype=np.int64), T)
         stats = CycleStats(T, self.late_threshold_s)
         applied = np.asarray(actual, dtype=np.int64).copy()  # last target a SYNC applied
@@ -365,7 +367,7 @@ class CyclicScheduler:
             # Reported while no stream ran (bring-up); the statusword check still applies.
             self.events.add("before_stream", stale.text, cause=stale.kind, motor=stale.motor)
         self.stop_request.clear()
-        mon.streaming = True
+        mon.supervising = True
         self.events.add("stream_start", f"streaming {source.describe()}")
         causes: list[StopCause] = []
         error: HrmError | None = None
@@ -462,7 +464,7 @@ class CyclicScheduler:
             result.causes = causes + extra
             result.stop_latency_s = latency
             result.stop_confirmed = confirmed
-        mon.streaming = False
+        mon.supervising = False
         result.stats = stats.summary()
         result.final_statuswords = [int(v) for v in mon.statusword]
         self.events.add(
@@ -471,5 +473,6 @@ class CyclicScheduler:
             stats=result.stats,
         )
         if crashed is not None:
+            self.crash_stopped = True
             raise crashed
         return result

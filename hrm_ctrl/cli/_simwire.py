@@ -1,0 +1,49 @@
+"""Wiring the simulated box into the console (``--sim``): the only place that does.
+
+The drivers only ever see buses: here the configured interfaces are replaced by
+in-process buses (python-can ``virtual``, or ``hrm_sim``, the simulated wire at the
+configured bitrate) and a :class:`sim_bus.box.SimBox` is started on the other end.
+"""
+
+from __future__ import annotations
+
+import sys
+import uuid
+from typing import Any
+
+from drivers.config import BoxConfig
+from hrm_ctrl.actuation import Actuation
+from hrm_ctrl.errors import DriverError
+
+SIM_MISSING_TPDO_CYCLES = 10
+SIM_WIRES = ("virtual", "hrm_sim")
+
+
+def start_in_process_sim(
+    config: BoxConfig, actuation: Actuation, wire: str = "virtual", prog: str = "hrm"
+) -> tuple[BoxConfig, Any]:
+    """Return the configuration rewritten onto in-process buses and the started box.
+
+    The simulated drives run in this interpreter and share its CPU, so their TPDOs get
+    ``SIM_MISSING_TPDO_CYCLES`` cycles before the host calls them missing (a line on
+    stderr says so, and the run record keeps the configuration used).
+    """
+    from sim_bus.box import SimBox
+    from sim_bus.config import sim_config_from_dict
+
+    if wire not in SIM_WIRES:
+        raise DriverError(f"--wire must be one of {', '.join(SIM_WIRES)}, got {wire!r}")
+    if config.control.missing_tpdo_cycles < SIM_MISSING_TPDO_CYCLES:
+        config = config.with_control(missing_tpdo_cycles=SIM_MISSING_TPDO_CYCLES)
+        print(
+            f"{prog}: --sim: TPDO tolerance raised to {SIM_MISSING_TPDO_CYCLES} cycles "
+            "(the simulated box shares this interpreter)",
+            file=sys.stderr,
+        )
+    tag = uuid.uuid4().hex[:8]
+    config = config.with_bus_kwargs(
+        [{"interface": wire, "channel": f"hrm-sim-{tag}-{b.name}"} for b in config.buses]
+    )
+    sim = SimBox(sim_config_from_dict(config.to_dict(), "--sim"), actuation=actuation)
+    sim.start()
+    return config, sim
