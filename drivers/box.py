@@ -94,8 +94,9 @@ class _RxRouter(can.Listener):
     """Receive path of one bus: TPDOs go straight to the monitor (every cycle, every
     node: the hot path), everything else to canopen (SDO, heartbeat, EMCY)."""
 
-    def __init__(self, network: canopen.Network) -> None:
+    def __init__(self, network: canopen.Network, on_error: Callable[[str, str], None]) -> None:
         self.network = network
+        self.on_error = on_error
         self.fast: dict[int, Callable[[bytes], None]] = {}
 
     def on_message_received(self, msg: can.Message) -> None:
@@ -107,8 +108,9 @@ class _RxRouter(can.Listener):
             return
         try:
             self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
-        except Exception:  # a canopen callback must not stop the receive thread
+        except Exception as exc:  # must not stop the receive thread: report it instead
             log.exception("canopen callback failed on 0x%03X", msg.arbitration_id)
+            self.on_error("receive", f"frame 0x{msg.arbitration_id:03X} not handled ({exc!r})")
 
 
 class HeartbeatProducer:
@@ -301,7 +303,7 @@ class DriveBox:
             port = BusPort(b.name, bus, log)
             self._ports.append(port)
             net = _PortNetwork(port)
-            router = _RxRouter(net)
+            router = _RxRouter(net, self.monitor.report)
             listeners: list[can.Listener] = [router]
             if log is not None:
                 listeners.append(log)
@@ -353,7 +355,11 @@ class DriveBox:
             more = f" (and {len(errors) - 1} more drive(s) failed)" if len(errors) > 1 else ""
             self.events.add("error", f"{what}: {first}{more}")
             if isinstance(first, HrmError):
-                raise type(first)(f"{first}{more}") from None
+                try:
+                    same_kind = type(first)(f"{first}{more}")  # keep the error's class
+                except TypeError:
+                    same_kind = DriverError(f"{first}{more}")
+                raise same_kind from None
             raise DriverError(f"{what}: {first}{more}") from None
         return [f.result() for f in futures]
 
@@ -367,6 +373,9 @@ class DriveBox:
         """Reset, configure and enable every drive; return actual positions (counts)."""
         t_start = time.monotonic()
         ctl = self.control
+        self.guard.stop()  # a second bring-up resets every node: not a fault
+        self.idle_causes = []
+        self.enabled = False
         self.heartbeat.start()
         self.monitor.reset_boot()
         self.send_nmt(c.NMT_RESET_NODE)

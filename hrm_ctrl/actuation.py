@@ -19,6 +19,7 @@ True
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -108,7 +109,7 @@ class Actuation:
                 what = (
                     "is not a finite number"
                     if not np.isfinite(val)
-                    else f"({np.degrees(val):.2f} deg) is outside the joint limit "
+                    else f"({math.degrees(val):.4g} deg) is outside the joint limit "
                     f"+-{np.degrees(lim):.6g} deg"
                 )
                 raise RopeLimitError(

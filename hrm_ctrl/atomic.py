@@ -14,10 +14,15 @@ import tempfile
 from pathlib import Path
 
 
-def _umask() -> int:
+def _read_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+# Read once at import: os.umask can only be read by setting it, which would race with
+# files other threads create.
+_UMASK = _read_umask()
 
 
 def write_atomic(path: str | Path, data: str | bytes, *, make_parents: bool = True) -> None:
@@ -35,7 +40,7 @@ def write_atomic(path: str | Path, data: str | bytes, *, make_parents: bool = Tr
             f.write(raw)
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, p)
     except BaseException:
         try:

@@ -89,6 +89,9 @@ class RobotModel:
         }
 
 
+MAX_LENGTH_MM = 1.0e5  # 100 m: anything larger is a typo, not an arm
+
+
 def _number(value: Any, where: str, *, positive: bool = False, finite: bool = True) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise RobotDescriptionError(f"{where}: expected a number, got {value!r}")
@@ -97,6 +100,10 @@ def _number(value: Any, where: str, *, positive: bool = False, finite: bool = Tr
         raise RobotDescriptionError(f"{where}: expected a finite number, got {value!r}")
     if positive and x <= 0.0:
         raise RobotDescriptionError(f"{where}: must be > 0, got {value!r}")
+    if abs(x) > MAX_LENGTH_MM:
+        raise RobotDescriptionError(
+            f"{where}: {x:.6g} is out of range (|value| <= {MAX_LENGTH_MM:g})"
+        )
     return x
 
 

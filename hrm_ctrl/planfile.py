@@ -105,4 +105,7 @@ def read_plan(path: str | Path) -> dict[str, Any]:
 def write_plan(path: str | Path, plan: dict[str, Any]) -> None:
     """Validate and write a plan file atomically."""
     validate_plan(plan, str(path))
-    write_atomic(path, json.dumps(plan, allow_nan=False, separators=(",", ":")) + "\n")
+    try:
+        write_atomic(path, json.dumps(plan, allow_nan=False, separators=(",", ":")) + "\n")
+    except OSError as exc:
+        raise PlanFileError(f"{path}: cannot write plan file ({exc.strerror or exc})") from None

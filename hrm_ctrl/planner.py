@@ -63,7 +63,7 @@ class PlanOptions:
 
     def check(self) -> None:
         if not (math.isfinite(self.step) and self.step > 0.0):
-            raise PlanningError(f"step must be > 0 mm, got {self.step}")
+            raise PlanningError(f"step must be a finite number > 0 mm, got {self.step}")
         if not (0.0 < self.alpha_step <= 1.0):
             raise PlanningError(f"alpha_step must be in (0, 1], got {self.alpha_step}")
         if self.Q < 20:

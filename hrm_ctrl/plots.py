@@ -337,11 +337,16 @@ def write_plan_figures(
     figures.append((ANGLES_PNG, _angles_figure(data, chosen)))
     rendered = [(name, _png_bytes(fig)) for name, fig in figures]  # draw all before writing
 
-    written = []
-    for name, png in rendered:
-        path = out / name
-        _write_atomic(path, png)
-        written.append(path)
+    written: list[Path] = []
+    try:
+        for name, png in rendered:
+            path = out / name
+            _write_atomic(path, png)
+            written.append(path)
+    except PlotError:
+        for path in written:  # all figures or none
+            path.unlink(missing_ok=True)
+        raise
     return written
 
 

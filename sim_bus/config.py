@@ -44,15 +44,24 @@ class SimBusConfig:
     def bus_kwargs(self) -> dict[str, Any]:
         """``can.Bus`` keyword arguments for this bus.
 
+        udp_multicast gets ``hop_limit = 0`` unless the file says otherwise, so the
+        simulated bus's frames never leave the host by default.
+
         >>> SimBusConfig("b", "virtual", "x", 500_000, {}, {}).bus_kwargs()
         {'interface': 'virtual', 'channel': 'x', 'bitrate': 500000}
+        >>> udp = SimBusConfig("b", "udp_multicast", "239.0.0.1", 500_000, {}, {})
+        >>> udp.bus_kwargs()["hop_limit"]
+        0
         """
-        return {
+        kw = {
             "interface": self.interface,
             "channel": self.channel,
             "bitrate": self.bitrate,
             **dict(self.options),
         }
+        if self.interface == "udp_multicast":
+            kw.setdefault("hop_limit", 0)
+        return kw
 
 
 @dataclass(frozen=True)

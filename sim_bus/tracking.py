@@ -6,6 +6,8 @@ after it (one cycle of drive lag), but a slot the host skipped when late, or a f
 a loaded transport lost, shifts the SYNC count of one bus.  So each bus's drives are
 matched to the nearest setpoint row of the streamed table (moving forward only), and a
 trace row is compared with the plan when every bus sat on the same setpoint row.
+The lag (SYNCs between a setpoint and the trace row that sat on it) is reported, so
+a matching that had to reach far ahead shows.
 
 >>> import numpy as np
 >>> table = np.arange(10)[:, None] * np.array([[1, 1]])        # two motors, one per bus
@@ -59,6 +61,8 @@ class Tracking:
     max_error_mm: float
     p99_error_mm: float
     median_lag_cycles: float
+    p95_lag_cycles: float
+    max_lag_cycles: int
     worst_joint: int  # 1-based joint centre (13 = end point)
 
     def to_dict(self) -> dict[str, float | int]:
@@ -69,6 +73,8 @@ class Tracking:
             "max_error_mm": self.max_error_mm,
             "p99_error_mm": self.p99_error_mm,
             "median_lag_cycles": self.median_lag_cycles,
+            "p95_lag_cycles": self.p95_lag_cycles,
+            "max_lag_cycles": self.max_lag_cycles,
             "worst_joint": self.worst_joint,
         }
 
@@ -92,19 +98,23 @@ def tracking_error(
     keep = (rows[:, 1] >= n_lead_in + settle_cycles) & (rows[:, 1] < n_lead_in + n_body)
     rows = rows[keep]
     if len(rows) == 0:
-        return Tracking(0, n_body, mixed, float("nan"), float("nan"), float("nan"), 0)
+        nan = float("nan")
+        return Tracking(0, n_body, mixed, nan, nan, nan, nan, 0, 0)
     ti, tj = rows[:, 0], rows[:, 1]
     a, th, _res = actuation.angles_from_counts(counts[ti])
     true = joint_centres(actuation.robot, a, th)
     planned = joint_centres(actuation.robot, alpha_p[tj - n_lead_in], theta_p[tj - n_lead_in])
     err = np.linalg.norm(true - planned, axis=-1)  # (m, 13)
     worst = int(np.unravel_index(int(np.argmax(err)), err.shape)[1]) + 1
+    lag = ti - tj  # SYNCs between a setpoint row and the trace row that sat on it
     return Tracking(
         compared_cycles=len(rows),
         body_cycles=n_body,
         mixed_cycles=mixed,
         max_error_mm=float(err.max()),
         p99_error_mm=float(np.percentile(err.max(axis=1), 99)),
-        median_lag_cycles=float(np.median(ti - tj)),
+        median_lag_cycles=float(np.median(lag)),
+        p95_lag_cycles=float(np.percentile(lag, 95)),
+        max_lag_cycles=int(lag.max()),
         worst_joint=worst,
     )

@@ -27,6 +27,8 @@ def test_demo_plays_a_scenario_on_the_simulated_box(
     tr = summary["tracking"]
     assert tr["compared_cycles"] > 0.8 * tr["body_cycles"]
     assert tr["max_error_mm"] < 1.0
+    assert tr["median_lag_cycles"] == 1  # a drive reaches a setpoint at the next SYNC
+    assert tr["p95_lag_cycles"] <= 2
     plan = read_plan(tmp_path / "plan.json")
     assert plan["report"]["tip_error_mm"] < 0.01
     assert {p.name for p in (tmp_path / "figures").iterdir()} == {

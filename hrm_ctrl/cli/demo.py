@@ -135,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"simulated arm vs plan: worst joint centre {tr.max_error_mm:.3f} mm off "
         f"(joint {tr.worst_joint}) over {tr.compared_cycles} of {tr.body_cycles} cycles, "
-        f"drive lag {tr.median_lag_cycles:g} cycle(s)"
+        f"drive lag {tr.median_lag_cycles:g} cycle(s) (p95 {tr.p95_lag_cycles:g})"
     )
     print(f"run record: {record_path}")
     for log in can_logs:

@@ -10,7 +10,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from hrm_ctrl.errors import PlanningError
+from hrm_ctrl.errors import HrmError, PlanningError
 from hrm_ctrl.known_path import KnownPath, load_path_csv
 from hrm_ctrl.model import load_robot
 from hrm_ctrl.planfile import write_plan
@@ -41,7 +41,7 @@ def register(p: argparse.ArgumentParser) -> None:
 def make_plan(args: argparse.Namespace) -> Plan:
     """Load the inputs named by the arguments and plan (no output written)."""
     if not (math.isfinite(args.step) and args.step > 0.0):
-        raise PlanningError(f"--step must be > 0 mm, got {args.step}")
+        raise PlanningError(f"--step must be a finite number > 0 mm, got {args.step}")
     robot = load_robot(args.robot)
     sc: Scenario | None = None
     if args.scenario:
@@ -119,15 +119,35 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(plan.report, indent=2))
     else:
         print(format_report(plan, name))
+    warn_collision(plan)
     if not args.allow_violations:
         check_limits(plan)  # raises: nothing written
     doc = plan.to_dict()
-    if args.out:
-        write_plan(args.out, doc)
-        print(f"plan written to {args.out}")
-    if args.plot:
+    figures: list[Path] = []
+    if args.plot:  # the figures first: if they fail, no plan file is left either
         from hrm_ctrl.plots import write_plan_figures
 
-        for f in write_plan_figures(doc, args.plot):
-            print(f"figure written to {f}")
+        figures = write_plan_figures(doc, args.plot)
+    if args.out:
+        try:
+            write_plan(args.out, doc)
+        except HrmError:
+            for f in figures:
+                f.unlink(missing_ok=True)
+            raise
+    for f in figures:
+        print(f"figure written to {f}")
+    if args.out:
+        print(f"plan written to {args.out}")
     return 0
+
+
+def warn_collision(plan: Plan) -> None:
+    """One warning line on stderr when a link meets an obstacle of the scenario."""
+    c = plan.report.get("clearance_mm")
+    if c and c["min"] is not None and c["min"] < 0.0:
+        print(
+            f"hrm plan: warning: link {c['link']} meets an obstacle at step {c['step']} "
+            f"(clearance {c['min']:.2f} mm)",
+            file=sys.stderr,
+        )

@@ -8,8 +8,9 @@ control rate and disables the drives at the end.  Every run writes each bus's
 traffic (``.blf`` or ``.asc``) and a run record JSON into ``--log-dir``.
 
 ``--sim`` starts the simulated box (``sim_bus``) in this process on python-can
-virtual buses instead of opening the configured interfaces; nothing else
-changes (the drivers only see buses).
+virtual buses (or, with ``--wire hrm_sim``, on the simulated wire at the configured
+bitrate) instead of opening the configured interfaces; nothing else changes (the
+drivers only see buses).
 
 >>> import argparse
 >>> p = argparse.ArgumentParser(prog="hrm run")
@@ -25,7 +26,6 @@ import argparse
 import json
 import math
 import sys
-import uuid
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,6 @@ import numpy as np
 
 from hrm_ctrl.errors import DriverError
 
-SIM_MISSING_TPDO_CYCLES = 10
 HELP = "play a plan (or hold / jog) on the CiA 402 rope-motor drives over CAN"
 
 
@@ -48,6 +47,10 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sim", action="store_true", help="run against the in-process simulated box"
     )
+    parser.add_argument(
+        "--wire", choices=("virtual", "hrm_sim"), default="virtual",
+        help="with --sim: python-can virtual buses, or hrm_sim (simulated wire at the bitrate)",
+    )  # fmt: skip
     parser.add_argument(
         "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
         help="where the CAN logs and the run record go (default ./runs)",
@@ -115,24 +118,9 @@ def run(args: argparse.Namespace) -> int:
 
     sim = None
     if args.sim:
-        from sim_bus.box import SimBox
-        from sim_bus.config import sim_config_from_dict
+        from hrm_ctrl.cli._simwire import start_in_process_sim
 
-        if config.control.missing_tpdo_cycles < SIM_MISSING_TPDO_CYCLES:
-            # The simulated drives run in this interpreter and share its CPU: give their
-            # TPDOs more time than real drives get (recorded in the run record's config).
-            config = config.with_control(missing_tpdo_cycles=SIM_MISSING_TPDO_CYCLES)
-            print(
-                f"hrm run: --sim: TPDO tolerance raised to {SIM_MISSING_TPDO_CYCLES} cycles "
-                "(the simulated box shares this interpreter)",
-                file=sys.stderr,
-            )
-        tag = uuid.uuid4().hex[:8]
-        config = config.with_bus_kwargs(
-            [{"interface": "virtual", "channel": f"hrm-sim-{tag}-{b.name}"} for b in config.buses]
-        )
-        sim = SimBox(sim_config_from_dict(config.to_dict(), "--sim"), actuation=actuation)
-        sim.start()
+        config, sim = start_in_process_sim(config, actuation, args.wire, prog="hrm run")
     summary: dict[str, Any] = {}
     try:
         box = DriveBox(config, actuation, log_dir=args.log_dir, log_suffix=f".{args.log_format}")

@@ -72,8 +72,10 @@ def test_emcy_and_fault_stop_every_node_within_one_cycle(rig_factory: Callable[.
     frames = rig.sniffers[1].snapshot()
     t_emcy = first_time(frames, lambda m: m.arbitration_id == 0x83 and any(m.data[:2]))
     t_stop = quick_stop_sync_time(rig)
-    assert t_stop - t_emcy <= PERIOD_S, t_stop - t_emcy
+    # Host side (EMCY callback -> quick-stop SYNC sent) strictly within one period; on the
+    # wire (EMCY frame -> quick-stop SYNC frame) also the receive thread's latency counts.
     assert err.result.stop_latency_s is not None and err.result.stop_latency_s <= PERIOD_S
+    assert 0.0 < t_stop - t_emcy <= PERIOD_S + 2 * RECEIVE_SLACK_S, t_stop - t_emcy
     assert wait_until(lambda: all_left_operation_enabled(rig))
     assert any(e["kind"] == "quick_stop" for e in rig.box.events.to_list())
 

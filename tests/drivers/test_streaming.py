@@ -139,3 +139,12 @@ def test_finish_without_stream_disables_by_sdo(rig_factory: Callable[..., Rig]) 
     # No target position went out: no RPDO at all.
     frames = [m for sn in rig.sniffers for m in sn.snapshot()]
     assert not any(0x200 < m.arbitration_id <= 0x27F for m in frames)
+
+
+def test_second_bring_up_is_not_a_fault(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    box.bring_up()  # resets every node again while the idle guard was watching
+    assert box.idle_causes == []
+    assert box.stream(HoldSource(n_cycles=5)).completed

@@ -12,6 +12,7 @@ import queue
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -87,6 +88,8 @@ class BoxProcess:
     """``hrm sim --control`` as a child process; JSON lines in, JSON lines out."""
 
     def __init__(self, config: Path, *extra: str) -> None:
+        # stderr to a file, not a pipe nobody drains: a chatty box must not block
+        self._stderr = tempfile.TemporaryFile("w+")
         self.proc = subprocess.Popen(
             [
                 sys.executable,
@@ -100,7 +103,7 @@ class BoxProcess:
             ],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
+            stderr=self._stderr,
             text=True,
             cwd=REPO,
         )
@@ -128,7 +131,10 @@ class BoxProcess:
                 return obj
             if obj.get("event") == "error":
                 raise AssertionError(f"box process error: {obj['error']}")
-        err = self.proc.stderr.read() if self.proc.poll() is not None and self.proc.stderr else ""
+        err = ""
+        if self.proc.poll() is not None:  # the box died: say what it printed
+            self._stderr.seek(0)
+            err = self._stderr.read()
         raise AssertionError(f"box process: no '{event}' within {timeout_s} s {err}")
 
     def command(self, text: str, reply: str, timeout_s: float = 5.0) -> dict[str, Any]:
@@ -149,6 +155,8 @@ class BoxProcess:
         except (subprocess.TimeoutExpired, BrokenPipeError, OSError):
             self.proc.kill()
             self.proc.wait(timeout=5.0)
+        finally:
+            self._stderr.close()
 
 
 def vcan_pair_available() -> bool:

@@ -135,7 +135,8 @@ def test_bent_pipe_plan_true_joint_centres_within_1mm(
     )
     assert tr.compared_cycles > 0.8 * n_body, tr
     assert tr.max_error_mm < 1.0, f"worst joint-centre error {tr.max_error_mm:.3f} mm"
-    # and the drive lag itself stays within one cycle: trace row i holds setpoint i-1 or i-2
+    # the drives reach a setpoint at the SYNC after it (lag 1); over the loaded udp
+    # transport some SYNCs are late or skipped, so the median is held to <= 2
     assert tr.median_lag_cycles <= 2, tr
     assert run.record["streams"][0]["completed"] is True
 

@@ -141,7 +141,7 @@ def test_step_must_be_positive(step: str, tmp_path: Path, capsys) -> None:
     rc, _, err = run(
         ["plan", "--scenario", "bent-pipe", f"--step={step}", "--out", str(out)], capsys
     )
-    assert rc == 2 and "--step must be > 0" in err and err.count("\n") == 1
+    assert rc == 2 and "--step must be a finite number > 0" in err and err.count("\n") == 1
     assert not out.exists()
 
 
@@ -183,3 +183,39 @@ def test_real_process_prints_no_traceback(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "Traceback" not in proc.stderr
     assert proc.stdout == ""
+
+
+def test_unwritable_out_is_one_line_and_leaves_no_figures(tmp_path: Path, capsys) -> None:
+    (tmp_path / "adir").mkdir()
+    rc, _, err = run(
+        [
+            "plan",
+            "--scenario",
+            "cabins",
+            "--out",
+            str(tmp_path / "adir"),  # a folder, not a file
+            "--plot",
+            str(tmp_path / "fig"),
+        ],
+        capsys,
+    )
+    assert rc == 2 and "cannot write plan file" in err and err.count("\n") == 1
+    assert not list((tmp_path / "fig").glob("*.png"))
+
+
+def test_unwritable_plot_dir_leaves_no_plan(tmp_path: Path, capsys) -> None:
+    (tmp_path / "afile").write_text("")
+    out = tmp_path / "plan.json"
+    rc, _, err = run(
+        ["plan", "--scenario", "cabins", "--out", str(out), "--plot", str(tmp_path / "afile")],
+        capsys,
+    )
+    assert rc == 2 and err.count("\n") == 1 and "afile" in err
+    assert not out.exists()
+
+
+def test_a_collision_is_warned_on_stderr(capsys) -> None:
+    rc, stdout, err = run(["plan", "--scenario", "bent-pipe"], capsys)
+    assert rc == 0
+    assert "COLLISION" in stdout
+    assert "warning: link 9 meets an obstacle at step 135" in err

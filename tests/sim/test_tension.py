@@ -78,8 +78,9 @@ def test_board_on_a_pty_with_garbage_and_silence() -> None:
         s = reader.latest()
         assert np.allclose(s.tensions_N, tensions, atol=0.006)
         n0 = reader.parser.frames
-        time.sleep(0.1)
-        assert reader.parser.frames - n0 >= 12  # >= 100 Hz delivered (200 Hz nominal)
+        time.sleep(0.5)
+        # >= 100 Hz delivered (200 Hz nominal), with room for a loaded machine
+        assert reader.parser.frames - n0 >= 50
         board.inject_garbage(100, continuous=True)
         board.corrupt_frames(3)
         time.sleep(0.1)
