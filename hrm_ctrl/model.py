@@ -14,7 +14,6 @@ True
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import resources
@@ -24,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from hrm_ctrl.errors import RobotDescriptionError
+from hrm_ctrl.tomlfile import read_toml
 
 N_JOINTS = 12
 DEFAULT_ROBOT_RESOURCE = "robot.toml"
@@ -212,21 +212,13 @@ def load_robot(path: str | Path | None = None) -> RobotModel:
     file and the problem.
     """
     if path is None:
-        text = resources.files("hrm_ctrl.data").joinpath(DEFAULT_ROBOT_RESOURCE).read_text()
-        source = f"<default {DEFAULT_ROBOT_RESOURCE}>"
+        default = resources.files("hrm_ctrl.data").joinpath(DEFAULT_ROBOT_RESOURCE)
+        with resources.as_file(default) as p:
+            doc, source = read_toml(
+                p, RobotDescriptionError, "robot file", f"<default {DEFAULT_ROBOT_RESOURCE}>"
+            )
     else:
-        p = Path(path)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise RobotDescriptionError(f"{p}: robot file not found") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise RobotDescriptionError(f"{p}: cannot read robot file ({exc})") from None
-        source = str(p)
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise RobotDescriptionError(f"{source}: not valid TOML ({exc})") from None
+        doc, source = read_toml(path, RobotDescriptionError, "robot file")
     return robot_from_dict(doc, source)
 
 

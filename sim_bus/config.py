@@ -16,7 +16,6 @@ and of ``hrm sim`` (the host's loader refuses tables it does not know).
 
 from __future__ import annotations
 
-import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from importlib import resources
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from hrm_ctrl.errors import SimError
+from hrm_ctrl.tomlfile import read_toml
 
 DEFAULT_BOX = ("drivers.data", "box.toml")
 
@@ -144,19 +144,11 @@ def sim_config_from_dict(doc: Mapping[str, Any], source: str) -> SimConfig:
 def load_sim_config(path: str | Path | None = None) -> SimConfig:
     """Load a bus configuration; ``None``: the drivers' default ``box.toml``."""
     if path is None:
-        text = resources.files(DEFAULT_BOX[0]).joinpath(DEFAULT_BOX[1]).read_text()
-        source = f"<default {DEFAULT_BOX[1]}>"
+        default = resources.files(DEFAULT_BOX[0]).joinpath(DEFAULT_BOX[1])
+        with resources.as_file(default) as p:
+            doc, source = read_toml(
+                p, SimConfigError, "bus configuration", f"<default {DEFAULT_BOX[1]}>"
+            )
     else:
-        p = Path(path)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise SimConfigError(f"{p}: bus configuration not found") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise SimConfigError(f"{p}: cannot read bus configuration ({exc})") from None
-        source = str(p)
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise SimConfigError(f"{source}: not valid TOML ({exc})") from None
+        doc, source = read_toml(path, SimConfigError, "bus configuration")
     return sim_config_from_dict(doc, source)
