@@ -17,7 +17,6 @@ node id.  The interface is configuration, never code: any name python-can knows
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -28,6 +27,7 @@ import can
 from drivers import default_box_path
 from drivers.cia402 import HOST_HEARTBEAT_NODE_ID, NODE_ID_MAX, NODE_ID_MIN
 from hrm_ctrl.errors import DriverError
+from hrm_ctrl.tomlfile import read_toml
 
 
 class BusConfigError(DriverError):
@@ -349,14 +349,5 @@ def load_box_config(path: str | Path | None = None) -> BoxConfig:
     """
     p = default_box_path() if path is None else Path(path)
     source = str(p) if path is not None else f"<default {p.name}>"
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise BusConfigError(f"{p}: bus configuration not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise BusConfigError(f"{p}: cannot read bus configuration ({exc})") from None
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise BusConfigError(f"{source}: not valid TOML ({exc})") from None
+    doc, source = read_toml(p, BusConfigError, "bus configuration", source)
     return box_config_from_dict(doc, source)
