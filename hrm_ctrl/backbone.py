@@ -72,8 +72,9 @@ class ModalBasis:
         w[0] = w[-1] = 0.5 / self.Q
         self.w = w
         self.W = np.stack((w, w * self.sin2, w * self.cos2), axis=1)  # (Q+1, 3)
+        self.SC = np.stack((self.sin2, self.cos2))  # (2, Q+1): K's mode shapes
         self.wcos2 = w * self.cos2
-        for arr in (S, self.sin2, self.cos2, self.rise, self.fall, w, self.W, self.wcos2):
+        for arr in (S, self.sin2, self.cos2, self.rise, self.fall, w, self.W, self.wcos2, self.SC):
             arr.setflags(write=False)
 
     def mode_angles(self, a: np.ndarray, b: Boundary) -> tuple[np.ndarray, np.ndarray]:
@@ -146,7 +147,7 @@ class _EndPoint:
         self.basis = basis
         self.cK = b.b1k * basis.fall + b.b2k * basis.rise
         self.cT = b.b1t * basis.fall + b.b2t * basis.rise
-        self.SC = np.stack((basis.sin2, basis.cos2))  # (2, Q+1)
+        self.SC = basis.SC
         self.terms = np.empty((5, basis.Q + 1))
 
     def evaluate(self, X0: np.ndarray, l: float, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -184,7 +185,24 @@ class ModalSolution:
     iterations: int
 
 
-_I3 = np.eye(3)
+def solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """x with A x = b for a 3x3 A, by Cramer's rule on floats (faster than LAPACK at
+    this size); raises ``ZeroDivisionError`` for a singular A.
+
+    >>> solve3(np.array([[2.0, 0, 0], [0, 4, 0], [1, 0, 1]]), np.array([2.0, 8, 3])).tolist()
+    [1.0, 2.0, 2.0]
+    """
+    (a, b_, c), (d, e, f), (g, h, i) = A.tolist()
+    x, y, z = b.tolist()
+    co0, co1, co2 = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * co0 + b_ * co1 + c * co2
+    return np.array(
+        [
+            (x * co0 + b_ * (f * z - y * i) + c * (y * h - e * z)) / det,
+            (a * (y * i - f * z) + x * co1 + c * (d * z - y * g)) / det,
+            (a * (e * z - y * h) + b_ * (y * g - d * z) + x * co2) / det,
+        ]
+    )
 
 
 def solve_modal_factors(
@@ -239,7 +257,11 @@ def solve_modal_factors(
                 f"{math.sqrt(f2):.3g} mm left after {it} iterations"
             )
         it += 1
-        a_new = a + np.linalg.solve(JtJ + mu * _I3, -(J.T @ F))
+        damped = JtJ.copy()
+        damped[0, 0] += mu
+        damped[1, 1] += mu
+        damped[2, 2] += mu
+        a_new = a + solve3(damped, -(J.T @ F))
         X_new, J_new = ev.evaluate(X0, l, a_new)
         F_new = X_new - X_D
         f2_new = float(F_new @ F_new)

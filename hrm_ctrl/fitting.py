@@ -209,9 +209,13 @@ def fit_joint_centres_batch(
     O[:, n] = P
     O[:, 0] = curves[:, 0]
     seg[:, n] = m - 2
+    C2 = np.einsum("nmk,nmk->nm", curves, curves)  # |C|^2, once for every joint
     for i in range(n - 1, 1, -1):
         r = float(links[i])
-        d2 = np.einsum("nmk,nmk->nm", curves - P[:, None, :], curves - P[:, None, :])
+        # |C - P|^2 = |C|^2 - 2 C.P + |P|^2: the bracket test only (the intersection
+        # below uses the points themselves)
+        d2 = C2 - 2.0 * np.einsum("nmk,nk->nm", curves, P)
+        d2 += np.einsum("nk,nk->n", P, P)[:, None]
         ok = (d2 >= r * r) & (idx[None, :] <= j[:, None])
         found = ok.any(axis=1)
         if not found.all():

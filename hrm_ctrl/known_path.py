@@ -100,6 +100,19 @@ class KnownPath:
         C, D = self.points[j], self.points[j + 1]
         return C + (d - self.s[j]) / (self.s[j + 1] - self.s[j]) * (D - C)
 
+    def points_at(self, d: np.ndarray) -> np.ndarray:
+        """:meth:`point_at` for many distances at once, shape (N, 3).
+
+        >>> P = KnownPath.from_points(np.array([[0, 0, 0], [3, 0, 0], [3, 4, 0]], float))
+        >>> P.points_at(np.array([0.0, 5.0, 9.0])).tolist()
+        [[0.0, 0.0, 0.0], [3.0, 2.0, 0.0], [3.0, 4.0, 0.0]]
+        """
+        d = np.clip(np.asarray(d, dtype=float), 0.0, self.length)
+        j = np.clip(np.searchsorted(self.s, d, side="right") - 1, 0, len(self.s) - 2)
+        C, D = self.points[j], self.points[j + 1]
+        frac = (d - self.s[j]) / (self.s[j + 1] - self.s[j])
+        return C + frac[:, None] * (D - C)
+
     def tangent_at(self, d: float) -> np.ndarray:
         """Unit tangent of the segment holding d (the first at 0, the last at the end)."""
         d = min(max(float(d), 0.0), self.length)
@@ -135,7 +148,7 @@ class KnownPath:
         """Shortest distance from each point of ``q`` (..., 3) to the polyline.
 
         The path is resampled every <= 0.5 mm (the same polyline); the segments
-        next to the four nearest samples are measured exactly, which finds the
+        next to the two nearest samples are measured exactly, which finds the
         true nearest segment unless another part of the path comes within the
         sample spacing of it.
 
@@ -149,9 +162,9 @@ class KnownPath:
         if len(flat) == 0:
             return np.zeros(shape)
         pts, tree = self._dense
-        _, v = tree.query(flat, k=min(4, len(pts)))
+        _, v = tree.query(flat, k=min(2, len(pts)))
         v = np.atleast_2d(v).reshape(len(flat), -1)
-        segs = np.clip(np.concatenate((v - 1, v), axis=1), 0, len(pts) - 2)  # (P, 8)
+        segs = np.clip(np.concatenate((v - 1, v), axis=1), 0, len(pts) - 2)  # (P, 4)
         A = pts[segs]
         AB = pts[segs + 1] - A
         L2 = np.einsum("pkj,pkj->pk", AB, AB)

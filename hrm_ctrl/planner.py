@@ -269,9 +269,7 @@ def travelled_path_padded(path: KnownPath, travel: np.ndarray) -> np.ndarray:
     """
     M = len(path.points)
     j = np.clip(np.searchsorted(path.s, travel, side="right") - 1, 0, M - 2)
-    C, D = path.points[j], path.points[j + 1]
-    frac = (travel - path.s[j]) / (path.s[j + 1] - path.s[j])
-    tip = C + frac[:, None] * (D - C)
+    tip = path.points_at(travel)
     c = np.arange(M)
     take = (c[None, :] + 1) <= j[:, None]
     pts = path.points[np.minimum(c + 1, M - 1)]
@@ -292,14 +290,13 @@ def plan_report(plan: Plan, seg: np.ndarray, Q: int) -> dict[str, Any]:
     """
     model, path = plan.model, plan.path
     n = len(plan.travel)
-    target = np.array([path.point_at(d) for d in plan.travel])
+    target = path.points_at(plan.travel)
     tip_err = np.linalg.norm(plan.joints[:, -1] - target, axis=1)
     fwd_last = max(i for i in range(n) if plan.phase[i] == "in")
     end_err = float(np.linalg.norm(plan.joints[fwd_last, -1] - path.points[-1]))
 
     on_path = seg >= Q  # joints fitted onto the path part of the backbone
-    jd = path.distance_to(plan.joints)
-    joints_off = float(jd[on_path].max()) if on_path.any() else 0.0
+    joints_off = float(path.distance_to(plan.joints[on_path]).max()) if on_path.any() else 0.0
     link_on = on_path[:, :-1] & on_path[:, 1:]
     links_off = 0.0
     if link_on.any():
