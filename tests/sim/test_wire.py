@@ -58,7 +58,9 @@ def test_frames_are_paced_at_the_bitrate(pair: tuple[can.BusABC, can.BusABC]) ->
     gaps = [q.timestamp - p.timestamp for p, q in itertools.pairwise(got)]
     assert all(g > 135e-6 - 1e-6 for g in gaps)  # never closer than one frame's wire time
     assert sorted(gaps)[len(gaps) // 2] == pytest.approx(135e-6, abs=1e-6)  # back to back
-    assert a.wire.stats()["max_delivery_late_s"] < 0.005
+    # pick-up lateness is wall-clock (threads under the interpreter lock): a sanity bound
+    # only; the pacing itself is asserted on the exact timestamps above (BENCHMARKS.md)
+    assert a.wire.stats()["max_delivery_late_s"] < 0.05
 
 
 def test_arbitration_order_when_several_are_pending(pair: tuple[can.BusABC, can.BusABC]) -> None:
