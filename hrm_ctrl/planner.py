@@ -53,6 +53,8 @@ class PlanOptions:
         Q: number of equal parts of the modal curve (Sec. 3.1).
         return_to_start: back out along the path to the start configuration.
         start_angles: (b1k, b1t); by default the base's mounting direction.
+        backbone_steps: steps whose backbone curve the plan keeps (for figures);
+            by default the first, middle and last.  Indices past the end are ignored.
     """
 
     step: float = 5.0
@@ -60,6 +62,7 @@ class PlanOptions:
     Q: int = 200
     return_to_start: bool = False
     start_angles: tuple[float, float] | None = None
+    backbone_steps: tuple[int, ...] | None = None
 
     def check(self) -> None:
         if not (math.isfinite(self.step) and self.step > 0.0):
@@ -204,7 +207,10 @@ def plan_path(
     alpha, theta = joint_angles_from_centres(model, O)
     t_batch = time.perf_counter()
     step_time += (t_batch - t_solve) / n  # the batched work, shared evenly
-    keep = sorted({0, n // 2, n - 1})
+    if opt.backbone_steps is None:
+        keep = sorted({0, n // 2, n - 1})
+    else:
+        keep = sorted({i for i in opt.backbone_steps if 0 <= i < n})
     backbones = {
         i: curves[i, : opt.Q + 1 + int(np.searchsorted(path.s, travel[i], "left"))] for i in keep
     }
@@ -221,7 +227,8 @@ def plan_path(
         seg = np.vstack((seg, seg[back]))
         step_time = np.concatenate((step_time, np.zeros(len(back))))
         phase += ["return"] * len(back)
-        backbones[len(travel) - 1] = backbones[0]
+        if 0 in backbones:
+            backbones[len(travel) - 1] = backbones[0]
     joints = joint_centres(model, alpha, theta)
     plan = Plan(
         model=model,

@@ -31,6 +31,11 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, metavar="PLAN.json", help="write the plan file")
     p.add_argument("--plot", type=Path, metavar="DIR", help="write figures (PNG) to DIR")
     p.add_argument(
+        "--plot-steps",
+        metavar="I,J,...",
+        help="steps to draw in 3D (default: first, middle, last), e.g. 0,60,135",
+    )
+    p.add_argument(
         "--allow-violations",
         action="store_true",
         help="write the plan even if it breaks a joint limit",
@@ -53,8 +58,35 @@ def make_plan(args: argparse.Namespace) -> Plan:
             path = load_path_csv(args.path)
         for w in caught:
             print(f"hrm plan: warning: {w.message}", file=sys.stderr)
-    opts = PlanOptions(step=args.step, alpha_step=args.alpha_step, return_to_start=args.ret)
-    return plan_path(robot, path, opts, scenario=sc)
+    steps = parse_plot_steps(args.plot_steps)
+    opts = PlanOptions(
+        step=args.step, alpha_step=args.alpha_step, return_to_start=args.ret, backbone_steps=steps
+    )
+    plan = plan_path(robot, path, opts, scenario=sc)
+    if steps is not None and steps[-1] >= len(plan.travel):
+        raise PlanningError(
+            f"--plot-steps: step {steps[-1]} is past the plan's last step {len(plan.travel) - 1}"
+        )
+    return plan
+
+
+def parse_plot_steps(text: str | None) -> tuple[int, ...] | None:
+    """``"0,60,135"`` -> ``(0, 60, 135)``; None stays None.
+
+    >>> parse_plot_steps("60, 0,135")
+    (0, 60, 135)
+    """
+    if text is None:
+        return None
+    try:
+        steps = sorted({int(t) for t in text.split(",") if t.strip()})
+    except ValueError:
+        raise PlanningError(
+            f"--plot-steps: expected step numbers like 0,60,135, got {text!r}"
+        ) from None
+    if not steps or steps[0] < 0:
+        raise PlanningError(f"--plot-steps: expected step numbers >= 0, got {text!r}")
+    return tuple(steps)
 
 
 def format_report(plan: Plan, name: str) -> str:
@@ -127,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:  # the figures first: if they fail, no plan file is left either
         from hrm_ctrl.plots import write_plan_figures
 
-        figures = write_plan_figures(doc, args.plot)
+        figures = write_plan_figures(doc, args.plot, plan.options.backbone_steps)
     if args.out:
         try:
             write_plan(args.out, doc)

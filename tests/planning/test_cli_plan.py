@@ -219,3 +219,27 @@ def test_a_collision_is_warned_on_stderr(capsys) -> None:
     assert rc == 0
     assert "COLLISION" in stdout
     assert "warning: link 9 meets an obstacle at step 135" in err
+
+
+def test_plot_steps_choose_the_steps_drawn(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "plan.json"
+    rc, _, err = run(
+        [
+            "plan",
+            "--scenario",
+            "bent-pipe",
+            "--out",
+            str(out),
+            "--plot",
+            str(tmp_path / "fig"),
+            "--plot-steps",
+            "0,60,135",
+        ],
+        capsys,
+    )
+    assert rc == 0, err
+    steps = read_plan(out)["steps"]
+    assert [i for i, st in enumerate(steps) if "backbone_mm" in st] == [0, 60, 135]
+    assert steps[60]["travel_mm"] == pytest.approx(300.0)  # Fig. 11b of the paper
+    rc, _, err = run(["plan", "--scenario", "bent-pipe", "--plot-steps", "0,999"], capsys)
+    assert rc == 2 and "past the plan's last step 135" in err and err.count("\n") == 1
