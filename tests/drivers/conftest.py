@@ -1,5 +1,5 @@
 """Fixtures of the driver tests (helpers live in ``driver_rig``)."""
 
-from driver_rig import actuation, bus_backend, rig_factory
+from tests.drivers.driver_rig import actuation, bus_backend, rig_factory
 
 __all__ = ["actuation", "bus_backend", "rig_factory"]

@@ -7,7 +7,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from driver_rig import Rig, make_config
 
 from drivers import cia402 as c
 from drivers.box import DriveBox
@@ -16,6 +15,7 @@ from drivers.busload import BusLoadError
 from drivers.partial import ActuationSubset
 from hrm_ctrl.actuation import Actuation
 from hrm_ctrl.errors import DriverError
+from tests.drivers.driver_rig import Rig, make_config
 
 
 def test_missing_nodes_are_listed(rig_factory: Callable[..., Rig]) -> None:

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import can
 import pytest
-from driver_rig import Rig, wait_until
 
 from drivers.setpoints import JogSource
 from drivers.traffic import BusPort, BusSendError, TrafficLog
+from tests.drivers.driver_rig import Rig, wait_until
 
 HOST_IDS = {0x000, 0x080} | set(range(0x201, 0x280)) | set(range(0x601, 0x680)) | {0x77F}
 DRIVE_IDS = set(range(0x081, 0x100)) | set(range(0x181, 0x200)) | set(range(0x581, 0x600))

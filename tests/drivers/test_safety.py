@@ -10,11 +10,11 @@ from typing import Any
 import can
 import numpy as np
 import pytest
-from driver_rig import Rig, first_time, wait_until
 
 from drivers import cia402 as c
 from drivers.box import DriveBox, SafetyStopError
 from drivers.setpoints import HoldSource, TableSource
+from tests.drivers.driver_rig import Rig, first_time, wait_until
 
 PERIOD_S = 0.01
 # Wire-level timing (frame on the bus -> quick-stop SYNC on the bus) includes the receive

@@ -7,7 +7,6 @@ from collections.abc import Callable
 
 import can
 import numpy as np
-from driver_rig import Rig, Sniffer, make_config, rpdo_targets_per_sync, wait_until
 
 from drivers import cia402 as c
 from drivers.box import DriveBox
@@ -17,6 +16,7 @@ from drivers.setpoints import HoldSource, JogSource
 from hrm_ctrl.actuation import Actuation
 from sim_bus.box import SimBox
 from sim_bus.config import sim_config_from_dict
+from tests.drivers.driver_rig import Rig, Sniffer, make_config, rpdo_targets_per_sync, wait_until
 
 
 def test_bring_up_configures_and_enables_every_drive(rig_factory: Callable[..., Rig]) -> None:

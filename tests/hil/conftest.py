@@ -1,6 +1,6 @@
 """Fixtures of the hardware-in-the-loop tests (helpers live in ``hil_rig``)."""
 
-from hil_rig import (
+from tests.hil.hil_rig import (
     bent_pipe_plan,
     bus_kind,
     fault_box,

@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hil_rig import BoxProcess
 
 import drivers.cia402 as cia
 from drivers.box import DriveBox, SafetyStopError
@@ -27,6 +26,7 @@ from hrm_ctrl.actuation import Actuation, load_actuation
 from hrm_ctrl.model import default_robot
 from sim_bus.box import enlarge_receive_buffer
 from sim_bus.tracking import tracking_error
+from tests.hil.hil_rig import BoxProcess
 
 PLAN_SPEED_MM_PER_S = 120.0
 TENSION_STALE_S = 0.3  # 30 frames at 100 Hz; see hil_rig.HIL_CONTROL for why not tighter

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import pytest
-from rope_helpers import robot_with
 
 from hrm_ctrl.actuation import Actuation, load_actuation
 from hrm_ctrl.model import default_robot
+from tests.ropes.rope_helpers import robot_with
 
 
 @pytest.fixture(scope="session")

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from rope_helpers import robot_with
 
 from hrm_ctrl.actuation import Actuation, RopeLimitError, load_actuation
 from hrm_ctrl.errors import RopeError
+from tests.ropes.rope_helpers import robot_with
 
 
 def test_contract_attributes(act: Actuation) -> None:

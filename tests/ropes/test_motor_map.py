@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-from rope_helpers import robot_with
 
 from hrm_ctrl.actuation import Actuation, load_actuation
 from hrm_ctrl.errors import RopeError
@@ -16,6 +15,7 @@ from hrm_ctrl.motor_map import (
     stretched_length_mm,
     unstretched_length_mm,
 )
+from tests.ropes.rope_helpers import robot_with
 
 
 def test_counts_per_mm_from_drum_gear_encoder(act: Actuation) -> None:

@@ -6,12 +6,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-from rope_helpers import default_doc, robot_with
 
 from hrm_ctrl.actuation import load_actuation
 from hrm_ctrl.errors import HrmError, RopeError
 from hrm_ctrl.model import robot_from_dict
 from hrm_ctrl.rope_routing import RoutingError, routing_from_model
+from tests.ropes.rope_helpers import default_doc, robot_with
 
 
 def test_default_routing_36_ropes_spread_10_degrees() -> None:
