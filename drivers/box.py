@@ -44,8 +44,10 @@ from drivers.bringup import (
     BootupError,
     DriveLink,
     DriveSettings,
+    command,
     configure_drive,
     enable_operation,
+    read_state,
     sdo_write,
 )
 from drivers.busload import BusLoad, check_bus_load
@@ -58,6 +60,12 @@ from hrm_ctrl.atomic import write_atomic
 from hrm_ctrl.errors import DriverError, HrmError
 
 RUN_RECORD_FORMAT = "hrm-run/1"
+# Upper bounds of the parallel SDO work, in SDO transfers / CiA 402 transitions per drive
+# (each transfer may take (1 + retries) SDO timeouts; each transition the state timeout).
+CONFIG_SDO_TRANSFERS = 48
+ENABLE_TRANSITIONS = 7
+ENABLE_SDO_TRANSFERS = 12
+PARALLEL_MARGIN_S = 1.0
 log = logging.getLogger("drivers.box")
 
 
@@ -170,38 +178,59 @@ class IdleGuard:
         self.monitor = monitor
         self.period_s = period_s
         self.quick_stop = quick_stop
+        self.error: HrmError | None = None  # the idle quick stop itself failed
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._fired = False
 
     def start(self) -> None:
         if self._thread is not None:
             return
         self._stop.clear()
+        self._fired = False
+        self.error = None
         self.monitor.supervising = True
+        if self.monitor.hb_armed_at is None:
+            self.monitor.hb_armed_at = time.monotonic()
         self._thread = threading.Thread(target=self._run, name="idle-guard", daemon=True)
         self._thread.start()
 
+    def _check(self) -> bool:
+        """One evaluation of the idle watchdogs; on any cause quick stop (True)."""
+        mon = self.monitor
+        causes = mon.check(time.monotonic(), -1, mon.hb_armed_at)
+        if not causes:
+            return False
+        self._fired = True
+        mon.supervising = False
+        try:
+            self.quick_stop(causes)
+        except HrmError as exc:  # reported to the next stream / finish
+            log.error("idle quick stop failed: %s", exc)
+            self.error = exc
+        return True
+
     def _run(self) -> None:
         mon = self.monitor
-        armed = time.monotonic()
         while not self._stop.is_set():
             mon.wake.wait(self.period_s)
             if self._stop.is_set():
                 return
             mon.wake.clear()
-            causes = mon.check(time.monotonic(), -1, armed)
-            if causes:
-                mon.supervising = False
-                self.quick_stop(causes)
+            if self._check():
                 return
 
     def stop(self) -> None:
-        """Stop supervising (before a stream takes over, or at the end)."""
+        """Stop supervising (before a stream takes over, or at the end), with a last
+        check of everything queued so far: a cause found now still quick-stops."""
         self._stop.set()
         self.monitor.wake.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout=5.0)
             self._thread = None
+            if not self._fired:
+                self._check()
         self.monitor.wake.clear()
         self.monitor.supervising = False
 
@@ -285,10 +314,10 @@ class DriveBox:
                 continue
             try:
                 bus = can.Bus(**b.bus_kwargs())
-            except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
+            except Exception as exc:  # a missing interface library can raise anything
                 raise DriverError(
                     f"{self.config.source}: buses.{b.name}: cannot open {b.interface} "
-                    f"channel {b.channel!r} ({exc})"
+                    f"channel {b.channel!r} ({type(exc).__name__}: {exc})"
                 ) from None
             self._owned.append(bus)
             opened.append(bus)
@@ -343,12 +372,36 @@ class DriveBox:
     def _links(self) -> list[DriveLink]:
         return [link for link in self.links if link is not None]
 
-    def _parallel(self, what: str, fn: Callable[[DriveLink], Any]) -> list[Any]:
-        """Run ``fn`` for every drive at once; raise the first error (all finish first)."""
+    @property
+    def sdo_transfer_s(self) -> float:
+        """Longest one SDO transfer can take (timeout x (1 + canopen's retries))."""
+        return self.control.sdo_timeout_s * (1 + canopen.sdo.SdoClient.MAX_RETRIES)
+
+    def _budget_s(self, transfers: int, transitions: int = 0) -> float:
+        """Time bound of parallel work of ``transfers`` SDO transfers and ``transitions``
+        CiA 402 transitions per drive."""
+        per_transition = self.control.state_timeout_s + self.sdo_transfer_s
+        return transfers * self.sdo_transfer_s + transitions * per_transition + PARALLEL_MARGIN_S
+
+    def _parallel(self, what: str, fn: Callable[[DriveLink], Any], timeout_s: float) -> list[Any]:
+        """Run ``fn`` for every drive at once; raise the first error (all finish first),
+        or :class:`DriverError` naming the drives still busy after ``timeout_s``."""
         links = self._links()
-        with concurrent.futures.ThreadPoolExecutor(max_workers=min(36, len(links))) as pool:
+        pool = concurrent.futures.ThreadPoolExecutor(
+            max_workers=min(36, len(links)), thread_name_prefix=f"drives-{what}"
+        )
+        try:
             futures = [pool.submit(fn, link) for link in links]
-            concurrent.futures.wait(futures)
+            _done, busy = concurrent.futures.wait(futures, timeout=timeout_s)
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)
+        if busy:
+            names = [link.label for link, f in zip(links, futures, strict=True) if f in busy]
+            text = f"{what}: no answer within {timeout_s:g} s from {len(names)} drive(s): " + (
+                ", ".join(names)
+            )
+            self.events.add("error", text)
+            raise DriverError(text)
         errors = [f.exception() for f in futures if f.exception() is not None]
         if errors:
             first = errors[0]
@@ -373,9 +426,19 @@ class DriveBox:
         """Reset, configure and enable every drive; return actual positions (counts)."""
         t_start = time.monotonic()
         ctl = self.control
-        self.guard.stop()  # a second bring-up resets every node: not a fault
+        self.guard.stop()  # (a last check: a cause found now quick-stops every drive)
+        if self.enabled:
+            # A second bring-up: the drives are enabled; never reset them like that.
+            try:
+                self._disable_drives("disable before reset")
+            except HrmError:
+                self._abort_enable()
+                self.enabled = False
+                raise
+            self.events.add("disable", "every drive disabled (SWITCHED_ON) before the reset")
         self.idle_causes = []
         self.enabled = False
+        self.monitor.hb_armed_at = None
         self.heartbeat.start()
         self.monitor.reset_boot()
         self.send_nmt(c.NMT_RESET_NODE)
@@ -402,13 +465,24 @@ class DriveBox:
                 quick_stop_option_code=ctl.quick_stop_option_code,
             )
 
-        self._parallel("configuration", lambda link: configure_drive(link, settings(link)))
+        self._parallel(
+            "configuration",
+            lambda link: configure_drive(link, settings(link)),
+            self._budget_s(CONFIG_SDO_TRANSFERS),
+        )
         self.events.add("configured", "every drive configured by SDO (CSP, PDOs, limits)")
         self.send_nmt(c.NMT_START_REMOTE_NODE)
         self.events.add("nmt", "NMT start remote node sent on every bus")
         try:
             actual_list = self._parallel(
-                "enable", lambda link: enable_operation(link, ctl.state_timeout_s)
+                "enable",
+                lambda link: enable_operation(
+                    link,
+                    ctl.state_timeout_s,
+                    counts_min=settings(link).counts_min,
+                    counts_max=settings(link).counts_max,
+                ),
+                self._budget_s(ENABLE_SDO_TRANSFERS, ENABLE_TRANSITIONS),
             )
         except HrmError:
             self._abort_enable()
@@ -425,6 +499,7 @@ class DriveBox:
             # Reported during bring-up (e.g. the EMCY of a fault that was reset); every
             # drive has since shown OPERATION_ENABLED.
             self.events.add("during_bringup", stale.text, cause=stale.kind, motor=stale.motor)
+        self.monitor.hb_armed_at = time.monotonic()  # kept across streams and idle periods
         self.guard.start()
         return actual
 
@@ -434,7 +509,9 @@ class DriveBox:
         error is what the caller gets."""
         try:
             self._parallel(
-                "abort", lambda link: sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_QUICK_STOP)
+                "abort",
+                lambda link: sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_QUICK_STOP),
+                self._budget_s(1),
             )
         except HrmError as exc:
             self.events.add("error", f"quick stop after failed enable: {exc}")
@@ -444,32 +521,73 @@ class DriveBox:
             self.events.add("error", f"NMT pre-operational after failed enable: {exc}")
         self.events.add("quick_stop", "bring-up failed: quick stop (SDO) and NMT pre-operational")
 
+    def _disable_drives(self, what: str) -> None:
+        """Controlled disable of every drive by SDO: *disable operation* (confirmed
+        SWITCHED_ON by the statusword), then *shutdown* (confirmed READY_TO_SWITCH_ON:
+        power stage off).  No target position is sent.  Raises naming the drives that
+        failed (the others are still disabled)."""
+        timeout_s = self.control.state_timeout_s
+
+        def disable(link: DriveLink) -> None:
+            command(link, c.CW_DISABLE_OPERATION, c.State402.SWITCHED_ON, timeout_s)
+            command(link, c.CW_SHUTDOWN, c.State402.READY_TO_SWITCH_ON, timeout_s)
+
+        self._parallel(what, disable, self._budget_s(0, 2))
+
     def _idle_stop(self, causes: list[StopCause]) -> None:
-        """Called by the idle guard: quick stop every drive, remember why."""
+        """Called by the idle guard: quick stop every drive, remember why; raises
+        :class:`DriverError` naming what failed (after trying every bus / drive)."""
         for cause in causes:
             self.events.add("stop_cause", cause.text, cause=cause.kind, motor=cause.motor)
         hold = self.results[-1].last_targets if self.results else self.actual
+        failed: list[str] = []
         try:
             if hold is not None and self.results:
-                self.scheduler.send_controlword(c.CW_QUICK_STOP, hold)  # checked targets
+                sent = self.scheduler.send_controlword(c.CW_QUICK_STOP, hold)  # checked targets
+                failed = [x.text for x in sent]
             else:
                 self._parallel(
-                    "quick stop", lambda link: sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_QUICK_STOP)
+                    "quick stop",
+                    lambda link: sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_QUICK_STOP),
+                    self._budget_s(1),
                 )
         except HrmError as exc:
-            self.events.add("error", f"idle quick stop: {exc}")
-        self.events.add("quick_stop", "quick stop sent to every drive while idle")
-        self.idle_causes = list(causes)
+            failed.append(str(exc))
+        self.idle_causes = list(causes) + [
+            StopCause("send", f"idle quick stop failed: {t}", None, time.monotonic())
+            for t in failed
+        ]
         self.enabled = False
+        if failed:
+            text = "quick stop while idle failed: " + "; ".join(failed)
+            self.events.add("error", text)
+            raise DriverError(text)
+        self.events.add("quick_stop", "quick stop sent to every drive while idle")
+
+    def _check_ready(self) -> None:
+        """Before the first RPDO of a stream: every drive's statusword (SDO upload of
+        0x6041, in parallel, with timeouts) must show OPERATION_ENABLED; else
+        :class:`DriverError` naming the motors and their states (nothing is sent)."""
+        states = self._parallel("statusword check", read_state, self._budget_s(1))
+        bad = [
+            f"{link.label} statusword 0x{sw:04X} ({state.name})"
+            for link, (state, sw) in zip(self._links(), states, strict=True)
+            if state is not c.State402.OPERATION_ENABLED
+        ]
+        if bad:
+            text = f"stream refused: not OPERATION_ENABLED: {', '.join(bad)}"
+            self.events.add("error", text)
+            raise DriverError(text)
 
     def stream(self, source: SetpointSource, raise_on_stop: bool = True) -> StreamResult:
         """Play a setpoint source; on any stop cause every axis gets a quick stop and
         :class:`SafetyStopError` is raised (or the result returned with ``raise_on_stop=False``)."""
-        self.guard.stop()
+        self.guard.stop()  # with a last check: a cause queued now stops every drive
         if self.idle_causes:
             causes = self.idle_causes
+            failed = f" ({self.guard.error})" if self.guard.error is not None else ""
             raise SafetyStopError(
-                f"stopped while idle: {causes[0].text}",
+                f"stopped while idle: {causes[0].text}{failed}",
                 causes,
                 StreamResult(False, 0, causes, {}, np.zeros(self.monitor.n, np.int64)),
             )
@@ -479,7 +597,7 @@ class DriveBox:
         if self.results:
             start = self.results[-1].last_targets
         try:
-            result = self.scheduler.stream(source, start)
+            result = self.scheduler.stream(source, start, ready_check=self._check_ready)
         except BaseException:
             if self.scheduler.crash_stopped:
                 self.enabled = False  # the scheduler quick-stopped every drive
@@ -505,29 +623,38 @@ class DriveBox:
         self.monitor.wake.set()
 
     def finish(self) -> None:
-        """Orderly end: disable operation, NMT pre-operational, heartbeat off.
-
-        After a stream, *disable operation* goes by RPDO + SYNC with the last (checked)
-        targets; if no stream ran, by SDO (no target position is sent at all)."""
-        self.guard.stop()
+        """Orderly end: *disable operation* then *shutdown* by SDO, each confirmed by the
+        statusword (power stage off, READY_TO_SWITCH_ON; no target position is sent),
+        then NMT pre-operational, then the host heartbeat off (the drives no longer
+        need it).  Whatever fails, the rest is still done; then :class:`DriverError`
+        names what failed (a drive left enabled stops itself when the host heartbeat
+        ends, and on NMT pre-operational)."""
+        self.guard.stop()  # with a last check
+        failed: list[str] = []
         try:
             if self.enabled:
-                if self.results:
-                    self.scheduler.send_controlword(
-                        c.CW_DISABLE_OPERATION, self.results[-1].last_targets
+                try:
+                    self._disable_drives("disable")
+                    self.events.add(
+                        "disable", "every drive disabled and shut down (READY_TO_SWITCH_ON)"
                     )
-                    time.sleep(2 * self.control.period_s)
-                else:
-                    self._parallel(
-                        "disable",
-                        lambda link: sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_DISABLE_OPERATION),
-                    )
-                self.events.add("disable", "disable operation sent to every drive")
-            self.send_nmt(c.NMT_ENTER_PRE_OPERATIONAL)
-            self.events.add("nmt", "NMT enter pre-operational sent on every bus")
+                except HrmError as exc:
+                    failed.append(str(exc))
+            try:
+                self.send_nmt(c.NMT_ENTER_PRE_OPERATIONAL)
+                self.events.add("nmt", "NMT enter pre-operational sent on every bus")
+            except HrmError as exc:
+                failed.append(f"NMT pre-operational: {exc}")
         finally:
             self.enabled = False
             self.heartbeat.stop()
+        if self.guard.error is not None:
+            failed.append(str(self.guard.error))
+            self.guard.error = None
+        if failed:
+            text = "finish: " + "; ".join(failed)
+            self.events.add("error", text)
+            raise DriverError(text)
 
     # ------------------------------------------------------------------ records
     def record(self) -> dict[str, Any]:
@@ -580,10 +707,16 @@ class DriveBox:
     def __enter__(self) -> DriveBox:
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
         try:
             if self.enabled:
-                self.finish()
+                try:
+                    self.finish()
+                except HrmError as err:
+                    if exc_type is None:
+                        raise
+                    # Keep the error in flight; this one goes into the run record.
+                    self.events.add("error", f"finish after {exc_type.__name__}: {err}")
         finally:
             self.close()
 

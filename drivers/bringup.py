@@ -92,6 +92,10 @@ def sdo_write(link: DriveLink, index: int, subindex: int, value: Any) -> None:
         raise SdoError(
             f"{link.label}: cannot write 0x{index:04X}:{subindex:02X} = {value!r} ({exc})"
         ) from None
+    except DriverError as exc:  # the request could not be sent (bus failure)
+        raise SdoError(
+            f"{link.label}: SDO write 0x{index:04X}:{subindex:02X} = {value!r}: {exc}"
+        ) from None
 
 
 def sdo_read(link: DriveLink, index: int, subindex: int = 0) -> Any:
@@ -111,6 +115,8 @@ def sdo_read(link: DriveLink, index: int, subindex: int = 0) -> Any:
         ) from None
     except (KeyError, ValueError, TypeError, IndexError) as exc:
         raise SdoError(f"{link.label}: cannot read 0x{index:04X}:{subindex:02X} ({exc})") from None
+    except DriverError as exc:  # the request could not be sent (bus failure)
+        raise SdoError(f"{link.label}: SDO read 0x{index:04X}:{subindex:02X}: {exc}") from None
 
 
 def _var(link: DriveLink, index: int) -> Any:
@@ -213,11 +219,18 @@ def command(link: DriveLink, controlword: int, expected: c.State402, timeout_s: 
     return wait_state(link, expected, timeout_s, f"controlword 0x{controlword:04X}")
 
 
-def enable_operation(link: DriveLink, timeout_s: float) -> int:
+def enable_operation(
+    link: DriveLink,
+    timeout_s: float,
+    counts_min: int | None = None,
+    counts_max: int | None = None,
+) -> int:
     """CiA 402 state machine to OPERATION_ENABLED, checking the statusword at each step.
 
-    A drive in FAULT gets one fault reset (0→1 edge of bit 7).  The target position
-    is set to the actual position before operation is enabled, so nothing moves.
+    A drive in FAULT gets one fault reset (0→1 edge of bit 7).  The actual position
+    is checked against ``counts_min``/``counts_max`` (the rope layer's limits; outside:
+    :class:`DriverError`, the drive stays SWITCHED_ON, not enabled); then the target
+    position is set to it before operation is enabled, so nothing moves.
     Returns the actual position (counts).
     """
     state, sw = read_state(link)
@@ -248,6 +261,13 @@ def enable_operation(link: DriveLink, timeout_s: float) -> int:
             f"{link.label}: statusword 0x{sw:04X} ({state.name}) cannot be brought to SWITCHED_ON"
         )
     actual = int(sdo_read(link, c.OD_POSITION_ACTUAL_VALUE))
+    lo = -(2**31) if counts_min is None else int(counts_min)
+    hi = 2**31 - 1 if counts_max is None else int(counts_max)
+    if not lo <= actual <= hi:
+        raise DriverError(
+            f"{link.label}: actual position {actual} counts is outside the limits "
+            f"[{lo}, {hi}]: not enabled"
+        )
     sdo_write(link, c.OD_TARGET_POSITION, 0, actual)
     command(link, c.CW_ENABLE_OPERATION, c.State402.OPERATION_ENABLED, timeout_s)
     return actual

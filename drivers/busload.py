@@ -19,7 +19,7 @@ import math
 from dataclasses import dataclass
 
 from drivers.cia402 import RPDO_TARGET_SIZE, TPDO_FEEDBACK_SIZE
-from drivers.config import BoxConfig, BusConfig, ControlConfig
+from drivers.config import BoxConfig, BusConfig, ControlConfig, rate_problem
 from hrm_ctrl.errors import DriverError
 
 HEARTBEAT_SIZE = 1
@@ -56,7 +56,7 @@ class BusLoad:
     heartbeat_bits_per_s: float
     load: float  # fraction of the bitrate
     limit: float
-    max_rate_hz: float  # highest control rate (whole Hz) that stays within the limit
+    max_rate_hz: float  # highest usable control rate (whole Hz, 0x60C2-encodable) within the limit
 
     @property
     def fits(self) -> bool:
@@ -93,7 +93,7 @@ def bus_load(
     )
     load = (per_cycle * control.rate_hz + heartbeat_bps) / bus.bitrate
     budget = control.bus_load_limit * bus.bitrate - heartbeat_bps
-    max_rate = max(0.0, float(math.floor(budget / per_cycle))) if budget > 0 else 0.0
+    max_rate = highest_usable_rate(budget / per_cycle) if budget > 0 else 0.0
     return BusLoad(
         bus=bus.name,
         n_nodes=n,
@@ -105,6 +105,19 @@ def bus_load(
         limit=control.bus_load_limit,
         max_rate_hz=max_rate,
     )
+
+
+def highest_usable_rate(limit_hz: float) -> float:
+    """The highest whole rate (Hz) <= ``limit_hz`` whose period the drives can take in
+    0x60C2 (see :func:`drivers.config.rate_problem`); 0 if none.
+
+    >>> highest_usable_rate(163.9), highest_usable_rate(81.4), highest_usable_rate(0.5)
+    (125.0, 80.0, 0.0)
+    """
+    r = math.floor(limit_hz)
+    while r > 0 and rate_problem(float(r)) is not None:
+        r -= 1
+    return float(max(r, 0))
 
 
 def bus_loads(config: BoxConfig) -> list[BusLoad]:
@@ -121,7 +134,7 @@ def check_bus_load(config: BoxConfig) -> list[BusLoad]:
     >>> check_bus_load(cfg)  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    drivers.busload.BusLoadError: bus can0: worst-case load 85.1% at 200 Hz ... fits: 163 Hz
+    drivers.busload.BusLoadError: bus can0: worst-case load 85.1% at 200 Hz ... fits: 125 Hz
     """
     loads = bus_loads(config)
     for bl in loads:

@@ -17,6 +17,7 @@ node id.  The interface is configuration, never code: any name python-can knows
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -25,13 +26,54 @@ from typing import Any
 import can
 
 from drivers import default_box_path
-from drivers.cia402 import HOST_HEARTBEAT_NODE_ID, NODE_ID_MAX, NODE_ID_MIN
+from drivers.cia402 import (
+    HOST_HEARTBEAT_NODE_ID,
+    NODE_ID_MAX,
+    NODE_ID_MIN,
+    FrameError,
+    interpolation_time_period,
+)
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.tomlfile import read_toml
 
 
 class BusConfigError(DriverError):
     """The bus configuration file is missing, malformed or inconsistent."""
+
+
+BUS_NAME_PATTERN = re.compile(r"[A-Za-z0-9_-]+")
+"""Bus names become part of log file names: letters, digits, ``_`` and ``-`` only."""
+
+
+def rate_problem(rate_hz: float) -> str | None:
+    """Why a control rate cannot be used (a phrase after ``control.rate_hz``), or ``None``.
+
+    The control period is written to the drives as 0x60C2 interpolation time period
+    (value 1..255 times 10^index s), so the period must be exactly representable.
+
+    >>> rate_problem(100.0) is None, rate_problem(250.0) is None
+    (True, True)
+    >>> rate_problem(30.0)
+    'must give a period 0x60C2 can encode (value 1..255 x 10^index s; nearest: 25 or 40 Hz)'
+    >>> rate_problem(0.0)
+    'must be in (0, 10000]'
+    """
+    if not (math.isfinite(rate_hz) and 0 < rate_hz <= 10_000):
+        return "must be in (0, 10000]"
+    if _encodable(rate_hz):
+        return None
+    below = next((r for r in range(math.floor(rate_hz), 0, -1) if _encodable(r)), None)
+    above = next((r for r in range(math.ceil(rate_hz), 10_001) if _encodable(r)), None)
+    near = " or ".join(str(r) for r in (below, above) if r is not None)
+    return f"must give a period 0x60C2 can encode (value 1..255 x 10^index s; nearest: {near} Hz)"
+
+
+def _encodable(rate_hz: float) -> bool:
+    try:
+        interpolation_time_period(1.0 / rate_hz)
+    except FrameError:
+        return False
+    return True
 
 
 @dataclass(frozen=True)
@@ -158,6 +200,7 @@ class BoxConfig:
             buses.append(
                 replace(b, interface=interface, channel=channel, bitrate=bitrate, options=kw)
             )
+        _check_distinct_channels(buses, self.source)
         return replace(self, buses=tuple(buses))
 
     def to_dict(self) -> dict[str, Any]:
@@ -237,7 +280,7 @@ def _control_from(doc: Mapping[str, Any], where: str) -> ControlConfig:
         values[key] = kind(value)
     c = ControlConfig(**values)
     checks = [
-        ("rate_hz", 0 < c.rate_hz <= 10_000, "must be in (0, 10000]"),
+        ("rate_hz", rate_problem(c.rate_hz) is None, str(rate_problem(c.rate_hz))),
         (
             "host_node_id",
             NODE_ID_MIN <= c.host_node_id <= NODE_ID_MAX,
@@ -283,6 +326,11 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
     placed: dict[str, tuple[int, int]] = {}
     for bi, (name, b) in enumerate(buses_doc.items()):
         w = f"{where}: buses.{name}"
+        if not isinstance(name, str) or not BUS_NAME_PATTERN.fullmatch(name):
+            raise BusConfigError(
+                f"{where}: buses.{name!r}: bus name may only use letters, digits, '_' and '-' "
+                "(it names the bus's log file)"
+            )
         if not isinstance(b, Mapping):
             raise BusConfigError(f"{w}: must be a table")
         extra = set(b) - {"interface", "channel", "bitrate", "options", "nodes"}
@@ -339,7 +387,21 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
                 nodes=dict(nodes),
             )
         )
+    _check_distinct_channels(buses, source)
     return BoxConfig(buses=tuple(buses), control=control, source=source, _where=placed)
+
+
+def _check_distinct_channels(buses: Sequence[BusConfig], source: str) -> None:
+    """Two buses on the same (interface, channel) would be one bus counted twice."""
+    seen: dict[tuple[str, str], str] = {}
+    for b in buses:
+        key = (b.interface, str(b.channel))
+        if key in seen:
+            raise BusConfigError(
+                f"{source}: buses.{b.name}.channel: {b.interface} channel {b.channel!r} "
+                f"is already bus {seen[key]} (each bus needs its own interface and channel)"
+            )
+        seen[key] = b.name
 
 
 def load_box_config(path: str | Path | None = None) -> BoxConfig:

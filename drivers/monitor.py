@@ -78,6 +78,9 @@ class NodeMonitor:
         self.missing_total = 0
         self.seq = -1  # SYNC sequence number last sent (set by the scheduler)
         self.supervising = False
+        # Monotonic time heartbeat supervision started (end of bring-up; None: not yet).
+        # Kept across idle periods and streams, so a stream never restarts the timeout.
+        self.hb_armed_at: float | None = None
         self.boot_event = threading.Event()
         self.wake = threading.Event()
         self._async_causes: collections.deque[StopCause] = collections.deque()

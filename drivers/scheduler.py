@@ -344,7 +344,12 @@ class CyclicScheduler:
             self.limits.check_counts(target, previous=previous, dt_s=self.period_s)
         return target
 
-    def stream(self, source: SetpointSource, actual: np.ndarray) -> StreamResult:
+    def stream(
+        self,
+        source: SetpointSource,
+        actual: np.ndarray,
+        ready_check: Callable[[], None] | None = None,
+    ) -> StreamResult:
         """Run ``source`` from the actual positions until it ends or something stops it.
 
         Cycle: at each deadline, watchdogs, then SYNC on every bus (applying the RPDOs
@@ -353,19 +358,29 @@ class CyclicScheduler:
         SYNC.  Deadlines sit on a fixed grid ``t0 + g T``; if the host falls more than a
         period behind, grid slots are skipped (counted) but setpoints are never skipped,
         so the motion slows down rather than jumps.
+
+        Before the first RPDO: ``ready_check`` (e.g. every drive's statusword read by
+        SDO) may refuse by raising (nothing is sent); then every cause queued by the
+        receive callbacks so far (an EMCY, a boot-up, a failed send, ...) is a stop
+        cause: quick stop of every node, no setpoint is sent.
         """
         T = self.period_s
         mon = self.monitor
         self.crash_stopped = False
+        mon.supervising = True  # boot-ups / NMT states from here on are stop causes too
         source.start(np.asarray(actual, dtype=np.int64), T)
+        # Anything reported before the first RPDO (e.g. an EMCY just before the start)
+        # stops the stream before it begins; heartbeats are checked from the time
+        # supervision was armed (bring-up), not from this stream's start.
+        hb_armed = mon.hb_armed_at
+        early = self._watchdogs(time.monotonic(), -1, hb_armed)
+        if ready_check is not None and not early:
+            ready_check()
         stats = CycleStats(T, self.late_threshold_s)
         applied = np.asarray(actual, dtype=np.int64).copy()  # last target a SYNC applied
         due_seq = -1
         mon.missing_run[:] = 0
         missing0 = mon.missing_total
-        for stale in mon.drain():
-            # Reported while no stream ran (bring-up); the statusword check still applies.
-            self.events.add("before_stream", stale.text, cause=stale.kind, motor=stale.motor)
         self.stop_request.clear()
         mon.supervising = True
         self.events.add("stream_start", f"streaming {source.describe()}")
@@ -380,19 +395,25 @@ class CyclicScheduler:
         crashed: BaseException | None = None
         try:
             k = 0
-            try:
-                pending = self._next_setpoint(source, 0, applied)
-            except HrmError as exc:
-                error, pending = exc, None
-                causes = [StopCause("limit", f"setpoint refused: {exc}", None, time.monotonic())]
-            if pending is None:
-                completed = not causes
-            else:
+            causes = early + self._watchdogs(time.monotonic(), -1, hb_armed)
+            pending = None
+            if not causes:
+                try:
+                    pending = self._next_setpoint(source, 0, applied)
+                except HrmError as exc:
+                    error, pending = exc, None
+                    causes = [
+                        StopCause("limit", f"setpoint refused: {exc}", None, time.monotonic())
+                    ]
+            if not causes and pending is None:
+                completed = True
+            elif not causes and pending is not None:
                 causes = self._send_rpdos(
                     [lay.rpdo_frames(c.CW_ENABLE_OPERATION, pending) for lay in self.buses]
                 )
             t0 = time.monotonic() + max(self.sync_delay_s, T / 5)
-            hb_armed = t0
+            if hb_armed is None:
+                hb_armed = t0
             g = 0
             while pending is not None and not causes:
                 deadline = t0 + g * T

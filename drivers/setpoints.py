@@ -21,11 +21,55 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from hrm_ctrl.errors import DriverError
+from hrm_ctrl.errors import DriverError, HrmError
 
 
 class SetpointError(DriverError):
     """A setpoint source cannot be built or started."""
+
+
+MAX_SOURCE_DURATION_S = 3600.0  # longest run of any source (bounds the tables' memory)
+JOG_ANGLE_CHECK_STEP_COUNTS = 1000  # a jog is mapped to joint angles at least this often
+JOG_ANGLE_CHECK_MAX_ROWS = 400
+
+
+def check_duration(what: str, duration_s: float, period_s: float) -> None:
+    """Refuse a source longer than :data:`MAX_SOURCE_DURATION_S` (one-line error).
+
+    >>> check_duration("jog j01r0", 7200.0, 0.01)
+    Traceback (most recent call last):
+    ...
+    drivers.setpoints.SetpointError: jog j01r0: 7200 s exceeds the longest run of 3600 s
+    """
+    if not (math.isfinite(duration_s) and duration_s <= MAX_SOURCE_DURATION_S + period_s):
+        raise SetpointError(
+            f"{what}: {duration_s:.4g} s exceeds the longest run of {MAX_SOURCE_DURATION_S:g} s"
+        )
+
+
+def check_joint_limits(actuation: Any, counts: np.ndarray, what: str) -> None:
+    """Map a (rows, motors) table of counts through the rope layer's
+    ``angles_from_counts`` and refuse (:class:`SetpointError`, one line) when the joint
+    angles leave the joint limits or the counts correspond to no configuration.
+
+    ``actuation`` is the rope layer or an ``ActuationSubset`` (``full`` + ``columns``:
+    the other motors are taken at 0 counts, clipped to their limits)."""
+    full = actuation
+    table = np.atleast_2d(np.asarray(counts, dtype=np.int64))
+    if not hasattr(full, "angles_from_counts"):
+        full = getattr(actuation, "full", None)
+        cols = getattr(actuation, "columns", None)
+        if full is None or cols is None or not hasattr(full, "angles_from_counts"):
+            raise SetpointError(f"{what}: the rope layer cannot map counts to joint angles")
+        fill = np.clip(0, full.counts_min, full.counts_max).astype(np.int64)
+        expanded = np.repeat(fill[None, :], table.shape[0], axis=0)
+        expanded[:, cols] = table
+        table = expanded
+    try:
+        alpha, theta, _res = full.angles_from_counts(table)
+        full.check_angles(alpha, theta)
+    except HrmError as exc:
+        raise SetpointError(f"{what}: leaves the joint limits ({exc})") from None
 
 
 class LimitChecker(Protocol):
@@ -92,10 +136,17 @@ class HoldSource(TableSource):
     def precheck(self, period_s: float) -> None:
         if self.counts is not None and self.counts.ndim != 1:
             raise SetpointError("hold: counts must be one value per motor")
+        if self.n_cycles_wanted is not None:
+            check_duration("hold", self.n_cycles_wanted * period_s, period_s)
 
     def start(self, actual_counts: np.ndarray, period_s: float) -> None:
+        self.precheck(period_s)
         hold = np.asarray(actual_counts if self.counts is None else self.counts, dtype=np.int64)
-        n = self.n_cycles_wanted if self.n_cycles_wanted is not None else int(3600 / period_s)
+        n = (
+            self.n_cycles_wanted
+            if self.n_cycles_wanted is not None
+            else int(MAX_SOURCE_DURATION_S / period_s)
+        )
         self._hold = hold
         self._n = int(n)
 
@@ -146,8 +197,8 @@ class JogSource(TableSource):
         super().__init__()
         if motor not in actuation.motor_ids:
             raise SetpointError(f"jog: unknown rope motor '{motor}'")
-        if not math.isfinite(velocity_counts_per_s) or not duration_s > 0:
-            raise SetpointError("jog: velocity must be finite and duration > 0")
+        if not math.isfinite(velocity_counts_per_s) or not duration_s > 0 or not hold_s >= 0:
+            raise SetpointError("jog: velocity must be finite, duration > 0 and hold >= 0")
         self.actuation = actuation
         self.motor = motor
         self.index = actuation.motor_ids.index(motor)
@@ -156,7 +207,9 @@ class JogSource(TableSource):
         self.hold_s = float(hold_s)
 
     def precheck(self, period_s: float) -> None:
-        """Speed within the motor's limit and travel within its range.
+        """Speed within the motor's limit, travel within its range, duration within
+        :data:`MAX_SOURCE_DURATION_S`, and the joint angles within the joint limits for a
+        jog from the straight arm (:meth:`start` checks again from the actual positions).
 
         >>> from hrm_ctrl.actuation import load_actuation
         >>> from hrm_ctrl.model import default_robot
@@ -173,22 +226,55 @@ class JogSource(TableSource):
                 f"jog {self.motor}: {self.velocity:.0f} counts/s exceeds the motor's "
                 f"{vmax:.0f} counts/s"
             )
+        check_duration(f"jog {self.motor}", self.duration_s + self.hold_s, period_s)
         span = int(self.actuation.counts_max[i]) - int(self.actuation.counts_min[i])
         if abs(self.velocity) * self.duration_s > span:
             raise SetpointError(
                 f"jog {self.motor}: {abs(self.velocity) * self.duration_s:.0f} counts exceed the "
                 f"motor's whole range of {span} counts"
             )
+        n = len(self.actuation.motor_ids)
+        rope_layer = getattr(self.actuation, "full", self.actuation)
+        nj = int(rope_layer.robot.n_joints) if hasattr(rope_layer, "robot") else 12
+        straight = np.asarray(
+            self.actuation.counts_from_angles(np.zeros(nj), np.zeros(nj)), dtype=np.int64
+        ).reshape(n)
+        self._check_angles(straight, period_s, "from the straight arm")
+
+    def _moved(self, actual_counts: np.ndarray, period_s: float) -> np.ndarray:
+        n_move = max(1, round(self.duration_s / period_s))
+        t = np.arange(1, n_move + 1, dtype=np.float64) * period_s
+        return actual_counts[self.index] + np.rint(self.velocity * t).astype(np.int64)
+
+    def _check_angles(self, actual_counts: np.ndarray, period_s: float, where: str) -> None:
+        """Joint angles of the jog's rows (sampled every <= 1000 counts of travel, at most
+        400 rows, first and last included) within the joint limits."""
+        actual = np.asarray(actual_counts, dtype=np.int64)
+        moved = self._moved(actual, period_s)
+        travel = float(np.abs(moved - actual[self.index]).max())
+        n = min(
+            len(moved),
+            max(2, math.ceil(travel / JOG_ANGLE_CHECK_STEP_COUNTS) + 1),
+            JOG_ANGLE_CHECK_MAX_ROWS,
+        )
+        rows = np.unique(np.rint(np.linspace(0, len(moved) - 1, n)).astype(np.int64))
+        table = np.repeat(actual[None, :], len(rows) + 1, axis=0)
+        table[1:, self.index] = moved[rows]
+        check_joint_limits(
+            self.actuation, table, f"jog {self.motor} ({self.velocity:.0f} counts/s, {where})"
+        )
 
     def start(self, actual_counts: np.ndarray, period_s: float) -> None:
-        n_move = max(1, round(self.duration_s / period_s))
+        check_duration(f"jog {self.motor}", self.duration_s + self.hold_s, period_s)
+        actual = np.asarray(actual_counts, dtype=np.int64)
         n_hold = max(0, round(self.hold_s / period_s))
-        t = np.arange(1, n_move + 1, dtype=np.float64) * period_s
-        table = np.repeat(np.asarray(actual_counts, dtype=np.int64)[None, :], n_move + n_hold, 0)
-        moved = actual_counts[self.index] + np.rint(self.velocity * t).astype(np.int64)
+        moved = self._moved(actual, period_s)
+        n_move = len(moved)
+        table = np.repeat(actual[None, :], n_move + n_hold, 0)
         table[:n_move, self.index] = moved
         table[n_move:, self.index] = moved[-1]
-        self.actuation.check_counts(table, previous=actual_counts, dt_s=period_s)
+        self.actuation.check_counts(table, previous=actual, dt_s=period_s)
+        self._check_angles(actual, period_s, "from the actual positions")
         self.table = table
 
     def describe(self) -> dict[str, Any]:
@@ -234,6 +320,8 @@ class PlanSource(TableSource):
         source: str = "plan",
     ) -> None:
         super().__init__()
+        if not (math.isfinite(hold_s) and hold_s >= 0):
+            raise SetpointError(f"{source}: hold must be >= 0 s, got {hold_s}")
         if not (math.isfinite(speed_mm_per_s) and speed_mm_per_s > 0):
             raise SetpointError(f"{source}: speed must be > 0 mm/s, got {speed_mm_per_s}")
         steps = plan.get("steps") or []
@@ -258,6 +346,7 @@ class PlanSource(TableSource):
     def plan_table(self, period_s: float) -> np.ndarray:
         """(cycles, motors) counts of the plan itself, checked against every limit."""
         duration = float(self.t_knots[-1])
+        check_duration(f"{self.source} at {self.speed:g} mm/s", duration + self.hold_s, period_s)
         n = math.floor(duration / period_s + 1e-9) + 1
         t = np.arange(n, dtype=np.float64) * period_s
         if t[-1] < duration:

@@ -13,6 +13,8 @@ import argparse
 import json
 from pathlib import Path
 
+from hrm_ctrl.errors import DriverError
+
 HELP = "print every CAN bus's worst-case load (bit stuffing included) and the highest rate"
 
 
@@ -29,8 +31,10 @@ def register(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Exit 0 when every bus fits its load limit, 1 otherwise."""
     from drivers.busload import bus_loads
-    from drivers.config import load_box_config
+    from drivers.config import load_box_config, rate_problem
 
+    if args.rate is not None and (problem := rate_problem(args.rate)) is not None:
+        raise DriverError(f"--rate {args.rate:g}: {problem}")
     cfg = load_box_config(args.config)
     if args.rate is not None:
         cfg = cfg.with_control(rate_hz=args.rate)

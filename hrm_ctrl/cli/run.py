@@ -23,6 +23,7 @@ drivers only see buses).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -70,7 +71,23 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
-def _source(args: argparse.Namespace, actuation: Any, robot: Any) -> Any:
+def _plan_record(path: Path, plan: dict[str, Any]) -> dict[str, Any]:
+    """What the run record keeps of the plan: file, sha256 of its bytes, format, steps."""
+    try:
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as exc:
+        raise DriverError(f"{path}: cannot read plan file ({exc.strerror or exc})") from None
+    return {
+        "plan_file": str(path),
+        "plan_sha256": digest,
+        "plan_format": plan.get("format"),
+        "plan_steps": len(plan.get("steps", ())),
+    }
+
+
+def _source(
+    args: argparse.Namespace, actuation: Any, robot: Any
+) -> tuple[Any, Any, dict[str, Any]]:
     from drivers.setpoints import HoldSource, JogSource, PlanSource
 
     chosen = [x for x in (args.plan, args.hold, args.jog) if x is not None]
@@ -79,7 +96,7 @@ def _source(args: argparse.Namespace, actuation: Any, robot: Any) -> Any:
     if args.hold is not None:
         if not (math.isfinite(args.hold) and args.hold > 0):
             raise DriverError(f"--hold must be > 0 s, got {args.hold}")
-        return HoldSource(n_cycles=None), args.hold
+        return HoldSource(n_cycles=None), args.hold, {}
     if args.jog is not None:
         parts = str(args.jog).split(":")
         try:
@@ -88,20 +105,23 @@ def _source(args: argparse.Namespace, actuation: Any, robot: Any) -> Any:
             raise DriverError(f"--jog {args.jog!r}: expected MOTOR:COUNTS_PER_S:SECONDS") from None
         if len(parts) != 3 or not (math.isfinite(dur) and dur > 0):
             raise DriverError(f"--jog {args.jog!r}: expected MOTOR:COUNTS_PER_S:SECONDS (S > 0)")
-        return JogSource(actuation, motor, vel, dur), None
+        return JogSource(actuation, motor, vel, dur), None, {}
     from hrm_ctrl.planfile import read_plan
 
     plan = read_plan(args.plan)
+    plan_record = _plan_record(Path(args.plan), plan)
     links = np.asarray(plan["robot"]["links_mm"], dtype=float)
     if not np.allclose(links, robot.links, atol=1e-6):
         raise DriverError(f"{args.plan}: plan was made for other link lengths than {robot.source}")
-    return PlanSource(actuation, plan, speed_mm_per_s=args.speed, source=str(args.plan)), None
+    source = PlanSource(actuation, plan, speed_mm_per_s=args.speed, source=str(args.plan))
+    return source, None, plan_record
 
 
 def run(args: argparse.Namespace) -> int:
     from drivers.box import DriveBox, SafetyStopError
     from drivers.config import load_box_config
     from drivers.setpoints import HoldSource
+    from drivers.traffic import ensure_log_dir
     from hrm_ctrl.actuation import load_actuation
     from hrm_ctrl.model import load_robot
 
@@ -111,10 +131,11 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     actuation = load_actuation(robot)
     config.check_motors(actuation.motor_ids)
-    source, hold_s = _source(args, actuation, robot)
+    source, hold_s, plan_record = _source(args, actuation, robot)
     if isinstance(source, HoldSource) and hold_s is not None:
         source = HoldSource(n_cycles=max(1, round(hold_s * config.control.rate_hz)))
     source.precheck(config.control.period_s)  # refuse bad setpoints before any bus opens
+    ensure_log_dir(args.log_dir)  # a bad log directory: one line, before any bus opens
 
     sim = None
     if args.sim:
@@ -125,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         box = DriveBox(config, actuation, log_dir=args.log_dir, log_suffix=f".{args.log_format}")
         box.record_extra = {
-            "plan_file": None if args.plan is None else str(args.plan),
+            "plan_file": None,
+            **plan_record,
             "source": source.__class__.__name__,
             "simulated_box": bool(args.sim),
         }
@@ -138,6 +160,8 @@ def run(args: argparse.Namespace) -> int:
                 stop = exc
                 result = exc.result
             box.record_extra["setpoints"] = source.describe()
+        record = box.record()
+        log_errors = [str(e) for e in record["can_log_errors"]]
         summary = {
             "completed": result.completed,
             "cycles": result.cycles,
@@ -145,7 +169,8 @@ def run(args: argparse.Namespace) -> int:
             "causes": [x.text for x in result.causes],
             "stats": result.stats,
             "run_record": str(box.record_path),
-            "can_logs": box.record()["can_logs"],
+            "can_logs": record["can_logs"],
+            "can_log_errors": log_errors,
         }
     finally:
         if sim is not None:
@@ -161,7 +186,15 @@ def run(args: argparse.Namespace) -> int:
             f"  missing feedback: {st.get('missing_feedback_node_cycles', 0)}"
         )
         print(f"run record: {summary['run_record']}")
+    status = 0
     if stop is not None:
         print(f"hrm run: {stop}", file=sys.stderr)
-        return 2
-    return 0
+        status = 2
+    if log_errors:
+        more = f" (+{len(log_errors) - 1} more log(s))" if len(log_errors) > 1 else ""
+        print(
+            f"hrm run: error: CAN log incomplete: {log_errors[0]}{more}; see {box.record_path}",
+            file=sys.stderr,
+        )
+        status = 2
+    return status

@@ -119,12 +119,20 @@ def rig_factory(
     def make(
         buses: tuple[dict[str, int], ...] = SMALL_BUSES,
         sim_buses: tuple[dict[str, int], ...] | None = None,
+        sim_counts: dict[str, int] | None = None,
         **control: Any,
     ) -> Rig:
         kwargs = [bus_backend() for _ in buses]
         config = make_config(kwargs, buses, **control)
         sim_cfg = make_config(kwargs, sim_buses or buses, **control)
-        sim = SimBox(sim_config_from_dict(sim_cfg.to_dict(), "<test sim>"), actuation=actuation)
+        initial = np.zeros(actuation.n_motors, dtype=np.int64)
+        for motor, counts in (sim_counts or {}).items():
+            initial[actuation.motor_ids.index(motor)] = counts
+        sim = SimBox(
+            sim_config_from_dict(sim_cfg.to_dict(), "<test sim>"),
+            actuation=actuation,
+            initial_counts=initial,
+        )
         sim.start()
         opened.append(sim.stop)
         sniffers = []
@@ -185,6 +193,13 @@ def first_time(frames: list[can.Message], pred: Callable[[can.Message], bool]) -
         if pred(m):
             return float(m.timestamp)
     return float("nan")
+
+
+def set_sim_state(rig: Rig, motor: str, state: Any) -> None:
+    """Put one simulated drive into a CiA 402 state silently (no EMCY, no frame): a drive
+    that changed state without telling the host (e.g. a local stop input)."""
+    with rig.sim._lock:
+        rig.sim.drives[motor].state = state
 
 
 def wait_until(pred: Callable[[], bool], timeout_s: float = 2.0) -> bool:

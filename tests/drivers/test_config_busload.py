@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.busload import BusLoadError, bus_load, check_bus_load, worst_case_frame_bits
-from drivers.config import BusConfigError, ControlConfig, load_box_config
+from drivers.cia402 import FrameError, interpolation_time_period
+from drivers.config import BusConfigError, ControlConfig, load_box_config, rate_problem
 from hrm_ctrl.actuation import Actuation
 
 GOOD = """
@@ -66,6 +67,12 @@ def test_good_file_loads(tmp_path: Path) -> None:
         (("rate_hz = 100", "heartbeat_timeout_ms = 50"), "heartbeat_timeout_ms must exceed"),
         (("[control]", "[controls]"), "unknown table(s) ['controls']"),
         (("rate_hz = 100", "rate_hz = = 1"), "not valid TOML"),
+        (("rate_hz = 100", "rate_hz = 7"), "control.rate_hz must give a period 0x60C2 can"),
+        (("rate_hz = 100", "rate_hz = 30"), "control.rate_hz must give a period 0x60C2 can"),
+        (("rate_hz = 100", "rate_hz = 300"), "rate_hz must give a period 0x60C2 can encode"),
+        (("[buses.a", '[buses."a/b"'), "buses.'a/b': bus name may only use letters"),
+        (("[buses.a", '[buses."../a"'), "buses.'../a': bus name may only use letters"),
+        (("[buses.a", '[buses."a b"'), "buses.'a b': bus name may only use letters"),
     ],
 )  # fmt: skip
 def test_bad_config_is_one_line_naming_file_and_key(
@@ -87,6 +94,64 @@ def test_same_motor_on_two_buses(tmp_path: Path) -> None:
         BusConfigError, match=r"buses\.b\.nodes\.j01r0: motor 'j01r0' is also on bus a"
     ):
         load_box_config(write(tmp_path, text))
+
+
+@pytest.mark.parametrize("rate_hz", [7.0, 30.0, 60.0, 300.0, 163.0])
+def test_rates_whose_period_0x60C2_cannot_encode_are_refused(rate_hz: float) -> None:
+    with pytest.raises(BusConfigError, match=r"control\.rate_hz must give a period 0x60C2"):
+        load_box_config(None).with_control(rate_hz=rate_hz)
+
+
+@settings(max_examples=60, deadline=None)
+@given(rate_hz=st.floats(0.01, 10_000.0))
+def test_every_accepted_rate_has_an_0x60C2_encoding(rate_hz: float) -> None:
+    try:
+        cfg = load_box_config(None).with_control(rate_hz=rate_hz)
+    except BusConfigError as exc:
+        assert "control.rate_hz must give a period 0x60C2 can encode" in str(exc)
+        with pytest.raises(FrameError):
+            interpolation_time_period(1.0 / rate_hz)
+        return
+    value, index = interpolation_time_period(cfg.control.period_s)
+    assert value * 10.0**index == pytest.approx(1.0 / rate_hz, rel=1e-9)
+
+
+@pytest.mark.parametrize("rate_hz", [1.0, 2.0, 25.0, 40.0, 50.0, 100.0, 125.0, 200.0, 1000.0])
+def test_encodable_rates_are_accepted(rate_hz: float) -> None:
+    assert load_box_config(None).with_control(rate_hz=rate_hz).control.rate_hz == rate_hz
+
+
+@pytest.mark.parametrize("channel_b", ['"x"', '"x"\noptions = {rx_queue_size = 5}'])
+def test_two_buses_on_the_same_interface_and_channel_are_refused(
+    tmp_path: Path, channel_b: str
+) -> None:
+    text = GOOD + f'\n[buses.b]\ninterface = "virtual"\nchannel = {channel_b}\nbitrate = 500000\n'
+    text += "[buses.b.nodes]\nj02r0 = 1\n"
+    p = write(tmp_path, text)
+    with pytest.raises(BusConfigError) as info:
+        load_box_config(p)
+    msg = str(info.value)
+    assert msg.startswith(f"{p}: buses.b.channel: virtual channel 'x' is already bus a"), msg
+    assert "\n" not in msg
+    # The same channel on another interface is another bus.
+    other = text.replace('[buses.b]\ninterface = "virtual"', '[buses.b]\ninterface = "hrm_sim"')
+    assert [b.interface for b in load_box_config(write(tmp_path, other)).buses] == [
+        "virtual",
+        "hrm_sim",
+    ]
+
+
+def test_rewiring_onto_one_channel_is_refused() -> None:
+    cfg = load_box_config(None)
+    with pytest.raises(BusConfigError, match=r"buses\.can1\.channel: virtual channel 'v' is"):
+        cfg.with_bus_kwargs([{"interface": "virtual", "channel": "v"}] * 2)
+    two = cfg.with_bus_kwargs([{"interface": "virtual", "channel": f"v{k}"} for k in range(2)])
+    assert [b.channel for b in two.buses] == ["v0", "v1"]
+
+
+def test_bus_names_with_letters_digits_dash_underscore_load(tmp_path: Path) -> None:
+    cfg = load_box_config(write(tmp_path, GOOD.replace("[buses.a", "[buses.Left_bus-2")))
+    assert cfg.buses[0].name == "Left_bus-2"
 
 
 def test_missing_file(tmp_path: Path) -> None:
@@ -134,8 +199,13 @@ def test_highest_rate_that_fits_is_tight(n: int, bitrate: int, limit: float) -> 
     bl = bus_load(bus, control)
     if bl.max_rate_hz >= 1:
         assert bus_load(bus, replace(control, rate_hz=bl.max_rate_hz)).fits
-    above = bus_load(bus, replace(control, rate_hz=bl.max_rate_hz + 1))
-    assert not above.fits
+    # the next rate the drives could take (0x60C2-encodable) no longer fits
+    nxt = next(
+        (r for r in range(int(bl.max_rate_hz) + 1, 10_001) if rate_problem(float(r)) is None),
+        None,
+    )
+    if nxt is not None:
+        assert not bus_load(bus, replace(control, rate_hz=float(nxt))).fits
     assert math.isclose(
         bl.load * bitrate,
         bl.bits_per_cycle * control.rate_hz + bl.heartbeat_bits_per_s,
@@ -144,7 +214,7 @@ def test_highest_rate_that_fits_is_tight(n: int, bitrate: int, limit: float) -> 
 
 def test_check_bus_load_names_the_bus_and_rate() -> None:
     cfg = load_box_config(None).with_control(rate_hz=1000.0)
-    with pytest.raises(BusLoadError, match=r"^bus can0: .* highest rate that fits: 163 Hz$"):
+    with pytest.raises(BusLoadError, match=r"^bus can0: .* highest rate that fits: 125 Hz$"):
         check_bus_load(cfg)
 
 

@@ -14,6 +14,7 @@ import pytest
 from drivers import cia402 as c
 from drivers.box import DriveBox, SafetyStopError
 from drivers.setpoints import HoldSource, TableSource
+from hrm_ctrl.errors import DriverError
 from tests.drivers.driver_rig import Rig, first_time, wait_until
 
 PERIOD_S = 0.01
@@ -159,10 +160,11 @@ class FlakyBus(can.BusABC):
     def __init__(self, inner: can.BusABC) -> None:
         self.inner = inner
         self.fail = False
+        self.fail_if: Callable[[can.Message], bool] | None = None  # fail only these frames
         super().__init__(channel="flaky")
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        if self.fail:
+        if self.fail or (self.fail_if is not None and self.fail_if(msg)):
             raise can.CanOperationError("bus off")
         self.inner.send(msg, timeout)
 
@@ -252,3 +254,174 @@ def test_emcy_between_streams_stops_every_node(rig_factory: Callable[..., Rig]) 
     assert wait_until(lambda: box.idle_causes != [], timeout_s=2.0)
     assert {x.kind for x in box.idle_causes} >= {"emcy"}
     assert wait_until(lambda: all_left_operation_enabled(rig))
+
+
+class FaultOnStart(HoldSource):
+    """Holds; while being started (after the idle guard handed over, before the first
+    RPDO) a drive faults and its EMCY reaches the host."""
+
+    def __init__(self, rig: Rig, motor: str) -> None:
+        super().__init__(n_cycles=50)
+        self.rig = rig
+        self.motor = motor
+
+    def start(self, actual_counts: np.ndarray, period_s: float) -> None:
+        super().start(actual_counts, period_s)
+        box = self.rig.box
+        assert box is not None
+        n_emcy = len(box.monitor.emergencies)
+        self.rig.sim.fault_drive(self.motor)
+        assert wait_until(lambda: len(box.monitor.emergencies) > n_emcy)
+
+
+def test_emcy_at_stream_start_stops_every_node_and_streams_nothing(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    for sn in rig.sniffers:
+        sn.clear()
+    with pytest.raises(SafetyStopError, match="j07r0") as info:
+        box.stream(FaultOnStart(rig, "j07r0"))
+    assert "emcy" in {x.kind for x in info.value.causes}
+    assert info.value.result.cycles == 0
+    frames = [m for sn in rig.sniffers for m in sn.snapshot()]
+    rpdo_cws = {bytes(m.data[:2]) for m in frames if 0x200 < m.arbitration_id <= 0x27F}
+    assert rpdo_cws == {c.CW_QUICK_STOP.to_bytes(2, "little")}  # no setpoint went out
+    assert not np.isnan(quick_stop_sync_time(rig))
+    assert wait_until(lambda: all_left_operation_enabled(rig))
+    assert not any(e["kind"] == "before_stream" for e in box.events.to_list())
+
+
+def test_idle_guard_stop_makes_a_last_check() -> None:
+    """A cause the idle guard has not evaluated yet when a stream takes over (here a
+    heartbeat timeout between two of its checks) still quick-stops."""
+    from drivers.box import IdleGuard
+    from drivers.monitor import NodeMonitor
+
+    mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=3, heartbeat_timeout_s=0.35)
+    now = time.monotonic()
+    mon.hb_time[:] = now
+    mon.hb_armed_at = now - 2.0  # supervised since bring-up
+    stops: list[list[Any]] = []
+    guard = IdleGuard(mon, period_s=30.0, quick_stop=stops.append)
+    guard.start()
+    time.sleep(0.05)
+    mon.hb_time[1] = now - 1.0  # m1's heartbeat is long overdue; next periodic check in 30 s
+    guard.stop()
+    assert len(stops) == 1 and [x.kind for x in stops[0]] == ["heartbeat"]
+    assert "m1" in stops[0][0].text
+
+
+def test_heartbeat_timeout_is_not_restarted_by_a_stream(rig_factory: Callable[..., Rig]) -> None:
+    """Heartbeat supervision stays armed from bring-up: a heartbeat lost while idle is
+    detected one timeout after the last heartbeat, even when a stream starts meanwhile."""
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    rig.sim.stop_heartbeat("j01r1")
+    time.sleep(0.2)
+    with pytest.raises(SafetyStopError) as info:
+        box.stream(HoldSource(n_cycles=300))
+    hb = [x for x in info.value.causes if x.kind == "heartbeat"]
+    assert hb and "j01r1" in hb[0].text
+    last_hb = float(box.monitor.hb_time[1])
+    # Armed at the stream's start it would be >= 0.2 + 0.35 s; allow load-induced latency.
+    assert hb[0].time_s - last_hb <= 0.350 + 0.15
+    assert wait_until(lambda: all_left_operation_enabled(rig))
+
+
+def test_bring_up_refuses_an_actual_position_outside_the_limits(
+    rig_factory: Callable[..., Rig], actuation: Any
+) -> None:
+    i = actuation.motor_ids.index("j07r0")
+    beyond = int(actuation.counts_max[i]) + 5000
+    rig = rig_factory(sim_counts={"j07r0": beyond})
+    box = rig.open_box()
+    with pytest.raises(DriverError, match=rf"j07r0 .*actual position {beyond} counts is outside"):
+        box.bring_up()
+    assert not box.enabled
+    # No target position was written to it and no drive is left enabled.
+    frames = rig.sniffers[1].snapshot()
+    target_writes = [
+        m for m in frames if m.arbitration_id == 0x603 and bytes(m.data[1:3]) == b"\x7a\x60"
+    ]
+    assert target_writes == []
+    assert wait_until(lambda: all_left_operation_enabled(rig))
+
+
+def test_idle_quick_stop_failure_is_reported(rig_factory: Callable[..., Rig]) -> None:
+    """The idle guard's quick stop fails on one bus: the failure is a stop cause, the
+    run record says so, and the next stream names it."""
+    rig = rig_factory()
+    buses = [FlakyBus(can.Bus(**b.bus_kwargs())) for b in rig.config.buses]
+    box = DriveBox(rig.config, rig.limits, buses=buses)
+    rig.box = box
+    try:
+        box.bring_up()
+        assert box.stream(HoldSource(n_cycles=5)).completed
+        buses[1].fail_if = lambda m: 0x200 < m.arbitration_id <= 0x27F  # RPDOs lost
+        rig.sim.fault_drive("j01r0")
+        assert wait_until(lambda: box.idle_causes != [], timeout_s=2.0)
+        assert wait_until(lambda: box.guard.error is not None)
+        sent = [x for x in box.idle_causes if x.kind == "send"]
+        assert sent and "bus1" in sent[0].text
+        events = box.events.to_list()
+        assert any(e["kind"] == "error" and "bus1" in e["text"] for e in events)
+        assert not any(e["kind"] == "quick_stop" and "while idle" in e["text"] for e in events)
+        with pytest.raises(SafetyStopError, match="quick stop while idle failed"):
+            box.stream(HoldSource(n_cycles=5))
+    finally:
+        buses[1].fail_if = None
+        box.__exit__(None, None, None)
+        rig.box = None
+        for b in buses:
+            b.shutdown()
+
+
+def test_finish_reports_drives_it_could_not_disable(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory()
+    buses = [FlakyBus(can.Bus(**b.bus_kwargs())) for b in rig.config.buses]
+    box = DriveBox(rig.config, rig.limits, buses=buses)
+    rig.box = box
+    try:
+        box.bring_up()
+        assert box.stream(HoldSource(n_cycles=5)).completed
+        buses[1].fail_if = lambda m: 0x600 < m.arbitration_id <= 0x67F  # SDO requests lost
+        with pytest.raises(DriverError, match=r"finish: .*j07r0"):
+            box.finish()
+        assert not box.enabled
+        # bus0's drives were still disabled and shut down.
+        sw = rig.sim.statuswords()
+        assert c.decode_state(sw["j01r0"]) == c.State402.READY_TO_SWITCH_ON
+        assert c.decode_state(sw["j01r1"]) == c.State402.READY_TO_SWITCH_ON
+    finally:
+        buses[1].fail_if = None
+        box.__exit__(None, None, None)
+        rig.box = None
+        for b in buses:
+            b.shutdown()
+
+
+def test_parallel_sdo_work_is_bounded_in_time(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    t0 = time.monotonic()
+    with pytest.raises(DriverError, match=r"probe: no answer within 0.2 s from 3 drive\(s\)"):
+        box._parallel("probe", lambda link: time.sleep(1.5), 0.2)
+    assert time.monotonic() - t0 < 1.0
+
+
+def test_bus_whose_interface_library_is_missing(
+    rig_factory: Callable[..., Rig], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    rig = rig_factory()
+
+    def broken(**kwargs: Any) -> can.BusABC:
+        raise NameError("name 'PCANBasic' is not defined")
+
+    monkeypatch.setattr(can, "Bus", broken)
+    iface = rig.config.buses[0].interface
+    with pytest.raises(DriverError, match=rf"buses.bus0: cannot open {iface} .*NameError"):
+        DriveBox(rig.config, rig.limits)

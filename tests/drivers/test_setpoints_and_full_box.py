@@ -149,3 +149,42 @@ def test_full_box_36_drives_short_run(actuation: Actuation, tmp_path: Path) -> N
         assert abs(int(sim.counts()[i]) - 6000) <= 2
     assert (tmp_path / "full.json").exists()
     assert (tmp_path / "full_can0.blf").stat().st_size > 0
+
+
+def test_jog_outside_the_joint_limits_is_refused(actuation: Actuation) -> None:
+    """Rope range and speed alone let this jog bend joint 1 to about -83 deg."""
+    jog = JogSource(actuation, "j01r0", 400_000.0, 0.5)
+    with pytest.raises(SetpointError, match=r"^jog j01r0 .*joint limits") as info:
+        jog.precheck(0.01)
+    assert "\n" not in str(info.value)
+    with pytest.raises(SetpointError, match=r"^jog j01r0 .*from the actual positions"):
+        jog.start(np.zeros(actuation.n_motors, dtype=np.int64), 0.01)
+    assert jog.n_cycles == 0  # no table to play
+
+
+def test_jog_checked_again_from_the_actual_positions(actuation: Actuation) -> None:
+    """Fine from the straight arm, but the arm is already bent near the joint limit."""
+    jog = JogSource(actuation, "j01r0", 50_000.0, 0.2)
+    jog.precheck(0.01)
+    a = np.zeros(12)
+    a[0] = np.deg2rad(56.0)
+    bent = actuation.counts_from_angles(a, np.zeros(12))
+    with pytest.raises(SetpointError, match=r"jog j01r0 .*joint 1: alpha"):
+        jog.start(bent, 0.01)
+    jog.start(np.zeros(actuation.n_motors, dtype=np.int64), 0.01)  # fine when straight
+
+
+def test_jog_longer_than_the_motor_range_is_refused_before_any_bus(actuation: Actuation) -> None:
+    jog = JogSource(actuation, "j01r0", 400_000.0, 3.0)
+    with pytest.raises(SetpointError, match="exceed the motor's whole range"):
+        jog.precheck(0.01)
+
+
+def test_sources_longer_than_an_hour_are_refused(actuation: Actuation) -> None:
+    with pytest.raises(SetpointError, match=r"^jog j01r0: 1e\+12 s exceeds the longest run"):
+        JogSource(actuation, "j01r0", 0.0, 1e12).precheck(0.01)
+    with pytest.raises(SetpointError, match="exceeds the longest run of 3600 s"):
+        PlanSource(actuation, small_plan(), speed_mm_per_s=1e-9).precheck(0.01)
+    with pytest.raises(SetpointError, match=r"^hold: .*exceeds the longest run"):
+        HoldSource(n_cycles=10**12).precheck(0.01)
+    HoldSource(n_cycles=None).precheck(0.01)  # "until stopped" is one hour

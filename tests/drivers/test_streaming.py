@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import time
 import uuid
 from collections.abc import Callable
 
 import can
 import numpy as np
+import pytest
 
 from drivers import cia402 as c
 from drivers.box import DriveBox
@@ -14,9 +16,33 @@ from drivers.bringup import sdo_read
 from drivers.partial import ActuationSubset
 from drivers.setpoints import HoldSource, JogSource
 from hrm_ctrl.actuation import Actuation
+from hrm_ctrl.errors import DriverError
 from sim_bus.box import SimBox
 from sim_bus.config import sim_config_from_dict
-from tests.drivers.driver_rig import Rig, Sniffer, make_config, rpdo_targets_per_sync, wait_until
+from tests.drivers.driver_rig import (
+    Rig,
+    Sniffer,
+    make_config,
+    rpdo_targets_per_sync,
+    set_sim_state,
+    wait_until,
+)
+
+NODES = ([1, 2], [3])
+
+
+def sdo_controlword_times(rig: Rig, controlword: int) -> list[dict[int, float]]:
+    """Per bus: {node: wire time of its first SDO download of 0x6040 = controlword}."""
+    want = bytes([0x2B, 0x40, 0x60, 0x00]) + controlword.to_bytes(2, "little")
+    out = []
+    for sn, nodes in zip(rig.sniffers, NODES, strict=True):
+        seen: dict[int, float] = {}
+        for m in sn.snapshot():
+            n = m.arbitration_id - 0x600
+            if n in nodes and bytes(m.data[:6]) == want:
+                seen.setdefault(n, float(m.timestamp))
+        out.append(seen)
+    return out
 
 
 def test_bring_up_configures_and_enables_every_drive(rig_factory: Callable[..., Rig]) -> None:
@@ -82,12 +108,15 @@ def test_streams_chain_and_finish_disables(rig_factory: Callable[..., Rig]) -> N
     held = second.last_targets
     assert held[2] == -1000  # the hold starts where the jog ended
     box.finish()
-    assert wait_until(
-        lambda: (
-            {c.decode_state(sw) for sw in rig.sim.statuswords().values()}
-            == {c.State402.SWITCHED_ON}
-        )
-    )
+    # Disabled and shut down (power stage off), confirmed by SDO before finish returns
+    # (and stops the host heartbeat): READY_TO_SWITCH_ON at once, and still so after the
+    # drives' heartbeat timeout (no fault, no quick stop).
+    ready = {c.State402.READY_TO_SWITCH_ON}
+    assert {c.decode_state(sw) for sw in rig.sim.statuswords().values()} == ready
+    shut = sdo_controlword_times(rig, c.CW_SHUTDOWN)
+    assert [sorted(x) for x in shut] == [sorted(n) for n in NODES]
+    time.sleep(0.5)  # > heartbeat_timeout_ms
+    assert {c.decode_state(sw) for sw in rig.sim.statuswords().values()} == ready
     assert np.all(second.stats["cycles"] == 5)
 
 
@@ -113,7 +142,7 @@ def test_rpdos_reach_the_wire_before_their_sync_on_a_priority_arbitrated_bus(
                 result = box.stream(src)
             assert result.completed
             assert wait_until(
-                lambda: sum(m.arbitration_id == 0x80 for m in sniffer.snapshot()) >= 11
+                lambda: sum(m.arbitration_id == 0x80 for m in sniffer.snapshot()) >= 10
             )
             per_sync = rpdo_targets_per_sync(sniffer.snapshot(), list(range(1, 19)))
             assert [len(p) for p in per_sync[:10]] == [18] * 10
@@ -133,7 +162,7 @@ def test_finish_without_stream_disables_by_sdo(rig_factory: Callable[..., Rig]) 
     assert wait_until(
         lambda: (
             {c.decode_state(sw) for sw in rig.sim.statuswords().values()}
-            == {c.State402.SWITCHED_ON}
+            == {c.State402.READY_TO_SWITCH_ON}
         )
     )
     # No target position went out: no RPDO at all.
@@ -145,6 +174,40 @@ def test_second_bring_up_is_not_a_fault(rig_factory: Callable[..., Rig]) -> None
     rig = rig_factory()
     box = rig.open_box()
     box.bring_up()
-    box.bring_up()  # resets every node again while the idle guard was watching
+    for sn in rig.sniffers:
+        sn.clear()
+    box.bring_up()  # the drives are enabled: disabled (confirmed) first, then reset
     assert box.idle_causes == []
+    # Every node got *disable operation* by SDO before the NMT reset of its bus, and was
+    # seen SWITCHED_ON (statusword read) before it.
+    disabled = sdo_controlword_times(rig, c.CW_DISABLE_OPERATION)
+    for sn, nodes, dis in zip(rig.sniffers, NODES, disabled, strict=True):
+        frames = sn.snapshot()
+        t_reset = min(
+            m.timestamp
+            for m in frames
+            if m.arbitration_id == 0 and bytes(m.data[:1]) == bytes([c.NMT_RESET_NODE])
+        )
+        assert sorted(dis) == nodes and max(dis.values()) < t_reset
+    kinds = [e["kind"] for e in box.events.to_list()]
+    assert "disable" in kinds[kinds.index("enabled") :]
     assert box.stream(HoldSource(n_cycles=5)).completed
+
+
+def test_stream_refused_unless_every_drive_is_operation_enabled(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """A drive that left OPERATION_ENABLED silently (no EMCY, no SYNC while idle so no
+    TPDO) is found by the statusword check before the first RPDO: nothing is sent."""
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    set_sim_state(rig, "j07r0", c.State402.SWITCHED_ON)
+    for sn in rig.sniffers:
+        sn.clear()
+    with pytest.raises(DriverError, match=r"not OPERATION_ENABLED: j07r0 .*SWITCHED_ON"):
+        box.stream(HoldSource(n_cycles=20))
+    time.sleep(0.05)
+    frames = [m for sn in rig.sniffers for m in sn.snapshot()]
+    assert not any(0x200 < m.arbitration_id <= 0x27F or m.arbitration_id == 0x80 for m in frames)
+    assert c.decode_state(rig.sim.statuswords()["j07r0"]) == c.State402.SWITCHED_ON
