@@ -55,7 +55,7 @@ from drivers.config import BoxConfig
 from drivers.monitor import NodeMonitor, StopCause
 from drivers.scheduler import BusLayout, CyclicScheduler, EventLog, StreamResult
 from drivers.setpoints import LimitChecker, SetpointSource
-from drivers.traffic import BusPort, BusSendError, TrafficLog
+from drivers.traffic import BusPort, BusSendError, TrafficLog, is_host_frame
 from hrm_ctrl.atomic import write_atomic
 from hrm_ctrl.errors import DriverError, HrmError
 
@@ -102,9 +102,15 @@ class _RxRouter(can.Listener):
     """Receive path of one bus: TPDOs go straight to the monitor (every cycle, every
     node: the hot path), everything else to canopen (SDO, heartbeat, EMCY)."""
 
-    def __init__(self, network: canopen.Network, on_error: Callable[[str, str], None]) -> None:
+    def __init__(
+        self,
+        network: canopen.Network,
+        on_error: Callable[[str, str], None],
+        host_node_id: int = c.HOST_HEARTBEAT_NODE_ID,
+    ) -> None:
         self.network = network
         self.on_error = on_error
+        self.host_node_id = host_node_id
         self.fast: dict[int, Callable[[bytes], None]] = {}
 
     def on_message_received(self, msg: can.Message) -> None:
@@ -114,6 +120,8 @@ class _RxRouter(can.Listener):
         if handler is not None:
             handler(msg.data)
             return
+        if is_host_frame(msg.arbitration_id, self.host_node_id):
+            return  # our own frame echoed back (udp_multicast): nothing for canopen
         try:
             self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
         except Exception as exc:  # must not stop the receive thread: report it instead
@@ -326,13 +334,15 @@ class DriveBox:
             log = None
             if self.log_dir is not None:
                 log = TrafficLog(
-                    self.log_dir / f"{self.run_name}_{b.name}{self.log_suffix}", channel=bi + 1
+                    self.log_dir / f"{self.run_name}_{b.name}{self.log_suffix}",
+                    channel=bi + 1,
+                    host_node_id=self.control.host_node_id,
                 )
                 self._logs.append(log)
             port = BusPort(b.name, bus, log)
             self._ports.append(port)
             net = _PortNetwork(port)
-            router = _RxRouter(net, self.monitor.report)
+            router = _RxRouter(net, self.monitor.report, self.control.host_node_id)
             listeners: list[can.Listener] = [router]
             if log is not None:
                 listeners.append(log)

@@ -11,7 +11,7 @@ import pytest
 from drivers import cia402 as c
 from drivers.box import DriveBox
 from drivers.bringup import BootupError, SdoError, StateTimeoutError
-from drivers.busload import BusLoadError
+from drivers.busload import BusLoadError, highest_usable_rate
 from drivers.partial import ActuationSubset
 from hrm_ctrl.actuation import Actuation
 from hrm_ctrl.errors import DriverError
@@ -78,9 +78,10 @@ def test_bus_load_refusal_before_anything_is_opened(actuation: Actuation) -> Non
     msg = str(info.value)
     # 36 nodes: 36 * (115 + 115) + 55 bits per cycle, heartbeats 37 * 65 * 10 bit/s.
     per_cycle = 36 * 230 + 55
-    expected = int((0.7 * 1_000_000 - 37 * 65 * 10) // per_cycle)
+    expected = highest_usable_rate((0.7 * 1_000_000 - 37 * 65 * 10) / per_cycle)
+    assert expected == 80  # 81 Hz fits the budget, but 0x60C2 cannot encode 1/81 s
     assert msg.startswith("bus bus0: worst-case load 85.8% at 100 Hz exceeds the 70% limit")
-    assert msg.endswith(f"highest rate that fits: {expected} Hz")
+    assert msg.endswith(f"highest rate that fits: {expected:g} Hz")
 
 
 def test_box_refuses_a_config_without_every_rope_motor(actuation: Actuation) -> None:
