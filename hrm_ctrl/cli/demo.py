@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from hrm_ctrl.atomic import write_atomic
+from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.cli._simwire import SIM_WIRES, start_in_process_sim
 from hrm_ctrl.cli.plan import format_report
 from hrm_ctrl.errors import DriverError, PlanningError
@@ -30,7 +31,7 @@ HELP = "plan a scenario and play it on the simulated box over CAN (the whole sta
 
 def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", choices=sorted(SCENARIOS), default="bent-pipe")
-    p.add_argument("--robot", type=Path, metavar="FILE", help="robot description (TOML)")
+    add_robot_argument(p)
     p.add_argument("--config", type=Path, metavar="BOX.toml", help="bus configuration")
     p.add_argument("--step", type=float, default=5.0, metavar="MM", help="lambda (default 5 mm)")
     p.add_argument(

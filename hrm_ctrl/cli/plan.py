@@ -10,6 +10,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.errors import HrmError, PlanningError
 from hrm_ctrl.known_path import KnownPath, load_path_csv
 from hrm_ctrl.model import load_robot
@@ -24,7 +25,7 @@ def register(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--scenario", choices=sorted(SCENARIOS), help="a reference scenario")
     src.add_argument("--path", type=Path, metavar="FILE", help="CSV path file (header x,y,z; mm)")
-    p.add_argument("--robot", type=Path, metavar="FILE", help="robot description (TOML)")
+    add_robot_argument(p)
     p.add_argument("--step", type=float, default=5.0, metavar="MM", help="lambda (default 5 mm)")
     p.add_argument("--alpha-step", type=float, default=1.0, help="alpha_step of Eq. 11 (0, 1]")
     p.add_argument("--return", dest="ret", action="store_true", help="back out to the start")

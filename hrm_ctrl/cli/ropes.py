@@ -19,6 +19,7 @@ import numpy as np
 
 from hrm_ctrl.actuation import Actuation, RopeLimitError, load_actuation
 from hrm_ctrl.atomic import write_atomic
+from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.errors import HrmError, RopeError
 from hrm_ctrl.model import load_robot
 from hrm_ctrl.planfile import read_plan
@@ -28,7 +29,7 @@ HELP = "motor setpoints (encoder counts per rope motor) for every step of a plan
 
 def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("plan", type=Path, metavar="PLAN.json", help="plan file (hrm-plan/1)")
-    p.add_argument("--robot", type=Path, metavar="FILE", help="robot description (TOML)")
+    add_robot_argument(p)
     p.add_argument("--out", type=Path, metavar="SETPOINTS.csv", help="write the setpoint table")
     p.add_argument(
         "--speed",

@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from hrm_ctrl.cli._common import add_robot_argument
+from hrm_ctrl.cli._simwire import SIM_WIRES
 from hrm_ctrl.errors import DriverError
 
 HELP = "play a plan (or hold / jog) on the CiA 402 rope-motor drives over CAN"
@@ -42,14 +44,12 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config", type=Path, default=None, metavar="BOX.toml", help="bus configuration"
     )
-    parser.add_argument(
-        "--robot", type=Path, default=None, metavar="FILE", help="robot description TOML"
-    )
+    add_robot_argument(parser)
     parser.add_argument(
         "--sim", action="store_true", help="run against the in-process simulated box"
     )
     parser.add_argument(
-        "--wire", choices=("virtual", "hrm_sim"), default="virtual",
+        "--wire", choices=SIM_WIRES, default="virtual",
         help="with --sim: python-can virtual buses, or hrm_sim (simulated wire at the bitrate)",
     )  # fmt: skip
     parser.add_argument(

@@ -21,6 +21,7 @@ import argparse
 import math
 from pathlib import Path
 
+from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.errors import SimError
 
 HELP = "run the simulated manipulator box (CiA 402 drives, arm, tension board) on the buses"
@@ -34,13 +35,7 @@ def register(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="bus configuration TOML (default: drivers/data/box.toml)",
     )
-    parser.add_argument(
-        "--robot",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="robot description TOML (default: the one shipped with hrm)",
-    )
+    add_robot_argument(parser)
     parser.add_argument(
         "--fault",
         action="append",

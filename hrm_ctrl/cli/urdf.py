@@ -13,6 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.model import load_robot
 from hrm_ctrl.urdf import robot_urdf, write_robot_urdf
 
@@ -20,13 +21,7 @@ HELP = "write the arm as URDF (each universal joint as two revolute joints)"
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--robot",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="robot description TOML (default: the one shipped with hrm)",
-    )
+    add_robot_argument(parser)
     parser.add_argument(
         "--out",
         type=Path,
