@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import can
@@ -176,14 +177,29 @@ class FlakyBus(can.BusABC):
         super().shutdown()
 
 
-def test_bus_failing_on_send_stops_the_other_buses(
-    rig_factory: Callable[..., Rig], can_backend: Callable[[], dict[str, Any]]
-) -> None:
-    rig = rig_factory()
+@contextlib.contextmanager
+def flaky_box(rig: Rig) -> Iterator[tuple[DriveBox, list[FlakyBus]]]:
+    """A DriveBox on :class:`FlakyBus` wrappers of the rig's buses; on leaving, the
+    failures are cleared, the box closed and the buses shut down."""
     buses = [FlakyBus(can.Bus(**b.bus_kwargs())) for b in rig.config.buses]
     box = DriveBox(rig.config, rig.limits, buses=buses)
     rig.box = box
     try:
+        yield box, buses
+    finally:
+        for b in buses:
+            b.fail, b.fail_if = False, None
+        box.__exit__(None, None, None)
+        rig.box = None
+        for b in buses:
+            b.shutdown()
+
+
+def test_bus_failing_on_send_stops_the_other_buses(
+    rig_factory: Callable[..., Rig], can_backend: Callable[[], dict[str, Any]]
+) -> None:
+    rig = rig_factory()
+    with flaky_box(rig) as (box, buses):
         box.bring_up()
 
         def fail() -> None:
@@ -199,11 +215,6 @@ def test_bus_failing_on_send_stops_the_other_buses(
         assert wait_until(
             lambda: c.decode_state(rig.sim.statuswords()["j01r0"]) != c.State402.OPERATION_ENABLED
         )
-    finally:
-        box.__exit__(None, None, None)
-        rig.box = None
-        for b in buses:
-            b.shutdown()
     time.sleep(0.01)
 
 
@@ -355,10 +366,7 @@ def test_idle_quick_stop_failure_is_reported(rig_factory: Callable[..., Rig]) ->
     """The idle guard's quick stop fails on one bus: the failure is a stop cause, the
     run record says so, and the next stream names it."""
     rig = rig_factory()
-    buses = [FlakyBus(can.Bus(**b.bus_kwargs())) for b in rig.config.buses]
-    box = DriveBox(rig.config, rig.limits, buses=buses)
-    rig.box = box
-    try:
+    with flaky_box(rig) as (box, buses):
         box.bring_up()
         assert box.stream(HoldSource(n_cycles=5)).completed
         buses[1].fail_if = lambda m: 0x200 < m.arbitration_id <= 0x27F  # RPDOs lost
@@ -372,20 +380,11 @@ def test_idle_quick_stop_failure_is_reported(rig_factory: Callable[..., Rig]) ->
         assert not any(e["kind"] == "quick_stop" and "while idle" in e["text"] for e in events)
         with pytest.raises(SafetyStopError, match="quick stop while idle failed"):
             box.stream(HoldSource(n_cycles=5))
-    finally:
-        buses[1].fail_if = None
-        box.__exit__(None, None, None)
-        rig.box = None
-        for b in buses:
-            b.shutdown()
 
 
 def test_finish_reports_drives_it_could_not_disable(rig_factory: Callable[..., Rig]) -> None:
     rig = rig_factory()
-    buses = [FlakyBus(can.Bus(**b.bus_kwargs())) for b in rig.config.buses]
-    box = DriveBox(rig.config, rig.limits, buses=buses)
-    rig.box = box
-    try:
+    with flaky_box(rig) as (box, buses):
         box.bring_up()
         assert box.stream(HoldSource(n_cycles=5)).completed
         buses[1].fail_if = lambda m: 0x600 < m.arbitration_id <= 0x67F  # SDO requests lost
@@ -396,12 +395,6 @@ def test_finish_reports_drives_it_could_not_disable(rig_factory: Callable[..., R
         sw = rig.sim.statuswords()
         assert c.decode_state(sw["j01r0"]) == c.State402.READY_TO_SWITCH_ON
         assert c.decode_state(sw["j01r1"]) == c.State402.READY_TO_SWITCH_ON
-    finally:
-        buses[1].fail_if = None
-        box.__exit__(None, None, None)
-        rig.box = None
-        for b in buses:
-            b.shutdown()
 
 
 def test_parallel_sdo_work_is_bounded_in_time(rig_factory: Callable[..., Rig]) -> None:
