@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hrm_ctrl.errors import PathFileError
+from hrm_ctrl.tomlfile import read_text_file
 
 DENSE_SPACING = 0.5  # mm, resampling of the path for distance queries
 
@@ -194,12 +195,7 @@ def load_path_csv(path: str | Path) -> KnownPath:
     Raises :class:`PathFileError` naming the file, line and value on any problem.
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise PathFileError(f"{p}: path file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PathFileError(f"{p}: cannot read path file ({exc})") from None
+    text = read_text_file(p, PathFileError, "path file")
     rows = list(csv.reader(text.splitlines()))
     rows_numbered = [(n, r) for n, r in enumerate(rows, start=1) if any(c.strip() for c in r)]
     if not rows_numbered:

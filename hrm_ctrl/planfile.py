@@ -26,6 +26,7 @@ from typing import Any
 
 from hrm_ctrl.atomic import write_atomic
 from hrm_ctrl.errors import PlanFileError
+from hrm_ctrl.tomlfile import read_text_file
 
 PLAN_FORMAT = "hrm-plan/1"
 N_JOINTS = 12
@@ -89,12 +90,7 @@ def validate_plan(plan: Any, where: str = "plan") -> dict[str, Any]:
 def read_plan(path: str | Path) -> dict[str, Any]:
     """Read and validate a plan file; one-line :class:`PlanFileError` on any problem."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise PlanFileError(f"{p}: plan file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PlanFileError(f"{p}: cannot read plan file ({exc})") from None
+    text = read_text_file(p, PlanFileError, "plan file")
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:

@@ -1,4 +1,4 @@
-"""Reading a TOML description file with one-line errors that name the file.
+"""Reading text and TOML description files with one-line errors that name the file.
 
 >>> import tempfile, pathlib
 >>> p = pathlib.Path(tempfile.mkdtemp()) / "x.toml"
@@ -18,6 +18,20 @@ from pathlib import Path
 from typing import Any
 
 
+def read_text_file(
+    path: str | Path, error: type[Exception], what: str, source: str | None = None
+) -> str:
+    """The UTF-8 text of ``path``; a missing or unreadable file raises ``error`` with one
+    line naming ``source`` (default: the path), e.g. ``p.csv: path file not found``."""
+    name = str(path) if source is None else source
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise error(f"{name}: {what} not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"{name}: cannot read {what} ({exc})") from None
+
+
 def read_toml(
     path: str | Path, error: type[Exception], what: str, source: str | None = None
 ) -> tuple[dict[str, Any], str]:
@@ -27,14 +41,8 @@ def read_toml(
     unreadable or malformed file raises ``error`` with one line, e.g.
     ``robot.toml: robot file not found`` or ``box.toml: not valid TOML (...)``.
     """
-    p = Path(path)
-    name = str(p) if source is None else source
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise error(f"{name}: {what} not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise error(f"{name}: cannot read {what} ({exc})") from None
+    name = str(path) if source is None else source
+    text = read_text_file(path, error, what, name)
     try:
         return tomllib.loads(text), name
     except tomllib.TOMLDecodeError as exc:
