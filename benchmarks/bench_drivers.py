@@ -41,11 +41,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import machine
 
-from drivers.box import DriveBox
 from drivers.config import load_box_config
-from drivers.setpoints import TableSource
-from hrm_ctrl.actuation import load_actuation
+from drivers.session import DriveBox
+from drivers.sources import TableSource
 from hrm_ctrl.model import default_robot
+from hrm_ctrl.ropes.actuation import load_actuation
 from sim_bus.box import SimBox
 from sim_bus.config import sim_config_from_dict
 

@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine
 
 from hrm_ctrl.model import default_robot
-from hrm_ctrl.planner import PlanOptions, plan_path
-from hrm_ctrl.scenarios import scenario
+from hrm_ctrl.planning.planner import PlanOptions, plan_path
+from hrm_ctrl.planning.scenarios import scenario
 
 
 def main() -> None:

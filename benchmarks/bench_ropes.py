@@ -16,9 +16,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hrm_ctrl.actuation import load_actuation
-from hrm_ctrl.estimator import RopeStateEstimator
 from hrm_ctrl.model import default_robot
+from hrm_ctrl.ropes.actuation import load_actuation
+from hrm_ctrl.ropes.estimator import RopeStateEstimator
 
 
 def timings_us(fn: Callable[[int], object], n: int) -> np.ndarray:

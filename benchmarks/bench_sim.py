@@ -30,7 +30,7 @@ from typing import Any
 import can
 import numpy as np
 
-import drivers.cia402 as cia
+import drivers.protocol.cia402 as cia
 from sim_bus.box import SimBox
 from sim_bus.config import load_sim_config
 

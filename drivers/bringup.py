@@ -26,7 +26,7 @@ from typing import Any
 
 import canopen
 
-from drivers import cia402 as c
+from drivers.protocol import cia402 as c
 from hrm_ctrl.errors import DriverError
 
 

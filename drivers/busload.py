@@ -18,8 +18,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from drivers.cia402 import RPDO_TARGET_SIZE, TPDO_FEEDBACK_SIZE
 from drivers.config import BoxConfig, BusConfig, ControlConfig, rate_problem
+from drivers.protocol.cia402 import RPDO_TARGET_SIZE, TPDO_FEEDBACK_SIZE
 from hrm_ctrl.errors import DriverError
 
 HEARTBEAT_SIZE = 1

@@ -26,7 +26,7 @@ from typing import Any
 import can
 
 from drivers import default_box_path
-from drivers.cia402 import (
+from drivers.protocol.cia402 import (
     HOST_HEARTBEAT_NODE_ID,
     NODE_ID_MAX,
     NODE_ID_MIN,
@@ -34,7 +34,7 @@ from drivers.cia402 import (
     interpolation_time_period,
 )
 from hrm_ctrl.errors import DriverError
-from hrm_ctrl.tomlfile import read_toml
+from hrm_ctrl.files import read_toml
 
 
 class BusConfigError(DriverError):

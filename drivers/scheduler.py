@@ -38,10 +38,11 @@ from typing import Any
 import can
 import numpy as np
 
-from drivers import cia402 as c
-from drivers.monitor import NodeMonitor, StopCause
-from drivers.setpoints import LimitChecker, SetpointSource
-from drivers.traffic import BusPort, BusSendError
+from drivers.bus import BusPort, BusSendError
+from drivers.protocol import cia402 as c
+from drivers.safety.limits import LimitChecker
+from drivers.safety.monitor import NodeMonitor, StopCause
+from drivers.sources import SetpointSource
 from hrm_ctrl.errors import HrmError
 
 LATE_THRESHOLD_S = 0.002

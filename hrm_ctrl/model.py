@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from hrm_ctrl.errors import RobotDescriptionError
-from hrm_ctrl.tomlfile import read_toml
+from hrm_ctrl.files import read_toml
 
 N_JOINTS = 12
 DEFAULT_ROBOT_RESOURCE = "robot.toml"

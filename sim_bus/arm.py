@@ -2,7 +2,7 @@
 
 Where the arm really is follows from where the motors really are (the drive
 simulators' actual positions, not the host's setpoints): the rope layer's
-inverse (:meth:`hrm_ctrl.actuation.Actuation.angles_from_counts`, with rope
+inverse (:meth:`hrm_ctrl.ropes.actuation.Actuation.angles_from_counts`, with rope
 stretch at the ropes' tension) gives the 24 joint angles, the planner's FK the
 true joint centres.
 
@@ -15,7 +15,7 @@ joint limit.
 
 >>> import numpy as np
 >>> from hrm_ctrl.model import default_robot
->>> from hrm_ctrl.actuation import load_actuation
+>>> from hrm_ctrl.ropes.actuation import load_actuation
 >>> act = load_actuation(default_robot())
 >>> arm = SimArm(act, noise_N=0.0)
 >>> a = np.full(12, 0.2); t = np.full(12, -0.1)
@@ -33,9 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hrm_ctrl.actuation import Actuation
 from hrm_ctrl.errors import SimError
 from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.ropes.actuation import Actuation
 
 
 @dataclass(frozen=True)

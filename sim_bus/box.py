@@ -45,10 +45,10 @@ from typing import Any
 import can
 import numpy as np
 
-import drivers.cia402 as cia
-from hrm_ctrl.actuation import Actuation, load_actuation
+import drivers.protocol.cia402 as cia
 from hrm_ctrl.errors import SimError
 from hrm_ctrl.model import default_robot
+from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.arm import ArmState, SimArm
 from sim_bus.config import SimConfig
 from sim_bus.drive import EMCY_FOLLOWING_ERROR, DriveParams, DriveSim

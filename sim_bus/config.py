@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from hrm_ctrl.errors import SimError
-from hrm_ctrl.tomlfile import read_toml
+from hrm_ctrl.files import read_toml
 
 DEFAULT_BOX = ("drivers.data", "box.toml")
 

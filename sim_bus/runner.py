@@ -24,8 +24,8 @@ import time
 from collections.abc import Sequence
 from typing import Any, TextIO
 
-from hrm_ctrl.actuation import Actuation
 from hrm_ctrl.errors import HrmError
+from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.box import SimBox
 from sim_bus.config import SimConfig
 from sim_bus.faults import Fault, apply_fault, parse_fault

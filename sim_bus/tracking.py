@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hrm_ctrl.actuation import Actuation
 from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.ropes.actuation import Actuation
 
 MATCH_WINDOW = 6  # setpoint rows a bus may move forward between two SYNCs
 

@@ -12,8 +12,8 @@ import uuid
 from typing import Any
 
 from drivers.config import BoxConfig
-from hrm_ctrl.actuation import Actuation
 from hrm_ctrl.errors import DriverError
+from hrm_ctrl.ropes.actuation import Actuation
 
 SIM_MISSING_TPDO_CYCLES = 10
 SIM_WIRES = ("virtual", "hrm_sim")

@@ -19,12 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from hrm_ctrl.atomic import write_atomic
 from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.cli._simwire import SIM_WIRES, start_in_process_sim
 from hrm_ctrl.cli.plan import format_report
 from hrm_ctrl.errors import DriverError, PlanningError
-from hrm_ctrl.scenarios import SCENARIOS
+from hrm_ctrl.files import write_atomic
+from hrm_ctrl.planning.scenarios import SCENARIOS
 
 HELP = "plan a scenario and play it on the simulated box over CAN (the whole stack)"
 
@@ -43,15 +43,15 @@ def register(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.box import DriveBox, SafetyStopError
     from drivers.config import load_box_config
-    from drivers.setpoints import PlanSource, interpolate_rows
-    from hrm_ctrl.actuation import load_actuation
+    from drivers.session import DriveBox, SafetyStopError
+    from drivers.sources import PlanSource, interpolate_rows
+    from hrm_ctrl.formats.planfile import write_plan
+    from hrm_ctrl.formats.plots import write_plan_figures
     from hrm_ctrl.model import load_robot
-    from hrm_ctrl.planfile import write_plan
-    from hrm_ctrl.planner import PlanOptions, check_limits, plan_path
-    from hrm_ctrl.plots import write_plan_figures
-    from hrm_ctrl.scenarios import scenario
+    from hrm_ctrl.planning.planner import PlanOptions, check_limits, plan_path
+    from hrm_ctrl.planning.scenarios import scenario
+    from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.tracking import tracking_error
 
     if not (math.isfinite(args.step) and args.step > 0.0):

@@ -17,12 +17,12 @@ from typing import Any
 
 import numpy as np
 
-from hrm_ctrl.actuation import Actuation, RopeLimitError, load_actuation
-from hrm_ctrl.atomic import write_atomic
 from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.errors import HrmError, RopeError
+from hrm_ctrl.files import write_atomic
+from hrm_ctrl.formats.planfile import read_plan
 from hrm_ctrl.model import load_robot
-from hrm_ctrl.planfile import read_plan
+from hrm_ctrl.ropes.actuation import Actuation, RopeLimitError, load_actuation
 
 HELP = "motor setpoints (encoder counts per rope motor) for every step of a plan"
 

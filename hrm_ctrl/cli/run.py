@@ -88,7 +88,7 @@ def _plan_record(path: Path, plan: dict[str, Any]) -> dict[str, Any]:
 def _source(
     args: argparse.Namespace, actuation: Any, robot: Any
 ) -> tuple[Any, Any, dict[str, Any]]:
-    from drivers.setpoints import HoldSource, JogSource, PlanSource
+    from drivers.sources import HoldSource, JogSource, PlanSource
 
     chosen = [x for x in (args.plan, args.hold, args.jog) if x is not None]
     if len(chosen) != 1:
@@ -106,7 +106,7 @@ def _source(
         if len(parts) != 3 or not (math.isfinite(dur) and dur > 0):
             raise DriverError(f"--jog {args.jog!r}: expected MOTOR:COUNTS_PER_S:SECONDS (S > 0)")
         return JogSource(actuation, motor, vel, dur), None, {}
-    from hrm_ctrl.planfile import read_plan
+    from hrm_ctrl.formats.planfile import read_plan
 
     plan = read_plan(args.plan)
     plan_record = _plan_record(Path(args.plan), plan)
@@ -118,12 +118,12 @@ def _source(
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.box import DriveBox, SafetyStopError
+    from drivers.bus import ensure_log_dir
     from drivers.config import load_box_config
-    from drivers.setpoints import HoldSource
-    from drivers.traffic import ensure_log_dir
-    from hrm_ctrl.actuation import load_actuation
+    from drivers.session import DriveBox, SafetyStopError
+    from drivers.sources import HoldSource
     from hrm_ctrl.model import load_robot
+    from hrm_ctrl.ropes.actuation import load_actuation
 
     if not (math.isfinite(args.speed) and args.speed > 0):
         raise DriverError(f"--speed must be > 0 mm/s, got {args.speed}")

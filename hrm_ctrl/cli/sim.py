@@ -63,8 +63,8 @@ def register(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hrm_ctrl.actuation import load_actuation
     from hrm_ctrl.model import load_robot
+    from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.config import load_sim_config
     from sim_bus.faults import parse_fault
     from sim_bus.runner import run_box_process

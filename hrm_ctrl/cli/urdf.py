@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 
 from hrm_ctrl.cli._common import add_robot_argument
+from hrm_ctrl.formats.urdf import robot_urdf, write_robot_urdf
 from hrm_ctrl.model import load_robot
-from hrm_ctrl.urdf import robot_urdf, write_robot_urdf
 
 HELP = "write the arm as URDF (each universal joint as two revolute joints)"
 

@@ -18,11 +18,11 @@ import can
 import numpy as np
 import pytest
 
-from drivers.box import DriveBox
 from drivers.config import BoxConfig, box_config_from_dict
-from drivers.partial import ActuationSubset
-from hrm_ctrl.actuation import Actuation, load_actuation
+from drivers.safety.subset import ActuationSubset
+from drivers.session import DriveBox
 from hrm_ctrl.model import default_robot
+from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.box import SimBox
 from sim_bus.config import sim_config_from_dict
 

@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.busload import BusLoadError, bus_load, check_bus_load, worst_case_frame_bits
-from drivers.cia402 import FrameError, interpolation_time_period
 from drivers.config import BusConfigError, ControlConfig, load_box_config, rate_problem
-from hrm_ctrl.actuation import Actuation
+from drivers.protocol.cia402 import FrameError, interpolation_time_period
+from hrm_ctrl.ropes.actuation import Actuation
 
 GOOD = """
 [control]

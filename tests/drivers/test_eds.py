@@ -5,8 +5,8 @@ from __future__ import annotations
 import canopen
 import pytest
 
-from drivers import cia402 as c
 from drivers import eds_path
+from drivers.protocol import cia402 as c
 
 
 @pytest.fixture(scope="module")

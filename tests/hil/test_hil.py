@@ -15,15 +15,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-import drivers.cia402 as cia
-from drivers.box import DriveBox, SafetyStopError
+import drivers.protocol.cia402 as cia
 from drivers.config import load_box_config
-from drivers.partial import ActuationSubset
+from drivers.safety.subset import ActuationSubset
 from drivers.scheduler import StreamResult
-from drivers.setpoints import HoldSource, PlanSource, interpolate_rows
+from drivers.session import DriveBox, SafetyStopError
+from drivers.sources import HoldSource, PlanSource, interpolate_rows
 from drivers.tension_sensor import TensionSensorReader, TensionWatch
-from hrm_ctrl.actuation import Actuation, load_actuation
 from hrm_ctrl.model import default_robot
+from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.box import enlarge_receive_buffer
 from sim_bus.tracking import tracking_error
 from tests.hil.hil_rig import BoxProcess

@@ -1,0 +1,221 @@
+"""Watchdogs on what the drives send: feedback TPDOs, heartbeats, boot-ups, EMCYs.
+
+A :class:`NodeMonitor` holds one slot per rope motor (the rope layer's order).
+Bus receive threads call the ``on_*`` callbacks; the scheduler calls
+:meth:`NodeMonitor.check` once per control cycle, which evaluates every watchdog
+with NumPy over all nodes at once and returns the causes that must stop the
+box (an empty list when all is well).  Callbacks that see a cause between cycles
+set :attr:`NodeMonitor.wake` so the scheduler reacts at once.
+
+>>> mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=1, heartbeat_timeout_s=0.3)
+>>> mon.on_tpdo(0, bytes.fromhex("370264000000"), seq=0)
+>>> [c.text for c in mon.check(now=0.0, last_seq=0, heartbeats_armed_at=None)]
+['m1: no TPDO for 1 cycle(s)']
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from drivers.protocol.cia402 import (
+    NMT_STATE_BOOTUP,
+    NMT_STATE_NAMES,
+    NMT_STATE_OPERATIONAL,
+    SW_FAULT,
+    Emergency,
+    FrameError,
+    State402,
+    decode_states,
+    parse_emcy,
+    parse_heartbeat,
+    parse_tpdo,
+)
+
+
+@dataclass(frozen=True)
+class StopCause:
+    """Why the box stopped: a kind (``heartbeat``, ``emcy``, ``fault``, ``state``,
+    ``tpdo_missing``, ``bad_frame``, ``bootup``, ``limit``, ``send``, ``operator``)
+    and a one-line text naming the motor / bus / node."""
+
+    kind: str
+    text: str
+    motor: str | None = None
+    time_s: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "text": self.text, "motor": self.motor, "time_s": self.time_s}
+
+
+class NodeMonitor:
+    """Per-node receive state and watchdogs (one slot per rope motor)."""
+
+    def __init__(
+        self,
+        labels: list[str],
+        missing_tpdo_cycles: int,
+        heartbeat_timeout_s: float,
+    ) -> None:
+        n = len(labels)
+        self.labels = list(labels)
+        self.missing_tpdo_cycles = int(missing_tpdo_cycles)
+        self.heartbeat_timeout_s = float(heartbeat_timeout_s)
+        self.statusword = np.zeros(n, dtype=np.int64)
+        self.position = np.zeros(n, dtype=np.int64)
+        self.rx_seq = np.full(n, -1, dtype=np.int64)  # SYNC sequence of the last TPDO
+        self.n_tpdo = np.zeros(n, dtype=np.int64)
+        self.hb_time = np.full(n, -math.inf)  # time.monotonic of the last heartbeat
+        self.hb_state = np.full(n, -1, dtype=np.int64)
+        self.booted = np.zeros(n, dtype=bool)
+        self.missing_run = np.zeros(n, dtype=np.int64)
+        self.missing_total = 0
+        self.seq = -1  # SYNC sequence number last sent (set by the scheduler)
+        self.supervising = False
+        # Monotonic time heartbeat supervision started (end of bring-up; None: not yet).
+        # Kept across idle periods and streams, so a stream never restarts the timeout.
+        self.hb_armed_at: float | None = None
+        self.boot_event = threading.Event()
+        self.wake = threading.Event()
+        self._async_causes: collections.deque[StopCause] = collections.deque()
+        self.emergencies: list[Emergency] = []
+
+    @property
+    def n(self) -> int:
+        return len(self.labels)
+
+    # ---------------------------------------------------------- receive callbacks
+    def _async_cause(self, kind: str, idx: int, text: str) -> None:
+        self._async_causes.append(
+            StopCause(kind, f"{self.labels[idx]}: {text}", self.labels[idx], time.monotonic())
+        )
+        self.wake.set()
+
+    def report(self, kind: str, text: str) -> None:
+        """A stop cause found outside the receive callbacks (e.g. a failed send)."""
+        self._async_causes.append(StopCause(kind, text, None, time.monotonic()))
+        self.wake.set()
+
+    def on_tpdo(self, idx: int, data: bytes | bytearray, seq: int | None = None) -> None:
+        """TPDO1 (statusword, position actual) from the node in slot ``idx``."""
+        try:
+            sw, pos = parse_tpdo(data)
+        except FrameError as exc:
+            self._async_cause("bad_frame", idx, str(exc))
+            return
+        self.statusword[idx] = sw
+        self.position[idx] = pos
+        self.rx_seq[idx] = self.seq if seq is None else seq
+        self.n_tpdo[idx] += 1
+        if sw & SW_FAULT and self.supervising:
+            self._async_cause("fault", idx, f"statusword 0x{sw:04X} has the fault bit set")
+
+    def on_heartbeat(self, idx: int, data: bytes | bytearray) -> None:
+        """Heartbeat or boot-up frame from the node in slot ``idx``."""
+        try:
+            state = parse_heartbeat(data)
+        except FrameError as exc:
+            self._async_cause("bad_frame", idx, str(exc))
+            return
+        self.hb_time[idx] = time.monotonic()
+        self.hb_state[idx] = state
+        if state == NMT_STATE_BOOTUP:
+            self.booted[idx] = True
+            if self.booted.all():
+                self.boot_event.set()
+            if self.supervising:
+                self._async_cause("bootup", idx, "node rebooted (boot-up frame) while enabled")
+        elif self.supervising and state != NMT_STATE_OPERATIONAL:
+            name = NMT_STATE_NAMES.get(state, f"0x{state:02X}")
+            self._async_cause("heartbeat", idx, f"heartbeat reports NMT state {name}")
+
+    def on_emcy(self, idx: int, node_id: int, data: bytes | bytearray) -> None:
+        """EMCY frame; error code 0x0000 ('error reset / no error') is not a fault."""
+        try:
+            emcy = parse_emcy(node_id, data)
+        except FrameError as exc:
+            self._async_cause("bad_frame", idx, str(exc))
+            return
+        self.emergencies.append(emcy)
+        if emcy.error_code != 0:
+            self._async_cause("emcy", idx, emcy.describe())
+
+    def drain(self) -> list[StopCause]:
+        """Take the causes queued by the receive callbacks (e.g. before a stream starts)."""
+        out = []
+        while self._async_causes:
+            out.append(self._async_causes.popleft())
+        self.wake.clear()
+        return out
+
+    def reset_boot(self) -> None:
+        self.booted[:] = False
+        self.boot_event.clear()
+
+    def missing_boot(self) -> list[str]:
+        return [lab for lab, ok in zip(self.labels, self.booted, strict=True) if not ok]
+
+    # ---------------------------------------------------------- per-cycle check
+    def check(
+        self, now: float, last_seq: int, heartbeats_armed_at: float | None
+    ) -> list[StopCause]:
+        """Evaluate every watchdog; ``last_seq`` is the SYNC whose TPDOs are due.
+
+        ``heartbeats_armed_at``: monotonic time heartbeat supervision started
+        (None: not supervised yet).
+        """
+        causes: list[StopCause] = []
+        while self._async_causes:
+            causes.append(self._async_causes.popleft())
+        if last_seq >= 0:
+            got = self.rx_seq >= last_seq
+            self.missing_run = np.where(got, 0, self.missing_run + 1)
+            self.missing_total += int(np.count_nonzero(~got))
+            for i in np.flatnonzero(self.missing_run >= self.missing_tpdo_cycles):
+                causes.append(
+                    StopCause(
+                        "tpdo_missing",
+                        f"{self.labels[i]}: no TPDO for {int(self.missing_run[i])} cycle(s)",
+                        self.labels[i],
+                        now,
+                    )
+                )
+            seen = self.rx_seq >= 0
+            states = decode_states(self.statusword)
+            bad = seen & (states != int(State402.OPERATION_ENABLED))
+            for i in np.flatnonzero(bad):
+                sw = int(self.statusword[i])
+                kind = "fault" if sw & SW_FAULT else "state"
+                causes.append(
+                    StopCause(
+                        kind,
+                        f"{self.labels[i]}: statusword 0x{sw:04X} "
+                        f"({State402(int(states[i])).name}), expected OPERATION_ENABLED",
+                        self.labels[i],
+                        now,
+                    )
+                )
+        if heartbeats_armed_at is not None:
+            since = np.maximum(self.hb_time, heartbeats_armed_at)
+            late = (now - since) > self.heartbeat_timeout_s
+            for i in np.flatnonzero(late):
+                age = now - self.hb_time[i]
+                what = (
+                    "never received" if not math.isfinite(age) else f"last {age * 1000:.0f} ms ago"
+                )
+                causes.append(
+                    StopCause(
+                        "heartbeat",
+                        f"{self.labels[i]}: heartbeat lost ({what}, timeout "
+                        f"{self.heartbeat_timeout_s * 1000:.0f} ms)",
+                        self.labels[i],
+                        now,
+                    )
+                )
+        return causes

@@ -1,0 +1,388 @@
+"""Path following with the modal backbone, Sec. 3.2, end to end.
+
+At step i the tip has travelled ``d_i = min(i lambda, L_path)`` along the known
+path (the last step lands exactly on its end, Step 5).  The backbone is the
+modal curve from the base to the path's start A, of length
+``L_m = L_sum - d_i alpha_step`` (Eq. 11), with start angles from the base's
+mounting direction and end angles along the path's tangent at A, followed by the
+travelled part of the path (Steps 2-3).  The arm is fitted onto it (Sec. 3.3),
+the joint angles come from the closed-vector method (Sec. 3.4), and FK of those
+angles is what the plan and its report state.  With ``return_to_start`` the arm
+then backs out along the same sequence to its start configuration (Sec. 4.2).
+
+>>> from hrm_ctrl.model import default_robot
+>>> from hrm_ctrl.planning.scenarios import scenario
+>>> p = plan_path(default_robot(), scenario("bent-pipe").path, PlanOptions(step=50.0))
+>>> len(p.travel), p.report["tip_error_mm"] < 0.01
+(15, True)
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from hrm_ctrl.errors import JointLimitError, PlanningError, UnreachableError
+from hrm_ctrl.formats.planfile import PLAN_FORMAT
+from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.model import RobotModel
+from hrm_ctrl.planning.backbone import (
+    Boundary,
+    ModalBasis,
+    backbone_points,
+    solve_modal_cold,
+    solve_modal_factors,
+)
+from hrm_ctrl.planning.fitting import fit_joint_centres_batch
+from hrm_ctrl.planning.joint_angles import joint_angles_from_centres
+from hrm_ctrl.planning.known_path import KnownPath, tangent_angles
+from hrm_ctrl.planning.scenarios import SAMPLES_PER_LINK, Scenario
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """Planner settings (mm, rad).
+
+    Attributes:
+        step: lambda, the distance the tip travels per step (mm).
+        alpha_step: alpha_step of Eq. (11), in (0, 1].
+        Q: number of equal parts of the modal curve (Sec. 3.1).
+        return_to_start: back out along the path to the start configuration.
+        start_angles: (b1k, b1t); by default the base's mounting direction.
+        backbone_steps: steps whose backbone curve the plan keeps (for figures);
+            by default the first, middle and last.  Indices past the end are ignored.
+    """
+
+    step: float = 5.0
+    alpha_step: float = 1.0
+    Q: int = 200
+    return_to_start: bool = False
+    start_angles: tuple[float, float] | None = None
+    backbone_steps: tuple[int, ...] | None = None
+
+    def check(self) -> None:
+        if not (math.isfinite(self.step) and self.step > 0.0):
+            raise PlanningError(f"step must be a finite number > 0 mm, got {self.step}")
+        if not (0.0 < self.alpha_step <= 1.0):
+            raise PlanningError(f"alpha_step must be in (0, 1], got {self.alpha_step}")
+        if self.Q < 20:
+            raise PlanningError(f"Q must be >= 20 curve divisions, got {self.Q}")
+
+
+@dataclass(eq=False)
+class Plan:
+    """A planned motion: one configuration per step, and its report."""
+
+    model: RobotModel
+    path: KnownPath
+    options: PlanOptions
+    travel: np.ndarray  # (N,) mm
+    alpha: np.ndarray  # (N, 12) rad
+    theta: np.ndarray  # (N, 12) rad
+    joints: np.ndarray  # (N, 13, 3) FK of the angles, mm
+    phase: list[str]
+    iterations: np.ndarray  # (N,) LM iterations of the modal solve
+    modal_a: np.ndarray  # (N, 3)
+    step_time_s: np.ndarray  # (N,) planning time of each step
+    backbones: dict[int, np.ndarray] = field(default_factory=dict)
+    report: dict[str, Any] = field(default_factory=dict)
+    scenario: Scenario | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The plan as an ``hrm-plan/1`` document."""
+        steps = []
+        for i in range(len(self.travel)):
+            st: dict[str, Any] = {
+                "travel_mm": float(self.travel[i]),
+                "phase": self.phase[i],
+                "alpha_rad": self.alpha[i].tolist(),
+                "theta_rad": self.theta[i].tolist(),
+                "joints_mm": self.joints[i].tolist(),
+                "modal_a": self.modal_a[i].tolist(),
+                "solver_iterations": int(self.iterations[i]),
+            }
+            if i in self.backbones:
+                st["backbone_mm"] = self.backbones[i].tolist()
+            steps.append(st)
+        doc: dict[str, Any] = {
+            "format": PLAN_FORMAT,
+            "robot": self.model.to_dict(),
+            "path_mm": self.path.points.tolist(),
+            "options": {
+                "step_mm": self.options.step,
+                "alpha_step": self.options.alpha_step,
+                "Q": self.options.Q,
+                "return": self.options.return_to_start,
+            },
+            "steps": steps,
+            "report": self.report,
+        }
+        if self.scenario is not None:
+            doc["scenario"] = self.scenario.to_dict()
+        return doc
+
+
+def travel_schedule(length: float, step: float) -> np.ndarray:
+    """Travelled distance at each step: 0, lambda, 2 lambda, ..., and exactly the
+    path's end last (Step 5).
+
+    >>> travel_schedule(12.0, 5.0).tolist()
+    [0.0, 5.0, 10.0, 12.0]
+    """
+    n = math.ceil(length / step - 1e-9)
+    d = np.minimum(np.arange(n + 1) * step, length)
+    d[-1] = length
+    return d
+
+
+def plan_path(
+    model: RobotModel,
+    path: KnownPath,
+    options: PlanOptions | None = None,
+    scenario: Scenario | None = None,
+) -> Plan:
+    """Plan the arm along ``path`` (Sec. 3.2-3.4); see the module docstring.
+
+    Raises :class:`UnreachableError` (naming the step) when the backbone cannot
+    reach the path, :class:`PlanningError` when the arm cannot be fitted.  Joint
+    limits are checked in the report, not here (see :func:`check_limits`).
+    """
+    opt = options or PlanOptions()
+    opt.check()
+    basis = ModalBasis(opt.Q)
+    X0 = model.base_position
+    A = path.points[0]
+    if opt.start_angles is None:
+        b1k, b1t = tangent_angles(model.base_direction)
+    else:
+        b1k, b1t = opt.start_angles
+    b2k, b2t = tangent_angles(path.tangent_at(0.0))
+    b = Boundary(b1k, b1t, b2k, b2t)
+    travel = travel_schedule(path.length, opt.step)
+    n = len(travel)
+    L_m = model.length - travel * opt.alpha_step
+
+    # 1. The modal curves, one solve per step, each warm-started from the last
+    #    (linearly extrapolated from the last two): sequential by nature.
+    t_start = time.perf_counter()
+    modal_a = np.empty((n, 3))
+    iters = np.zeros(n, dtype=np.int64)
+    step_time = np.empty(n)
+    for i in range(n):
+        t0 = time.perf_counter()
+        try:
+            if i == 0:
+                sol = solve_modal_cold(basis, X0, A, float(L_m[0]), b)
+            else:
+                guess = predict_modal_factors(modal_a[:i])
+                try:
+                    sol = solve_modal_factors(basis, X0, A, float(L_m[i]), b, a0=guess)
+                except UnreachableError:
+                    if i == 1:
+                        raise
+                    sol = solve_modal_factors(basis, X0, A, float(L_m[i]), b, a0=modal_a[i - 1])
+        except UnreachableError as exc:
+            raise UnreachableError(f"step {i} (travel {travel[i]:.1f} mm): {exc}") from None
+        modal_a[i] = sol.a
+        iters[i] = sol.iterations
+        step_time[i] = time.perf_counter() - t0
+    t_solve = time.perf_counter()
+
+    # 2. Every step's backbone: its modal curve, then the travelled path (Steps 2-3),
+    #    padded at the tip so that all steps share one array.
+    mode = backbone_points(basis, X0, L_m, modal_a, b)  # (n, Q+1, 3)
+    curves = np.concatenate((mode, travelled_path_padded(path, travel)), axis=1)
+    # 3. Fitting (Sec. 3.3), joint 2 nearest the modal curve at arc length l_1.
+    f = np.clip(model.links[0] / L_m, 0.0, 1.0) * opt.Q
+    k0 = np.minimum(np.floor(f).astype(np.int64), opt.Q - 1)
+    w = (f - k0)[:, None]
+    rows = np.arange(n)
+    ref2 = (1.0 - w) * mode[rows, k0] + w * mode[rows, k0 + 1]
+    O, seg = fit_joint_centres_batch(curves, model.links, ref2)
+    # 4. Joint angles (Sec. 3.4), and FK of those angles for everything reported.
+    alpha, theta = joint_angles_from_centres(model, O)
+    t_batch = time.perf_counter()
+    step_time += (t_batch - t_solve) / n  # the batched work, shared evenly
+    if opt.backbone_steps is None:
+        keep = sorted({0, n // 2, n - 1})
+    else:
+        keep = sorted({i for i in opt.backbone_steps if 0 <= i < n})
+    backbones = {
+        i: curves[i, : opt.Q + 1 + int(np.searchsorted(path.s, travel[i], "left"))] for i in keep
+    }
+    for i in keep:  # drop the padding: end the curve at the tip
+        backbones[i] = np.vstack((backbones[i], O[i, -1]))
+    phase = ["in"] * n
+    if opt.return_to_start:
+        back = np.arange(n - 2, -1, -1)
+        travel = np.concatenate((travel, travel[back]))
+        alpha = np.vstack((alpha, alpha[back]))
+        theta = np.vstack((theta, theta[back]))
+        iters = np.concatenate((iters, np.zeros(len(back), dtype=np.int64)))
+        modal_a = np.vstack((modal_a, modal_a[back]))
+        seg = np.vstack((seg, seg[back]))
+        step_time = np.concatenate((step_time, np.zeros(len(back))))
+        phase += ["return"] * len(back)
+        if 0 in backbones:
+            backbones[len(travel) - 1] = backbones[0]
+    joints = joint_centres(model, alpha, theta)
+    plan = Plan(
+        model=model,
+        path=path,
+        options=opt,
+        travel=travel,
+        alpha=alpha,
+        theta=theta,
+        joints=joints,
+        phase=phase,
+        iterations=iters,
+        modal_a=modal_a,
+        step_time_s=step_time,
+        backbones=backbones,
+        scenario=scenario,
+    )
+    plan.report = plan_report(plan, seg, opt.Q)
+    plan.report["plan_time_ms"] = (time.perf_counter() - t_start) * 1e3
+    return plan
+
+
+def predict_modal_factors(history: np.ndarray) -> np.ndarray:
+    """Warm start for the next step: the last solutions extrapolated (quadratic
+    from three, linear from two, the last one from one).
+
+    >>> predict_modal_factors(np.array([[1.0, 0, 0], [2.0, 0, 0], [4.0, 0, 0]])).tolist()
+    [7.0, 0.0, 0.0]
+    """
+    n = len(history)
+    if n >= 3:
+        return 3.0 * history[-1] - 3.0 * history[-2] + history[-3]
+    if n == 2:
+        return 2.0 * history[-1] - history[-2]
+    return history[-1].copy()
+
+
+def travelled_path_padded(path: KnownPath, travel: np.ndarray) -> np.ndarray:
+    """For each travelled distance d, the path's points after A up to d, ending at
+    the point of Eq. (12), padded with copies of that end point: shape (N, M, 3)
+    for a path of M points.
+
+    >>> P = KnownPath.from_points(np.array([[0, 0, 0], [3, 0, 0], [3, 4, 0]], float))
+    >>> travelled_path_padded(P, np.array([1.0, 5.0]))[:, :, :2].tolist()
+    [[[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]], [[3.0, 0.0], [3.0, 2.0], [3.0, 2.0]]]
+    """
+    M = len(path.points)
+    j = np.clip(np.searchsorted(path.s, travel, side="right") - 1, 0, M - 2)
+    tip = path.points_at(travel)
+    c = np.arange(M)
+    take = (c[None, :] + 1) <= j[:, None]
+    pts = path.points[np.minimum(c + 1, M - 1)]
+    return np.where(take[:, :, None], pts[None, :, :], tip[:, None, :])
+
+
+def plan_report(plan: Plan, seg: np.ndarray, Q: int) -> dict[str, Any]:
+    """The figures every plan states (mm and degrees):
+
+    - ``tip_error_mm``: largest distance of the FK end point from the path point
+      it should be at; ``end_error_mm``: from the path's end at the last forward step;
+    - ``joints_off_path_mm``: largest distance from the path of a joint centre
+      that has entered it; ``links_off_path_mm``: of any point of a link with both
+      ends on the path (chords cut corners, ``NOTES.md``);
+    - ``joint_limit_margin_deg`` and ``first_violation`` (step, joint, angle);
+    - ``max_angle_change_deg`` between consecutive steps, with where;
+    - solver iterations; ``clearance_mm`` against the scenario's obstacles.
+    """
+    model, path = plan.model, plan.path
+    n = len(plan.travel)
+    target = path.points_at(plan.travel)
+    tip_err = np.linalg.norm(plan.joints[:, -1] - target, axis=1)
+    fwd_last = max(i for i in range(n) if plan.phase[i] == "in")
+    end_err = float(np.linalg.norm(plan.joints[fwd_last, -1] - path.points[-1]))
+
+    on_path = seg >= Q  # joints fitted onto the path part of the backbone
+    joints_off = float(path.distance_to(plan.joints[on_path]).max()) if on_path.any() else 0.0
+    link_on = on_path[:, :-1] & on_path[:, 1:]
+    links_off = 0.0
+    if link_on.any():
+        s_idx, l_idx = np.nonzero(link_on)
+        t = np.linspace(0.0, 1.0, SAMPLES_PER_LINK)
+        P0 = plan.joints[s_idx, l_idx]
+        P1 = plan.joints[s_idx, l_idx + 1]
+        pts = P0[:, None, :] + t[None, :, None] * (P1 - P0)[:, None, :]
+        links_off = float(path.distance_to(pts).max())
+
+    lim_a, lim_t = model.limit_alpha, model.limit_theta
+    margin_a = lim_a - np.abs(plan.alpha)
+    margin_t = lim_t - np.abs(plan.theta)
+    margin = float(np.degrees(min(margin_a.min(), margin_t.min())))
+    violation = first_violation(plan)
+
+    if n > 1:
+        da = np.abs(np.diff(plan.alpha, axis=0))
+        dt = np.abs(np.diff(plan.theta, axis=0))
+        both = np.maximum(da, dt)
+        k, j = np.unravel_index(int(np.argmax(both)), both.shape)
+        max_change = {
+            "deg": float(np.degrees(both[k, j])),
+            "step": int(k + 1),
+            "joint": int(j + 1),
+        }
+    else:
+        max_change = {"deg": 0.0, "step": 0, "joint": 0}
+
+    report: dict[str, Any] = {
+        "steps": n,
+        "path_length_mm": path.length,
+        "tip_error_mm": float(tip_err.max()),
+        "end_error_mm": end_err,
+        "joints_off_path_mm": joints_off,
+        "links_off_path_mm": links_off,
+        "joint_limit_margin_deg": margin,
+        "first_violation": violation,
+        "max_angle_change_deg": max_change,
+        "solver_iterations": {
+            "total": int(plan.iterations.sum()),
+            "max_per_step": int(plan.iterations.max()),
+        },
+    }
+    if plan.scenario is not None:
+        worst, where_step, where_link = plan.scenario.clearance(
+            plan.joints, 0.5 * model.outer_diameter
+        )
+        report["clearance_mm"] = {
+            "min": None if math.isinf(worst) else worst,
+            "step": where_step,
+            "link": where_link,
+        }
+    return report
+
+
+def first_violation(plan: Plan) -> dict[str, Any] | None:
+    """The first step and joint whose angle leaves the open interval (-limit, limit)."""
+    bad_a = np.abs(plan.alpha) >= plan.model.limit_alpha
+    bad_t = np.abs(plan.theta) >= plan.model.limit_theta
+    bad = bad_a | bad_t
+    if not bad.any():
+        return None
+    i, j = map(int, np.argwhere(bad)[0])
+    name, value = ("alpha", plan.alpha[i, j]) if bad_a[i, j] else ("theta", plan.theta[i, j])
+    return {
+        "step": i,
+        "travel_mm": float(plan.travel[i]),
+        "joint": j + 1,
+        "angle": name,
+        "deg": float(np.degrees(value)),
+    }
+
+
+def check_limits(plan: Plan) -> None:
+    """Raise :class:`JointLimitError` naming step, joint and angle if any limit breaks."""
+    v = plan.report.get("first_violation") or first_violation(plan)
+    if v is not None:
+        raise JointLimitError(
+            f"joint limit broken at step {v['step']} (travel {v['travel_mm']:.1f} mm): "
+            f"joint {v['joint']} {v['angle']} = {v['deg']:.2f} deg"
+        )

@@ -1,0 +1,305 @@
+"""The rope layer's façade: joint angles <-> rope lengths <-> motor counts, and limits.
+
+Built once from the immutable :class:`~hrm_ctrl.model.RobotModel` (its ``[ropes]``
+and ``[motors]`` tables) and the calibration's zero offsets; every array is
+read-only and every method is vectorised over leading batch dimensions.
+
+>>> from hrm_ctrl.model import default_robot
+>>> act = load_actuation(default_robot())
+>>> act.n_motors, act.motor_ids[0], int(act.joint_of_motor[-1])
+(36, 'j01r0', 11)
+>>> c = act.counts_from_angles(np.zeros(12), np.zeros(12))
+>>> c.dtype.name, int(np.abs(c).max())          # straight arm at pretension = calibration zero
+('int64', 0)
+>>> a = np.full(12, 0.3); t = np.full(12, -0.2)
+>>> a2, t2, res = act.angles_from_counts(act.counts_from_angles(a, t))
+>>> bool(np.abs(a2 - a).max() < 1e-3 and np.abs(t2 - t).max() < 1e-3)   # counts are quantised
+True
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hrm_ctrl.errors import RopeError
+from hrm_ctrl.model import RobotModel
+from hrm_ctrl.ropes.inverse import newton_step, padded_index, solve_angles
+from hrm_ctrl.ropes.length import RopeGeometry, lengths_and_jacobian, rope_geometry
+from hrm_ctrl.ropes.length import rope_lengths as _rope_lengths
+from hrm_ctrl.ropes.motor_map import MotorMap, motor_map_from_table, unstretched_length_mm
+from hrm_ctrl.ropes.routing import RopeRouting, routing_from_model
+
+
+class RopeLimitError(RopeError):
+    """A configuration or setpoint breaks a joint, drum-travel or motor-speed limit."""
+
+
+@dataclass(frozen=True, eq=False)
+class Actuation:
+    """Rope actuation of one arm (immutable).
+
+    Attributes (contract): ``robot``, ``motor_ids`` (one per rope motor, "jKKrM"),
+    ``joint_of_motor`` (0-based joint each rope ends at), ``counts_min`` /
+    ``counts_max`` (int64 software position limits), ``max_rate_counts_per_s``.
+    Extra: ``routing``, ``geometry``, ``motors`` (conversion constants).
+    """
+
+    robot: RobotModel
+    motor_ids: tuple[str, ...]
+    joint_of_motor: np.ndarray
+    counts_min: np.ndarray
+    counts_max: np.ndarray
+    max_rate_counts_per_s: np.ndarray
+    routing: RopeRouting
+    geometry: RopeGeometry
+    motors: MotorMap
+    pad: np.ndarray
+    pre_c0: np.ndarray  # (n,) counts = pre_c0 - pre_k * length at the pretension
+    pre_k: np.ndarray
+    linear_inverse: np.ndarray  # (24, n): angles ~ linear_inverse @ (L - straight), small angles
+
+    @property
+    def n_motors(self) -> int:
+        return len(self.motor_ids)
+
+    def motor_label(self, i: int) -> str:
+        """``"j05r2 (joint 5, rope 2)"`` for motor index i."""
+        mid = self.motor_ids[i]
+        return f"{mid} (joint {int(self.joint_of_motor[i]) + 1}, rope {mid.split('r')[-1]})"
+
+    # ---- geometry -------------------------------------------------------------------------
+
+    def _angles(self, alpha: Any, theta: Any) -> tuple[np.ndarray, np.ndarray]:
+        a = np.asarray(alpha, dtype=float)
+        t = np.asarray(theta, dtype=float)
+        n = self.robot.n_joints
+        if a.shape[-1:] != (n,) or t.shape != a.shape:
+            raise RopeError(f"alpha and theta must have shape (..., {n}), got {a.shape}, {t.shape}")
+        return a, t
+
+    def rope_lengths(self, alpha: Any, theta: Any) -> np.ndarray:
+        """Geometric rope lengths (..., n) in mm from the base disk to each anchor."""
+        a, t = self._angles(alpha, theta)
+        return _rope_lengths(self.geometry, a, t)
+
+    def free_lengths(self, alpha: Any, theta: Any) -> np.ndarray:
+        """Free rope lengths (..., n) in mm, drum to anchor (box part + geometric)."""
+        return self.routing.box_length + self.rope_lengths(alpha, theta)
+
+    def check_angles(self, alpha: Any, theta: Any) -> None:
+        """Raise :class:`RopeLimitError` naming step and joint for NaN or out-of-limit angles."""
+        a, t = self._angles(alpha, theta)
+        if (np.abs(a) < self.robot.limit_alpha).all() and (
+            np.abs(t) < self.robot.limit_theta
+        ).all():
+            return
+        for name, v, lim in (
+            ("alpha", a, self.robot.limit_alpha),
+            ("theta", t, self.robot.limit_theta),
+        ):
+            bad = ~(np.abs(v) < lim)  # also catches NaN
+            if bad.any():
+                idx = np.argwhere(bad)[0]
+                where = f"step {int(idx[0])}: " if v.ndim == 2 else ""
+                val = float(v[tuple(idx)])
+                what = (
+                    "is not a finite number"
+                    if not np.isfinite(val)
+                    else f"({math.degrees(val):.4g} deg) is outside the joint limit "
+                    f"+-{np.degrees(lim):.6g} deg"
+                )
+                raise RopeLimitError(
+                    f"{where}joint {int(idx[-1]) + 1}: {name} = {val:.6g} rad {what}"
+                )
+
+    # ---- counts ---------------------------------------------------------------------------
+
+    def _tension(self, tension_N: Any) -> Any:
+        if tension_N is None:
+            return self.routing.pretension_N
+        T = np.asarray(tension_N, dtype=float)
+        if not np.all(np.isfinite(T)) or np.any(T < 0.0):
+            raise RopeError("rope tension must be finite and >= 0 N")
+        return T
+
+    def counts_from_angles(
+        self, alpha: Any, theta: Any, tension_N: Any = None, *, check: bool = True
+    ) -> np.ndarray:
+        """Motor setpoints (..., n) int64 for a configuration, corrected for rope stretch.
+
+        ``tension_N`` (scalar or (..., n)) defaults to the pretension.  With
+        ``check`` (default) NaN / out-of-limit angles and setpoints outside the drum
+        travel raise :class:`RopeLimitError` naming step, joint and rope.
+        """
+        a, t = self._angles(alpha, theta)
+        if (
+            check
+            and a.size
+            and not (
+                np.abs(a).max() < self.robot.limit_alpha
+                and np.abs(t).max() < self.robot.limit_theta
+            )
+        ):
+            self.check_angles(a, t)  # raises, naming step and joint
+        L = _rope_lengths(self.geometry, a, t)
+        if tension_N is None:  # pretension: counts are affine in the lengths (precomputed)
+            c = self.pre_c0 - self.pre_k * L
+            counts = np.rint(c, out=c).astype(np.int64)
+        else:
+            u = unstretched_length_mm(
+                self.routing.box_length + L,
+                self._tension(tension_N),
+                self.routing.stiffness_EA_N,
+            )
+            counts = self.motors.counts_from_unstretched(u)
+        if check and not ((counts >= self.counts_min).all() and (counts <= self.counts_max).all()):
+            self.check_counts(counts)  # raises, naming step and motor
+        return counts
+
+    def unstretched_from_counts(self, counts: Any) -> np.ndarray:
+        """Paid-out unstretched rope length (..., n) in mm for motor counts."""
+        return self.motors.unstretched_from_counts(self._counts(counts))
+
+    def lengths_from_counts(self, counts: Any, tension_N: Any = None) -> np.ndarray:
+        """Geometric rope lengths (..., n) in mm implied by counts at the given tension."""
+        u = self.unstretched_from_counts(counts)
+        T = self._tension(tension_N)
+        return u * (1.0 + T / self.routing.stiffness_EA_N) - self.routing.box_length
+
+    def angles_from_counts(
+        self,
+        counts: Any,
+        tension_N: Any = None,
+        alpha0: Any = None,
+        theta0: Any = None,
+        *,
+        robust: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Joint angles from motor counts: ``(alpha (...,12), theta (...,12), residual (...,n))``.
+
+        Uses the triangular rope structure (least squares per joint);
+        ``alpha0``/``theta0`` warm-start it.  The residual is measured minus
+        modelled geometric length per rope.  ``robust=False`` skips the slow
+        joint-by-joint fallback for inconsistent data (see
+        :func:`~hrm_ctrl.ropes.inverse.solve_angles`), e.g. when tracking a faulty arm.
+        """
+        L = self.lengths_from_counts(counts, tension_N)
+        if alpha0 is None and theta0 is None:  # start from the small-angle inverse
+            x0 = (L - self.geometry.straight) @ self.linear_inverse.T
+            lim = np.array([self.robot.limit_alpha, self.robot.limit_theta] * self.robot.n_joints)
+            np.clip(x0, -lim, lim, out=x0)
+            alpha0, theta0 = x0[..., 0::2], x0[..., 1::2]
+        sol = solve_angles(
+            self.geometry, self.joint_of_motor, L, alpha0, theta0, self.pad, robust=robust
+        )
+        return sol.alpha, sol.theta, sol.residual
+
+    def _counts(self, counts: Any) -> np.ndarray:
+        c = np.asarray(counts)
+        if c.shape[-1:] != (self.n_motors,):
+            raise RopeError(f"expected {self.n_motors} motor counts, got shape {c.shape}")
+        if c.dtype.kind == "f" and not np.all(np.isfinite(c)):
+            raise RopeError("motor counts must be finite")
+        return c
+
+    def check_counts(self, counts: Any, previous: Any = None, dt_s: Any = None) -> None:
+        """Raise :class:`RopeLimitError` for a setpoint outside the position limits or too fast.
+
+        ``counts`` is (n,) or a table (steps, n); for a table the step (row) is
+        named.  With ``dt_s`` the change from ``previous`` (n,) to the first row
+        and between consecutive rows is rate-checked; ``dt_s`` is a scalar or, for
+        a table, one interval per change (steps - 1, or steps with ``previous``).
+        """
+        c = self._counts(counts)
+        table = c.reshape(-1, self.n_motors)
+        is_table = c.ndim == 2
+        if not ((table >= self.counts_min).all() and (table <= self.counts_max).all()):
+            step, i = (
+                int(v)
+                for v in np.argwhere((table < self.counts_min) | (table > self.counts_max))[0]
+            )
+            where = f"step {step}: " if is_table else ""
+            raise RopeLimitError(
+                f"{where}motor {self.motor_label(i)}: setpoint {int(table[step, i])} counts "
+                "outside "
+                f"[{int(self.counts_min[i])}, {int(self.counts_max[i])}] (drum travel "
+                f"{self.motors.travel_in_mm:g} mm in / {self.motors.travel_out_mm:g} mm out)"
+            )
+        if dt_s is None:
+            return
+        seq = table
+        first = 1
+        if previous is not None:
+            seq = np.concatenate([self._counts(previous).reshape(1, -1), table], axis=0)
+            first = 0
+        n_changes = seq.shape[0] - 1
+        dt = np.asarray(dt_s, dtype=float)
+        if dt.ndim == 0:
+            dt = np.full(n_changes, float(dt))
+        if dt.shape != (n_changes,) or not np.all(dt > 0.0):
+            raise RopeError(f"dt_s must be > 0 s, one per change ({n_changes}), got {dt_s!r}")
+        if n_changes == 0:
+            return
+        rate = np.abs(np.diff(seq.astype(np.float64), axis=0)) / dt[:, None]
+        fast = rate > self.max_rate_counts_per_s
+        if fast.any():
+            row, i = (int(v) for v in np.argwhere(fast)[0])
+            where = f"step {row + first}: " if is_table else ""
+            raise RopeLimitError(
+                f"{where}motor {self.motor_label(i)}: moves {rate[row, i]:.0f} counts/s, "
+                "faster than "
+                f"the motor's {float(self.max_rate_counts_per_s[i]):.0f} counts/s"
+            )
+
+
+def load_actuation(robot: RobotModel, zero_offsets_counts: Any = None) -> Actuation:
+    """Build the rope actuation of ``robot``.
+
+    ``zero_offsets_counts``: the calibration's counts at the zero position (straight
+    arm at pretension), as n ints or ``{motor_id: counts}``; default all 0.
+    Raises :class:`RopeError` (subclasses) on a malformed routing or motor table.
+    """
+    routing = routing_from_model(robot)
+    geom = rope_geometry(routing)
+    u_ref = unstretched_length_mm(
+        routing.box_length + geom.straight, routing.pretension_N, routing.stiffness_EA_N
+    )
+    motors = motor_map_from_table(
+        robot.tables.get("motors", {}), routing.rope_ids, u_ref, zero_offsets_counts, robot.source
+    )
+    scale = 1.0 / (1.0 + routing.pretension_N / routing.stiffness_EA_N)
+    pre_k = motors.direction * motors.counts_per_mm * scale
+    pre_c0 = (
+        motors.zero_offsets_counts
+        + motors.direction * motors.counts_per_mm * motors.u_ref
+        - pre_k * routing.box_length
+    )
+    pad = padded_index(routing.joint_of_rope, robot.n_joints)
+    z = np.zeros((1, robot.n_joints))
+    _, J0, _ = lengths_and_jacobian(geom, z, z)
+    eye = np.eye(routing.n_ropes)
+    lin = np.stack([newton_step(J0, eye[m][None], pad)[0] for m in range(routing.n_ropes)], axis=1)
+    arrays = {
+        "linear_inverse": lin,
+        "pre_c0": pre_c0,
+        "pre_k": pre_k,
+        "counts_min": motors.counts_min,
+        "counts_max": motors.counts_max,
+        "max_rate_counts_per_s": motors.max_rate_counts_per_s,
+        "pad": pad,
+    }
+    for arr in arrays.values():
+        arr.setflags(write=False)
+    return Actuation(
+        robot=robot,
+        motor_ids=routing.rope_ids,
+        joint_of_motor=routing.joint_of_rope,
+        routing=routing,
+        geometry=geom,
+        motors=motors,
+        **arrays,
+    )

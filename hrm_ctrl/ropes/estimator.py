@@ -1,0 +1,206 @@
+"""State estimator: 24 joint angles and rates from noisy motor-position feedback.
+
+An extended Kalman filter (filterpy's ``ExtendedKalmanFilter``) over the whole
+arm: state ``(alpha_1, theta_1, ..., alpha_12, theta_12, rates...)`` (48), a
+constant-velocity model driven by white angular acceleration, and the 36 rope
+lengths implied by the motor counts as the measurement.  The measurement
+function is the exact rope-length map and its Jacobian is analytic (the same
+one the inverse uses), so one update costs one forward map plus a 36x36 solve.
+Why this and not a UKF or a chain of per-joint filters: ``docs/ropes.md``.
+
+Consistency: every update reports each rope's innovation (measured minus
+predicted length, mm, and normalised by ``sqrt(S_mm)``) and, per rope, the
+residual of the triangular rope inverse of the same sample (warm-started at
+the filter's estimate), standardised by the measurement noise and by the rope's
+share of its joint's redundancy (:func:`~hrm_ctrl.ropes.inverse.standardized_residual`).
+Its exponential average (``flag_window`` updates) is the consistency figure,
+about 1 for healthy ropes.  Because the inverse is triangular, a slack, broken
+or slipped rope leaves the joints before its own exact: the first joint (from
+the base) whose ropes exceed ``flag_sigma`` is the faulty one, and within it
+the ropes with the largest figure are flagged (all three with 3 ropes per
+joint, whose single redundant length cannot tell them apart; the faulty one
+with 4).
+
+>>> from hrm_ctrl.model import default_robot
+>>> from hrm_ctrl.ropes.actuation import load_actuation
+>>> act = load_actuation(default_robot())
+>>> est = RopeStateEstimator(act, rate_hz=100.0)
+>>> c = act.counts_from_angles(np.full(12, 0.2), np.full(12, -0.1))
+>>> est.initialise(c)
+>>> for _ in range(5):
+...     out = est.update(c)
+>>> bool(np.abs(out.alpha - 0.2).max() < 1e-3 and out.flagged == ())
+True
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from hrm_ctrl.errors import RopeError
+from hrm_ctrl.ropes.actuation import Actuation
+from hrm_ctrl.ropes.inverse import solve_angles, standardized_residual
+from hrm_ctrl.ropes.length import lengths_and_jacobian
+
+# Ropes of the flagged joint whose figure is within this share of the joint's largest
+# are named (they explain the inconsistency about equally well).
+FLAG_SHARE = 0.8
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One estimator output (angles rad, rates rad/s, lengths mm)."""
+
+    alpha: np.ndarray  # (12,)
+    theta: np.ndarray  # (12,)
+    alpha_rate: np.ndarray  # (12,)
+    theta_rate: np.ndarray  # (12,)
+    innovation_mm: np.ndarray  # (n,) measured - predicted rope length
+    normalized_innovation: np.ndarray  # (n,) innovation / sqrt(S_mm)
+    residual_mm: np.ndarray  # (n,) residual of the rope inverse of this sample (mm)
+    consistency: np.ndarray  # (n,) sqrt of the averaged squared standardised inverse residual
+    flagged_joint: int | None  # 1-based first joint whose ropes are inconsistent, or None
+    flagged: tuple[str, ...]  # motor ids of that joint that explain the inconsistency
+
+
+class RopeStateEstimator:
+    """EKF over the whole arm from rope-motor counts (one instance per run).
+
+    Args:
+        actuation: the rope layer of the arm.
+        rate_hz: control (update) rate.
+        count_noise: standard deviation of the position feedback (counts).
+        model_noise_mm: rope-length model error added to the measurement noise (mm).
+        accel_noise: standard deviation of the angular acceleration (rad/s^2).
+        flag_sigma: consistency level above which a rope is flagged.
+        flag_window: number of updates the consistency average spans.
+    """
+
+    def __init__(
+        self,
+        actuation: Actuation,
+        rate_hz: float = 100.0,
+        count_noise: float = 3.0,
+        model_noise_mm: float = 0.01,
+        accel_noise: float = 5.0,
+        flag_sigma: float = 5.0,
+        flag_window: int = 10,
+    ) -> None:
+        for name, v in (
+            ("rate_hz", rate_hz),
+            ("count_noise", count_noise),
+            ("accel_noise", accel_noise),
+            ("flag_sigma", flag_sigma),
+            ("flag_window", flag_window),
+        ):
+            if not (np.isfinite(v) and v > 0):
+                raise RopeError(f"estimator: {name} must be > 0, got {v!r}")
+        if not (np.isfinite(model_noise_mm) and model_noise_mm >= 0):
+            raise RopeError(f"estimator: model_noise_mm must be >= 0, got {model_noise_mm!r}")
+        self.act = actuation
+        n_j = actuation.robot.n_joints
+        self.n_x = 2 * n_j
+        n = actuation.n_motors
+        dt = 1.0 / rate_hz
+        self.dt_s = dt
+        self.flag_sigma = float(flag_sigma)
+        self._ewma = 1.0 / float(flag_window)
+        ekf = ExtendedKalmanFilter(dim_x=2 * self.n_x, dim_z=n)
+        I = np.eye(self.n_x)
+        ekf.F = np.block([[I, dt * I], [np.zeros_like(I), I]])
+        q = accel_noise**2
+        ekf.Q = np.block(
+            [[q * dt**4 / 4.0 * I, q * dt**3 / 2.0 * I], [q * dt**3 / 2.0 * I, q * dt**2 * I]]
+        )
+        sigma_mm = np.hypot(count_noise / actuation.motors.counts_per_mm, model_noise_mm)
+        ekf.R = np.diag(sigma_mm**2)
+        self.sigma_mm = sigma_mm
+        self.ekf = ekf
+        self._cache: tuple[np.ndarray, np.ndarray] | None = None
+        self._stat = np.ones(n)
+        self.initialised = False
+
+    def initialise(self, counts: Any, tension_N: Any = None, angle_sigma: float = 0.01) -> None:
+        """Start from the rope inverse of one feedback sample, at rest."""
+        a, t, _ = self.act.angles_from_counts(counts, tension_N)
+        x = np.zeros((2 * self.n_x, 1))
+        x[0 : self.n_x : 2, 0] = a
+        x[1 : self.n_x : 2, 0] = t
+        self.ekf.x = x
+        self.ekf.P = np.diag(np.r_[np.full(self.n_x, angle_sigma**2), np.full(self.n_x, 0.1**2)])
+        self._stat = np.ones(self.act.n_motors)
+        self.initialised = True
+
+    def _hjac(self, x: np.ndarray) -> np.ndarray:
+        ang = x[: self.n_x, 0].reshape(1, -1, 2)
+        s, J, _ = lengths_and_jacobian(self.act.geometry, ang[..., 0], ang[..., 1])
+        self._cache = (s[0][:, None], J[0])
+        H = np.zeros((self.act.n_motors, 2 * self.n_x))
+        H[:, : self.n_x] = J[0]
+        return H
+
+    def _hx(self, x: np.ndarray) -> np.ndarray:
+        if self._cache is None:  # pragma: no cover - filterpy calls HJacobian first
+            self._hjac(x)
+        return self._cache[0]  # type: ignore[index]
+
+    def update(self, counts: Any, tension_N: Any = None) -> Estimate:
+        """Predict one control period and correct with one feedback sample (n counts)."""
+        if not self.initialised:
+            raise RopeError("estimator: call initialise() with a first feedback sample")
+        z = self.act.lengths_from_counts(counts, tension_N)
+        if z.shape != (self.act.n_motors,):
+            raise RopeError(f"estimator: expected {self.act.n_motors} counts, got {z.shape}")
+        ekf = self.ekf
+        ekf.predict()
+        self._cache = None
+        ekf.update(z[:, None], self._hjac, self._hx)
+        nu = ekf.y[:, 0]
+        nis = nu / np.sqrt(np.diag(ekf.S))
+        x = ekf.x[:, 0]
+        a, t = x[0 : self.n_x : 2], x[1 : self.n_x : 2]
+        act = self.act
+        sol = solve_angles(
+            act.geometry, act.joint_of_motor, z, a, t, act.pad, robust=False, max_iterations=2
+        )
+        zstd = (
+            standardized_residual(
+                act.geometry,
+                act.joint_of_motor,
+                sol.alpha,
+                sol.theta,
+                sol.residual,
+                jacobian=sol.jacobian,
+                pad=act.pad,
+            )
+            / self.sigma_mm
+        )
+        self._stat += self._ewma * (zstd**2 - self._stat)
+        cons = np.sqrt(self._stat)
+        joint_cons = np.zeros(act.robot.n_joints)
+        np.maximum.at(joint_cons, act.joint_of_motor, cons)
+        bad = np.flatnonzero(joint_cons > self.flag_sigma)
+        flagged_joint: int | None = None
+        flagged: tuple[str, ...] = ()
+        if bad.size:
+            k = int(bad[0])
+            own = np.flatnonzero(act.joint_of_motor == k)
+            top = own[cons[own] >= FLAG_SHARE * joint_cons[k]]
+            flagged_joint = k + 1
+            flagged = tuple(act.motor_ids[i] for i in top)
+        return Estimate(
+            alpha=a.copy(),
+            theta=t.copy(),
+            alpha_rate=x[self.n_x :: 2].copy(),
+            theta_rate=x[self.n_x + 1 :: 2].copy(),
+            innovation_mm=nu.copy(),
+            normalized_innovation=nis,
+            residual_mm=sol.residual,
+            consistency=cons,
+            flagged_joint=flagged_joint,
+            flagged=flagged,
+        )

@@ -1,0 +1,214 @@
+"""Rope length <-> drum <-> encoder counts, and the elastic stretch of a rope.
+
+A rope's free length runs from its drum in the box (``box_length``) along the arm
+to its anchor (the geometric length of :mod:`hrm_ctrl.ropes.length`).  Under a
+tension T a rope of unstretched length u is ``u (1 + T / EA)`` long, so to hold
+a free length ``L`` at tension T the drum must have paid out ``u = L / (1 + T/EA)``.
+The motor winds rope in as its count grows (direction +1):
+
+    counts = zero_offset + direction * counts_per_mm * (u_ref - u)
+
+with ``counts_per_mm = gear_ratio * counts_per_turn / (2 pi drum_radius)`` and
+``u_ref`` the paid-out length on the straight arm at the pretension (the
+calibration zero).
+
+The ``[motors]`` table of the robot description (all optional, defaults below):
+``drum_radius_mm`` (10), ``gear_ratio`` (33, motor turns per drum turn),
+``counts_per_turn`` (4096, encoder counts per motor turn), ``max_speed_rpm``
+(6000, motor shaft), ``travel_in_mm`` / ``travel_out_mm`` (200 / 200: rope the drum
+can wind in / pay out from the zero position) and ``direction`` (+1, -1, or a
+table ``{ j03r1 = -1, ... }`` per motor).
+
+>>> round(float(unstretched_length_mm(2500.0, 30.0, 30000.0)), 4)   # 2.5 m at 30 N, EA 30 kN
+2497.5025
+>>> round(float(rope_tension_N(2500.0, 2497.5025, 30000.0)), 3)
+30.0
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hrm_ctrl.errors import RopeError
+
+DEFAULT_MOTORS: dict[str, float] = {
+    "drum_radius_mm": 10.0,
+    "gear_ratio": 33.0,
+    "counts_per_turn": 4096.0,
+    "max_speed_rpm": 6000.0,
+    "travel_in_mm": 200.0,
+    "travel_out_mm": 200.0,
+}
+
+
+class MotorConfigError(RopeError):
+    """The ``[motors]`` table is malformed or names an unknown motor."""
+
+
+def unstretched_length_mm(free_length_mm: Any, tension_N: Any, EA_N: Any) -> Any:
+    """Unstretched rope length that is ``free_length_mm`` long under ``tension_N``."""
+    return free_length_mm / (1.0 + np.asarray(tension_N) / EA_N)
+
+
+def stretched_length_mm(unstretched_mm: Any, tension_N: Any, EA_N: Any) -> Any:
+    """Length of a rope of unstretched length ``unstretched_mm`` under ``tension_N``.
+
+    >>> float(stretched_length_mm(1000.0, 300.0, 30000.0))
+    1010.0
+    """
+    return unstretched_mm * (1.0 + np.asarray(tension_N) / EA_N)
+
+
+def rope_tension_N(free_length_mm: Any, unstretched_mm: Any, EA_N: Any) -> Any:
+    """Tension of a rope stretched from ``unstretched_mm`` to ``free_length_mm``; 0 if slack.
+
+    The stretch/tension relation the simulated box uses: the drum fixes the
+    unstretched length (from the counts), the arm's pose fixes the free length.
+
+    >>> np.round(rope_tension_N(np.array([1010.0, 990.0]), 1000.0, 30000.0), 9).tolist()
+    [300.0, 0.0]
+    """
+    strain = np.asarray(free_length_mm) / np.asarray(unstretched_mm) - 1.0
+    return np.maximum(EA_N * strain, 0.0) + 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class MotorMap:
+    """Per-motor conversion constants (read-only arrays, one entry per rope motor)."""
+
+    counts_per_mm: np.ndarray  # (n,) counts per mm of rope wound
+    direction: np.ndarray  # (n,) +1 / -1
+    zero_offsets_counts: np.ndarray  # (n,) int64 counts at the zero position
+    u_ref: np.ndarray  # (n,) unstretched paid-out length at the zero position (mm)
+    travel_in_mm: float
+    travel_out_mm: float
+    max_speed_rpm: float
+    counts_per_turn: float
+
+    def counts_from_unstretched(self, u: np.ndarray) -> np.ndarray:
+        """Encoder counts (int64) for paid-out unstretched lengths ``u`` (..., n)."""
+        c = self.zero_offsets_counts + self.direction * self.counts_per_mm * (self.u_ref - u)
+        return np.rint(c).astype(np.int64)
+
+    def unstretched_from_counts(self, counts: np.ndarray) -> np.ndarray:
+        """Paid-out unstretched lengths (mm) for encoder counts (..., n)."""
+        c = np.asarray(counts, dtype=float) - self.zero_offsets_counts
+        return self.u_ref - self.direction * c / self.counts_per_mm
+
+    @property
+    def counts_min(self) -> np.ndarray:
+        return np.minimum(self._limit(self.travel_in_mm), self._limit(-self.travel_out_mm))
+
+    @property
+    def counts_max(self) -> np.ndarray:
+        return np.maximum(self._limit(self.travel_in_mm), self._limit(-self.travel_out_mm))
+
+    def _limit(self, wound_mm: float) -> np.ndarray:
+        return self.zero_offsets_counts + np.trunc(
+            self.direction * self.counts_per_mm * wound_mm
+        ).astype(np.int64)
+
+    @property
+    def max_rate_counts_per_s(self) -> np.ndarray:
+        rate = self.max_speed_rpm / 60.0 * self.counts_per_turn
+        return np.full(self.direction.shape, rate)
+
+
+def _num(table: Mapping[str, Any], key: str, where: str, *, positive: bool = True) -> float:
+    value = table.get(key, DEFAULT_MOTORS[key])
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise MotorConfigError(f"{where}.{key}: expected a number, got {value!r}")
+    x = float(value)
+    if not math.isfinite(x) or (positive and x <= 0.0) or x < 0.0:
+        raise MotorConfigError(f"{where}.{key}: must be a finite number > 0, got {value!r}")
+    return x
+
+
+def _directions(value: Any, ids: Sequence[str], where: str) -> np.ndarray:
+    n = len(ids)
+    if isinstance(value, Mapping):
+        out = np.ones(n)
+        for key, v in value.items():
+            if key not in ids:
+                raise MotorConfigError(f"{where}.direction: unknown motor id {key!r}")
+            out[ids.index(key)] = _sign(v, f"{where}.direction.{key}")
+        return out
+    if isinstance(value, list):
+        if len(value) != n:
+            raise MotorConfigError(f"{where}.direction: list must have {n} values")
+        return np.array([_sign(v, f"{where}.direction[{i}]") for i, v in enumerate(value)])
+    return np.full(n, _sign(value, f"{where}.direction"))
+
+
+def _sign(v: Any, where: str) -> float:
+    if isinstance(v, bool) or v not in (1, -1):
+        raise MotorConfigError(f"{where}: must be +1 or -1, got {v!r}")
+    return float(v)
+
+
+def zero_offsets_from(value: Any, ids: Sequence[str]) -> np.ndarray:
+    """Zero offsets as an int64 array from None, a sequence of n ints or ``{id: counts}``.
+
+    >>> zero_offsets_from({"b": 7}, ["a", "b"]).tolist()
+    [0, 7]
+    """
+    n = len(ids)
+    out = np.zeros(n, dtype=np.int64)
+    if value is None:
+        return out
+    if isinstance(value, Mapping):
+        for key, v in value.items():
+            if key not in ids:
+                raise RopeError(f"zero offsets: unknown motor id {key!r}")
+            out[ids.index(key)] = _int(v, f"zero offsets: {key}")
+        return out
+    arr = np.asarray(value)
+    if arr.shape != (n,):
+        raise RopeError(f"zero offsets: expected {n} values, got shape {arr.shape}")
+    return np.array([_int(v, f"zero offsets[{i}]") for i, v in enumerate(arr.tolist())], np.int64)
+
+
+def _int(v: Any, where: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v != int(v):
+        raise RopeError(f"{where}: expected an integer count, got {v!r}")
+    return int(v)
+
+
+def motor_map_from_table(
+    table: Mapping[str, Any],
+    ids: Sequence[str],
+    u_ref: np.ndarray,
+    zero_offsets_counts: Any = None,
+    source: str = "[motors]",
+) -> MotorMap:
+    """Validate a ``[motors]`` table (may be empty: defaults) and build the map."""
+    where = f"{source}: [motors]"
+    if not isinstance(table, Mapping):
+        raise MotorConfigError(f"{where} must be a table")
+    for key in table:
+        if key not in DEFAULT_MOTORS and key != "direction":
+            raise MotorConfigError(f"{where}: unknown key {key!r}")
+    ids = list(ids)
+    vals = {k: _num(table, k, where) for k in DEFAULT_MOTORS}
+    cpm = vals["gear_ratio"] * vals["counts_per_turn"] / (2.0 * math.pi * vals["drum_radius_mm"])
+    n = len(ids)
+    arrays = {
+        "counts_per_mm": np.full(n, cpm),
+        "direction": _directions(table.get("direction", 1), ids, where),
+        "zero_offsets_counts": zero_offsets_from(zero_offsets_counts, ids),
+        "u_ref": np.array(u_ref, dtype=float),
+    }
+    for arr in arrays.values():
+        arr.setflags(write=False)
+    return MotorMap(
+        travel_in_mm=vals["travel_in_mm"],
+        travel_out_mm=vals["travel_out_mm"],
+        max_speed_rpm=vals["max_speed_rpm"],
+        counts_per_turn=vals["counts_per_turn"],
+        **arrays,
+    )

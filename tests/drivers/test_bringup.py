@@ -1,0 +1,114 @@
+"""Bring-up faults: missing nodes, SDO aborts, a drive stuck in a state, bus-load refusal."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from drivers.bringup import BootupError, SdoError, StateTimeoutError
+from drivers.busload import BusLoadError, highest_usable_rate
+from drivers.protocol import cia402 as c
+from drivers.safety.subset import ActuationSubset
+from drivers.session import DriveBox
+from hrm_ctrl.errors import DriverError
+from hrm_ctrl.ropes.actuation import Actuation
+from tests.drivers.driver_rig import Rig, make_config
+
+
+def test_missing_nodes_are_listed(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory(
+        buses=({"j01r0": 1, "j01r1": 2}, {"j07r0": 3, "j07r1": 4}),
+        sim_buses=({"j01r0": 1, "j01r1": 2}, {"j07r0": 3}),
+        bootup_timeout_s=0.3,
+    )
+    box = rig.open_box()
+    t = time.monotonic()
+    with pytest.raises(BootupError) as info:
+        box.bring_up()
+    assert time.monotonic() - t < 1.5
+    msg = str(info.value)
+    assert "1 node(s): j07r1 (bus bus1 node 4)" in msg
+    # Nothing but NMT and heartbeats went out: no SDO, no PDO.
+    sent = {m.arbitration_id for sn in rig.sniffers for m in sn.snapshot()}
+    assert not any(0x600 < cid <= 0x67F or 0x200 < cid <= 0x27F for cid in sent)
+
+
+def test_sdo_abort_names_node_object_and_code(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory(quick_stop_option_code=9)  # the drive accepts 0..8 only
+    box = rig.open_box()
+    with pytest.raises(SdoError) as info:
+        box.bring_up()
+    msg = str(info.value)
+    assert "0x605A:00" in msg and "0x06090030" in msg and "node" in msg
+    assert "\n" not in msg
+    # No drive was enabled.
+    assert c.State402.OPERATION_ENABLED not in {
+        c.decode_state(sw) for sw in rig.sim.statuswords().values()
+    }
+
+
+def test_statusword_that_never_reaches_the_state_times_out(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    rig = rig_factory(state_timeout_s=0.1)
+    stuck = rig.sim.drives["j07r0"]
+    stuck._on_controlword = lambda cw, now: None  # type: ignore[method-assign]
+    box = rig.open_box()
+    t = time.monotonic()
+    with pytest.raises(StateTimeoutError) as info:
+        box.bring_up()
+    assert time.monotonic() - t < 2.0
+    msg = str(info.value)
+    assert "j07r0" in msg and "SWITCH_ON_DISABLED" in msg and "expected READY_TO_SWITCH_ON" in msg
+    # The drives that were enabled got a quick stop: none stays enabled.
+    time.sleep(0.05)
+    assert c.State402.OPERATION_ENABLED not in {
+        c.decode_state(sw) for sw in rig.sim.statuswords().values()
+    }
+
+
+def test_bus_load_refusal_before_anything_is_opened(actuation: Actuation) -> None:
+    nodes = {m: k + 1 for k, m in enumerate(actuation.motor_ids)}
+    cfg = make_config([{"interface": "virtual", "channel": "never-opened"}], buses=(nodes,))
+    with pytest.raises(BusLoadError) as info:
+        DriveBox(cfg, actuation)
+    msg = str(info.value)
+    # 36 nodes: 36 * (115 + 115) + 55 bits per cycle, heartbeats 37 * 65 * 10 bit/s.
+    per_cycle = 36 * 230 + 55
+    expected = highest_usable_rate((0.7 * 1_000_000 - 37 * 65 * 10) / per_cycle)
+    assert expected == 80  # 81 Hz fits the budget, but 0x60C2 cannot encode 1/81 s
+    assert msg.startswith("bus bus0: worst-case load 85.8% at 100 Hz exceeds the 70% limit")
+    assert msg.endswith(f"highest rate that fits: {expected:g} Hz")
+
+
+def test_box_refuses_a_config_without_every_rope_motor(actuation: Actuation) -> None:
+    cfg = make_config([{"interface": "virtual", "channel": "x"}], buses=({"j01r0": 1},))
+    with pytest.raises(DriverError, match=r"no node id for rope motor\(s\) \['j01r1'"):
+        DriveBox(cfg, actuation)
+    sub = ActuationSubset(actuation, ("j01r0",))
+    DriveBox(cfg, sub).close()
+
+
+def test_unopenable_bus_is_a_one_line_error(actuation: Actuation) -> None:
+    cfg = make_config(
+        [{"interface": "socketcan", "channel": "hrm-no-such-if"}], buses=({"j01r0": 1},)
+    )
+    with pytest.raises(DriverError) as info:
+        DriveBox(cfg, ActuationSubset(actuation, ("j01r0",)))
+    assert "buses.bus0: cannot open socketcan channel 'hrm-no-such-if'" in str(info.value)
+
+
+def test_unopenable_second_bus_leaves_no_file(actuation: Actuation, tmp_path: Path) -> None:
+    cfg = make_config(
+        [
+            {"interface": "virtual", "channel": "fine"},
+            {"interface": "socketcan", "channel": "hrm-no-such-if"},
+        ],
+        buses=({"j01r0": 1}, {"j07r0": 1}),
+    )
+    with pytest.raises(DriverError, match=r"buses\.bus1: cannot open"):
+        DriveBox(cfg, ActuationSubset(actuation, ("j01r0", "j07r0")), log_dir=tmp_path)
+    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,138 @@
+"""``hrm ropes PLAN.json [--robot FILE] [--out SETPOINTS.csv]``."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hrm_ctrl.cli import main
+from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.model import default_robot
+from hrm_ctrl.ropes.actuation import Actuation
+
+
+def make_plan(n: int = 20, scale: float = 0.6, travel_step: float = 5.0) -> dict[str, Any]:
+    robot = default_robot()
+    s = np.linspace(0.0, 1.0, n)[:, None]
+    ph = np.arange(12)[None, :]
+    alpha = scale * s * np.sin(0.7 * ph)
+    theta = scale * s * np.cos(0.5 * ph)
+    O = joint_centres(robot, alpha, theta)
+    steps = [
+        {
+            "travel_mm": travel_step * i,
+            "alpha_rad": alpha[i].tolist(),
+            "theta_rad": theta[i].tolist(),
+            "joints_mm": O[i].tolist(),
+        }
+        for i in range(n)
+    ]
+    return {
+        "format": "hrm-plan/1",
+        "robot": {"links_mm": robot.links.tolist()},
+        "path_mm": [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
+        "steps": steps,
+        "report": {},
+    }
+
+
+def write(tmp_path: Path, plan: dict[str, Any], name: str = "plan.json") -> Path:
+    p = tmp_path / name
+    p.write_text(json.dumps(plan))
+    return p
+
+
+def test_setpoint_table_and_summary(
+    tmp_path: Path, act: Actuation, capsys: pytest.CaptureFixture
+) -> None:
+    plan = make_plan()
+    out = tmp_path / "sp.csv"
+    assert main(["ropes", str(write(tmp_path, plan)), "--out", str(out)]) == 0
+    rows = list(csv.reader(out.open()))
+    assert rows[0] == ["step", "travel_mm", *act.motor_ids]
+    assert len(rows) == 21
+    table = np.array([[int(v) for v in r[2:]] for r in rows[1:]])
+    expected = act.counts_from_angles(
+        np.array([s["alpha_rad"] for s in plan["steps"]]),
+        np.array([s["theta_rad"] for s in plan["steps"]]),
+    )
+    np.testing.assert_array_equal(table, expected)
+    text = capsys.readouterr().out
+    assert "20 steps, 36 rope motors" in text and "largest travel" in text
+    assert "j12r2" in text
+
+
+def test_json_summary(tmp_path: Path, act: Actuation, capsys: pytest.CaptureFixture) -> None:
+    assert main(["ropes", str(write(tmp_path, make_plan())), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["steps"] == 20 and len(s["motors"]) == 36
+    m = s["motors"][0]
+    assert m["largest_travel_step"] == 19  # the bend grows along the plan
+    assert m["largest_change_counts"] > 0
+
+
+def bad_plans() -> list[tuple[str, Any, str]]:
+    p1 = make_plan()
+    p1["format"] = "hrm-plan/0"
+    p2 = make_plan()
+    p2["steps"][7]["alpha_rad"][4] = 1.3
+    p3 = make_plan()
+    p3["robot"]["links_mm"][0] = 100.0
+    return [
+        ("format", p1, "expected 'hrm-plan/1'"),
+        ("limit", p2, "step 7: joint 5: alpha"),
+        ("robot", p3, "plan was made for links"),
+        ("notjson", "{not json", "not JSON"),
+    ]
+
+
+@pytest.mark.parametrize(
+    ("label", "plan", "match"),
+    bad_plans(),
+    ids=lambda v: v if isinstance(v, str) and len(v) < 10 else "",
+)
+def test_bad_plans_one_line_no_output(
+    tmp_path: Path, capsys: pytest.CaptureFixture, label: str, plan: Any, match: str
+) -> None:
+    p = tmp_path / "plan.json"
+    p.write_text(plan if isinstance(plan, str) else json.dumps(plan))
+    out = tmp_path / "sp.csv"
+    assert main(["ropes", str(p), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert match in err and err.count("\n") == 1 and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_too_fast_for_the_motors(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    plan = make_plan(n=20, scale=0.9)
+    out = tmp_path / "sp.csv"
+    assert main(["ropes", str(write(tmp_path, plan)), "--out", str(out), "--speed", "5000"]) == 2
+    err = capsys.readouterr().err
+    assert "step 1: motor j" in err and "faster than the motor" in err
+    assert not out.exists()
+    assert main(["ropes", str(write(tmp_path, plan)), "--speed", "-1"]) == 2
+    assert "--speed" in capsys.readouterr().err
+
+
+def test_bad_robot_routing_and_missing_files(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from importlib import resources
+
+    text = resources.files("hrm_ctrl.data").joinpath("robot.toml").read_text()
+    bad = tmp_path / "robot.toml"
+    bad.write_text(text.replace("hole_radius_mm = 12.0", "hole_radius_mm = 15.0"))
+    plan = write(tmp_path, make_plan())
+    out = tmp_path / "sp.csv"
+    assert main(["ropes", str(plan), "--robot", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "robot.toml" in err and "outside the 30 mm disk" in err and err.count("\n") == 1
+    bad.write_text(text.replace("direction = 1", "direction = { j99r0 = -1 }"))
+    assert main(["ropes", str(plan), "--robot", str(bad)]) == 2
+    assert "unknown motor id 'j99r0'" in capsys.readouterr().err
+    assert main(["ropes", str(tmp_path / "none.json")]) == 2
+    assert "plan file not found" in capsys.readouterr().err
+    assert not out.exists()

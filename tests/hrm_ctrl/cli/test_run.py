@@ -1,0 +1,184 @@
+"""``hrm run``: a plan on the simulated box; bad input is one line, no files, no frames."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+from hrm_ctrl.cli import main
+from hrm_ctrl.formats.planfile import write_plan
+from hrm_ctrl.model import default_robot
+
+
+def write_small_plan(path: Path) -> None:
+    steps = []
+    for k in range(4):
+        a = float(np.deg2rad(3.0) * k / 3)
+        steps.append(
+            {
+                "travel_mm": 5.0 * k,
+                "alpha_rad": [a] * 12,
+                "theta_rad": [0.0] * 12,
+                "joints_mm": [[0.0, 0.0, 0.0]] * 13,
+            }
+        )
+    plan = {
+        "format": "hrm-plan/1",
+        "robot": {"links_mm": [float(v) for v in default_robot().links]},
+        "path_mm": [[0.0, 0.0, 0.0], [15.0, 0.0, 0.0]],
+        "steps": steps,
+        "report": {},
+    }
+    write_plan(path, plan)
+
+
+def test_run_plan_on_the_simulated_box(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    plan = tmp_path / "plan.json"
+    write_small_plan(plan)
+    logs = tmp_path / "runs"
+    rc = main(["run", str(plan), "--sim", "--log-dir", str(logs), "--speed", "60", "--json"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    summary = json.loads(out.out)
+    assert summary["completed"] is True
+    assert summary["cycles"] >= 26  # 15 mm at 60 mm/s = 0.25 s, + hold
+    record = json.loads(Path(summary["run_record"]).read_text())
+    assert record["plan_file"] == str(plan) and record["simulated_box"] is True
+    assert record["plan_sha256"] == hashlib.sha256(plan.read_bytes()).hexdigest()
+    assert record["plan_format"] == "hrm-plan/1" and record["plan_steps"] == 4
+    assert record["setpoints"]["source"] == "plan"
+    assert len(list(logs.glob("*.blf"))) == 2
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["missing.json"], "plan file not found"),
+        (["--hold", "1", "--jog", "j01r0:1:1"], "give exactly one of"),
+        (["--jog", "j01r0:9999999:1"], "jog j01r0: 9999999 counts/s exceeds"),
+        (["--jog", "j01r0:fast"], "expected MOTOR:COUNTS_PER_S:SECONDS"),
+        (["--hold", "1", "--config", "nope.toml"], "bus configuration not found"),
+        (["--hold", "-1"], "--hold must be > 0 s"),
+    ],
+)
+def test_bad_input_is_one_line_without_files(
+    tmp_path: Path, capsys: pytest.CaptureFixture, args: list[str], message: str
+) -> None:
+    logs = tmp_path / "runs"
+    rc = main(["run", *args, "--sim", "--log-dir", str(logs)])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert message in err and err.count("\n") == 1, err
+    assert not logs.exists()
+
+
+def test_busload_command(capsys: pytest.CaptureFixture) -> None:
+    assert main(["busload"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("worst-case load 43.2%") == 2 and "125 Hz" in out
+    assert main(["busload", "--rate", "200", "--json"]) == 1
+    loads = json.loads(capsys.readouterr().out)
+    assert [bl["fits"] for bl in loads] == [False, False]
+
+
+@pytest.fixture
+def no_bus(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
+    """Record (and refuse) every attempt to open a CAN bus."""
+    opened: list[dict[str, Any]] = []
+
+    def refuse(*args: Any, **kwargs: Any) -> None:
+        opened.append(kwargs)
+        raise AssertionError(f"a bus was opened: {kwargs}")
+
+    monkeypatch.setattr(can, "Bus", refuse)
+    return opened
+
+
+@pytest.mark.parametrize("where", ["file", "under_file", "proc"])
+def test_bad_log_dir_is_one_line_before_any_bus_opens(
+    tmp_path: Path, capsys: pytest.CaptureFixture, no_bus: list[dict[str, Any]], where: str
+) -> None:
+    blocker = tmp_path / "blocker"
+    blocker.write_text("not a directory")
+    bad = {"file": blocker, "under_file": blocker / "runs", "proc": Path("/proc/nope")}[where]
+    rc = main(["run", "--hold", "0.1", "--sim", "--log-dir", str(bad)])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert err.startswith(f"hrm run: error: log directory {bad}: ") and err.count("\n") == 1, err
+    assert no_bus == []
+    assert blocker.read_text() == "not a directory"
+
+
+def test_rate_0x60C2_cannot_encode_is_refused_before_any_bus_opens(
+    tmp_path: Path, capsys: pytest.CaptureFixture, no_bus: list[dict[str, Any]]
+) -> None:
+    from drivers import default_box_path
+
+    box = tmp_path / "box.toml"
+    box.write_text(default_box_path().read_text().replace("rate_hz = 100", "rate_hz = 30", 1))
+    assert "rate_hz = 30" in box.read_text()
+    logs = tmp_path / "runs"
+    rc = main(["run", "--hold", "0.1", "--sim", "--config", str(box), "--log-dir", str(logs)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert f"{box}: control.rate_hz must give a period 0x60C2 can encode" in err
+    assert no_bus == [] and not logs.exists()
+
+
+def test_busload_refuses_a_rate_0x60C2_cannot_encode(capsys: pytest.CaptureFixture) -> None:
+    assert main(["busload", "--rate", "30"]) == 2
+    err = capsys.readouterr().err
+    assert "--rate 30: must give a period 0x60C2 can encode" in err and err.count("\n") == 1
+
+
+def test_incomplete_can_log_fails_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real = can.Logger
+
+    class FullDisk:
+        """A log writer on a disk that fills up after 40 frames."""
+
+        def __init__(self, path: str) -> None:
+            self.inner = real(path)
+            self.n = 0
+
+        def on_message_received(self, msg: can.Message) -> None:
+            self.n += 1
+            if self.n > 40:
+                raise OSError(28, "No space left on device")
+            self.inner.on_message_received(msg)
+
+        def stop(self) -> None:
+            self.inner.stop()
+
+    monkeypatch.setattr(can, "Logger", FullDisk)
+    logs = tmp_path / "runs"
+    rc = main(["run", "--hold", "0.1", "--sim", "--log-dir", str(logs), "--json"])
+    out = capsys.readouterr()
+    assert rc == 2, out.err
+    lines = [x for x in out.err.splitlines() if "CAN log" in x]
+    assert len(lines) == 1 and lines[0].startswith("hrm run: error: CAN log incomplete: "), out.err
+    assert "No space left on device" in lines[0] and "Traceback" not in out.err
+    summary = json.loads(out.out)
+    assert summary["completed"] is True and summary["can_log_errors"]
+    record = json.loads(Path(summary["run_record"]).read_text())
+    assert len(record["can_log_errors"]) == 2  # both buses' logs
+    assert all("No space left on device" in e for e in record["can_log_errors"])
+
+
+def test_complete_can_logs_exit_zero(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    logs = tmp_path / "runs"
+    rc = main(["run", "--hold", "0.1", "--sim", "--log-dir", str(logs), "--json"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    summary = json.loads(out.out)
+    assert summary["can_log_errors"] == [] and "CAN log" not in out.err
+    record = json.loads(Path(summary["run_record"]).read_text())
+    assert record["plan_file"] is None and record["can_log_errors"] == []

@@ -1,0 +1,105 @@
+"""Limits: joint angles, drum travel, motor speed; refusals name step, joint and rope."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hrm_ctrl.errors import RopeError
+from hrm_ctrl.ropes.actuation import Actuation, RopeLimitError, load_actuation
+from tests.hrm_ctrl.ropes.rope_helpers import robot_with
+
+
+def test_contract_attributes(act: Actuation) -> None:
+    assert act.n_motors == 36 and len(act.motor_ids) == 36
+    assert act.motor_ids[0] == "j01r0" and act.motor_ids[-1] == "j12r2"
+    assert act.joint_of_motor.tolist() == [k for k in range(12) for _ in range(3)]
+    for arr in (act.counts_min, act.counts_max):
+        assert arr.dtype == np.int64 and arr.shape == (36,)
+    assert np.all(act.counts_min < 0) and np.all(act.counts_max > 0)
+    assert act.max_rate_counts_per_s.shape == (36,)
+    with pytest.raises(ValueError):
+        act.counts_min[0] = 5  # read-only
+
+
+def test_zero_offsets_shift_counts_and_limits() -> None:
+    a = load_actuation(robot_with(), np.arange(36) * 100)
+    c = a.counts_from_angles(np.zeros(12), np.zeros(12))
+    assert c.tolist() == (np.arange(36) * 100).tolist()
+    assert a.counts_max[5] - 500 == load_actuation(robot_with()).counts_max[5]
+
+
+@pytest.mark.parametrize(
+    ("joint", "name", "value"),
+    [
+        (3, "alpha", np.nan),
+        (7, "theta", np.deg2rad(60.0)),
+        (11, "alpha", -1.2),
+        (0, "theta", np.inf),
+    ],
+)
+def test_bad_angles_are_refused_naming_the_joint(
+    act: Actuation, joint: int, name: str, value: float
+) -> None:
+    a, t = np.zeros(12), np.zeros(12)
+    (a if name == "alpha" else t)[joint] = value
+    with pytest.raises(RopeLimitError, match=f"joint {joint + 1}: {name}"):
+        act.counts_from_angles(a, t)
+
+
+def test_bad_angles_in_a_table_name_the_step(act: Actuation) -> None:
+    a, t = np.zeros((5, 12)), np.zeros((5, 12))
+    t[3, 9] = 1.1
+    with pytest.raises(RopeLimitError, match="step 3: joint 10: theta"):
+        act.counts_from_angles(a, t)
+
+
+def test_check_counts_position_limit_names_motor_and_step(act: Actuation) -> None:
+    table = np.zeros((4, 36), dtype=np.int64)
+    table[2, 7] = act.counts_max[7] + 1
+    with pytest.raises(RopeLimitError, match=r"step 2: motor j03r1 \(joint 3, rope 1\)"):
+        act.check_counts(table)
+    single = np.zeros(36, dtype=np.int64)
+    single[0] = act.counts_min[0] - 1
+    with pytest.raises(RopeLimitError, match="motor j01r0") as info:
+        act.check_counts(single)
+    assert "step" not in str(info.value)
+    act.check_counts(np.stack([act.counts_min, act.counts_max]))  # limits themselves are fine
+
+
+def test_check_counts_rate(act: Actuation) -> None:
+    prev = np.zeros(36, dtype=np.int64)
+    nxt = prev.copy()
+    nxt[30] = int(act.max_rate_counts_per_s[30] * 0.01) + 2
+    with pytest.raises(RopeLimitError, match=r"motor j11r0.*faster"):
+        act.check_counts(nxt, previous=prev, dt_s=0.01)
+    act.check_counts(nxt, previous=prev, dt_s=0.02)
+    table = np.stack([prev, prev, nxt])
+    with pytest.raises(RopeLimitError, match="step 2: motor j11r0"):
+        act.check_counts(table, dt_s=0.01)
+    with pytest.raises(RopeError, match="dt_s"):
+        act.check_counts(table, dt_s=0.0)
+    with pytest.raises(RopeError, match="dt_s"):
+        act.check_counts(table, dt_s=[0.01])
+
+
+def test_drum_travel_limit_refuses_a_configuration() -> None:
+    small = load_actuation(robot_with(motors={"travel_in_mm": 20.0, "travel_out_mm": 20.0}))
+    a, t = np.zeros(12), np.zeros(12)
+    a[:] = 0.5  # every joint bent the same way: ropes near phi = 0 shorten by ~5 mm per joint
+    with pytest.raises(RopeLimitError, match=r"motor j\d\dr\d .*outside.*drum travel 20 mm in"):
+        small.counts_from_angles(a, t)
+    small.counts_from_angles(a, t, check=False)  # the caller may opt out (e.g. a simulator)
+    # the default drum fits the whole joint range
+    big = load_actuation(robot_with())
+    lim = np.deg2rad(59.99)
+    corners = np.array([[sa, st] for sa in (-lim, lim) for st in (-lim, lim)])
+    for sa, st in corners:
+        big.counts_from_angles(np.full(12, sa), np.full(12, st))
+
+
+def test_bad_tension(act: Actuation) -> None:
+    with pytest.raises(RopeError, match="tension"):
+        act.counts_from_angles(np.zeros(12), np.zeros(12), -1.0)
+    with pytest.raises(RopeError, match="tension"):
+        act.angles_from_counts(np.zeros(36, dtype=np.int64), np.nan)

@@ -1,0 +1,100 @@
+"""Routing in the robot description: defaults, 4 ropes, and every bad input."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hrm_ctrl.errors import HrmError, RopeError
+from hrm_ctrl.model import robot_from_dict
+from hrm_ctrl.ropes.actuation import load_actuation
+from hrm_ctrl.ropes.routing import RoutingError, routing_from_model
+from tests.hrm_ctrl.ropes.rope_helpers import default_doc, robot_with
+
+
+def test_default_routing_36_ropes_spread_10_degrees() -> None:
+    rt = routing_from_model(robot_with())
+    assert rt.n_ropes == 36
+    deg = np.sort(np.rad2deg(rt.hole_angle))
+    np.testing.assert_allclose(np.diff(deg), 10.0, atol=1e-9)
+    assert rt.rope_ids[3] == "j02r0" and rt.joint_of_rope.tolist() == sorted(rt.joint_of_rope)
+
+
+def test_missing_tables_fall_back_to_the_documented_defaults() -> None:
+    doc = default_doc()
+    doc.pop("ropes")
+    doc.pop("motors")
+    a = load_actuation(robot_from_dict(doc, "<no rope tables>"))
+    b = load_actuation(robot_with())
+    np.testing.assert_array_equal(a.routing.hole_angle, b.routing.hole_angle)
+    np.testing.assert_array_equal(a.counts_max, b.counts_max)
+
+
+def test_four_ropes_per_joint_work() -> None:
+    a = load_actuation(robot_with({"per_joint": 4, "joint_step_deg": None}))
+    assert a.n_motors == 48 and a.motor_ids[-1] == "j12r3"
+    deg = np.sort(np.rad2deg(a.routing.hole_angle))
+    np.testing.assert_allclose(np.diff(deg), 7.5, atol=1e-9)
+
+
+def test_mixed_rope_counts_per_joint() -> None:
+    per = [3] * 6 + [4] * 6
+    a = load_actuation(robot_with({"per_joint": per, "joint_step_deg": None}))
+    assert a.n_motors == 42
+    assert np.bincount(a.joint_of_motor).tolist() == per
+
+
+def _explicit(angles: list[list[float]]) -> dict[str, Any]:
+    return {"angles_deg": angles}
+
+
+@pytest.mark.parametrize(
+    ("ropes", "match"),
+    [
+        (
+            _explicit(
+                [[0.0, 120.0, 240.0]]
+                + [[10.0 * k, 10.0 * k + 120, 10.0 * k + 240] for k in range(1, 12)]
+            ),
+            None,
+        ),
+        (_explicit([[0.0, 120.0, 240.0]] * 12), "j01r0 and j02r0 share a hole"),
+        (
+            _explicit(
+                [[0.0, 120.0, 240.0], [3.0, 123.0, 243.0]]
+                + [[10.0 * k, 10.0 * k + 120, 10.0 * k + 240] for k in range(2, 12)]
+            ),
+            "share a hole",
+        ),
+        ({"hole_radius_mm": 14.8}, "outside the 30 mm disk"),
+        ({"joint_step_deg": 0.0}, "share a hole"),
+        ({"per_joint": 1}, "per_joint"),
+        ({"per_joint": [3] * 11}, "per_joint"),
+        ({"per_joint": 3.0}, "per_joint"),
+        ({"hole_radius_mm": float("nan")}, "hole_radius_mm"),
+        ({"proximal_disk_mm": -1.0}, "proximal_disk_mm"),
+        ({"distal_disk_mm": [12.0] * 5}, "distal_disk_mm"),
+        ({"stiffness_EA_N": "stiff"}, "stiffness_EA_N"),
+        ({"colour": "red"}, "unknown key 'colour'"),
+        ({"proximal_disk_mm": 150.0}, r"link 10 \(130 mm\) is shorter than the disks"),
+        ({"angles_deg": [[0.0, 120.0]] * 12}, r"angles_deg\[0\]"),
+    ],
+)
+def test_bad_routing_is_one_line_rope_error(ropes: dict[str, Any], match: str | None) -> None:
+    robot = robot_with(ropes)
+    if match is None:
+        assert load_actuation(robot).n_motors == 36
+        return
+    with pytest.raises(RoutingError, match=match) as info:
+        load_actuation(robot)
+    assert isinstance(info.value, RopeError) and isinstance(info.value, HrmError)
+    assert "\n" not in str(info.value) and "<test>" in str(info.value)
+
+
+def test_thinner_link_rejects_holes_of_the_ropes_passing_it() -> None:
+    doc = default_doc()
+    doc["outer_diameter_mm"] = [30.0] * 11 + [24.0]
+    with pytest.raises(RoutingError, match=r"j12r0.*24 mm disk"):
+        load_actuation(robot_from_dict(doc, "<thin>"))

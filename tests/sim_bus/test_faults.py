@@ -1,0 +1,190 @@
+"""Fault scripts, the ``hrm sim`` command and its control channel."""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import can
+import pytest
+
+import drivers.protocol.cia402 as cia
+from hrm_ctrl.cli import main
+from sim_bus.box import SimBox
+from sim_bus.config import SimConfigError, load_sim_config, sim_config_from_dict
+from sim_bus.faults import FaultSpecError, apply_fault, parse_fault
+from sim_bus.runner import run_box_process
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize(
+    ("text", "kind", "args", "at"),
+    [
+        ("heartbeat-stop:j01r0", "heartbeat-stop", ("j01r0",), None),
+        ("drive-fault:j03r1@1.5", "drive-fault", ("j03r1",), 1.5),
+        ("drop:can0", "drop", ("can0",), None),
+        ("delay:can1:20:0x181:3@0", "delay", ("can1", "20", "0x181", "3"), 0.0),
+        ("sensor-garbage:128", "sensor-garbage", ("128",), None),
+        ("reset", "reset", (), None),
+    ],
+)
+def test_parse_fault(text: str, kind: str, args: tuple[str, ...], at: float | None) -> None:
+    f = parse_fault(text)
+    assert (f.kind, f.args, f.at_s) == (kind, args, at)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("explode:j01r0", "unknown kind"),
+        ("rope-snap", "takes 1..1"),
+        ("drop:can0:0x900", "COB-ID"),
+        ("drop:can0:0x181:0", "count"),
+        ("delay:can0:abc", "milliseconds"),
+        ("bus-off:can0@soon", "seconds"),
+        ("bus-off:can0@-1", ">= 0"),
+    ],
+)
+def test_bad_fault_specs_are_one_line_errors(text: str, match: str) -> None:
+    with pytest.raises(FaultSpecError, match=match):
+        parse_fault(text)
+
+
+def _hrm_sim_box() -> tuple[SimBox, list[can.BusABC]]:
+    tag = uuid.uuid4().hex[:8]
+    kw = [{"interface": "hrm_sim", "channel": f"f-{tag}-{k}"} for k in range(2)]
+    cfg = load_sim_config(None).with_bus_kwargs(kw)
+    hosts = [can.Bus(**k) for k in kw]
+    return SimBox(cfg, tension_noise_N=0.0).start(), hosts
+
+
+def test_wire_faults_through_the_box_and_reset() -> None:
+    box, hosts = _hrm_sim_box()
+    try:
+        apply_fault(parse_fault("bus-off:can1"), box)
+        with pytest.raises(can.CanOperationError, match="bus off"):
+            hosts[1].send(cia.make_sync())
+        apply_fault(parse_fault("rope-snap:j12r2"), box)
+        apply_fault(parse_fault("jam:j02r0"), box)
+        assert box.arm.snapped == (35,)
+        apply_fault(parse_fault("reset"), box)
+        hosts[1].send(cia.make_sync())  # bus back on
+        assert box.arm.snapped == () and not box.drives["j02r0"].jammed
+        with pytest.raises(FaultSpecError, match="no tension board"):
+            apply_fault(parse_fault("sensor-silent"), box)
+    finally:
+        box.stop()
+        for h in hosts:
+            h.shutdown()
+
+
+def test_runner_control_channel_in_process(tmp_path: Path) -> None:
+    tag = uuid.uuid4().hex[:8]
+    doc = {
+        "buses": {
+            "can0": {
+                "interface": "hrm_sim",
+                "channel": f"r-{tag}",
+                "bitrate": 1_000_000,
+                "nodes": {"j01r0": 1},
+            }
+        }
+    }
+    cfg = sim_config_from_dict(doc, "test")
+    inp = io.StringIO("state\nfault rope-snap:j01r0\nfault bogus\nstats\nquit\n")
+    out = io.StringIO()
+    t = threading.Thread(
+        target=run_box_process, args=(cfg,), kwargs={"control": True, "out": out, "inp": inp}
+    )
+    t.start()
+    t.join(20.0)
+    assert not t.is_alive()
+    events = [json.loads(line) for line in out.getvalue().splitlines()]
+    kinds = [e["event"] for e in events]
+    assert kinds[0] == "ready" and Path(events[0]["tension_port"]).name.isdigit()
+    assert kinds[1:] == ["state", "fault", "error", "stats", "stopped"]
+    assert len(events[1]["centres"]) == 13
+    assert "unknown kind" in events[3]["error"]
+    assert any("snapped" in e for e in events[4]["events"])
+
+
+def test_cli_bad_inputs_exit_2_with_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[buses.can0]\ninterface = 'virtual'\nchannel = 'x'\nbitrate = 0\nnodes = {}\n")
+    for argv, match in [
+        (["sim", "--config", str(bad)], "bitrate"),
+        (["sim", "--config", str(tmp_path / "none.toml")], "not found"),
+        (["sim", "--fault", "rope-snap:j99r9"], "no simulated drive"),
+        (["sim", "--fault", "bus-off:can7"], "no bus"),
+        (["sim", "--duration", "-1"], "--duration"),
+    ]:
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and match in err, err
+
+
+def test_config_errors_name_the_key() -> None:
+    with pytest.raises(SimConfigError, match=r"buses.b.nodes.m: node id must be in 1..127"):
+        sim_config_from_dict(
+            {
+                "buses": {
+                    "b": {"interface": "virtual", "channel": "x", "bitrate": 1, "nodes": {"m": 0}}
+                }
+            },
+            "t",
+        )
+    with pytest.raises(SimConfigError, match="duplicate node id"):
+        sim_config_from_dict(
+            {
+                "buses": {
+                    "b": {
+                        "interface": "virtual",
+                        "channel": "x",
+                        "bitrate": 1,
+                        "nodes": {"m": 1, "n": 1},
+                    }
+                }
+            },
+            "t",
+        )
+
+
+def test_hrm_sim_process_runs_and_stops_on_duration(tmp_path: Path) -> None:
+    cfg = tmp_path / "box.toml"
+    cfg.write_text(
+        "[buses.can0]\ninterface = 'virtual'\nchannel = 'p'\nbitrate = 1000000\n"
+        "[buses.can0.nodes]\nj01r0 = 1\n"
+    )
+    t0 = time.monotonic()
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "hrm_ctrl.cli",
+            "sim",
+            "--config",
+            str(cfg),
+            "--duration",
+            "0.5",
+            "--fault",
+            "sensor-silent@0.1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        cwd=REPO,
+    )
+    assert proc.returncode == 0, proc.stderr
+    lines = [json.loads(x) for x in proc.stdout.splitlines()]
+    assert [e["event"] for e in lines] == ["ready", "fault", "stopped"]
+    assert lines[1]["fault"] == "sensor-silent"
+    assert time.monotonic() - t0 < 20
