@@ -42,12 +42,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine
 
 from drivers.config import load_box_config
-from drivers.session import DriveBox
+from drivers.realtime import process_settings
+from drivers.session import DriveSession
 from drivers.sources import TableSource
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import load_actuation
 from sim_bus.box import SimBox
-from sim_bus.config import sim_config_from_dict
 
 
 class SineSource(TableSource):
@@ -161,14 +161,10 @@ def main() -> None:
     )
     log_dir = None if args.no_log else work
     bringups: list[float] = []
-    sim_ctx: Any = (
-        contextlib.nullcontext(None)
-        if args.sim_process
-        else SimBox(sim_config_from_dict(cfg.to_dict(), "bench"), actuation=act)
-    )
+    sim_ctx: Any = contextlib.nullcontext(None) if args.sim_process else SimBox(cfg, actuation=act)
     with sim_ctx as sim:
         for k in range(max(1, args.bringups)):
-            box = DriveBox(cfg, act, log_dir=log_dir, run_name=f"bench{k}")
+            box = DriveSession(cfg, act, log_dir=log_dir, run_name=f"bench{k}")
             with box:
                 t = time.perf_counter()
                 box.bring_up()
@@ -254,4 +250,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with process_settings():  # the process entry: GIL switch interval as `hrm` sets it
+        main()

@@ -30,9 +30,11 @@ from typing import Any
 import can
 import numpy as np
 
+import drivers.protocol.cia301 as cia301
 import drivers.protocol.cia402 as cia
+from drivers.config import load_box_config
+from drivers.realtime import process_settings
 from sim_bus.box import SimBox
-from sim_bus.config import load_sim_config
 
 RATE_HZ = 100.0
 
@@ -50,9 +52,11 @@ def _sdo(bus: can.BusABC, node: int, msg: can.Message, timeout_s: float = 1.0) -
 def _host(buses: list[can.BusABC], nodes: list[list[int]], seconds: float) -> dict[str, Any]:
     for bus, ids in zip(buses, nodes, strict=True):
         for n in ids:
-            _sdo(bus, n, cia.make_sdo_download_expedited(n, cia.OD_MODES_OF_OPERATION, 0, b"\x08"))
-            _sdo(bus, n, cia.make_sdo_download_expedited(n, 0x6065, 0, struct.pack("<I", 10**7)))
-        bus.send(cia.make_nmt(cia.NMT_START_REMOTE_NODE, 0))
+            _sdo(
+                bus, n, cia301.make_sdo_download_expedited(n, cia.OD_MODES_OF_OPERATION, 0, b"\x08")
+            )
+            _sdo(bus, n, cia301.make_sdo_download_expedited(n, 0x6065, 0, struct.pack("<I", 10**7)))
+        bus.send(cia301.make_nmt(cia301.NMT_START_REMOTE_NODE, 0))
     cpu0 = time.thread_time()
     t0 = time.monotonic()
     k = 0
@@ -74,7 +78,7 @@ def _host(buses: list[can.BusABC], nodes: list[list[int]], seconds: float) -> di
         target = int(20000 * math.sin(2 * math.pi * 0.5 * k / RATE_HZ)) if k > 3 else 0
         for bus, ids in zip(buses, nodes, strict=True):
             if k > 1:
-                bus.send(cia.make_sync())
+                bus.send(cia301.make_sync())
             for n in ids:
                 bus.send(cia.make_rpdo_target(n, cw, target))
         for bus in buses:
@@ -92,7 +96,7 @@ def _host(buses: list[can.BusABC], nodes: list[list[int]], seconds: float) -> di
 def run(kind: str, seconds: float) -> dict[str, Any]:
     tag = uuid.uuid4().hex[:8]
     kwargs = [{"interface": kind, "channel": f"bench-{tag}-{i}"} for i in range(2)]
-    cfg = load_sim_config(None).with_bus_kwargs(kwargs)
+    cfg = load_box_config(None).with_bus_kwargs(kwargs)
     hosts = [can.Bus(**kw) for kw in kwargs]
     if kind == "hrm_sim":
         for h in hosts:
@@ -161,4 +165,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with process_settings():  # the process entry: GIL switch interval as `hrm` sets it
+        main()

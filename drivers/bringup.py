@@ -1,9 +1,10 @@
 """Bring-up of CiA 402 drives: SDO configuration and the device-control state machine.
 
 canopen's ``BaseNode402`` setters swallow timeouts, so the state machine is
-driven here: every controlword write is followed by statusword reads until the
-expected state shows, or a :class:`StateTimeoutError` naming the node, the
-state reached and the state expected.  SDO aborts and timeouts become
+driven here, along the CiA 402 transition table (:func:`drivers.protocol.cia402.route`):
+every controlword write is followed by statusword reads until the table's next
+state shows, or a :class:`StateTimeoutError` naming the node, the state reached
+and the state expected.  SDO aborts and timeouts become
 :class:`SdoError` (a :class:`DriverError`) naming bus, node, object and abort
 code.  Nothing here sends a motion command: the target position is set to the
 actual position before operation is enabled.
@@ -26,7 +27,7 @@ from typing import Any
 
 import canopen
 
-from drivers.protocol import cia402 as c
+from drivers.protocol import cia301, cia402
 from hrm_ctrl.errors import DriverError
 
 
@@ -81,7 +82,7 @@ def sdo_write(link: DriveLink, index: int, subindex: int, value: Any) -> None:
     except canopen.SdoAbortedError as exc:
         raise SdoError(
             f"{link.label}: SDO write 0x{index:04X}:{subindex:02X} = {value!r} aborted: "
-            f"{c.describe_sdo_abort(exc.code)}"
+            f"{cia301.describe_sdo_abort(exc.code)}"
         ) from None
     except canopen.SdoCommunicationError as exc:
         raise SdoError(
@@ -106,7 +107,7 @@ def sdo_read(link: DriveLink, index: int, subindex: int = 0) -> Any:
     except canopen.SdoAbortedError as exc:
         raise SdoError(
             f"{link.label}: SDO read 0x{index:04X}:{subindex:02X} aborted: "
-            f"{c.describe_sdo_abort(exc.code)}"
+            f"{cia301.describe_sdo_abort(exc.code)}"
         ) from None
     except canopen.SdoCommunicationError as exc:
         raise SdoError(
@@ -133,12 +134,12 @@ def _map_pdo(
         for index in objects:
             pdo_map.add_variable(index)
         pdo_map.cob_id = cob_id
-        pdo_map.trans_type = c.PDO_TRANSMISSION_SYNCHRONOUS
+        pdo_map.trans_type = cia301.PDO_TRANSMISSION_SYNCHRONOUS
         pdo_map.enabled = True
         pdo_map.save()
     except canopen.SdoAbortedError as exc:
         raise SdoError(
-            f"{link.label}: mapping {name} aborted: {c.describe_sdo_abort(exc.code)}"
+            f"{link.label}: mapping {name} aborted: {cia301.describe_sdo_abort(exc.code)}"
         ) from None
     except canopen.SdoCommunicationError as exc:
         raise SdoError(f"{link.label}: mapping {name}: {exc}") from None
@@ -153,49 +154,58 @@ def configure_drive(link: DriveLink, s: DriveSettings) -> None:
     """SDO configuration (node pre-operational): PDO mappings, heartbeats, limits,
     interpolation period, quick stop option, mode CSP (checked on 0x6061)."""
     nid = link.node_id
-    sdo_write(link, c.OD_PRODUCER_HEARTBEAT_TIME, 0, s.node_heartbeat_ms)
+    sdo_write(link, cia301.OD_PRODUCER_HEARTBEAT_TIME, 0, s.node_heartbeat_ms)
     sdo_write(
         link,
-        c.OD_CONSUMER_HEARTBEAT_TIME,
+        cia301.OD_CONSUMER_HEARTBEAT_TIME,
         1,
-        c.consumer_heartbeat_entry(s.host_node_id, s.host_heartbeat_timeout_ms),
+        cia301.consumer_heartbeat_entry(s.host_node_id, s.host_heartbeat_timeout_ms),
     )
     _map_pdo(
         link,
         link.node.rpdo[1],
-        c.COB_RPDO1 + nid,
-        (c.OD_CONTROLWORD, c.OD_TARGET_POSITION),
+        cia301.COB_RPDO1 + nid,
+        (cia402.OD_CONTROLWORD, cia402.OD_TARGET_POSITION),
         "RPDO1 (controlword, target position)",
     )
     _map_pdo(
         link,
         link.node.tpdo[1],
-        c.COB_TPDO1 + nid,
-        (c.OD_STATUSWORD, c.OD_POSITION_ACTUAL_VALUE),
+        cia301.COB_TPDO1 + nid,
+        (cia402.OD_STATUSWORD, cia402.OD_POSITION_ACTUAL_VALUE),
         "TPDO1 (statusword, position actual value)",
     )
-    sdo_write(link, c.OD_SOFTWARE_POSITION_LIMIT, 1, int(s.counts_min))
-    sdo_write(link, c.OD_SOFTWARE_POSITION_LIMIT, 2, int(s.counts_max))
-    value, index = c.interpolation_time_period(s.period_s)
-    sdo_write(link, c.OD_INTERPOLATION_TIME_PERIOD, 1, value)
-    sdo_write(link, c.OD_INTERPOLATION_TIME_PERIOD, 2, index)
-    sdo_write(link, c.OD_FOLLOWING_ERROR_WINDOW, 0, int(s.following_error_window_counts))
-    sdo_write(link, c.OD_QUICK_STOP_OPTION_CODE, 0, int(s.quick_stop_option_code))
-    sdo_write(link, c.OD_MODES_OF_OPERATION, 0, c.MODE_CSP)
-    shown = sdo_read(link, c.OD_MODES_OF_OPERATION_DISPLAY)
-    if shown != c.MODE_CSP:
+    sdo_write(link, cia402.OD_SOFTWARE_POSITION_LIMIT, 1, int(s.counts_min))
+    sdo_write(link, cia402.OD_SOFTWARE_POSITION_LIMIT, 2, int(s.counts_max))
+    value, index = cia402.interpolation_time_period(s.period_s)
+    sdo_write(link, cia402.OD_INTERPOLATION_TIME_PERIOD, 1, value)
+    sdo_write(link, cia402.OD_INTERPOLATION_TIME_PERIOD, 2, index)
+    sdo_write(link, cia402.OD_FOLLOWING_ERROR_WINDOW, 0, int(s.following_error_window_counts))
+    sdo_write(link, cia402.OD_QUICK_STOP_OPTION_CODE, 0, int(s.quick_stop_option_code))
+    sdo_write(link, cia402.OD_MODES_OF_OPERATION, 0, cia402.MODE_CSP)
+    shown = sdo_read(link, cia402.OD_MODES_OF_OPERATION_DISPLAY)
+    if shown != cia402.MODE_CSP:
         raise DriverError(
-            f"{link.label}: modes of operation display is {shown}, expected {c.MODE_CSP} (CSP)"
+            f"{link.label}: modes of operation display is {shown}, expected {cia402.MODE_CSP} (CSP)"
         )
 
 
-def read_state(link: DriveLink) -> tuple[c.State402, int]:
+State402 = cia402.State402
+
+# What a drive is waiting for in a state it leaves by itself (cia402.AUTOMATIC_SUCCESSOR).
+_AUTOMATIC_AFTER = {
+    State402.NOT_READY_TO_SWITCH_ON: "power-on",
+    State402.FAULT_REACTION_ACTIVE: "fault reaction",
+}
+
+
+def read_state(link: DriveLink) -> tuple[State402, int]:
     """(state, statusword) read by SDO."""
-    sw = int(sdo_read(link, c.OD_STATUSWORD))
-    return c.decode_state(sw), sw
+    sw = int(sdo_read(link, cia402.OD_STATUSWORD))
+    return cia402.decode_state(sw), sw
 
 
-def wait_state(link: DriveLink, expected: c.State402, timeout_s: float, after: str) -> int:
+def wait_state(link: DriveLink, expected: State402, timeout_s: float, after: str) -> int:
     """Poll the statusword until it shows ``expected``; return the statusword.
 
     Raises :class:`StateTimeoutError` naming the last state seen.
@@ -213,10 +223,44 @@ def wait_state(link: DriveLink, expected: c.State402, timeout_s: float, after: s
         time.sleep(0.001)
 
 
-def command(link: DriveLink, controlword: int, expected: c.State402, timeout_s: float) -> int:
+def command(link: DriveLink, controlword: int, expected: State402, timeout_s: float) -> int:
     """Write a controlword and wait for the expected state."""
-    sdo_write(link, c.OD_CONTROLWORD, 0, controlword)
+    sdo_write(link, cia402.OD_CONTROLWORD, 0, controlword)
     return wait_state(link, expected, timeout_s, f"controlword 0x{controlword:04X}")
+
+
+def step(link: DriveLink, transition: cia402.Transition, timeout_s: float) -> int:
+    """Take one transition of the CiA 402 table: write its command, wait for its target.
+
+    The fault reset is the 0→1 edge of bit 7, so bit 7 is cleared first (disable voltage:
+    no transition from FAULT).  Returns the statusword that showed the target state.
+    """
+    if transition.command is cia402.Command402.FAULT_RESET:
+        sdo_write(link, cia402.OD_CONTROLWORD, 0, cia402.CW_DISABLE_VOLTAGE)
+    return command(link, transition.command.controlword, transition.target, timeout_s)
+
+
+def drive_to(link: DriveLink, goal: State402, timeout_s: float) -> int:
+    """Walk a drive's state machine to ``goal`` (one of :data:`cia402.LADDER`) along
+    :func:`cia402.route`, the statusword confirming every step; a drive in a state it
+    leaves by itself (power-on, fault reaction) is waited for first.  Returns the last
+    statusword; :class:`StateTimeoutError` when a step does not show or no route exists.
+    """
+    state, sw = read_state(link)
+    successor = cia402.AUTOMATIC_SUCCESSOR.get(state)
+    if successor is not None:
+        sw = wait_state(link, successor, timeout_s, _AUTOMATIC_AFTER[state])
+        state = successor
+    try:
+        steps = cia402.route(state, goal)
+    except cia402.TransitionError as exc:
+        raise StateTimeoutError(
+            f"{link.label}: statusword 0x{sw:04X} ({state.name}) cannot be brought to "
+            f"{goal.name}: {exc}"
+        ) from None
+    for transition in steps:
+        sw = step(link, transition, timeout_s)
+    return sw
 
 
 def enable_operation(
@@ -227,47 +271,30 @@ def enable_operation(
 ) -> int:
     """CiA 402 state machine to OPERATION_ENABLED, checking the statusword at each step.
 
-    A drive in FAULT gets one fault reset (0→1 edge of bit 7).  The actual position
-    is checked against ``counts_min``/``counts_max`` (the rope layer's limits; outside:
-    :class:`DriverError`, the drive stays SWITCHED_ON, not enabled); then the target
-    position is set to it before operation is enabled, so nothing moves.
-    Returns the actual position (counts).
+    The drive is first walked to SWITCHED_ON (:func:`drive_to`: a drive in FAULT gets
+    one fault reset, one already enabled is disabled first so it starts from a known
+    state).  The actual position is checked against ``counts_min``/``counts_max`` (the
+    rope layer's limits; outside: :class:`DriverError`, the drive stays SWITCHED_ON, not
+    enabled); then the target position is set to it before operation is enabled, so
+    nothing moves.  Returns the actual position (counts).
     """
-    state, sw = read_state(link)
-    if state in (c.State402.FAULT, c.State402.FAULT_REACTION_ACTIVE):
-        if state is c.State402.FAULT_REACTION_ACTIVE:
-            wait_state(link, c.State402.FAULT, timeout_s, "fault reaction")
-        sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_DISABLE_VOLTAGE)
-        command(link, c.CW_FAULT_RESET, c.State402.SWITCH_ON_DISABLED, timeout_s)
-        state = c.State402.SWITCH_ON_DISABLED
-    if state is c.State402.NOT_READY_TO_SWITCH_ON:
-        wait_state(link, c.State402.SWITCH_ON_DISABLED, timeout_s, "power-on")
-        state = c.State402.SWITCH_ON_DISABLED
-    if state is c.State402.QUICK_STOP_ACTIVE:
-        command(link, c.CW_DISABLE_VOLTAGE, c.State402.SWITCH_ON_DISABLED, timeout_s)
-        state = c.State402.SWITCH_ON_DISABLED
-    if state is c.State402.OPERATION_ENABLED:
-        # Start from a known state: back to switched on, then enable again below.
-        command(link, c.CW_DISABLE_OPERATION, c.State402.SWITCHED_ON, timeout_s)
-        state = c.State402.SWITCHED_ON
-    if state is c.State402.SWITCH_ON_DISABLED:
-        command(link, c.CW_SHUTDOWN, c.State402.READY_TO_SWITCH_ON, timeout_s)
-        state = c.State402.READY_TO_SWITCH_ON
-    if state is c.State402.READY_TO_SWITCH_ON:
-        command(link, c.CW_SWITCH_ON, c.State402.SWITCHED_ON, timeout_s)
-        state = c.State402.SWITCHED_ON
-    if state is not c.State402.SWITCHED_ON:
-        raise StateTimeoutError(
-            f"{link.label}: statusword 0x{sw:04X} ({state.name}) cannot be brought to SWITCHED_ON"
-        )
-    actual = int(sdo_read(link, c.OD_POSITION_ACTUAL_VALUE))
-    lo = -(2**31) if counts_min is None else int(counts_min)
-    hi = 2**31 - 1 if counts_max is None else int(counts_max)
+    drive_to(link, State402.SWITCHED_ON, timeout_s)
+    actual = int(sdo_read(link, cia402.OD_POSITION_ACTUAL_VALUE))
+    lo = cia402.INT32_MIN if counts_min is None else int(counts_min)
+    hi = cia402.INT32_MAX if counts_max is None else int(counts_max)
     if not lo <= actual <= hi:
         raise DriverError(
             f"{link.label}: actual position {actual} counts is outside the limits "
             f"[{lo}, {hi}]: not enabled"
         )
-    sdo_write(link, c.OD_TARGET_POSITION, 0, actual)
-    command(link, c.CW_ENABLE_OPERATION, c.State402.OPERATION_ENABLED, timeout_s)
+    sdo_write(link, cia402.OD_TARGET_POSITION, 0, actual)
+    enable = cia402.transition(State402.SWITCHED_ON, cia402.Command402.ENABLE_OPERATION)
+    step(link, enable, timeout_s)
     return actual
+
+
+def disable(link: DriveLink, timeout_s: float) -> int:
+    """Controlled disable to READY_TO_SWITCH_ON (power stage off) along the table's route:
+    from OPERATION_ENABLED *disable operation* (5, confirmed SWITCHED_ON) then *shutdown*
+    (6).  No target position is sent.  Returns the last statusword."""
+    return drive_to(link, State402.READY_TO_SWITCH_ON, timeout_s)

@@ -28,7 +28,7 @@ from typing import Any
 
 import can
 
-from drivers.protocol.cia402 import (
+from drivers.protocol.cia301 import (
     COB_NMT,
     COB_NMT_ERROR_CONTROL,
     COB_RPDO1,

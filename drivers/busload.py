@@ -2,12 +2,10 @@
 
 Per control cycle each bus carries one RPDO per node (host -> drive), one TPDO
 per node (drive -> host) and one SYNC; besides, heartbeats of every node and of
-the host.  A classical CAN frame with an 11-bit identifier and ``n`` data bytes
-takes at most ``47 + 8 n + floor((34 + 8 n - 1) / 4)`` bits on the wire, bit
-stuffing included (Davis et al. 2007): 135 bits for 8 bytes, 55 for a SYNC.
+the host.  Each frame counts its worst-case wire time,
+:func:`drivers.protocol.frames.worst_case_frame_bits` (bit stuffing included:
+135 bits for 8 data bytes, 55 for a SYNC), the figure the simulated wire uses too.
 
->>> worst_case_frame_bits(8), worst_case_frame_bits(0), worst_case_frame_bits(6)
-(135, 55, 115)
 >>> from drivers.config import load_box_config
 >>> [round(b.load, 3) for b in bus_loads(load_box_config(None))]
 [0.432, 0.432]
@@ -20,6 +18,7 @@ from dataclasses import dataclass
 
 from drivers.config import BoxConfig, BusConfig, ControlConfig, rate_problem
 from drivers.protocol.cia402 import RPDO_TARGET_SIZE, TPDO_FEEDBACK_SIZE
+from drivers.protocol.frames import worst_case_frame_bits
 from hrm_ctrl.errors import DriverError
 
 HEARTBEAT_SIZE = 1
@@ -28,20 +27,6 @@ SYNC_SIZE = 0
 
 class BusLoadError(DriverError):
     """A bus would be loaded above the configured limit."""
-
-
-def worst_case_frame_bits(n_data_bytes: int, extended_id: bool = False) -> int:
-    """Longest wire time (bits) of a classical CAN data frame, worst-case stuffing.
-
-    >>> worst_case_frame_bits(8, extended_id=True)
-    160
-    """
-    if not 0 <= n_data_bytes <= 8:
-        raise DriverError(f"classical CAN carries 0..8 data bytes, got {n_data_bytes}")
-    n = 8 * n_data_bytes
-    if extended_id:
-        return 67 + n + (54 + n - 1) // 4
-    return 47 + n + (34 + n - 1) // 4
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,11 @@ arguments) and ``[buses.NAME.nodes]`` mapping each rope motor id to its CANopen
 node id.  The interface is configuration, never code: any name python-can knows
 (built-in or registered under the ``can.interface`` entry point) is accepted.
 
+This module is the one reader of the file and :class:`BoxConfig` the one typed
+configuration: the host's drivers and the simulated box (``sim_bus``, ``hrm sim``)
+both take it.  It describes the wire, not the host's logic; simulator settings are
+arguments of ``sim_bus.box.SimBox`` and of ``hrm sim``, never keys of the file.
+
 >>> cfg = load_box_config(None)
 >>> [b.name for b in cfg.buses], cfg.n_motors, cfg.control.rate_hz
 (['can0', 'can1'], 36, 100.0)
@@ -26,13 +31,14 @@ from typing import Any
 import can
 
 from drivers import default_box_path
-from drivers.protocol.cia402 import (
+from drivers.protocol.cia301 import (
     HOST_HEARTBEAT_NODE_ID,
     NODE_ID_MAX,
     NODE_ID_MIN,
     FrameError,
-    interpolation_time_period,
 )
+from drivers.protocol.cia402 import interpolation_time_period
+from drivers.realtime import NORMAL_PRIORITY, REALTIME_PRIORITY_MAX
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.files import read_toml
 
@@ -43,6 +49,10 @@ class BusConfigError(DriverError):
 
 BUS_NAME_PATTERN = re.compile(r"[A-Za-z0-9_-]+")
 """Bus names become part of log file names: letters, digits, ``_`` and ``-`` only."""
+
+UDP_MULTICAST_HOP_LIMIT = 0
+"""``hop_limit`` a udp_multicast bus gets unless its ``options`` set one (python-can's own
+default is 1): 0 keeps the traffic on this host, for the host and the simulator alike."""
 
 
 def rate_problem(rate_hz: float) -> str | None:
@@ -98,15 +108,24 @@ class BusConfig:
     def bus_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for ``can.Bus``.
 
+        udp_multicast gets ``hop_limit = UDP_MULTICAST_HOP_LIMIT`` (0) unless the options
+        say otherwise, so by default its frames never leave the host.
+
         >>> BusConfig("b", "virtual", "x", 500_000, {"rx_queue_size": 9}, {}).bus_kwargs()
         {'interface': 'virtual', 'channel': 'x', 'bitrate': 500000, 'rx_queue_size': 9}
+        >>> udp = BusConfig("b", "udp_multicast", "239.0.0.1", 500_000, {}, {})
+        >>> udp.bus_kwargs()["hop_limit"]
+        0
         """
-        return {
+        kw = {
             "interface": self.interface,
             "channel": self.channel,
             "bitrate": self.bitrate,
             **dict(self.options),
         }
+        if self.interface == "udp_multicast":
+            kw.setdefault("hop_limit", UDP_MULTICAST_HOP_LIMIT)
+        return kw
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -135,7 +154,7 @@ class ControlConfig:
     state_timeout_s: float = 0.5
     following_error_window_counts: int = 2000
     quick_stop_option_code: int = 2
-    realtime_priority: int = 0  # SCHED_FIFO priority of the scheduler thread (0: normal)
+    realtime_priority: int = NORMAL_PRIORITY  # SCHED_FIFO priority of the scheduler (0: off)
 
     @property
     def period_s(self) -> float:
@@ -304,7 +323,11 @@ def _control_from(doc: Mapping[str, Any], where: str) -> ControlConfig:
             "must be in 0..4294967295",
         ),
         ("quick_stop_option_code", -32768 <= c.quick_stop_option_code <= 32767, "INTEGER16"),
-        ("realtime_priority", 0 <= c.realtime_priority <= 99, "must be in 0..99"),
+        (
+            "realtime_priority",
+            NORMAL_PRIORITY <= c.realtime_priority <= REALTIME_PRIORITY_MAX,
+            f"must be in {NORMAL_PRIORITY}..{REALTIME_PRIORITY_MAX}",
+        ),
     ]
     for key, ok, why in checks:
         if not ok:

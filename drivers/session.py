@@ -1,22 +1,39 @@
-"""The manipulator box as the host drives it: every bus, every CiA 402 drive.
+"""The drive session: every bus and every CiA 402 drive of the box, from connect to
+close, with one supervisor.
 
-:class:`DriveBox` opens the buses of a :class:`~drivers.config.BoxConfig`
-(or takes buses already opened), logs each bus's traffic to a python-can log,
-and offers the run sequence:
+A :class:`DriveSession` opens the buses of a :class:`~drivers.config.BoxConfig`
+(or takes buses already opened), logs each bus's traffic to a python-can log, and
+starts the :class:`~drivers.safety.supervisor.Supervisor`, the one thread that owns
+the control loop, every watchdog and the host heartbeat.  Its states
+(:class:`SessionState`) and the calls that move between them:
 
-1. :meth:`DriveBox.bring_up`: refuse when a bus is over its load budget; start
-   the host heartbeat; NMT reset and wait for every node's boot-up (the error
-   lists the missing ones); SDO configuration of every drive in parallel (PDO
-   mappings, heartbeat times, software limits 0x607D from the rope layer,
-   interpolation period = control period, CSP); NMT start; the CiA 402 state
-   machine to OPERATION_ENABLED with a statusword check at every transition.
-2. :meth:`DriveBox.stream`: the cyclic scheduler plays a setpoint source;
-   any watchdog stops every axis (quick stop) within one cycle.
-3. :meth:`DriveBox.finish`: disable operation, NMT pre-operational, stop the
-   host heartbeat.
-4. :meth:`DriveBox.close`: stop receive threads, close the logs, write the run
-   record (JSON, atomically) beside them.
+.. code-block:: text
 
+    CLOSED --open--> CONNECTED --configure--> READY --enable--> ENABLED
+                        ^                        ^                | ^
+                        |                        |          stream| |completed
+                        |                        +--disable--+    v |
+                        +-------finish---------- STOPPED <-- STREAMING
+                                                 FAULT   (a stop that failed)
+
+1. :meth:`configure`: refuse a bus over its load budget; host heartbeat on; NMT
+   reset and every node's boot-up (the error lists the missing ones); SDO
+   configuration of every drive in parallel (PDO mappings, heartbeat times,
+   software limits 0x607D from the rope layer, interpolation period, CSP); NMT
+   start.  :meth:`enable`: the CiA 402 state machine to OPERATION_ENABLED with a
+   statusword check at every transition, the actual positions inside the limits;
+   the supervisor is armed.  :meth:`bring_up` does both.
+2. :meth:`stream`: play one setpoint source; any number of sources one after
+   another (jog, hold, plan, hold) without a new NMT reset.  Any stop cause, idle
+   or streaming, stops every axis (quick stop) within one control period; the
+   session goes STOPPED (FAULT when the quick stop itself could not be sent).
+3. :meth:`disable`: back to READY (disable operation, shutdown, by SDO).
+   :meth:`finish`: disable operation, shutdown, NMT pre-operational, then the host
+   heartbeat off.
+4. :meth:`close`: stop the supervisor and the receive threads, close the logs,
+   write the run record (JSON, atomically) beside them.
+
+A call from a state that does not allow it raises :class:`SessionStateError`.
 The drivers never know what is at the other end of the wire (drives or a
 simulator): everything goes through python-can buses.
 """
@@ -28,9 +45,11 @@ import datetime as dt
 import functools
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -49,13 +68,15 @@ from drivers.bringup import (
     read_state,
     sdo_write,
 )
-from drivers.bus import BusPort, BusSendError, TrafficLog, is_host_frame
+from drivers.bus import BusPort, TrafficLog, is_host_frame
 from drivers.busload import BusLoad, check_bus_load
 from drivers.config import BoxConfig
-from drivers.protocol import cia402 as c
-from drivers.safety.limits import LimitChecker
-from drivers.safety.monitor import NodeMonitor, StopCause
-from drivers.scheduler import BusLayout, CyclicScheduler, EventLog, StreamResult
+from drivers.cycle import BusLayout, EventLog, StreamResult
+from drivers.protocol import cia301, cia402
+from drivers.safety.causes import StopCause, StopKind
+from drivers.safety.limits import MAX_SOURCE_DURATION_S, LimitChecker
+from drivers.safety.monitor import NodeMonitor
+from drivers.safety.supervisor import Mode, StopRecord, Supervisor, SupervisorModeError
 from drivers.sources import SetpointSource
 from hrm_ctrl.errors import DriverError, HrmError
 from hrm_ctrl.files import write_atomic
@@ -67,7 +88,26 @@ CONFIG_SDO_TRANSFERS = 48
 ENABLE_TRANSITIONS = 7
 ENABLE_SDO_TRANSFERS = 12
 PARALLEL_MARGIN_S = 1.0
+STREAM_TIMEOUT_MARGIN_S = 30.0  # a stream's wait: its own length plus this
+HEARTBEAT_START_WAIT_S = 0.5  # the first host heartbeat precedes the NMT reset
+STOP_RECORD_WAIT_S = 2.0  # longest wait for a stop being confirmed (10 periods at most)
 log = logging.getLogger("drivers.session")
+
+
+class SessionState(Enum):
+    """Where a :class:`DriveSession` is (see the module docstring)."""
+
+    CLOSED = "closed"
+    CONNECTED = "connected"  # buses open; drives pre-operational or unknown
+    READY = "ready"  # every drive configured and operational, power stage off
+    ENABLED = "enabled"  # every drive OPERATION_ENABLED, supervised, holding
+    STREAMING = "streaming"
+    STOPPED = "stopped"  # quick-stopped by a stop cause
+    FAULT = "fault"  # a stop, bring-up or disable that could not be carried out
+
+
+class SessionStateError(DriverError):
+    """A session call refused in the session's current state."""
 
 
 class SafetyStopError(DriverError):
@@ -106,8 +146,8 @@ class _RxRouter(can.Listener):
     def __init__(
         self,
         network: canopen.Network,
-        on_error: Callable[[str, str], None],
-        host_node_id: int = c.HOST_HEARTBEAT_NODE_ID,
+        on_error: Callable[[StopKind, str], None],
+        host_node_id: int = cia301.HOST_HEARTBEAT_NODE_ID,
     ) -> None:
         self.network = network
         self.on_error = on_error
@@ -127,125 +167,13 @@ class _RxRouter(can.Listener):
             self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
         except Exception as exc:  # must not stop the receive thread: report it instead
             log.exception("canopen callback failed on 0x%03X", msg.arbitration_id)
-            self.on_error("receive", f"frame 0x{msg.arbitration_id:03X} not handled ({exc!r})")
+            self.on_error(
+                StopKind.RECEIVE, f"frame 0x{msg.arbitration_id:03X} not handled ({exc!r})"
+            )
 
 
-class HeartbeatProducer:
-    """The host's heartbeat (NMT state operational) on every bus, from its own thread,
-    phase-locked to a monotonic clock.  Send failures are reported to the monitor."""
-
-    def __init__(
-        self,
-        ports: Sequence[BusPort],
-        node_id: int,
-        period_s: float,
-        on_error: Callable[[str], None],
-    ) -> None:
-        self.ports = list(ports)
-        self.msg_args = (node_id, c.NMT_STATE_OPERATIONAL)
-        self.period_s = period_s
-        self.on_error = on_error
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    def start(self) -> None:
-        if self._thread is not None:
-            return
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="host-heartbeat", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        t_next = time.monotonic()
-        while not self._stop.is_set():
-            for port in self.ports:
-                try:
-                    port.send(c.make_heartbeat(*self.msg_args))
-                except BusSendError as exc:
-                    self.on_error(str(exc))
-            t_next += self.period_s
-            self._stop.wait(max(0.0, t_next - time.monotonic()))
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-
-
-class IdleGuard:
-    """Supervision while the drives are enabled but no stream runs (after bring-up,
-    between streams): heartbeats (timeout and NMT state), EMCYs and boot-ups are checked
-    every control period; any cause → quick stop of every drive and ``on_stop(causes)``."""
-
-    def __init__(
-        self,
-        monitor: NodeMonitor,
-        period_s: float,
-        quick_stop: Callable[[list[StopCause]], None],
-    ) -> None:
-        self.monitor = monitor
-        self.period_s = period_s
-        self.quick_stop = quick_stop
-        self.error: HrmError | None = None  # the idle quick stop itself failed
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._fired = False
-
-    def start(self) -> None:
-        if self._thread is not None:
-            return
-        self._stop.clear()
-        self._fired = False
-        self.error = None
-        self.monitor.supervising = True
-        if self.monitor.hb_armed_at is None:
-            self.monitor.hb_armed_at = time.monotonic()
-        self._thread = threading.Thread(target=self._run, name="idle-guard", daemon=True)
-        self._thread.start()
-
-    def _check(self) -> bool:
-        """One evaluation of the idle watchdogs; on any cause quick stop (True)."""
-        mon = self.monitor
-        causes = mon.check(time.monotonic(), -1, mon.hb_armed_at)
-        if not causes:
-            return False
-        self._fired = True
-        mon.supervising = False
-        try:
-            self.quick_stop(causes)
-        except HrmError as exc:  # reported to the next stream / finish
-            log.error("idle quick stop failed: %s", exc)
-            self.error = exc
-        return True
-
-    def _run(self) -> None:
-        mon = self.monitor
-        while not self._stop.is_set():
-            mon.wake.wait(self.period_s)
-            if self._stop.is_set():
-                return
-            mon.wake.clear()
-            if self._check():
-                return
-
-    def stop(self) -> None:
-        """Stop supervising (before a stream takes over, or at the end), with a last
-        check of everything queued so far: a cause found now still quick-stops."""
-        self._stop.set()
-        self.monitor.wake.set()
-        thread = self._thread
-        if thread is not None:
-            thread.join(timeout=5.0)
-            self._thread = None
-            if not self._fired:
-                self._check()
-        self.monitor.wake.clear()
-        self.monitor.supervising = False
-
-
-class DriveBox:
-    """Every bus and drive of the box; see the module docstring for the sequence."""
+class DriveSession:
+    """Every bus and drive of the box; see the module docstring for the states."""
 
     def __init__(
         self,
@@ -255,6 +183,7 @@ class DriveBox:
         log_suffix: str = ".blf",
         run_name: str | None = None,
         buses: Sequence[can.BusABC] | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         config.check_motors(actuation.motor_ids)
         if buses is not None and len(buses) != len(config.buses):
@@ -272,7 +201,10 @@ class DriveBox:
         self.record_extra: dict[str, Any] = {}
         self.actual: np.ndarray | None = None
         self.bringup_s: float | None = None
-        self.enabled = False
+        self.idle_causes: list[StopCause] = []
+        self.stop_error: str | None = None  # why the last quick stop could not be sent
+        self._state = SessionState.CLOSED
+        self._state_lock = threading.Lock()
 
         n = len(actuation.motor_ids)
         self._ports: list[BusPort] = []
@@ -287,30 +219,69 @@ class DriveBox:
             for motor, nid in b.nodes.items():
                 labels[order[motor]] = f"{motor} (bus {b.name} node {nid})"
         self.monitor = NodeMonitor(
-            labels, self.control.missing_tpdo_cycles, self.control.heartbeat_timeout_ms / 1000.0
+            labels,
+            self.control.missing_tpdo_cycles,
+            self.control.heartbeat_timeout_ms / 1000.0,
+            clock=clock,
         )
         try:
             self._open(buses)
         except BaseException:
             self._close_io()
             raise
-        self.heartbeat = HeartbeatProducer(
-            self._ports,
-            self.control.host_node_id,
+        self.supervisor = Supervisor(
+            self._layouts,
+            self.monitor,
+            actuation,
+            self.control.period_s,
             self.control.host_heartbeat_ms / 1000.0,
-            self._heartbeat_error,
+            self.control.host_node_id,
+            self.events,
+            on_stop=self._on_stop,
+            realtime_priority=self.control.realtime_priority,
+            clock=clock,
         )
-        self.scheduler = CyclicScheduler(
-            self._layouts, self.monitor, actuation, self.control.period_s, self.events
-        )
-        self.scheduler.realtime_priority = self.control.realtime_priority
-        self.guard = IdleGuard(self.monitor, self.control.period_s, self._idle_stop)
-        self.idle_causes: list[StopCause] = []
+        self.supervisor.start()
+        self._state = SessionState.CONNECTED
         self.events.add(
             "open",
             f"{len(config.buses)} bus(es), {n} drives, {self.control.rate_hz:g} Hz",
             bus_loads=[bl.to_dict() for bl in self.loads],
         )
+
+    # ------------------------------------------------------------------ states
+    @property
+    def state(self) -> SessionState:
+        return self._state
+
+    @property
+    def enabled(self) -> bool:
+        """Every drive is (meant to be) OPERATION_ENABLED: ENABLED or STREAMING."""
+        return self._state in (SessionState.ENABLED, SessionState.STREAMING)
+
+    def _require(self, action: str, *allowed: SessionState) -> None:
+        if self._state not in allowed:
+            names = ", ".join(s.name for s in allowed)
+            raise SessionStateError(
+                f"{action}: not allowed in state {self._state.name} (only from {names})"
+            )
+
+    def _set_state(self, state: SessionState) -> None:
+        with self._state_lock:
+            if self._state is not state:
+                self.events.add("state", f"{self._state.name} -> {state.name}")
+            self._state = state
+
+    def _on_stop(self, stop: StopRecord) -> None:
+        """From the supervisor's thread: every axis was quick-stopped."""
+        if not stop.while_streaming:
+            self.idle_causes = list(stop.causes) + list(stop.failed)
+        if stop.failed:
+            self.stop_error = "quick stop{} failed: {}".format(
+                "" if stop.while_streaming else " while idle",
+                "; ".join(x.text for x in stop.failed),
+            )
+        self._set_state(SessionState.FAULT if stop.failed else SessionState.STOPPED)
 
     # ------------------------------------------------------------------ I/O setup
     def _open(self, given: Sequence[can.BusABC] | None) -> None:
@@ -355,7 +326,7 @@ class DriveBox:
                 node.sdo.RESPONSE_TIMEOUT = self.control.sdo_timeout_s
                 self.links[i] = DriveLink(node, b.name, motor)
                 self._subscribe(net, i, nid)
-                router.fast[c.COB_TPDO1 + nid] = functools.partial(self.monitor.on_tpdo, i)
+                router.fast[cia301.COB_TPDO1 + nid] = functools.partial(self.monitor.on_tpdo, i)
             net.notifier = can.Notifier(bus, listeners, 0.1)
             self._networks.append(net)
             load = self.loads[bi]
@@ -372,13 +343,9 @@ class DriveBox:
     def _subscribe(self, net: canopen.Network, i: int, nid: int) -> None:
         mon = self.monitor
         net.subscribe(
-            c.COB_NMT_ERROR_CONTROL + nid, lambda _cid, data, _ts: mon.on_heartbeat(i, data)
+            cia301.COB_NMT_ERROR_CONTROL + nid, lambda _cid, data, _ts: mon.on_heartbeat(i, data)
         )
-        net.subscribe(c.COB_EMCY + nid, lambda _cid, data, _ts: mon.on_emcy(i, nid, data))
-
-    def _heartbeat_error(self, text: str) -> None:
-        self.events.add("error", f"host heartbeat: {text}")
-        self.monitor.report("send", f"host heartbeat not sent ({text})")
+        net.subscribe(cia301.COB_EMCY + nid, lambda _cid, data, _ts: mon.on_emcy(i, nid, data))
 
     def _links(self) -> list[DriveLink]:
         return [link for link in self.links if link is not None]
@@ -427,32 +394,52 @@ class DriveBox:
             raise DriverError(f"{what}: {first}{more}") from None
         return [f.result() for f in futures]
 
-    def send_nmt(self, command: int) -> None:
-        """Broadcast one NMT command on every bus."""
-        for port in self._ports:
-            port.send(c.make_nmt(command, 0))
-
     # ------------------------------------------------------------------ sequence
-    def bring_up(self) -> np.ndarray:
-        """Reset, configure and enable every drive; return actual positions (counts)."""
+    def _settings(self, link: DriveLink) -> DriveSettings:
+        ctl = self.control
+        act = self.actuation
+        i = act.motor_ids.index(link.motor)
+        return DriveSettings(
+            period_s=ctl.period_s,
+            host_node_id=ctl.host_node_id,
+            host_heartbeat_timeout_ms=ctl.heartbeat_timeout_ms,
+            node_heartbeat_ms=ctl.node_heartbeat_ms,
+            counts_min=int(act.counts_min[i]),
+            counts_max=int(act.counts_max[i]),
+            following_error_window_counts=ctl.following_error_window_counts,
+            quick_stop_option_code=ctl.quick_stop_option_code,
+        )
+
+    def configure(self) -> None:
+        """NMT reset, boot-ups, SDO configuration of every drive, NMT start (-> READY).
+
+        From ENABLED the drives are first disabled by SDO (never reset while enabled)."""
+        self._require(
+            "configure",
+            SessionState.CONNECTED,
+            SessionState.READY,
+            SessionState.ENABLED,
+            SessionState.STOPPED,
+            SessionState.FAULT,
+        )
         t_start = time.monotonic()
         ctl = self.control
-        self.guard.stop()  # (a last check: a cause found now quick-stops every drive)
-        if self.enabled:
-            # A second bring-up: the drives are enabled; never reset them like that.
+        if self._state is SessionState.ENABLED:
+            self.supervisor.disarm()
             try:
                 self._disable_drives("disable before reset")
             except HrmError:
                 self._abort_enable()
-                self.enabled = False
+                self._set_state(SessionState.FAULT)
                 raise
             self.events.add("disable", "every drive disabled (SWITCHED_ON) before the reset")
+        self._set_state(SessionState.CONNECTED)
         self.idle_causes = []
-        self.enabled = False
+        self.stop_error = None
         self.monitor.hb_armed_at = None
-        self.heartbeat.start()
+        self.supervisor.set_heartbeat(True, wait_s=HEARTBEAT_START_WAIT_S)
         self.monitor.reset_boot()
-        self.send_nmt(c.NMT_RESET_NODE)
+        self.send_nmt(cia301.NMT_RESET_NODE)
         self.events.add("nmt", "NMT reset node sent on every bus")
         if not self.monitor.boot_event.wait(ctl.bootup_timeout_s):
             missing = self.monitor.missing_boot()
@@ -461,58 +448,60 @@ class DriveBox:
                 + ", ".join(missing)
             )
         self.events.add("bootup", f"every node booted ({time.monotonic() - t_start:.3f} s)")
-        act = self.actuation
-
-        def settings(link: DriveLink) -> DriveSettings:
-            i = act.motor_ids.index(link.motor)
-            return DriveSettings(
-                period_s=ctl.period_s,
-                host_node_id=ctl.host_node_id,
-                host_heartbeat_timeout_ms=ctl.heartbeat_timeout_ms,
-                node_heartbeat_ms=ctl.node_heartbeat_ms,
-                counts_min=int(act.counts_min[i]),
-                counts_max=int(act.counts_max[i]),
-                following_error_window_counts=ctl.following_error_window_counts,
-                quick_stop_option_code=ctl.quick_stop_option_code,
-            )
-
         self._parallel(
             "configuration",
-            lambda link: configure_drive(link, settings(link)),
+            lambda link: configure_drive(link, self._settings(link)),
             self._budget_s(CONFIG_SDO_TRANSFERS),
         )
         self.events.add("configured", "every drive configured by SDO (CSP, PDOs, limits)")
-        self.send_nmt(c.NMT_START_REMOTE_NODE)
+        self.send_nmt(cia301.NMT_START_REMOTE_NODE)
         self.events.add("nmt", "NMT start remote node sent on every bus")
+        self.bringup_s = time.monotonic() - t_start
+        self._set_state(SessionState.READY)
+
+    def enable(self) -> np.ndarray:
+        """Every drive to OPERATION_ENABLED in CSP (-> ENABLED); return the actual
+        positions (counts).  A drive whose actual position is outside its limits, or
+        that does not reach the state, fails the whole enable: every drive then gets a
+        quick stop by SDO and NMT pre-operational (-> FAULT)."""
+        self._require("enable", SessionState.READY)
+        t_start = time.monotonic()
+        ctl = self.control
         try:
             actual_list = self._parallel(
                 "enable",
                 lambda link: enable_operation(
                     link,
                     ctl.state_timeout_s,
-                    counts_min=settings(link).counts_min,
-                    counts_max=settings(link).counts_max,
+                    counts_min=self._settings(link).counts_min,
+                    counts_max=self._settings(link).counts_max,
                 ),
                 self._budget_s(ENABLE_SDO_TRANSFERS, ENABLE_TRANSITIONS),
             )
         except HrmError:
             self._abort_enable()
+            self._set_state(SessionState.FAULT)
             raise
         order = {link.motor: k for k, link in enumerate(self._links())}
+        act = self.actuation
         actual = np.array([actual_list[order[m]] for m in act.motor_ids], dtype=np.int64)
         self.actual = actual
-        self.enabled = True
-        self.bringup_s = time.monotonic() - t_start
+        self.bringup_s = (self.bringup_s or 0.0) + time.monotonic() - t_start
         self.events.add(
             "enabled", f"every drive OPERATION_ENABLED in CSP ({self.bringup_s:.3f} s bring-up)"
         )
         for stale in self.monitor.drain():
             # Reported during bring-up (e.g. the EMCY of a fault that was reset); every
             # drive has since shown OPERATION_ENABLED.
-            self.events.add("during_bringup", stale.text, cause=stale.kind, motor=stale.motor)
-        self.monitor.hb_armed_at = time.monotonic()  # kept across streams and idle periods
-        self.guard.start()
+            self.events.add("during_bringup", stale.text, cause=stale.kind.value, motor=stale.motor)
+        self.supervisor.arm(actual)  # heartbeats supervised from here on, across streams
+        self._set_state(SessionState.ENABLED)
         return actual
+
+    def bring_up(self) -> np.ndarray:
+        """:meth:`configure` then :meth:`enable`; return the actual positions (counts)."""
+        self.configure()
+        return self.enable()
 
     def _abort_enable(self) -> None:
         """Bring-up failed half-way: quick stop by SDO to every drive (no target is
@@ -521,13 +510,13 @@ class DriveBox:
         try:
             self._parallel(
                 "abort",
-                lambda link: sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_QUICK_STOP),
+                lambda link: sdo_write(link, cia402.OD_CONTROLWORD, 0, cia402.CW_QUICK_STOP),
                 self._budget_s(1),
             )
         except HrmError as exc:
             self.events.add("error", f"quick stop after failed enable: {exc}")
         try:
-            self.send_nmt(c.NMT_ENTER_PRE_OPERATIONAL)
+            self.send_nmt(cia301.NMT_ENTER_PRE_OPERATIONAL)
         except DriverError as exc:
             self.events.add("error", f"NMT pre-operational after failed enable: {exc}")
         self.events.add("quick_stop", "bring-up failed: quick stop (SDO) and NMT pre-operational")
@@ -540,40 +529,26 @@ class DriveBox:
         timeout_s = self.control.state_timeout_s
 
         def disable(link: DriveLink) -> None:
-            command(link, c.CW_DISABLE_OPERATION, c.State402.SWITCHED_ON, timeout_s)
-            command(link, c.CW_SHUTDOWN, c.State402.READY_TO_SWITCH_ON, timeout_s)
+            command(link, cia402.CW_DISABLE_OPERATION, cia402.State402.SWITCHED_ON, timeout_s)
+            command(link, cia402.CW_SHUTDOWN, cia402.State402.READY_TO_SWITCH_ON, timeout_s)
 
         self._parallel(what, disable, self._budget_s(0, 2))
 
-    def _idle_stop(self, causes: list[StopCause]) -> None:
-        """Called by the idle guard: quick stop every drive, remember why; raises
-        :class:`DriverError` naming what failed (after trying every bus / drive)."""
-        for cause in causes:
-            self.events.add("stop_cause", cause.text, cause=cause.kind, motor=cause.motor)
-        hold = self.results[-1].last_targets if self.results else self.actual
-        failed: list[str] = []
+    def disable(self) -> None:
+        """Disable every drive by SDO (-> READY); from STOPPED too (after a quick stop
+        the drives are brought to READY_TO_SWITCH_ON the same way)."""
+        self._require("disable", SessionState.ENABLED, SessionState.STOPPED)
+        was_enabled = self._state is SessionState.ENABLED
+        self.supervisor.disarm()  # with a last check: a cause found now stops every axis
+        if was_enabled:
+            self._raise_if_stopped()
         try:
-            if hold is not None and self.results:
-                sent = self.scheduler.send_controlword(c.CW_QUICK_STOP, hold)  # checked targets
-                failed = [x.text for x in sent]
-            else:
-                self._parallel(
-                    "quick stop",
-                    lambda link: sdo_write(link, c.OD_CONTROLWORD, 0, c.CW_QUICK_STOP),
-                    self._budget_s(1),
-                )
-        except HrmError as exc:
-            failed.append(str(exc))
-        self.idle_causes = list(causes) + [
-            StopCause("send", f"idle quick stop failed: {t}", None, time.monotonic())
-            for t in failed
-        ]
-        self.enabled = False
-        if failed:
-            text = "quick stop while idle failed: " + "; ".join(failed)
-            self.events.add("error", text)
-            raise DriverError(text)
-        self.events.add("quick_stop", "quick stop sent to every drive while idle")
+            self._disable_drives("disable")
+        except HrmError:
+            self._set_state(SessionState.FAULT)
+            raise
+        self.events.add("disable", "every drive disabled and shut down (READY_TO_SWITCH_ON)")
+        self._set_state(SessionState.READY)
 
     def _check_ready(self) -> None:
         """Before the first RPDO of a stream: every drive's statusword (SDO upload of
@@ -583,67 +558,110 @@ class DriveBox:
         bad = [
             f"{link.label} statusword 0x{sw:04X} ({state.name})"
             for link, (state, sw) in zip(self._links(), states, strict=True)
-            if state is not c.State402.OPERATION_ENABLED
+            if state is not cia402.State402.OPERATION_ENABLED
         ]
         if bad:
             text = f"stream refused: not OPERATION_ENABLED: {', '.join(bad)}"
             self.events.add("error", text)
             raise DriverError(text)
 
+    def _refuse_stopped(self) -> None:
+        """A stream asked for after a stop (idle or not): name why the box stopped."""
+        causes = self.idle_causes or (self.results[-1].causes if self.results else [])
+        if not causes:
+            return
+        failed = f" ({self.stop_error})" if self.stop_error is not None else ""
+        where = "while idle" if self.idle_causes else "earlier"
+        raise SafetyStopError(
+            f"stopped {where}: {causes[0].text}{failed}",
+            causes,
+            StreamResult(False, 0, causes, {}, np.zeros(self.monitor.n, np.int64)),
+        )
+
+    def _raise_if_stopped(self) -> None:
+        """While a stream is being prepared the supervisor may stop the box (an EMCY,
+        a lost heartbeat): wait for its stop record, then refuse naming the cause."""
+        deadline = time.monotonic() + STOP_RECORD_WAIT_S
+        while self.supervisor.mode is Mode.STOPPING and time.monotonic() < deadline:
+            time.sleep(self.control.period_s)
+        if self._state in (SessionState.STOPPED, SessionState.FAULT):
+            self._refuse_stopped()
+
+    def _stream_timeout_s(self, source: SetpointSource) -> float:
+        n = getattr(source, "n_cycles", None)
+        cycles = float(n) if isinstance(n, int | np.integer) and n >= 0 else math.inf
+        length_s = min(cycles * self.control.period_s, MAX_SOURCE_DURATION_S)
+        return length_s * 1.5 + STREAM_TIMEOUT_MARGIN_S
+
     def stream(self, source: SetpointSource, raise_on_stop: bool = True) -> StreamResult:
-        """Play a setpoint source; on any stop cause every axis gets a quick stop and
-        :class:`SafetyStopError` is raised (or the result returned with ``raise_on_stop=False``)."""
-        self.guard.stop()  # with a last check: a cause queued now stops every drive
-        if self.idle_causes:
-            causes = self.idle_causes
-            failed = f" ({self.guard.error})" if self.guard.error is not None else ""
-            raise SafetyStopError(
-                f"stopped while idle: {causes[0].text}{failed}",
-                causes,
-                StreamResult(False, 0, causes, {}, np.zeros(self.monitor.n, np.int64)),
-            )
-        if not self.enabled or self.actual is None:
-            raise DriverError("stream: drives are not enabled (bring_up first)")
-        start = self.actual
-        if self.results:
-            start = self.results[-1].last_targets
+        """Play a setpoint source from where the drives are (ENABLED -> STREAMING ->
+        ENABLED); on any stop cause every axis gets a quick stop and
+        :class:`SafetyStopError` is raised (or the result returned with
+        ``raise_on_stop=False``).  The source is started (its whole table checked
+        against every limit) and every drive's statusword read before anything is
+        sent; a refusal there sends nothing and leaves the session ENABLED."""
+        if self._state in (SessionState.STOPPED, SessionState.FAULT):
+            self._refuse_stopped()
+        self._require("stream", SessionState.ENABLED)
+        targets = self.supervisor.targets
+        if targets is None:
+            raise SessionStateError("stream: the drives hold no known position")
+        source.start(np.asarray(targets, dtype=np.int64).copy(), self.control.period_s)
         try:
-            result = self.scheduler.stream(source, start, ready_check=self._check_ready)
+            self._check_ready()
+        except DriverError:
+            self._raise_if_stopped()  # the supervisor stopped the box meanwhile
+            raise
+        self._raise_if_stopped()
+        self._set_state(SessionState.STREAMING)
+        try:
+            result = self.supervisor.play(source, self._stream_timeout_s(source))
+        except SupervisorModeError:  # stopped between the checks and the hand-over
+            self._set_state(SessionState.STOPPED)
+            self._raise_if_stopped()
+            raise
         except BaseException:
-            if self.scheduler.crash_stopped:
-                self.enabled = False  # the scheduler quick-stopped every drive
-            else:
-                self.guard.start()  # the source refused to start: nothing was sent
+            if self._state is SessionState.STREAMING:
+                self._set_state(SessionState.FAULT)
             raise
         self.results.append(result)
         if not result.causes:
-            self.guard.start()
-        if result.causes:
-            self.enabled = False
-            if raise_on_stop:
-                first = result.causes[0].text
-                more = f" (+{len(result.causes) - 1} more)" if len(result.causes) > 1 else ""
-                if result.error is not None and result.causes[0].kind == "limit":
-                    raise SafetyStopError(f"stopped: {result.error}", result.causes, result)
-                raise SafetyStopError(f"stopped: {first}{more}", result.causes, result)
+            self._set_state(SessionState.ENABLED)
+            return result
+        if self._state is SessionState.STREAMING:  # the stop record is already in
+            self._set_state(SessionState.STOPPED)
+        if raise_on_stop:
+            first = result.causes[0]
+            more = f" (+{len(result.causes) - 1} more)" if len(result.causes) > 1 else ""
+            if result.error is not None and first.kind is StopKind.LIMIT:
+                raise SafetyStopError(f"stopped: {result.error}", result.causes, result)
+            raise SafetyStopError(f"stopped: {first.text}{more}", result.causes, result)
         return result
 
     def request_stop(self) -> None:
-        """Ask a running stream to stop (quick stop) at the next cycle (thread-safe)."""
-        self.scheduler.stop_request.set()
-        self.monitor.wake.set()
+        """Quick stop every axis now, streaming or idle (thread-safe)."""
+        self.supervisor.request_stop()
+
+    def send_nmt(self, command: int) -> None:
+        """Broadcast one NMT command on every bus."""
+        for port in self._ports:
+            port.send(cia301.make_nmt(command, 0))
 
     def finish(self) -> None:
-        """Orderly end: *disable operation* then *shutdown* by SDO, each confirmed by the
-        statusword (power stage off, READY_TO_SWITCH_ON; no target position is sent),
-        then NMT pre-operational, then the host heartbeat off (the drives no longer
-        need it).  Whatever fails, the rest is still done; then :class:`DriverError`
-        names what failed (a drive left enabled stops itself when the host heartbeat
-        ends, and on NMT pre-operational)."""
-        self.guard.stop()  # with a last check
+        """Orderly end (-> CONNECTED): *disable operation* then *shutdown* by SDO, each
+        confirmed by the statusword (power stage off, READY_TO_SWITCH_ON; no target
+        position is sent), then NMT pre-operational, then the host heartbeat off (the
+        drives no longer need it).  Whatever fails, the rest is still done; then
+        :class:`DriverError` names what failed (a drive left enabled stops itself when
+        the host heartbeat ends, and on NMT pre-operational)."""
+        if self._state is SessionState.CLOSED:
+            raise SessionStateError("finish: the session is closed")
         failed: list[str] = []
+        was_enabled = self.enabled
         try:
-            if self.enabled:
+            if self.supervisor.mode is Mode.ARMED:
+                self.supervisor.disarm()
+            if was_enabled and self.supervisor.mode is not Mode.STOPPING:
                 try:
                     self._disable_drives("disable")
                     self.events.add(
@@ -652,16 +670,16 @@ class DriveBox:
                 except HrmError as exc:
                     failed.append(str(exc))
             try:
-                self.send_nmt(c.NMT_ENTER_PRE_OPERATIONAL)
+                self.send_nmt(cia301.NMT_ENTER_PRE_OPERATIONAL)
                 self.events.add("nmt", "NMT enter pre-operational sent on every bus")
             except HrmError as exc:
                 failed.append(f"NMT pre-operational: {exc}")
         finally:
-            self.enabled = False
-            self.heartbeat.stop()
-        if self.guard.error is not None:
-            failed.append(str(self.guard.error))
-            self.guard.error = None
+            self.supervisor.set_heartbeat(False)
+            self._set_state(SessionState.CONNECTED)
+        if self.stop_error is not None:
+            failed.append(self.stop_error)
+            self.stop_error = None
         if failed:
             text = "finish: " + "; ".join(failed)
             self.events.add("error", text)
@@ -681,6 +699,7 @@ class DriveBox:
             "bringup_s": self.bringup_s,
             "actual_counts_at_enable": None if self.actual is None else self.actual.tolist(),
             "streams": [r.to_dict() for r in self.results],
+            "session_state": self._state.value,
             "idle_stop_causes": [x.to_dict() for x in self.idle_causes],
             "events": self.events.to_list(),
             "emergencies": [e.describe() for e in self.monitor.emergencies],
@@ -704,10 +723,10 @@ class DriveBox:
         self._owned = []
 
     def close(self) -> Path | None:
-        """Stop everything; write the run record (if logging); return its path."""
-        self.guard.stop()
-        self.heartbeat.stop()
+        """Stop everything (-> CLOSED); write the run record (if logging); return its path."""
+        self.supervisor.close()
         self._close_io()
+        self._set_state(SessionState.CLOSED)
         if self.log_dir is None:
             return None
         path = self.log_dir / f"{self.run_name}.json"
@@ -715,7 +734,7 @@ class DriveBox:
         self.record_path = path
         return path
 
-    def __enter__(self) -> DriveBox:
+    def __enter__(self) -> DriveSession:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:

@@ -1,4 +1,6 @@
-"""Setpoint sources for cyclic streaming: hold, jog, plan playback.
+"""Setpoint sources for cyclic streaming: hold, jog, and a precomputed counts table
+(plan playback: the console turns a plan into counts with the rope layer's
+``hrm_ctrl.ropes.setpoints`` and hands the table to :class:`CountsSource`).
 
 A source is started with the drives' actual positions (counts, the rope
 layer's motor order) and the control period, then asked for the setpoint of
@@ -17,6 +19,7 @@ before sending it.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
 import numpy as np
@@ -28,6 +31,7 @@ from drivers.safety.limits import (
     check_duration,
     check_joint_limits,
 )
+from hrm_ctrl.errors import HrmError
 
 JOG_ANGLE_CHECK_STEP_COUNTS = 1000  # a jog is mapped to joint angles at least this often
 JOG_ANGLE_CHECK_MAX_ROWS = 400
@@ -233,103 +237,170 @@ class JogSource(TableSource):
         }
 
 
-def interpolate_rows(t_query: np.ndarray, t_knots: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """Piecewise-linear interpolation of every column of ``rows`` (knots, m) at ``t_query``.
+LabelOfRow = Callable[[int], str] | Sequence[str]
 
-    >>> interpolate_rows(np.array([0.0, 0.5, 2.0]), np.array([0.0, 1.0]),
-    ...                  np.array([[0.0, 10.0], [1.0, 20.0]]))
-    array([[ 0. , 10. ],
-           [ 0.5, 15. ],
-           [ 1. , 20. ]])
+
+def _row_name(label: LabelOfRow | None, row: int) -> str:
+    if label is None:
+        return f"row {row}"
+    return label(row) if callable(label) else str(label[row])
+
+
+def check_table(
+    limits: LimitChecker,
+    table: np.ndarray,
+    period_s: float,
+    name_of_row: Callable[[int], str],
+    what: str,
+    previous: np.ndarray | None = None,
+) -> None:
+    """``limits.check_counts`` of a (rows, motors) table at the control period, the first
+    offending row named by ``name_of_row(row)`` (:class:`SetpointError`, one line).
+
+    >>> class Lim:
+    ...     counts_min = np.array([-10]); counts_max = np.array([10])
+    ...     max_rate_counts_per_s = np.array([1e9]); motor_ids = ("m0",)
+    ...     def check_counts(self, counts, previous=None, dt_s=None):
+    ...         if np.any(np.abs(counts) > 10): raise SetpointError("m0 outside [-10, 10]")
+    >>> check_table(Lim(), np.array([[0], [11]]), 0.01, lambda r: f"plan step {7 * r}", "plan")
+    Traceback (most recent call last):
+    ...
+    drivers.safety.limits.SetpointError: plan: plan step 7: m0 outside [-10, 10]
     """
-    tq = np.clip(t_query, t_knots[0], t_knots[-1])
-    i = np.clip(np.searchsorted(t_knots, tq, side="right") - 1, 0, len(t_knots) - 2)
-    span = t_knots[i + 1] - t_knots[i]
-    w = np.where(span > 0, (tq - t_knots[i]) / np.where(span > 0, span, 1.0), 1.0)
-    return rows[i] + w[:, None] * (rows[i + 1] - rows[i])
+    try:
+        limits.check_counts(table, previous=previous, dt_s=period_s)
+        return
+    except HrmError as exc:
+        whole = exc
+    lo = np.asarray(limits.counts_min)
+    hi = np.asarray(limits.counts_max)
+    out = np.flatnonzero(((table < lo) | (table > hi)).any(axis=1))
+    seq = table if previous is None else np.vstack([np.asarray(previous)[None, :], table])
+    rate = np.abs(np.diff(seq.astype(np.float64), axis=0)) / period_s
+    fast = np.flatnonzero((rate > np.asarray(limits.max_rate_counts_per_s)).any(axis=1))
+    first_fast = int(fast[0]) + (1 if previous is None else 0) if fast.size else table.shape[0]
+    first_out = int(out[0]) if out.size else table.shape[0]
+    r = min(first_out, first_fast)
+    if r >= table.shape[0]:  # the checker refused for another reason: say so as it did
+        raise SetpointError(f"{what}: {whole}") from None
+    try:
+        if r == first_out:
+            limits.check_counts(table[r])
+        else:
+            prev = seq[r - 1] if previous is None else seq[r]
+            limits.check_counts(table[r], previous=prev, dt_s=period_s)
+    except HrmError as exc:
+        raise SetpointError(f"{what}: {name_of_row(r)}: {exc}") from None
+    raise SetpointError(f"{what}: {name_of_row(r)}: {whole}")
 
 
-class PlanSource(TableSource):
-    """Play an ``hrm-plan/1`` plan: steps at their travel (mm) along the path, at
-    ``speed_mm_per_s``, interpolated in joint angles at the control rate and turned
-    into counts by the rope layer; a lead-in ramp from the actual positions to the
-    plan's first setpoint and a short hold at the end."""
+class CountsSource(TableSource):
+    """Play a precomputed (cycles, motors) counts ``body`` made for the control period
+    ``period_s``: a lead-in ramp from the actual positions to the body's first row (at
+    no more than half of each motor's speed), the body, then ``hold_s`` of its last row.
 
-    name = "plan"
+    ``label`` names body rows in messages (a function of the row or one string per
+    row, e.g. the plan step a row came from); ``info`` goes into :meth:`describe`.  The
+    body is checked against every limit in :meth:`precheck`, and the whole table again,
+    from the actual positions, in :meth:`start`.
+
+    >>> from hrm_ctrl.ropes.actuation import load_actuation
+    >>> from hrm_ctrl.model import default_robot
+    >>> act = load_actuation(default_robot())
+    >>> body = np.repeat(np.arange(3)[:, None] * 100, act.n_motors, axis=1)
+    >>> src = CountsSource(act, body, 0.01, name="plan", hold_s=0.02)
+    >>> src.start(np.zeros(act.n_motors, dtype=np.int64), 0.01)
+    >>> src.n_lead_in, src.n_cycles, src.table[:, 0].tolist()
+    (0, 5, [0, 100, 200, 200, 200])
+    """
 
     def __init__(
         self,
-        actuation: LimitChecker,
-        plan: dict[str, Any],
-        speed_mm_per_s: float = 20.0,
+        limits: LimitChecker,
+        body: np.ndarray,
+        period_s: float,
+        *,
+        name: str = "counts",
+        label: LabelOfRow | None = None,
         hold_s: float = 0.2,
-        source: str = "plan",
+        info: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
+        self.name = name
         if not (math.isfinite(hold_s) and hold_s >= 0):
-            raise SetpointError(f"{source}: hold must be >= 0 s, got {hold_s}")
-        if not (math.isfinite(speed_mm_per_s) and speed_mm_per_s > 0):
-            raise SetpointError(f"{source}: speed must be > 0 mm/s, got {speed_mm_per_s}")
-        steps = plan.get("steps") or []
-        if not steps:
-            raise SetpointError(f"{source}: plan has no steps")
-        self.actuation = actuation
-        self.source = source
-        self.speed = float(speed_mm_per_s)
+            raise SetpointError(f"{name}: hold must be >= 0 s, got {hold_s}")
+        if not (math.isfinite(period_s) and period_s > 0):
+            raise SetpointError(f"{name}: control period must be > 0 s, got {period_s}")
+        arr = np.asarray(body)
+        n = len(limits.motor_ids)
+        if arr.ndim != 2 or arr.shape[0] < 1 or arr.shape[1] != n or arr.dtype.kind not in "iu":
+            raise SetpointError(
+                f"{name}: counts must be an integer table (cycles >= 1, {n} motors), got "
+                f"{arr.dtype} {arr.shape}"
+            )
+        if label is not None and not callable(label) and len(label) != arr.shape[0]:
+            raise SetpointError(f"{name}: {len(label)} row labels for {arr.shape[0]} rows")
+        self.limits = limits
+        self.body = arr.astype(np.int64, copy=False)
+        self.period_s = float(period_s)
+        self.label = label
         self.hold_s = float(hold_s)
-        travel = np.array([float(s["travel_mm"]) for s in steps])
-        self.alpha = np.array([s["alpha_rad"] for s in steps], dtype=np.float64)
-        self.theta = np.array([s["theta_rad"] for s in steps], dtype=np.float64)
-        travel = np.maximum.accumulate(travel - travel[0])
-        self.t_knots = travel / self.speed
-        if len(steps) == 1:
-            self.t_knots = np.array([0.0, 0.0])
-            self.alpha = np.repeat(self.alpha, 2, axis=0)
-            self.theta = np.repeat(self.theta, 2, axis=0)
-        self.n_steps = len(steps)
+        self.info = dict(info or {})
         self.n_lead_in = 0
+        self._checked = False
 
-    def plan_table(self, period_s: float) -> np.ndarray:
-        """(cycles, motors) counts of the plan itself, checked against every limit."""
-        duration = float(self.t_knots[-1])
-        check_duration(f"{self.source} at {self.speed:g} mm/s", duration + self.hold_s, period_s)
-        n = math.floor(duration / period_s + 1e-9) + 1
-        t = np.arange(n, dtype=np.float64) * period_s
-        if t[-1] < duration:
-            t = np.append(t, duration)
-        angles = interpolate_rows(t, self.t_knots, np.hstack([self.alpha, self.theta]))
-        k = self.alpha.shape[1]
-        counts = np.asarray(
-            self.actuation.counts_from_angles(angles[:, :k], angles[:, k:]), dtype=np.int64
-        )
-        self.actuation.check_counts(counts, dt_s=period_s)
-        return counts
+    def _row_name(self, row: int) -> str:
+        """A row of the full table (lead-in, body, hold) as a message names it."""
+        n_body = self.body.shape[0]
+        if row < self.n_lead_in:
+            return f"lead-in to {_row_name(self.label, 0)}"
+        if row - self.n_lead_in >= n_body:
+            return f"final hold at {_row_name(self.label, n_body - 1)}"
+        return _row_name(self.label, row - self.n_lead_in)
+
+    def _check_period(self, period_s: float) -> None:
+        if abs(period_s - self.period_s) > 1e-9 * self.period_s:
+            raise SetpointError(
+                f"{self.name}: counts made for a {self.period_s:g} s control period, "
+                f"the control period is {period_s:g} s"
+            )
 
     def precheck(self, period_s: float) -> None:
-        """The whole plan against every rope and joint limit."""
-        self.plan_table(period_s)
+        """The period the body was made for, the duration, and the body against every
+        rope limit (the joint limits were the rope layer's to check when it was made)."""
+        self._check_period(period_s)
+        n_hold = round(self.hold_s / period_s)
+        check_duration(self.name, (self.body.shape[0] + n_hold) * period_s, period_s)
+        if not self._checked:
+            check_table(
+                self.limits,
+                self.body,
+                period_s,
+                lambda r: _row_name(self.label, r),
+                self.name,
+            )
+            self._checked = True
 
     def start(self, actual_counts: np.ndarray, period_s: float) -> None:
-        body = self.plan_table(period_s)
+        self.precheck(period_s)
+        body = self.body
         actual = np.asarray(actual_counts, dtype=np.int64)
         lead = (
-            ramp_table(actual, body[0], self.actuation.max_rate_counts_per_s, period_s)
+            ramp_table(actual, body[0], self.limits.max_rate_counts_per_s, period_s)
             if np.any(body[0] != actual)
             else np.zeros((0, actual.shape[0]), dtype=np.int64)
         )
         hold = np.repeat(body[-1:], max(0, round(self.hold_s / period_s)), axis=0)
         table = np.concatenate([lead, body, hold], axis=0)
-        self.actuation.check_counts(table, previous=actual, dt_s=period_s)
         self.n_lead_in = int(lead.shape[0])
+        check_table(self.limits, table, period_s, self._row_name, self.name, previous=actual)
         self.table = table
 
     def describe(self) -> dict[str, Any]:
         return {
             "source": self.name,
-            "plan": self.source,
-            "steps": self.n_steps,
-            "speed_mm_per_s": self.speed,
-            "duration_s": float(self.t_knots[-1]),
+            **self.info,
+            "body_cycles": int(self.body.shape[0]),
             "lead_in_cycles": self.n_lead_in,
             "cycles": self.n_cycles,
         }

@@ -5,6 +5,55 @@ Every error the stack raises on bad input or an unsafe state derives from
 exit.  Layers subclass their own branch (``PlanningError`` for the planner,
 ``RopeError`` for the rope layer, ``DriverError`` for the CAN drivers,
 ``SimError`` for the simulated box, ``CalibrationError`` for calibration).
+
+The whole tree, each class with the module that defines it::
+
+    Exception (Python standard library)
+     +-- HrmError                           hrm_ctrl.errors
+     |    +-- RobotDescriptionError         hrm_ctrl.errors
+     |    +-- PlanningError                 hrm_ctrl.errors
+     |    |    +-- PathFileError            hrm_ctrl.errors
+     |    |    +-- UnreachableError         hrm_ctrl.errors
+     |    |    +-- JointLimitError          hrm_ctrl.errors
+     |    +-- PlanFileError                 hrm_ctrl.errors
+     |    +-- PlotError                     hrm_ctrl.formats.plots
+     |    +-- UrdfWriteError                hrm_ctrl.formats.urdf
+     |    +-- RopeError                     hrm_ctrl.errors
+     |    |    +-- RoutingError             hrm_ctrl.ropes.routing
+     |    |    +-- MotorConfigError         hrm_ctrl.ropes.motor_map
+     |    |    +-- RopeInverseError         hrm_ctrl.ropes.inverse
+     |    |    +-- RopeLimitError           hrm_ctrl.ropes.actuation
+     |    +-- DriverError                   hrm_ctrl.errors
+     |    |    +-- FrameError               drivers.protocol.cia301
+     |    |    +-- TransitionError          drivers.protocol.cia402
+     |    |    +-- BusConfigError           drivers.config
+     |    |    +-- BusLoadError             drivers.busload
+     |    |    +-- BusSendError             drivers.bus
+     |    |    +-- SdoError                 drivers.bringup
+     |    |    +-- StateTimeoutError        drivers.bringup
+     |    |    +-- BootupError              drivers.bringup
+     |    |    +-- SetpointError            drivers.safety.limits
+     |    |    +-- SupervisorModeError      drivers.safety.supervisor
+     |    |    +-- SessionStateError        drivers.session
+     |    |    +-- SafetyStopError          drivers.session
+     |    |    +-- ProcessSettingsError     drivers.realtime
+     |    |    +-- TensionSensorError       drivers.tension_sensor
+     |    |         +-- StaleTensionError   drivers.tension_sensor
+     |    +-- SimError                      hrm_ctrl.errors
+     |    |    +-- DriveSimError            sim_bus.drive
+     |    |    +-- WireConfigError          sim_bus.wire
+     |    |    +-- FaultSpecError           sim_bus.faults
+     |    +-- CalibrationError              hrm_ctrl.errors
+     +-- SdoAbort                           sim_bus.drive.objects
+    UserWarning (Python standard library)
+     +-- DuplicatePointsWarning             hrm_ctrl.planning.known_path
+
+Some classes are not errors of the stack and stay outside :class:`HrmError`:
+``SdoAbort`` carries a CiA 301 abort code inside the simulated drive, whose SDO
+server answers it with an abort frame (it never reaches a caller), and
+``DuplicatePointsWarning`` is a warning.  A new exception derives from its layer's
+branch and gets its line here: ``tests/hrm_ctrl/test_errors.py`` compares this
+drawing (names, parents, modules) with the classes the packages define.
 """
 
 from __future__ import annotations

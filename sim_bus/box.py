@@ -19,8 +19,8 @@ sends); on other interfaces the box applies them to the frames it sends and
 (for drops) receives, and a bus-off box neither sends nor listens.
 
 >>> import can
->>> from sim_bus.config import load_sim_config
->>> cfg = load_sim_config(None).with_bus_kwargs(
+>>> from drivers.config import load_box_config
+>>> cfg = load_box_config(None).with_bus_kwargs(
 ...     [{"interface": "hrm_sim", "channel": "doc-box-0"},
 ...      {"interface": "hrm_sim", "channel": "doc-box-1"}])
 >>> host = can.Bus(interface="hrm_sim", channel="doc-box-0")
@@ -45,13 +45,14 @@ from typing import Any
 import can
 import numpy as np
 
-import drivers.protocol.cia402 as cia
+import drivers.protocol.cia301 as cia301
+from drivers.config import BoxConfig
+from drivers.protocol.cia402 import EMCY_FOLLOWING_ERROR
 from hrm_ctrl.errors import SimError
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.arm import ArmState, SimArm
-from sim_bus.config import SimConfig
-from sim_bus.drive import EMCY_FOLLOWING_ERROR, DriveParams, DriveSim
+from sim_bus.drive import DriveParams, DriveSim
 from sim_bus.wire import FrameMatch, SimWireBus
 
 log = logging.getLogger("sim_bus.box")
@@ -132,7 +133,9 @@ class SimBox:
     """The simulated box (see the module docstring); a context manager.
 
     Args:
-        config: buses and nodes (:func:`sim_bus.config.load_sim_config`).
+        config: buses and nodes: the bus configuration the host uses too
+            (:func:`drivers.config.load_box_config`); its ``[control]`` settings are
+            the host's and are not used here.
         buses: already open buses, one per configured bus (else opened from config).
         actuation: the rope layer (default: the default robot's).
         max_accel_counts_per_s2 / quick_stop_decel_counts_per_s2: drive ramps; the
@@ -144,7 +147,7 @@ class SimBox:
 
     def __init__(
         self,
-        config: SimConfig,
+        config: BoxConfig,
         buses: Sequence[can.BusABC] | None = None,
         *,
         actuation: Actuation | None = None,
@@ -335,12 +338,12 @@ class SimBox:
             except Exception as exc:  # a drive must never take the box down
                 self._event(f"drive {bb.name}/{d.node_id}: error handling {msg} ({exc!r})")
         cob = msg.arbitration_id
-        if cob == cia.COB_SYNC and bb.trace is not None:
+        if cob == cia301.COB_SYNC and bb.trace is not None:
             bb.trace.append((now, [d.position_counts for d in bb.drives]))
-        if cob == cia.COB_NMT or cia.COB_SDO_RX < cob <= cia.COB_SDO_RX + 0x7F:
+        if cob == cia301.COB_NMT or cia301.COB_SDO_RX < cob <= cia301.COB_SDO_RX + 0x7F:
             bb.rebuild_routes()
             bb.timers_dirty = True
-        elif cob > cia.COB_NMT_ERROR_CONTROL:  # a heartbeat may start a consumer's watch
+        elif cob > cia301.COB_NMT_ERROR_CONTROL:  # a heartbeat may start a consumer's watch
             bb.timers_dirty = True
 
     def _timers_changed(self) -> None:

@@ -11,6 +11,11 @@ With ``control=True`` it reads commands from stdin, one per line:
 ``fault SPEC`` (see :mod:`sim_bus.faults`), ``state`` (true arm state now),
 ``trace on|off`` / ``trace`` (positions after every SYNC), ``stats``, ``quit``.
 End of stdin also stops the box, so a parent that dies takes the box with it.
+
+Running the box changes no interpreter setting: the process entry (``hrm``, see
+:func:`hrm_ctrl.cli.main`) enters :func:`drivers.realtime.process_settings`, which
+lowers the GIL switch interval so the bus threads answer each SYNC promptly while the
+tension board computes the arm.
 """
 
 from __future__ import annotations
@@ -24,15 +29,13 @@ import time
 from collections.abc import Sequence
 from typing import Any, TextIO
 
+from drivers.config import BoxConfig
 from hrm_ctrl.errors import HrmError
 from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.box import SimBox
-from sim_bus.config import SimConfig
 from sim_bus.faults import Fault, apply_fault, parse_fault
 from sim_bus.tension_board import TensionBoard
 from sim_bus.wire import SimWireBus
-
-BOX_SWITCH_INTERVAL_S = 2e-4
 
 
 def _emit(out: TextIO, obj: dict[str, Any]) -> None:
@@ -71,7 +74,7 @@ def stats_json(box: SimBox, board: TensionBoard | None) -> dict[str, Any]:
 
 
 def run_box_process(
-    config: SimConfig,
+    config: BoxConfig,
     *,
     actuation: Actuation | None = None,
     faults: Sequence[Fault] = (),
@@ -85,9 +88,6 @@ def run_box_process(
     SIGTERM/SIGINT.  Returns the exit status (0)."""
     stop = threading.Event()
     commands: queue.Queue[str | None] = queue.Queue()
-    # The box answers each SYNC from a bus thread while the tension board computes the arm:
-    # with CPython's default 5 ms GIL switch interval every socket send could wait that long.
-    sys.setswitchinterval(BOX_SWITCH_INTERVAL_S)
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())

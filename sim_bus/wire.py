@@ -3,7 +3,8 @@
 Every :class:`SimWireBus` opened with the same ``channel`` in one process is a
 node on one shared :class:`SimWire`.  The wire models classical CAN:
 
-* a frame occupies the wire for its length in bits divided by the bitrate;
+* a frame occupies the wire for its length in bits divided by the bitrate
+  (:func:`drivers.protocol.frames.frame_bits`, the bus-load budget's count too);
   the length counts worst-case bit stuffing by default (``stuffing="worst"``,
   the figure bus-load budgets use: 135 bits for 8 data bytes with an 11-bit
   id) or the exact stuff bits of the frame's real bit pattern, CRC included
@@ -43,7 +44,6 @@ from __future__ import annotations
 
 import collections
 import math
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -53,97 +53,14 @@ from typing import Any, Literal
 import can
 from can.bus import BusState, CanProtocol
 
+from drivers.protocol.frames import Stuffing, frame_bits
 from hrm_ctrl.errors import SimError
 
-Stuffing = Literal["worst", "exact"]
 FrameMatch = Callable[[can.Message], bool]
-
-#: bits after the CRC that are never stuffed: CRC delimiter, ACK slot + delimiter, EOF, IFS.
-TRAILER_BITS = 1 + 2 + 7 + 3
-CRC15_POLY = 0x4599
-#: A node waiting for a frame must get the GIL back within a fraction of a frame time;
-#: CPython's default switch interval (5 ms) would let any busy thread delay it by that much.
-#: Opening a wire lowers the process's switch interval to this (never raises it).
-GIL_SWITCH_INTERVAL_S = 2e-4
 
 
 class WireConfigError(SimError):
     """Two nodes disagree about a wire (bitrate), or a wire parameter is invalid."""
-
-
-def _stuffable_bits(msg: can.Message) -> list[int]:
-    """The bit pattern SOF .. CRC (the part subject to stuffing), dominant = 0."""
-    bits: list[int] = [0]  # SOF
-    dlc = 0 if msg.is_remote_frame else len(msg.data)
-    if msg.is_remote_frame:
-        dlc = msg.dlc
-
-    def put(value: int, n: int) -> None:
-        bits.extend((value >> (n - 1 - i)) & 1 for i in range(n))
-
-    rtr = 1 if msg.is_remote_frame else 0
-    if msg.is_extended_id:
-        put(msg.arbitration_id >> 18, 11)
-        put(1, 1)  # SRR
-        put(1, 1)  # IDE
-        put(msg.arbitration_id & 0x3FFFF, 18)
-        put(rtr, 1)
-        put(0, 2)  # r1, r0
-    else:
-        put(msg.arbitration_id, 11)
-        put(rtr, 1)
-        put(0, 1)  # IDE
-        put(0, 1)  # r0
-    put(dlc, 4)
-    if not msg.is_remote_frame:
-        for byte in bytes(msg.data):
-            put(byte, 8)
-    crc = 0
-    for b in bits:
-        nxt = b ^ ((crc >> 14) & 1)
-        crc = (crc << 1) & 0x7FFF
-        if nxt:
-            crc ^= CRC15_POLY
-    put(crc, 15)
-    return bits
-
-
-def stuff_bit_count(bits: list[int]) -> int:
-    """Number of stuff bits a CAN transmitter inserts into ``bits`` (after 5 equal bits).
-
-    >>> stuff_bit_count([0] * 5), stuff_bit_count([0] * 10), stuff_bit_count([0, 1] * 8)
-    (1, 2, 0)
-    """
-    count = 0
-    run = 0
-    last = -1
-    for b in bits:
-        if b == last:
-            run += 1
-        else:
-            last, run = b, 1
-        if run == 5:
-            count += 1
-            last, run = 1 - b, 1  # the stuff bit itself starts a new run
-    return count
-
-
-def frame_bits(msg: can.Message, stuffing: Stuffing = "worst") -> int:
-    """Bits a classical CAN data/remote frame occupies on the wire, interframe space included.
-
-    ``worst``: ``n + floor((n - 1) / 4) + 13`` with ``n`` = 34 + 8·len (11-bit id) or
-    54 + 8·len (29-bit id) stuffable bits.  ``exact``: the stuff bits of the real pattern.
-
-    >>> m = can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False)
-    >>> frame_bits(m), frame_bits(m, "exact") <= 135
-    (135, True)
-    """
-    n_data = 0 if msg.is_remote_frame else len(msg.data)
-    n = (54 if msg.is_extended_id else 34) + 8 * n_data
-    if stuffing == "worst":
-        return n + (n - 1) // 4 + TRAILER_BITS
-    bits = _stuffable_bits(msg)
-    return len(bits) + stuff_bit_count(bits) + TRAILER_BITS
 
 
 def arbitration_key(msg: can.Message) -> tuple[int, int, int, int, int]:
@@ -195,21 +112,21 @@ class SimWire:
         self,
         channel: str,
         bitrate: int,
-        stuffing: Stuffing = "worst",
+        stuffing: Stuffing | str = Stuffing.WORST,
     ) -> None:
         if not isinstance(bitrate, int) or bitrate <= 0:
             raise WireConfigError(
                 f"hrm_sim channel {channel!r}: bitrate must be > 0, got {bitrate}"
             )
-        if stuffing not in ("worst", "exact"):
+        try:
+            mode = Stuffing(stuffing)
+        except ValueError:
             raise WireConfigError(
                 f"hrm_sim channel {channel!r}: stuffing must be 'worst' or 'exact'"
-            )
-        if sys.getswitchinterval() > GIL_SWITCH_INTERVAL_S:
-            sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+            ) from None
         self.channel = channel
         self.bitrate = bitrate
-        self.stuffing: Stuffing = stuffing
+        self.stuffing = mode
         self._cond = threading.Condition()
         self._nodes: list[SimWireBus] = []
         self._pending: list[_Pending] = []
@@ -452,7 +369,7 @@ class SimWireBus(can.BusABC):
         self,
         channel: Any = "hrm_sim0",
         bitrate: int = 1_000_000,
-        stuffing: Stuffing = "worst",
+        stuffing: Stuffing | str = Stuffing.WORST,
         receive_own_messages: bool = False,
         can_filters: Any = None,
         **kwargs: Any,
@@ -512,7 +429,7 @@ class SimWireBus(can.BusABC):
 
 
 def ideal_cycle_time_s(
-    msgs: list[can.Message], bitrate: int, stuffing: Stuffing = "worst"
+    msgs: list[can.Message], bitrate: int, stuffing: Stuffing | str = Stuffing.WORST
 ) -> float:
     """Wire time of a burst of frames sent back to back (s).
 

@@ -8,6 +8,12 @@ the kernel has no vcan interface, as on the development machine).
 
 Note: a udp_multicast socket also receives the frames it sent itself; code
 under test must tolerate its own frames coming back.
+
+``process_wide_settings`` (autouse, once per session) runs every test under
+:func:`drivers.realtime.process_settings`, as ``hrm`` runs every command: buses,
+wires and sessions change no interpreter setting, so the tests that pace frames or
+stream (``tests/sim_bus/test_wire.py``, the in-process box, the HIL host side) get
+the switch interval from the process entry, here pytest.
 """
 
 from __future__ import annotations
@@ -16,14 +22,23 @@ import itertools
 import os
 import socket
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from drivers.realtime import process_settings
+
 BACKENDS = ("virtual", "udp_multicast", "socketcan")
 _group_counter = itertools.count(1)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def process_wide_settings() -> Iterator[None]:
+    """The interpreter settings every ``hrm`` process runs under (GIL switch interval)."""
+    with process_settings():
+        yield
 
 
 def _free_udp_port() -> int:

@@ -19,39 +19,21 @@ import collections
 import math
 import threading
 import time
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 
-from drivers.protocol.cia402 import (
+from drivers.protocol.cia301 import (
     NMT_STATE_BOOTUP,
     NMT_STATE_NAMES,
     NMT_STATE_OPERATIONAL,
-    SW_FAULT,
     Emergency,
     FrameError,
-    State402,
-    decode_states,
     parse_emcy,
     parse_heartbeat,
-    parse_tpdo,
 )
-
-
-@dataclass(frozen=True)
-class StopCause:
-    """Why the box stopped: a kind (``heartbeat``, ``emcy``, ``fault``, ``state``,
-    ``tpdo_missing``, ``bad_frame``, ``bootup``, ``limit``, ``send``, ``operator``)
-    and a one-line text naming the motor / bus / node."""
-
-    kind: str
-    text: str
-    motor: str | None = None
-    time_s: float = 0.0
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"kind": self.kind, "text": self.text, "motor": self.motor, "time_s": self.time_s}
+from drivers.protocol.cia402 import SW_FAULT, State402, decode_states, parse_tpdo
+from drivers.safety.causes import StopCause, StopKind
 
 
 class NodeMonitor:
@@ -62,8 +44,10 @@ class NodeMonitor:
         labels: list[str],
         missing_tpdo_cycles: int,
         heartbeat_timeout_s: float,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         n = len(labels)
+        self.clock = clock
         self.labels = list(labels)
         self.missing_tpdo_cycles = int(missing_tpdo_cycles)
         self.heartbeat_timeout_s = float(heartbeat_timeout_s)
@@ -76,8 +60,10 @@ class NodeMonitor:
         self.booted = np.zeros(n, dtype=bool)
         self.missing_run = np.zeros(n, dtype=np.int64)
         self.missing_total = 0
-        self.seq = -1  # SYNC sequence number last sent (set by the scheduler)
-        self.supervising = False
+        self.seq = -1  # SYNC sequence number last sent (set by the supervisor)
+        # Boot-ups, NMT states and fault bits are stop causes while armed; set only by
+        # the supervisor (drives enabled, idle or streaming).
+        self.armed = False
         # Monotonic time heartbeat supervision started (end of bring-up; None: not yet).
         # Kept across idle periods and streams, so a stream never restarts the timeout.
         self.hb_armed_at: float | None = None
@@ -91,15 +77,15 @@ class NodeMonitor:
         return len(self.labels)
 
     # ---------------------------------------------------------- receive callbacks
-    def _async_cause(self, kind: str, idx: int, text: str) -> None:
+    def _async_cause(self, kind: StopKind, idx: int, text: str) -> None:
         self._async_causes.append(
-            StopCause(kind, f"{self.labels[idx]}: {text}", self.labels[idx], time.monotonic())
+            StopCause(kind, f"{self.labels[idx]}: {text}", self.labels[idx], self.clock())
         )
         self.wake.set()
 
-    def report(self, kind: str, text: str) -> None:
+    def report(self, kind: StopKind, text: str) -> None:
         """A stop cause found outside the receive callbacks (e.g. a failed send)."""
-        self._async_causes.append(StopCause(kind, text, None, time.monotonic()))
+        self._async_causes.append(StopCause(kind, text, None, self.clock()))
         self.wake.set()
 
     def on_tpdo(self, idx: int, data: bytes | bytearray, seq: int | None = None) -> None:
@@ -107,44 +93,46 @@ class NodeMonitor:
         try:
             sw, pos = parse_tpdo(data)
         except FrameError as exc:
-            self._async_cause("bad_frame", idx, str(exc))
+            self._async_cause(StopKind.BAD_FRAME, idx, str(exc))
             return
         self.statusword[idx] = sw
         self.position[idx] = pos
         self.rx_seq[idx] = self.seq if seq is None else seq
         self.n_tpdo[idx] += 1
-        if sw & SW_FAULT and self.supervising:
-            self._async_cause("fault", idx, f"statusword 0x{sw:04X} has the fault bit set")
+        if sw & SW_FAULT and self.armed:
+            self._async_cause(StopKind.FAULT, idx, f"statusword 0x{sw:04X} has the fault bit set")
 
     def on_heartbeat(self, idx: int, data: bytes | bytearray) -> None:
         """Heartbeat or boot-up frame from the node in slot ``idx``."""
         try:
             state = parse_heartbeat(data)
         except FrameError as exc:
-            self._async_cause("bad_frame", idx, str(exc))
+            self._async_cause(StopKind.BAD_FRAME, idx, str(exc))
             return
-        self.hb_time[idx] = time.monotonic()
+        self.hb_time[idx] = self.clock()
         self.hb_state[idx] = state
         if state == NMT_STATE_BOOTUP:
             self.booted[idx] = True
             if self.booted.all():
                 self.boot_event.set()
-            if self.supervising:
-                self._async_cause("bootup", idx, "node rebooted (boot-up frame) while enabled")
-        elif self.supervising and state != NMT_STATE_OPERATIONAL:
+            if self.armed:
+                self._async_cause(
+                    StopKind.BOOTUP, idx, "node rebooted (boot-up frame) while enabled"
+                )
+        elif self.armed and state != NMT_STATE_OPERATIONAL:
             name = NMT_STATE_NAMES.get(state, f"0x{state:02X}")
-            self._async_cause("heartbeat", idx, f"heartbeat reports NMT state {name}")
+            self._async_cause(StopKind.HEARTBEAT, idx, f"heartbeat reports NMT state {name}")
 
     def on_emcy(self, idx: int, node_id: int, data: bytes | bytearray) -> None:
         """EMCY frame; error code 0x0000 ('error reset / no error') is not a fault."""
         try:
             emcy = parse_emcy(node_id, data)
         except FrameError as exc:
-            self._async_cause("bad_frame", idx, str(exc))
+            self._async_cause(StopKind.BAD_FRAME, idx, str(exc))
             return
         self.emergencies.append(emcy)
         if emcy.error_code != 0:
-            self._async_cause("emcy", idx, emcy.describe())
+            self._async_cause(StopKind.EMCY, idx, emcy.describe())
 
     def drain(self) -> list[StopCause]:
         """Take the causes queued by the receive callbacks (e.g. before a stream starts)."""
@@ -180,7 +168,7 @@ class NodeMonitor:
             for i in np.flatnonzero(self.missing_run >= self.missing_tpdo_cycles):
                 causes.append(
                     StopCause(
-                        "tpdo_missing",
+                        StopKind.TPDO_MISSING,
                         f"{self.labels[i]}: no TPDO for {int(self.missing_run[i])} cycle(s)",
                         self.labels[i],
                         now,
@@ -191,7 +179,7 @@ class NodeMonitor:
             bad = seen & (states != int(State402.OPERATION_ENABLED))
             for i in np.flatnonzero(bad):
                 sw = int(self.statusword[i])
-                kind = "fault" if sw & SW_FAULT else "state"
+                kind = StopKind.FAULT if sw & SW_FAULT else StopKind.STATE
                 causes.append(
                     StopCause(
                         kind,
@@ -211,7 +199,7 @@ class NodeMonitor:
                 )
                 causes.append(
                     StopCause(
-                        "heartbeat",
+                        StopKind.HEARTBEAT,
                         f"{self.labels[i]}: heartbeat lost ({what}, timeout "
                         f"{self.heartbeat_timeout_s * 1000:.0f} ms)",
                         self.labels[i],

@@ -4,6 +4,10 @@ Each command is one small module in this package exposing ``HELP`` (one line),
 ``register(parser)`` (adds its arguments) and ``run(args) -> int``.  Commands are
 discovered, so adding a module adds a command.  Every :class:`HrmError` becomes a
 one-line message on stderr and exit status 2: no traceback, no partial output.
+
+:func:`main` is the process entry of ``hrm`` (host and ``hrm sim`` alike): it runs the
+command under :func:`drivers.realtime.process_settings` (GIL switch interval 0.2 ms),
+the one place the process's interpreter settings change.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
+from drivers.realtime import process_settings
 from hrm_ctrl.errors import HrmError
 
 EXIT_ERROR = 2
@@ -50,7 +55,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args._run(args) or 0)
+        with process_settings():
+            return int(args._run(args) or 0)
     except HrmError as exc:
         print(f"hrm {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

@@ -3,6 +3,7 @@
 The drivers only ever see buses: here the configured interfaces are replaced by
 in-process buses (python-can ``virtual``, or ``hrm_sim``, the simulated wire at the
 configured bitrate) and a :class:`sim_bus.box.SimBox` is started on the other end.
+Host and box take the same :class:`drivers.config.BoxConfig`: the one configuration.
 """
 
 from __future__ import annotations
@@ -29,7 +30,6 @@ def start_in_process_sim(
     stderr says so, and the run record keeps the configuration used).
     """
     from sim_bus.box import SimBox
-    from sim_bus.config import sim_config_from_dict
 
     if wire not in SIM_WIRES:
         raise DriverError(f"--wire must be one of {', '.join(SIM_WIRES)}, got {wire!r}")
@@ -44,6 +44,6 @@ def start_in_process_sim(
     config = config.with_bus_kwargs(
         [{"interface": wire, "channel": f"hrm-sim-{tag}-{b.name}"} for b in config.buses]
     )
-    sim = SimBox(sim_config_from_dict(config.to_dict(), "--sim"), actuation=actuation)
+    sim = SimBox(config, actuation=actuation)
     sim.start()
     return config, sim

@@ -44,12 +44,14 @@ def register(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from drivers.config import load_box_config
-    from drivers.session import DriveBox, SafetyStopError
-    from drivers.sources import PlanSource, interpolate_rows
-    from hrm_ctrl.formats.planfile import write_plan
+    from drivers.session import DriveSession, SafetyStopError
+    from drivers.sources import CountsSource
+    from hrm_ctrl.cli.ropes import setpoints_of_plan
+    from hrm_ctrl.formats.planfile import PlanDoc, write_plan
     from hrm_ctrl.formats.plots import write_plan_figures
     from hrm_ctrl.model import load_robot
-    from hrm_ctrl.planning.planner import PlanOptions, check_limits, plan_path
+    from hrm_ctrl.planning.planner import PlanOptions, plan_path
+    from hrm_ctrl.planning.report import check_limits
     from hrm_ctrl.planning.scenarios import scenario
     from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.tracking import tracking_error
@@ -67,8 +69,12 @@ def run(args: argparse.Namespace) -> int:
     plan = plan_path(robot, sc.path, PlanOptions(step=args.step, return_to_start=args.ret), sc)
     print(format_report(plan, sc.name))
     check_limits(plan)
-    doc = plan.to_dict()
-    source = PlanSource(actuation, doc, speed_mm_per_s=args.speed, source=sc.name)
+    doc = PlanDoc.from_dict(plan.to_dict(), sc.name)
+    sp = setpoints_of_plan(
+        doc, actuation, period_s=config.control.period_s, speed_mm_per_s=args.speed
+    )
+    info = {"plan": sc.name, "steps": sp.n_steps, "speed_mm_per_s": args.speed}
+    source = CountsSource(actuation, sp.counts, sp.period_s, name="plan", label=sp.label, info=info)
     source.precheck(config.control.period_s)
 
     out: Path = args.out
@@ -80,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     stop: SafetyStopError | None = None
     try:
         sim.record_trace(True)
-        box = DriveBox(config, actuation, log_dir=out, log_suffix=".blf")
+        box = DriveSession(config, actuation, log_dir=out, log_suffix=".blf")
         box.record_extra = {"demo": sc.name, "plan_file": str(out / "plan.json"), "wire": args.wire}
         with box:
             box.bring_up()
@@ -96,15 +102,14 @@ def run(args: argparse.Namespace) -> int:
     finally:
         sim.stop()
 
-    period = config.control.period_s
     lead = source.n_lead_in
     n_body = source.table.shape[0] - lead
-    t = np.minimum(np.arange(n_body) * period, source.t_knots[-1])
-    k = source.alpha.shape[1]
-    ang = interpolate_rows(t, source.t_knots, np.hstack([source.alpha, source.theta]))
+    alpha_rows, theta_rows = sp.row_angles()
+    rows = np.minimum(np.arange(n_body), sp.n_cycles - 1)  # the final hold: the last row
+    planned = (alpha_rows[rows], theta_rows[rows])
     ids = actuation.motor_ids
     cols = [np.array([ids.index(m) for m in b.nodes]) for b in config.buses]
-    tr = tracking_error(actuation, source.table, lead, (ang[:, :k], ang[:, k:]), counts, cols)
+    tr = tracking_error(actuation, source.table, lead, planned, counts, cols)
 
     st = result.stats
     summary: dict[str, Any] = {

@@ -12,10 +12,11 @@ from typing import Any
 
 from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.errors import HrmError, PlanningError
-from hrm_ctrl.formats.planfile import write_plan
+from hrm_ctrl.formats.planfile import PlanDoc, write_plan
 from hrm_ctrl.model import load_robot
 from hrm_ctrl.planning.known_path import KnownPath, load_path_csv
-from hrm_ctrl.planning.planner import Plan, PlanOptions, check_limits, plan_path
+from hrm_ctrl.planning.planner import Plan, PlanOptions, plan_path
+from hrm_ctrl.planning.report import check_limits
 from hrm_ctrl.planning.scenarios import SCENARIOS, Scenario, scenario
 
 HELP = "plan the arm along a scenario or a path file (Sec. 3 of the paper) and report on it"
@@ -155,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     warn_collision(plan)
     if not args.allow_violations:
         check_limits(plan)  # raises: nothing written
-    doc = plan.to_dict()
+    doc = PlanDoc.from_dict(plan.to_dict(), str(args.out or name))
     figures: list[Path] = []
     if args.plot:  # the figures first: if they fail, no plan file is left either
         from hrm_ctrl.formats.plots import write_plan_figures

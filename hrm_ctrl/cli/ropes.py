@@ -1,9 +1,12 @@
 """``hrm ropes``: motor setpoints (encoder counts) for every step of a plan, and a summary.
 
-Every step's configuration goes through the rope layer (exact rope lengths,
-stretch at the pretension, drum and encoder); the whole table is checked
-against the joint limits, the drum travel and, at the given travel speed along
-the path, the motors' speed before anything is written.
+The plan goes through the one plan -> counts path that playback (``hrm run``) uses,
+:func:`hrm_ctrl.ropes.setpoints.plan_setpoints`: every step's configuration through the
+rope layer (exact rope lengths, stretch at the pretension, drum and encoder), the
+plan at the control rate of the bus configuration (``--config``) at the given speed
+along the path, checked against the joint limits, the drum travel and the motors'
+speed before anything is written.  The CSV lists the counts of every plan step; the
+summary adds what playing it takes (cycles, peak motor speed).
 """
 
 from __future__ import annotations
@@ -20,9 +23,10 @@ import numpy as np
 from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.errors import HrmError, RopeError
 from hrm_ctrl.files import write_atomic
-from hrm_ctrl.formats.planfile import read_plan
+from hrm_ctrl.formats.planfile import PlanDoc, read_plan
 from hrm_ctrl.model import load_robot
-from hrm_ctrl.ropes.actuation import Actuation, RopeLimitError, load_actuation
+from hrm_ctrl.ropes.actuation import Actuation, load_actuation
+from hrm_ctrl.ropes.setpoints import MAX_PLAN_DURATION_S, PlanSetpoints, plan_setpoints
 
 HELP = "motor setpoints (encoder counts per rope motor) for every step of a plan"
 
@@ -30,48 +34,56 @@ HELP = "motor setpoints (encoder counts per rope motor) for every step of a plan
 def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("plan", type=Path, metavar="PLAN.json", help="plan file (hrm-plan/1)")
     add_robot_argument(p)
+    p.add_argument(
+        "--config", type=Path, default=None, metavar="BOX.toml",
+        help="bus configuration: its control rate is the playback's (default: the shipped one)",
+    )  # fmt: skip
     p.add_argument("--out", type=Path, metavar="SETPOINTS.csv", help="write the setpoint table")
     p.add_argument(
         "--speed",
         type=float,
         default=10.0,
         metavar="MM_PER_S",
-        help="travel speed of the arm along the path, for the motor-speed check (default 10)",
+        help="playback speed along the path, for the motor-speed check (default 10)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
-def plan_angles(plan: dict[str, Any], act: Actuation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(travel (N,), alpha (N, 12), theta (N, 12)) of a validated plan for this arm."""
-    links = np.asarray(plan["robot"]["links_mm"], dtype=float)
-    if not np.allclose(links, act.robot.links, rtol=0.0, atol=1e-6):
-        raise RopeError(
-            f"plan was made for links {links.tolist()} mm, the robot description "
-            f"({act.robot.source}) has {act.robot.links.tolist()} mm"
-        )
-    steps = plan["steps"]
-    travel = np.array([s["travel_mm"] for s in steps], dtype=float)
-    alpha = np.array([s["alpha_rad"] for s in steps], dtype=float)
-    theta = np.array([s["theta_rad"] for s in steps], dtype=float)
-    return travel, alpha, theta
+def setpoints_of_plan(
+    doc: PlanDoc,
+    act: Actuation,
+    *,
+    period_s: float,
+    speed_mm_per_s: float,
+    max_duration_s: float = MAX_PLAN_DURATION_S,
+) -> PlanSetpoints:
+    """The plan's checked counts at the control rate for this arm: what ``hrm ropes``
+    reports and ``hrm run`` plays.  Refuses a plan made for other link lengths; every
+    message starts with the plan file."""
+    doc.check_robot(act.robot)
+    return plan_setpoints(
+        act,
+        doc.travel_mm,
+        doc.alpha_rad,
+        doc.theta_rad,
+        phase=doc.phase,
+        period_s=period_s,
+        speed_mm_per_s=speed_mm_per_s,
+        max_duration_s=max_duration_s,
+        where=doc.source,
+    )
 
 
-def setpoint_table(
-    act: Actuation, travel: np.ndarray, alpha: np.ndarray, theta: np.ndarray, speed_mm_s: float
-) -> np.ndarray:
-    """Checked counts (N, n) for a plan's steps; :class:`RopeLimitError` names step, joint, rope."""
-    if not (math.isfinite(speed_mm_s) and speed_mm_s > 0.0):
-        raise RopeError(f"--speed must be > 0 mm/s, got {speed_mm_s}")
-    counts = act.counts_from_angles(alpha, theta)  # checks angles and drum travel per step
-    if counts.shape[0] > 1:
-        dt = np.maximum(np.abs(np.diff(travel)), 1e-9) / speed_mm_s
-        act.check_counts(counts, dt_s=dt)
-    return counts
-
-
-def summary(act: Actuation, travel: np.ndarray, counts: np.ndarray) -> dict[str, Any]:
-    """Largest travel and step-to-step change per motor (counts and mm of rope)."""
+def summary(act: Actuation, sp: PlanSetpoints) -> dict[str, Any]:
+    """Largest travel and step-to-step change per motor (counts and mm of rope) over the
+    plan's steps, and the playback at the control rate (cycles, peak motor speed)."""
+    travel, counts = sp.travel_mm, sp.step_counts
     cpm = act.motors.counts_per_mm
+    if sp.n_cycles > 1:
+        rates = np.abs(np.diff(sp.counts, axis=0)).max(axis=0) / sp.period_s
+    else:
+        rates = np.zeros(act.n_motors)
+    limit = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
     rel = counts - act.motors.zero_offsets_counts
     k_travel = np.abs(rel).argmax(axis=0)
     diff = np.abs(np.diff(counts, axis=0)) if counts.shape[0] > 1 else np.zeros((1, act.n_motors))
@@ -89,12 +101,20 @@ def summary(act: Actuation, travel: np.ndarray, counts: np.ndarray) -> dict[str,
                 "largest_change_counts": int(diff[k_diff[i], i]),
                 "largest_change_mm": float(diff[k_diff[i], i] / cpm[i]),
                 "largest_change_step": int(k_diff[i]) + 1 if counts.shape[0] > 1 else 0,
+                "peak_rate_counts_per_s": float(rates[i]),
+                "rate_limit_counts_per_s": float(limit[i]),
             }
         )
     return {
         "steps": int(counts.shape[0]),
         "motors": motors,
         "travel_mm": [float(travel[0]), float(travel[-1])],
+        "playback": {
+            "speed_mm_per_s": sp.speed_mm_per_s,
+            "period_s": sp.period_s,
+            "duration_s": sp.duration_s,
+            "cycles": sp.n_cycles,
+        },
     }
 
 
@@ -122,26 +142,38 @@ def format_summary(s: dict[str, Any]) -> str:
         )
     worst_t = max(s["motors"], key=lambda m: abs(m["largest_travel_mm"]))
     worst_c = max(s["motors"], key=lambda m: m["largest_change_counts"])
+    worst_r = max(
+        s["motors"], key=lambda m: m["peak_rate_counts_per_s"] / m["rate_limit_counts_per_s"]
+    )
+    pb = s["playback"]
     lines.append(
         f"largest travel: {worst_t['motor']} {worst_t['largest_travel_mm']:.3f} mm at step "
         f"{worst_t['largest_travel_step']}; largest step change: {worst_c['motor']} "
         f"{worst_c['largest_change_counts']} counts at step {worst_c['largest_change_step']}"
     )
+    lines.append(
+        f"played at {pb['speed_mm_per_s']:g} mm/s: {pb['duration_s']:.3f} s, {pb['cycles']} "
+        f"control cycles of {1e3 * pb['period_s']:g} ms; fastest motor {worst_r['motor']} "
+        f"{worst_r['peak_rate_counts_per_s']:.0f} counts/s "
+        f"({100 * worst_r['peak_rate_counts_per_s'] / worst_r['rate_limit_counts_per_s']:.1f}% "
+        "of its limit)"
+    )
     return "\n".join(lines)
 
 
 def run(args: argparse.Namespace) -> int:
-    plan = read_plan(args.plan)
+    from drivers.config import load_box_config
+
+    if not (math.isfinite(args.speed) and args.speed > 0.0):
+        raise RopeError(f"--speed must be > 0 mm/s, got {args.speed}")
+    doc = read_plan(args.plan)
     act = load_actuation(load_robot(args.robot))
-    travel, alpha, theta = plan_angles(plan, act)
-    try:
-        counts = setpoint_table(act, travel, alpha, theta, args.speed)
-    except RopeLimitError as exc:
-        raise RopeLimitError(f"{args.plan}: {exc}") from None
-    s = summary(act, travel, counts)
+    period_s = load_box_config(args.config).control.period_s
+    sp = setpoints_of_plan(doc, act, period_s=period_s, speed_mm_per_s=args.speed)
+    s = summary(act, sp)
     if args.out is not None:
         try:
-            write_atomic(args.out, format_csv(act, travel, counts))
+            write_atomic(args.out, format_csv(act, sp.travel_mm, sp.step_counts))
         except OSError as exc:
             raise HrmError(f"{args.out}: cannot write setpoints ({exc.strerror or exc})") from None
     print(json.dumps(s, indent=1) if args.json else format_summary(s))

@@ -30,11 +30,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.cli._simwire import SIM_WIRES
 from hrm_ctrl.errors import DriverError
+from hrm_ctrl.formats.planfile import PLAN_FORMAT, PlanDoc
 
 HELP = "play a plan (or hold / jog) on the CiA 402 rope-motor drives over CAN"
 
@@ -71,7 +70,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
-def _plan_record(path: Path, plan: dict[str, Any]) -> dict[str, Any]:
+def _plan_record(path: Path, plan: PlanDoc) -> dict[str, Any]:
     """What the run record keeps of the plan: file, sha256 of its bytes, format, steps."""
     try:
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
@@ -80,15 +79,20 @@ def _plan_record(path: Path, plan: dict[str, Any]) -> dict[str, Any]:
     return {
         "plan_file": str(path),
         "plan_sha256": digest,
-        "plan_format": plan.get("format"),
-        "plan_steps": len(plan.get("steps", ())),
+        "plan_format": PLAN_FORMAT,
+        "plan_steps": plan.n_steps,
     }
 
 
 def _source(
-    args: argparse.Namespace, actuation: Any, robot: Any
+    args: argparse.Namespace, actuation: Any, period_s: float
 ) -> tuple[Any, Any, dict[str, Any]]:
-    from drivers.sources import HoldSource, JogSource, PlanSource
+    """The setpoint source the arguments ask for, the hold time (s) of a hold, and what the
+    run record keeps of a plan.  A plan goes through the rope layer's one plan -> counts
+    path (as in ``hrm ropes``) at the control period ``period_s`` and is played by
+    :class:`drivers.sources.CountsSource`."""
+    from drivers.safety.limits import MAX_SOURCE_DURATION_S
+    from drivers.sources import CountsSource, HoldSource, JogSource
 
     chosen = [x for x in (args.plan, args.hold, args.jog) if x is not None]
     if len(chosen) != 1:
@@ -106,21 +110,32 @@ def _source(
         if len(parts) != 3 or not (math.isfinite(dur) and dur > 0):
             raise DriverError(f"--jog {args.jog!r}: expected MOTOR:COUNTS_PER_S:SECONDS (S > 0)")
         return JogSource(actuation, motor, vel, dur), None, {}
+    from hrm_ctrl.cli.ropes import setpoints_of_plan
     from hrm_ctrl.formats.planfile import read_plan
 
-    plan = read_plan(args.plan)
-    plan_record = _plan_record(Path(args.plan), plan)
-    links = np.asarray(plan["robot"]["links_mm"], dtype=float)
-    if not np.allclose(links, robot.links, atol=1e-6):
-        raise DriverError(f"{args.plan}: plan was made for other link lengths than {robot.source}")
-    source = PlanSource(actuation, plan, speed_mm_per_s=args.speed, source=str(args.plan))
+    doc = read_plan(args.plan)
+    plan_record = _plan_record(Path(args.plan), doc)
+    sp = setpoints_of_plan(
+        doc,
+        actuation,
+        period_s=period_s,
+        speed_mm_per_s=args.speed,
+        max_duration_s=MAX_SOURCE_DURATION_S,
+    )
+    info = {
+        "plan": str(args.plan),
+        "steps": sp.n_steps,
+        "speed_mm_per_s": sp.speed_mm_per_s,
+        "duration_s": sp.duration_s,
+    }
+    source = CountsSource(actuation, sp.counts, sp.period_s, name="plan", label=sp.label, info=info)
     return source, None, plan_record
 
 
 def run(args: argparse.Namespace) -> int:
     from drivers.bus import ensure_log_dir
     from drivers.config import load_box_config
-    from drivers.session import DriveBox, SafetyStopError
+    from drivers.session import DriveSession, SafetyStopError
     from drivers.sources import HoldSource
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.ropes.actuation import load_actuation
@@ -131,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     actuation = load_actuation(robot)
     config.check_motors(actuation.motor_ids)
-    source, hold_s, plan_record = _source(args, actuation, robot)
+    source, hold_s, plan_record = _source(args, actuation, config.control.period_s)
     if isinstance(source, HoldSource) and hold_s is not None:
         source = HoldSource(n_cycles=max(1, round(hold_s * config.control.rate_hz)))
     source.precheck(config.control.period_s)  # refuse bad setpoints before any bus opens
@@ -144,7 +159,9 @@ def run(args: argparse.Namespace) -> int:
         config, sim = start_in_process_sim(config, actuation, args.wire, prog="hrm run")
     summary: dict[str, Any] = {}
     try:
-        box = DriveBox(config, actuation, log_dir=args.log_dir, log_suffix=f".{args.log_format}")
+        box = DriveSession(
+            config, actuation, log_dir=args.log_dir, log_suffix=f".{args.log_format}"
+        )
         box.record_extra = {
             "plan_file": None,
             **plan_record,

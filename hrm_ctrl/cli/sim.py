@@ -1,11 +1,13 @@
 """``hrm sim``: run the simulated manipulator box as its own process.
 
-Opens every bus of the bus configuration (the drivers' ``box.toml`` format;
-any python-can interface: ``udp_multicast`` with ``hop_limit = 0`` in
-``[buses.NAME.options]`` here, SocketCAN ``vcan0`` where the kernel has it),
-attaches a simulated CiA 402 drive to every node, serves the tension-sensor
-board on a pseudo-terminal and prints JSON lines (``ready`` with the
-pseudo-terminal path first).  See ``docs/sim.md``.
+Opens every bus of the bus configuration (the drivers' ``box.toml``, read by
+:func:`drivers.config.load_box_config` as the host reads it; any python-can
+interface: ``udp_multicast`` here, whose ``hop_limit`` defaults to 0 so nothing
+leaves the host, SocketCAN ``vcan0`` where the kernel has it), attaches a
+simulated CiA 402 drive to every node, serves the tension-sensor board on a
+pseudo-terminal and prints JSON lines (``ready`` with the pseudo-terminal path
+first).  The process runs under :func:`drivers.realtime.process_settings`, entered
+by :func:`hrm_ctrl.cli.main` like every command.  See ``docs/sim.md``.
 
 >>> import argparse
 >>> p = argparse.ArgumentParser(prog="hrm sim")
@@ -63,9 +65,9 @@ def register(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from drivers.config import load_box_config
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.ropes.actuation import load_actuation
-    from sim_bus.config import load_sim_config
     from sim_bus.faults import parse_fault
     from sim_bus.runner import run_box_process
 
@@ -74,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.tension_rate) and 0 < args.tension_rate <= 10_000):
         raise SimError(f"--tension-rate must be in (0, 10000] Hz, got {args.tension_rate}")
     faults = [parse_fault(f) for f in args.fault]
-    config = load_sim_config(args.config)
+    config = load_box_config(args.config)
     actuation = load_actuation(load_robot(args.robot))
     known = set(actuation.motor_ids)
     buses = {b.name for b in config.buses}

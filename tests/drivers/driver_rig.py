@@ -20,11 +20,10 @@ import pytest
 
 from drivers.config import BoxConfig, box_config_from_dict
 from drivers.safety.subset import ActuationSubset
-from drivers.session import DriveBox
+from drivers.session import DriveSession
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.box import SimBox
-from sim_bus.config import sim_config_from_dict
 
 SMALL_BUSES: tuple[dict[str, int], ...] = ({"j01r0": 1, "j01r1": 2}, {"j07r0": 3})
 
@@ -61,11 +60,11 @@ class Rig:
     limits: ActuationSubset
     sim: SimBox
     sniffers: list[Sniffer]
-    box: DriveBox | None = None
+    box: DriveSession | None = None
     cleanup: list[Callable[[], None]] = field(default_factory=list)
 
-    def open_box(self, log_dir: Path | None = None, **kw: Any) -> DriveBox:
-        self.box = DriveBox(self.config, self.limits, log_dir=log_dir, **kw)
+    def open_box(self, log_dir: Path | None = None, **kw: Any) -> DriveSession:
+        self.box = DriveSession(self.config, self.limits, log_dir=log_dir, **kw)
         return self.box
 
 
@@ -129,7 +128,7 @@ def rig_factory(
         for motor, counts in (sim_counts or {}).items():
             initial[actuation.motor_ids.index(motor)] = counts
         sim = SimBox(
-            sim_config_from_dict(sim_cfg.to_dict(), "<test sim>"),
+            sim_cfg,
             actuation=actuation,
             initial_counts=initial,
         )

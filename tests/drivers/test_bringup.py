@@ -12,7 +12,7 @@ from drivers.bringup import BootupError, SdoError, StateTimeoutError
 from drivers.busload import BusLoadError, highest_usable_rate
 from drivers.protocol import cia402 as c
 from drivers.safety.subset import ActuationSubset
-from drivers.session import DriveBox
+from drivers.session import DriveSession
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.ropes.actuation import Actuation
 from tests.drivers.driver_rig import Rig, make_config
@@ -74,7 +74,7 @@ def test_bus_load_refusal_before_anything_is_opened(actuation: Actuation) -> Non
     nodes = {m: k + 1 for k, m in enumerate(actuation.motor_ids)}
     cfg = make_config([{"interface": "virtual", "channel": "never-opened"}], buses=(nodes,))
     with pytest.raises(BusLoadError) as info:
-        DriveBox(cfg, actuation)
+        DriveSession(cfg, actuation)
     msg = str(info.value)
     # 36 nodes: 36 * (115 + 115) + 55 bits per cycle, heartbeats 37 * 65 * 10 bit/s.
     per_cycle = 36 * 230 + 55
@@ -87,9 +87,9 @@ def test_bus_load_refusal_before_anything_is_opened(actuation: Actuation) -> Non
 def test_box_refuses_a_config_without_every_rope_motor(actuation: Actuation) -> None:
     cfg = make_config([{"interface": "virtual", "channel": "x"}], buses=({"j01r0": 1},))
     with pytest.raises(DriverError, match=r"no node id for rope motor\(s\) \['j01r1'"):
-        DriveBox(cfg, actuation)
+        DriveSession(cfg, actuation)
     sub = ActuationSubset(actuation, ("j01r0",))
-    DriveBox(cfg, sub).close()
+    DriveSession(cfg, sub).close()
 
 
 def test_unopenable_bus_is_a_one_line_error(actuation: Actuation) -> None:
@@ -97,7 +97,7 @@ def test_unopenable_bus_is_a_one_line_error(actuation: Actuation) -> None:
         [{"interface": "socketcan", "channel": "hrm-no-such-if"}], buses=({"j01r0": 1},)
     )
     with pytest.raises(DriverError) as info:
-        DriveBox(cfg, ActuationSubset(actuation, ("j01r0",)))
+        DriveSession(cfg, ActuationSubset(actuation, ("j01r0",)))
     assert "buses.bus0: cannot open socketcan channel 'hrm-no-such-if'" in str(info.value)
 
 
@@ -110,5 +110,5 @@ def test_unopenable_second_bus_leaves_no_file(actuation: Actuation, tmp_path: Pa
         buses=({"j01r0": 1}, {"j07r0": 1}),
     )
     with pytest.raises(DriverError, match=r"buses\.bus1: cannot open"):
-        DriveBox(cfg, ActuationSubset(actuation, ("j01r0", "j07r0")), log_dir=tmp_path)
+        DriveSession(cfg, ActuationSubset(actuation, ("j01r0", "j07r0")), log_dir=tmp_path)
     assert list(tmp_path.iterdir()) == []

@@ -9,9 +9,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.busload import BusLoadError, bus_load, check_bus_load, worst_case_frame_bits
-from drivers.config import BusConfigError, ControlConfig, load_box_config, rate_problem
-from drivers.protocol.cia402 import FrameError, interpolation_time_period
+from drivers.busload import BusLoadError, bus_load, check_bus_load
+from drivers.config import (
+    UDP_MULTICAST_HOP_LIMIT,
+    BusConfigError,
+    ControlConfig,
+    box_config_from_dict,
+    load_box_config,
+    rate_problem,
+)
+from drivers.protocol.cia301 import FrameError
+from drivers.protocol.cia402 import interpolation_time_period
+from drivers.protocol.frames import worst_case_frame_bits
 from hrm_ctrl.ropes.actuation import Actuation
 
 GOOD = """
@@ -162,6 +171,49 @@ def test_missing_file(tmp_path: Path) -> None:
 def test_entry_point_interface_is_known(tmp_path: Path) -> None:
     cfg = load_box_config(write(tmp_path, GOOD.replace('"virtual"', '"hrm_sim"')))
     assert cfg.buses[0].interface == "hrm_sim"
+
+
+def test_udp_multicast_stays_on_this_host_unless_the_file_says_otherwise(tmp_path: Path) -> None:
+    """One hop_limit default (0) for host and simulator: both open buses from bus_kwargs()."""
+    udp = GOOD.replace('"virtual"', '"udp_multicast"').replace('"x"', '"239.74.1.1"')
+    cfg = load_box_config(write(tmp_path, udp))
+    assert UDP_MULTICAST_HOP_LIMIT == 0
+    assert cfg.buses[0].bus_kwargs()["hop_limit"] == 0
+    assert cfg.buses[0].options == {}  # a default of bus_kwargs, not written into the file's
+    explicit = udp.replace("bitrate = 1000000", "bitrate = 1000000\noptions = {hop_limit = 1}")
+    assert load_box_config(write(tmp_path, explicit)).buses[0].bus_kwargs()["hop_limit"] == 1
+    rewired = load_box_config(None).with_bus_kwargs(
+        [{"interface": "udp_multicast", "channel": f"239.74.1.{k}"} for k in (1, 2)]
+    )
+    assert [b.bus_kwargs()["hop_limit"] for b in rewired.buses] == [0, 0]
+    assert "hop_limit" not in load_box_config(write(tmp_path, GOOD)).buses[0].bus_kwargs()
+
+
+def test_config_errors_name_the_key() -> None:
+    """(Was the simulator's own parser test: the simulator now reads this configuration.)"""
+    with pytest.raises(BusConfigError, match=r"buses.b.nodes.m: node id 0 outside 1..127"):
+        box_config_from_dict(
+            {
+                "buses": {
+                    "b": {"interface": "virtual", "channel": "x", "bitrate": 1, "nodes": {"m": 0}}
+                }
+            },
+            "t",
+        )
+    with pytest.raises(BusConfigError, match="duplicate node id"):
+        box_config_from_dict(
+            {
+                "buses": {
+                    "b": {
+                        "interface": "virtual",
+                        "channel": "x",
+                        "bitrate": 1,
+                        "nodes": {"m": 1, "n": 1},
+                    }
+                }
+            },
+            "t",
+        )
 
 
 def test_worst_case_frame_bits() -> None:

@@ -1,5 +1,5 @@
 """Hardware-in-the-loop rig (fixtures re-exported by conftest.py): the simulated box
-in its own process (``hrm sim --control``), the host stack (``drivers.session.DriveBox`` +
+in its own process (``hrm sim --control``), the host stack (``drivers.session.DriveSession`` +
 tension watch) in the test process, over udp_multicast with ``hop_limit = 0`` (nothing
 leaves the host).  SocketCAN vcan0/vcan1 are used the same way where the kernel has
 them (skipped here with the reason)."""
@@ -20,6 +20,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
+from hrm_ctrl.formats.planfile import PlanDoc, read_plan
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -201,9 +203,7 @@ def fault_box(fault_config: Path) -> Iterator[BoxProcess]:
 
 
 @pytest.fixture(scope="module")
-def bent_pipe_plan(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    from hrm_ctrl.formats.planfile import read_plan
-
+def bent_pipe_plan(tmp_path_factory: pytest.TempPathFactory) -> PlanDoc:
     out = tmp_path_factory.mktemp("plan") / "bp.json"
     subprocess.run(
         [

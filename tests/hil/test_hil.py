@@ -17,11 +17,14 @@ import pytest
 
 import drivers.protocol.cia402 as cia
 from drivers.config import load_box_config
+from drivers.cycle import StreamResult
+from drivers.safety.causes import StopKind
 from drivers.safety.subset import ActuationSubset
-from drivers.scheduler import StreamResult
-from drivers.session import DriveBox, SafetyStopError
-from drivers.sources import HoldSource, PlanSource, interpolate_rows
+from drivers.session import DriveSession, SafetyStopError
+from drivers.sources import CountsSource, HoldSource
 from drivers.tension_sensor import TensionSensorReader, TensionWatch
+from hrm_ctrl.cli.ropes import setpoints_of_plan
+from hrm_ctrl.formats.planfile import PlanDoc
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.box import enlarge_receive_buffer
@@ -68,14 +71,14 @@ def run_host(
     result: StreamResult | None = None
     port = box_process.ready["tension_port"]
     with (
-        DriveBox(cfg, limits, log_dir=log_dir) as box,
+        DriveSession(cfg, limits, log_dir=log_dir) as box,
         TensionSensorReader(port, actuation.n_motors, stale_after_s=TENSION_STALE_S) as reader,
     ):
         for port_ in box._ports:  # see sim_bus.box.enlarge_receive_buffer
             enlarge_receive_buffer(port_.bus)
         box.bring_up()
         watch = TensionWatch(
-            reader, actuation.motor_ids, lambda text: box.monitor.report("tension", text)
+            reader, actuation.motor_ids, lambda text: box.monitor.report(StopKind.TENSION, text)
         ).start()
         timer = None
         if fault is not None:
@@ -107,11 +110,15 @@ def run_host(
 def test_bent_pipe_plan_true_joint_centres_within_1mm(
     full_box: BoxProcess,
     full_config: Path,
-    bent_pipe_plan: dict[str, Any],
+    bent_pipe_plan: PlanDoc,
     actuation: Actuation,
     tmp_path: Path,
 ) -> None:
-    source = PlanSource(actuation, bent_pipe_plan, speed_mm_per_s=PLAN_SPEED_MM_PER_S, hold_s=0.1)
+    period = 0.01
+    sp = setpoints_of_plan(
+        bent_pipe_plan, actuation, period_s=period, speed_mm_per_s=PLAN_SPEED_MM_PER_S
+    )
+    source = CountsSource(actuation, sp.counts, period, name="plan", label=sp.label, hold_s=0.1)
     full_box.command("trace on", "trace")
     run = run_host(full_box, full_config, actuation, tmp_path, source)
     trace = full_box.command("trace", "trace", timeout_s=10.0)
@@ -121,17 +128,15 @@ def test_bent_pipe_plan_true_joint_centres_within_1mm(
     assert run.error is None and run.result is not None and run.result.completed
     counts = np.array(trace["counts"], dtype=np.int64)  # true positions after every SYNC
     # planned joint centres at every control cycle of the plan body (FK of the plan's angles)
-    period = 0.01
     lead = source.n_lead_in
     n_body = source.table.shape[0] - lead
-    t = np.minimum(np.arange(n_body) * period, source.t_knots[-1])
-    k = source.alpha.shape[1]
-    ang = interpolate_rows(t, source.t_knots, np.hstack([source.alpha, source.theta]))
+    alpha, theta = sp.row_angles()
+    rows = np.minimum(np.arange(n_body), sp.n_cycles - 1)  # the final hold: the last step
     cfg = load_box_config(full_config)
     ids = actuation.motor_ids
     cols = [np.array([ids.index(m) for m in b.nodes]) for b in cfg.buses]
     tr = tracking_error(
-        actuation, source.table, lead, (ang[:, :k], ang[:, k:]), counts, cols, settle_cycles=5
+        actuation, source.table, lead, (alpha[rows], theta[rows]), counts, cols, settle_cycles=5
     )
     assert tr.compared_cycles > 0.8 * n_body, tr
     assert tr.max_error_mm < 1.0, f"worst joint-centre error {tr.max_error_mm:.3f} mm"

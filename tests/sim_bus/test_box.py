@@ -11,9 +11,10 @@ import can
 import numpy as np
 import pytest
 
+import drivers.protocol.cia301 as cia301
 import drivers.protocol.cia402 as cia
+from drivers.config import box_config_from_dict
 from sim_bus.box import SimBox
-from sim_bus.config import SimBusConfig, SimConfig
 
 NODES = {"j01r0": 1, "j01r1": 2}
 TIMEOUT_S = 1.0
@@ -56,19 +57,20 @@ class Host:
 @pytest.fixture
 def rig(can_backend: Callable[[], dict[str, Any]]) -> Iterator[tuple[Host, SimBox]]:
     kw = can_backend()
-    cfg = SimConfig(
-        buses=(
-            SimBusConfig(
-                "can0",
-                kw["interface"],
-                kw["channel"],
-                1_000_000,
-                {k: v for k, v in kw.items() if k not in ("interface", "channel")},
-                NODES,
-            ),
-        ),
-        rate_hz=100.0,
-        source="test",
+    cfg = box_config_from_dict(
+        {
+            "control": {"rate_hz": 100.0},
+            "buses": {
+                "can0": {
+                    "interface": kw["interface"],
+                    "channel": kw["channel"],
+                    "bitrate": 1_000_000,
+                    "options": {k: v for k, v in kw.items() if k not in ("interface", "channel")},
+                    "nodes": NODES,
+                }
+            },
+        },
+        "test",
     )
     host = Host(kw)
     box = SimBox(cfg, tension_noise_N=0.0)
@@ -83,32 +85,32 @@ def rig(can_backend: Callable[[], dict[str, Any]]) -> Iterator[tuple[Host, SimBo
 def test_bootup_sdo_pdo_sync_heartbeat_emcy_on_the_bus(rig: tuple[Host, SimBox]) -> None:
     host, box = rig
     is_boot = lambda m: m.arbitration_id in (0x701, 0x702) and bytes(m.data) == b"\x00"  # noqa: E731
-    host.send(cia.make_nmt(cia.NMT_RESET_NODE, 0))
+    host.send(cia301.make_nmt(cia301.NMT_RESET_NODE, 0))
     boots = {host.expect(is_boot).arbitration_id, host.expect(is_boot).arbitration_id}
     assert boots == {0x701, 0x702}
     # SDO: read statusword, bad object, write-protected object
-    assert host.sdo(1, cia.make_sdo_upload_request(1, cia.OD_STATUSWORD, 0)) == bytes.fromhex(
+    assert host.sdo(1, cia301.make_sdo_upload_request(1, cia.OD_STATUSWORD, 0)) == bytes.fromhex(
         "4b41600050020000"
     )
-    assert host.sdo(2, cia.make_sdo_upload_request(2, 0x2345, 1)) == bytes(
-        cia.make_sdo_abort(2, 0x2345, 1, cia.SDO_ABORT_NO_OBJECT).data
+    assert host.sdo(2, cia301.make_sdo_upload_request(2, 0x2345, 1)) == bytes(
+        cia301.make_sdo_abort(2, 0x2345, 1, cia301.SDO_ABORT_NO_OBJECT).data
     )
     # heartbeat producer: 20 ms
-    host.sdo(1, cia.make_sdo_download_expedited(1, 0x1017, 0, struct.pack("<H", 20)))
+    host.sdo(1, cia301.make_sdo_download_expedited(1, 0x1017, 0, struct.pack("<H", 20)))
     beats = host.collect(0.2, lambda m: m.arbitration_id == 0x701)
     assert 6 <= len(beats) <= 12 and {bytes(m.data) for m in beats} == {b"\x7f"}
     # operational, enable node 1 over SDO, then RPDO + SYNC -> TPDO
-    host.send(cia.make_nmt(cia.NMT_START_REMOTE_NODE, 0))
-    host.sdo(1, cia.make_sdo_download_expedited(1, cia.OD_MODES_OF_OPERATION, 0, b"\x08"))
+    host.send(cia301.make_nmt(cia301.NMT_START_REMOTE_NODE, 0))
+    host.sdo(1, cia301.make_sdo_download_expedited(1, cia.OD_MODES_OF_OPERATION, 0, b"\x08"))
     for cw in (cia.CW_SHUTDOWN, cia.CW_SWITCH_ON, cia.CW_ENABLE_OPERATION):
         host.sdo(
-            1, cia.make_sdo_download_expedited(1, cia.OD_CONTROLWORD, 0, struct.pack("<H", cw))
+            1, cia301.make_sdo_download_expedited(1, cia.OD_CONTROLWORD, 0, struct.pack("<H", cw))
         )
     host.send(cia.make_rpdo_target(1, cia.CW_ENABLE_OPERATION, 800))
-    host.send(cia.make_sync())
+    host.send(cia301.make_sync())
     t1 = host.expect(lambda m: m.arbitration_id == 0x181)
     assert bytes(t1.data) == bytes(cia.make_tpdo_feedback(1, 0x1237, 0).data)
-    host.send(cia.make_sync())
+    host.send(cia301.make_sync())
     t2 = host.expect(lambda m: m.arbitration_id == 0x181)
     assert cia.parse_tpdo(t2.data) == (0x1237, 800)
     assert box.counts()[0] == 800
@@ -121,7 +123,7 @@ def test_bootup_sdo_pdo_sync_heartbeat_emcy_on_the_bus(rig: tuple[Host, SimBox])
 def test_heartbeat_stop_and_frame_drop_faults(rig: tuple[Host, SimBox]) -> None:
     host, box = rig
     for node in (1, 2):
-        host.sdo(node, cia.make_sdo_download_expedited(node, 0x1017, 0, struct.pack("<H", 10)))
+        host.sdo(node, cia301.make_sdo_download_expedited(node, 0x1017, 0, struct.pack("<H", 10)))
     box.stop_heartbeat("j01r1")
     time.sleep(0.03)
     beats = host.collect(0.1, lambda m: m.arbitration_id in (0x701, 0x702))

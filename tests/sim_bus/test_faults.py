@@ -14,10 +14,10 @@ from pathlib import Path
 import can
 import pytest
 
-import drivers.protocol.cia402 as cia
+import drivers.protocol.cia301 as cia301
+from drivers.config import box_config_from_dict, load_box_config
 from hrm_ctrl.cli import main
 from sim_bus.box import SimBox
-from sim_bus.config import SimConfigError, load_sim_config, sim_config_from_dict
 from sim_bus.faults import FaultSpecError, apply_fault, parse_fault
 from sim_bus.runner import run_box_process
 
@@ -60,7 +60,7 @@ def test_bad_fault_specs_are_one_line_errors(text: str, match: str) -> None:
 def _hrm_sim_box() -> tuple[SimBox, list[can.BusABC]]:
     tag = uuid.uuid4().hex[:8]
     kw = [{"interface": "hrm_sim", "channel": f"f-{tag}-{k}"} for k in range(2)]
-    cfg = load_sim_config(None).with_bus_kwargs(kw)
+    cfg = load_box_config(None).with_bus_kwargs(kw)
     hosts = [can.Bus(**k) for k in kw]
     return SimBox(cfg, tension_noise_N=0.0).start(), hosts
 
@@ -70,12 +70,12 @@ def test_wire_faults_through_the_box_and_reset() -> None:
     try:
         apply_fault(parse_fault("bus-off:can1"), box)
         with pytest.raises(can.CanOperationError, match="bus off"):
-            hosts[1].send(cia.make_sync())
+            hosts[1].send(cia301.make_sync())
         apply_fault(parse_fault("rope-snap:j12r2"), box)
         apply_fault(parse_fault("jam:j02r0"), box)
         assert box.arm.snapped == (35,)
         apply_fault(parse_fault("reset"), box)
-        hosts[1].send(cia.make_sync())  # bus back on
+        hosts[1].send(cia301.make_sync())  # bus back on
         assert box.arm.snapped == () and not box.drives["j02r0"].jammed
         with pytest.raises(FaultSpecError, match="no tension board"):
             apply_fault(parse_fault("sensor-silent"), box)
@@ -97,7 +97,7 @@ def test_runner_control_channel_in_process(tmp_path: Path) -> None:
             }
         }
     }
-    cfg = sim_config_from_dict(doc, "test")
+    cfg = box_config_from_dict(doc, "test")
     inp = io.StringIO("state\nfault rope-snap:j01r0\nfault bogus\nstats\nquit\n")
     out = io.StringIO()
     t = threading.Thread(
@@ -130,32 +130,6 @@ def test_cli_bad_inputs_exit_2_with_one_line(
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and match in err, err
-
-
-def test_config_errors_name_the_key() -> None:
-    with pytest.raises(SimConfigError, match=r"buses.b.nodes.m: node id must be in 1..127"):
-        sim_config_from_dict(
-            {
-                "buses": {
-                    "b": {"interface": "virtual", "channel": "x", "bitrate": 1, "nodes": {"m": 0}}
-                }
-            },
-            "t",
-        )
-    with pytest.raises(SimConfigError, match="duplicate node id"):
-        sim_config_from_dict(
-            {
-                "buses": {
-                    "b": {
-                        "interface": "virtual",
-                        "channel": "x",
-                        "bitrate": 1,
-                        "nodes": {"m": 1, "n": 1},
-                    }
-                }
-            },
-            "t",
-        )
 
 
 def test_hrm_sim_process_runs_and_stops_on_duration(tmp_path: Path) -> None:

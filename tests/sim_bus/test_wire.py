@@ -12,8 +12,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers.protocol.frames import frame_bits, stuff_bit_count
 from hrm_ctrl.errors import SimError
-from sim_bus.wire import SimWireBus, WireConfigError, frame_bits, get_wire, stuff_bit_count
+from sim_bus.wire import SimWireBus, WireConfigError, get_wire
 
 
 @pytest.fixture

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from drivers.protocol import cia402 as c
-from drivers.session import DriveBox, SafetyStopError
+from drivers.session import DriveSession, SafetyStopError
 from drivers.sources import HoldSource, TableSource
 from hrm_ctrl.errors import DriverError
 from tests.drivers.driver_rig import Rig, first_time, wait_until
@@ -178,11 +178,11 @@ class FlakyBus(can.BusABC):
 
 
 @contextlib.contextmanager
-def flaky_box(rig: Rig) -> Iterator[tuple[DriveBox, list[FlakyBus]]]:
-    """A DriveBox on :class:`FlakyBus` wrappers of the rig's buses; on leaving, the
+def flaky_box(rig: Rig) -> Iterator[tuple[DriveSession, list[FlakyBus]]]:
+    """A DriveSession on :class:`FlakyBus` wrappers of the rig's buses; on leaving, the
     failures are cleared, the box closed and the buses shut down."""
     buses = [FlakyBus(can.Bus(**b.bus_kwargs())) for b in rig.config.buses]
-    box = DriveBox(rig.config, rig.limits, buses=buses)
+    box = DriveSession(rig.config, rig.limits, buses=buses)
     rig.box = box
     try:
         yield box, buses
@@ -305,26 +305,6 @@ def test_emcy_at_stream_start_stops_every_node_and_streams_nothing(
     assert not any(e["kind"] == "before_stream" for e in box.events.to_list())
 
 
-def test_idle_guard_stop_makes_a_last_check() -> None:
-    """A cause the idle guard has not evaluated yet when a stream takes over (here a
-    heartbeat timeout between two of its checks) still quick-stops."""
-    from drivers.safety.monitor import NodeMonitor
-    from drivers.session import IdleGuard
-
-    mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=3, heartbeat_timeout_s=0.35)
-    now = time.monotonic()
-    mon.hb_time[:] = now
-    mon.hb_armed_at = now - 2.0  # supervised since bring-up
-    stops: list[list[Any]] = []
-    guard = IdleGuard(mon, period_s=30.0, quick_stop=stops.append)
-    guard.start()
-    time.sleep(0.05)
-    mon.hb_time[1] = now - 1.0  # m1's heartbeat is long overdue; next periodic check in 30 s
-    guard.stop()
-    assert len(stops) == 1 and [x.kind for x in stops[0]] == ["heartbeat"]
-    assert "m1" in stops[0][0].text
-
-
 def test_heartbeat_timeout_is_not_restarted_by_a_stream(rig_factory: Callable[..., Rig]) -> None:
     """Heartbeat supervision stays armed from bring-up: a heartbeat lost while idle is
     detected one timeout after the last heartbeat, even when a stream starts meanwhile."""
@@ -372,7 +352,7 @@ def test_idle_quick_stop_failure_is_reported(rig_factory: Callable[..., Rig]) ->
         buses[1].fail_if = lambda m: 0x200 < m.arbitration_id <= 0x27F  # RPDOs lost
         rig.sim.fault_drive("j01r0")
         assert wait_until(lambda: box.idle_causes != [], timeout_s=2.0)
-        assert wait_until(lambda: box.guard.error is not None)
+        assert wait_until(lambda: box.stop_error is not None)
         sent = [x for x in box.idle_causes if x.kind == "send"]
         assert sent and "bus1" in sent[0].text
         events = box.events.to_list()
@@ -417,4 +397,4 @@ def test_bus_whose_interface_library_is_missing(
     monkeypatch.setattr(can, "Bus", broken)
     iface = rig.config.buses[0].interface
     with pytest.raises(DriverError, match=rf"buses.bus0: cannot open {iface} .*NameError"):
-        DriveBox(rig.config, rig.limits)
+        DriveSession(rig.config, rig.limits)

@@ -30,7 +30,7 @@ def test_demo_plays_a_scenario_on_the_simulated_box(
     assert tr["median_lag_cycles"] == 1  # a drive reaches a setpoint at the next SYNC
     assert tr["p95_lag_cycles"] <= 2
     plan = read_plan(tmp_path / "plan.json")
-    assert plan["report"]["tip_error_mm"] < 0.01
+    assert plan.report["tip_error_mm"] < 0.01
     assert {p.name for p in (tmp_path / "figures").iterdir()} == {
         "angles.png",
         "arm.png",

@@ -46,7 +46,7 @@ def test_plan_scenario_writes_plan_and_figures(tmp_path: Path, capsys) -> None:
     assert rc == 0, err
     assert "joint-limit margin" in stdout and "clearance" in stdout
     plan = read_plan(out)
-    assert plan["steps"][-1]["phase"] == "return"
+    assert plan.phase[-1] == "return"
     assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == [
         "angles.png",
         "arm.png",
@@ -169,7 +169,7 @@ def test_joint_limit_violation_names_step_joint_angle_and_writes_nothing(
     assert not out.exists()
     rc, _, err = run(["plan", "--path", str(path), "--out", str(out), "--allow-violations"], capsys)
     assert rc == 0
-    assert read_plan(out)["report"]["first_violation"]["step"] > 0
+    assert read_plan(out).report["first_violation"]["step"] > 0
 
 
 def test_real_process_prints_no_traceback(tmp_path: Path) -> None:
@@ -238,8 +238,8 @@ def test_plot_steps_choose_the_steps_drawn(tmp_path: Path, capsys) -> None:
         capsys,
     )
     assert rc == 0, err
-    steps = read_plan(out)["steps"]
-    assert [i for i, st in enumerate(steps) if "backbone_mm" in st] == [0, 60, 135]
-    assert steps[60]["travel_mm"] == pytest.approx(300.0)  # Fig. 11b of the paper
+    doc = read_plan(out)
+    assert sorted(doc.backbones_mm) == [0, 60, 135]
+    assert doc.travel_mm[60] == pytest.approx(300.0)  # Fig. 11b of the paper
     rc, _, err = run(["plan", "--scenario", "bent-pipe", "--plot-steps", "0,999"], capsys)
     assert rc == 2 and "past the plan's last step 135" in err and err.count("\n") == 1

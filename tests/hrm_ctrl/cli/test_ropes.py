@@ -65,6 +65,8 @@ def test_setpoint_table_and_summary(
     text = capsys.readouterr().out
     assert "20 steps, 36 rope motors" in text and "largest travel" in text
     assert "j12r2" in text
+    # 95 mm at the default 10 mm/s, at the shipped box's 100 Hz control rate
+    assert "played at 10 mm/s: 9.500 s, 951 control cycles of 10 ms" in text
 
 
 def test_json_summary(tmp_path: Path, act: Actuation, capsys: pytest.CaptureFixture) -> None:
@@ -74,6 +76,28 @@ def test_json_summary(tmp_path: Path, act: Actuation, capsys: pytest.CaptureFixt
     m = s["motors"][0]
     assert m["largest_travel_step"] == 19  # the bend grows along the plan
     assert m["largest_change_counts"] > 0
+    assert 0 < m["peak_rate_counts_per_s"] < m["rate_limit_counts_per_s"]
+    assert s["playback"] == {
+        "speed_mm_per_s": 10.0,
+        "period_s": 0.01,
+        "duration_s": 9.5,
+        "cycles": 951,
+    }
+
+
+def test_a_plan_with_a_return_leg(tmp_path: Path, act: Actuation, capsys) -> None:
+    """Out and back: travel goes down again on the return steps, and the plan plays."""
+    plan = make_plan(n=10)
+    back = [dict(st, phase="return") for st in plan["steps"][-2::-1]]
+    plan["steps"] = [dict(st, phase="in") for st in plan["steps"]] + back
+    out = tmp_path / "sp.csv"
+    assert main(["ropes", str(write(tmp_path, plan)), "--out", str(out), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["steps"] == 19 and s["travel_mm"] == [0.0, 0.0]
+    assert s["playback"]["duration_s"] == pytest.approx(9.0)  # 45 mm in and 45 mm back
+    rows = list(csv.reader(out.open()))[1:]
+    table = np.array([[int(v) for v in r[2:]] for r in rows])
+    np.testing.assert_array_equal(table[10:], table[8::-1])  # back the way it came
 
 
 def bad_plans() -> list[tuple[str, Any, str]]:
@@ -85,7 +109,7 @@ def bad_plans() -> list[tuple[str, Any, str]]:
     p3["robot"]["links_mm"][0] = 100.0
     return [
         ("format", p1, "expected 'hrm-plan/1'"),
-        ("limit", p2, "step 7: joint 5: alpha"),
+        ("limit", p2, "plan step 7 (travel 35.0 mm): joint 5: alpha"),
         ("robot", p3, "plan was made for links"),
         ("notjson", "{not json", "not JSON"),
     ]
@@ -113,7 +137,9 @@ def test_too_fast_for_the_motors(tmp_path: Path, capsys: pytest.CaptureFixture) 
     out = tmp_path / "sp.csv"
     assert main(["ropes", str(write(tmp_path, plan)), "--out", str(out), "--speed", "5000"]) == 2
     err = capsys.readouterr().err
-    assert "step 1: motor j" in err and "faster than the motor" in err
+    # the first too fast control cycle moves through plan steps 1 to 10 (1 ms a step)
+    assert "plan steps 1-10 (travel 5.0-50.0 mm): motor j" in err and "faster than the motor" in err
+    assert err.count("\n") == 1
     assert not out.exists()
     assert main(["ropes", str(write(tmp_path, plan)), "--speed", "-1"]) == 2
     assert "--speed" in capsys.readouterr().err

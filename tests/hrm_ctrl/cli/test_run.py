@@ -182,3 +182,38 @@ def test_complete_can_logs_exit_zero(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert summary["can_log_errors"] == [] and "CAN log" not in out.err
     record = json.loads(Path(summary["run_record"]).read_text())
     assert record["plan_file"] is None and record["can_log_errors"] == []
+
+
+def test_a_plan_with_a_return_leg_plays_out_and_back(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """In to 15 mm and back out (phase ``return``): the plan plays on the simulated box,
+    and every rope motor's RPDO targets go out and come back to where they started."""
+    plan = tmp_path / "plan.json"
+    write_small_plan(plan)
+    doc = json.loads(plan.read_text())
+    for step in doc["steps"]:
+        step["phase"] = "in"
+    back = [dict(s, phase="return") for s in reversed(doc["steps"][:-1])]
+    doc["steps"] += back
+    plan.write_text(json.dumps(doc))
+    logs = tmp_path / "runs"
+    rc = main(["run", str(plan), "--sim", "--log-dir", str(logs), "--speed", "60", "--json"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    summary = json.loads(out.out)
+    assert summary["completed"] is True and summary["causes"] == []
+    assert summary["cycles"] >= 51  # 30 mm of travel at 60 mm/s = 0.5 s, + hold
+    targets: dict[tuple[str, int], list[int]] = {}  # (bus log, COB-ID): RPDO targets
+    for log in sorted(logs.glob("*.blf")):
+        for m in can.LogReader(log):
+            if not m.is_rx and 0x200 < m.arbitration_id <= 0x27F and m.data[:2] == b"\x0f\x00":
+                pos = int.from_bytes(bytes(m.data[2:6]), "little", signed=True)
+                targets.setdefault((log.name, m.arbitration_id), []).append(pos)
+    assert len(targets) >= 2
+    swing = {cid: max(abs(t - ts[0]) for t in ts) for cid, ts in targets.items()}
+    assert max(swing.values()) > 1000  # the arm really moved out ...
+    for (bus, cid), ts in targets.items():
+        far = int(np.argmax([abs(t - ts[0]) for t in ts]))
+        assert abs(ts[-1] - ts[0]) <= 2, f"{bus} 0x{cid:03X} did not come back"  # ... and back
+        assert 0.3 < far / len(ts) < 0.7 or swing[(bus, cid)] < 50  # the far end is mid-run

@@ -12,12 +12,12 @@ import pytest
 
 from hrm_ctrl import kinematics
 from hrm_ctrl.errors import PlanFileError
+from hrm_ctrl.formats.planfile import PlanDoc
 from hrm_ctrl.formats.plots import (
     ANGLES_PNG,
     ARM_PNG,
     BACKBONE_PNG,
     PlotError,
-    plan_arrays,
     write_plan_figures,
 )
 from hrm_ctrl.model import default_robot
@@ -91,9 +91,16 @@ def test_writes_three_valid_pngs(plan: dict[str, Any], tmp_path: Path) -> None:
 
 
 def test_default_steps_are_those_with_backbones(plan: dict[str, Any]) -> None:
-    data = plan_arrays(plan)
-    assert sorted(data.backbones) == [0, 12, 24]
-    assert data.joints.shape == (N_STEPS, 13, 3) and data.limit_alpha_deg == pytest.approx(60.0)
+    data = PlanDoc.from_dict(plan)
+    assert sorted(data.backbones_mm) == [0, 12, 24]
+    assert data.joints_mm.shape == (N_STEPS, 13, 3)
+    assert data.joint_limits_deg[0] == pytest.approx(60.0)
+
+
+def test_a_plan_doc_draws_as_its_dict_does(plan: dict[str, Any], tmp_path: Path) -> None:
+    a = write_plan_figures(plan, tmp_path / "a", steps=[0, 12])
+    b = write_plan_figures(PlanDoc.from_dict(plan), tmp_path / "b", steps=[0, 12])
+    assert [p.read_bytes() for p in a] == [p.read_bytes() for p in b]
 
 
 def test_without_backbones_no_backbone_figure(tmp_path: Path) -> None:
@@ -121,8 +128,11 @@ def test_figures_differ_with_the_steps_drawn(plan: dict[str, Any], tmp_path: Pat
         (lambda p: p.update(format="hrm-plan/0"), "expected 'hrm-plan/1'"),
         (lambda p: p["steps"][1]["theta_rad"].pop(), "steps[1].theta_rad: expected an array"),
         (lambda p: p["steps"][4]["alpha_rad"].__setitem__(0, "x"), "steps[4].alpha_rad"),
-        (lambda p: p["path_mm"][0].__setitem__(1, float("nan")), "path_mm: contains NaN"),
-        (lambda p: p.update(steps=[]), "'steps' must be a non-empty list"),
+        (
+            lambda p: p["path_mm"][0].__setitem__(1, float("nan")),
+            "path_mm[0][1]: expected a finite number, got nan",
+        ),
+        (lambda p: p.update(steps=[]), "steps: expected a non-empty list"),
         (lambda p: p["steps"][5].update(travel_mm=[1, 2]), "steps[5].travel_mm: expected a number"),
         (lambda p: p["steps"][6].update(backbone_mm=[[1, 2]]), "steps[6].backbone_mm"),
     ],

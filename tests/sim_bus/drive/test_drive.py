@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import drivers.protocol.cia402 as cia
+from drivers.protocol import cia301, cia402
 from sim_bus.drive import DriveParams, DriveSim, object_table
 
 NODE = 5
-S = cia.State402
+S = cia402.State402
 
 
 class Rig:
@@ -48,30 +48,30 @@ class Rig:
         return bytes(sdo[0].data)
 
     def write(self, index: int, sub: int, value: bytes) -> bytes:
-        return self.sdo(bytes(cia.make_sdo_download_expedited(NODE, index, sub, value).data))
+        return self.sdo(bytes(cia301.make_sdo_download_expedited(NODE, index, sub, value).data))
 
     def read(self, index: int, sub: int = 0) -> bytes:
-        return self.sdo(bytes(cia.make_sdo_upload_request(NODE, index, sub).data))
+        return self.sdo(bytes(cia301.make_sdo_upload_request(NODE, index, sub).data))
 
     def cw(self, word: int) -> None:
-        assert self.write(cia.OD_CONTROLWORD, 0, struct.pack("<H", word))[0] == 0x60
+        assert self.write(cia402.OD_CONTROLWORD, 0, struct.pack("<H", word))[0] == 0x60
 
     def statusword(self) -> int:
-        r = self.read(cia.OD_STATUSWORD)
+        r = self.read(cia402.OD_STATUSWORD)
         return struct.unpack_from("<H", r, 4)[0]
 
     def state(self) -> S:
-        return cia.decode_state(self.statusword())
+        return cia402.decode_state(self.statusword())
 
     def operational(self) -> None:
-        self.rx(cia.make_nmt(cia.NMT_START_REMOTE_NODE, NODE))
+        self.rx(cia301.make_nmt(cia301.NMT_START_REMOTE_NODE, NODE))
 
     def sync(self, dt: float = 0.01) -> list[can.Message]:
-        return self.rx(cia.make_sync(), dt)
+        return self.rx(cia301.make_sync(), dt)
 
     def enable(self) -> None:
-        self.write(cia.OD_MODES_OF_OPERATION, 0, b"\x08")
-        for w in (cia.CW_SHUTDOWN, cia.CW_SWITCH_ON, cia.CW_ENABLE_OPERATION):
+        self.write(cia402.OD_MODES_OF_OPERATION, 0, b"\x08")
+        for w in (cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON, cia402.CW_ENABLE_OPERATION):
             self.cw(w)
         assert self.state() == S.OPERATION_ENABLED
 
@@ -84,18 +84,18 @@ def abort_code(resp: bytes) -> int:
 def test_bootup_frame_and_reset_node() -> None:
     r = Rig()
     assert [(m.arbitration_id, bytes(m.data)) for m in r.sent] == [(0x705, b"\x00")]
-    r.write(cia.OD_PRODUCER_HEARTBEAT_TIME, 0, struct.pack("<H", 50))
-    out = r.rx(cia.make_nmt(cia.NMT_RESET_NODE, 0))
+    r.write(cia301.OD_PRODUCER_HEARTBEAT_TIME, 0, struct.pack("<H", 50))
+    out = r.rx(cia301.make_nmt(cia301.NMT_RESET_NODE, 0))
     assert [(m.arbitration_id, bytes(m.data)) for m in out] == [(0x705, b"\x00")]
-    assert r.read(cia.OD_PRODUCER_HEARTBEAT_TIME)[4:6] == b"\x00\x00"  # back to default
-    assert r.rx(cia.make_nmt(cia.NMT_RESET_NODE, 6)) == []  # another node
+    assert r.read(cia301.OD_PRODUCER_HEARTBEAT_TIME)[4:6] == b"\x00\x00"  # back to default
+    assert r.rx(cia301.make_nmt(cia301.NMT_RESET_NODE, 6)) == []  # another node
     bad = can.Message(arbitration_id=0, data=b"\x81", is_extended_id=False)
     assert r.rx(bad) == []  # wrong DLC ignored
 
 
 def test_heartbeat_producer_period_and_state() -> None:
     r = Rig()
-    assert r.write(cia.OD_PRODUCER_HEARTBEAT_TIME, 0, struct.pack("<H", 20)) == bytes.fromhex(
+    assert r.write(cia301.OD_PRODUCER_HEARTBEAT_TIME, 0, struct.pack("<H", 20)) == bytes.fromhex(
         "6017100000000000"
     )
     beats: list[tuple[float, bytes]] = []
@@ -114,7 +114,7 @@ def test_sdo_expedited_upload_of_every_readable_object() -> None:
     for (index, sub), var in object_table().items():
         resp = r.read(index, sub)
         if var.access_type == "wo":
-            assert abort_code(resp) == cia.SDO_ABORT_WRITE_ONLY
+            assert abort_code(resp) == cia301.SDO_ABORT_WRITE_ONLY
             continue
         size = len(var) // 8 if var.fixed_size else None
         if size is not None and size <= 4:
@@ -126,7 +126,7 @@ def test_sdo_expedited_upload_of_every_readable_object() -> None:
 
 def test_sdo_segmented_upload_of_device_name() -> None:
     r = Rig()
-    resp = r.read(cia.OD_MANUFACTURER_DEVICE_NAME)
+    resp = r.read(cia301.OD_MANUFACTURER_DEVICE_NAME)
     assert resp[0] == 0x41
     size = struct.unpack_from("<I", resp, 4)[0]
     data, toggle = b"", 0
@@ -140,62 +140,66 @@ def test_sdo_segmented_upload_of_device_name() -> None:
             break
     assert len(data) == size and data == b"HRM rope drive"
     # a wrong toggle bit aborts with 0x05030000
-    r.read(cia.OD_MANUFACTURER_DEVICE_NAME)
-    assert abort_code(r.sdo(bytes((0x70,)) + bytes(7))) == cia.SDO_ABORT_TOGGLE_BIT
+    r.read(cia301.OD_MANUFACTURER_DEVICE_NAME)
+    assert abort_code(r.sdo(bytes((0x70,)) + bytes(7))) == cia301.SDO_ABORT_TOGGLE_BIT
 
 
 def test_sdo_segmented_download() -> None:
     r = Rig()
     # initiate segmented download of 4 bytes to 0x607A (allowed: size given)
-    init = bytes((0x21,)) + struct.pack("<HBI", cia.OD_TARGET_POSITION, 0, 4)
+    init = bytes((0x21,)) + struct.pack("<HBI", cia402.OD_TARGET_POSITION, 0, 4)
     assert r.sdo(init) == bytes.fromhex("607a600000000000")
     seg = bytes((0x00 | (3 << 1) | 1,)) + struct.pack("<i", -77) + bytes(3)
     assert r.sdo(seg) == bytes.fromhex("2000000000000000")
-    assert r.read(cia.OD_TARGET_POSITION)[4:8] == struct.pack("<i", -77)
+    assert r.read(cia402.OD_TARGET_POSITION)[4:8] == struct.pack("<i", -77)
 
 
 @pytest.mark.parametrize(
     ("payload", "code"),
     [
-        (cia.make_sdo_upload_request(NODE, 0x2000, 0).data, cia.SDO_ABORT_NO_OBJECT),
-        (cia.make_sdo_upload_request(NODE, 0x607D, 5).data, cia.SDO_ABORT_NO_SUBINDEX),
+        (cia301.make_sdo_upload_request(NODE, 0x2000, 0).data, cia301.SDO_ABORT_NO_OBJECT),
+        (cia301.make_sdo_upload_request(NODE, 0x607D, 5).data, cia301.SDO_ABORT_NO_SUBINDEX),
         (
-            cia.make_sdo_download_expedited(NODE, cia.OD_STATUSWORD, 0, b"\x00\x00").data,
-            cia.SDO_ABORT_READ_ONLY,
+            cia301.make_sdo_download_expedited(NODE, cia402.OD_STATUSWORD, 0, b"\x00\x00").data,
+            cia301.SDO_ABORT_READ_ONLY,
         ),
         (
-            cia.make_sdo_download_expedited(NODE, cia.OD_DEVICE_TYPE, 0, b"\x00" * 4).data,
-            cia.SDO_ABORT_READ_ONLY,
+            cia301.make_sdo_download_expedited(NODE, cia301.OD_DEVICE_TYPE, 0, b"\x00" * 4).data,
+            cia301.SDO_ABORT_READ_ONLY,
         ),
         (
-            cia.make_sdo_download_expedited(NODE, cia.OD_TARGET_POSITION, 0, b"\x01\x02").data,
-            cia.SDO_ABORT_LENGTH_TOO_LOW,
-        ),
-        (
-            cia.make_sdo_download_expedited(NODE, cia.OD_MODES_OF_OPERATION, 0, b"\x01\x00").data,
-            cia.SDO_ABORT_LENGTH_TOO_HIGH,
-        ),
-        (
-            cia.make_sdo_download_expedited(NODE, cia.OD_MODES_OF_OPERATION, 0, b"\x03").data,
-            cia.SDO_ABORT_INVALID_VALUE,
-        ),
-        (
-            cia.make_sdo_download_expedited(
-                NODE, cia.OD_QUICK_STOP_OPTION_CODE, 0, b"\x09\x00"
+            cia301.make_sdo_download_expedited(
+                NODE, cia402.OD_TARGET_POSITION, 0, b"\x01\x02"
             ).data,
-            cia.SDO_ABORT_INVALID_VALUE,
+            cia301.SDO_ABORT_LENGTH_TOO_LOW,
         ),
         (
-            cia.make_sdo_download_expedited(NODE, 0x1400, 2, b"\xf5").data,
-            cia.SDO_ABORT_INVALID_VALUE,
+            cia301.make_sdo_download_expedited(
+                NODE, cia402.OD_MODES_OF_OPERATION, 0, b"\x01\x00"
+            ).data,
+            cia301.SDO_ABORT_LENGTH_TOO_HIGH,
         ),
         (
-            cia.make_sdo_download_expedited(NODE, 0x1600, 1, b"\x20\x00\x7a\x60").data,
-            cia.SDO_ABORT_UNSUPPORTED_ACCESS,
+            cia301.make_sdo_download_expedited(NODE, cia402.OD_MODES_OF_OPERATION, 0, b"\x03").data,
+            cia301.SDO_ABORT_INVALID_VALUE,
         ),
-        (bytes((0xE0,)) + bytes(7), cia.SDO_ABORT_COMMAND_SPECIFIER),
-        (bytes((0xC0,)) + bytes(7), cia.SDO_ABORT_COMMAND_SPECIFIER),  # block download
-        (bytes((0x00,)) + bytes(7), cia.SDO_ABORT_COMMAND_SPECIFIER),  # segment, no transfer
+        (
+            cia301.make_sdo_download_expedited(
+                NODE, cia402.OD_QUICK_STOP_OPTION_CODE, 0, b"\x09\x00"
+            ).data,
+            cia301.SDO_ABORT_INVALID_VALUE,
+        ),
+        (
+            cia301.make_sdo_download_expedited(NODE, 0x1400, 2, b"\xf5").data,
+            cia301.SDO_ABORT_INVALID_VALUE,
+        ),
+        (
+            cia301.make_sdo_download_expedited(NODE, 0x1600, 1, b"\x20\x00\x7a\x60").data,
+            cia301.SDO_ABORT_UNSUPPORTED_ACCESS,
+        ),
+        (bytes((0xE0,)) + bytes(7), cia301.SDO_ABORT_COMMAND_SPECIFIER),
+        (bytes((0xC0,)) + bytes(7), cia301.SDO_ABORT_COMMAND_SPECIFIER),  # block download
+        (bytes((0x00,)) + bytes(7), cia301.SDO_ABORT_COMMAND_SPECIFIER),  # segment, no transfer
     ],
 )
 def test_sdo_abort_codes(payload: bytes, code: int) -> None:
@@ -217,7 +221,7 @@ def test_sdo_frame_of_wrong_length_is_ignored() -> None:
 @given(st.binary(min_size=0, max_size=8), st.sampled_from([0x000, 0x080, 0x205, 0x605, 0x77F]))
 def test_garbage_frames_never_crash(data: bytes, cob: int) -> None:
     r = Rig()
-    r.write(cia.OD_CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", 0x7F0064))
+    r.write(cia301.OD_CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", 0x7F0064))
     r.operational()
     r.rx(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
     r.sync()
@@ -228,45 +232,53 @@ def test_garbage_frames_never_crash(data: bytes, cob: int) -> None:
 # ---------------------------------------------------------------- CiA 402 state machine
 TRANSITIONS = [
     # (start-up commands, command, expected state)
-    ([], cia.CW_SHUTDOWN, S.READY_TO_SWITCH_ON),  # 2
-    ([cia.CW_SHUTDOWN], cia.CW_SWITCH_ON, S.SWITCHED_ON),  # 3
-    ([cia.CW_SHUTDOWN, cia.CW_SWITCH_ON], cia.CW_ENABLE_OPERATION, S.OPERATION_ENABLED),  # 4
-    ([cia.CW_SHUTDOWN], cia.CW_ENABLE_OPERATION, S.OPERATION_ENABLED),  # 3 + 4
+    ([], cia402.CW_SHUTDOWN, S.READY_TO_SWITCH_ON),  # 2
+    ([cia402.CW_SHUTDOWN], cia402.CW_SWITCH_ON, S.SWITCHED_ON),  # 3
     (
-        [cia.CW_SHUTDOWN, cia.CW_SWITCH_ON, cia.CW_ENABLE_OPERATION],
-        cia.CW_DISABLE_OPERATION,
+        [cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON],
+        cia402.CW_ENABLE_OPERATION,
+        S.OPERATION_ENABLED,
+    ),  # 4
+    ([cia402.CW_SHUTDOWN], cia402.CW_ENABLE_OPERATION, S.OPERATION_ENABLED),  # 3 + 4
+    (
+        [cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON, cia402.CW_ENABLE_OPERATION],
+        cia402.CW_DISABLE_OPERATION,
         S.SWITCHED_ON,
     ),  # 5
-    ([cia.CW_SHUTDOWN, cia.CW_SWITCH_ON], cia.CW_SHUTDOWN, S.READY_TO_SWITCH_ON),  # 6
-    ([cia.CW_SHUTDOWN], cia.CW_DISABLE_VOLTAGE, S.SWITCH_ON_DISABLED),  # 7
-    ([cia.CW_SHUTDOWN], cia.CW_QUICK_STOP, S.SWITCH_ON_DISABLED),  # 7
+    ([cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON], cia402.CW_SHUTDOWN, S.READY_TO_SWITCH_ON),  # 6
+    ([cia402.CW_SHUTDOWN], cia402.CW_DISABLE_VOLTAGE, S.SWITCH_ON_DISABLED),  # 7
+    ([cia402.CW_SHUTDOWN], cia402.CW_QUICK_STOP, S.SWITCH_ON_DISABLED),  # 7
     (
-        [cia.CW_SHUTDOWN, cia.CW_SWITCH_ON, cia.CW_ENABLE_OPERATION],
-        cia.CW_SHUTDOWN,
+        [cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON, cia402.CW_ENABLE_OPERATION],
+        cia402.CW_SHUTDOWN,
         S.READY_TO_SWITCH_ON,
     ),  # 8
     (
-        [cia.CW_SHUTDOWN, cia.CW_SWITCH_ON, cia.CW_ENABLE_OPERATION],
-        cia.CW_DISABLE_VOLTAGE,
+        [cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON, cia402.CW_ENABLE_OPERATION],
+        cia402.CW_DISABLE_VOLTAGE,
         S.SWITCH_ON_DISABLED,
     ),  # 9
-    ([cia.CW_SHUTDOWN, cia.CW_SWITCH_ON], cia.CW_DISABLE_VOLTAGE, S.SWITCH_ON_DISABLED),  # 10
-    ([cia.CW_SHUTDOWN, cia.CW_SWITCH_ON], cia.CW_QUICK_STOP, S.SWITCH_ON_DISABLED),  # 10
-    ([], cia.CW_SWITCH_ON, S.SWITCH_ON_DISABLED),  # no transition
-    ([], cia.CW_ENABLE_OPERATION, S.SWITCH_ON_DISABLED),  # no transition
+    (
+        [cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON],
+        cia402.CW_DISABLE_VOLTAGE,
+        S.SWITCH_ON_DISABLED,
+    ),  # 10
+    ([cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON], cia402.CW_QUICK_STOP, S.SWITCH_ON_DISABLED),  # 10
+    ([], cia402.CW_SWITCH_ON, S.SWITCH_ON_DISABLED),  # no transition
+    ([], cia402.CW_ENABLE_OPERATION, S.SWITCH_ON_DISABLED),  # no transition
 ]
 
 
 @pytest.mark.parametrize(("setup", "command", "expected"), TRANSITIONS)
 def test_state_machine_transitions(setup: list[int], command: int, expected: S) -> None:
     r = Rig()
-    r.write(cia.OD_MODES_OF_OPERATION, 0, b"\x08")
+    r.write(cia402.OD_MODES_OF_OPERATION, 0, b"\x08")
     for w in setup:
         r.cw(w)
     r.cw(command)
     sw = r.statusword()
-    assert cia.decode_state(sw) == expected
-    assert sw & 0x006F == cia.STATUSWORD_OF_STATE[expected] & 0x006F
+    assert cia402.decode_state(sw) == expected
+    assert sw & 0x006F == cia402.STATUSWORD_OF_STATE[expected] & 0x006F
 
 
 @pytest.mark.parametrize(
@@ -275,26 +287,26 @@ def test_state_machine_transitions(setup: list[int], command: int, expected: S) 
 )
 def test_quick_stop_per_option_code(option: int, after_stop: S) -> None:
     r = Rig(vmax=1e5, amax=1e7, qs=1e6)
-    r.write(cia.OD_QUICK_STOP_OPTION_CODE, 0, struct.pack("<h", option))
-    r.write(cia.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 0xFFFFFFFF))
+    r.write(cia402.OD_QUICK_STOP_OPTION_CODE, 0, struct.pack("<h", option))
+    r.write(cia402.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 0xFFFFFFFF))
     r.operational()
     r.enable()
-    r.write(cia.OD_TARGET_POSITION, 0, struct.pack("<i", 50_000))
+    r.write(cia402.OD_TARGET_POSITION, 0, struct.pack("<i", 50_000))
     for _ in range(5):
         r.sync()
     assert r.d.velocity > 0
-    r.cw(cia.CW_QUICK_STOP)  # 11
+    r.cw(cia402.CW_QUICK_STOP)  # 11
     if option == 0:
         assert r.state() == S.SWITCH_ON_DISABLED
         return
     assert r.state() == S.QUICK_STOP_ACTIVE
-    assert r.statusword() & cia.SW_QUICK_STOP == 0
+    assert r.statusword() & cia402.SW_QUICK_STOP == 0
     for _ in range(30):
         r.sync()
     assert r.d.velocity == 0.0
     assert r.state() == after_stop  # 12 for options 1..4
     if option == 6:
-        r.cw(cia.CW_ENABLE_OPERATION)  # 16
+        r.cw(cia402.CW_ENABLE_OPERATION)  # 16
         assert r.state() == S.OPERATION_ENABLED
 
 
@@ -303,63 +315,65 @@ def test_csp_following_on_sync_with_tpdo_bytes() -> None:
     r.operational()
     r.enable()
     # RPDO (controlword + target) takes effect on the next SYNC; TPDO follows each SYNC
-    r.rx(cia.make_rpdo_target(NODE, cia.CW_ENABLE_OPERATION, 600))
+    r.rx(cia402.make_rpdo_target(NODE, cia402.CW_ENABLE_OPERATION, 600))
     out = r.sync()
     tpdo = [m for m in out if m.arbitration_id == 0x185]
-    assert len(tpdo) == 1 and bytes(tpdo[0].data) == cia.make_tpdo_feedback(NODE, 0x1237, 100).data
+    assert (
+        len(tpdo) == 1 and bytes(tpdo[0].data) == cia402.make_tpdo_feedback(NODE, 0x1237, 100).data
+    )
     out = r.sync()
     tpdo = [m for m in out if m.arbitration_id == 0x185]
-    assert cia.parse_tpdo(tpdo[0].data) == (0x1237, 600)
+    assert cia402.parse_tpdo(tpdo[0].data) == (0x1237, 600)
 
 
 def test_velocity_limit_and_software_position_limit() -> None:
     r = Rig(vmax=1e5, amax=1e9)
-    r.write(cia.OD_SOFTWARE_POSITION_LIMIT, 2, struct.pack("<i", 3000))
-    r.write(cia.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 0xFFFFFFFF))
+    r.write(cia402.OD_SOFTWARE_POSITION_LIMIT, 2, struct.pack("<i", 3000))
+    r.write(cia402.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 0xFFFFFFFF))
     r.operational()
     r.enable()
-    r.rx(cia.make_rpdo_target(NODE, cia.CW_ENABLE_OPERATION, 10_000))
+    r.rx(cia402.make_rpdo_target(NODE, cia402.CW_ENABLE_OPERATION, 10_000))
     r.sync()
     positions = []
     for _ in range(6):
         out = r.sync()
-        positions.append(cia.parse_tpdo(next(m for m in out if m.arbitration_id == 0x185).data))
+        positions.append(cia402.parse_tpdo(next(m for m in out if m.arbitration_id == 0x185).data))
     steps = [b[1] - a[1] for a, b in itertools.pairwise(positions)]
     assert max(steps) <= 1000  # 1e5 counts/s * 10 ms
     assert positions[-1][1] == 3000  # clamped at the max limit
-    assert positions[-1][0] & cia.SW_INTERNAL_LIMIT_ACTIVE
+    assert positions[-1][0] & cia402.SW_INTERNAL_LIMIT_ACTIVE
 
 
 def test_following_error_faults_with_emcy_and_fault_reset() -> None:
     r = Rig(vmax=1e5, amax=1e9)
-    r.write(cia.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 500))
+    r.write(cia402.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 500))
     r.operational()
     r.enable()
-    r.rx(cia.make_rpdo_target(NODE, cia.CW_ENABLE_OPERATION, 100_000))
+    r.rx(cia402.make_rpdo_target(NODE, cia402.CW_ENABLE_OPERATION, 100_000))
     r.sync()
     out = r.sync()
     emcy = [m for m in out if m.arbitration_id == 0x085]
     assert [bytes(m.data) for m in emcy] == [bytes.fromhex("1186010000000000")]
-    sw = cia.parse_tpdo(next(m for m in out if m.arbitration_id == 0x185).data)[0]
-    assert cia.decode_state(sw) in (S.FAULT_REACTION_ACTIVE, S.FAULT)
+    sw = cia402.parse_tpdo(next(m for m in out if m.arbitration_id == 0x185).data)[0]
+    assert cia402.decode_state(sw) in (S.FAULT_REACTION_ACTIVE, S.FAULT)
     for _ in range(5):
         r.sync()
     assert r.state() == S.FAULT
-    assert r.read(cia.OD_ERROR_CODE)[4:6] == b"\x11\x86"
+    assert r.read(cia402.OD_ERROR_CODE)[4:6] == b"\x11\x86"
     # fault reset on the rising edge of bit 7 (transition 15), EMCY 0x0000
     n = len(r.sent)
-    r.cw(cia.CW_FAULT_RESET)
+    r.cw(cia402.CW_FAULT_RESET)
     assert r.state() == S.SWITCH_ON_DISABLED
     assert any(m.arbitration_id == 0x085 and bytes(m.data) == bytes(8) for m in r.sent[n:])
-    assert r.read(cia.OD_ERROR_REGISTER)[4] == 0
+    assert r.read(cia301.OD_ERROR_REGISTER)[4] == 0
 
 
 def test_host_heartbeat_loss_quick_stops_with_emcy() -> None:
     r = Rig(vmax=1e5, amax=1e7, qs=1e7)
-    r.write(cia.OD_CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", 0x7F0064))  # node 127, 100 ms
+    r.write(cia301.OD_CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", 0x7F0064))  # node 127, 100 ms
     r.operational()
     r.enable()
-    hb = cia.make_heartbeat(0x7F, cia.NMT_STATE_OPERATIONAL)
+    hb = cia301.make_heartbeat(0x7F, cia301.NMT_STATE_OPERATIONAL)
     for _ in range(10):  # host alive: nothing happens
         r.rx(hb, 0.05)
         r.tick(0.0)
@@ -390,13 +404,13 @@ def test_rpdo_too_short_gives_emcy_8210_and_is_not_applied() -> None:
 def test_pdo_remapping() -> None:
     r = Rig(vmax=1e7, amax=1e10)
     # mapping while the PDO is valid: refused
-    assert abort_code(r.write(0x1600, 0, b"\x00")) == cia.SDO_ABORT_UNSUPPORTED_ACCESS
+    assert abort_code(r.write(0x1600, 0, b"\x00")) == cia301.SDO_ABORT_UNSUPPORTED_ACCESS
     assert r.write(0x1400, 1, struct.pack("<I", 0x80000205))[0] == 0x60
     assert r.write(0x1600, 0, b"\x00")[0] == 0x60
     assert r.write(0x1600, 1, struct.pack("<I", 0x607A0020))[0] == 0x60
     # an unmappable object is refused when the mapping is activated
     assert r.write(0x1600, 2, struct.pack("<I", 0x10170010))[0] == 0x60
-    assert abort_code(r.write(0x1600, 0, b"\x02")) == cia.SDO_ABORT_NOT_MAPPABLE
+    assert abort_code(r.write(0x1600, 0, b"\x02")) == cia301.SDO_ABORT_NOT_MAPPABLE
     assert r.write(0x1600, 0, b"\x01")[0] == 0x60
     assert r.write(0x1400, 1, struct.pack("<I", 0x305))[0] == 0x60  # new COB-ID, valid
     r.operational()
@@ -404,7 +418,7 @@ def test_pdo_remapping() -> None:
     r.rx(can.Message(arbitration_id=0x305, data=struct.pack("<i", 4321), is_extended_id=False))
     r.sync()
     out = r.sync()
-    assert cia.parse_tpdo(next(m for m in out if m.arbitration_id == 0x185).data)[1] == 4321
+    assert cia402.parse_tpdo(next(m for m in out if m.arbitration_id == 0x185).data)[1] == 4321
     # the old COB-ID no longer reaches the drive
     assert 0x205 not in r.d.cob_ids() and 0x305 in r.d.cob_ids()
 
@@ -420,7 +434,7 @@ def test_tpdo_every_second_sync_and_no_pdo_when_preoperational() -> None:
 
 def test_jammed_motor_faults_by_following_error_once_the_target_moves() -> None:
     r = Rig(vmax=1e6, amax=1e10)
-    r.write(cia.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 2000))
+    r.write(cia402.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 2000))
     r.operational()
     r.enable()
     r.d.jammed = True
@@ -428,7 +442,7 @@ def test_jammed_motor_faults_by_following_error_once_the_target_moves() -> None:
     faulted_at = None
     for k in range(10):
         target += 500
-        r.rx(cia.make_rpdo_target(NODE, cia.CW_ENABLE_OPERATION, target))
+        r.rx(cia402.make_rpdo_target(NODE, cia402.CW_ENABLE_OPERATION, target))
         out = r.sync()
         if any(m.arbitration_id == 0x085 for m in out):
             faulted_at = k

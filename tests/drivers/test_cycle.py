@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 
 from drivers.bringup import sdo_read
+from drivers.protocol import cia301
 from drivers.protocol import cia402 as c
 from drivers.safety.subset import ActuationSubset
-from drivers.session import DriveBox
+from drivers.session import DriveSession
 from drivers.sources import HoldSource, JogSource
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.box import SimBox
-from sim_bus.config import sim_config_from_dict
 from tests.drivers.driver_rig import (
     Rig,
     Sniffer,
@@ -59,10 +59,10 @@ def test_bring_up_configures_and_enables_every_drive(rig_factory: Callable[..., 
         assert sdo_read(link, c.OD_SOFTWARE_POSITION_LIMIT, 2) == int(rig.limits.counts_max[k])
         assert sdo_read(link, c.OD_INTERPOLATION_TIME_PERIOD, 1) == 10
         assert sdo_read(link, c.OD_INTERPOLATION_TIME_PERIOD, 2) == -3
-        assert sdo_read(link, c.OD_CONSUMER_HEARTBEAT_TIME, 1) == (127 << 16) | 350
-        assert sdo_read(link, c.OD_PRODUCER_HEARTBEAT_TIME) == 100
-        assert sdo_read(link, c.OD_RPDO1_MAPPING, 1) == c.RPDO_TARGET_MAPPING[0]
-        assert sdo_read(link, c.OD_TPDO1_MAPPING, 2) == c.TPDO_FEEDBACK_MAPPING[1]
+        assert sdo_read(link, cia301.OD_CONSUMER_HEARTBEAT_TIME, 1) == (127 << 16) | 350
+        assert sdo_read(link, cia301.OD_PRODUCER_HEARTBEAT_TIME) == 100
+        assert sdo_read(link, cia301.OD_RPDO1_MAPPING, 1) == c.RPDO_TARGET_MAPPING[0]
+        assert sdo_read(link, cia301.OD_TPDO1_MAPPING, 2) == c.TPDO_FEEDBACK_MAPPING[1]
     kinds = [e["kind"] for e in box.events.to_list()]
     assert kinds.index("bootup") < kinds.index("configured") < kinds.index("enabled")
 
@@ -130,12 +130,12 @@ def test_rpdos_reach_the_wire_before_their_sync_on_a_priority_arbitrated_bus(
     kw = [{"interface": "hrm_sim", "channel": f"prio-{uuid.uuid4().hex[:8]}"}]
     cfg = make_config(kw, ({m: k + 1 for k, m in enumerate(motors)},))
     sub = ActuationSubset(actuation, motors)
-    with SimBox(sim_config_from_dict(cfg.to_dict(), "t"), actuation=actuation):
+    with SimBox(cfg, actuation=actuation):
         sniffer_bus = can.Bus(**kw[0])
         sniffer = Sniffer()
         notifier = can.Notifier(sniffer_bus, [sniffer], 0.05)
         try:
-            with DriveBox(cfg, sub) as box:
+            with DriveSession(cfg, sub) as box:
                 box.bring_up()
                 sniffer.clear()
                 src = JogSource(sub, "j01r0", 50_000.0, 0.1, hold_s=0.0)
@@ -186,7 +186,7 @@ def test_second_bring_up_is_not_a_fault(rig_factory: Callable[..., Rig]) -> None
         t_reset = min(
             m.timestamp
             for m in frames
-            if m.arbitration_id == 0 and bytes(m.data[:1]) == bytes([c.NMT_RESET_NODE])
+            if m.arbitration_id == 0 and bytes(m.data[:1]) == bytes([cia301.NMT_RESET_NODE])
         )
         assert sorted(dis) == nodes and max(dis.values()) < t_reset
     kinds = [e["kind"] for e in box.events.to_list()]

@@ -1,0 +1,199 @@
+"""Process-wide settings: the GIL switch interval and the scheduling priority, in one place.
+
+Both settings belong to the process (the switch interval) or to a thread and the
+threads it starts afterwards (the Linux scheduling policy), never to a bus, a wire or
+a session: constructing any of those changes no interpreter setting.  A process entry
+point opts in by entering :func:`process_settings` once (``hrm`` does, around every
+command, see :func:`hrm_ctrl.cli.main`); the context applies the settings, yields what
+it got (:class:`AppliedSettings`) and restores both on exit.
+
+* **GIL switch interval** (``sys.setswitchinterval``, process-wide): CPython's default
+  5 ms lets one busy thread keep the interpreter lock that long.  The stack's deadlines
+  are much shorter: a SYNC every 10 ms at 100 Hz, the simulated drives answering it
+  from their bus threads, an ``hrm_sim`` wire node waiting 135 us for a frame at
+  1 Mbit/s.  :data:`SWITCH_INTERVAL_S` (0.2 ms) hands the lock over within a small
+  fraction of a period for a few percent of interpreter overhead.
+* **Scheduling priority** (Linux ``SCHED_FIFO``, best effort): needs ``CAP_SYS_NICE``
+  or an ``RLIMIT_RTPRIO`` of at least the priority.  When refused the context carries
+  on under normal scheduling and says why (:attr:`AppliedSettings.realtime_refusal`,
+  one warning on the ``drivers.realtime`` logger).  It applies to the calling thread
+  and to the threads it starts afterwards: entered by the scheduler thread only that
+  thread runs under FIFO; entered at process start, every thread does.
+
+>>> import sys
+>>> before = sys.getswitchinterval()
+>>> with process_settings(switch_interval_s=0.001) as s:
+...     round(sys.getswitchinterval(), 6), s.realtime_granted
+(0.001, False)
+>>> sys.getswitchinterval() == before
+True
+>>> with process_settings(switch_interval_s=None) as s:   # leave the interval alone
+...     s.switch_interval_s == before
+True
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from hrm_ctrl.errors import DriverError
+
+log = logging.getLogger("drivers.realtime")
+
+SWITCH_INTERVAL_S = 2e-4
+"""GIL switch interval the stack's processes run with (CPython default: 5 ms).
+
+A thread waiting for a CAN frame or a control deadline must get the interpreter lock
+back within a fraction of a frame time (135 us at 1 Mbit/s) and of a control period
+(10 ms at 100 Hz); 0.2 ms does, for a few percent of interpreter overhead."""
+
+NORMAL_PRIORITY = 0
+"""Realtime priority 0: keep the normal (``SCHED_OTHER``) policy.  The default, because
+``SCHED_FIFO`` needs a right most accounts lack and a FIFO thread that spins starves the
+rest of the machine; it is opt-in (``[control] realtime_priority`` in ``box.toml``)."""
+
+REALTIME_PRIORITY_MAX = 99
+"""Highest ``SCHED_FIFO`` priority Linux accepts (its FIFO priorities are 1..99)."""
+
+
+class ProcessSettingsError(DriverError):
+    """A process setting asked of :func:`process_settings` is out of range."""
+
+
+@dataclass(frozen=True)
+class AppliedSettings:
+    """What :func:`process_settings` put in force (yielded by the context)."""
+
+    switch_interval_s: float  # the GIL switch interval inside the context
+    previous_switch_interval_s: float  # restored on exit
+    realtime_priority: int  # SCHED_FIFO priority asked for (0: none asked)
+    realtime_granted: bool  # the calling thread runs under SCHED_FIFO at that priority
+    realtime_refusal: str | None = None  # why it was not granted (None: granted or not asked)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def check_switch_interval(switch_interval_s: float, where: str = "switch_interval_s") -> float:
+    """A usable GIL switch interval in seconds (finite, > 0), else a one-line error.
+
+    >>> check_switch_interval(0.0)
+    Traceback (most recent call last):
+    ...
+    drivers.realtime.ProcessSettingsError: switch_interval_s: must be a finite number > 0 s, got 0.0
+    """
+    if (
+        isinstance(switch_interval_s, bool)
+        or not isinstance(switch_interval_s, int | float)
+        or not math.isfinite(switch_interval_s)
+        or switch_interval_s <= 0
+    ):
+        raise ProcessSettingsError(
+            f"{where}: must be a finite number > 0 s, got {switch_interval_s!r}"
+        )
+    return float(switch_interval_s)
+
+
+def check_realtime_priority(priority: int, where: str = "realtime_priority") -> int:
+    """A usable realtime priority (0 = normal scheduling, else 1..99), else a one-line error.
+
+    >>> check_realtime_priority(100)
+    Traceback (most recent call last):
+    ...
+    drivers.realtime.ProcessSettingsError: realtime_priority: must be an integer in 0..99, got 100
+    """
+    if (
+        isinstance(priority, bool)
+        or not isinstance(priority, int)
+        or not NORMAL_PRIORITY <= priority <= REALTIME_PRIORITY_MAX
+    ):
+        raise ProcessSettingsError(
+            f"{where}: must be an integer in {NORMAL_PRIORITY}..{REALTIME_PRIORITY_MAX}, "
+            f"got {priority!r}"
+        )
+    return priority
+
+
+def _set_switch_interval(seconds: float) -> None:
+    """Set the GIL switch interval to the nearest whole microsecond.
+
+    CPython keeps the interval in whole microseconds and truncates ``1e6 * seconds``:
+    setting back the value ``sys.getswitchinterval()`` returned could lose a
+    microsecond each time (0.0002 s reads back as 0.00019999999999999998).  Aiming at
+    the middle of the microsecond makes every restore exact."""
+    microseconds = max(1, round(seconds * 1e6))
+    sys.setswitchinterval((microseconds + 0.5) * 1e-6)
+
+
+def _raise_priority(priority: int) -> tuple[Callable[[], None] | None, str | None]:
+    """Put the calling thread under SCHED_FIFO at ``priority``.
+
+    Returns (a function restoring the previous policy, None) when granted, else
+    (None, why not)."""
+    if not hasattr(os, "sched_setscheduler") or not hasattr(os, "SCHED_FIFO"):
+        return None, f"SCHED_FIFO is not available on this platform ({sys.platform})"
+    try:
+        policy = os.sched_getscheduler(0)
+        param = os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        return None, f"SCHED_FIFO priority {priority} refused ({exc.strerror or exc})"
+
+    def restore() -> None:
+        try:
+            os.sched_setscheduler(0, policy, param)
+        except OSError as exc:  # pragma: no cover - lowering one's own priority is allowed
+            log.warning("could not restore the scheduling policy: %s", exc)
+
+    return restore, None
+
+
+@contextmanager
+def process_settings(
+    switch_interval_s: float | None = SWITCH_INTERVAL_S,
+    realtime_priority: int = NORMAL_PRIORITY,
+) -> Iterator[AppliedSettings]:
+    """Apply the GIL switch interval and the scheduling priority; restore both on exit.
+
+    Args:
+        switch_interval_s: GIL switch interval for the whole process, or ``None`` to
+            leave it as it is (e.g. when a thread only raises its own priority).
+        realtime_priority: ``SCHED_FIFO`` priority 1..99 for the calling thread (and the
+            threads it starts inside the context), best effort; 0 leaves the policy alone.
+
+    Yields the :class:`AppliedSettings`.  Raises :class:`ProcessSettingsError` on an
+    out-of-range argument (before changing anything).  Enter it once per process (or
+    per thread for the priority alone): the switch interval is process-wide, so a
+    context restores the value it found, whatever other threads did meanwhile.
+    """
+    new_interval = None if switch_interval_s is None else check_switch_interval(switch_interval_s)
+    priority = check_realtime_priority(realtime_priority)
+    previous = sys.getswitchinterval()
+    restore_sched: Callable[[], None] | None = None
+    refusal: str | None = None
+    if new_interval is not None:
+        _set_switch_interval(new_interval)
+    try:
+        if priority > NORMAL_PRIORITY:
+            restore_sched, refusal = _raise_priority(priority)
+            if refusal is not None:
+                log.warning("%s; running under normal scheduling", refusal)
+        yield AppliedSettings(
+            switch_interval_s=sys.getswitchinterval(),
+            previous_switch_interval_s=previous,
+            realtime_priority=priority,
+            realtime_granted=restore_sched is not None,
+            realtime_refusal=refusal,
+        )
+    finally:
+        if restore_sched is not None:
+            restore_sched()
+        if new_interval is not None:
+            _set_switch_interval(previous)

@@ -1,0 +1,611 @@
+"""The supervisor: the one thread that owns the control loop, every watchdog and the
+host heartbeat, from the moment a drive session connects until it closes.
+
+It runs on a fixed grid of a monotonic clock, one deadline per control period, and
+at each deadline does what its :class:`Mode` asks:
+
+========== ==================================================================
+mode       at every deadline
+========== ==================================================================
+OFF        nothing (no host heartbeat: the session is connected but idle)
+HEARTBEAT  the host heartbeat when due (bring-up; after a stop)
+ARMED      + every idle watchdog: heartbeats (timeout and NMT state), EMCYs,
+           boot-ups, malformed frames, receive threads, failed sends, an
+           operator's stop request (drives enabled, no stream)
+STREAMING  + SYNC on every bus, the next setpoint checked against the rope and
+           joint limits, every node's RPDO; feedback TPDOs and statuswords
+STOPPING   quick stop (RPDO controlword 0x0002 + SYNC) to every node of every
+           bus, repeated each period until every node's feedback confirms it
+========== ==================================================================
+
+Any stop cause, found at a deadline or reported between deadlines by a receive
+callback (which wakes the thread at once), makes it send the quick stop to every
+node of every bus right away, so every axis stops within one control period of
+detection; then it keeps commanding the stop for up to ``STOP_CONFIRM_CYCLES``
+periods until the statuswords confirm it, and records why (:class:`StopRecord`).
+
+The per-period work is :meth:`Supervisor.step` (at a deadline) and
+:meth:`Supervisor.wake` (between deadlines); the thread only calls them on the
+grid.  Both take the time as an argument and the clock and sleep are injected, so
+a test drives the supervisor deterministically with a fake bus port and a fake
+clock, without the thread.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+
+from drivers.bus import BusSendError
+from drivers.cycle import (
+    LATE_THRESHOLD_S,
+    STOP_CONFIRM_CYCLES,
+    SYNC_MARGIN_S,
+    BusLayout,
+    CycleStats,
+    EventLog,
+    StreamResult,
+)
+from drivers.protocol import cia301, cia402
+from drivers.realtime import NORMAL_PRIORITY, process_settings
+from drivers.safety.causes import StopCause, StopKind, unique_causes
+from drivers.safety.limits import LimitChecker
+from drivers.safety.monitor import NodeMonitor
+from drivers.sources import SetpointSource
+from hrm_ctrl.errors import DriverError, HrmError
+
+PLAY_POLL_S = 0.25  # how often a caller waiting for a stream looks at the thread
+THREAD_JOIN_TIMEOUT_S = 5.0
+
+
+class SupervisorModeError(DriverError):
+    """A supervisor call refused in its current mode (e.g. a stream while stopping)."""
+
+
+class Mode(Enum):
+    """What the supervisor does at each deadline (see the module docstring)."""
+
+    OFF = "off"
+    HEARTBEAT = "heartbeat"
+    ARMED = "armed"
+    STREAMING = "streaming"
+    STOPPING = "stopping"
+
+
+@dataclass
+class StopRecord:
+    """One stop: why, how fast the quick stop went out, whether it was confirmed,
+    the sends that failed while stopping, and whether a stream was running."""
+
+    causes: list[StopCause]
+    latency_s: float
+    while_streaming: bool
+    failed: list[StopCause] = field(default_factory=list)
+    confirmed: bool | None = None  # None: still being confirmed
+
+
+@dataclass
+class _Stream:
+    """The run state of the stream being played."""
+
+    source: SetpointSource
+    stats: CycleStats
+    applied: np.ndarray  # last targets a SYNC applied
+    pending: np.ndarray | None  # targets whose RPDOs went out, applied at the next SYNC
+    t0: float  # the stream's first SYNC deadline
+    g: int = 0  # grid slot of the next SYNC
+    k: int = 0  # setpoint index of the pending targets
+    due_seq: int = -1  # SYNC whose TPDOs are due
+    missing0: int = 0
+    cpu0: float = 0.0
+    completed: bool = False
+    error: HrmError | None = None
+    crashed: BaseException | None = None
+    done: threading.Event = field(default_factory=threading.Event)
+    result: StreamResult | None = None
+
+
+class Supervisor:
+    """The one owner of the control loop (see the module docstring).
+
+    ``layouts``: every bus with its nodes; ``monitor``: the receive state the bus
+    callbacks fill; ``limits``: the rope layer's limit checks; ``on_stop``: called
+    (from the supervisor's thread) with each finished :class:`StopRecord`.
+    """
+
+    def __init__(
+        self,
+        layouts: Sequence[BusLayout],
+        monitor: NodeMonitor,
+        limits: LimitChecker,
+        period_s: float,
+        heartbeat_period_s: float,
+        host_node_id: int,
+        events: EventLog,
+        on_stop: Callable[[StopRecord], None] | None = None,
+        late_threshold_s: float = LATE_THRESHOLD_S,
+        realtime_priority: int = NORMAL_PRIORITY,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        self.layouts = list(layouts)
+        self.monitor = monitor
+        self.limits = limits
+        self.period_s = float(period_s)
+        self.heartbeat_period_s = float(heartbeat_period_s)
+        self.host_node_id = int(host_node_id)
+        self.events = events
+        self.on_stop = on_stop
+        self.late_threshold_s = late_threshold_s
+        self.realtime_priority = int(realtime_priority)
+        self.realtime_granted = False  # SCHED_FIFO granted to the thread
+        self.clock = clock
+        self.sleep = sleep
+        self.mode = Mode.OFF
+        self.targets: np.ndarray | None = None  # what the drives hold (last applied)
+        self.seq = -1  # SYNC sequence number, continues across streams
+        self.last_stop: StopRecord | None = None
+        self.thread_error: BaseException | None = None
+        self._lock = threading.RLock()
+        self._stream: _Stream | None = None
+        self._stop_request = threading.Event()
+        self._closing = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._hb_next = 0.0
+        self._hb_sent = threading.Event()  # set once a heartbeat went out after set_heartbeat
+        self._stopping: StopRecord | None = None
+        self._confirm_cycles = 0
+        self._next_deadline = 0.0
+
+    # ------------------------------------------------------------------ thread
+    def start(self) -> None:
+        """Start the thread (idempotent)."""
+        if self._thread is not None:
+            return
+        self._closing.clear()
+        self._next_deadline = self.clock()
+        self._thread = threading.Thread(target=self._run, name="hrm-supervisor", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        """Stop the thread (the mode goes OFF: no more frames from the supervisor)."""
+        with self._lock:
+            self.mode = Mode.OFF
+            self.monitor.armed = False
+        self._closing.set()
+        self.monitor.wake.set()
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout=THREAD_JOIN_TIMEOUT_S)
+            self._thread = None
+
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def _run(self) -> None:
+        """The thread: under ``SCHED_FIFO`` at :attr:`realtime_priority` when asked for
+        and granted (the switch interval is the process's, set by its entry point)."""
+        with process_settings(
+            switch_interval_s=None, realtime_priority=self.realtime_priority
+        ) as applied:
+            self.realtime_granted = applied.realtime_granted
+            self._loop()
+
+    def _loop(self) -> None:
+        T = self.period_s
+        mon = self.monitor
+        while not self._closing.is_set():
+            remaining = self._next_deadline - self.clock()
+            if remaining > 0 and mon.wake.wait(remaining):
+                mon.wake.clear()
+                if self._closing.is_set():
+                    return
+                self._guarded(self.wake, self.clock())
+                continue
+            now = self.clock()
+            if now - self._next_deadline > T:  # fell more than a period behind: skip slots
+                skip = int((now - self._next_deadline) // T)
+                self._next_deadline += skip * T
+                stream = self._stream
+                if stream is not None:
+                    stream.stats.skipped_slots += skip
+            self._guarded(self.step, now, self._next_deadline)
+            self._next_deadline += T
+
+    def _guarded(self, fn: Callable[..., None], *args: float) -> None:
+        """Run one step; a failure of the step itself (a bug, a source raising) stops
+        every axis and is handed to the caller of :meth:`play`."""
+        try:
+            fn(*args)
+        except BaseException as exc:
+            self.thread_error = exc
+            stream = self._stream
+            if stream is not None:
+                stream.crashed = exc
+            cause = StopCause(
+                StopKind.INTERNAL, f"scheduler interrupted: {exc!r}", None, self.clock()
+            )
+            try:
+                if self.mode is not Mode.STOPPING:
+                    self._begin_stop([cause], self.clock())
+            except BaseException as again:
+                self.events.add("error", f"quick stop after a supervisor failure: {again!r}")
+
+    # ------------------------------------------------------------------ control
+    def set_heartbeat(self, on: bool, wait_s: float = 0.0) -> bool:
+        """Host heartbeat on (mode HEARTBEAT, the first one at once) or off (mode OFF).
+
+        With ``wait_s`` > 0, wait that long at most for the first heartbeat to be sent
+        (so it precedes what the caller sends next); return whether it was."""
+        with self._lock:
+            if on:
+                self._hb_next = self.clock()
+                self._hb_sent.clear()
+                if self.mode is Mode.OFF:
+                    self.mode = Mode.HEARTBEAT
+                self.monitor.wake.set()
+            else:
+                self.mode = Mode.OFF
+                self.monitor.armed = False
+        if on and wait_s > 0:
+            return self._hb_sent.wait(wait_s)
+        return True
+
+    def arm(self, targets: np.ndarray) -> None:
+        """Drives enabled, holding ``targets``: every idle watchdog from now on.
+        Heartbeat supervision counts from the first arming after bring-up."""
+        with self._lock:
+            if self.mode not in (Mode.HEARTBEAT, Mode.ARMED):
+                raise SupervisorModeError(f"supervisor: cannot arm in mode {self.mode.name}")
+            self.targets = np.asarray(targets, dtype=np.int64).copy()
+            if self.monitor.hb_armed_at is None:
+                self.monitor.hb_armed_at = self.clock()
+            self.last_stop = None
+            self._stop_request.clear()
+            self.monitor.armed = True
+            self.mode = Mode.ARMED
+
+    def disarm(self) -> None:
+        """Drives about to be disabled on purpose: heartbeat only, no watchdogs."""
+        with self._lock:
+            if self.mode is Mode.STREAMING or self.mode is Mode.STOPPING:
+                raise SupervisorModeError(f"supervisor: cannot disarm in mode {self.mode.name}")
+            if self.mode is Mode.ARMED:
+                self.check_idle(self.clock())  # a last check: a cause now still stops
+            if self.mode is Mode.ARMED:
+                self.mode = Mode.HEARTBEAT
+            self.monitor.armed = False
+
+    def request_stop(self) -> None:
+        """Quick stop at once (thread-safe): an operator's stop, Ctrl-C, a signal."""
+        self._stop_request.set()
+        self.monitor.wake.set()
+
+    def begin(self, source: SetpointSource) -> _Stream:
+        """Hand a started source to the loop (mode ARMED -> STREAMING).
+
+        Before the first RPDO every cause queued so far (an EMCY just before the start,
+        a heartbeat overdue since bring-up, ...) is checked: any stops every axis and no
+        setpoint is sent.  Else setpoint 0 is checked and its RPDOs sent; the first
+        SYNC is on the next grid deadline at least one RPDO burst later.
+        """
+        with self._lock:
+            if self.mode is not Mode.ARMED or self.targets is None:
+                raise SupervisorModeError(f"supervisor: cannot stream in mode {self.mode.name}")
+            now = self.clock()
+            T = self.period_s
+            # The first SYNC: the first grid deadline at least one RPDO burst from now.
+            lead = now + max(self.sync_delay_s, T / 5) - self._next_deadline
+            t0 = self._next_deadline + max(0, math.ceil(lead / T - 1e-9)) * T
+            stream = _Stream(
+                source=source,
+                stats=CycleStats(T, self.late_threshold_s),
+                applied=self.targets.copy(),
+                pending=None,
+                t0=t0,
+                missing0=self.monitor.missing_total,
+                cpu0=time.process_time(),
+            )
+            stream.stats.realtime = self.realtime_granted
+            self.monitor.missing_run[:] = 0
+            self._stop_request.clear()
+            causes = self._watchdogs(now, -1, self.monitor.hb_armed_at)
+            self.events.add("stream_start", f"streaming {source.describe()}")
+            self._stream = stream
+            self.mode = Mode.STREAMING
+            if causes:
+                self._begin_stop(causes, now)
+                return stream
+            try:
+                stream.pending = self._checked(source, 0, stream.applied)
+            except HrmError as exc:
+                stream.error = exc
+                self._begin_stop([self._limit_cause(exc)], now)
+                return stream
+            if stream.pending is None:
+                stream.completed = True
+                self._end_stream()
+                return stream
+            causes = self._send_rpdos(cia402.CW_ENABLE_OPERATION, stream.pending)
+            if causes:
+                self._begin_stop(causes, now)
+            return stream
+
+    def play(self, source: SetpointSource, timeout_s: float) -> StreamResult:
+        """Play a started source to its end or its stop; return how it ended.
+
+        Blocks the caller (polling the thread, so Ctrl-C is seen): an interrupt stops
+        every axis and is re-raised once the stop went out; a failure inside the
+        loop (a bug, a source raising something other than a limit) too.  Waits at
+        most ``timeout_s``, then stops every axis and raises :class:`DriverError`.
+        """
+        stream = self.begin(source)
+        deadline = self.clock() + timeout_s
+        try:
+            while not stream.done.wait(PLAY_POLL_S):
+                if not self.alive:
+                    raise DriverError("supervisor thread is not running")
+                if self.clock() > deadline:
+                    self.request_stop()
+                    stream.done.wait(THREAD_JOIN_TIMEOUT_S)
+                    raise DriverError(f"stream did not end within {timeout_s:g} s")
+        except BaseException:
+            self.request_stop()
+            stream.done.wait(THREAD_JOIN_TIMEOUT_S)
+            raise
+        if stream.crashed is not None:
+            raise stream.crashed
+        if stream.result is None:  # done is only set with a result
+            raise DriverError("stream ended without a result")
+        return stream.result
+
+    # ------------------------------------------------------------------ the work
+    @property
+    def sync_delay_s(self) -> float:
+        """Wait between a burst of RPDOs and an immediate SYNC: one cycle's worst-case
+        traffic on the slowest bus plus a margin, so the SYNC (higher priority) cannot
+        overtake RPDOs still queued in a controller that arbitrates by identifier."""
+        return max((lay.burst_s for lay in self.layouts), default=0.0) + SYNC_MARGIN_S
+
+    def step(self, now: float, deadline: float | None = None) -> None:
+        """Everything due at one deadline of the grid (``now`` is when it runs)."""
+        deadline = now if deadline is None else deadline
+        with self._lock:
+            mode = self.mode
+            if mode is Mode.ARMED:
+                self.check_idle(now)
+            elif mode is Mode.STREAMING:
+                self._stream_cycle(now, deadline)
+            elif mode is Mode.STOPPING:
+                self._confirm_stop(now)
+            self._heartbeat_if_due(now)
+
+    def wake(self, now: float) -> None:
+        """A receive callback reported something between deadlines: react now."""
+        with self._lock:
+            if self.mode is Mode.ARMED or self.mode is Mode.STREAMING:
+                causes = self._watchdogs(now, -1, None)
+                if causes:
+                    self._begin_stop(causes, now)
+            self._heartbeat_if_due(now)
+
+    def check_idle(self, now: float) -> None:
+        """The idle watchdogs (mode ARMED): any cause stops every axis."""
+        causes = self._watchdogs(now, -1, self.monitor.hb_armed_at)
+        if causes:
+            self._begin_stop(causes, now)
+
+    def _heartbeat_if_due(self, now: float) -> None:
+        """The host heartbeat at the deadline nearest its due time."""
+        if self.mode is Mode.OFF or now < self._hb_next - self.period_s / 2:
+            return
+        self._hb_next += self.heartbeat_period_s
+        if self._hb_next < now:  # fell behind by more than a heartbeat period
+            self._hb_next = now + self.heartbeat_period_s
+        msg_args = (self.host_node_id, cia301.NMT_STATE_OPERATIONAL)
+        for layout in self.layouts:
+            try:
+                layout.port.send(cia301.make_heartbeat(*msg_args))
+            except BusSendError as exc:
+                self.events.add("error", f"host heartbeat: {exc}")
+                self.monitor.report(StopKind.SEND, f"host heartbeat not sent ({exc})")
+        self._hb_sent.set()
+
+    def _watchdogs(self, now: float, due_seq: int, hb_armed: float | None) -> list[StopCause]:
+        causes = self.monitor.check(now, due_seq, hb_armed)
+        for layout in self.layouts:
+            exc = layout.notifier.exception if layout.notifier is not None else None
+            if exc is not None:
+                causes.append(
+                    StopCause(
+                        StopKind.RECEIVE,
+                        f"bus {layout.port.name}: receive failed ({exc})",
+                        None,
+                        now,
+                    )
+                )
+        if self._stop_request.is_set():
+            causes.append(StopCause(StopKind.OPERATOR, "stop requested", None, now))
+        return causes
+
+    def _checked(self, source: SetpointSource, k: int, previous: np.ndarray) -> np.ndarray | None:
+        """Setpoint k of the source, checked against the rope layer (raises on a limit)."""
+        target = source.setpoint(k)
+        if target is not None:
+            self.limits.check_counts(target, previous=previous, dt_s=self.period_s)
+        return target
+
+    def _limit_cause(self, exc: HrmError) -> StopCause:
+        return StopCause(StopKind.LIMIT, f"setpoint refused: {exc}", None, self.clock())
+
+    def _send_rpdos(self, controlword: int, targets: np.ndarray) -> list[StopCause]:
+        failed: list[StopCause] = []
+        for layout in self.layouts:
+            try:
+                layout.port.send_many(layout.rpdo_frames(controlword, targets))
+            except BusSendError as exc:
+                failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
+        return failed
+
+    def _send_syncs(self) -> list[StopCause]:
+        self.seq += 1
+        self.monitor.seq = self.seq
+        failed: list[StopCause] = []
+        for layout in self.layouts:
+            try:
+                layout.port.send(cia301.make_sync())
+            except BusSendError as exc:
+                failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
+        return failed
+
+    def send_controlword(self, controlword: int, targets: np.ndarray) -> list[StopCause]:
+        """One RPDO per node (same controlword for all), then after :attr:`sync_delay_s`
+        one SYNC on every bus; send failures are returned (other buses still served)."""
+        failed = self._send_rpdos(controlword, targets)
+        self.sleep(self.sync_delay_s)
+        return failed + self._send_syncs()
+
+    def _stream_cycle(self, now: float, deadline: float) -> None:
+        stream = self._stream
+        if stream is None:
+            return
+        if now < stream.t0 - 1e-9:  # the stream's first SYNC is at t0
+            return
+        th0 = time.thread_time()
+        causes = self._watchdogs(now, stream.due_seq, self.monitor.hb_armed_at)
+        if causes:
+            self._begin_stop(causes, now)
+            return
+        causes = self._send_syncs()
+        t_sync = self.clock()
+        stream.due_seq = self.seq
+        if stream.pending is not None:
+            stream.applied = stream.pending
+            self.targets = stream.pending
+        if causes:
+            self._begin_stop(causes, now)
+            return
+        try:
+            stream.pending = self._checked(stream.source, stream.k + 1, stream.applied)
+        except HrmError as exc:
+            stream.error = exc
+            stream.pending = None
+            causes = [self._limit_cause(exc)]
+        if stream.pending is not None:
+            causes = self._send_rpdos(cia402.CW_ENABLE_OPERATION, stream.pending)
+        elif not causes:
+            stream.completed = True
+        stream.stats.add(deadline, now, t_sync, time.thread_time() - th0)
+        stream.k += 1
+        stream.g += 1
+        if causes:
+            self._begin_stop(causes, now)
+        elif stream.completed:
+            self._end_stream()
+
+    def _result(self, stream: _Stream, stop: StopRecord | None) -> StreamResult:
+        stream.stats.process_cpu_s = time.process_time() - stream.cpu0
+        stream.stats.missing_feedback = self.monitor.missing_total - stream.missing0
+        result = StreamResult(
+            completed=stream.completed,
+            cycles=stream.stats.n_cycles,
+            causes=[] if stop is None else stop.causes + stop.failed,
+            stats=stream.stats.summary(),
+            last_targets=stream.applied,
+            error=stream.error,
+        )
+        if stop is not None:
+            result.stop_latency_s = stop.latency_s
+            result.stop_confirmed = stop.confirmed
+        result.final_statuswords = [int(v) for v in self.monitor.statusword]
+        return result
+
+    def _end_stream(self) -> None:
+        """The source ended: back to ARMED, the result to the caller."""
+        stream = self._stream
+        if stream is None:
+            return
+        self._stream = None
+        self.mode = Mode.ARMED
+        stream.result = self._result(stream, None)
+        self.events.add("stream_end", "plan completed", stats=stream.result.stats)
+        stream.done.set()
+
+    # ------------------------------------------------------------------ stopping
+    def _begin_stop(self, causes: list[StopCause], now: float) -> None:
+        """Quick stop every node of every bus now (RPDO + SYNC), then STOPPING."""
+        causes = unique_causes(causes)
+        detected = min((x.time_s for x in causes if x.time_s > 0), default=now)
+        hold = self.targets if self.targets is not None else np.zeros(self.monitor.n, np.int64)
+        stream = self._stream
+        if stream is not None:
+            hold = stream.applied
+        self.monitor.armed = False
+        self._stop_request.clear()
+        failed = self.send_controlword(cia402.CW_QUICK_STOP, hold)
+        latency = self.clock() - detected
+        for cause in causes:
+            self.events.add("stop_cause", cause.text, cause=cause.kind.value, motor=cause.motor)
+        where = "" if stream is not None else " while idle"
+        if failed:
+            self.events.add(
+                "error", "quick stop failed: " + "; ".join(x.text for x in failed) + where
+            )
+        else:
+            self.events.add(
+                "quick_stop",
+                f"quick stop (RPDO + SYNC) sent to every node of every bus{where} "
+                f"{latency * 1000:.2f} ms after detection",
+            )
+        self._stopping = StopRecord(causes, latency, stream is not None, failed)
+        self._confirm_cycles = 0
+        self.mode = Mode.STOPPING
+
+    def _confirm_stop(self, now: float) -> None:
+        """Once a period while STOPPING: done when every node's fresh feedback shows it
+        left OPERATION_ENABLED; else the quick stop again (at most STOP_CONFIRM_CYCLES)."""
+        stop = self._stopping
+        if stop is None:
+            self.mode = Mode.HEARTBEAT
+            return
+        mon = self.monitor
+        fresh = mon.rx_seq >= self.seq
+        states = cia402.decode_states(mon.statusword)
+        confirmed = bool(np.all(fresh & (states != int(cia402.State402.OPERATION_ENABLED))))
+        self._confirm_cycles += 1
+        if not confirmed and self._confirm_cycles < STOP_CONFIRM_CYCLES:
+            hold = self.targets if self.targets is not None else np.zeros(mon.n, np.int64)
+            if self._stream is not None:
+                hold = self._stream.applied
+            stop.failed += self.send_controlword(cia402.CW_QUICK_STOP, hold)
+            return
+        stop.confirmed = confirmed
+        self.events.add(
+            "quick_stop_confirmed" if confirmed else "quick_stop_unconfirmed",
+            "every node left OPERATION_ENABLED"
+            if confirmed
+            else "some nodes did not confirm the quick stop by TPDO",
+        )
+        self._stopping = None
+        self.last_stop = stop
+        self.mode = Mode.HEARTBEAT
+        stream = self._stream
+        self._stream = None
+        if stream is not None:
+            stream.result = self._result(stream, stop)
+            self.events.add(
+                "stream_end",
+                "stopped: " + "; ".join(x.text for x in stream.result.causes),
+                stats=stream.result.stats,
+            )
+        if self.on_stop is not None:
+            self.on_stop(stop)
+        if stream is not None:
+            stream.done.set()

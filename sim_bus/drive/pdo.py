@@ -1,0 +1,200 @@
+"""PDOs and SYNC of a simulated drive (CiA 301 7.2.2, 7.2.5).
+
+The RPDO (0x1400/0x1600, remappable) is buffered on reception and applied on
+the next SYNC (synchronous types 0..240; 254/255 at once); the TPDO
+(0x1800/0x1A00) is sent after every n-th SYNC (type n = 1..240, type 0 at
+every SYNC).  An RPDO shorter than its mapping raises EMCY 0x8210 and is not
+applied.  Each SYNC first moves the motor one interpolation period
+(:mod:`sim_bus.drive.motion`).  Mapping parameters can only change while the
+PDO is invalid (bit 31 of its COB-ID), sub-index 0 last.
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import TYPE_CHECKING
+
+import can
+from canopen.objectdictionary import ODVariable
+
+from drivers.protocol import cia301, cia402
+from sim_bus.drive.objects import WRITABLE, Key, SdoAbort
+
+if TYPE_CHECKING:
+    from sim_bus.drive import DriveSim
+
+#: A compiled mapping: struct of the whole PDO (None if an entry has no fixed struct),
+#: [(object, its description or None for a dummy entry, bytes)], total bytes.
+Compiled = tuple[struct.Struct | None, list[tuple[Key, ODVariable | None, int]], int]
+
+MAX_PDO_BITS = 64
+MAX_MAPPED_OBJECTS = 8
+COB_ID_29_BIT = 0x20000000  # bit 29 of a PDO COB-ID: 29-bit identifier (not supported)
+
+
+class PdoService:
+    """RPDO1, TPDO1 and the SYNC consumer of one drive."""
+
+    def __init__(self, drive: DriveSim) -> None:
+        self._drive = drive
+        self._od = drive.od
+        self._cache: dict[int, Compiled] = {}
+        self._rpdo_buffer: bytes | None = None
+        self._sync_count = 0
+
+    def reset(self) -> None:
+        """Reset communication: no compiled mapping, no buffered RPDO, SYNC count 0."""
+        self._cache = {}
+        self._rpdo_buffer = None
+        self._sync_count = 0
+
+    def discard_buffered(self) -> None:
+        """Forget an RPDO waiting for the next SYNC (operation was just enabled)."""
+        self._rpdo_buffer = None
+
+    @property
+    def sync_cob_id(self) -> int:
+        values = self._od.values
+        return int(values.get((cia301.OD_COB_ID_SYNC, 0), cia301.COB_SYNC)) & 0x7FF  # type: ignore[arg-type]
+
+    @property
+    def rpdo_cob_id(self) -> int | None:
+        v = self._od.int_value(cia301.OD_RPDO1_COMMUNICATION, 1)
+        return None if v & cia301.PDO_COB_ID_INVALID else v & 0x7FF
+
+    # ---------------------------------------------------------------- mappings
+    def _mapping(self, map_index: int) -> list[tuple[int, int, int]]:
+        n = self._od.int_value(map_index)
+        return [
+            cia301.parse_pdo_mapping_entry(self._od.int_value(map_index, k))
+            for k in range(1, n + 1)
+        ]
+
+    def _compiled(self, map_index: int) -> Compiled:
+        """The compiled mapping of ``map_index``, cached until a PDO parameter is written."""
+        cached = self._cache.get(map_index)
+        if cached is not None:
+            return cached
+        entries: list[tuple[Key, ODVariable | None, int]] = []
+        fmt = "<"
+        for index, sub, bits in self._mapping(map_index):
+            var = self._od.objects.get((index, sub))
+            st = var.STRUCT_TYPES.get(var.data_type) if var is not None else None
+            if isinstance(st, struct.Struct) and st.size * 8 == bits:
+                fmt += st.format.lstrip("<")
+            else:
+                fmt = ""
+            entries.append(((index, sub), var, bits // 8))
+        total = sum(n for _k, _v, n in entries)
+        packer = struct.Struct(fmt) if fmt and fmt != "<" else None
+        out: Compiled = (packer, entries, total)
+        self._cache[map_index] = out
+        return out
+
+    # ---------------------------------------------------------------- frames in
+    def on_rpdo(self, data: bytes, now: float) -> None:
+        need = self._compiled(cia301.OD_RPDO1_MAPPING)[2]
+        if len(data) < need:
+            self._drive.log(f"RPDO of {len(data)} bytes, mapping needs {need}: EMCY 0x8210")
+            self._drive.emcy(cia301.EMCY_PDO_LENGTH)
+            return
+        ttype = self._od.int_value(cia301.OD_RPDO1_COMMUNICATION, 2)
+        if ttype <= 240:
+            self._rpdo_buffer = data
+        else:
+            self._apply_rpdo(data, now)
+
+    def _apply_rpdo(self, data: bytes, now: float) -> None:
+        packer, entries, _total = self._compiled(cia301.OD_RPDO1_MAPPING)
+        decoded: list[object] | tuple[object, ...]
+        if packer is not None:
+            decoded = packer.unpack_from(data)
+        else:
+            decoded, offset = [], 0
+            for _key, var, n in entries:
+                chunk = data[offset : offset + n]
+                offset += n
+                decoded.append(var.decode_raw(chunk) if var is not None else None)
+        for (key, var, _n), value in zip(entries, decoded, strict=True):
+            if var is None:
+                continue  # dummy entry
+            self._od.values[key] = value  # type: ignore[assignment]
+            if key == (cia402.OD_CONTROLWORD, 0):
+                self._drive._on_controlword(int(value), now)  # type: ignore[call-overload]
+
+    def on_sync(self, now: float) -> None:
+        """One SYNC: motion for one interpolation period, the TPDO if due, then the RPDO
+        received since the last SYNC takes effect."""
+        drive = self._drive
+        dt = drive.motion.interpolation_period_s
+        drive.motion.advance(dt, now)
+        self._sync_count += 1
+        ttype = self._od.int_value(cia301.OD_TPDO1_COMMUNICATION, 2)
+        tcob = self._od.int_value(cia301.OD_TPDO1_COMMUNICATION, 1)
+        if (
+            not tcob & cia301.PDO_COB_ID_INVALID
+            and 1 <= ttype <= 240
+            and self._sync_count % ttype == 0
+        ):
+            self._send_tpdo(tcob & 0x7FF)
+        elif not tcob & cia301.PDO_COB_ID_INVALID and ttype == 0:
+            self._send_tpdo(tcob & 0x7FF)
+        if self._rpdo_buffer is not None:
+            data, self._rpdo_buffer = self._rpdo_buffer, None
+            self._apply_rpdo(data, now)
+
+    def _send_tpdo(self, cob: int) -> None:
+        packer, entries, _total = self._compiled(cia301.OD_TPDO1_MAPPING)
+        live = self._drive.live_value
+        if packer is not None:
+            payload = packer.pack(*[live(key) for key, _v, _n in entries])
+        else:
+            parts = [
+                var.encode_raw(live(key)) if var is not None else bytes(n)
+                for key, var, n in entries
+            ]
+            payload = b"".join(parts)
+        self._drive.transmit(can.Message(arbitration_id=cob, data=payload, is_extended_id=False))
+
+    # ---------------------------------------------------------------- objects
+    def check_write(self, index: int, sub: int, value: int) -> None:
+        """PDO communication and mapping parameters (raises :class:`SdoAbort`)."""
+        od = self._od
+        if index in (cia301.OD_RPDO1_COMMUNICATION, cia301.OD_TPDO1_COMMUNICATION):
+            if sub == 1:
+                old = od.int_value(index, 1)
+                valid_now = not old & cia301.PDO_COB_ID_INVALID
+                # a 29-bit id, or an id beyond 11 bits on a valid PDO
+                if value & COB_ID_29_BIT or (
+                    value & 0x1FFFF800 and not value & cia301.PDO_COB_ID_INVALID
+                ):
+                    raise SdoAbort(cia301.SDO_ABORT_INVALID_VALUE)
+                if valid_now and not value & cia301.PDO_COB_ID_INVALID and value != old:
+                    raise SdoAbort(cia301.SDO_ABORT_INVALID_VALUE)  # disable the PDO first
+            if sub == 2 and 240 < value < 254:
+                raise SdoAbort(cia301.SDO_ABORT_INVALID_VALUE)
+        if index in (cia301.OD_RPDO1_MAPPING, cia301.OD_TPDO1_MAPPING):
+            comm = index - 0x200
+            if not od.int_value(comm, 1) & cia301.PDO_COB_ID_INVALID:
+                raise SdoAbort(cia301.SDO_ABORT_UNSUPPORTED_ACCESS)
+            if sub == 0:
+                if value > MAX_MAPPED_OBJECTS:
+                    raise SdoAbort(cia301.SDO_ABORT_PDO_LENGTH)
+                total = 0
+                for k in range(1, value + 1):
+                    m_index, m_sub, bits = cia301.parse_pdo_mapping_entry(od.int_value(index, k))
+                    total += bits
+                    target = od.objects.get((m_index, m_sub))
+                    if target is None or not target.pdo_mappable or len(target) != bits:
+                        raise SdoAbort(cia301.SDO_ABORT_NOT_MAPPABLE)
+                    rx = index == cia301.OD_RPDO1_MAPPING
+                    if rx and target.access_type not in WRITABLE:
+                        raise SdoAbort(cia301.SDO_ABORT_NOT_MAPPABLE)
+                if total > MAX_PDO_BITS:
+                    raise SdoAbort(cia301.SDO_ABORT_PDO_LENGTH)
+            elif od.int_value(index) != 0:
+                raise SdoAbort(cia301.SDO_ABORT_UNSUPPORTED_ACCESS)  # set sub 0 to 0 first
+
+    def after_write(self, index: int) -> None:
+        if 0x1400 <= index <= 0x1BFF:
+            self._cache.clear()

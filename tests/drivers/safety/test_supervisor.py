@@ -1,0 +1,257 @@
+"""The supervisor on a fake bus port with an injected clock: idle and streaming
+watchdogs, the host heartbeat, and the one-period stop, step by step (no thread)."""
+
+from __future__ import annotations
+
+import can
+import numpy as np
+import pytest
+
+from drivers.cycle import BusLayout, EventLog
+from drivers.protocol import cia402
+from drivers.safety.causes import StopKind
+from drivers.safety.monitor import NodeMonitor
+from drivers.safety.supervisor import Mode, StopRecord, Supervisor, SupervisorModeError
+from drivers.sources import HoldSource
+
+T = 0.01
+HB_PERIOD_S = 0.1
+HB_TIMEOUT_S = 0.35
+HOST = 0x7F
+SYNC = 0x080
+
+
+class FakePort:
+    """Records what the supervisor sends (the BusPort interface it uses)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.sent: list[tuple[float, can.Message]] = []
+        self.clock: FakeClock | None = None
+
+    def send(self, msg: can.Message, timeout_s: float = 0.05) -> None:
+        self.sent.append((self.clock() if self.clock else 0.0, msg))
+
+    def send_many(self, msgs: list[can.Message], timeout_s: float = 0.05) -> None:
+        for m in msgs:
+            self.send(m, timeout_s)
+
+    def ids_since(self, t: float) -> list[int]:
+        return [m.arbitration_id for ts, m in self.sent if ts >= t]
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Limits:
+    """Every setpoint is within limits unless it exceeds ``max_counts``."""
+
+    motor_ids = ("m0", "m1")
+    counts_min = np.array([-(10**6)] * 2)
+    counts_max = np.array([10**6] * 2)
+    max_rate_counts_per_s = np.array([1e6] * 2)
+
+    def check_counts(self, counts: object, previous: object = None, dt_s: object = None) -> None:
+        from drivers.safety.limits import SetpointError
+
+        if np.any(np.abs(np.asarray(counts)) > 10**6):
+            raise SetpointError("motor m0: setpoint beyond the drum travel")
+
+    def counts_from_angles(self, alpha: object, theta: object, tension_N: object = None):
+        return np.zeros(2, np.int64)
+
+
+def make(clock: FakeClock) -> tuple[Supervisor, NodeMonitor, FakePort, list[StopRecord]]:
+    port = FakePort("bus0")
+    port.clock = clock
+    mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=3, heartbeat_timeout_s=HB_TIMEOUT_S,
+                      clock=clock)  # fmt: skip
+    layout = BusLayout(port, np.array([0, 1]), np.array([1, 2]))  # type: ignore[arg-type]
+    stops: list[StopRecord] = []
+    sup = Supervisor([layout], mon, Limits(), T, HB_PERIOD_S, HOST, EventLog(),
+                     on_stop=stops.append, clock=clock, sleep=lambda s: None)  # fmt: skip
+    return sup, mon, port, stops
+
+
+def armed(
+    clock: FakeClock, targets: tuple[int, int] = (0, 0)
+) -> tuple[Supervisor, NodeMonitor, FakePort, list[StopRecord]]:
+    """A supervisor with the heartbeat on, both nodes just heard, armed at ``targets``."""
+    sup, mon, port, stops = make(clock)
+    sup.set_heartbeat(True)
+    heartbeat(mon, 0), heartbeat(mon, 1)
+    sup.arm(np.array(targets))
+    return sup, mon, port, stops
+
+
+def heartbeat(mon: NodeMonitor, idx: int) -> None:
+    mon.on_heartbeat(idx, b"\x05")  # operational
+
+
+def tpdo(mon: NodeMonitor, idx: int, sw: int = 0x0237, pos: int = 0) -> None:
+    mon.on_tpdo(idx, sw.to_bytes(2, "little") + pos.to_bytes(4, "little", signed=True))
+
+
+def quick_stop_rpdos(port: FakePort, since: float) -> list[can.Message]:
+    return [
+        m
+        for ts, m in port.sent
+        if ts >= since and 0x200 < m.arbitration_id <= 0x27F and m.data[:2] == b"\x02\x00"
+    ]
+
+
+def syncs_before(port: FakePort, t: float) -> list[float]:
+    return [ts for ts, m in port.sent if m.arbitration_id == SYNC and ts < t]
+
+
+def run_until(sup: Supervisor, clock: FakeClock, t_end: float, each=None) -> None:
+    while clock.t < t_end - 1e-12:
+        clock.t = round(clock.t + T, 9)
+        if each is not None:
+            each()
+        sup.step(clock.t)
+
+
+def test_heartbeat_is_sent_every_period_and_stops_when_off() -> None:
+    clock = FakeClock()
+    sup, _mon, port, _ = make(clock)
+    sup.set_heartbeat(True)
+    sup.step(clock.t)
+    run_until(sup, clock, clock.t + 1.0)
+    hb = [ts for ts, m in port.sent if m.arbitration_id == 0x700 + HOST]
+    assert len(hb) == 11 and np.allclose(np.diff(hb), HB_PERIOD_S)
+    sup.set_heartbeat(False)
+    n = len(port.sent)
+    run_until(sup, clock, clock.t + 1.0)
+    assert len(port.sent) == n and sup.mode is Mode.OFF
+
+
+def test_idle_heartbeat_loss_stops_every_axis_at_the_deadline_it_is_seen() -> None:
+    clock = FakeClock()
+    sup, mon, port, stops = armed(clock, (10, 20))
+    t_last = clock.t
+    # m0 keeps beating, m1 falls silent.
+    run_until(sup, clock, t_last + HB_TIMEOUT_S - T / 2, each=lambda: heartbeat(mon, 0))
+    assert sup.mode is Mode.ARMED and not quick_stop_rpdos(port, 0.0)
+    clock.t = round(clock.t + T, 9)
+    heartbeat(mon, 0)
+    sup.step(clock.t)  # the first deadline past the timeout: stop now
+    qs = quick_stop_rpdos(port, clock.t)
+    assert sorted(m.arbitration_id for m in qs) == [0x201, 0x202]
+    assert [int.from_bytes(m.data[2:6], "little", signed=True) for m in qs] == [10, 20]
+    ids = port.ids_since(clock.t)
+    assert ids.index(SYNC) > ids.index(0x202)  # the SYNC that applies them comes after
+    assert sup.mode is Mode.STOPPING
+    # Confirmed once every node's fresh feedback left OPERATION_ENABLED.
+    clock.t = round(clock.t + T, 9)
+    tpdo(mon, 0, sw=0x0217), tpdo(mon, 1, sw=0x0217)  # QUICK_STOP_ACTIVE
+    mon.rx_seq[:] = sup.seq
+    sup.step(clock.t)
+    assert sup.mode is Mode.HEARTBEAT and len(stops) == 1
+    stop = stops[0]
+    assert stop.confirmed and not stop.while_streaming
+    assert [(x.kind, x.motor) for x in stop.causes] == [(StopKind.HEARTBEAT, "m1")]
+    assert stop.latency_s <= T
+
+
+def test_a_cause_between_deadlines_stops_at_once() -> None:
+    """An EMCY reported by a receive callback wakes the supervisor: the quick stop goes
+    out at that moment, not at the next deadline."""
+    clock = FakeClock()
+    sup, mon, port, _ = armed(clock)
+    sup.step(clock.t)
+    clock.t = round(clock.t + 0.003, 9)  # 3 ms after a deadline
+    mon.on_emcy(1, 2, bytes.fromhex("1186110000000000"))
+    assert mon.wake.is_set()
+    sup.wake(clock.t)
+    assert len(quick_stop_rpdos(port, clock.t)) == 2
+    assert sup.mode is Mode.STOPPING
+
+
+def test_streaming_missing_feedback_stops_within_one_period() -> None:
+    clock = FakeClock()
+    sup, mon, port, stops = armed(clock)
+    src = HoldSource(n_cycles=1000)
+    src.start(np.array([0, 0]), T)
+    stream = sup.begin(src)
+    assert sup.mode is Mode.STREAMING
+    # Setpoint 0's RPDOs went out at once; the first SYNC on the grid after them.
+    assert port.ids_since(clock.t)[:2] == [0x201, 0x202]
+
+    def feedback() -> None:
+        heartbeat(mon, 0), heartbeat(mon, 1)
+        tpdo(mon, 0)
+        mon.rx_seq[0] = sup.seq  # m0 answers every SYNC; m1 stops answering after 5
+        if sup.seq < 5:
+            tpdo(mon, 1)
+            mon.rx_seq[1] = sup.seq
+
+    run_until(sup, clock, clock.t + 0.2, each=feedback)
+    assert sup.mode is not Mode.STREAMING
+    syncs = [ts for ts, m in port.sent if m.arbitration_id == SYNC]
+    qs = quick_stop_rpdos(port, 0.0)
+    assert qs, "no quick stop"
+    t_stop = next(ts for ts, m in port.sent if m in qs)
+    # m1 answered SYNCs 0..4; SYNCs 5, 6, 7 get nothing: the deadline that finds the
+    # third missing answer (the one after SYNC 7) sends the quick stop, and no SYNC 8.
+    assert len(syncs_before(port, t_stop)) == 8
+    assert t_stop == pytest.approx(syncs[7] + T, abs=1e-9)
+    run_until(
+        sup,
+        clock,
+        clock.t + 0.05,
+        each=lambda: (tpdo(mon, 0, sw=0x0217), tpdo(mon, 1, sw=0x0217),
+                      mon.rx_seq.__setitem__(slice(None), sup.seq)),
+    )  # fmt: skip
+    assert stream.done.is_set() and stream.result is not None
+    kinds = {(x.kind, x.motor) for x in stream.result.causes}
+    assert (StopKind.TPDO_MISSING, "m1") in kinds
+    assert stops and stops[0].while_streaming
+
+
+def test_a_setpoint_beyond_the_limits_is_never_sent() -> None:
+    clock = FakeClock()
+    sup, _mon, port, _ = armed(clock)
+    src = HoldSource(n_cycles=5, counts=np.array([0, 2 * 10**6]))
+    src.start(np.array([0, 0]), T)
+    stream = sup.begin(src)
+    assert stream.error is not None and "drum travel" in str(stream.error)
+    sent_targets = [
+        int.from_bytes(m.data[2:6], "little", signed=True)
+        for _, m in port.sent
+        if 0x200 < m.arbitration_id <= 0x27F
+    ]
+    assert sent_targets and max(sent_targets) == 0  # only the quick stop, at the hold
+
+
+def test_mode_rules() -> None:
+    clock = FakeClock()
+    sup, _mon, _port, _ = make(clock)
+    src = HoldSource(n_cycles=3)
+    src.start(np.array([0, 0]), T)
+    with pytest.raises(SupervisorModeError, match="cannot stream in mode OFF"):
+        sup.begin(src)
+    with pytest.raises(SupervisorModeError, match="cannot arm in mode OFF"):
+        sup.arm(np.array([0, 0]))
+    sup.set_heartbeat(True)
+    sup.arm(np.array([0, 0]))
+    sup.begin(src)
+    with pytest.raises(SupervisorModeError, match="cannot disarm in mode STREAMING"):
+        sup.disarm()
+
+
+def test_quick_stop_keeps_repeating_until_confirmed_then_gives_up() -> None:
+    clock = FakeClock()
+    sup, _mon, port, stops = armed(clock)
+    sup.request_stop()
+    sup.step(clock.t)
+    run_until(sup, clock, clock.t + 0.2)  # no feedback at all
+    assert stops and stops[0].confirmed is False
+    assert stops[0].causes[0].kind is StopKind.OPERATOR
+    assert len(quick_stop_rpdos(port, 0.0)) == 2 * 10  # STOP_CONFIRM_CYCLES times, per node
+    assert cia402.CW_QUICK_STOP == 0x0002

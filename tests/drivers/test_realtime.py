@@ -1,0 +1,176 @@
+"""Process-wide settings: one opt-in context sets and restores them; buses change none."""
+
+from __future__ import annotations
+
+import os
+import sys
+import uuid
+from typing import Any
+
+import can
+import pytest
+
+import drivers.realtime as rt
+from drivers.realtime import (
+    SWITCH_INTERVAL_S,
+    AppliedSettings,
+    ProcessSettingsError,
+    process_settings,
+)
+from hrm_ctrl.errors import DriverError
+
+
+def test_the_context_sets_and_restores_the_switch_interval() -> None:
+    before = sys.getswitchinterval()
+    with process_settings(switch_interval_s=0.003) as s:
+        assert sys.getswitchinterval() == pytest.approx(0.003)
+        assert s.switch_interval_s == pytest.approx(0.003)
+        assert s.previous_switch_interval_s == before
+        with process_settings() as inner:  # nested: the stack's value, then back to 3 ms
+            assert sys.getswitchinterval() == pytest.approx(SWITCH_INTERVAL_S)
+            assert inner.previous_switch_interval_s == pytest.approx(0.003)
+        assert sys.getswitchinterval() == pytest.approx(0.003)
+    assert sys.getswitchinterval() == before
+
+
+def test_the_switch_interval_is_restored_when_the_body_raises() -> None:
+    before = sys.getswitchinterval()
+    with pytest.raises(KeyError), process_settings(switch_interval_s=0.004):
+        raise KeyError("boom")
+    assert sys.getswitchinterval() == before
+
+
+def test_none_leaves_the_switch_interval_alone() -> None:
+    before = sys.getswitchinterval()
+    with process_settings(switch_interval_s=None) as s:
+        assert sys.getswitchinterval() == before == s.switch_interval_s
+    assert sys.getswitchinterval() == before
+
+
+def test_the_switch_interval_constant_is_below_a_frame_budget() -> None:
+    # 0.2 ms: well under a 10 ms control period, CPython's default is 5 ms
+    assert SWITCH_INTERVAL_S == pytest.approx(2e-4)
+
+
+def test_constructing_an_hrm_sim_wire_bus_changes_no_interpreter_setting() -> None:
+    ch = f"rt-{uuid.uuid4().hex[:8]}"
+    with process_settings(switch_interval_s=0.005):  # CPython's default, whatever pytest has
+        before = sys.getswitchinterval()
+        a = can.Bus(interface="hrm_sim", channel=ch, bitrate=1_000_000)
+        b = can.Bus(interface="hrm_sim", channel=ch, bitrate=1_000_000)
+        try:
+            assert sys.getswitchinterval() == before
+            a.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
+            assert b.recv(timeout=1.0) is not None
+            assert sys.getswitchinterval() == before
+        finally:
+            a.shutdown()
+            b.shutdown()
+        assert sys.getswitchinterval() == before
+
+
+def test_priority_zero_leaves_the_scheduling_policy_alone(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[Any] = []
+    monkeypatch.setattr(os, "sched_setscheduler", lambda *a: calls.append(a), raising=False)
+    with process_settings(realtime_priority=0) as s:
+        assert (s.realtime_priority, s.realtime_granted, s.realtime_refusal) == (0, False, None)
+    assert calls == []
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="no SCHED_FIFO on this platform")
+def test_a_granted_priority_is_reported_and_restored(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The right is simulated: the shared machine's real policy is never changed here."""
+    calls: list[tuple[int, int, int]] = []
+    monkeypatch.setattr(os, "sched_getscheduler", lambda pid: os.SCHED_OTHER)
+    monkeypatch.setattr(os, "sched_getparam", lambda pid: os.sched_param(0))
+    monkeypatch.setattr(
+        os, "sched_setscheduler", lambda pid, pol, par: calls.append((pid, pol, par.sched_priority))
+    )
+    with process_settings(realtime_priority=20) as s:
+        assert s.realtime_granted and s.realtime_refusal is None
+        assert calls == [(0, os.SCHED_FIFO, 20)]
+    assert calls[-1] == (0, os.SCHED_OTHER, 0)
+    assert s.to_dict()["realtime_granted"] is True
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="no SCHED_FIFO on this platform")
+def test_a_refused_priority_carries_on_and_says_why(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def refuse(pid: int, policy: int, param: Any) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    before = sys.getswitchinterval()
+    with caplog.at_level("WARNING", logger="drivers.realtime"):
+        with process_settings(switch_interval_s=0.002, realtime_priority=10) as s:
+            assert sys.getswitchinterval() == pytest.approx(0.002)  # the rest still applies
+    assert not s.realtime_granted
+    assert s.realtime_refusal == "SCHED_FIFO priority 10 refused (Operation not permitted)"
+    assert "running under normal scheduling" in caplog.text
+    assert sys.getswitchinterval() == before
+
+
+def test_no_sched_fifo_on_the_platform_is_a_refusal(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delattr(os, "sched_setscheduler", raising=False)
+    with process_settings(switch_interval_s=None, realtime_priority=5) as s:
+        assert not s.realtime_granted
+        assert s.realtime_refusal is not None and "not available" in s.realtime_refusal
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"switch_interval_s": 0.0}, r"^switch_interval_s: must be a finite number > 0 s, got 0.0"),
+        ({"switch_interval_s": float("nan")}, "switch_interval_s: must be a finite number"),
+        ({"switch_interval_s": True}, "switch_interval_s: must be a finite number"),
+        ({"realtime_priority": -1}, r"^realtime_priority: must be an integer in 0..99, got -1$"),
+        ({"realtime_priority": 100}, "realtime_priority: must be an integer in 0..99"),
+        ({"realtime_priority": 1.5}, "realtime_priority: must be an integer in 0..99"),
+    ],
+)  # fmt: skip
+def test_bad_settings_are_refused_before_anything_changes(
+    kwargs: dict[str, Any], match: str
+) -> None:
+    before = sys.getswitchinterval()
+    with pytest.raises(ProcessSettingsError, match=match), process_settings(**kwargs):
+        pass  # pragma: no cover
+    assert sys.getswitchinterval() == before
+    assert issubclass(ProcessSettingsError, DriverError)
+
+
+def test_the_console_runs_every_command_under_the_context(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """hrm_ctrl.cli.main is the process entry of hrm (host commands and hrm sim)."""
+    from hrm_ctrl import cli
+
+    seen: list[float] = []
+    monkeypatch.setattr(
+        cli, "build_parser", lambda: _parser_running(lambda: seen.append(sys.getswitchinterval()))
+    )
+    with process_settings(switch_interval_s=0.005):
+        assert cli.main(["x"]) == 0
+        assert sys.getswitchinterval() == pytest.approx(0.005)
+    assert seen == [pytest.approx(SWITCH_INTERVAL_S)]
+
+
+def _parser_running(body: Any) -> Any:
+    import argparse
+
+    p = argparse.ArgumentParser()
+    p.add_argument("command")
+    p.set_defaults(_run=lambda args: body() and 0)
+    return p
+
+
+def test_applied_settings_is_a_plain_record() -> None:
+    s = AppliedSettings(2e-4, 5e-3, 0, False)
+    assert s.to_dict() == {
+        "switch_interval_s": 2e-4,
+        "previous_switch_interval_s": 5e-3,
+        "realtime_priority": 0,
+        "realtime_granted": False,
+        "realtime_refusal": None,
+    }
+    assert rt.NORMAL_PRIORITY == 0 and rt.REALTIME_PRIORITY_MAX == 99

@@ -1,0 +1,101 @@
+"""The drive session's states: refused transitions raise, and one bring-up serves
+several sources one after another (jog, hold, table, hold) without a new NMT reset."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from drivers.protocol import cia301, cia402
+from drivers.session import SessionState, SessionStateError
+from drivers.sources import HoldSource, JogSource, TableSource
+from tests.drivers.driver_rig import Rig, wait_until
+
+
+class RampSource(TableSource):
+    """A short ramp of every motor away from where it is, and back."""
+
+    name = "ramp"
+
+    def start(self, actual_counts: np.ndarray, period_s: float) -> None:
+        up = actual_counts[None, :] + np.arange(1, 21)[:, None] * 200
+        self.table = np.concatenate([up, up[::-1], actual_counts[None, :]]).astype(np.int64)
+
+
+def nmt_resets(rig: Rig) -> list[int]:
+    """NMT reset-node commands seen on each bus."""
+    return [
+        sum(
+            1
+            for m in sn.snapshot()
+            if m.arbitration_id == cia301.COB_NMT and m.data[0] == cia301.NMT_RESET_NODE
+        )
+        for sn in rig.sniffers
+    ]
+
+
+def test_refused_transitions_raise(rig_factory: Callable[..., Rig]) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    assert box.state is SessionState.CONNECTED
+    with pytest.raises(SessionStateError, match=r"stream: not allowed in state CONNECTED"):
+        box.stream(HoldSource(n_cycles=3))
+    with pytest.raises(SessionStateError, match=r"enable: not allowed in state CONNECTED"):
+        box.enable()
+    with pytest.raises(SessionStateError, match=r"disable: not allowed in state CONNECTED"):
+        box.disable()
+    assert nmt_resets(rig) == [0, 0]  # nothing refused sent anything
+    box.configure()
+    assert box.state is SessionState.READY
+    with pytest.raises(SessionStateError, match=r"stream: not allowed in state READY"):
+        box.stream(HoldSource(n_cycles=3))
+    box.enable()
+    assert box.state is SessionState.ENABLED and box.enabled
+    with pytest.raises(SessionStateError, match=r"enable: not allowed in state ENABLED"):
+        box.enable()
+    box.disable()
+    assert box.state is SessionState.READY
+    assert wait_until(
+        lambda: all(
+            cia402.decode_state(sw) is cia402.State402.READY_TO_SWITCH_ON
+            for sw in rig.sim.statuswords().values()
+        )
+    )
+    box.enable()
+    assert box.stream(HoldSource(n_cycles=5)).completed
+    box.finish()
+    assert box.state is SessionState.CONNECTED
+    box.close()
+    rig.box = None
+    assert box.state is SessionState.CLOSED
+    with pytest.raises(SessionStateError, match="closed"):
+        box.finish()
+    assert nmt_resets(rig) == [1, 1]
+
+
+def test_several_sources_one_after_another_without_a_new_reset(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    actual = box.bring_up()
+    results = [
+        box.stream(JogSource(rig.limits, "j01r0", 20_000.0, 0.1)),
+        box.stream(HoldSource(n_cycles=10)),
+        box.stream(RampSource()),
+        box.stream(HoldSource(n_cycles=10)),
+    ]
+    assert all(r.completed for r in results)
+    assert box.state is SessionState.ENABLED
+    assert nmt_resets(rig) == [1, 1]
+    # Each source started where the previous one left the drives.
+    jogged = results[0].last_targets
+    assert jogged[0] == actual[0] + 2000 and np.array_equal(jogged[1:], actual[1:])
+    assert np.array_equal(results[1].last_targets, jogged)
+    assert np.array_equal(results[3].last_targets, jogged)
+    # The simulated drives followed: j01r0 is where the jog left it.
+    i = rig.limits.full.motor_ids.index("j01r0")
+    assert wait_until(lambda: abs(int(rig.sim.counts()[i]) - int(jogged[0])) < 50)
+    box.finish()

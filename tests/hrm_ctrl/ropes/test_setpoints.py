@@ -1,0 +1,264 @@
+"""The one plan -> motor-counts path: control-rate table, return legs, travel checks,
+messages naming plan steps, and the same counts for ``hrm ropes`` and ``hrm run``."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hrm_ctrl.cli import main
+from hrm_ctrl.errors import RopeError
+from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.model import default_robot
+from hrm_ctrl.ropes.actuation import Actuation, RopeLimitError
+from hrm_ctrl.ropes.setpoints import interpolate_rows, plan_setpoints
+
+
+def bend(n: int = 5, alpha_deg: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+    """(alpha, theta) (n, 12): every joint bends a little more each step."""
+    a = np.deg2rad(alpha_deg) * np.arange(n)[:, None] / (n - 1) * np.ones((1, 12))
+    return a, -a / 2
+
+
+def test_plan_table_at_the_control_rate(act: Actuation) -> None:
+    alpha, theta = bend()
+    sp = plan_setpoints(act, 10.0 * np.arange(5), alpha, theta, period_s=0.01, speed_mm_per_s=40.0)
+    # 40 mm at 40 mm/s: 1 s, 101 cycles, the first at the first step
+    assert sp.counts.shape == (101, act.n_motors) and sp.duration_s == pytest.approx(1.0)
+    np.testing.assert_array_equal(sp.counts[0], act.counts_from_angles(alpha[0], theta[0]))
+    np.testing.assert_array_equal(sp.counts[-1], act.counts_from_angles(alpha[-1], theta[-1]))
+    np.testing.assert_array_equal(sp.counts[50], act.counts_from_angles(alpha[2], theta[2]))
+    np.testing.assert_array_equal(sp.step_counts, act.counts_from_angles(alpha, theta))
+    act.check_counts(sp.counts, dt_s=0.01)
+    # each row names the step it approaches; a row on a step is that step's
+    assert sp.step_of_row[[0, 1, 25, 26, 100]].tolist() == [0, 1, 1, 2, 4]
+    assert sp.label(26) == "plan step 2 (travel 20.0 mm)"
+    a_rows, t_rows = sp.row_angles()
+    np.testing.assert_allclose(a_rows[[0, 25, 50]], alpha[:3], atol=1e-15)
+    np.testing.assert_array_equal(act.counts_from_angles(a_rows, t_rows), sp.counts)
+    assert not sp.counts.flags.writeable
+
+
+def test_a_return_leg_goes_out_and_comes_back(act: Actuation) -> None:
+    alpha, theta = bend(n=5, alpha_deg=20.0)
+    back = np.arange(3, -1, -1)
+    travel = np.concatenate([10.0 * np.arange(5), 10.0 * back])  # 0..40 then 30..0
+    phase = ["in"] * 5 + ["return"] * 4
+    sp = plan_setpoints(
+        act,
+        travel,
+        np.vstack([alpha, alpha[back]]),
+        np.vstack([theta, theta[back]]),
+        period_s=0.01,
+        speed_mm_per_s=40.0,
+        phase=phase,
+    )
+    assert sp.n_cycles == 201 and sp.duration_s == pytest.approx(2.0)  # 40 mm in, 40 back
+    straight = act.counts_from_angles(alpha[0], theta[0])
+    bent = act.counts_from_angles(alpha[-1], theta[-1])
+    np.testing.assert_array_equal(sp.counts[0], straight)
+    np.testing.assert_array_equal(sp.counts[100], bent)  # the far end, half way
+    np.testing.assert_array_equal(sp.counts[-1], straight)  # and back
+    assert np.abs(sp.counts - sp.counts[::-1]).max() <= 1  # the way back retraces the way in
+    moved = np.abs(sp.counts - straight).max(axis=1)
+    assert int(moved.argmax()) == 100 and moved[100] > 1000
+    assert np.all(np.diff(sp.step_of_row) >= 0) and sp.step_of_row[-1] == 8
+    assert sp.label(150) == "plan step 6 (travel 20.0 mm)"  # on the step, 1.5 s in
+    assert sp.label(151) == "plan step 7 (travel 10.0 mm)"
+
+
+def test_a_planner_return_plan_plays(act: Actuation) -> None:
+    from hrm_ctrl.planning.planner import PlanOptions, plan_path
+    from hrm_ctrl.planning.scenarios import scenario
+
+    sc = scenario("bent-pipe")
+    plan = plan_path(act.robot, sc.path, PlanOptions(step=10.0, return_to_start=True), sc)
+    sp = plan_setpoints(
+        act,
+        plan.travel,
+        plan.alpha,
+        plan.theta,
+        phase=plan.phase,
+        period_s=0.01,
+        speed_mm_per_s=50.0,
+    )
+    assert sp.duration_s == pytest.approx(2 * sc.path.length / 50.0)
+    assert abs(int(sp.counts[-1].astype(np.int64).max() - sp.counts[0].max())) <= 1
+
+
+@pytest.mark.parametrize(
+    ("travel", "phase", "message"),
+    [
+        (
+            [0.0, 10.0, 5.0, 20.0],
+            None,
+            "plan step 2 (travel 5.0 mm): travel goes back from 10.0 mm (plan step 1) "
+            "within the 'in' phase",
+        ),
+        (
+            [0.0, 10.0, 10.0, 20.0],
+            None,
+            "plan step 2 (travel 10.0 mm): travel repeats 10.0 mm (plan step 1) within the "
+            "'in' phase",
+        ),
+        (
+            [0.0, 10.0, 5.0, 8.0],
+            ["in", "in", "return", "return"],
+            "plan step 3 (travel 8.0 mm): travel goes up from 5.0 mm (plan step 2) within the "
+            "'return' phase",
+        ),
+        (
+            [0.0, 10.0, 12.0, 8.0],
+            ["in", "in", "return", "return"],
+            "plan step 2 (travel 12.0 mm): travel goes up from 10.0 mm (plan step 1) within "
+            "the 'return' phase",
+        ),
+    ],
+    ids=["back", "repeat", "return-up", "return-starts-up"],
+)
+def test_travel_the_wrong_way_within_a_phase_is_refused(
+    act: Actuation, travel: list[float], phase: list[str] | None, message: str
+) -> None:
+    alpha, theta = bend(n=4)
+    with pytest.raises(RopeError) as info:
+        plan_setpoints(
+            act,
+            travel,
+            alpha,
+            theta,
+            phase=phase,
+            period_s=0.01,
+            speed_mm_per_s=20.0,
+            where="p.json",
+        )
+    assert str(info.value) == f"p.json: {message}"
+
+
+def test_limit_messages_name_the_plan_step(act: Actuation) -> None:
+    alpha, theta = bend(n=5)
+    alpha[3, 0] = np.deg2rad(80.0)
+    with pytest.raises(RopeLimitError) as info:
+        plan_setpoints(act, 5.0 * np.arange(5), alpha, theta, period_s=0.01, speed_mm_per_s=20)
+    assert str(info.value).startswith("plan step 3 (travel 15.0 mm): joint 1: alpha = 1.396")
+    # drum travel: a rope layer whose drums are short for this bend
+    alpha, theta = bend(n=5, alpha_deg=20.0)
+    full = act.counts_from_angles(alpha, theta)
+    i = int(np.abs(full[-1]).argmax())
+    cmax, cmin = act.counts_max.copy(), act.counts_min.copy()
+    cmax[i] = cmin[i] = 0
+    cmax[i] = np.abs(full[2:4, i]).max() + 1
+    cmin[i] = -cmax[i]
+    short = dataclasses.replace(act, counts_min=cmin, counts_max=cmax)
+    with pytest.raises(RopeLimitError) as info:
+        plan_setpoints(short, 5.0 * np.arange(5), alpha, theta, period_s=0.01, speed_mm_per_s=20)
+    assert str(info.value).startswith(f"plan step 4 (travel 20.0 mm): motor {act.motor_ids[i]}")
+    assert "outside" in str(info.value)
+    # motor speed: too fast between two control cycles within one plan step
+    with pytest.raises(RopeLimitError) as info:
+        plan_setpoints(act, 5.0 * np.arange(5), alpha, theta, period_s=0.01, speed_mm_per_s=400)
+    msg = str(info.value)
+    assert msg.startswith("plan step 1 (travel 5.0 mm): motor j") and "faster than" in msg
+    assert "\n" not in msg
+
+
+def test_bad_arguments_are_refused(act: Actuation) -> None:
+    alpha, theta = bend(n=3)
+    travel = [0.0, 1.0, 2.0]
+    kw: dict[str, Any] = {"period_s": 0.01, "speed_mm_per_s": 10.0}
+    with pytest.raises(RopeError, match="speed must be > 0 mm/s"):
+        plan_setpoints(act, travel, alpha, theta, period_s=0.01, speed_mm_per_s=0.0)
+    with pytest.raises(RopeError, match="control period must be > 0 s"):
+        plan_setpoints(act, travel, alpha, theta, period_s=float("nan"), speed_mm_per_s=1.0)
+    with pytest.raises(RopeError, match=r"angles \(S, 12\)"):
+        plan_setpoints(act, travel, alpha[:, :11], theta, **kw)
+    with pytest.raises(RopeError, match="phase must be 3 of"):
+        plan_setpoints(act, travel, alpha, theta, phase=["in", "out", "in"], **kw)
+    with pytest.raises(RopeError, match="finite"):
+        plan_setpoints(act, [0.0, np.nan, 2.0], alpha, theta, **kw)
+    with pytest.raises(RopeError, match=r"^p: 2e\+09 s at 1e-09 mm/s exceeds the longest run"):
+        plan_setpoints(act, travel, alpha, theta, period_s=0.01, speed_mm_per_s=1e-9, where="p")
+
+
+def test_one_step_is_one_row(act: Actuation) -> None:
+    alpha, theta = bend(n=3)
+    sp = plan_setpoints(act, [7.0], alpha[2:], theta[2:], period_s=0.01, speed_mm_per_s=10.0)
+    assert sp.n_cycles == 1 and sp.duration_s == 0.0 and sp.label(0).startswith("plan step 0")
+    np.testing.assert_array_equal(sp.counts, sp.step_counts)
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    knots=st.lists(st.floats(0, 10), min_size=2, max_size=6, unique=True),
+    q=st.lists(st.floats(-1, 11), min_size=1, max_size=8),
+)
+def test_interpolate_rows_matches_numpy(knots: list[float], q: list[float]) -> None:
+    t = np.sort(np.asarray(knots))
+    rows = np.stack([np.sin(t), t**2], axis=1)
+    got = interpolate_rows(np.asarray(q), t, rows)
+    for j in range(2):
+        assert np.allclose(got[:, j], np.interp(q, t, rows[:, j]))
+
+
+def write_plan_file(path: Path) -> None:
+    """Out 40 mm and back, 10 mm a step (a step every 25 control cycles at 40 mm/s)."""
+    robot = default_robot()
+    alpha, theta = bend(n=5, alpha_deg=10.0)
+    back = np.arange(3, -1, -1)
+    alpha, theta = np.vstack([alpha, alpha[back]]), np.vstack([theta, theta[back]])
+    travel = np.concatenate([10.0 * np.arange(5), 10.0 * back])
+    O = joint_centres(robot, alpha, theta)
+    steps = [
+        {
+            "travel_mm": float(travel[k]),
+            "phase": "in" if k < 5 else "return",
+            "alpha_rad": alpha[k].tolist(),
+            "theta_rad": theta[k].tolist(),
+            "joints_mm": O[k].tolist(),
+        }
+        for k in range(len(travel))
+    ]
+    doc = {
+        "format": "hrm-plan/1",
+        "robot": {"links_mm": robot.links.tolist()},
+        "path_mm": [[0.0, 0.0, 0.0], [40.0, 0.0, 0.0]],
+        "steps": steps,
+        "report": {},
+    }
+    path.write_text(json.dumps(doc))
+
+
+def test_hrm_ropes_and_playback_get_the_same_counts(
+    tmp_path: Path, act: Actuation, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from hrm_ctrl.cli.run import _source
+
+    plan = tmp_path / "plan.json"
+    write_plan_file(plan)
+    out = tmp_path / "sp.csv"
+    assert main(["ropes", str(plan), "--speed", "40", "--out", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["playback"]["cycles"] == 201
+    rows = list(csv.reader(out.open()))[1:]
+    per_step = np.array([[int(v) for v in r[2:]] for r in rows])
+
+    args = argparse.Namespace(plan=plan, hold=None, jog=None, speed=40.0, config=None)
+    source, _hold, record = _source(args, act, 0.01)
+    assert record["plan_steps"] == 9
+    source.precheck(0.01)
+    source.start(per_step[0], 0.01)  # already at the plan's start: no lead-in
+    assert source.n_lead_in == 0
+    body = source.table[:201]
+    np.testing.assert_array_equal(body[::25], per_step)  # every step is a control cycle here
+    np.testing.assert_array_equal(body[100], per_step[4])  # the far end
+    np.testing.assert_array_equal(source.table[201:], np.repeat(per_step[-1:], 20, axis=0))
+    d = source.describe()
+    assert d["source"] == "plan" and d["steps"] == 9 and d["body_cycles"] == 201

@@ -1,0 +1,125 @@
+"""The import rules of the layout (issue 8), checked by import-linter.
+
+The contracts live in ``pyproject.toml`` (``[tool.importlinter]``); this test runs
+``lint-imports`` on the repository and fails with its report when a contract
+breaks.  A second test runs the same contracts on a scratch copy of the packages
+with one forbidden import added per contract, so a contract that silently checks
+nothing (a misspelt module, a wrong kind) fails here too.  Imports that only appear
+in docstrings (doctests) are not imports: the scratch copy checks that as well.
+"""
+
+from __future__ import annotations
+
+import os
+import pkgutil
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+import drivers
+import hrm_ctrl
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("hrm_ctrl", "drivers", "sim_bus", "calibration")
+TIMEOUT_S = 120.0
+
+# hrm_ctrl modules the drivers may import; every other one is in contract "drivers".
+DRIVERS_MAY_USE = {"errors", "files"}
+# drivers modules the simulator may import; every other one is in contract "sim-bus".
+SIM_MAY_USE = {"protocol", "config", "data"}
+
+
+def _lint_imports(cwd: Path) -> subprocess.CompletedProcess[str]:
+    exe = Path(sys.executable).with_name("lint-imports")
+    cmd = [str(exe)] if exe.exists() else [shutil.which("lint-imports") or "lint-imports"]
+    env = dict(os.environ, PYTHONPATH=str(cwd))  # import the packages under cwd, not another copy
+    return subprocess.run(
+        [*cmd, "--no-cache", "--no-logo", "--config", str(cwd / "pyproject.toml")],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+
+
+def _contracts() -> dict[str, dict]:
+    with open(ROOT / "pyproject.toml", "rb") as f:
+        cfg = tomllib.load(f)["tool"]["importlinter"]
+    return {c["id"]: c for c in cfg["contracts"]}
+
+
+def test_import_contracts_are_kept():
+    res = _lint_imports(ROOT)
+    assert res.returncode == 0, f"import rules broken (lint-imports):\n{res.stdout}{res.stderr}"
+    assert "0 broken" in res.stdout
+
+
+@pytest.mark.parametrize(
+    ("contract", "package", "may_use"),
+    [("drivers", hrm_ctrl, DRIVERS_MAY_USE), ("sim-bus", drivers, SIM_MAY_USE)],
+)
+def test_allow_list_contracts_name_every_module(contract, package, may_use):
+    """The "nothing but ..." rules are forbidden lists: each new module must join one side."""
+    forbidden = set(_contracts()[contract]["forbidden_modules"])
+    children = {m.name for m in pkgutil.iter_modules(package.__path__)}
+    unlisted = sorted(
+        f"{package.__name__}.{name}"
+        for name in children - may_use
+        if f"{package.__name__}.{name}" not in forbidden
+    )
+    assert not unlisted, f"contract {contract!r}: forbid or allow {unlisted} in pyproject.toml"
+
+
+# One forbidden import per contract: (module file, appended line, the import reported, contract).
+INJECTED = [
+    ("hrm_ctrl/formats/urdf.py", "import drivers.session", "direction"),
+    ("hrm_ctrl/model.py", "import hrm_ctrl.planning.backbone", "direction"),
+    ("hrm_ctrl/planning/backbone.py", "import hrm_ctrl.ropes.length", "planning"),
+    ("hrm_ctrl/ropes/length.py", "import hrm_ctrl.formats.planfile", "ropes"),
+    ("drivers/busload.py", "import hrm_ctrl.model", "drivers"),
+    ("sim_bus/wire.py", "import drivers.session", "sim-bus"),
+]
+DOCSTRING_ONLY = ("hrm_ctrl/planning/fitting.py", "import sim_bus.box")
+
+
+def _module(path: str) -> str:
+    return path.removesuffix(".py").removesuffix("/__init__").replace("/", ".")
+
+
+def _report_of(stdout: str, contract_name: str) -> str:
+    """The part of lint-imports' report about one broken contract."""
+    broken = stdout.split("Broken contracts", 1)[-1]
+    start = broken.find(f"\n{contract_name}\n")
+    assert start >= 0, f"contract {contract_name!r} not reported broken:\n{stdout}"
+    rest = broken[start + len(contract_name) + 2 :]
+    ends = [rest.find(f"\n{c['name']}\n") for c in _contracts().values()]
+    return rest[: min([e for e in ends if e >= 0], default=len(rest))]
+
+
+def test_contracts_catch_a_forbidden_import(tmp_path):
+    for pkg in PACKAGES:
+        shutil.copytree(
+            ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__", "*.pyc")
+        )
+    shutil.copy(ROOT / "pyproject.toml", tmp_path)
+    for path, line, _ in INJECTED:
+        with open(tmp_path / path, "a") as f:
+            f.write(f"\n{line}  # injected by test_architecture\n")
+    path, line = DOCSTRING_ONLY
+    with open(tmp_path / path, "a") as f:
+        f.write(f'\n\ndef _injected():\n    """\n    >>> {line}\n    """\n')
+
+    res = _lint_imports(tmp_path)
+    out = res.stdout + res.stderr
+    assert res.returncode != 0, out
+    names = {k: c["name"] for k, c in _contracts().items()}
+    for path, line, contract in INJECTED:
+        imported = line.removeprefix("import ")
+        assert f"{_module(path)} -> {imported}" in _report_of(res.stdout, names[contract]), out
+    assert f"{_module(DOCSTRING_ONLY[0])} -> " not in out
