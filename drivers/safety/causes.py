@@ -28,7 +28,10 @@ class StopKind(StrEnum):
     BAD_FRAME = "bad_frame"  # a malformed frame of a CANopen service
     BOOTUP = "bootup"  # a drive rebooted while enabled
     LIMIT = "limit"  # a setpoint refused by the rope or joint limits
-    TENSION = "tension"  # a rope's tension out of range (tension-sensor board)
+    TENSION = "tension"  # a rope's tension out of range, or the tension sensor failing
+    ROPE = "rope"  # a rope whose length stops fitting the others (slipped or broken)
+    FOREIGN = "foreign"  # traffic of another master for our nodes (RPDO, SYNC, NMT)
+    SIGNAL = "signal"  # SIGTERM / SIGHUP / SIGINT
     SEND = "send"  # a frame could not be sent
     RECEIVE = "receive"  # a bus's receive thread failed
     OPERATOR = "operator"  # stop requested (console, Ctrl-C)
