@@ -143,7 +143,7 @@ def _map_pdo(
         ) from None
     except canopen.SdoCommunicationError as exc:
         raise SdoError(f"{link.label}: mapping {name}: {exc}") from None
-    # The scheduler reads the PDOs itself; canopen need not decode every frame.
+    # The supervisor reads the PDOs itself; canopen need not decode every frame.
     try:
         link.node.network.unsubscribe(cob_id, pdo_map.on_message)
     except (KeyError, ValueError):

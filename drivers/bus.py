@@ -102,52 +102,58 @@ class TrafficLog(can.Listener):
     """Thread-safe python-can log of one bus: received frames (listener) and sent
     frames (:meth:`log_sent`), written by a background thread in arrival order.
 
-    Only frames a drive sends are logged on receive: a host-direction frame coming
-    back (udp_multicast echoes a sender's own frames) is dropped and counted in
-    ``n_echoes``, since the host logged it when it sent it (:func:`is_host_frame`)."""
+    Every frame on the wire is logged once: what the host sends when it sends it, and
+    everything received (drives, other masters, error and remote frames) as the bus's
+    receiver (:class:`drivers.receive.BusReceiver`) hands it over, our own echoes
+    excepted."""
 
-    def __init__(
-        self, path: str | Path, channel: int = 1, host_node_id: int = HOST_HEARTBEAT_NODE_ID
-    ) -> None:
+    def __init__(self, path: str | Path, channel: int = 1) -> None:
         self.path = Path(path)
         self.channel = int(channel)  # channel number written in the log (1-based, as in CANalyzer)
-        self.host_node_id = int(host_node_id)
         self.write_errors = 0
         self.first_error: str | None = None
-        self.n_echoes = 0
-        self._sent_heartbeat_ids: set[int] = set()
         if self.path.suffix.lower() not in LOG_SUFFIXES:
             raise DriverError(f"{self.path}: CAN log must end in {' or '.join(LOG_SUFFIXES)}")
         ensure_log_dir(self.path.parent)
+        self.n_frames = 0  # frames in the file (handed to the writer, for another writer)
+        self.n_lost = 0  # frames that never reached the file (it could not take more)
+        self._unflushed = 0  # frames handed to the writer since the last flush
+        self._last_ts: float | None = None  # timestamp of the last frame handed over
+        self._logged_until: float | None = None  # ... and of the last one in the file
+        self._broken = False
+        self._durable: str | None = None  # "blf" or "asc": this class writes the file
+        self._reserve = self._hold_reserve()
         try:
             self._writer: Any = can.Logger(str(self.path))
         except (OSError, ValueError) as exc:
+            self._release_reserve()
+            raise DriverError(f"{self.path}: cannot open CAN log ({exc})") from None
+        try:
+            self._durable = self._take_over_writes()
+        except OSError as exc:
+            self._release_reserve()
+            try:
+                self._writer.file.close()
+            except OSError:
+                pass
             raise DriverError(f"{self.path}: cannot open CAN log ({exc})") from None
         self._queue: collections.deque[can.Message] = collections.deque()
         self._wake = threading.Event()
         self._stopping = False
-        self.n_frames = 0
         self._thread = threading.Thread(
             target=self._run, name=f"canlog-{self.path.name}", daemon=True
         )
         self._thread.start()
 
     def on_message_received(self, msg: can.Message) -> None:
-        cob_id = msg.arbitration_id
-        if not msg.is_extended_id and (
-            is_host_frame(cob_id, self.host_node_id) or cob_id in self._sent_heartbeat_ids
-        ):
-            self.n_echoes += 1  # our own frame back (udp_multicast): logged when sent
-            return
+        """Record a received frame (every one: the bus's receiver has already dropped
+        the echoes of our own frames, which were logged when sent)."""
         # Interfaces name channels freely (a virtual bus: any string); logs want a number.
         msg.channel = self.channel
         self._queue.append(msg)
 
     def log_sent(self, msg: can.Message) -> None:
         """Record a frame the host sent (``is_rx=False``)."""
-        cob_id = msg.arbitration_id
-        if COB_NMT_ERROR_CONTROL < cob_id <= COB_NMT_ERROR_CONTROL + 0x7F:
-            self._sent_heartbeat_ids.add(cob_id)  # the host's heartbeat, whatever its id
         msg.channel = self.channel
         self._queue.append(msg)
 
@@ -158,24 +164,40 @@ class TrafficLog(can.Listener):
 
     def _drain(self) -> None:
         q = self._queue
+        if self._broken:  # the file takes no more: count what it misses
+            while q:
+                q.popleft()
+                self.n_lost += 1
+            return
         write = self._writer.on_message_received
+        durable = self._durable is not None
         while q:
             msg = q.popleft()
             try:
                 write(msg)
-                self.n_frames += 1
             except Exception as exc:  # one bad frame must not end the log
                 self._failed(f"{self.path.name}: cannot log {msg} ({exc})")
+                continue
+            if durable:
+                self._unflushed += 1
+                self._last_ts = msg.timestamp
+            else:
+                self.n_frames += 1
 
     def _run(self) -> None:
+        next_flush = time.monotonic() + self.FLUSH_S
         while not self._stopping:
-            self._wake.wait(WRITER_IDLE_S)
+            self._wake.wait(max(0.0, min(WRITER_IDLE_S, next_flush - time.monotonic())))
             self._wake.clear()
             self._drain()
+            if time.monotonic() >= next_flush:
+                self._flush()
+                next_flush = time.monotonic() + self.FLUSH_S
         self._drain()
 
     def stop(self) -> None:
-        """Write everything queued and close the file (idempotent)."""
+        """Write everything queued and close the file (idempotent); then give back the
+        space held for the run record (:meth:`_hold_reserve`)."""
         if self._stopping:
             return
         self._stopping = True
@@ -183,32 +205,347 @@ class TrafficLog(can.Listener):
         self._thread.join(timeout=10.0)
         if self._thread.is_alive():  # the disk hangs: do not write from two threads
             self._failed(f"{self.path.name}: writer still busy after 10 s")
+            self._release_reserve()
             return
         self._drain()
+        if self._durable is not None:
+            self._close_durable()
+        else:
+            try:
+                self._writer.stop()
+            except Exception as exc:  # flush/close failed (disk full, I/O error)
+                self._failed(f"{self.path.name}: cannot close ({exc})")
+        self._release_reserve()
+
+    # -------------------------------------------------------------- durability
+    # Crash safety (kill -9): the file on disk is at most FLUSH_S behind, always readable
+    # by can.LogReader and carries its absolute start time.  For python-can's BLF and ASC
+    # writers this class does the file writes itself: the writer only formats (BLF objects
+    # into its buffer, ASC lines into a StringIO); every FLUSH_S the formatted frames go
+    # out in one write(2) (BLF: zlib containers; ASC: whole lines), then the BLF header is
+    # rewritten in place.  A SIGKILL can cut a write(2) only between pages (the kernel
+    # checks for it page by page), so no line and no container header is let straddle a
+    # page boundary: a cut file still ends with whole lines, or with a container whose
+    # headers are whole (its cut zlib stream yields every whole frame in it).
+    # Disk full: the file is cut back to its last whole write and ends there, the frames
+    # that missed it are counted (``n_lost``) and the error named (``first_error``).
+
+    FLUSH_S = 0.1  # the file is never further behind the frames handed over than this
+    RECORD_RESERVE_BYTES = 64 * 1024  # held in the log's folder for the run record
+    PAGE_BYTES = 4096  # the granularity at which a SIGKILL can cut a write(2)
+
+    def _hold_reserve(self) -> Path:
+        """Hold :attr:`RECORD_RESERVE_BYTES` of disk in the log's folder (a hidden file,
+        removed when the log closes), so that a disk the run fills up still takes the run
+        record written after the logs close; a disk already full refuses the log."""
+        reserve = self.path.with_name(f".{self.path.name}.reserve")
         try:
-            self._writer.stop()
+            with open(reserve, "wb") as f:
+                f.write(bytes(self.RECORD_RESERVE_BYTES))
+        except OSError as exc:
+            try:
+                reserve.unlink()
+            except OSError:
+                pass
+            raise DriverError(
+                f"{self.path.parent}: no room for the run record "
+                f"({self.RECORD_RESERVE_BYTES} bytes: {exc.strerror or exc})"
+            ) from None
+        return reserve
+
+    def _release_reserve(self) -> None:
+        try:
+            self._reserve.unlink()
+        except OSError:
+            pass
+
+    def _take_over_writes(self) -> str | None:
+        """Make python-can's BLF or ASC writer format only; this class writes the file
+        (see above).  Another writer (a wrapper) is left alone: flushed when it stops."""
+        import datetime as dt
+        import io
+
+        w = self._writer
+        if isinstance(w, can.BLFWriter):
+            w.file.flush()  # python-can's provisional header
+            # The file's absolute start is now (in ms, as BLF keeps it), so the header has
+            # it from the first flush on; frame times are kept relative to it.
+            w.start_timestamp = w.stop_timestamp = int(time.time() * 1000) / 1000
+            self._container_bytes = w.max_container_size
+            w.max_container_size = 1 << 62  # python-can never writes a container itself
+            self._fd = w.file.fileno()
+            self._end = os.lseek(self._fd, 0, os.SEEK_END)  # bytes of the file that are whole
+            self._write_blf_header()
+            return "blf"
+        if isinstance(w, can.ASCWriter):
+            # python-can (4.6) writes a date's milliseconds without leading zeros (".18"
+            # for 18 ms, which readers take for 180 ms): 3 digits, and the `date` of the
+            # start written again with them.
+            w.FORMAT_DATE = can.ASCWriter.FORMAT_DATE.replace("{}", "{:03d}")
+            w.file.flush()
+            lines = self.path.read_text(encoding=w.file.encoding).splitlines(keepends=True)
+            if lines and lines[0].startswith("date "):
+                lines[0] = f"date {w._format_header_datetime(dt.datetime.now())}\n"
+            w.file.seek(0)
+            w.file.truncate()
+            w.file.write("".join(lines))
+            w.file.flush()  # the header lines, the `date` of the start among them
+            self._file = w.file
+            self._encoding = w.file.encoding
+            self._fd = w.file.fileno()
+            self._end = os.lseek(self._fd, 0, os.SEEK_END)
+            w.file = io.StringIO()
+            return "asc"
+        return None
+
+    def _flush(self) -> None:
+        """Put every frame handed to the writer into the file (one write(2)); on an
+        ``OSError`` the log ends at its last whole write (:meth:`_break`)."""
+        if self._durable is None or self._broken:
+            return
+        try:
+            data = self._blf_containers() if self._durable == "blf" else self._asc_lines()
+            if data:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(self._fd, view) :]
+                self._end += len(data)
+                if self._durable == "blf":
+                    self._write_blf_header()
+        except OSError as exc:
+            self._break(exc)
+            return
+        self.n_frames += self._unflushed
+        self._unflushed = 0
+        self._logged_until = self._last_ts
+
+    def _blf_containers(self) -> bytes:
+        """The writer's buffered objects as zlib log containers; a container is padded
+        after its zlib stream (readers stop at the stream's end) so that the next one's
+        32 header bytes start within one page."""
+        import zlib
+
+        from can.io import blf
+
+        w = self._writer
+        raw = b"".join(w._buffer)
+        w._buffer, w._buffer_size = [], 0
+        head = blf.OBJ_HEADER_BASE_STRUCT.size + blf.LOG_CONTAINER_STRUCT.size
+        page = self.PAGE_BYTES
+        out = bytearray()
+        for i in range(0, len(raw), self._container_bytes):
+            chunk = raw[i : i + self._container_bytes]
+            body = zlib.compress(chunk, w.compression_level)
+            pad = 0
+            while True:  # python-can pads an object of size s by s % 4 bytes
+                size = head + len(body) + pad
+                if (self._end + len(out) + size + size % 4) % page <= page - head:
+                    break
+                pad += 1
+            out += blf.OBJ_HEADER_BASE_STRUCT.pack(
+                b"LOBJ", blf.OBJ_HEADER_BASE_STRUCT.size, 1, size, blf.LOG_CONTAINER
+            )
+            out += blf.LOG_CONTAINER_STRUCT.pack(blf.ZLIB_DEFLATE, len(chunk))
+            out += body + bytes(pad + size % 4)
+            w.uncompressed_size += head + len(chunk)
+        return bytes(out)
+
+    def _write_blf_header(self) -> None:
+        """python-can's BLF header (start and stop time, sizes, object count) for the
+        file as it is, written in place (one page: never cut)."""
+        import io
+
+        w = self._writer
+        file, w.file = w.file, io.BytesIO()
+        try:
+            w._write_header(self._end)
+            header = w.file.getvalue()
+        finally:
+            w.file = file
+        os.pwrite(self._fd, header, 0)
+
+    def _asc_lines(self) -> bytes:
+        """The whole lines the writer formatted, each kept within one page (a line that
+        would straddle a page boundary is put after a blank line that fills the page:
+        readers skip blank lines)."""
+        text_io = self._writer.file
+        text = text_io.getvalue()
+        cut = text.rfind("\n") + 1
+        text_io.seek(0)
+        text_io.truncate()
+        text_io.write(text[cut:])
+        page = self.PAGE_BYTES
+        pos = self._end
+        out = bytearray()
+        for line in text[:cut].encode(self._encoding).splitlines(keepends=True):
+            room = page - pos % page
+            if room < len(line) <= page:
+                out += b" " * (room - 1) + b"\n"
+                pos += room
+            out += line
+            pos += len(line)
+        return bytes(out)
+
+    def _break(self, exc: OSError) -> None:
+        """The file takes no more (disk full, I/O error): cut it back to its last whole
+        write (readable, its header intact), drop every later frame, name why."""
+        import datetime as dt
+
+        self._broken = True
+        self.n_lost += self._unflushed
+        self._unflushed = 0
+        try:
+            os.ftruncate(self._fd, self._end)
+            os.lseek(self._fd, self._end, os.SEEK_SET)
+        except OSError:
+            pass
+        if self._durable == "blf":
+            self._writer._buffer, self._writer._buffer_size = [], 0
+        ts = self._logged_until
+        until = (
+            "no frame is in the log"
+            if ts is None
+            else "it ends with the frame of "
+            + dt.datetime.fromtimestamp(ts, dt.UTC).isoformat(timespec="milliseconds")
+        )
+        self._failed(f"{self.path.name}: cannot write ({exc.strerror or exc}); {until}")
+
+    def _close_durable(self) -> None:
+        w = self._writer
+        self._flush()
+        if self._broken:  # python-can's stop() would write on: close the file as it is
+            file = self._file if self._durable == "asc" else w.file
+            try:
+                file.close()
+            except OSError:
+                pass
+            return
+        if self._durable == "asc":
+            w.file = self._file  # the writer ends the file itself ("End TriggerBlock")
+        else:
+            w.max_container_size = self._container_bytes
+        try:
+            w.stop()  # BLF: the final header (the same as the last one written)
         except Exception as exc:  # flush/close failed (disk full, I/O error)
             self._failed(f"{self.path.name}: cannot close ({exc})")
 
 
-class BusPort:
-    """One opened CAN bus of the box: a name, a send lock and an optional log tap."""
+EchoKey = tuple[int, bool, bool, bytes]
+ECHO_WINDOW_S = 2.0  # an echo of our own frame comes back within this, or never
+MAX_PENDING_ECHOES = 16384  # 36 frames x 100 Hz x 2 s = 7,200 in flight at most
+ECHOING_INTERFACES = frozenset({"udp_multicast"})  # deliver a sender's frames back to it
 
-    def __init__(self, name: str, bus: can.BusABC, log: TrafficLog | None = None) -> None:
+
+def echo_key(msg: can.Message) -> EchoKey:
+    """What identifies a frame on the wire: identifier, its format, RTR, the data."""
+    return (msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, bytes(msg.data))
+
+
+class EchoLedger:
+    """The frames this process sent on one bus and that the bus will deliver back to it
+    (udp_multicast does; virtual, SocketCAN without ``receive_own_messages`` and
+    ``hrm_sim`` do not): an echo is recognised by identifier and data and taken off
+    once; anything else received, even with a host-direction COB-ID, is someone else's.
+
+    >>> led = EchoLedger()
+    >>> m = can.Message(arbitration_id=0x201, data=bytes([15, 0]), is_extended_id=False)
+    >>> led.add(m, now=0.0)
+    >>> led.take(m, now=0.01), led.take(m, now=0.02)    # our echo once, then a stranger's
+    (True, False)
+    >>> sync = can.Message(arbitration_id=0x080, is_extended_id=False)
+    >>> got = []
+    >>> for k in range(1000):                           # 10 s of SYNCs, echoed 5 ms later
+    ...     led.add(sync, now=k * 0.01)
+    ...     got.append(led.take(sync, now=k * 0.01 + 0.005))
+    >>> all(got), led.take(sync, now=10.0)
+    (True, False)
+    """
+
+    def __init__(self) -> None:
+        self._pending: dict[EchoKey, collections.deque[float]] = {}
+        self._order: collections.deque[tuple[float, EchoKey]] = collections.deque()
+        self._lock = threading.Lock()
+        self.n_echoes = 0
+
+    def add(self, msg: can.Message, now: float) -> None:
+        key = echo_key(msg)
+        with self._lock:
+            self._expire(now)
+            if len(self._order) >= MAX_PENDING_ECHOES:
+                self._pop_oldest()
+            self._pending.setdefault(key, collections.deque()).append(now)
+            self._order.append((now, key))
+
+    def discard(self, msg: can.Message) -> None:
+        """A frame that was not sent after all (the send failed)."""
+        key = echo_key(msg)
+        with self._lock:
+            times = self._pending.get(key)
+            if times:
+                times.pop()
+                if not times:
+                    del self._pending[key]
+
+    def take(self, msg: can.Message, now: float) -> bool:
+        """Whether ``msg`` is the echo of a frame we sent (then it is taken off)."""
+        key = echo_key(msg)
+        with self._lock:
+            self._expire(now)
+            times = self._pending.get(key)
+            if not times:
+                return False
+            times.popleft()
+            if not times:
+                del self._pending[key]
+            self.n_echoes += 1
+            return True
+
+    def _pop_oldest(self) -> None:
+        """Forget the oldest frame sent, unless its echo already came back (then the
+        key's oldest pending time is later than this entry's)."""
+        t, key = self._order.popleft()
+        times = self._pending.get(key)
+        if times and times[0] <= t:
+            times.popleft()
+            if not times:
+                del self._pending[key]
+
+    def _expire(self, now: float) -> None:
+        while self._order and now - self._order[0][0] > ECHO_WINDOW_S:
+            self._pop_oldest()
+
+
+class BusPort:
+    """One opened CAN bus of the box: a name, a send lock, an optional log tap, and
+    (on a bus that delivers our own frames back) the ledger of frames sent."""
+
+    def __init__(
+        self, name: str, bus: can.BusABC, log: TrafficLog | None = None, echoes: bool = False
+    ) -> None:
         self.name = name
         self.bus = bus
         self.log = log
+        self.echoes = EchoLedger() if echoes else None
         self._lock = threading.Lock()
         self.n_sent = 0
+
+    def is_own_echo(self, msg: can.Message) -> bool:
+        """Whether a received frame is one this process sent, coming back."""
+        return self.echoes is not None and self.echoes.take(msg, time.monotonic())
 
     def send(self, msg: can.Message, timeout_s: float = 0.05) -> None:
         """Send one frame; raise :class:`BusSendError` naming the bus on failure."""
         msg.timestamp = time.time()
         msg.is_rx = False
+        echoes = self.echoes
         try:
             with self._lock:
+                if echoes is not None:  # before sending: the echo may beat the return
+                    echoes.add(msg, time.monotonic())
                 self.bus.send(msg, timeout=timeout_s)
         except (can.CanError, OSError, ValueError) as exc:
+            if echoes is not None:
+                echoes.discard(msg)
             raise BusSendError(
                 f"bus {self.name}: send of 0x{msg.arbitration_id:03X} failed ({exc})"
             ) from None
@@ -219,12 +556,21 @@ class BusPort:
     def send_many(self, msgs: list[can.Message], timeout_s: float = 0.05) -> None:
         """Send frames in order under one lock acquisition."""
         now = time.time()
+        echoes = self.echoes
+        mono = time.monotonic()
         try:
             with self._lock:
                 for msg in msgs:
                     msg.timestamp = now
                     msg.is_rx = False
-                    self.bus.send(msg, timeout=timeout_s)
+                    if echoes is not None:
+                        echoes.add(msg, mono)
+                    try:
+                        self.bus.send(msg, timeout=timeout_s)
+                    except BaseException:
+                        if echoes is not None:
+                            echoes.discard(msg)
+                        raise
                     self.n_sent += 1
                     if self.log is not None:
                         self.log.log_sent(msg)

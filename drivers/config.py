@@ -4,13 +4,24 @@ The file has a ``[control]`` table (rate and safety timing) and one
 ``[buses.NAME]`` table per CAN bus: a python-can ``interface``, ``channel`` and
 ``bitrate``, optional ``[buses.NAME.options]`` (extra ``can.Bus`` keyword
 arguments) and ``[buses.NAME.nodes]`` mapping each rope motor id to its CANopen
-node id.  The interface is configuration, never code: any name python-can knows
-(built-in or registered under the ``can.interface`` entry point) is accepted.
+node id; an optional ``[tension]`` table names the tension-sensor board's serial port
+and its stop thresholds (:class:`TensionConfig`; no table: the box has no board).
+The interface is configuration, never code: any name python-can knows (built-in or
+registered under the ``can.interface`` entry point) is accepted.
 
 This module is the one reader of the file and :class:`BoxConfig` the one typed
 configuration: the host's drivers and the simulated box (``sim_bus``, ``hrm sim``)
 both take it.  It describes the wire, not the host's logic; simulator settings are
 arguments of ``sim_bus.box.SimBox`` and of ``hrm sim``, never keys of the file.
+
+Every ``[control]`` value is checked against its safe range when the file loads
+(:data:`CONTROL_RANGES`, one row per key with the reason for its bounds, and
+:data:`CONTROL_RELATIONS` between keys), so ``hrm busload``, ``hrm run`` and the
+simulated box refuse the same files, before anything is sent: a watchdog cannot be
+configured away (``missing_tpdo_cycles = 1e8``) and no value a drive would abort
+(0x605A, 0x6065, 0x60C2) reaches a drive after its NMT reset.  The message is one
+line naming the file, the key, the value and the range:
+``box.toml: control.missing_tpdo_cycles = 100000000 outside 1..25 cycles; the arm ...``.
 
 >>> cfg = load_box_config(None)
 >>> [b.name for b in cfg.buses], cfg.n_motors, cfg.control.rate_hz
@@ -24,7 +35,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -37,8 +48,13 @@ from drivers.protocol.cia301 import (
     NODE_ID_MIN,
     FrameError,
 )
-from drivers.protocol.cia402 import interpolation_time_period
-from drivers.realtime import NORMAL_PRIORITY, REALTIME_PRIORITY_MAX
+from drivers.protocol.cia402 import (
+    QUICK_STOP_OPTION_DISABLE_DRIVE,
+    QUICK_STOP_OPTIONS_STAY,
+    QUICK_STOP_OPTIONS_THEN_DISABLED,
+    interpolation_time_period,
+)
+from drivers.realtime import NORMAL_PRIORITY
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.files import read_toml
 
@@ -55,10 +71,16 @@ UDP_MULTICAST_HOP_LIMIT = 0
 default is 1): 0 keeps the traffic on this host, for the host and the simulator alike."""
 
 
+RATE_MIN_HZ = 10.0
+RATE_MAX_HZ = 1000.0
+"""Control rates the stack runs at (see ``rate_hz`` in :data:`CONTROL_RANGES`)."""
+
+
 def rate_problem(rate_hz: float) -> str | None:
     """Why a control rate cannot be used (a phrase after ``control.rate_hz``), or ``None``.
 
-    The control period is written to the drives as 0x60C2 interpolation time period
+    The rate must lie in ``RATE_MIN_HZ..RATE_MAX_HZ`` (reasons in :data:`CONTROL_RANGES`),
+    and the control period is written to the drives as 0x60C2 interpolation time period
     (value 1..255 times 10^index s), so the period must be exactly representable.
 
     >>> rate_problem(100.0) is None, rate_problem(250.0) is None
@@ -66,14 +88,15 @@ def rate_problem(rate_hz: float) -> str | None:
     >>> rate_problem(30.0)
     'must give a period 0x60C2 can encode (value 1..255 x 10^index s; nearest: 25 or 40 Hz)'
     >>> rate_problem(0.0)
-    'must be in (0, 10000]'
+    'must be in 10..1000 Hz'
     """
-    if not (math.isfinite(rate_hz) and 0 < rate_hz <= 10_000):
-        return "must be in (0, 10000]"
+    if not (math.isfinite(rate_hz) and RATE_MIN_HZ <= rate_hz <= RATE_MAX_HZ):
+        return f"must be in {RATE_MIN_HZ:g}..{RATE_MAX_HZ:g} Hz"
     if _encodable(rate_hz):
         return None
-    below = next((r for r in range(math.floor(rate_hz), 0, -1) if _encodable(r)), None)
-    above = next((r for r in range(math.ceil(rate_hz), 10_001) if _encodable(r)), None)
+    lo, hi = int(RATE_MIN_HZ), int(RATE_MAX_HZ)
+    below = next((r for r in range(math.floor(rate_hz), lo - 1, -1) if _encodable(r)), None)
+    above = next((r for r in range(math.ceil(rate_hz), hi + 1) if _encodable(r)), None)
     near = " or ".join(str(r) for r in (below, above) if r is not None)
     return f"must give a period 0x60C2 can encode (value 1..255 x 10^index s; nearest: {near} Hz)"
 
@@ -161,6 +184,33 @@ class ControlConfig:
         return 1.0 / self.rate_hz
 
 
+TENSION_BAUD_RANGE = (9_600, 4_000_000)
+TENSION_SLACK_RANGE_N = (0.5, 100.0)
+TENSION_LIMIT_MAX_N = 650.0
+TENSION_STALE_RANGE_S = (0.02, 0.5)
+TENSION_GARBAGE_MAX_PER_S = 50.0
+
+
+@dataclass(frozen=True)
+class TensionConfig:
+    """The rope tension-sensor board (the optional ``[tension]`` table): its serial port
+    and the thresholds that stop every axis (``drivers.tension_sensor.TensionWatch``).
+
+    Safe ranges, checked on load: ``slack_N`` in [0.5, 100] N (above the board's noise, so
+    a broken rope reads below it) and below ``limit_N``; ``limit_N`` at most 650 N (the
+    board saturates at 655.34 N); ``stale_s`` in [0.02, 0.5] s (at least two frames at
+    100 Hz, at most half a second blind); ``garbage_per_s`` (CRC errors, resynchronisations
+    and wrong-size frames per second, over the last second) in (0, 50].
+    """
+
+    port: str
+    baudrate: int = 921_600
+    slack_N: float = 5.0
+    limit_N: float = 150.0
+    stale_s: float = 0.1
+    garbage_per_s: float = 5.0
+
+
 @dataclass(frozen=True)
 class BoxConfig:
     """Every bus of the box plus the control settings; immutable."""
@@ -169,6 +219,7 @@ class BoxConfig:
     control: ControlConfig
     source: str
     _where: Mapping[str, tuple[int, int]] = field(default_factory=dict, repr=False)
+    tension: TensionConfig | None = None  # the [tension] table: None, the box has no board
 
     @property
     def motor_ids(self) -> tuple[str, ...]:
@@ -222,6 +273,12 @@ class BoxConfig:
         _check_distinct_channels(buses, self.source)
         return replace(self, buses=tuple(buses))
 
+    def with_tension(self, **changes: Any) -> BoxConfig:
+        """A copy with a ``[tension]`` table (or some of its values) changed, validated
+        again (e.g. the simulated board's pseudo-terminal as the port)."""
+        old = {} if self.tension is None else self.to_dict()["tension"]
+        return replace(self, tension=_tension_from({**old, **changes}, self.source))
+
     def to_dict(self) -> dict[str, Any]:
         c = self.control
         return {
@@ -236,6 +293,7 @@ class BoxConfig:
                 }
                 for b in self.buses
             },
+            **({} if self.tension is None else {"tension": asdict(self.tension)}),
         }
 
 
@@ -281,6 +339,142 @@ _CONTROL_TYPES: dict[str, type] = {
 }
 
 
+@dataclass(frozen=True)
+class ControlRange:
+    """The safe range of one ``[control]`` value (inclusive) and why it ends there."""
+
+    lo: float
+    hi: float
+    unit: str
+    why: str
+
+    def text(self) -> str:
+        return f"{self.lo:g}..{self.hi:g}{' ' + self.unit if self.unit else ''}"
+
+
+_QUICK_STOP_CODES = {QUICK_STOP_OPTION_DISABLE_DRIVE} | set(QUICK_STOP_OPTIONS_THEN_DISABLED)
+_QUICK_STOP_CODES |= set(QUICK_STOP_OPTIONS_STAY)
+
+CONTROL_RANGES: Mapping[str, ControlRange] = {
+    "rate_hz": ControlRange(
+        RATE_MIN_HZ, RATE_MAX_HZ, "Hz",
+        "below 10 Hz the drives interpolate over 100 ms between targets and every watchdog "
+        "counted in cycles slows with it; above 1 kHz the host's control loop (a Python "
+        "thread) cannot keep its period; the period must also fit 0x60C2",
+    ),
+    "host_node_id": ControlRange(
+        NODE_ID_MIN, NODE_ID_MAX, "",
+        "a CANopen node id (the host heartbeat's COB-ID is 0x700 + id), not a drive's",
+    ),
+    "host_heartbeat_ms": ControlRange(
+        10, 500, "ms",
+        "sent on the control deadline nearest its due time (so one period at least); the "
+        "drives' timeout (heartbeat_timeout_ms, at most 2 s) must span 3 of them",
+    ),
+    "node_heartbeat_ms": ControlRange(
+        10, 500, "ms",
+        "0x1017 of every drive: 10 ms puts 100 frames/s per drive on its bus; the host's "
+        "timeout (heartbeat_timeout_ms, at most 2 s) must span 3 of them",
+    ),
+    "heartbeat_timeout_ms": ControlRange(
+        30, 2000, "ms",
+        "0x1016 on the drives and the host's own watch: a dead host or drive goes "
+        "unnoticed at most this long; 3 of the shortest heartbeat periods at least",
+    ),
+    "missing_tpdo_cycles": ControlRange(
+        1, 25, "cycles",
+        "the arm moves without position feedback this many cycles before every axis stops "
+        "(25: the HIL rig's 250 ms at 100 Hz, over udp_multicast on a shared machine)",
+    ),
+    "bus_load_limit": ControlRange(
+        0.05, 0.9, "",
+        "the worst-case load leaves no room for error frames and retransmissions above "
+        "0.9, and the heartbeats (lowest priority) need idle bus time to get through",
+    ),
+    "bootup_timeout_s": ControlRange(
+        0.1, 30.0, "s",
+        "nothing moves during boot-up: a missing node is reported within 30 s; no drive "
+        "boots within 0.1 s of its NMT reset",
+    ),
+    "sdo_timeout_s": ControlRange(
+        0.05, 2.0, "s",
+        "each SDO transfer (canopen retries once); disabling the drives after a stop is "
+        "SDO, so a longer timeout delays it; 50 ms covers a drive and a loaded host",
+    ),
+    "state_timeout_s": ControlRange(
+        0.05, 5.0, "s",
+        "each CiA 402 transition, a quick stop ramp included; disabling the drives after "
+        "a stop waits this long per transition",
+    ),
+    "following_error_window_counts": ControlRange(
+        1, 65536, "counts",
+        "0x6065 (UNSIGNED32, 0xFFFFFFFF switches the drive's check off): 65536 counts are "
+        "16 encoder turns, 30 mm of rope with the shipped motor map; 0 faults at any lag",
+    ),
+    "quick_stop_option_code": ControlRange(
+        min(_QUICK_STOP_CODES), max(_QUICK_STOP_CODES), "",
+        "0x605A (INTEGER16 in hrm_drive.eds): the codes CiA 402 defines and the drive "
+        "implements; it aborts any other write (0x06090030) after its NMT reset",
+    ),
+    "realtime_priority": ControlRange(
+        NORMAL_PRIORITY, 49, "",
+        "SCHED_FIFO priority of the control thread (0: off); at 50 and above it would "
+        "preempt the kernel's interrupt threads (PREEMPT_RT), the CAN controller's too",
+    ),
+}  # fmt: skip
+"""The safe range of every ``[control]`` value: (lo, hi, unit, why), both ends included."""
+
+FEEDBACK_BLIND_MAX_S = 0.5
+"""Longest the arm may move without position feedback: ``missing_tpdo_cycles`` periods."""
+
+HEARTBEATS_PER_TIMEOUT = 3
+"""A heartbeat timeout spans at least this many heartbeat periods: one lost heartbeat and
+a late one do not stop the arm, a dead producer does."""
+
+CONTROL_RELATIONS: tuple[str, ...] = (
+    "host_heartbeat_ms >= 1000 / rate_hz (the host heartbeat goes out on control deadlines)",
+    f"heartbeat_timeout_ms >= {HEARTBEATS_PER_TIMEOUT} x host_heartbeat_ms (drives' 0x1016)",
+    f"heartbeat_timeout_ms >= {HEARTBEATS_PER_TIMEOUT} x node_heartbeat_ms (the host's watch)",
+    f"missing_tpdo_cycles / rate_hz <= {FEEDBACK_BLIND_MAX_S:g} s (time without feedback)",
+)
+"""Relations between ``[control]`` values, checked after the ranges."""
+
+
+def _shown(value: Any) -> str:
+    """A value for a message: its repr, or the start of it for a number of many digits.
+
+    >>> _shown(3), _shown(10**60)
+    ('3', '1000000000000000000... (61 digits)')
+    """
+    text = repr(value)
+    return text if len(text) <= 24 else f"{text[:19]}... ({len(text)} digits)"
+
+
+def _relation_problem(c: ControlConfig) -> tuple[str, str] | None:
+    """(key, why) of the first relation ``c`` breaks, or ``None``."""
+    period_ms = 1000.0 / c.rate_hz
+    n = HEARTBEATS_PER_TIMEOUT
+    if c.host_heartbeat_ms < period_ms:
+        return "host_heartbeat_ms", (
+            f"must be at least one control period ({period_ms:g} ms at {c.rate_hz:g} Hz): "
+            "the host heartbeat goes out on control deadlines"
+        )
+    for key in ("host_heartbeat_ms", "node_heartbeat_ms"):
+        beat = getattr(c, key)
+        if c.heartbeat_timeout_ms < n * beat:
+            return "heartbeat_timeout_ms", (
+                f"must be at least {n} x {key} ({n} x {beat} = {n * beat} ms) so that one "
+                "lost heartbeat does not stop the arm"
+            )
+    blind_s = c.missing_tpdo_cycles / c.rate_hz
+    if blind_s > FEEDBACK_BLIND_MAX_S + 1e-12:
+        return "missing_tpdo_cycles", (
+            f"must keep the arm at most {FEEDBACK_BLIND_MAX_S:g} s without feedback "
+            f"({c.missing_tpdo_cycles} cycles at {c.rate_hz:g} Hz are {blind_s:g} s)"
+        )
+    return None
+
+
 def _control_from(doc: Mapping[str, Any], where: str) -> ControlConfig:
     if not isinstance(doc, Mapping):
         raise BusConfigError(f"{where}: [control] must be a table")
@@ -292,53 +486,82 @@ def _control_from(doc: Mapping[str, Any], where: str) -> ControlConfig:
         kind = _CONTROL_TYPES[key]
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise BusConfigError(f"{w}: expected a number, got {value!r}")
-        if kind is int and (not isinstance(value, int) and not float(value).is_integer()):
-            raise BusConfigError(f"{w}: expected an integer, got {value!r}")
-        if not math.isfinite(float(value)):
+        if isinstance(value, float) and not math.isfinite(value):
             raise BusConfigError(f"{w}: expected a finite number, got {value!r}")
+        if kind is int and isinstance(value, float) and not value.is_integer():
+            raise BusConfigError(f"{w}: expected an integer, got {value!r}")
+        rng = CONTROL_RANGES[key]
+        if not rng.lo <= value <= rng.hi:  # before any conversion: no overflow
+            raise BusConfigError(f"{w} = {_shown(value)} outside {rng.text()}; {rng.why}")
         values[key] = kind(value)
     c = ControlConfig(**values)
+    problem = rate_problem(c.rate_hz)
+    if problem is not None:
+        raise BusConfigError(f"{where}: control.rate_hz {problem}, got {c.rate_hz!r}")
+    relation = _relation_problem(c)
+    if relation is not None:
+        key, why = relation
+        raise BusConfigError(f"{where}: control.{key} = {getattr(c, key)!r} {why}")
+    return c
+
+
+def _tension_from(doc: Any, where: str) -> TensionConfig:
+    """The ``[tension]`` table, every value checked against its safe range."""
+    if not isinstance(doc, Mapping):
+        raise BusConfigError(f"{where}: [tension] must be a table")
+    fields = TensionConfig.__dataclass_fields__
+    for key in doc:
+        if key not in fields:
+            raise BusConfigError(f"{where}: tension.{key}: unknown key")
+    if "port" not in doc:
+        raise BusConfigError(f"{where}: tension.port: missing (the board's serial port)")
+    port = doc["port"]
+    if not isinstance(port, str) or not port.strip():
+        raise BusConfigError(f"{where}: tension.port: expected a serial port path, got {port!r}")
+    values: dict[str, Any] = {"port": port}
+    for key, value in doc.items():
+        if key == "port":
+            continue
+        w = f"{where}: tension.{key}"
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise BusConfigError(f"{w}: expected a number, got {value!r}")
+        if not math.isfinite(float(value)):
+            raise BusConfigError(f"{w}: expected a finite number, got {value!r}")
+        if key == "baudrate":
+            if not isinstance(value, int):
+                raise BusConfigError(f"{w}: expected an integer, got {value!r}")
+            values[key] = int(value)
+        else:
+            values[key] = float(value)
+    t = TensionConfig(**values)
+    lo_b, hi_b = TENSION_BAUD_RANGE
+    lo_s, hi_s = TENSION_SLACK_RANGE_N
+    lo_t, hi_t = TENSION_STALE_RANGE_S
     checks = [
-        ("rate_hz", rate_problem(c.rate_hz) is None, str(rate_problem(c.rate_hz))),
+        ("baudrate", lo_b <= t.baudrate <= hi_b, f"must be in {lo_b}..{hi_b}"),
+        ("slack_N", lo_s <= t.slack_N <= hi_s, f"must be in [{lo_s:g}, {hi_s:g}] N"),
         (
-            "host_node_id",
-            NODE_ID_MIN <= c.host_node_id <= NODE_ID_MAX,
-            f"must be in {NODE_ID_MIN}..{NODE_ID_MAX}",
+            "limit_N",
+            t.slack_N < t.limit_N <= TENSION_LIMIT_MAX_N,
+            f"must exceed slack_N ({t.slack_N:g} N) and be <= {TENSION_LIMIT_MAX_N:g} N",
         ),
-        ("host_heartbeat_ms", 1 <= c.host_heartbeat_ms <= 0xFFFF, "must be in 1..65535"),
-        ("node_heartbeat_ms", 1 <= c.node_heartbeat_ms <= 0xFFFF, "must be in 1..65535"),
+        ("stale_s", lo_t <= t.stale_s <= hi_t, f"must be in [{lo_t:g}, {hi_t:g}] s"),
         (
-            "heartbeat_timeout_ms",
-            max(c.host_heartbeat_ms, c.node_heartbeat_ms) < c.heartbeat_timeout_ms <= 0xFFFF,
-            "must exceed both heartbeat periods (and be <= 65535)",
-        ),
-        ("missing_tpdo_cycles", c.missing_tpdo_cycles >= 1, "must be >= 1"),
-        ("bus_load_limit", 0 < c.bus_load_limit <= 1, "must be in (0, 1]"),
-        ("bootup_timeout_s", c.bootup_timeout_s > 0, "must be > 0"),
-        ("sdo_timeout_s", c.sdo_timeout_s > 0, "must be > 0"),
-        ("state_timeout_s", c.state_timeout_s > 0, "must be > 0"),
-        (
-            "following_error_window_counts",
-            0 <= c.following_error_window_counts <= 0xFFFFFFFF,
-            "must be in 0..4294967295",
-        ),
-        ("quick_stop_option_code", -32768 <= c.quick_stop_option_code <= 32767, "INTEGER16"),
-        (
-            "realtime_priority",
-            NORMAL_PRIORITY <= c.realtime_priority <= REALTIME_PRIORITY_MAX,
-            f"must be in {NORMAL_PRIORITY}..{REALTIME_PRIORITY_MAX}",
+            "garbage_per_s",
+            0 < t.garbage_per_s <= TENSION_GARBAGE_MAX_PER_S,
+            f"must be in (0, {TENSION_GARBAGE_MAX_PER_S:g}] per s",
         ),
     ]
     for key, ok, why in checks:
         if not ok:
-            raise BusConfigError(f"{where}: control.{key} {why}, got {getattr(c, key)!r}")
-    return c
+            raise BusConfigError(f"{where}: tension.{key} {why}, got {getattr(t, key)!r}")
+    return t
 
 
 def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
     """Validate a parsed bus configuration and build a :class:`BoxConfig`."""
     where = source
-    unknown = set(doc) - {"control", "buses"}
+    unknown = set(doc) - {"control", "buses", "tension"}
     if unknown:
         raise BusConfigError(f"{where}: unknown table(s) {sorted(unknown)}")
     control = _control_from(doc.get("control", {}), where)
@@ -411,7 +634,10 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
             )
         )
     _check_distinct_channels(buses, source)
-    return BoxConfig(buses=tuple(buses), control=control, source=source, _where=placed)
+    tension = _tension_from(doc["tension"], where) if "tension" in doc else None
+    return BoxConfig(
+        buses=tuple(buses), control=control, source=source, _where=placed, tension=tension
+    )
 
 
 def _check_distinct_channels(buses: Sequence[BusConfig], source: str) -> None:

@@ -114,8 +114,8 @@ class CycleStats:
         return len(self.deadline)
 
     def summary(self) -> dict[str, Any]:
-        """Lateness = SYNC sent minus its deadline (wake lateness: scheduler awake minus
-        deadline); jitter = |period - T| between consecutive SYNCs; CPU = scheduler thread
+        """Lateness = SYNC sent minus its deadline (wake lateness: supervisor awake minus
+        deadline); jitter = |period - T| between consecutive SYNCs; CPU = supervisor thread
         time per cycle; process CPU includes receive threads and log writers."""
         n = self.n_cycles
         out: dict[str, Any] = {

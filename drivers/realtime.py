@@ -17,7 +17,7 @@ it got (:class:`AppliedSettings`) and restores both on exit.
   or an ``RLIMIT_RTPRIO`` of at least the priority.  When refused the context carries
   on under normal scheduling and says why (:attr:`AppliedSettings.realtime_refusal`,
   one warning on the ``drivers.realtime`` logger).  It applies to the calling thread
-  and to the threads it starts afterwards: entered by the scheduler thread only that
+  and to the threads it starts afterwards: entered by the supervisor thread only that
   thread runs under FIFO; entered at process start, every thread does.
 
 >>> import sys

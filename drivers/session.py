@@ -62,17 +62,18 @@ from drivers.bringup import (
     BootupError,
     DriveLink,
     DriveSettings,
-    command,
     configure_drive,
+    disable,
     enable_operation,
     read_state,
     sdo_write,
 )
-from drivers.bus import BusPort, TrafficLog, is_host_frame
+from drivers.bus import ECHOING_INTERFACES, BusPort, TrafficLog
 from drivers.busload import BusLoad, check_bus_load
 from drivers.config import BoxConfig
 from drivers.cycle import BusLayout, EventLog, StreamResult
 from drivers.protocol import cia301, cia402
+from drivers.receive import BusReceiver, wait_quiet_listen
 from drivers.safety.causes import StopCause, StopKind
 from drivers.safety.limits import MAX_SOURCE_DURATION_S, LimitChecker
 from drivers.safety.monitor import NodeMonitor
@@ -88,9 +89,13 @@ CONFIG_SDO_TRANSFERS = 48
 ENABLE_TRANSITIONS = 7
 ENABLE_SDO_TRANSFERS = 12
 PARALLEL_MARGIN_S = 1.0
+# Before the first NMT reset: listen this long for another master (heartbeats of nodes in
+# NMT operational, a SYNC producer, RPDOs); covers heartbeat periods up to ~200 ms twice.
+LISTEN_BEFORE_RESET_S = 0.5
 STREAM_TIMEOUT_MARGIN_S = 30.0  # a stream's wait: its own length plus this
 HEARTBEAT_START_WAIT_S = 0.5  # the first host heartbeat precedes the NMT reset
 STOP_RECORD_WAIT_S = 2.0  # longest wait for a stop being confirmed (10 periods at most)
+EMCY_WAIT_S = 0.25  # a drive seen in FAULT: its EMCY is on the wire, the stop follows
 log = logging.getLogger("drivers.session")
 
 
@@ -108,6 +113,10 @@ class SessionState(Enum):
 
 class SessionStateError(DriverError):
     """A session call refused in the session's current state."""
+
+
+class OtherMasterError(DriverError):
+    """Another master is active on the box's buses: its drives are not reset."""
 
 
 class SafetyStopError(DriverError):
@@ -139,39 +148,6 @@ class _PortNetwork(canopen.Network):
         self.check()
 
 
-class _RxRouter(can.Listener):
-    """Receive path of one bus: TPDOs go straight to the monitor (every cycle, every
-    node: the hot path), everything else to canopen (SDO, heartbeat, EMCY)."""
-
-    def __init__(
-        self,
-        network: canopen.Network,
-        on_error: Callable[[StopKind, str], None],
-        host_node_id: int = cia301.HOST_HEARTBEAT_NODE_ID,
-    ) -> None:
-        self.network = network
-        self.on_error = on_error
-        self.host_node_id = host_node_id
-        self.fast: dict[int, Callable[[bytes], None]] = {}
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.is_error_frame or msg.is_remote_frame:
-            return
-        handler = self.fast.get(msg.arbitration_id)
-        if handler is not None:
-            handler(msg.data)
-            return
-        if is_host_frame(msg.arbitration_id, self.host_node_id):
-            return  # our own frame echoed back (udp_multicast): nothing for canopen
-        try:
-            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
-        except Exception as exc:  # must not stop the receive thread: report it instead
-            log.exception("canopen callback failed on 0x%03X", msg.arbitration_id)
-            self.on_error(
-                StopKind.RECEIVE, f"frame 0x{msg.arbitration_id:03X} not handled ({exc!r})"
-            )
-
-
 class DriveSession:
     """Every bus and drive of the box; see the module docstring for the states."""
 
@@ -184,6 +160,8 @@ class DriveSession:
         run_name: str | None = None,
         buses: Sequence[can.BusABC] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        take_over: bool = False,
+        listen_s: float = LISTEN_BEFORE_RESET_S,
     ) -> None:
         config.check_motors(actuation.motor_ids)
         if buses is not None and len(buses) != len(config.buses):
@@ -205,12 +183,16 @@ class DriveSession:
         self.stop_error: str | None = None  # why the last quick stop could not be sent
         self._state = SessionState.CLOSED
         self._state_lock = threading.Lock()
+        self.take_over = bool(take_over)
+        self.listen_s = float(listen_s)
+        self._brought_up = False  # this session has reset the drives (they are ours)
 
         n = len(actuation.motor_ids)
         self._ports: list[BusPort] = []
         self._logs: list[TrafficLog] = []
         self._owned: list[can.BusABC] = []
         self._networks: list[_PortNetwork] = []
+        self._receivers: list[BusReceiver] = []
         self._layouts: list[BusLayout] = []
         self.links: list[DriveLink | None] = [None] * n
         labels = [""] * n
@@ -308,16 +290,25 @@ class DriveSession:
                 log = TrafficLog(
                     self.log_dir / f"{self.run_name}_{b.name}{self.log_suffix}",
                     channel=bi + 1,
-                    host_node_id=self.control.host_node_id,
                 )
                 self._logs.append(log)
-            port = BusPort(b.name, bus, log)
+            echoes = b.interface in ECHOING_INTERFACES or bool(
+                b.options.get("receive_own_messages", False)
+            )
+            port = BusPort(b.name, bus, log, echoes=echoes)
             self._ports.append(port)
             net = _PortNetwork(port)
-            router = _RxRouter(net, self.monitor.report, self.control.host_node_id)
-            listeners: list[can.Listener] = [router]
-            if log is not None:
-                listeners.append(log)
+            labels = {nid: self.monitor.labels[order[m]] for m, nid in b.nodes.items()}
+            router = BusReceiver(
+                port,
+                net,
+                log,
+                labels,
+                self.monitor.report,
+                lambda: self.monitor.armed,
+                self.control.host_node_id,
+            )
+            self._receivers.append(router)
             idx = np.array([order[m] for m in b.nodes], dtype=np.int64)
             for motor, nid in b.nodes.items():
                 i = order[motor]
@@ -327,7 +318,7 @@ class DriveSession:
                 self.links[i] = DriveLink(node, b.name, motor)
                 self._subscribe(net, i, nid)
                 router.fast[cia301.COB_TPDO1 + nid] = functools.partial(self.monitor.on_tpdo, i)
-            net.notifier = can.Notifier(bus, listeners, 0.1)
+            net.notifier = can.Notifier(bus, [router], 0.1)
             self._networks.append(net)
             load = self.loads[bi]
             self._layouts.append(
@@ -437,9 +428,14 @@ class DriveSession:
         self.idle_causes = []
         self.stop_error = None
         self.monitor.hb_armed_at = None
+        if not self._brought_up:
+            self._listen_for_other_masters()
+        for r in self._receivers:
+            r.traffic.clear_evidence()
         self.supervisor.set_heartbeat(True, wait_s=HEARTBEAT_START_WAIT_S)
         self.monitor.reset_boot()
         self.send_nmt(cia301.NMT_RESET_NODE)
+        self._brought_up = True
         self.events.add("nmt", "NMT reset node sent on every bus")
         if not self.monitor.boot_event.wait(ctl.bootup_timeout_s):
             missing = self.monitor.missing_boot()
@@ -459,12 +455,44 @@ class DriveSession:
         self.bringup_s = time.monotonic() - t_start
         self._set_state(SessionState.READY)
 
+    def _listen_for_other_masters(self) -> None:
+        """Before resetting drives this session has not brought up: listen for another
+        master (its drives operational, its SYNC, its RPDOs); refuse to reset them
+        unless the operator takes over."""
+        heard = wait_quiet_listen(self._receivers, self.listen_s)
+        if heard is None:
+            self.events.add("listen", f"no other master heard in {self.listen_s:g} s")
+            return
+        if self.take_over:
+            self.events.add("take_over", f"another master heard, taken over: {heard}")
+            return
+        text = (
+            f"another master is active: {heard}; not resetting its drives "
+            "(take over explicitly to reset them anyway)"
+        )
+        self.events.add("error", text)
+        raise OtherMasterError(text)
+
+    def _foreign_frames(self) -> str | None:
+        heard = [
+            f"bus {r.port.name}: "
+            + ", ".join(f"0x{cid:03X} x{n}" for cid, n in sorted(r.traffic.foreign.items()))
+            for r in self._receivers
+            if r.traffic.foreign
+        ]
+        return "; ".join(heard) if heard else None
+
     def enable(self) -> np.ndarray:
         """Every drive to OPERATION_ENABLED in CSP (-> ENABLED); return the actual
         positions (counts).  A drive whose actual position is outside its limits, or
         that does not reach the state, fails the whole enable: every drive then gets a
         quick stop by SDO and NMT pre-operational (-> FAULT)."""
         self._require("enable", SessionState.READY)
+        foreign = self._foreign_frames()
+        if foreign is not None and not self.take_over:
+            text = f"enable refused: frames of another master since the reset: {foreign}"
+            self.events.add("error", text)
+            raise OtherMasterError(text)
         t_start = time.monotonic()
         ctl = self.control
         try:
@@ -522,17 +550,25 @@ class DriveSession:
         self.events.add("quick_stop", "bring-up failed: quick stop (SDO) and NMT pre-operational")
 
     def _disable_drives(self, what: str) -> None:
-        """Controlled disable of every drive by SDO: *disable operation* (confirmed
-        SWITCHED_ON by the statusword), then *shutdown* (confirmed READY_TO_SWITCH_ON:
-        power stage off).  No target position is sent.  Raises naming the drives that
-        failed (the others are still disabled)."""
+        """Controlled disable of every drive by SDO along the CiA 402 transition table
+        (:func:`drivers.bringup.disable`): from OPERATION_ENABLED *disable operation*
+        then *shutdown*; from QUICK_STOP_ACTIVE or SWITCH_ON_DISABLED (after a quick stop)
+        to READY_TO_SWITCH_ON (power stage off), each step confirmed by the statusword.
+        No target position is sent.  A drive in FAULT is left there (a fault is reset
+        only on purpose).  Raises naming the drives that failed (the others are still
+        disabled)."""
         timeout_s = self.control.state_timeout_s
 
-        def disable(link: DriveLink) -> None:
-            command(link, cia402.CW_DISABLE_OPERATION, cia402.State402.SWITCHED_ON, timeout_s)
-            command(link, cia402.CW_SHUTDOWN, cia402.State402.READY_TO_SWITCH_ON, timeout_s)
+        def disable_one(link: DriveLink) -> None:
+            state, sw = read_state(link)
+            if state in (cia402.State402.FAULT, cia402.State402.FAULT_REACTION_ACTIVE):
+                raise DriverError(
+                    f"{link.label}: statusword 0x{sw:04X} ({state.name}): not disabled "
+                    "(reset the fault first)"
+                )
+            disable(link, timeout_s)
 
-        self._parallel(what, disable, self._budget_s(0, 2))
+        self._parallel(what, disable_one, self._budget_s(1, 3))
 
     def disable(self) -> None:
         """Disable every drive by SDO (-> READY); from STOPPED too (after a quick stop
@@ -578,9 +614,15 @@ class DriveSession:
             StreamResult(False, 0, causes, {}, np.zeros(self.monitor.n, np.int64)),
         )
 
-    def _raise_if_stopped(self) -> None:
+    def _raise_if_stopped(self, expect_stop_s: float = 0.0) -> None:
         """While a stream is being prepared the supervisor may stop the box (an EMCY,
-        a lost heartbeat): wait for its stop record, then refuse naming the cause."""
+        a lost heartbeat): wait for its stop record, then refuse naming the cause.
+        ``expect_stop_s``: how long to wait for a stop to begin (a drive found in FAULT
+        has sent its EMCY, which may still be on its way)."""
+        t_now = time.monotonic()
+        begin_by = t_now + expect_stop_s
+        while self.supervisor.mode is Mode.ARMED and time.monotonic() < begin_by:
+            time.sleep(self.control.period_s)
         deadline = time.monotonic() + STOP_RECORD_WAIT_S
         while self.supervisor.mode is Mode.STOPPING and time.monotonic() < deadline:
             time.sleep(self.control.period_s)
@@ -610,7 +652,7 @@ class DriveSession:
         try:
             self._check_ready()
         except DriverError:
-            self._raise_if_stopped()  # the supervisor stopped the box meanwhile
+            self._raise_if_stopped(EMCY_WAIT_S)  # the supervisor stops the box meanwhile
             raise
         self._raise_if_stopped()
         self._set_state(SessionState.STREAMING)
@@ -621,6 +663,8 @@ class DriveSession:
             self._raise_if_stopped()
             raise
         except BaseException:
+            if self.supervisor.last_result is not None:  # interrupted: it still ended
+                self.results.append(self.supervisor.last_result)
             if self._state is SessionState.STREAMING:
                 self._set_state(SessionState.FAULT)
             raise
@@ -638,9 +682,11 @@ class DriveSession:
             raise SafetyStopError(f"stopped: {first.text}{more}", result.causes, result)
         return result
 
-    def request_stop(self) -> None:
+    def request_stop(
+        self, kind: StopKind = StopKind.OPERATOR, text: str = "stop requested"
+    ) -> None:
         """Quick stop every axis now, streaming or idle (thread-safe)."""
-        self.supervisor.request_stop()
+        self.supervisor.request_stop(kind, text)
 
     def send_nmt(self, command: int) -> None:
         """Broadcast one NMT command on every bus."""
@@ -648,20 +694,24 @@ class DriveSession:
             port.send(cia301.make_nmt(command, 0))
 
     def finish(self) -> None:
-        """Orderly end (-> CONNECTED): *disable operation* then *shutdown* by SDO, each
-        confirmed by the statusword (power stage off, READY_TO_SWITCH_ON; no target
-        position is sent), then NMT pre-operational, then the host heartbeat off (the
-        drives no longer need it).  Whatever fails, the rest is still done; then
-        :class:`DriverError` names what failed (a drive left enabled stops itself when
-        the host heartbeat ends, and on NMT pre-operational)."""
+        """Orderly end (-> CONNECTED), also after a safety stop: every drive disabled by
+        SDO along the CiA 402 transition table (from OPERATION_ENABLED *disable
+        operation* then *shutdown*; from a quick stop to READY_TO_SWITCH_ON: power stage
+        off; no target position is sent; a drive in FAULT is left there), then NMT
+        pre-operational, then the host heartbeat off (the drives no longer need it).
+        Whatever fails, the rest is still done; then :class:`DriverError` names what
+        failed (a drive left enabled stops itself when the host heartbeat ends, and on
+        NMT pre-operational)."""
         if self._state is SessionState.CLOSED:
             raise SessionStateError("finish: the session is closed")
         failed: list[str] = []
-        was_enabled = self.enabled
         try:
             if self.supervisor.mode is Mode.ARMED:
-                self.supervisor.disarm()
-            if was_enabled and self.supervisor.mode is not Mode.STOPPING:
+                self.supervisor.disarm()  # with a last check
+            deadline = time.monotonic() + STOP_RECORD_WAIT_S
+            while self.supervisor.mode is Mode.STOPPING and time.monotonic() < deadline:
+                time.sleep(self.control.period_s)  # a quick stop being confirmed ends first
+            if self.enabled or self._state in (SessionState.STOPPED, SessionState.FAULT):
                 try:
                     self._disable_drives("disable")
                     self.events.add(
@@ -700,11 +750,13 @@ class DriveSession:
             "actual_counts_at_enable": None if self.actual is None else self.actual.tolist(),
             "streams": [r.to_dict() for r in self.results],
             "session_state": self._state.value,
+            "bus_traffic": [r.traffic.to_dict() for r in self._receivers],
             "idle_stop_causes": [x.to_dict() for x in self.idle_causes],
             "events": self.events.to_list(),
             "emergencies": [e.describe() for e in self.monitor.emergencies],
             "can_logs": [str(log.path) for log in self._logs],
             "can_log_frames": [log.n_frames for log in self._logs],
+            "can_log_lost": [log.n_lost for log in self._logs],
             "can_log_errors": [log.first_error for log in self._logs if log.write_errors],
             **self.record_extra,
         }
@@ -723,14 +775,24 @@ class DriveSession:
         self._owned = []
 
     def close(self) -> Path | None:
-        """Stop everything (-> CLOSED); write the run record (if logging); return its path."""
+        """Stop everything (-> CLOSED); write the run record (if logging); return its path.
+
+        The record is written after the logs close, into the space they held for it
+        since the session opened (:meth:`TrafficLog._hold_reserve`): a disk the run filled
+        up still takes it, and names the logs that it cut short (``can_log_errors``).  A
+        record that cannot be written even so raises :class:`DriverError` (one line)."""
         self.supervisor.close()
         self._close_io()
         self._set_state(SessionState.CLOSED)
         if self.log_dir is None:
             return None
         path = self.log_dir / f"{self.run_name}.json"
-        write_atomic(path, json.dumps(_jsonable(self.record()), indent=1, allow_nan=False) + "\n")
+        text = json.dumps(_jsonable(self.record()), indent=1, allow_nan=False) + "\n"
+        try:
+            write_atomic(path, text)
+        except OSError as exc:
+            why = exc.strerror or exc
+            raise DriverError(f"run record {path}: cannot write it ({why})") from None
         self.record_path = path
         return path
 
@@ -738,15 +800,22 @@ class DriveSession:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        """Finish (also after a safety stop: NMT pre-operational, host heartbeat last),
+        then close.  A finish failure is raised when nothing else is in flight and the
+        session was not already stopped (a stop was reported to the caller when it
+        happened); otherwise it goes into the run record."""
         try:
-            if self.enabled:
+            if self._state not in (SessionState.CLOSED, SessionState.CONNECTED) or (
+                self.supervisor.mode is not Mode.OFF
+            ):
+                stopped = self._state in (SessionState.STOPPED, SessionState.FAULT)
                 try:
                     self.finish()
                 except HrmError as err:
-                    if exc_type is None:
+                    if exc_type is None and not stopped:
                         raise
-                    # Keep the error in flight; this one goes into the run record.
-                    self.events.add("error", f"finish after {exc_type.__name__}: {err}")
+                    after = exc_type.__name__ if exc_type is not None else "a stop"
+                    self.events.add("error", f"finish after {after}: {err}")
         finally:
             self.close()
 

@@ -7,7 +7,7 @@ layer's motor order) and the control period, then asked for the setpoint of
 every control slot (``setpoint(k)``, k = 0, 1, ...); ``None`` ends the run.  Sources
 precompute their whole table where they can and check it against the rope
 layer's limits (:meth:`Actuation.check_counts`) *before* anything is sent, so
-a bad plan is refused up front; the scheduler checks every setpoint again
+a bad plan is refused up front; the supervisor checks every setpoint again
 before sending it.
 
 >>> src = HoldSource(n_cycles=2)

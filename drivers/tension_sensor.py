@@ -6,22 +6,30 @@ n x u16 tension (0.01 N, FFFF invalid) | CRC-16/CCITT-FALSE of type..payload``,
 little-endian.  :class:`TensionFrameParser` turns a byte stream into samples
 and resynchronises after garbage: it searches for the sync bytes, checks type,
 length and CRC, and on any mismatch drops one byte and searches again (counting
-what it dropped).  :class:`TensionSensorReader` reads a serial port in a
-thread and hands out the newest sample; :meth:`TensionSensorReader.latest`
+what it dropped, and each loss of synchronisation once as a resync).
+:class:`TensionSensorReader` reads a serial port in a thread and hands out the
+newest sample; :meth:`TensionSensorReader.latest`
 raises :class:`StaleTensionError` when the newest sample is older than
 ``stale_after_s`` (board silent, cable pulled, only garbage arriving).
+:class:`TensionWatch` turns a rope below its slack threshold or above its limit, a
+stale sensor, or bad data past a rate into one stop cause naming the rope or the port.
 
 >>> p = TensionFrameParser(n_ropes=2)
 >>> frame = bytes.fromhex('a55a010c0100e80300000200b80b00000618')
 >>> [s.tensions_N.tolist() for s in p.feed(b'\\x00\\xa5junk' + frame)]
 [[30.0, 0.0]]
->>> p.garbage_bytes, p.frames
-(6, 1)
+>>> p.garbage_bytes, p.frames, p.resyncs, p.bad_events
+(6, 1, 0, 0)
+>>> _ = p.feed(b'xx' + frame + b'y' + frame)   # two garbage runs after a good frame
+>>> p.resyncs, p.bad_events
+(2, 2)
 """
 
 from __future__ import annotations
 
 import binascii
+import collections
+import math
 import struct
 import threading
 import time
@@ -38,6 +46,7 @@ HEADER = struct.Struct("<HIBB")
 TENSION_LSB_N = 0.01
 TENSION_INVALID = 0xFFFF
 DEFAULT_BAUDRATE = 921_600
+BAD_RATE_WINDOW_S = 1.0  # bad data is counted over the last second
 
 
 class TensionSensorError(DriverError):
@@ -79,6 +88,21 @@ class TensionFrameParser:
         self.garbage_bytes = 0
         self.crc_errors = 0
         self.wrong_count = 0
+        self.resyncs = 0  # losses of synchronisation (a garbage run, however long)
+        self._in_sync = True  # the last bytes consumed were a valid frame (or nothing yet)
+
+    @property
+    def bad_events(self) -> int:
+        """CRC errors + losses of synchronisation + frames with the wrong rope count."""
+        return self.crc_errors + self.resyncs + self.wrong_count
+
+    def _garbage(self, n: int) -> None:
+        if n <= 0:
+            return
+        if self._in_sync and self.frames + self.wrong_count > 0:
+            self.resyncs += 1  # garbage before the first frame is the line coming up
+        self._in_sync = False
+        self.garbage_bytes += n
 
     def feed(self, data: bytes, now_s: float | None = None) -> list[TensionSample]:
         """Add received bytes; return every complete, valid frame (in order)."""
@@ -90,11 +114,11 @@ class TensionFrameParser:
             start = buf.find(SYNC)
             if start < 0:
                 keep = 1 if buf.endswith(SYNC[:1]) else 0
-                self.garbage_bytes += len(buf) - keep
+                self._garbage(len(buf) - keep)
                 del buf[: len(buf) - keep]
                 break
             if start:
-                self.garbage_bytes += start
+                self._garbage(start)
                 del buf[:start]
             if len(buf) < 4:
                 break
@@ -109,6 +133,7 @@ class TensionFrameParser:
             (crc,) = struct.unpack_from("<H", buf, 4 + length)
             if crc != crc16_ccitt(body):
                 self.crc_errors += 1
+                self._in_sync = False  # the bytes skipped now are this error, not a resync
                 self._skip()
                 continue
             seq, t_us, n, flags = HEADER.unpack_from(body, 2)
@@ -116,6 +141,7 @@ class TensionFrameParser:
                 self._skip()
                 continue
             del buf[:total]
+            self._in_sync = True
             raw = np.frombuffer(body, dtype="<u2", count=n, offset=2 + HEADER.size)
             tensions = np.where(raw == TENSION_INVALID, np.nan, raw * TENSION_LSB_N)
             if self.n_ropes is not None and n != self.n_ropes:
@@ -124,12 +150,12 @@ class TensionFrameParser:
             self.frames += 1
             out.append(TensionSample(int(seq), int(t_us), int(flags), tensions, now))
         if len(buf) > self._max:
-            self.garbage_bytes += len(buf) - self._max
+            self._garbage(len(buf) - self._max)
             del buf[: len(buf) - self._max]
         return out
 
     def _skip(self) -> None:
-        self.garbage_bytes += 1
+        self._garbage(1)
         del self._buf[:1]
 
 
@@ -259,7 +285,11 @@ def check_tensions(
 
 class TensionWatch:
     """Watchdog thread: every ``period_s`` it checks the reader's newest sample and calls
-    ``on_fault(text)`` once (then stops) when the data is stale or a tension is out of range.
+    ``on_fault(text)`` once (then stops) when the data is stale, a tension is outside
+    ``[min_N, max_N]`` (the text names the rope), or the board's bad data (CRC errors,
+    losses of synchronisation, wrong-size frames: :attr:`TensionFrameParser.bad_events`)
+    exceeds ``max_bad_per_s`` over the last :data:`BAD_RATE_WINDOW_S` (``None``: not
+    checked).  ``grace_s`` after :meth:`start` a missing first frame is not yet a fault.
     """
 
     def __init__(
@@ -270,6 +300,7 @@ class TensionWatch:
         *,
         min_N: float = 5.0,
         max_N: float = 500.0,
+        max_bad_per_s: float | None = None,
         period_s: float = 0.01,
         grace_s: float = 0.5,
     ) -> None:
@@ -277,9 +308,15 @@ class TensionWatch:
         self.motor_ids = tuple(motor_ids)
         self.on_fault = on_fault
         self.min_N, self.max_N = float(min_N), float(max_N)
+        self.max_bad_per_s = None if max_bad_per_s is None else float(max_bad_per_s)
         self.period_s = float(period_s)
         self.grace_s = float(grace_s)
         self.fault: str | None = None
+        self.checks = 0
+        self.min_seen_N = math.inf
+        self.max_seen_N = -math.inf
+        self.max_age_s = 0.0
+        self._bad: collections.deque[tuple[float, int]] = collections.deque()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -293,16 +330,70 @@ class TensionWatch:
         if self._thread is not None:
             self._thread.join(timeout=1.0)
 
+    def bad_rate_problem(self, now: float) -> str | None:
+        """Why the board's bad data is past the rate (one line), else None."""
+        if self.max_bad_per_s is None:
+            return None
+        p = self.reader.parser
+        total = p.bad_events
+        self._bad.append((now, total))
+        while self._bad and self._bad[0][0] < now - BAD_RATE_WINDOW_S:
+            self._bad.popleft()
+        n = total - self._bad[0][1]
+        if n <= self.max_bad_per_s * BAD_RATE_WINDOW_S:
+            return None
+        return (
+            f"tension sensor {self.reader.port}: {n} bad frames or garbage runs in the last "
+            f"{BAD_RATE_WINDOW_S:g} s (limit {self.max_bad_per_s:g}/s; {p.crc_errors} CRC "
+            f"errors, {p.garbage_bytes} garbage bytes so far)"
+        )
+
+    def check(self, now: float, started: float) -> str | None:
+        """One check (the thread's work): a one-line fault, or None."""
+        self.checks += 1
+        text = self.bad_rate_problem(now)
+        if text is not None:
+            return text
+        try:
+            sample = self.reader.latest(now)
+        except TensionSensorError as exc:
+            if now - started < self.grace_s and self.reader.read_error is None:
+                return None  # the first frames may still be on their way
+            return str(exc)
+        self.max_age_s = max(self.max_age_s, now - sample.received_s)
+        t = sample.tensions_N
+        if t.size and np.isfinite(t).all():
+            self.min_seen_N = min(self.min_seen_N, float(t.min()))
+            self.max_seen_N = max(self.max_seen_N, float(t.max()))
+        return check_tensions(sample, self.motor_ids, self.min_N, self.max_N)
+
     def _run(self) -> None:
         t_start = time.monotonic()
         while not self._stop.wait(self.period_s):
-            try:
-                text = check_tensions(self.reader.latest(), self.motor_ids, self.min_N, self.max_N)
-            except TensionSensorError as exc:
-                if time.monotonic() - t_start < self.grace_s:
-                    continue  # the first frames may still be on their way
-                text = str(exc)
+            text = self.check(time.monotonic(), t_start)
             if text is not None:
                 self.fault = text
                 self.on_fault(text)
                 return
+
+    def summary(self) -> dict[str, object]:
+        """What the run record keeps: thresholds, traffic, extremes seen, the fault."""
+        p = self.reader.parser
+        return {
+            "port": self.reader.port,
+            "min_N": self.min_N,
+            "max_N": self.max_N,
+            "stale_s": self.reader.stale_after_s,
+            "max_bad_per_s": self.max_bad_per_s,
+            "checks": self.checks,
+            "frames": p.frames,
+            "lost_frames": self.reader.lost_frames,
+            "crc_errors": p.crc_errors,
+            "resyncs": p.resyncs,
+            "wrong_count": p.wrong_count,
+            "garbage_bytes": p.garbage_bytes,
+            "lowest_N": self.min_seen_N if math.isfinite(self.min_seen_N) else None,
+            "highest_N": self.max_seen_N if math.isfinite(self.max_seen_N) else None,
+            "oldest_sample_ms": round(self.max_age_s * 1000.0, 3),
+            "fault": self.fault,
+        }

@@ -16,6 +16,7 @@ The whole tree, each class with the module that defines it::
      |    |    +-- UnreachableError         hrm_ctrl.errors
      |    |    +-- JointLimitError          hrm_ctrl.errors
      |    +-- PlanFileError                 hrm_ctrl.errors
+     |    +-- OverwriteInputError           hrm_ctrl.errors
      |    +-- PlotError                     hrm_ctrl.formats.plots
      |    +-- UrdfWriteError                hrm_ctrl.formats.urdf
      |    +-- RopeError                     hrm_ctrl.errors
@@ -35,6 +36,7 @@ The whole tree, each class with the module that defines it::
      |    |    +-- SetpointError            drivers.safety.limits
      |    |    +-- SupervisorModeError      drivers.safety.supervisor
      |    |    +-- SessionStateError        drivers.session
+     |    |    +-- OtherMasterError         drivers.session
      |    |    +-- SafetyStopError          drivers.session
      |    |    +-- ProcessSettingsError     drivers.realtime
      |    |    +-- TensionSensorError       drivers.tension_sensor
@@ -45,15 +47,19 @@ The whole tree, each class with the module that defines it::
      |    |    +-- FaultSpecError           sim_bus.faults
      |    +-- CalibrationError              hrm_ctrl.errors
      +-- SdoAbort                           sim_bus.drive.objects
+    BaseException (Python standard library)
+     +-- SignalInterrupt                    hrm_ctrl.errors
     UserWarning (Python standard library)
      +-- DuplicatePointsWarning             hrm_ctrl.planning.known_path
 
 Some classes are not errors of the stack and stay outside :class:`HrmError`:
 ``SdoAbort`` carries a CiA 301 abort code inside the simulated drive, whose SDO
 server answers it with an abort frame (it never reaches a caller), and
-``DuplicatePointsWarning`` is a warning.  A new exception derives from its layer's
-branch and gets its line here: ``tests/hrm_ctrl/test_errors.py`` compares this
-drawing (names, parents, modules) with the classes the packages define.
+``DuplicatePointsWarning`` is a warning.  :class:`SignalInterrupt` (SIGTERM,
+SIGHUP) derives from ``BaseException``, as ``KeyboardInterrupt`` does.  A new
+exception derives from its layer's branch and gets its line here:
+``tests/hrm_ctrl/test_errors.py`` compares this drawing (names, parents, modules)
+with the classes the packages define.
 """
 
 from __future__ import annotations
@@ -87,6 +93,10 @@ class PlanFileError(HrmError):
     """A plan file is missing or is not ``hrm-plan/1``."""
 
 
+class OverwriteInputError(HrmError):
+    """An output path names a file the command reads (``--out`` naming the plan, ...)."""
+
+
 class RopeError(HrmError):
     """Rope layer: routing, limits or inverse failures."""
 
@@ -101,3 +111,13 @@ class SimError(HrmError):
 
 class CalibrationError(HrmError):
     """Calibration input or fit failures."""
+
+
+class SignalInterrupt(BaseException):
+    """SIGTERM or SIGHUP, raised in the main thread like :class:`KeyboardInterrupt` is
+    for SIGINT, so every stop path that handles Ctrl-C handles them the same way."""
+
+    def __init__(self, signal_name: str, signal_number: int = 0) -> None:
+        super().__init__(signal_name)
+        self.signal_name = signal_name
+        self.signal_number = signal_number

@@ -4,6 +4,13 @@ Like pinocchio's ``Model``, a :class:`RobotModel` never changes once loaded;
 every function that needs it takes it explicitly (no globals).  Units inside
 are mm and radians; the TOML file uses degrees where a person types angles.
 
+Every table and key of the file is known (:data:`PLAIN_KEYS`, :data:`TABLE_KEYS`): an
+unknown one is refused when the file loads, naming the key and its table (a typo such
+as ``[ropess]`` would otherwise fall back to the default ropes unnoticed).  The keys
+of ``[ropes]`` and ``[motors]`` are checked, with their values, by the rope layer
+that owns them (``hrm_ctrl.ropes.routing``, ``hrm_ctrl.ropes.motor_map``), the same
+way: ``[ropes]: unknown key 'colour'``.
+
 >>> m = default_robot()
 >>> m.n_joints, float(m.links.sum())
 (12, 2007.0)
@@ -28,6 +35,18 @@ from hrm_ctrl.files import read_toml
 N_JOINTS = 12
 DEFAULT_ROBOT_RESOURCE = "robot.toml"
 
+PLAIN_KEYS = frozenset({"name", "links_mm", "outer_diameter_mm"})
+"""Top-level keys of a robot description that hold a value."""
+
+TABLE_KEYS: Mapping[str, frozenset[str] | None] = {
+    "joint_limits": frozenset({"alpha_deg", "theta_deg"}),
+    "base": frozenset({"position_mm", "yaw_deg", "pitch_deg"}),
+    "ropes": None,  # keys checked by hrm_ctrl.ropes.routing when the rope layer is built
+    "motors": None,  # keys checked by hrm_ctrl.ropes.motor_map when the rope layer is built
+}
+"""Tables of a robot description and the keys each may hold (``None``: its owner, the
+rope layer, checks them).  Any other table or key is refused by :func:`robot_from_dict`."""
+
 
 @dataclass(frozen=True, eq=False)
 class RobotModel:
@@ -43,8 +62,8 @@ class RobotModel:
         base_rotation: world-from-base rotation, shape (3, 3); the arm's zero
             direction is ``base_rotation @ (1, 0, 0)``.
         source: where the description came from (file path or resource name).
-        tables: the raw TOML tables the planner does not interpret (for
-            example ``ropes`` and ``motors``), read by the layers that own them.
+        tables: the raw TOML tables the planner does not interpret (``ropes``
+            and ``motors``, when present), read by the layers that own them.
     """
 
     name: str
@@ -122,6 +141,51 @@ def _require(doc: Mapping[str, Any], key: str, where: str) -> Any:
     return doc[key]
 
 
+def _check_keys(doc: Mapping[str, Any], where: str) -> None:
+    """Refuse a table or key the description does not know, naming it and its table.
+
+    >>> _check_keys({"ropess": {}}, "r.toml")
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.RobotDescriptionError: r.toml: unknown table [ropess] (did you mean [ropes]?)
+    >>> _check_keys({"base": {"yaw": 1}}, "f")
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.RobotDescriptionError: f: [base]: unknown key 'yaw' (did you mean 'yaw_deg'?)
+    """
+    for key, value in doc.items():
+        if key in PLAIN_KEYS:
+            if isinstance(value, Mapping):
+                raise RobotDescriptionError(f"{where}: '{key}' must be a value, not a table")
+            continue
+        if key not in TABLE_KEYS:
+            kind = f"table [{key}]" if isinstance(value, Mapping) else f"key {key!r}"
+            raise RobotDescriptionError(
+                f"{where}: unknown {kind}{_hint(key, PLAIN_KEYS | set(TABLE_KEYS), TABLE_KEYS)}"
+            )
+        if not isinstance(value, Mapping):
+            raise RobotDescriptionError(f"{where}: [{key}] must be a table")
+        known = TABLE_KEYS[key]
+        if known is None:
+            continue
+        for sub in value:
+            if sub not in known:
+                raise RobotDescriptionError(
+                    f"{where}: [{key}]: unknown key {sub!r}{_hint(sub, known, {})}"
+                )
+
+
+def _hint(key: str, names: Any, tables: Mapping[str, Any]) -> str:
+    """`` (did you mean ...?)`` for a near miss, else the known names."""
+    import difflib
+
+    close = difflib.get_close_matches(key, sorted(names), n=1)
+    if not close:
+        return f" (known: {', '.join(sorted(names))})"
+    match = close[0]
+    return f" (did you mean {f'[{match}]' if match in tables else repr(match)}?)"
+
+
 def base_rotation_from(yaw: float, pitch: float) -> np.ndarray:
     """World-from-base rotation: yaw about z, then pitch up about the new y.
 
@@ -139,6 +203,7 @@ def base_rotation_from(yaw: float, pitch: float) -> np.ndarray:
 def robot_from_dict(doc: Mapping[str, Any], source: str) -> RobotModel:
     """Validate a parsed robot description and build the model."""
     where = source
+    _check_keys(doc, where)
     name = doc.get("name", "hrm")
     if not isinstance(name, str):
         raise RobotDescriptionError(f"{where}: 'name' must be a string")
@@ -186,8 +251,7 @@ def robot_from_dict(doc: Mapping[str, Any], source: str) -> RobotModel:
     yaw = _number(base.get("yaw_deg", 0.0), f"{where}: base.yaw_deg")
     pitch = _number(base.get("pitch_deg", 0.0), f"{where}: base.pitch_deg")
 
-    known = {"name", "links_mm", "outer_diameter_mm", "joint_limits", "base"}
-    tables = {k: v for k, v in doc.items() if k not in known}
+    tables = {k: doc[k] for k in ("ropes", "motors") if k in doc}
     for arr in (links, od, pos):
         arr.setflags(write=False)
     R = base_rotation_from(math.radians(yaw), math.radians(pitch))

@@ -12,8 +12,10 @@ ignored: no drive listens to another drive's TPDO, SDO response, heartbeat or
 EMCY COB-IDs.
 
 Fault injection (thread-safe, from tests or ``hrm sim``): :meth:`stop_heartbeat`,
-:meth:`fault_drive`, :meth:`jam`, :meth:`snap_rope`, :meth:`drop_frames`,
-:meth:`delay_frames`, :meth:`set_bus_off`.  On an ``hrm_sim`` wire the frame
+:meth:`fault_drive`, :meth:`jam`, :meth:`snap_rope`, :meth:`shift_encoder`,
+:meth:`drop_frames`, :meth:`delay_frames`, :meth:`set_bus_off`.  The box's tension-sensor
+board (:meth:`start_tension_board`, :attr:`tension_board`) serves the arm's rope tensions
+on a pseudo-terminal until the box stops.  On an ``hrm_sim`` wire the frame
 faults act on the wire (both directions, the host sees a bus-off as failing
 sends); on other interfaces the box applies them to the frames it sends and
 (for drops) receives, and a bus-off box neither sends nor listens.
@@ -47,12 +49,13 @@ import numpy as np
 
 import drivers.protocol.cia301 as cia301
 from drivers.config import BoxConfig
-from drivers.protocol.cia402 import EMCY_FOLLOWING_ERROR
+from drivers.protocol.cia402 import EMCY_FOLLOWING_ERROR, OD_POSITION_ACTUAL_VALUE
 from hrm_ctrl.errors import SimError
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.arm import ArmState, SimArm
 from sim_bus.drive import DriveParams, DriveSim
+from sim_bus.tension_board import TensionBoard
 from sim_bus.wire import FrameMatch, SimWireBus
 
 log = logging.getLogger("sim_bus.box")
@@ -192,6 +195,8 @@ class SimBox:
         self.events: list[str] = []
         self._cpu_closed_s = 0.0
         self._tension_cache: tuple[float, np.ndarray, tuple[int, ...]] | None = None
+        self.tension_board: TensionBoard | None = None
+        self._encoder_shift: dict[str, int] = {}
 
     # ------------------------------------------------------------ life cycle
     def start(self) -> SimBox:
@@ -240,8 +245,18 @@ class SimBox:
             t.start()
         return self
 
+    def start_tension_board(self, rate_hz: float = 100.0) -> TensionBoard:
+        """Start the box's tension-sensor board (once): :meth:`tension_N` in frames on a
+        pseudo-terminal (:attr:`TensionBoard.port`), until the box stops."""
+        if self.tension_board is None:
+            self.tension_board = TensionBoard(self.tension_N, rate_hz).start()
+        return self.tension_board
+
     def stop(self) -> None:
         """Stop the threads and close the buses the box opened (timeout 2 s each)."""
+        if self.tension_board is not None:
+            self.tension_board.stop()
+            self.tension_board = None
         self._stop.set()
         for t in self._threads:
             t.join(timeout=2.0)
@@ -456,6 +471,29 @@ class SimBox:
         self.arm.snap(motor, self.clock())
         self._fault_event(f"fault: rope {motor} snapped")
 
+    def shift_encoder(self, motor: str, counts: int) -> None:
+        """The position ``motor``'s drive reports (TPDO, 0x6064) is off by ``counts`` from
+        where its motor is (an encoder slipped on its shaft): the motor, its rope and the
+        arm stay where commanded, the feedback no longer fits the other ropes.  0 ends it."""
+        with self._lock:
+            d = self._drive(motor)
+            shift = int(counts)
+            if shift:
+                self._encoder_shift[motor] = shift
+                true_value = type(d).live_value.__get__(d)
+
+                def live_value(key: Any, _true: Any = true_value, _motor: str = motor) -> Any:
+                    value = _true(key)
+                    if key == (OD_POSITION_ACTUAL_VALUE, 0):
+                        return int(value) + self._encoder_shift.get(_motor, 0)
+                    return value
+
+                d.live_value = live_value  # type: ignore[method-assign]
+            else:
+                self._encoder_shift.pop(motor, None)
+                d.__dict__.pop("live_value", None)
+        self._fault_event(f"fault: encoder of {motor} shifted by {shift} counts")
+
     def drop_frames(self, bus: str, match: FrameMatch | None = None, count: int | None = 1) -> None:
         """Lose ``count`` frames (``None``: all) matching ``match`` on bus ``bus``."""
         bb = self._bus(bus)
@@ -493,7 +531,8 @@ class SimBox:
 
     def reset_faults(self) -> None:
         """Undo every injected fault: frame faults, bus-off, heartbeats, jams, snapped
-        ropes (the drives keep their state; a host brings them up again)."""
+        ropes, shifted encoders (the drives keep their state; a host brings them up
+        again)."""
         self.clear_frame_faults()
         for bb in list(self._buses):
             if bb.bus_off:
@@ -502,6 +541,8 @@ class SimBox:
             for d in self.drives.values():
                 d.heartbeat_enabled = True
                 d.jammed = False
+                d.__dict__.pop("live_value", None)
+            self._encoder_shift.clear()
             self._timers_changed()
         self.arm.repair()
         self._fault_event("fault: every fault reset")

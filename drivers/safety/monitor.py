@@ -1,11 +1,11 @@
 """Watchdogs on what the drives send: feedback TPDOs, heartbeats, boot-ups, EMCYs.
 
 A :class:`NodeMonitor` holds one slot per rope motor (the rope layer's order).
-Bus receive threads call the ``on_*`` callbacks; the scheduler calls
+Bus receive threads call the ``on_*`` callbacks; the supervisor calls
 :meth:`NodeMonitor.check` once per control cycle, which evaluates every watchdog
 with NumPy over all nodes at once and returns the causes that must stop the
 box (an empty list when all is well).  Callbacks that see a cause between cycles
-set :attr:`NodeMonitor.wake` so the scheduler reacts at once.
+set :attr:`NodeMonitor.wake` so the supervisor reacts at once.
 
 >>> mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=1, heartbeat_timeout_s=0.3)
 >>> mon.on_tpdo(0, bytes.fromhex("370264000000"), seq=0)

@@ -58,7 +58,7 @@ from drivers.safety.causes import StopCause, StopKind, unique_causes
 from drivers.safety.limits import LimitChecker
 from drivers.safety.monitor import NodeMonitor
 from drivers.sources import SetpointSource
-from hrm_ctrl.errors import DriverError, HrmError
+from hrm_ctrl.errors import DriverError, HrmError, SignalInterrupt
 
 PLAY_POLL_S = 0.25  # how often a caller waiting for a stream looks at the thread
 THREAD_JOIN_TIMEOUT_S = 5.0
@@ -151,10 +151,12 @@ class Supervisor:
         self.targets: np.ndarray | None = None  # what the drives hold (last applied)
         self.seq = -1  # SYNC sequence number, continues across streams
         self.last_stop: StopRecord | None = None
+        self.last_result: StreamResult | None = None  # how the last stream ended
         self.thread_error: BaseException | None = None
         self._lock = threading.RLock()
         self._stream: _Stream | None = None
         self._stop_request = threading.Event()
+        self._stop_reason: tuple[StopKind, str] = (StopKind.OPERATOR, "stop requested")
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
         self._hb_next = 0.0
@@ -230,7 +232,7 @@ class Supervisor:
             if stream is not None:
                 stream.crashed = exc
             cause = StopCause(
-                StopKind.INTERNAL, f"scheduler interrupted: {exc!r}", None, self.clock()
+                StopKind.INTERNAL, f"control loop interrupted: {exc!r}", None, self.clock()
             )
             try:
                 if self.mode is not Mode.STOPPING:
@@ -283,8 +285,11 @@ class Supervisor:
                 self.mode = Mode.HEARTBEAT
             self.monitor.armed = False
 
-    def request_stop(self) -> None:
+    def request_stop(
+        self, kind: StopKind = StopKind.OPERATOR, text: str = "stop requested"
+    ) -> None:
         """Quick stop at once (thread-safe): an operator's stop, Ctrl-C, a signal."""
+        self._stop_reason = (kind, text)
         self._stop_request.set()
         self.monitor.wake.set()
 
@@ -346,6 +351,7 @@ class Supervisor:
         loop (a bug, a source raising something other than a limit) too.  Waits at
         most ``timeout_s``, then stops every axis and raises :class:`DriverError`.
         """
+        self.last_result = None
         stream = self.begin(source)
         deadline = self.clock() + timeout_s
         try:
@@ -356,8 +362,12 @@ class Supervisor:
                     self.request_stop()
                     stream.done.wait(THREAD_JOIN_TIMEOUT_S)
                     raise DriverError(f"stream did not end within {timeout_s:g} s")
-        except BaseException:
-            self.request_stop()
+        except BaseException as exc:
+            if isinstance(exc, KeyboardInterrupt | SignalInterrupt):
+                name = exc.signal_name if isinstance(exc, SignalInterrupt) else "SIGINT"
+                self.request_stop(StopKind.SIGNAL, f"{name}: stop requested")
+            else:
+                self.request_stop(StopKind.INTERNAL, f"stream wait failed: {exc!r}")
             stream.done.wait(THREAD_JOIN_TIMEOUT_S)
             raise
         if stream.crashed is not None:
@@ -432,7 +442,8 @@ class Supervisor:
                     )
                 )
         if self._stop_request.is_set():
-            causes.append(StopCause(StopKind.OPERATOR, "stop requested", None, now))
+            kind, text = self._stop_reason
+            causes.append(StopCause(kind, text, None, now))
         return causes
 
     def _checked(self, source: SetpointSource, k: int, previous: np.ndarray) -> np.ndarray | None:
@@ -525,6 +536,7 @@ class Supervisor:
             result.stop_latency_s = stop.latency_s
             result.stop_confirmed = stop.confirmed
         result.final_statuswords = [int(v) for v in self.monitor.statusword]
+        self.last_result = result
         return result
 
     def _end_stream(self) -> None:

@@ -3,7 +3,9 @@
 Each command is one small module in this package exposing ``HELP`` (one line),
 ``register(parser)`` (adds its arguments) and ``run(args) -> int``.  Commands are
 discovered, so adding a module adds a command.  Every :class:`HrmError` becomes a
-one-line message on stderr and exit status 2: no traceback, no partial output.
+one-line message on stderr and exit status 2: no traceback, no partial output.  A
+closed stdout (``hrm plan ... | head -1``) ends the command quietly with status 141
+(128 + SIGPIPE, as a shell reports for other tools a closed pipe ends).
 
 :func:`main` is the process entry of ``hrm`` (host and ``hrm sim`` alike): it runs the
 command under :func:`drivers.realtime.process_settings` (GIL switch interval 0.2 ms),
@@ -14,15 +16,19 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
+import select
 import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
 from drivers.realtime import process_settings
-from hrm_ctrl.errors import HrmError
+from hrm_ctrl.cli._signals import signals_as_interrupts
+from hrm_ctrl.errors import HrmError, SignalInterrupt
 
 EXIT_ERROR = 2
+EXIT_CLOSED_PIPE = 141  # 128 + SIGPIPE: the status a shell reports for a tool a closed pipe ended
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -52,10 +58,48 @@ def build_parser() -> OneLineParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command; return its exit status.  A closed stdout (``hrm ... | head``) ends
+    the command quietly with :data:`EXIT_CLOSED_PIPE`, as a closed pipe ends other tools:
+    no traceback, nothing more written (what the command had not done yet stays undone)."""
+    try:
+        try:
+            return _main(argv)
+        finally:
+            if sys.stdout is not None:
+                sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
+    except BrokenPipeError:
+        if not _stdout_closed():
+            raise
+        _stdout_to_devnull()
+        return EXIT_CLOSED_PIPE
+
+
+def _stdout_closed() -> bool:
+    """Whether stdout is a pipe (or socket, terminal) whose reading end is gone."""
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        events = poller.poll(0)
+    except (AttributeError, OSError, ValueError):  # no real stdout (e.g. captured)
+        return False
+    return any(ev & (select.POLLERR | select.POLLHUP) for _fd, ev in events)
+
+
+def _stdout_to_devnull() -> None:
+    """Point stdout at /dev/null, so that nothing buffered fails again at exit."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    finally:
+        os.close(devnull)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        with process_settings():
+        with process_settings(), signals_as_interrupts():
             return int(args._run(args) or 0)
     except HrmError as exc:
         print(f"hrm {args.command}: error: {exc}", file=sys.stderr)
@@ -63,6 +107,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"hrm {args.command}: interrupted", file=sys.stderr)
         return 130
+    except SignalInterrupt as exc:
+        print(f"hrm {args.command}: stopped by {exc.signal_name}", file=sys.stderr)
+        return 128 + exc.signal_number
 
 
 if __name__ == "__main__":  # pragma: no cover

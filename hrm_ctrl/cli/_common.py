@@ -1,9 +1,36 @@
-"""Arguments several commands share."""
+"""Arguments several commands share, and the one check that an output is not an input.
+
+Every command that writes calls :func:`refuse_overwriting_inputs` first, before it
+reads or writes anything else: an output path (a file, or a directory and the files
+the command writes into it) that names one of the files the command reads (plan, path
+file, robot description, bus configuration, the shipped files it reads by default) is
+refused with one line naming both.  Two paths name the same file when they resolve to
+the same path (symbolic links followed) or, when both exist, are the same file
+(:func:`os.path.samefile`: hard links too).
+
+>>> import tempfile, pathlib
+>>> d = pathlib.Path(tempfile.mkdtemp())
+>>> _ = (d / "plan.json").write_text("{}")
+>>> (d / "link.json").symlink_to(d / "plan.json")
+>>> refuse_overwriting_inputs([Output("--out", d / "link.json")],
+...                           [Input("plan file", d / "plan.json")])
+... # doctest: +ELLIPSIS
+Traceback (most recent call last):
+...
+hrm_ctrl.errors.OverwriteInputError: --out .../link.json would overwrite ...: the same file
+>>> refuse_overwriting_inputs([Output("--out", d / "new.json")],
+...                           [Input("plan file", d / "plan.json"), Input("robot", None)])
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import NamedTuple
+
+from hrm_ctrl.errors import OverwriteInputError
 
 
 def add_robot_argument(parser: argparse.ArgumentParser) -> None:
@@ -15,3 +42,89 @@ def add_robot_argument(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="robot description TOML (default: the one shipped with hrm)",
     )
+
+
+class Input(NamedTuple):
+    """A file a command reads: what it is (``plan file``) and its path (None: not read)."""
+
+    what: str
+    path: Path | str | None
+
+
+class Output(NamedTuple):
+    """Where a command writes: its option (``--out``), the path, and for a directory the
+    files (relative paths) the command writes into it."""
+
+    option: str
+    path: Path | str | None
+    members: Sequence[str] = ()
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        if os.path.samefile(a, b):
+            return True
+    except OSError:  # one of them does not exist (yet)
+        pass
+    try:
+        return a.resolve() == b.resolve()
+    except (OSError, RuntimeError):  # a symbolic link loop
+        return os.path.abspath(a) == os.path.abspath(b)
+
+
+def refuse_overwriting_inputs(outputs: Iterable[Output], inputs: Iterable[Input]) -> None:
+    """Raise :class:`OverwriteInputError` (one line naming both) when an output, or a file
+    a directory output is written with, is one of the ``inputs``; entries with no path
+    are skipped.  Reads nothing but the paths' metadata."""
+    read = [(i.what, Path(i.path)) for i in inputs if i.path is not None]
+    for out in outputs:
+        if out.path is None:
+            continue
+        base = Path(out.path)
+        for target in (base, *(base / m for m in out.members)):
+            for what, src in read:
+                if not _same_file(target, src):
+                    continue
+                where = f"{out.option} {base}"
+                if target != base:
+                    where += f": {target}"
+                how = "" if os.path.abspath(target) == os.path.abspath(src) else ": the same file"
+                raise OverwriteInputError(
+                    f"{where} would overwrite the {what} being read ({src}){how}"
+                )
+
+
+def robot_input(robot: Path | None) -> Input:
+    """The robot description a command reads: ``--robot`` or the shipped one."""
+    if robot is not None:
+        return Input("robot description", robot)
+    from importlib import resources
+
+    from hrm_ctrl.model import DEFAULT_ROBOT_RESOURCE
+
+    shipped = resources.files("hrm_ctrl.data").joinpath(DEFAULT_ROBOT_RESOURCE)
+    return Input("robot description", Path(str(shipped)))
+
+
+def config_input(config: Path | None) -> Input:
+    """The bus configuration a command reads: ``--config`` or the shipped one."""
+    from drivers import default_box_path
+
+    return Input("bus configuration", default_box_path() if config is None else config)
+
+
+def shipped_inputs(*, plan_schema: bool = False, eds: bool = False) -> list[Input]:
+    """Other shipped files a command reads: the plan schema, the drives' EDS."""
+    found: list[Input] = []
+    if plan_schema:
+        from importlib import resources
+
+        from hrm_ctrl.formats.planfile import SCHEMA_FILE
+
+        schema = resources.files("hrm_ctrl.formats").joinpath(SCHEMA_FILE)
+        found.append(Input("plan schema", Path(str(schema))))
+    if eds:
+        from drivers import eds_path
+
+        found.append(Input("drive EDS", eds_path()))
+    return found

@@ -11,6 +11,7 @@ CAN traffic (``.blf``), the run record and ``demo.json`` (the summary).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -19,14 +20,25 @@ from typing import Any
 
 import numpy as np
 
-from hrm_ctrl.cli._common import add_robot_argument
+from hrm_ctrl.cli._common import (
+    Output,
+    add_robot_argument,
+    config_input,
+    refuse_overwriting_inputs,
+    robot_input,
+    shipped_inputs,
+)
 from hrm_ctrl.cli._simwire import SIM_WIRES, start_in_process_sim
+from hrm_ctrl.cli._watches import feedback_watches
 from hrm_ctrl.cli.plan import format_report
 from hrm_ctrl.errors import DriverError, PlanningError
 from hrm_ctrl.files import write_atomic
 from hrm_ctrl.planning.scenarios import SCENARIOS
 
 HELP = "plan a scenario and play it on the simulated box over CAN (the whole stack)"
+PLAN_JSON = "plan.json"
+SUMMARY_JSON = "demo.json"
+FIGURES_DIR = "figures"
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -48,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from drivers.sources import CountsSource
     from hrm_ctrl.cli.ropes import setpoints_of_plan
     from hrm_ctrl.formats.planfile import PlanDoc, write_plan
-    from hrm_ctrl.formats.plots import write_plan_figures
+    from hrm_ctrl.formats.plots import ANGLES_PNG, ARM_PNG, BACKBONE_PNG, write_plan_figures
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.planning.planner import PlanOptions, plan_path
     from hrm_ctrl.planning.report import check_limits
@@ -56,6 +68,15 @@ def run(args: argparse.Namespace) -> int:
     from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.tracking import tracking_error
 
+    pngs = [f"{FIGURES_DIR}/{f}" for f in (BACKBONE_PNG, ARM_PNG, ANGLES_PNG)]
+    refuse_overwriting_inputs(  # before anything is read or written
+        [Output("--out", args.out, [PLAN_JSON, SUMMARY_JSON, FIGURES_DIR, *pngs])],
+        [
+            robot_input(args.robot),
+            config_input(args.config),
+            *shipped_inputs(plan_schema=True, eds=True),
+        ],
+    )
     if not (math.isfinite(args.step) and args.step > 0.0):
         raise PlanningError(f"--step must be > 0 mm, got {args.step}")
     if not (math.isfinite(args.speed) and args.speed > 0.0):
@@ -78,8 +99,8 @@ def run(args: argparse.Namespace) -> int:
     source.precheck(config.control.period_s)
 
     out: Path = args.out
-    write_plan(out / "plan.json", doc)
-    figures = write_plan_figures(doc, out / "figures")
+    write_plan(out / PLAN_JSON, doc)
+    figures = write_plan_figures(doc, out / FIGURES_DIR)
     print(f"plan and {len(figures)} figures written to {out}")
 
     config, sim = start_in_process_sim(config, actuation, args.wire, prog="hrm demo")
@@ -87,9 +108,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         sim.record_trace(True)
         box = DriveSession(config, actuation, log_dir=out, log_suffix=".blf")
-        box.record_extra = {"demo": sc.name, "plan_file": str(out / "plan.json"), "wire": args.wire}
-        with box:
+        box.record_extra = {"demo": sc.name, "plan_file": str(out / PLAN_JSON), "wire": args.wire}
+        with box, contextlib.ExitStack() as watching:
+            # tension board opened first: a bad port is refused before any NMT reset
+            watches = watching.enter_context(feedback_watches(config, actuation, box, start=False))
             box.bring_up()
+            watches.start()  # tension, ropes
             try:
                 result = box.stream(source)
             except SafetyStopError as exc:
@@ -127,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         "run_record": str(record_path),
         "can_logs": can_logs,
     }
-    write_atomic(out / "demo.json", json.dumps(summary, indent=1, default=str) + "\n")
+    write_atomic(out / SUMMARY_JSON, json.dumps(summary, indent=1, default=str) + "\n")
     print(
         f"box: {len(ids)} drives on {len(config.buses)} buses ({args.wire}), "
         f"bring-up {bringup_s:.2f} s"

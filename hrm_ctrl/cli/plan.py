@@ -10,12 +10,19 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from hrm_ctrl.cli._common import add_robot_argument
+from hrm_ctrl.cli._common import (
+    Input,
+    Output,
+    add_robot_argument,
+    refuse_overwriting_inputs,
+    robot_input,
+    shipped_inputs,
+)
 from hrm_ctrl.errors import HrmError, PlanningError
 from hrm_ctrl.formats.planfile import PlanDoc, write_plan
 from hrm_ctrl.model import load_robot
 from hrm_ctrl.planning.known_path import KnownPath, load_path_csv
-from hrm_ctrl.planning.planner import Plan, PlanOptions, plan_path
+from hrm_ctrl.planning.planner import MAX_PLAN_STEPS, Plan, PlanOptions, plan_path
 from hrm_ctrl.planning.report import check_limits
 from hrm_ctrl.planning.scenarios import SCENARIOS, Scenario, scenario
 
@@ -80,14 +87,19 @@ def parse_plot_steps(text: str | None) -> tuple[int, ...] | None:
     """
     if text is None:
         return None
+    shown = repr(text) if len(text) <= 40 else f"{text[:30]!r}... ({len(text)} characters)"
     try:
         steps = sorted({int(t) for t in text.split(",") if t.strip()})
     except ValueError:
         raise PlanningError(
-            f"--plot-steps: expected step numbers like 0,60,135, got {text!r}"
+            f"--plot-steps: expected step numbers like 0,60,135, got {shown}"
         ) from None
     if not steps or steps[0] < 0:
-        raise PlanningError(f"--plot-steps: expected step numbers >= 0, got {text!r}")
+        raise PlanningError(f"--plot-steps: expected step numbers >= 0, got {shown}")
+    if steps[-1] > MAX_PLAN_STEPS:
+        raise PlanningError(
+            f"--plot-steps: {shown} names a step past the {MAX_PLAN_STEPS} a plan may have"
+        )
     return tuple(steps)
 
 
@@ -146,7 +158,25 @@ def format_report(plan: Plan, name: str) -> str:
     return "\n".join([head, *(f"  {k:<22}  {v}" for k, v in rows)])
 
 
+def refuse_outputs_over_inputs(args: argparse.Namespace) -> None:
+    """``--out`` and ``--plot`` (the directory and its figures) name no file read."""
+    figures: tuple[str, ...] = ()
+    if args.plot is not None:
+        from hrm_ctrl.formats.plots import ANGLES_PNG, ARM_PNG, BACKBONE_PNG
+
+        figures = (BACKBONE_PNG, ARM_PNG, ANGLES_PNG)
+    refuse_overwriting_inputs(
+        [Output("--out", args.out), Output("--plot", args.plot, figures)],
+        [
+            Input("path file", args.path),
+            robot_input(args.robot),
+            *shipped_inputs(plan_schema=True),
+        ],
+    )
+
+
 def run(args: argparse.Namespace) -> int:
+    refuse_outputs_over_inputs(args)  # before anything is read or written
     plan = make_plan(args)
     name = args.scenario or str(args.path)
     if args.json:

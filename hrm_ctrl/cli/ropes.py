@@ -20,7 +20,15 @@ from typing import Any
 
 import numpy as np
 
-from hrm_ctrl.cli._common import add_robot_argument
+from hrm_ctrl.cli._common import (
+    Input,
+    Output,
+    add_robot_argument,
+    config_input,
+    refuse_overwriting_inputs,
+    robot_input,
+    shipped_inputs,
+)
 from hrm_ctrl.errors import HrmError, RopeError
 from hrm_ctrl.files import write_atomic
 from hrm_ctrl.formats.planfile import PlanDoc, read_plan
@@ -164,6 +172,15 @@ def format_summary(s: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     from drivers.config import load_box_config
 
+    refuse_overwriting_inputs(  # before anything is read or written
+        [Output("--out", args.out)],
+        [
+            Input("plan file", args.plan),
+            robot_input(args.robot),
+            config_input(args.config),
+            *shipped_inputs(plan_schema=True),
+        ],
+    )
     if not (math.isfinite(args.speed) and args.speed > 0.0):
         raise RopeError(f"--speed must be > 0 mm/s, got {args.speed}")
     doc = read_plan(args.plan)

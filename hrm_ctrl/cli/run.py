@@ -4,7 +4,10 @@ Loads the bus configuration (``--config``, default ``drivers/data/box.toml``)
 and the robot description, refuses a bus over its load budget and a plan
 outside the rope or joint limits before anything is sent, brings every drive
 up (NMT, SDO, CiA 402 to operation enabled in CSP), streams the setpoints at the
-control rate and disables the drives at the end.  Every run writes each bus's
+control rate and disables the drives at the end.  While the drives are enabled the
+tension-sensor board (when the configuration has a ``[tension]`` table) and the rope
+layer's consistency check on the feedback watch the arm (``hrm_ctrl.cli._watches``):
+either stops every axis, naming the rope.  Every run writes each bus's
 traffic (``.blf`` or ``.asc``) and a run record JSON into ``--log-dir``.
 
 ``--sim`` starts the simulated box (``sim_bus``) in this process on python-can
@@ -23,6 +26,7 @@ drivers only see buses).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import math
@@ -30,7 +34,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from hrm_ctrl.cli._common import add_robot_argument
+from hrm_ctrl.cli._common import (
+    Input,
+    Output,
+    add_robot_argument,
+    config_input,
+    refuse_overwriting_inputs,
+    robot_input,
+    shipped_inputs,
+)
 from hrm_ctrl.cli._simwire import SIM_WIRES
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.formats.planfile import PLAN_FORMAT, PlanDoc
@@ -67,6 +79,10 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--jog", default=None, metavar="MOTOR:COUNTS_PER_S:S",
         help="move one rope motor at a constant speed, e.g. j01r0:20000:0.5",
     )  # fmt: skip
+    parser.add_argument(
+        "--take-over", action="store_true",
+        help="reset the drives even when another master is heard on the buses",
+    )  # fmt: skip
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
@@ -98,8 +114,10 @@ def _source(
     if len(chosen) != 1:
         raise DriverError("give exactly one of PLAN.json, --hold S, --jog MOTOR:COUNTS_PER_S:S")
     if args.hold is not None:
-        if not (math.isfinite(args.hold) and args.hold > 0):
-            raise DriverError(f"--hold must be > 0 s, got {args.hold}")
+        if not (math.isfinite(args.hold) and 0 < args.hold <= MAX_SOURCE_DURATION_S):
+            raise DriverError(
+                f"--hold must be > 0 s and at most {MAX_SOURCE_DURATION_S:g} s, got {args.hold}"
+            )
         return HoldSource(n_cycles=None), args.hold, {}
     if args.jog is not None:
         parts = str(args.jog).split(":")
@@ -137,11 +155,21 @@ def run(args: argparse.Namespace) -> int:
     from drivers.config import load_box_config
     from drivers.session import DriveSession, SafetyStopError
     from drivers.sources import HoldSource
+    from hrm_ctrl.cli._watches import feedback_watches
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.ropes.actuation import load_actuation
 
     if not (math.isfinite(args.speed) and args.speed > 0):
         raise DriverError(f"--speed must be > 0 mm/s, got {args.speed}")
+    refuse_overwriting_inputs(  # before anything is read or written
+        [Output("--log-dir", args.log_dir)],
+        [
+            Input("plan file", args.plan),
+            robot_input(args.robot),
+            config_input(args.config),
+            *shipped_inputs(plan_schema=True, eds=True),
+        ],
+    )
     config = load_box_config(args.config)
     robot = load_robot(args.robot)
     actuation = load_actuation(robot)
@@ -160,7 +188,11 @@ def run(args: argparse.Namespace) -> int:
     summary: dict[str, Any] = {}
     try:
         box = DriveSession(
-            config, actuation, log_dir=args.log_dir, log_suffix=f".{args.log_format}"
+            config,
+            actuation,
+            log_dir=args.log_dir,
+            log_suffix=f".{args.log_format}",
+            take_over=args.take_over,
         )
         box.record_extra = {
             "plan_file": None,
@@ -169,8 +201,11 @@ def run(args: argparse.Namespace) -> int:
             "simulated_box": bool(args.sim),
         }
         stop: SafetyStopError | None = None
-        with box:
+        with box, contextlib.ExitStack() as watching:
+            # tension board opened first: a bad port is refused before any NMT reset
+            watches = watching.enter_context(feedback_watches(config, actuation, box, start=False))
             box.bring_up()
+            watches.start()  # tension, ropes
             try:
                 result = box.stream(source)
             except SafetyStopError as exc:

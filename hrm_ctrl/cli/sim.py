@@ -27,6 +27,10 @@ from hrm_ctrl.cli._common import add_robot_argument
 from hrm_ctrl.errors import SimError
 
 HELP = "run the simulated manipulator box (CiA 402 drives, arm, tension board) on the buses"
+# Slowest tension-sensor frame rate: a frame at least every second (a slower board is a
+# silent one; ``--fault sensor-silent`` simulates that).  The board waits one period between
+# frames, and a wait must stay within what the platform's timed waits take.
+MIN_TENSION_RATE_HZ = 1.0
 
 
 def register(parser: argparse.ArgumentParser) -> None:
@@ -73,8 +77,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise SimError(f"--duration must be > 0 s, got {args.duration}")
-    if not (math.isfinite(args.tension_rate) and 0 < args.tension_rate <= 10_000):
-        raise SimError(f"--tension-rate must be in (0, 10000] Hz, got {args.tension_rate}")
+    if not (MIN_TENSION_RATE_HZ <= args.tension_rate <= 10_000):  # nan fails too
+        raise SimError(
+            f"--tension-rate must be in [{MIN_TENSION_RATE_HZ:g}, 10000] Hz, "
+            f"got {args.tension_rate}"
+        )
     faults = [parse_fault(f) for f in args.fault]
     config = load_box_config(args.config)
     actuation = load_actuation(load_robot(args.robot))

@@ -13,7 +13,12 @@ import argparse
 import sys
 from pathlib import Path
 
-from hrm_ctrl.cli._common import add_robot_argument
+from hrm_ctrl.cli._common import (
+    Output,
+    add_robot_argument,
+    refuse_overwriting_inputs,
+    robot_input,
+)
 from hrm_ctrl.formats.urdf import robot_urdf, write_robot_urdf
 from hrm_ctrl.model import load_robot
 
@@ -32,6 +37,7 @@ def register(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    refuse_overwriting_inputs([Output("--out", args.out)], [robot_input(args.robot)])
     model = load_robot(args.robot)
     if args.out is None:
         sys.stdout.write(robot_urdf(model))

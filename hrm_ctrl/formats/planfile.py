@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hrm_ctrl.errors import PlanFileError
-from hrm_ctrl.files import read_text_file, write_atomic
+from hrm_ctrl.files import parse_json, read_text_file, write_atomic
 
 if TYPE_CHECKING:
     from hrm_ctrl.model import RobotModel
@@ -176,9 +176,40 @@ def validate_plan(plan: Any, where: str = "plan") -> Any:
     return plan
 
 
+def _first_huge(value: Any, sub: str = "") -> tuple[str, int] | None:
+    """The place and value of the first integer in nested lists a float cannot hold."""
+    if isinstance(value, list):
+        for i, v in enumerate(value):
+            found = _first_huge(v, f"{sub}[{i}]")
+            if found is not None:
+                return found
+        return None
+    if isinstance(value, int) and not isinstance(value, bool):
+        try:
+            float(value)
+        except OverflowError:
+            return sub, value
+    return None
+
+
+def _floats(value: Any, place: str, where: str) -> np.ndarray:
+    """``value`` as a float64 array; an integer too large for a float (a document built in
+    Python: the file reader refuses those) is one line naming its place."""
+    try:
+        return np.array(value, dtype=np.float64)
+    except OverflowError:
+        sub, _ = _first_huge(value) or ("", 0)
+        if place.startswith("steps[]."):  # [k] of the stacked steps names the step
+            k, _, rest = sub[1:].partition("]")
+            place, sub = f"steps[{k}].{place[8:]}", rest
+        raise PlanFileError(
+            f"{where}: {place}{sub}: expected a finite number, got an integer too large for a float"
+        ) from None
+
+
 def _array(value: Any, place: str, where: str) -> np.ndarray:
     """A schema-checked numeric list as a float array; non-finite numbers are refused."""
-    arr = np.array(value, dtype=np.float64)
+    arr = _floats(value, place, where)
     bad = ~np.isfinite(arr)
     if bad.any():
         idx = tuple(int(i) for i in np.argwhere(bad)[0])
@@ -193,7 +224,7 @@ def _array(value: Any, place: str, where: str) -> np.ndarray:
 def _step_array(steps: list[Any], key: str, where: str) -> np.ndarray:
     """``key`` of every (schema-checked) step stacked, (S, ...); non-finite numbers are
     refused naming the step."""
-    arr = np.array([st[key] for st in steps], dtype=np.float64)
+    arr = _floats([st[key] for st in steps], f"steps[].{key}", where)
     bad = ~np.isfinite(arr)
     if bad.any():
         i, *rest = (int(v) for v in np.argwhere(bad)[0])
@@ -382,7 +413,7 @@ class PlanDoc:
 def read_plan(path: str | Path) -> PlanDoc:
     """Read and check a plan file; one-line :class:`PlanFileError` on any problem
     (missing, unreadable, larger than :data:`MAX_PLAN_BYTES`, not JSON, nested too deeply,
-    not ``hrm-plan/1``)."""
+    an integer beyond a 64-bit float, not ``hrm-plan/1``)."""
     p = Path(path)
     try:
         size = p.stat().st_size
@@ -392,15 +423,8 @@ def read_plan(path: str | Path) -> PlanDoc:
         raise PlanFileError(
             f"{p}: plan file is {size} bytes, more than the {MAX_PLAN_BYTES} a plan may have"
         )
-    text = read_text_file(p, PlanFileError, "plan file")
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise PlanFileError(f"{p}: not JSON (line {exc.lineno}: {exc.msg})") from None
-    except RecursionError:
-        raise PlanFileError(f"{p}: not a plan (JSON nested too deeply)") from None
-    except ValueError as exc:  # e.g. an integer with too many digits
-        raise PlanFileError(f"{p}: not JSON ({str(exc).splitlines()[0]})") from None
+    text = read_text_file(p, PlanFileError, "plan file", max_bytes=MAX_PLAN_BYTES)
+    doc = parse_json(text, PlanFileError, str(p), "plan")
     try:
         return PlanDoc.from_dict(doc, str(p))
     except RecursionError:

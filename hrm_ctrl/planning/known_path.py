@@ -28,6 +28,12 @@ from hrm_ctrl.errors import PathFileError
 from hrm_ctrl.files import read_text_file
 
 DENSE_SPACING = 0.5  # mm, resampling of the path for distance queries
+# Bounds on what a path may size (memory and time of everything planned along it): the
+# arm is 2 m long and its scenarios have a few hundred points.
+MAX_PATH_POINTS = 100_000  # points of a path (a path file has one a line)
+MAX_PATH_BYTES = 16 * 2**20  # a path file larger than this is refused unread
+MAX_COORDINATE_MM = 1e6  # |x|, |y|, |z| of a point: 1 km from the world origin
+MAX_PATH_LENGTH_MM = 1e5  # 100 m: the dense resampling then has at most 200,000 points
 
 
 class DuplicatePointsWarning(UserWarning):
@@ -69,6 +75,18 @@ class KnownPath:
             raise PathFileError(f"{source}: path points must have 3 columns (x, y, z)")
         if not np.all(np.isfinite(pts)):
             raise PathFileError(f"{source}: path contains NaN or inf")
+        if len(pts) > MAX_PATH_POINTS:
+            raise PathFileError(
+                f"{source}: path has {len(pts)} points, more than the {MAX_PATH_POINTS} "
+                "a path may have"
+            )
+        far = np.abs(pts) > MAX_COORDINATE_MM
+        if far.any():
+            k, c = (int(v) for v in np.argwhere(far)[0])
+            raise PathFileError(
+                f"{source}: point {k + 1}: {'xyz'[c]} = {pts[k, c]:.6g} mm is farther than "
+                f"{MAX_COORDINATE_MM:g} mm from the origin"
+            )
         pts, dropped = drop_consecutive_duplicates(pts)
         if dropped:
             warnings.warn(
@@ -80,6 +98,11 @@ class KnownPath:
             raise PathFileError(f"{source}: a path needs at least 2 distinct points")
         seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
         s = np.concatenate(([0.0], np.cumsum(seg)))
+        if s[-1] > MAX_PATH_LENGTH_MM:
+            raise PathFileError(
+                f"{source}: path is {s[-1]:.6g} mm long, longer than the "
+                f"{MAX_PATH_LENGTH_MM:g} mm a path may be"
+            )
         pts.setflags(write=False)
         s.setflags(write=False)
         return cls(points=pts, s=s, source=source)
@@ -189,14 +212,34 @@ def tangent_angles(u: np.ndarray) -> tuple[float, float]:
     return K, T
 
 
+def _cell(cell: str) -> str:
+    """A cell for a message, at most about 40 characters."""
+    text = repr(cell.strip())
+    return text if len(text) <= 40 else f"{text[:30]}...' ({len(cell.strip())} characters)"
+
+
 def load_path_csv(path: str | Path) -> KnownPath:
     """Read a path file: header ``x,y,z`` then one point per line (mm).
 
-    Raises :class:`PathFileError` naming the file, line and value on any problem.
+    Raises :class:`PathFileError` naming the file, line and value on any problem; a
+    file larger than :data:`MAX_PATH_BYTES` is refused unread, one of more than
+    :data:`MAX_PATH_POINTS` points before its numbers are read.
     """
     p = Path(path)
-    text = read_text_file(p, PathFileError, "path file")
-    rows = list(csv.reader(text.splitlines()))
+    text = read_text_file(p, PathFileError, "path file", max_bytes=MAX_PATH_BYTES)
+    lines = text.splitlines()
+    if len(lines) > MAX_PATH_POINTS + 1 and sum(bool(x.strip()) for x in lines) > (
+        MAX_PATH_POINTS + 1
+    ):
+        raise PathFileError(
+            f"{p}: path file has more than the {MAX_PATH_POINTS} points a path may have"
+        )
+    reader = csv.reader(lines)
+    rows: list[list[str]] = []
+    try:
+        rows.extend(reader)
+    except csv.Error as exc:  # e.g. a field longer than csv's limit
+        raise PathFileError(f"{p}:{reader.line_num}: not a CSV line ({exc})") from None
     rows_numbered = [(n, r) for n, r in enumerate(rows, start=1) if any(c.strip() for c in r)]
     if not rows_numbered:
         raise PathFileError(f"{p}: path file is empty")
@@ -214,9 +257,14 @@ def load_path_csv(path: str | Path) -> KnownPath:
             try:
                 v = float(cell)
             except ValueError:
-                raise PathFileError(f"{p}:{n}: {name} is not a number: {cell.strip()!r}") from None
+                raise PathFileError(f"{p}:{n}: {name} is not a number: {_cell(cell)}") from None
             if not math.isfinite(v):
-                raise PathFileError(f"{p}:{n}: {name} is not finite: {cell.strip()!r}")
+                raise PathFileError(f"{p}:{n}: {name} is not finite: {_cell(cell)}")
+            if abs(v) > MAX_COORDINATE_MM:
+                raise PathFileError(
+                    f"{p}:{n}: {name} = {v:.6g} mm is farther than {MAX_COORDINATE_MM:g} mm "
+                    "from the origin"
+                )
             vals.append(v)
         pts.append(vals)
     return KnownPath.from_points(np.array(pts), source=str(p))

@@ -43,6 +43,14 @@ from hrm_ctrl.planning.known_path import KnownPath, tangent_angles
 from hrm_ctrl.planning.report import plan_report
 from hrm_ctrl.planning.scenarios import Scenario
 
+# Bounds on what the step (lambda) and the path may ask the planner to allocate, checked
+# before anything is: a plan has at most MAX_PLAN_STEPS steps (a return leg included;
+# 0.1 mm steps along the whole 2007 mm arm, a plan file of ~30 MB), and holds every step's
+# backbone samples (Q + 1 of the modal curve plus the path's points) at once, at most
+# MAX_PLAN_SAMPLES in all: ~170 bytes a sample at the peak, measured, so ~700 MB.
+MAX_PLAN_STEPS = 20_000
+MAX_PLAN_SAMPLES = 4_000_000
+
 
 @dataclass(frozen=True)
 class PlanOptions:
@@ -133,11 +141,46 @@ def travel_schedule(length: float, step: float) -> np.ndarray:
 
     >>> travel_schedule(12.0, 5.0).tolist()
     [0.0, 5.0, 10.0, 12.0]
+    >>> travel_schedule(2000.0, 1e-6)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.PlanningError: a 2000 mm path at steps of 1e-06 mm is 2e+09 steps, more ...
     """
+    check_plan_size(length, step)
     n = math.ceil(length / step - 1e-9)
     d = np.minimum(np.arange(n + 1) * step, length)
     d[-1] = length
     return d
+
+
+def check_plan_size(
+    length: float, step: float, *, return_to_start: bool = False, path_points: int = 0, Q: int = 0
+) -> None:
+    """Refuse (:class:`PlanningError`, one line) a plan of more than :data:`MAX_PLAN_STEPS`
+    steps, or whose backbones would hold more than :data:`MAX_PLAN_SAMPLES` samples,
+    before anything is allocated."""
+    if not (math.isfinite(step) and step > 0.0):
+        raise PlanningError(f"step must be a finite number > 0 mm, got {step}")
+    legs = 2 if return_to_start else 1
+    q = length / step  # inf when the division overflows
+    if q <= MAX_PLAN_STEPS:
+        n_in = math.ceil(q - 1e-9) + 1  # as travel_schedule counts them
+        n, count = legs * n_in - legs + 1, str(legs * n_in - legs + 1)
+    else:
+        n_in, n, count = 0, math.inf, f"{legs * q:.3g}"
+    if n > MAX_PLAN_STEPS:
+        ret = ", there and back," if return_to_start else ""
+        raise PlanningError(
+            f"a {length:.6g} mm path at steps of {step:g} mm{ret} is {count} steps, more than "
+            f"the {MAX_PLAN_STEPS} a plan may have"
+        )
+    samples = n_in * (Q + 1 + path_points)
+    if samples > MAX_PLAN_SAMPLES:
+        raise PlanningError(
+            f"a {length:.6g} mm path of {path_points} points at steps of {step:g} mm needs "
+            f"{samples:.3g} backbone samples, more than the {MAX_PLAN_SAMPLES} a plan may hold "
+            "(take a larger step or fewer path points)"
+        )
 
 
 def plan_path(
@@ -155,6 +198,13 @@ def plan_path(
     """
     opt = options or PlanOptions()
     opt.check()
+    check_plan_size(
+        path.length,
+        opt.step,
+        return_to_start=opt.return_to_start,
+        path_points=len(path.points),
+        Q=opt.Q,
+    )
     basis = ModalBasis(opt.Q)
     X0 = model.base_position
     A = path.points[0]

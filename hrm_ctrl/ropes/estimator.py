@@ -35,6 +35,7 @@ True
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -204,3 +205,159 @@ class RopeStateEstimator:
             flagged_joint=flagged_joint,
             flagged=flagged,
         )
+
+
+# A commanded configuration counts as consistent when its rope lengths fit one
+# configuration to within the feedback's own noise (standardised residual, in sigma).
+GATE_SIGMA = 1.0
+REFERENCE_ITERATIONS = 3  # Newton steps per reference solve, warm-started at the last one
+# How long consistent samples are not checked after an inconsistent command: the drives
+# lag their targets, so the first feedback after a lead-in still shows its last rows.
+SETTLE_S = 0.05
+
+
+class RopeConsistencyCheck:
+    """The estimator's per-rope consistency flag as a watch on feedback samples.
+
+    ``check(counts, reference)`` (also the instance's call) runs one
+    :meth:`RopeStateEstimator.update` on a feedback sample (n counts, the drives' actual
+    positions of one SYNC) and returns a one-line fault naming the flagged joint and its
+    ropes, or None.  ``reference`` is what the drives were commanded to hold at that
+    SYNC: the figure means something only when that command is itself one
+    configuration.  A lead-in ramp or a jog is linear in counts and fits none (up to
+    0.45 mm off on the bent pipe's lead-in, 45 sigma), so while the reference's own
+    standardised residual exceeds ``gate_sigma`` the sample is not checked (counted in
+    :attr:`gated`), nor are those of the next ``settle_s`` (the drives lag their
+    targets), and the filter restarts from the next sample.  A rope fault shows in
+    the feedback only: a slipped, broken or offset rope, or an encoder that is off.
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> from hrm_ctrl.ropes.actuation import load_actuation
+    >>> act = load_actuation(default_robot())
+    >>> check = RopeConsistencyCheck(act, rate_hz=20.0)
+    >>> c = act.counts_from_angles(np.full(12, 0.2), np.full(12, -0.1))
+    >>> [check(c, c) for _ in range(3)]
+    [None, None, None]
+    >>> bad = c.copy(); bad[13] += 1075                      # j05r1 off by 0.5 mm
+    >>> text = check(bad, c)
+    >>> text[: text.index(": l")]
+    'rope consistency: joint 5, ropes j05r0, j05r1, j05r2'
+    >>> text[text.index("(") :]
+    '(figure 10.2 > 5; a rope slipped or broke, or an encoder is off)'
+    >>> lead_in = (c * 0.5).astype(np.int64)                  # halfway along a counts ramp
+    >>> check(lead_in, lead_in), check(c, c), check.gated   # + 1 settling sample
+    (None, None, 2)
+    """
+
+    def __init__(
+        self,
+        actuation: Actuation,
+        rate_hz: float = 20.0,
+        *,
+        gate_sigma: float = GATE_SIGMA,
+        settle_s: float = SETTLE_S,
+        **estimator_options: Any,
+    ) -> None:
+        if not (np.isfinite(gate_sigma) and gate_sigma > 0):
+            raise RopeError(f"consistency check: gate_sigma must be > 0, got {gate_sigma!r}")
+        self.act = actuation
+        self.estimator = RopeStateEstimator(actuation, rate_hz, **estimator_options)
+        self.gate_sigma = float(gate_sigma)
+        if not (np.isfinite(settle_s) and settle_s >= 0):
+            raise RopeError(f"consistency check: settle_s must be >= 0, got {settle_s!r}")
+        self.settle_samples = math.ceil(settle_s * rate_hz - 1e-9)
+        self._settle = 0
+        self.evaluations = 0  # samples checked
+        self.gated = 0  # samples not checked: the command itself was inconsistent
+        self.restarts = 0
+        self.max_figure = 0.0  # largest consistency figure seen on a checked sample
+        self.last: Estimate | None = None
+        self._restart = True
+        self._ref: np.ndarray | None = None
+        self._ref_ok = False
+        self._warm: tuple[np.ndarray, np.ndarray] | None = None
+
+    def reference_consistent(self, reference: Any) -> bool:
+        """Whether commanded counts are one configuration (within ``gate_sigma``)."""
+        ref = np.asarray(reference, dtype=np.int64)
+        if self._ref is not None and np.array_equal(ref, self._ref):
+            return self._ref_ok  # a hold: same command as last time
+        act = self.act
+        z = act.lengths_from_counts(ref)
+        try:
+            if self._warm is None:
+                sol = solve_angles(act.geometry, act.joint_of_motor, z, pad=act.pad)
+            else:
+                sol = solve_angles(
+                    act.geometry,
+                    act.joint_of_motor,
+                    z,
+                    *self._warm,
+                    act.pad,
+                    robust=False,
+                    max_iterations=REFERENCE_ITERATIONS,
+                )
+        except RopeError:
+            self._warm, self._ref, self._ref_ok = None, ref.copy(), False
+            return False
+        zstd = (
+            standardized_residual(
+                act.geometry,
+                act.joint_of_motor,
+                sol.alpha,
+                sol.theta,
+                sol.residual,
+                jacobian=sol.jacobian,
+                pad=act.pad,
+            )
+            / self.estimator.sigma_mm
+        )
+        self._warm = (np.asarray(sol.alpha), np.asarray(sol.theta))
+        self._ref = ref.copy()
+        self._ref_ok = bool(np.all(np.abs(zstd) <= self.gate_sigma))
+        return self._ref_ok
+
+    def check(self, counts: Any, reference: Any = None) -> str | None:
+        """One feedback sample: a one-line fault, or None (see the class docstring)."""
+        if reference is not None and not self.reference_consistent(reference):
+            self.gated += 1
+            self._restart = True
+            self._settle = self.settle_samples
+            return None
+        if self._settle > 0:
+            self._settle -= 1
+            self.gated += 1
+            return None
+        if self._restart:
+            self.estimator.initialise(counts)
+            self.restarts += 1
+            self._restart = False
+        out = self.estimator.update(counts)
+        self.last = out
+        self.evaluations += 1
+        self.max_figure = max(self.max_figure, float(out.consistency.max()))
+        if out.flagged_joint is None:
+            return None
+        own = np.flatnonzero(self.act.joint_of_motor == out.flagged_joint - 1)
+        figure = float(out.consistency[own].max())
+        many = "s" if len(out.flagged) > 1 else ""
+        return (
+            f"rope consistency: joint {out.flagged_joint}, rope{many} {', '.join(out.flagged)}: "
+            f"lengths do not fit the other ropes (figure {figure:.1f} > "
+            f"{self.estimator.flag_sigma:g}; a rope slipped or broke, or an encoder is off)"
+        )
+
+    __call__ = check
+
+    def summary(self) -> dict[str, Any]:
+        """What a run record keeps of the check."""
+        return {
+            "evaluations": self.evaluations,
+            "gated": self.gated,
+            "restarts": self.restarts,
+            "max_figure": round(self.max_figure, 3),
+            "flag_sigma": self.estimator.flag_sigma,
+            "gate_sigma": self.gate_sigma,
+            "settle_samples": self.settle_samples,
+            "rate_hz": 1.0 / self.estimator.dt_s,
+        }

@@ -18,6 +18,16 @@ vectorised over joints, ropes and configurations, no Python loop per joint.  At
 convergence ``P_k r_k = 0`` for every k, i.e. each joint's angles are the
 least-squares fit of its own ropes; ``r`` is then the per-rope residual.
 
+That fit can be a spurious local minimum near the corners of the joint range, where
+the lengths fold: a joint's own ropes then barely tell two configurations apart
+(the reported case, alpha_11 = theta_11 = -1.046875 rad, theta_12 = -1 rad: 1.6 degrees
+off, 0.007 mm on the worst rope, 0.005 mm joint RMS).  A joint RMS residual above
+:data:`RESIDUAL_TOL_MM` therefore counts as a possible wrong fit: a small one is
+polished with ``scipy.optimize.least_squares`` on every rope equation at once (the
+ropes of the joints further out cross the joint too and resolve the fold), a large
+one or a polish that does not fit within the tolerance is solved again joint by
+joint on squared lengths (see :func:`solve_angles`).
+
 >>> from hrm_ctrl.model import default_robot
 >>> from hrm_ctrl.ropes.routing import routing_from_model
 >>> from hrm_ctrl.ropes.length import rope_geometry, rope_lengths
@@ -51,7 +61,25 @@ from hrm_ctrl.ropes.length import (
 MAX_ITERATIONS = 30
 STEP_TOL = 1e-8  # rad; Newton converges quadratically: the error left is ~1e-16
 SWITCH_TOL = 1e-6  # rad: from squared-length to plain-length Newton
-FALLBACK_RMS_MM = 0.01  # a joint's RMS rope residual above this triggers the robust solve
+RESIDUAL_TOL_MM = 3e-3
+"""A joint's RMS rope residual (mm) above this is taken for a possible wrong fit.
+
+* Consistent data stay below it, so they never pay for the robust solve: lengths from
+  motor counts (quantised at 2151 counts/mm with the shipped motor map) leave correct
+  fits a joint RMS of 2e-4 mm (median) and 1.6e-3 mm at most (20,000 configurations
+  over the whole joint range); exact lengths leave ~1e-11 mm.
+* In joint angle: a joint's rope lengths change by 14.7 mm/rad at the straight arm
+  (both singular values of its own 3x2 Jacobian), so 3e-3 mm left unexplained is
+  2e-4 rad (0.012 deg), the angle resolution the counts give anyway; at
+  alpha = theta = 1 rad the weaker direction drops to 0.6 mm/rad, and 3e-3 mm is
+  5e-3 rad (0.3 deg).  Near the corners of the range the lengths fold and a residual
+  of a few micrometres can sit next to a fit degrees away (the reported case:
+  0.005 mm joint RMS, 1.6 deg), hence the tolerance is as low as the counts allow.  Below it a
+  wrong fit cannot be told from quantisation at all (in the corners, fits 6 deg apart
+  were seen within 1e-4 mm): the counts do not determine the angles there better.
+"""
+FALLBACK_RMS_MM = 0.01  # above this (or no convergence) straight to the joint-by-joint solve
+POLISH_MAX_NFEV = 60  # least_squares evaluations per polish (a near miss takes ~10)
 MAX_STEP = 0.5  # rad per iteration and angle (keeps Newton inside the joint's range)
 
 
@@ -234,13 +262,21 @@ def solve_angles(
     """Joint angles whose geometric rope lengths best match ``lengths`` (..., n) mm.
 
     Fast path: Newton on all joints at once from ``alpha0``/``theta0`` (default:
-    straight arm).  Where it does not converge or leaves a joint's RMS residual
-    above ``FALLBACK_RMS_MM`` (a spurious minimum near the joint-range corners,
-    or inconsistent data), the configuration is solved again joint by joint on
-    squared lengths and polished; the better fit is kept.  ``robust=False`` skips
-    that second solve (for a warm start already in the right basin, e.g. a filter's
-    estimate, where a faulty rope must not cost the slow path every cycle);
-    ``max_iterations`` caps the Newton steps and accepts the result (tracking).
+    straight arm).  Where it leaves a joint's RMS residual above
+    :data:`RESIDUAL_TOL_MM` (a spurious minimum near the joint-range corners, or
+    inconsistent data):
+
+    1. up to ``FALLBACK_RMS_MM`` (a near miss), the answer is polished with
+       ``scipy.optimize.least_squares`` on all rope equations at once and kept if
+       every joint then fits within :data:`RESIDUAL_TOL_MM`;
+    2. otherwise (or without convergence) the configuration is solved again joint by
+       joint on squared lengths and polished with Newton; the better fit is kept.
+
+    Inconsistent data (a faulty rope) keep the joint-by-joint fit, in which a rope's
+    error shows in its own joint first.  ``robust=False`` skips both (for a warm
+    start already in the right basin, e.g. a filter's estimate, where a faulty rope
+    must not cost the slow path every cycle); ``max_iterations`` caps the Newton
+    steps and accepts the result (tracking).
     Raises :class:`RopeInverseError` on non-finite lengths or no convergence.
     """
     L = np.asarray(lengths, dtype=float)
@@ -266,10 +302,19 @@ def solve_angles(
     if max_iterations is not None:
         ok[:] = True
     res = Lb - rope_lengths(geom, x[..., 0], x[..., 1])
-    rms = _joint_rms(res, joint_of_rope, n_j)
-    suspect = ~ok | (rms.max(axis=1) > FALLBACK_RMS_MM)
-    if not robust:
-        suspect[:] = False
+    rms = _joint_rms(res, joint_of_rope, n_j).max(axis=1)
+    if robust:
+        for b in np.flatnonzero(ok & (rms > RESIDUAL_TOL_MM) & (rms <= FALLBACK_RMS_MM)):
+            polished = _polish(geom, Lb[b], x[b])
+            if polished is None:
+                continue
+            xp, rp, Jp = polished
+            rms_p = float(_joint_rms(rp[None], joint_of_rope, n_j).max())
+            if rms_p <= RESIDUAL_TOL_MM:
+                x[b], res[b], J[b], rms[b] = xp, rp, Jp, rms_p
+        suspect = ~ok | (rms > RESIDUAL_TOL_MM)
+    else:
+        suspect = np.zeros(B, dtype=bool)
     if suspect.any():
         Ls = Lb[suspect]
         x1, ok1 = _sequential_squared(geom, joint_of_rope, Ls)
@@ -298,6 +343,47 @@ def solve_angles(
         iterations=it,
         jacobian=J.reshape(*batch, geom.n_ropes, 2 * n_j),
     )
+
+
+def _polish(
+    geom: RopeGeometry, L: np.ndarray, x0: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``scipy.optimize.least_squares`` (Levenberg-Marquardt, analytic Jacobian) on every
+    rope equation of one configuration from ``x0`` (12, 2): angles (12, 2), residual
+    ``L - L(angles)`` (n,) and Jacobian (n, 24) there, or ``None`` if it fails.
+
+    Unlike the joint-by-joint fit it uses every rope crossing a joint, also those of
+    the joints further out, which is what tells a fold's two sides apart.
+    """
+    from scipy.optimize import least_squares  # 0.1 s to import: only when needed
+
+    memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+    def evaluate(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = z.tobytes()
+        if key not in memo:
+            memo.clear()
+            s, J, _ = lengths_and_jacobian(geom, z[None, 0::2], z[None, 1::2])
+            memo[key] = (s[0] - L, J[0])
+        return memo[key]
+
+    try:
+        sol = least_squares(
+            lambda z: evaluate(z)[0],
+            x0.ravel(),
+            jac=lambda z: evaluate(z)[1],
+            method="lm",
+            xtol=STEP_TOL * 1e-2,
+            ftol=1e-14,
+            gtol=1e-14,
+            max_nfev=POLISH_MAX_NFEV,
+        )
+    except (ValueError, np.linalg.LinAlgError):  # pragma: no cover - defensive
+        return None
+    if not np.all(np.isfinite(sol.x)):  # pragma: no cover - defensive
+        return None
+    r, J = evaluate(sol.x)
+    return sol.x.reshape(-1, 2), -r, J
 
 
 def _as_batch(v: np.ndarray, batch: tuple[int, ...], B: int, n_j: int) -> np.ndarray:

@@ -46,6 +46,11 @@ DEFAULT_MOTORS: dict[str, float] = {
 }
 
 
+# A drive's position (CiA 402 0x607A, 0x6064) is a 32-bit signed count: every count a motor
+# may be sent (zero offset + the drum travel either way) must fit it.
+POSITION_COUNTS_MAX = 2**31 - 1
+
+
 class MotorConfigError(RopeError):
     """The ``[motors]`` table is malformed or names an unknown motor."""
 
@@ -176,6 +181,8 @@ def zero_offsets_from(value: Any, ids: Sequence[str]) -> np.ndarray:
 def _int(v: Any, where: str) -> int:
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v != int(v):
         raise RopeError(f"{where}: expected an integer count, got {v!r}")
+    if abs(v) > POSITION_COUNTS_MAX:
+        raise RopeError(f"{where}: {v!r} is beyond the drives' 32-bit position")
     return int(v)
 
 
@@ -196,6 +203,13 @@ def motor_map_from_table(
     ids = list(ids)
     vals = {k: _num(table, k, where) for k in DEFAULT_MOTORS}
     cpm = vals["gear_ratio"] * vals["counts_per_turn"] / (2.0 * math.pi * vals["drum_radius_mm"])
+    travel = max(vals["travel_in_mm"], vals["travel_out_mm"])
+    span = cpm * travel
+    if not span <= POSITION_COUNTS_MAX:  # inf or nan included
+        raise MotorConfigError(
+            f"{where}: {cpm:.4g} counts/mm over {travel:g} mm of drum travel is {span:.4g} "
+            f"counts, beyond the drives' 32-bit position (at most {POSITION_COUNTS_MAX})"
+        )
     n = len(ids)
     arrays = {
         "counts_per_mm": np.full(n, cpm),

@@ -47,6 +47,12 @@ from hrm_ctrl.errors import RopeError
 from hrm_ctrl.ropes.actuation import Actuation, RopeLimitError
 
 MAX_PLAN_DURATION_S = 3600.0  # default longest playback (bounds the table's memory)
+# The most control slots (rows) a playback may have, whatever the control rate: 3600 s at
+# 100 Hz fits; the (rows, motors) int64 table is then 115 MB for 36 motors.  Checked before
+# the table is allocated; rows are converted (and their motor speeds checked) _BLOCK_ROWS at
+# a time, so the temporaries stay a few tens of MB.
+MAX_PLAYBACK_ROWS = 400_000
+_BLOCK_ROWS = 32_768
 PHASES = ("in", "return")
 _ON_STEP_S = 1e-9  # a control slot this close to a step's time is on that step
 
@@ -236,14 +242,29 @@ def plan_setpoints(
                 f"{max_duration_s:g} s",
             )
         )
-    n = math.floor(duration / period_s + 1e-9) + 1
+    cycles = duration / period_s
+    if not cycles < MAX_PLAYBACK_ROWS - 1:
+        raise RopeError(
+            _prefixed(
+                where,
+                f"{duration:.4g} s at {speed_mm_per_s:g} mm/s is {cycles:.4g} control cycles of "
+                f"{period_s:g} s, more than the {MAX_PLAYBACK_ROWS} a playback may have",
+            )
+        )
+    n = math.floor(cycles + 1e-9) + 1
     t = np.minimum(np.arange(n, dtype=np.float64) * period_s, duration)
-    if duration - t[-1] > _ON_STEP_S:
-        t = np.append(t, duration)
-    ang = interpolate_rows(t, step_time, np.hstack([alpha, theta]))
-    counts = actuation.counts_from_angles(ang[:, :n_j], ang[:, n_j:], check=False)
-    del ang
+    if duration > 0.0 and (duration - t[-1] > _ON_STEP_S or n == 1):
+        t = np.append(t, duration)  # the last row is the last step, however short the run
+    knots = np.hstack([alpha, theta])
+    counts = np.empty((t.shape[0], actuation.n_motors), dtype=np.int64)
+    for lo in range(0, t.shape[0], _BLOCK_ROWS):
+        ang = interpolate_rows(t[lo : lo + _BLOCK_ROWS], step_time, knots)
+        counts[lo : lo + _BLOCK_ROWS] = actuation.counts_from_angles(
+            ang[:, :n_j], ang[:, n_j:], check=False
+        )
+    del knots
     step_of_row = np.minimum(np.searchsorted(step_time, t - _ON_STEP_S, side="left"), s - 1)
+    step_of_row[-1] = s - 1  # at the duration: the last step
 
     def row_label(r: int) -> str:
         return _step_label(travel, int(step_of_row[r]))
@@ -286,13 +307,16 @@ def _check_rates(
 ) -> None:
     """Every change from one control slot to the next within the motors' speed; the first
     too fast one is named by the plan steps it moves through."""
-    if counts.shape[0] < 2:
+    r = 0  # the change from row r - 1 to row r is the first too fast one
+    for lo in range(0, counts.shape[0] - 1, _BLOCK_ROWS):
+        block = counts[lo : lo + _BLOCK_ROWS + 1]
+        rate = np.abs(np.diff(block, axis=0)).astype(np.float64) / period_s
+        fast = (rate > act.max_rate_counts_per_s).any(axis=1)
+        if fast.any():
+            r = lo + int(np.flatnonzero(fast)[0]) + 1
+            break
+    if r == 0:
         return
-    rate = np.abs(np.diff(counts, axis=0)).astype(np.float64) / period_s
-    fast = (rate > act.max_rate_counts_per_s).any(axis=1)
-    if not fast.any():
-        return
-    r = int(np.flatnonzero(fast)[0]) + 1  # the change from row r - 1 to row r
     j = int(step_of_row[r - 1])
     first = j + 1 if abs(step_time[j] - t[r - 1]) <= _ON_STEP_S else j
     label = _steps_label(travel, min(first, int(step_of_row[r])), int(step_of_row[r]))
@@ -303,6 +327,7 @@ def _check_rates(
 
 __all__ = [
     "MAX_PLAN_DURATION_S",
+    "MAX_PLAYBACK_ROWS",
     "PHASES",
     "PlanSetpoints",
     "interpolate_rows",

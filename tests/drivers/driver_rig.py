@@ -25,6 +25,9 @@ from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.box import SimBox
 
+# The rig's drives are fresh simulators (pre-operational, no other master): a short
+# listen before the first reset keeps the suite fast; tests of the listen set their own.
+RIG_LISTEN_S = 0.1
 SMALL_BUSES: tuple[dict[str, int], ...] = ({"j01r0": 1, "j01r1": 2}, {"j07r0": 3})
 
 
@@ -64,6 +67,7 @@ class Rig:
     cleanup: list[Callable[[], None]] = field(default_factory=list)
 
     def open_box(self, log_dir: Path | None = None, **kw: Any) -> DriveSession:
+        kw.setdefault("listen_s", RIG_LISTEN_S)
         self.box = DriveSession(self.config, self.limits, log_dir=log_dir, **kw)
         return self.box
 

@@ -7,6 +7,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -122,65 +123,121 @@ def test_traffic_log_numbers_channels_whatever_the_interface_calls_them(
     assert log.write_errors == 0
 
 
+class EchoBus(can.BusABC):
+    """A bus that delivers every frame sent on it back to its sender (as udp_multicast
+    does), and lets a test inject frames of other senders."""
+
+    def __init__(self) -> None:
+        self.inbox: list[can.Message] = []
+        super().__init__(channel="echo")
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.inbox.append(
+            can.Message(
+                arbitration_id=msg.arbitration_id, data=msg.data, is_extended_id=msg.is_extended_id
+            )
+        )
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return None, False
+
+
+def receiver_for(port: BusPort, log: TrafficLog, reports: list[tuple[Any, str]], armed: bool):
+    from drivers.receive import BusReceiver
+
+    class Net:  # canopen's part: nothing to say about these frames
+        def notify(self, *args: Any) -> None: ...
+
+    return BusReceiver(
+        port,
+        Net(),
+        log,
+        {1: "m0 (node 1)"},  # type: ignore[arg-type]
+        lambda kind, text: reports.append((kind, text)),
+        lambda: armed,
+    )
+
+
 @pytest.mark.parametrize("suffix", [".blf", ".asc"])
-def test_traffic_log_keeps_host_frames_once_and_drops_their_echo(
+def test_log_keeps_our_frames_once_and_every_other_frame_on_the_wire(
     tmp_path: Path, suffix: str
 ) -> None:
+    """Our own frames come back (udp_multicast) and are dropped: they were logged when
+    sent.  Everything else is logged, in particular another master's frames with
+    host-direction COB-IDs, error frames, remote frames and 29-bit frames."""
+    from drivers.bus import BusPort
+
     path = tmp_path / f"echo{suffix}"
     log = TrafficLog(path)
+    bus = EchoBus()
+    port = BusPort("bus0", bus, log, echoes=True)
+    reports: list[tuple[Any, str]] = []
+    rx = receiver_for(port, log, reports, armed=False)
     host = [
         (0x000, b"\x81\x00"),  # NMT reset
         (0x080, b""),  # SYNC
         (0x201, b"\x0f\x00\x10\x27\x00\x00"),  # RPDO1
-        (0x305, b"\x01"),  # RPDO2
-        (0x57F, b"\x01"),  # RPDO4
         (0x601, b"\x40\x41\x60\x00\x00\x00\x00\x00"),  # SDO upload request
         (0x77F, b"\x05"),  # host heartbeat
     ]
-    drive = [
-        (0x081, b"\x00\x00\x00\x00\x00\x00\x00\x00"),  # EMCY
-        (0x181, b"\x37\x02\x10\x27\x00\x00"),  # TPDO1
-        (0x281, b"\x01"),  # TPDO2
-        (0x581, b"\x4b\x41\x60\x00\x37\x02\x00\x00"),  # SDO response
-        (0x701, b"\x05"),  # drive heartbeat
-    ]
-    t = 1.0
     for cid, data in host:
-        t += 0.001
-        log.log_sent(
-            can.Message(
-                arbitration_id=cid, data=data, is_extended_id=False, timestamp=t, is_rx=False
-            )
-        )
-        echo = can.Message(arbitration_id=cid, data=data, is_extended_id=False, timestamp=t)
-        log.on_message_received(echo)  # udp_multicast: the frame comes back
-    for cid, data in drive:
-        t += 0.001
-        log.on_message_received(
-            can.Message(arbitration_id=cid, data=data, is_extended_id=False, timestamp=t)
-        )
+        port.send(can.Message(arbitration_id=cid, data=data, is_extended_id=False))
+    for echo in list(bus.inbox):
+        rx.on_message_received(echo)  # the bus gives them back: dropped
+    others = [
+        can.Message(arbitration_id=0x201, data=b"\x0f\x00\xdc\x05\x00\x00", is_extended_id=False),
+        can.Message(arbitration_id=0x080, data=b"", is_extended_id=False),  # a second SYNC
+        can.Message(arbitration_id=0x181, data=b"\x37\x02\x10\x27\x00\x00"),  # 29-bit
+        can.Message(arbitration_id=0x701, is_remote_frame=True, is_extended_id=False),
+        can.Message(is_error_frame=True),
+        can.Message(arbitration_id=0x705, data=b"\x05", is_extended_id=False),  # node 5
+    ]
+    for m in others:
+        rx.on_message_received(m)
     log.stop()
     back = list(can.LogReader(path))
-    assert [(m.arbitration_id, bytes(m.data), m.is_rx) for m in back] == [
+    assert [(m.arbitration_id, bytes(m.data), m.is_rx) for m in back[: len(host)]] == [
         (cid, data, False) for cid, data in host
-    ] + [(cid, data, True) for cid, data in drive]
-    assert log.n_echoes == len(host) and log.n_frames == len(host) + len(drive)
+    ]
+    assert len(back) == len(host) + len(others)
+    assert [m.arbitration_id for m in back[len(host) :] if not m.is_error_frame] == [
+        0x201,
+        0x080,
+        0x181,
+        0x701,
+        0x705,
+    ]
+    assert sum(m.is_error_frame for m in back) == 1
+    t = rx.traffic
+    assert t.echoes_dropped == len(host)
+    assert t.foreign == {0x201: 1, 0x080: 1} and t.extended == {0x181: 1}
+    assert t.unconfigured == {0x705: 1} and t.remote_frames == 1 and t.error_frames == 1
+    assert reports == []  # not armed: counted, no stop cause
 
 
-def test_traffic_log_knows_the_hosts_heartbeat_id(tmp_path: Path) -> None:
-    path = tmp_path / "hb.asc"
-    log = TrafficLog(path, host_node_id=100)
-    log.on_message_received(can.Message(arbitration_id=0x764, data=b"\x05", is_extended_id=False))
-    log.on_message_received(can.Message(arbitration_id=0x77F, data=b"\x05", is_extended_id=False))
+def test_a_foreign_rpdo_for_our_node_is_a_stop_cause_naming_the_cob_id(tmp_path: Path) -> None:
+    from drivers.bus import BusPort
+    from drivers.safety.causes import StopKind
+
+    log = TrafficLog(tmp_path / "f.asc")
+    port = BusPort("bus0", EchoBus(), log, echoes=True)
+    reports: list[tuple[Any, str]] = []
+    rx = receiver_for(port, log, reports, armed=True)
+    port.send(
+        can.Message(arbitration_id=0x201, data=b"\x0f\x00\x00\x00\x00\x00", is_extended_id=False)
+    )
+    rx.on_message_received(port.bus.inbox[0])  # our own echo: fine
+    rx.on_message_received(
+        can.Message(arbitration_id=0x201, data=b"\x0f\x00\xdc\x05\x00\x00", is_extended_id=False)
+    )
+    rx.on_message_received(
+        can.Message(arbitration_id=0x209, data=b"\x0f\x00", is_extended_id=False)
+    )  # not our node
     log.stop()
-    assert [m.arbitration_id for m in can.LogReader(path)] == [0x77F]  # node 127 is a drive here
-    # A log not told the host id learns it from the heartbeats the host sends.
-    path = tmp_path / "hb2.asc"
-    log = TrafficLog(path)
-    log.log_sent(can.Message(arbitration_id=0x764, data=b"\x05", is_extended_id=False, is_rx=False))
-    log.on_message_received(can.Message(arbitration_id=0x764, data=b"\x05", is_extended_id=False))
-    log.stop()
-    assert [(m.arbitration_id, m.is_rx) for m in can.LogReader(path)] == [(0x764, False)]
+    assert len(reports) == 1
+    kind, text = reports[0]
+    assert kind is StopKind.FOREIGN
+    assert "RPDO1 0x201" in text and "m0 (node 1)" in text and "another master" in text
 
 
 @pytest.mark.parametrize("where", ["file", "under_file", "proc"])

@@ -125,7 +125,7 @@ def test_rpdos_reach_the_wire_before_their_sync_on_a_priority_arbitrated_bus(
 ) -> None:
     """On the simulated wire (hrm_sim, 1 Mbit/s) pending frames leave in identifier
     order, so a SYNC (0x080) queued behind RPDOs (0x2xx) would overtake them; the
-    scheduler sends each cycle's RPDOs a period ahead of their SYNC."""
+    supervisor sends each cycle's RPDOs a period ahead of their SYNC."""
     motors = actuation.motor_ids[:18]
     kw = [{"interface": "hrm_sim", "channel": f"prio-{uuid.uuid4().hex[:8]}"}]
     cfg = make_config(kw, ({m: k + 1 for k, m in enumerate(motors)},))

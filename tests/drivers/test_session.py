@@ -99,3 +99,27 @@ def test_several_sources_one_after_another_without_a_new_reset(
     i = rig.limits.full.motor_ids.index("j01r0")
     assert wait_until(lambda: abs(int(rig.sim.counts()[i]) - int(jogged[0])) < 50)
     box.finish()
+
+
+def test_after_a_stop_disable_and_enable_recover_without_a_reset(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """An operator's stop quick-stops every drive; ``disable`` walks them to
+    READY_TO_SWITCH_ON along the transition table, ``enable`` brings them back, and a
+    stream runs again: one NMT reset in all."""
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    box.request_stop()
+    assert wait_until(lambda: box.state is SessionState.STOPPED)
+    assert [x.kind.value for x in box.idle_causes] == ["operator"]
+    box.disable()
+    assert box.state is SessionState.READY
+    assert all(
+        cia402.decode_state(sw) is cia402.State402.READY_TO_SWITCH_ON
+        for sw in rig.sim.statuswords().values()
+    )
+    box.enable()
+    assert box.stream(HoldSource(n_cycles=5)).completed
+    assert nmt_resets(rig) == [1, 1]
+    box.finish()

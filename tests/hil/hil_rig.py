@@ -67,7 +67,7 @@ def write_box_toml(path: Path, kind: str, buses: tuple[dict[str, int], ...]) -> 
             lines += [
                 f"[buses.{name}]",
                 'interface = "udp_multicast"',
-                f'channel = "239.75.{pid}.{_free_udp_port() % 250 + 1}"',
+                f'channel = "239.75.{pid}.{k + 1}"',  # a group per bus; a port per bus too
                 "bitrate = 1000000",
                 f"[buses.{name}.options]",
                 "hop_limit = 0",

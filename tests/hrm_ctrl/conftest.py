@@ -1,4 +1,4 @@
-"""Fixtures for the rope-layer tests."""
+"""Fixtures of the hrm_ctrl tests: the rope layer, shared by the rope and CLI tests."""
 
 from __future__ import annotations
 

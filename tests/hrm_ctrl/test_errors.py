@@ -19,7 +19,7 @@ from hrm_ctrl.errors import HrmError
 
 PACKAGES = ("hrm_ctrl", "drivers", "sim_bus", "calibration")
 # Not errors of the stack, drawn outside HrmError (the errors.py docstring says why).
-OUTSIDE_HRM_ERROR = {"SdoAbort"}
+OUTSIDE_HRM_ERROR = {"SdoAbort", "SignalInterrupt"}
 
 
 def _module_names() -> tuple[list[str], list[str]]:

@@ -232,7 +232,7 @@ class CrashingSource(TableSource):
         return super().setpoint(k)
 
 
-def test_scheduler_crash_still_stops_every_node(rig_factory: Callable[..., Rig]) -> None:
+def test_control_loop_crash_still_stops_every_node(rig_factory: Callable[..., Rig]) -> None:
     rig = rig_factory()
     box = rig.open_box()
     box.bring_up()
@@ -240,11 +240,11 @@ def test_scheduler_crash_still_stops_every_node(rig_factory: Callable[..., Rig])
         box.stream(CrashingSource())
     assert not np.isnan(quick_stop_sync_time(rig))
     assert wait_until(lambda: all_left_operation_enabled(rig))
-    assert any("scheduler interrupted" in e["text"] for e in box.events.to_list())
+    assert any("control loop interrupted" in e["text"] for e in box.events.to_list())
 
 
 def test_lost_heartbeat_while_idle_stops_every_node(rig_factory: Callable[..., Rig]) -> None:
-    """Between bring-up and a stream the idle guard supervises the drives."""
+    """Between bring-up and a stream the supervisor watches the drives."""
     rig = rig_factory()
     box = rig.open_box()
     box.bring_up()
@@ -268,7 +268,7 @@ def test_emcy_between_streams_stops_every_node(rig_factory: Callable[..., Rig]) 
 
 
 class FaultOnStart(HoldSource):
-    """Holds; while being started (after the idle guard handed over, before the first
+    """Holds; while being started (after the statusword check, before the first
     RPDO) a drive faults and its EMCY reaches the host."""
 
     def __init__(self, rig: Rig, motor: str) -> None:
@@ -343,7 +343,7 @@ def test_bring_up_refuses_an_actual_position_outside_the_limits(
 
 
 def test_idle_quick_stop_failure_is_reported(rig_factory: Callable[..., Rig]) -> None:
-    """The idle guard's quick stop fails on one bus: the failure is a stop cause, the
+    """The idle quick stop fails on one bus: the failure is a stop cause, the
     run record says so, and the next stream names it."""
     rig = rig_factory()
     with flaky_box(rig) as (box, buses):

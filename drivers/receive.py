@@ -1,0 +1,234 @@
+"""The receive path of one bus: every frame the bus delivers, sorted once.
+
+A :class:`BusReceiver` is the only listener of its bus's notifier.  For each frame:
+
+1. our own frame coming back (udp_multicast echoes a sender's frames) is dropped: it
+   was logged when sent (:meth:`drivers.bus.BusPort.is_own_echo`, by identifier and
+   data, so only frames this process sent are dropped);
+2. everything else goes into the bus's CAN log: drives' frames, other masters' frames,
+   error frames, remote frames, 29-bit frames;
+3. error frames, remote frames and 29-bit frames are counted (CANopen is 11-bit: a
+   29-bit 0x181 is never node 1's TPDO);
+4. a configured node's TPDO goes straight to the monitor (the hot path);
+5. a frame in the host's direction (NMT, SYNC, RPDO, SDO request, the host's
+   heartbeat) that we did not send is another master's: counted by COB-ID, and when it
+   addresses one of our nodes (or all of them) it is a stop cause naming the COB-ID;
+6. a frame from a node we do not drive is counted by COB-ID (reported in the run
+   record) and not interpreted;
+7. the rest (heartbeats, EMCYs, SDO responses of our nodes) goes to canopen; a frame
+   canopen cannot take is a stop cause naming the motor and the service, in one line.
+
+What the receiver heard is kept in a :class:`BusTraffic` (bounded: at most
+``MAX_TRACKED_IDS`` identifiers per kind), which the session reads for the run record
+and, before resetting the drives, to tell whether another master is active.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import canopen
+
+from drivers.bus import BusPort, TrafficLog, is_host_frame
+from drivers.protocol import cia301
+from drivers.safety.causes import StopKind
+
+MAX_TRACKED_IDS = 2048  # identifiers counted per kind (29-bit ids could be 2**29)
+log = logging.getLogger("drivers.receive")
+
+
+def service_of(cob_id: int) -> str:
+    """The CANopen service of an 11-bit COB-ID (predefined connection set).
+
+    >>> [service_of(x) for x in (0x000, 0x080, 0x081, 0x181, 0x201, 0x581, 0x601, 0x701)]
+    ['NMT', 'SYNC', 'EMCY', 'TPDO1', 'RPDO1', 'SDO response', 'SDO request', 'heartbeat']
+    """
+    if cob_id == cia301.COB_NMT:
+        return "NMT"
+    if cob_id == cia301.COB_SYNC:
+        return "SYNC"
+    if cob_id == cia301.COB_TIME:
+        return "TIME"
+    fc = cob_id & cia301.FUNCTION_CODE_MASK
+    names = {
+        cia301.COB_EMCY: "EMCY",
+        cia301.COB_SDO_TX: "SDO response",
+        cia301.COB_SDO_RX: "SDO request",
+        cia301.COB_NMT_ERROR_CONTROL: "heartbeat",
+    }
+    if fc in names:
+        return names[fc]
+    for k, base in enumerate((0x180, 0x280, 0x380, 0x480), start=1):
+        if fc == base:
+            return f"TPDO{k}"
+    for k, base in enumerate((0x200, 0x300, 0x400, 0x500), start=1):
+        if fc == base:
+            return f"RPDO{k}"
+    return f"function code 0x{fc:03X}"
+
+
+@dataclass
+class BusTraffic:
+    """What one bus's receiver heard besides our nodes' expected frames."""
+
+    bus: str
+    foreign: dict[int, int] = field(default_factory=dict)  # host-direction COB-ID: frames
+    unconfigured: dict[int, int] = field(default_factory=dict)  # COB-ID of an unknown node
+    extended: dict[int, int] = field(default_factory=dict)  # 29-bit identifier: frames
+    operational_nodes: set[int] = field(default_factory=set)  # heartbeats "operational"
+    remote_frames: int = 0
+    error_frames: int = 0
+    echoes_dropped: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def count(self, table: dict[int, int], key: int) -> None:
+        with self._lock:
+            if key in table or len(table) < MAX_TRACKED_IDS:
+                table[key] = table.get(key, 0) + 1
+
+    def clear_evidence(self) -> None:
+        """Forget what was heard (before listening for another master)."""
+        with self._lock:
+            self.foreign.clear()
+            self.operational_nodes.clear()
+
+    def other_master(self) -> str | None:
+        """What was heard of another master since :meth:`clear_evidence` (None: nothing):
+        SYNC, NMT or RPDO/SDO requests we did not send, or nodes in NMT operational."""
+        with self._lock:
+            heard = [
+                f"{service_of(cid)} 0x{cid:03X} x{n}" for cid, n in sorted(self.foreign.items())
+            ]
+            nodes = sorted(self.operational_nodes)
+        if nodes:
+            shown = ", ".join(str(n) for n in nodes[:8]) + (" ..." if len(nodes) > 8 else "")
+            heard.append(f"{len(nodes)} node(s) in NMT operational ({shown})")
+        if not heard:
+            return None
+        more = f" (+{len(heard) - 4} more)" if len(heard) > 4 else ""
+        return f"bus {self.bus}: " + ", ".join(heard[:4]) + more
+
+    def to_dict(self) -> dict[str, Any]:
+        with self._lock:
+            return {
+                "bus": self.bus,
+                "foreign_frames": {f"0x{k:03X}": v for k, v in sorted(self.foreign.items())},
+                "unconfigured_node_frames": {
+                    f"0x{k:03X}": v for k, v in sorted(self.unconfigured.items())
+                },
+                "extended_id_frames": {f"0x{k:08X}": v for k, v in sorted(self.extended.items())},
+                "remote_frames": self.remote_frames,
+                "error_frames": self.error_frames,
+                "echoes_dropped": self.echoes_dropped,
+            }
+
+
+class BusReceiver(can.Listener):
+    """The receive path of one bus (see the module docstring)."""
+
+    def __init__(
+        self,
+        port: BusPort,
+        network: canopen.Network,
+        log_: TrafficLog | None,
+        node_labels: Mapping[int, str],
+        report: Callable[[StopKind, str], None],
+        armed: Callable[[], bool],
+        host_node_id: int = cia301.HOST_HEARTBEAT_NODE_ID,
+    ) -> None:
+        self.port = port
+        self.network = network
+        self.log = log_
+        self.node_labels = dict(node_labels)
+        self.report = report
+        self.armed = armed
+        self.host_node_id = host_node_id
+        self.traffic = BusTraffic(port.name)
+        self.fast: dict[int, Callable[[bytes], None]] = {}
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if self.port.is_own_echo(msg):
+            self.traffic.echoes_dropped += 1
+            return
+        if self.log is not None:
+            self.log.on_message_received(msg)
+        if msg.is_error_frame:
+            self.traffic.error_frames += 1
+            return
+        cid = msg.arbitration_id
+        if msg.is_extended_id:
+            self.traffic.count(self.traffic.extended, cid)
+            return
+        if msg.is_remote_frame:
+            self.traffic.remote_frames += 1
+            return
+        handler = self.fast.get(cid)
+        if handler is not None:
+            handler(msg.data)
+            return
+        if is_host_frame(cid, self.host_node_id):
+            self._foreign(cid, bytes(msg.data))
+            return
+        nid = cid & cia301.NODE_ID_MASK
+        if nid not in self.node_labels:
+            self.traffic.count(self.traffic.unconfigured, cid)
+            self._note_operational(cid, nid, msg.data)
+            return
+        self._note_operational(cid, nid, msg.data)
+        try:
+            self.network.notify(cid, msg.data, msg.timestamp)
+        except Exception as exc:  # must not stop the receive thread: a stop cause instead
+            log.error("bus %s: 0x%03X not handled: %r", self.port.name, cid, exc)
+            self.report(
+                StopKind.BAD_FRAME,
+                f"{self.node_labels[nid]}: malformed {service_of(cid)} frame 0x{cid:03X} "
+                f"[{bytes(msg.data).hex()}] ({type(exc).__name__}: {exc})",
+            )
+
+    def _note_operational(self, cid: int, nid: int, data: bytes | bytearray) -> None:
+        if (
+            cid & cia301.FUNCTION_CODE_MASK == cia301.COB_NMT_ERROR_CONTROL
+            and len(data) == 1
+            and data[0] & 0x7F == cia301.NMT_STATE_OPERATIONAL
+        ):
+            with self.traffic._lock:
+                self.traffic.operational_nodes.add(nid)
+
+    def _foreign(self, cid: int, data: bytes) -> None:
+        """A host-direction frame this process did not send: another master."""
+        self.traffic.count(self.traffic.foreign, cid)
+        if not self.armed():
+            return
+        nid = cid & cia301.NODE_ID_MASK
+        service = service_of(cid)
+        if cid in (cia301.COB_NMT, cia301.COB_SYNC):
+            target = "every node"
+            if cid == cia301.COB_NMT and len(data) >= 2 and data[1] != 0:
+                if data[1] not in self.node_labels:
+                    return  # an NMT command for a node we do not drive
+                target = self.node_labels[data[1]]
+        elif nid in self.node_labels:
+            target = self.node_labels[nid]
+        else:
+            return  # another master talking to a node we do not drive
+        self.report(
+            StopKind.FOREIGN,
+            f"bus {self.port.name}: {service} 0x{cid:03X} [{data.hex()}] for {target} "
+            "that this host did not send (another master on the bus)",
+        )
+
+
+def wait_quiet_listen(receivers: list[BusReceiver], listen_s: float) -> str | None:
+    """Listen ``listen_s`` on every bus for another master (see
+    :meth:`BusTraffic.other_master`); return what was heard, or None."""
+    for r in receivers:
+        r.traffic.clear_evidence()
+    time.sleep(listen_s)
+    heard = [h for r in receivers if (h := r.traffic.other_master()) is not None]
+    return "; ".join(heard) if heard else None

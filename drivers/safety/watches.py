@@ -1,0 +1,233 @@
+"""Feedback watches: threads beside the supervisor that watch the arm's own state while
+the drives are enabled, and report a stop cause through :meth:`NodeMonitor.report`.
+
+A report queues the cause and wakes the supervisor, which quick-stops every axis within
+one control period (``drivers.safety.supervisor``); a watch never runs on the
+supervisor's thread, so its work does not cost the control cycle its deadline beyond
+the interpreter lock (held at most one switch interval, 0.2 ms, at a time).
+
+* **Tension** (:class:`drivers.tension_sensor.TensionWatch`, every 10 ms): a rope below
+  its slack threshold or above its limit, a stale sensor, or bad data past a rate
+  (``[tension]`` in the bus configuration) -> :attr:`StopKind.TENSION`, naming the rope
+  or the port.
+* **Rope consistency** (:class:`RopeWatch`, every ``every`` control periods): a snapshot
+  of the feedback of one SYNC (:attr:`NodeMonitor.position`, every node's TPDO of the
+  same SYNC) and of the targets the drives were commanded for it goes to a
+  :class:`RopeCheck` (the rope layer's estimator, injected by the console: the drivers
+  know no rope geometry) -> :attr:`StopKind.ROPE`, naming the joint and its ropes.
+
+Each watch reports once and ends; :class:`FeedbackWatches` starts and stops a set of
+them and summarises them for the run record.
+
+>>> import numpy as np
+>>> from drivers.safety.monitor import NodeMonitor
+>>> mon = NodeMonitor(["m0", "m1"], 3, 0.3)
+>>> take_snapshot(mon, lambda: None) is None          # no feedback yet
+True
+>>> mon.seq = 4
+>>> for i in range(2):
+...     mon.on_tpdo(i, bytes.fromhex("3702e8030000"))
+>>> snap = take_snapshot(mon, lambda: np.array([1000, 1000]))
+>>> snap.seq, snap.counts.tolist(), snap.reference.tolist()
+(4, [1000, 1000], [1000, 1000])
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from drivers.safety.causes import StopKind
+from drivers.safety.monitor import NodeMonitor
+from hrm_ctrl.errors import DriverError
+
+ROPE_EVERY_CYCLES = 5  # rope-consistency evaluations: every 5th control period (20 Hz)
+SNAPSHOT_TRIES = 4  # attempts at a snapshot of one SYNC's feedback per evaluation
+SNAPSHOT_RETRY_S = 0.001  # between attempts (the TPDOs of a SYNC arrive within ~2 ms)
+JOIN_TIMEOUT_S = 2.0
+
+
+class RopeCheck(Protocol):
+    """The rope layer's consistency check, as the drivers see it (injected).
+
+    Called with the actual counts of one SYNC (n,) and the counts the drives were
+    commanded to hold at it (n,) or None; returns a one-line fault naming the joint and
+    rope(s), or None.  ``hrm_ctrl.ropes.estimator.RopeConsistencyCheck`` is one.
+    """
+
+    def __call__(self, counts: np.ndarray, reference: np.ndarray | None) -> str | None: ...
+
+
+class Watch(Protocol):
+    """A watch thread: started once the drives are enabled, stopped before they are
+    disabled; its summary goes into the run record."""
+
+    fault: str | None
+
+    def start(self) -> Any: ...
+
+    def stop(self) -> None: ...
+
+    def summary(self) -> dict[str, Any]: ...
+
+
+@dataclass(frozen=True)
+class FeedbackSnapshot:
+    """Every node's actual position after SYNC ``seq`` and the targets applied at it."""
+
+    seq: int
+    counts: np.ndarray
+    reference: np.ndarray | None
+
+
+def take_snapshot(
+    monitor: NodeMonitor,
+    reference: Callable[[], np.ndarray | None],
+    tries: int = SNAPSHOT_TRIES,
+    retry_s: float = SNAPSHOT_RETRY_S,
+) -> FeedbackSnapshot | None:
+    """The feedback of one SYNC, or None when no attempt found every node's TPDO of
+    the same (latest) SYNC.  A snapshot mixing two SYNCs would show a moving arm's ropes
+    one period apart (up to 0.05 mm at the demo's speed: five sigma of the check)."""
+    for k in range(max(1, tries)):
+        seq = monitor.seq
+        rx = monitor.rx_seq.copy()
+        counts = monitor.position.copy()
+        ref = reference()
+        if seq >= 0 and monitor.seq == seq and bool(np.all(rx == seq)):
+            ref = None if ref is None else np.array(ref, dtype=np.int64)
+            return FeedbackSnapshot(int(seq), counts, ref)
+        if k + 1 < tries:
+            time.sleep(retry_s)
+    return None
+
+
+class RopeWatch:
+    """Rope-consistency watch thread (see the module docstring): every ``period_s`` a
+    snapshot of the feedback goes to ``check``; a fault (or a check that raises) is
+    reported once as :attr:`StopKind.ROPE` and the watch ends.  A SYNC already checked
+    (drives holding, no stream) is not checked again."""
+
+    def __init__(
+        self,
+        monitor: NodeMonitor,
+        check: RopeCheck,
+        reference: Callable[[], np.ndarray | None],
+        period_s: float,
+    ) -> None:
+        if not period_s > 0:
+            raise DriverError(f"rope watch period must be > 0 s, got {period_s!r}")
+        self.monitor = monitor
+        self.check = check
+        self.reference = reference
+        self.period_s = float(period_s)
+        self.fault: str | None = None
+        self.evaluations = 0
+        self.missed = 0  # no snapshot of one SYNC could be taken
+        self.repeated = 0  # no new SYNC since the last evaluation
+        self.cpu_s: list[float] = []  # thread CPU time of each evaluation
+        self._last_seq = -1
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> RopeWatch:
+        self._thread = threading.Thread(target=self._run, name="rope-watch", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=JOIN_TIMEOUT_S)
+
+    def step(self) -> str | None:
+        """One evaluation (the thread's work): a one-line fault, or None."""
+        snap = take_snapshot(self.monitor, self.reference)
+        if snap is None:
+            self.missed += 1
+            return None
+        if snap.seq == self._last_seq:
+            self.repeated += 1
+            return None
+        self._last_seq = snap.seq
+        t0 = time.thread_time()
+        try:
+            text = self.check(snap.counts, snap.reference)
+        except Exception as exc:  # a check that fails is a stop, never a silent watch
+            text = f"rope consistency check failed at SYNC {snap.seq}: {exc!r}"
+        self.cpu_s.append(time.thread_time() - t0)
+        self.evaluations += 1
+        return text
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            text = self.step()
+            if text is not None:
+                self.fault = text
+                self.monitor.report(StopKind.ROPE, text)
+                return
+
+    def summary(self) -> dict[str, Any]:
+        cpu = np.asarray(self.cpu_s) * 1000.0
+        out: dict[str, Any] = {
+            "period_s": self.period_s,
+            "evaluations": self.evaluations,
+            "missed_snapshots": self.missed,
+            "repeated_syncs": self.repeated,
+            "cpu_per_evaluation_ms": None
+            if cpu.size == 0
+            else {
+                "mean": round(float(cpu.mean()), 3),
+                "p99": round(float(np.percentile(cpu, 99)), 3),
+                "max": round(float(cpu.max()), 3),
+            },
+            "fault": self.fault,
+        }
+        more = getattr(self.check, "summary", None)
+        if callable(more):
+            out["check"] = more()
+        return out
+
+
+class FeedbackWatches:
+    """A set of named watches started and stopped together; a context manager."""
+
+    def __init__(self) -> None:
+        self.watches: dict[str, Watch] = {}
+        self._closers: list[Callable[[], None]] = []
+
+    def add(self, name: str, watch: Watch, close: Callable[[], None] | None = None) -> None:
+        """Add a watch (``close``: what to release after it stopped, e.g. its port)."""
+        self.watches[name] = watch
+        if close is not None:
+            self._closers.append(close)
+
+    def start(self) -> FeedbackWatches:
+        for w in self.watches.values():
+            w.start()
+        return self
+
+    def stop(self) -> None:
+        for w in self.watches.values():
+            w.stop()
+        for close in self._closers:
+            close()
+        self._closers = []
+
+    @property
+    def faults(self) -> list[str]:
+        return [w.fault for w in self.watches.values() if w.fault is not None]
+
+    def summary(self) -> dict[str, Any]:
+        return {name: w.summary() for name, w in self.watches.items()}
+
+    def __enter__(self) -> FeedbackWatches:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

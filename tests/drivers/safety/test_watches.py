@@ -1,0 +1,171 @@
+"""Feedback watches beside the supervisor: snapshots of one SYNC's feedback, the rope watch,
+and both watches stopping every axis on the simulated drives (every bus backend)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivers.safety.causes import StopKind
+from drivers.safety.monitor import NodeMonitor
+from drivers.safety.watches import FeedbackWatches, RopeWatch, take_snapshot
+from drivers.session import SafetyStopError
+from drivers.sources import HoldSource
+from drivers.tension_sensor import TensionSensorReader, TensionWatch
+from tests.drivers.driver_rig import Rig, wait_until
+
+TPDO = bytes.fromhex("3702e8030000")  # OPERATION_ENABLED, position 1000
+
+
+def monitor(n: int = 3) -> NodeMonitor:
+    return NodeMonitor([f"m{i}" for i in range(n)], 3, 0.3)
+
+
+def test_a_snapshot_is_of_one_sync_only() -> None:
+    mon = monitor()
+    mon.seq = 7
+    mon.on_tpdo(0, TPDO)
+    mon.on_tpdo(1, TPDO)
+    mon.rx_seq[2] = 6  # node 2's TPDO of SYNC 7 not in yet
+    assert take_snapshot(mon, lambda: None, tries=2, retry_s=0.0) is None
+    mon.on_tpdo(2, bytes.fromhex("3702d0070000"))
+    snap = take_snapshot(mon, lambda: np.array([1, 2, 3]))
+    assert snap is not None and snap.seq == 7
+    assert snap.counts.tolist() == [1000, 1000, 2000] and snap.reference.tolist() == [1, 2, 3]
+    mon.position[0] = 5  # the snapshot is a copy
+    assert snap.counts[0] == 1000
+
+
+class Check:
+    """A rope check that flags once the feedback is ``limit`` counts from the reference."""
+
+    def __init__(self, limit: int = 500, raises: bool = False) -> None:
+        self.limit = limit
+        self.raises = raises
+        self.calls: list[tuple[np.ndarray, np.ndarray | None]] = []
+
+    def __call__(self, counts: np.ndarray, reference: np.ndarray | None) -> str | None:
+        self.calls.append((counts, reference))
+        if self.raises:
+            raise RuntimeError("inverse blew up")
+        if reference is not None and np.abs(counts - reference).max() > self.limit:
+            i = int(np.argmax(np.abs(counts - reference)))
+            return f"rope consistency: rope {i} off"
+        return None
+
+    def summary(self) -> dict[str, Any]:
+        return {"calls": len(self.calls)}
+
+
+def test_the_rope_watch_checks_each_sync_once_and_reports_a_failing_check() -> None:
+    mon = monitor()
+    mon.seq = 3
+    for i in range(3):
+        mon.on_tpdo(i, TPDO)
+    check = Check()
+    w = RopeWatch(mon, check, lambda: np.full(3, 1000), period_s=0.05)
+    assert w.step() is None and w.step() is None  # the second: same SYNC, not checked again
+    assert (len(check.calls), w.evaluations, w.repeated) == (1, 1, 1)
+    mon.seq = 4
+    mon.rx_seq[:] = 4
+    mon.position[1] = 1600
+    assert w.step() == "rope consistency: rope 1 off"
+    w2 = RopeWatch(mon, Check(raises=True), lambda: None, period_s=0.05)
+    text = w2.step()
+    assert text is not None and text.startswith("rope consistency check failed at SYNC 4: ")
+    assert "inverse blew up" in text
+    s = w.summary()
+    assert s["evaluations"] == 2 and s["check"] == {"calls": 2}
+    assert s["cpu_per_evaluation_ms"]["max"] >= 0
+
+
+def test_the_rope_watch_thread_reports_once_through_the_monitor() -> None:
+    mon = monitor()
+    mon.seq = 1
+    mon.rx_seq[:] = 1
+    mon.position[:] = [0, 0, 900]
+    w = RopeWatch(mon, Check(), lambda: np.zeros(3, np.int64), period_s=0.01)
+    group = FeedbackWatches()
+    closed: list[str] = []
+    group.add("rope_consistency", w, close=lambda: closed.append("x"))
+    with group:
+        assert wait_until(lambda: w.fault is not None, 2.0)
+        time.sleep(0.05)
+    causes = mon.drain()
+    assert [(c.kind, c.text) for c in causes] == [(StopKind.ROPE, "rope consistency: rope 2 off")]
+    assert group.faults == ["rope consistency: rope 2 off"] and closed == ["x"]
+    assert group.summary()["rope_consistency"]["fault"] == "rope consistency: rope 2 off"
+
+
+# ------------------------------------------------------------ on the simulated drives
+def stream_with(
+    rig: Rig, make_watch: Callable[[Any], Any], fault: Callable[[], None], n_cycles: int = 300
+) -> tuple[SafetyStopError, Any]:
+    box = rig.open_box()
+    box.bring_up()
+    watch = make_watch(box)
+    watch.start()
+    timer = threading.Timer(0.5, fault)
+    timer.start()
+    try:
+        with pytest.raises(SafetyStopError) as err:
+            box.stream(HoldSource(n_cycles=n_cycles))
+    finally:
+        timer.cancel()
+        watch.stop()
+    return err.value, watch
+
+
+def assert_stopped_in_one_period(err: SafetyStopError, rig: Rig, kind: StopKind) -> None:
+    assert err.causes[0].kind is kind, [c.text for c in err.causes]
+    assert err.result.stop_latency_s is not None
+    assert err.result.stop_latency_s <= rig.config.control.period_s  # one period of detection
+    assert err.result.completed is False and err.result.cycles < 250
+
+
+def test_an_encoder_shift_stops_every_axis_naming_the_rope(rig_factory) -> None:
+    rig = rig_factory()
+    ids = list(rig.limits.motor_ids)
+
+    def make(box: Any) -> RopeWatch:
+        def check(counts: np.ndarray, reference: np.ndarray | None) -> str | None:
+            if reference is None:
+                return None
+            off = np.flatnonzero(np.abs(counts - reference) > 500)
+            return f"rope consistency: {ids[int(off[0])]} off" if off.size else None
+
+        return RopeWatch(box.monitor, check, lambda: box.supervisor.targets, period_s=0.05)
+
+    err, watch = stream_with(rig, make, lambda: rig.sim.shift_encoder("j01r1", 1075))
+    assert_stopped_in_one_period(err, rig, StopKind.ROPE)
+    assert err.causes[0].text == "rope consistency: j01r1 off"
+    assert watch.evaluations >= 5
+
+
+def test_a_snapped_rope_stops_every_axis_naming_the_rope(rig_factory, actuation) -> None:
+    rig = rig_factory()
+    board = rig.sim.start_tension_board()
+    reader = TensionSensorReader(board.port, actuation.n_motors, stale_after_s=0.25).open()
+
+    def make(box: Any) -> TensionWatch:
+        return TensionWatch(
+            reader,
+            actuation.motor_ids,
+            lambda text: box.monitor.report(StopKind.TENSION, text),
+            min_N=5.0,
+            max_N=150.0,
+            max_bad_per_s=5.0,
+        )
+
+    try:
+        err, watch = stream_with(rig, make, lambda: rig.sim.snap_rope("j07r0"))
+    finally:
+        reader.close()
+    assert_stopped_in_one_period(err, rig, StopKind.TENSION)
+    assert err.causes[0].text == "rope j07r0: tension 0.0 N below 5 N (slack or broken)"
+    assert watch.summary()["frames"] > 20

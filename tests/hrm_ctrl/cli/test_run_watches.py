@@ -1,0 +1,169 @@
+"""``hrm run --sim`` watches the arm while it moves: a snapped rope (tension), a shifted
+encoder (rope consistency) and sensor garbage stop the run, naming the rope; a clean run
+of the whole bent-pipe plan at the demo's speed raises nothing."""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+
+from hrm_ctrl.cli import _simwire, main
+from hrm_ctrl.formats.planfile import PlanDoc, write_plan
+from hrm_ctrl.model import default_robot
+from hrm_ctrl.planning.planner import PlanOptions, plan_path
+from hrm_ctrl.planning.scenarios import scenario
+
+DEMO_SPEED = "50"  # mm/s, hrm demo's default
+PERIOD_S = 0.01
+
+
+@pytest.fixture(scope="module")
+def bent_pipe(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    robot = default_robot()
+    sc = scenario("bent-pipe")
+    plan = plan_path(robot, sc.path, PlanOptions(step=5.0), sc)
+    path = tmp_path_factory.mktemp("plan") / "bent_pipe.json"
+    write_plan(path, PlanDoc.from_dict(plan.to_dict(), sc.name))
+    return path
+
+
+@pytest.fixture
+def inject(monkeypatch: pytest.MonkeyPatch) -> Callable[[int, Callable[[Any], None]], list[Any]]:
+    """``inject(n, fault)``: the in-process box of the next ``--sim`` gets ``fault(box)``
+    once it has seen ``n`` SYNCs (i.e. ``n`` cycles into the stream)."""
+    real = _simwire.start_in_process_sim
+    boxes: list[Any] = []
+
+    def arm(n_syncs: int, fault: Callable[[Any], None]) -> list[Any]:
+        def start(*args: Any, **kw: Any) -> Any:
+            config, sim = real(*args, **kw)
+            sim.record_trace(True)
+            boxes.append(sim)
+
+            def wait_then_fault() -> None:
+                while not done.wait(0.005):
+                    if len(sim.trace()[0]) >= n_syncs:
+                        fault(sim)
+                        return
+
+            threading.Thread(target=wait_then_fault, daemon=True).start()
+            return config, sim
+
+        monkeypatch.setattr(_simwire, "start_in_process_sim", start)
+        return boxes
+
+    done = threading.Event()
+    yield arm
+    done.set()
+
+
+def hrm_run(args: list[str], tmp_path: Path, capsys: pytest.CaptureFixture) -> tuple[int, Any]:
+    rc = main(["run", *args, "--sim", "--log-dir", str(tmp_path / "runs"), "--json"])
+    out = capsys.readouterr()
+    assert "Traceback" not in out.err, out.err
+    summary = json.loads(out.out)
+    record = json.loads(Path(summary["run_record"]).read_text())
+    return rc, (out.err, summary, record)
+
+
+def stop_line(err: str) -> str:
+    lines = [x for x in err.splitlines() if x.startswith("hrm run: stopped: ")]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def assert_stopped(record: dict[str, Any], kind: str, text: str) -> dict[str, Any]:
+    stream = record["streams"][0]
+    assert stream["completed"] is False
+    first = stream["causes"][0]
+    assert first["kind"] == kind and text in first["text"], stream["causes"]
+    assert stream["stop_latency_s"] <= PERIOD_S  # every axis within one period of detection
+    return first
+
+
+def test_a_snapped_rope_stops_the_run_naming_the_rope(
+    bent_pipe: Path, tmp_path: Path, capsys: pytest.CaptureFixture, inject: Any
+) -> None:
+    inject(60, lambda box: box.snap_rope("j05r2"))
+    rc, (err, summary, record) = hrm_run([str(bent_pipe), "--speed", DEMO_SPEED], tmp_path, capsys)
+    assert rc == 2, err
+    assert stop_line(err) == (
+        "hrm run: stopped: rope j05r2: tension 0.0 N below 5 N (slack or broken)"
+    )
+    assert_stopped(record, "tension", "rope j05r2")
+    assert summary["cycles"] < 200  # of ~1400: stopped soon after the snap
+    assert record["watches"]["tension"]["fault"].startswith("rope j05r2: ")
+    assert record["config"]["tension"]["port"].startswith("/dev/")
+
+
+def test_a_shifted_encoder_stops_the_run_naming_joint_and_rope(
+    bent_pipe: Path, tmp_path: Path, capsys: pytest.CaptureFixture, inject: Any
+) -> None:
+    # past the lead-in (~27 cycles), j05r1's feedback 0.5 mm (1075 counts) off its motor
+    inject(100, lambda box: box.shift_encoder("j05r1", 1075))
+    rc, (err, summary, record) = hrm_run([str(bent_pipe), "--speed", DEMO_SPEED], tmp_path, capsys)
+    assert rc == 2, err
+    line = stop_line(err)
+    assert line.startswith("hrm run: stopped: rope consistency: joint 5, ropes "), line
+    assert "j05r1" in line and "lengths do not fit the other ropes" in line
+    assert_stopped(record, "rope", "joint 5")
+    assert 100 <= summary["cycles"] < 200
+    assert record["watches"]["tension"]["fault"] is None  # the arm itself did not move
+
+
+def test_sensor_garbage_past_the_rate_stops_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture, inject: Any
+) -> None:
+    inject(30, lambda box: box.tension_board.inject_garbage(64, continuous=True))
+    rc, (err, _summary, record) = hrm_run(["--hold", "3"], tmp_path, capsys)
+    assert rc == 2, err
+    assert "bad frames or garbage runs in the last 1 s (limit 5/s" in stop_line(err)
+    assert_stopped(record, "tension", "tension sensor /dev/")
+
+
+def test_the_whole_bent_pipe_at_the_demo_speed_raises_nothing(
+    bent_pipe: Path, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    rc, (err, summary, record) = hrm_run([str(bent_pipe), "--speed", DEMO_SPEED], tmp_path, capsys)
+    assert rc == 0, err
+    assert summary["completed"] is True and summary["causes"] == []
+    assert summary["cycles"] > 1300
+    rope = record["watches"]["rope_consistency"]
+    assert rope["fault"] is None and rope["evaluations"] > 200  # 20 Hz over ~14 s
+    assert rope["check"]["max_figure"] < rope["check"]["flag_sigma"] / 2
+    tension = record["watches"]["tension"]
+    assert tension["fault"] is None and tension["frames"] > 1000
+    assert 5.0 < tension["lowest_N"] and tension["highest_N"] < 150.0
+
+
+@pytest.fixture
+def no_bus(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
+    opened: list[dict[str, Any]] = []
+
+    def refuse(*args: Any, **kwargs: Any) -> None:
+        opened.append(kwargs)
+        raise AssertionError(f"a bus was opened: {kwargs}")
+
+    monkeypatch.setattr(can, "Bus", refuse)
+    return opened
+
+
+def test_a_tension_threshold_outside_its_range_is_refused_before_any_bus_opens(
+    tmp_path: Path, capsys: pytest.CaptureFixture, no_bus: list[dict[str, Any]]
+) -> None:
+    from drivers import default_box_path
+
+    box = tmp_path / "box.toml"
+    box.write_text(default_box_path().read_text() + '\n[tension]\nport = "/dev/x"\nslack_N = 0\n')
+    logs = tmp_path / "runs"
+    rc = main(["run", "--hold", "0.1", "--sim", "--config", str(box), "--log-dir", str(logs)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert f"{box}: tension.slack_N must be in [0.5, 100] N, got 0.0" in err
+    assert no_bus == [] and not logs.exists()
