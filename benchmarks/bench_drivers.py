@@ -103,8 +103,8 @@ def write_udp_config(path: Path, cfg: Any) -> list[dict[str, Any]]:
     return kwargs
 
 
-def start_sim_process(config_path: Path) -> subprocess.Popen[str]:
-    """``hrm sim`` in its own process; returns once it reports ready."""
+def start_sim_process(config_path: Path) -> tuple[subprocess.Popen[str], dict[str, Any]]:
+    """``hrm sim`` in its own process; returns it and its ``ready`` line."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "hrm_ctrl.cli", "sim", "--config", str(config_path), "--control"],
         stdin=subprocess.PIPE,
@@ -118,8 +118,9 @@ def start_sim_process(config_path: Path) -> subprocess.Popen[str]:
         line = proc.stdout.readline()
         if not line:
             break
-        if json.loads(line).get("event") == "ready":
-            return proc
+        msg = json.loads(line)
+        if msg.get("event") == "ready":
+            return proc, msg
     proc.kill()
     raise SystemExit("hrm sim did not report ready within 30 s")
 
@@ -152,7 +153,7 @@ def main() -> None:
     proc = None
     if args.sim_process:
         kwargs = write_udp_config(work / "box_udp.toml", cfg)
-        proc = start_sim_process(work / "box_udp.toml")
+        proc, _ready = start_sim_process(work / "box_udp.toml")
     else:
         kwargs = [{"interface": "virtual", "channel": f"bench-{tag}-{b.name}"} for b in cfg.buses]
     cfg = cfg.with_bus_kwargs(kwargs).with_control(

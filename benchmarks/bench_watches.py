@@ -40,7 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import machine
-from bench_drivers import thread_cpu, write_udp_config
+from bench_drivers import ms, start_sim_process, thread_cpu, write_udp_config
 
 from drivers.config import load_box_config
 from drivers.realtime import process_settings
@@ -59,32 +59,6 @@ from sim_bus.box import SimBox
 VARIANTS = {"none": (False, False), "tension": (True, False), "rope": (False, True)}
 VARIANTS["both"] = (True, True)
 SPEED_MM_S = 50.0
-
-
-def ms(v: Any) -> Any:
-    return None if v is None else round(float(v) * 1000.0, 3)
-
-
-def start_sim_process(config_path: Path) -> tuple[subprocess.Popen[str], dict[str, Any]]:
-    """``hrm sim`` in its own process; returns it and its ``ready`` line."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "hrm_ctrl.cli", "sim", "--config", str(config_path), "--control"],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    if proc.stdout is None:
-        raise SystemExit("hrm sim: no stdout pipe")
-    t_end = time.monotonic() + 30.0
-    while time.monotonic() < t_end:
-        line = proc.stdout.readline()
-        if not line:
-            break
-        msg = json.loads(line)
-        if msg.get("event") == "ready":
-            return proc, msg
-    proc.kill()
-    raise SystemExit("hrm sim did not report ready within 30 s")
 
 
 def one_run(

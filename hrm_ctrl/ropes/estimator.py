@@ -52,6 +52,23 @@ from hrm_ctrl.ropes.length import lengths_and_jacobian
 FLAG_SHARE = 0.8
 
 
+def rope_misfit(act: Actuation, sol: Any, sigma_mm: float) -> np.ndarray:
+    """Each rope's standardized length residual of an angle solution ``sol``, in units
+    of the length noise ``sigma_mm`` (the consistency figure a rope fault raises)."""
+    return (
+        standardized_residual(
+            act.geometry,
+            act.joint_of_motor,
+            sol.alpha,
+            sol.theta,
+            sol.residual,
+            jacobian=sol.jacobian,
+            pad=act.pad,
+        )
+        / sigma_mm
+    )
+
+
 @dataclass(frozen=True)
 class Estimate:
     """One estimator output (angles rad, rates rad/s, lengths mm)."""
@@ -168,18 +185,7 @@ class RopeStateEstimator:
         sol = solve_angles(
             act.geometry, act.joint_of_motor, z, a, t, act.pad, robust=False, max_iterations=2
         )
-        zstd = (
-            standardized_residual(
-                act.geometry,
-                act.joint_of_motor,
-                sol.alpha,
-                sol.theta,
-                sol.residual,
-                jacobian=sol.jacobian,
-                pad=act.pad,
-            )
-            / self.sigma_mm
-        )
+        zstd = rope_misfit(act, sol, self.sigma_mm)
         self._stat += self._ewma * (zstd**2 - self._stat)
         cons = np.sqrt(self._stat)
         joint_cons = np.zeros(act.robot.n_joints)
@@ -300,18 +306,7 @@ class RopeConsistencyCheck:
         except RopeError:
             self._warm, self._ref, self._ref_ok = None, ref.copy(), False
             return False
-        zstd = (
-            standardized_residual(
-                act.geometry,
-                act.joint_of_motor,
-                sol.alpha,
-                sol.theta,
-                sol.residual,
-                jacobian=sol.jacobian,
-                pad=act.pad,
-            )
-            / self.estimator.sigma_mm
-        )
+        zstd = rope_misfit(act, sol, self.estimator.sigma_mm)
         self._warm = (np.asarray(sol.alpha), np.asarray(sol.theta))
         self._ref = ref.copy()
         self._ref_ok = bool(np.all(np.abs(zstd) <= self.gate_sigma))
