@@ -82,6 +82,9 @@ class BusTraffic:
     unconfigured: dict[int, int] = field(default_factory=dict)  # COB-ID of an unknown node
     extended: dict[int, int] = field(default_factory=dict)  # 29-bit identifier: frames
     operational_nodes: set[int] = field(default_factory=set)  # heartbeats "operational"
+    pdo_nodes: set[int] = field(default_factory=set)  # nodes heard sending PDOs (listening)
+    guarding_requests: int = 0  # remote frames of node guarding heard while listening
+    listening: bool = False
     remote_frames: int = 0
     error_frames: int = 0
     echoes_dropped: int = 0
@@ -97,15 +100,24 @@ class BusTraffic:
         with self._lock:
             self.foreign.clear()
             self.operational_nodes.clear()
+            self.pdo_nodes.clear()
+            self.guarding_requests = 0
 
     def other_master(self) -> str | None:
         """What was heard of another master since :meth:`clear_evidence` (None: nothing):
-        SYNC, NMT or RPDO/SDO requests we did not send, or nodes in NMT operational."""
+        SYNC, NMT or RPDO/SDO requests we did not send, nodes in NMT operational, and
+        (while listening) PDOs of any node or node-guarding requests."""
         with self._lock:
             heard = [
                 f"{service_of(cid)} 0x{cid:03X} x{n}" for cid, n in sorted(self.foreign.items())
             ]
             nodes = sorted(self.operational_nodes)
+            pdo = sorted(self.pdo_nodes)
+            guarding = self.guarding_requests
+        if pdo:
+            heard.append(f"PDOs from {len(pdo)} node(s) ({', '.join(str(n) for n in pdo[:8])})")
+        if guarding:
+            heard.append(f"{guarding} node-guarding request(s)")
         if nodes:
             shown = ", ".join(str(n) for n in nodes[:8]) + (" ..." if len(nodes) > 8 else "")
             heard.append(f"{len(nodes)} node(s) in NMT operational ({shown})")
@@ -167,15 +179,21 @@ class BusReceiver(can.Listener):
             return
         if msg.is_remote_frame:
             self.traffic.remote_frames += 1
+            if self.traffic.listening:
+                self.traffic.guarding_requests += 1
             return
         handler = self.fast.get(cid)
         if handler is not None:
+            if self.traffic.listening:  # drives sending PDOs are operational: someone's
+                self.traffic.pdo_nodes.add(cid & cia301.NODE_ID_MASK)
             handler(msg.data)
             return
         if is_host_frame(cid, self.host_node_id):
             self._foreign(cid, bytes(msg.data))
             return
         nid = cid & cia301.NODE_ID_MASK
+        if self.traffic.listening and service_of(cid).startswith("TPDO"):
+            self.traffic.pdo_nodes.add(nid)
         if nid not in self.node_labels:
             self.traffic.count(self.traffic.unconfigured, cid)
             self._note_operational(cid, nid, msg.data)
@@ -229,6 +247,11 @@ def wait_quiet_listen(receivers: list[BusReceiver], listen_s: float) -> str | No
     :meth:`BusTraffic.other_master`); return what was heard, or None."""
     for r in receivers:
         r.traffic.clear_evidence()
-    time.sleep(listen_s)
+        r.traffic.listening = True
+    try:
+        time.sleep(listen_s)
+    finally:
+        for r in receivers:
+            r.traffic.listening = False
     heard = [h for r in receivers if (h := r.traffic.other_master()) is not None]
     return "; ".join(heard) if heard else None

@@ -72,6 +72,7 @@ from drivers.bus import ECHOING_INTERFACES, BusPort, TrafficLog
 from drivers.busload import BusLoad, check_bus_load
 from drivers.config import BoxConfig
 from drivers.cycle import BusLayout, EventLog, StreamResult
+from drivers.interrupts import deferred_interrupts
 from drivers.protocol import cia301, cia402
 from drivers.receive import BusReceiver, wait_quiet_listen
 from drivers.safety.causes import StopCause, StopKind
@@ -90,8 +91,9 @@ ENABLE_TRANSITIONS = 7
 ENABLE_SDO_TRANSFERS = 12
 PARALLEL_MARGIN_S = 1.0
 # Before the first NMT reset: listen this long for another master (heartbeats of nodes in
-# NMT operational, a SYNC producer, RPDOs); covers heartbeat periods up to ~200 ms twice.
-LISTEN_BEFORE_RESET_S = 0.5
+# NMT operational, a SYNC producer, RPDOs, PDOs, node guarding); covers a heartbeat period
+# of up to 1 s, the longest usual one (CiA 301 leaves it free).
+LISTEN_BEFORE_RESET_S = 1.1
 STREAM_TIMEOUT_MARGIN_S = 30.0  # a stream's wait: its own length plus this
 HEARTBEAT_START_WAIT_S = 0.5  # the first host heartbeat precedes the NMT reset
 STOP_RECORD_WAIT_S = 2.0  # longest wait for a stop being confirmed (10 periods at most)
@@ -206,11 +208,12 @@ class DriveSession:
             self.control.heartbeat_timeout_ms / 1000.0,
             clock=clock,
         )
-        try:
-            self._open(buses)
-        except BaseException:
-            self._close_io()
-            raise
+        with deferred_interrupts():  # the buses and logs open whole, or close again
+            try:
+                self._open(buses)
+            except BaseException:
+                self._close_io()
+                raise
         self.supervisor = Supervisor(
             self._layouts,
             self.monitor,
@@ -253,6 +256,24 @@ class DriveSession:
             if self._state is not state:
                 self.events.add("state", f"{self._state.name} -> {state.name}")
             self._state = state
+
+    def _claim(self, action: str, source: SessionState, target: SessionState) -> None:
+        """Check and change the state in one step (a second caller is refused)."""
+        with self._state_lock:
+            if self._state is not source:
+                raise SessionStateError(
+                    f"{action}: not allowed in state {self._state.name} (only from {source.name})"
+                )
+            self.events.add("state", f"{self._state.name} -> {target.name}")
+            self._state = target
+
+    def _unclaim_stream(self) -> None:
+        """A stream refused before its first setpoint: back to ENABLED, unless the
+        supervisor stopped the box meanwhile (then the stop's state stands)."""
+        with self._state_lock:
+            if self._state is SessionState.STREAMING and self.supervisor.mode is Mode.ARMED:
+                self.events.add("state", "STREAMING -> ENABLED")
+                self._state = SessionState.ENABLED
 
     def _on_stop(self, stop: StopRecord) -> None:
         """From the supervisor's thread: every axis was quick-stopped."""
@@ -482,6 +503,7 @@ class DriveSession:
         ]
         return "; ".join(heard) if heard else None
 
+    @deferred_interrupts()
     def enable(self) -> np.ndarray:
         """Every drive to OPERATION_ENABLED in CSP (-> ENABLED); return the actual
         positions (counts).  A drive whose actual position is outside its limits, or
@@ -570,6 +592,7 @@ class DriveSession:
 
         self._parallel(what, disable_one, self._budget_s(1, 3))
 
+    @deferred_interrupts()
     def disable(self) -> None:
         """Disable every drive by SDO (-> READY); from STOPPED too (after a quick stop
         the drives are brought to READY_TO_SWITCH_ON the same way)."""
@@ -644,22 +667,25 @@ class DriveSession:
         sent; a refusal there sends nothing and leaves the session ENABLED."""
         if self._state in (SessionState.STOPPED, SessionState.FAULT):
             self._refuse_stopped()
-        self._require("stream", SessionState.ENABLED)
-        targets = self.supervisor.targets
-        if targets is None:
-            raise SessionStateError("stream: the drives hold no known position")
-        source.start(np.asarray(targets, dtype=np.int64).copy(), self.control.period_s)
+        self._claim("stream", SessionState.ENABLED, SessionState.STREAMING)
         try:
-            self._check_ready()
-        except DriverError:
-            self._raise_if_stopped(EMCY_WAIT_S)  # the supervisor stops the box meanwhile
+            targets = self.supervisor.targets
+            if targets is None:
+                raise SessionStateError("stream: the drives hold no known position")
+            source.start(np.asarray(targets, dtype=np.int64).copy(), self.control.period_s)
+            try:
+                self._check_ready()
+            except DriverError:
+                self._raise_if_stopped(EMCY_WAIT_S)  # the supervisor stops the box meanwhile
+                raise
+            self._raise_if_stopped()
+        except BaseException:
+            self._unclaim_stream()  # nothing was sent
             raise
-        self._raise_if_stopped()
-        self._set_state(SessionState.STREAMING)
         try:
             result = self.supervisor.play(source, self._stream_timeout_s(source))
         except SupervisorModeError:  # stopped between the checks and the hand-over
-            self._set_state(SessionState.STOPPED)
+            self._unclaim_stream()
             self._raise_if_stopped()
             raise
         except BaseException:
@@ -693,6 +719,7 @@ class DriveSession:
         for port in self._ports:
             port.send(cia301.make_nmt(command, 0))
 
+    @deferred_interrupts()
     def finish(self) -> None:
         """Orderly end (-> CONNECTED), also after a safety stop: every drive disabled by
         SDO along the CiA 402 transition table (from OPERATION_ENABLED *disable
@@ -706,11 +733,19 @@ class DriveSession:
             raise SessionStateError("finish: the session is closed")
         failed: list[str] = []
         try:
-            if self.supervisor.mode is Mode.ARMED:
-                self.supervisor.disarm()  # with a last check
+            busy = (Mode.STREAMING, Mode.STOPPING)
+            if self.supervisor.mode is Mode.STREAMING:  # e.g. from another thread
+                self.request_stop(StopKind.OPERATOR, "finish requested while streaming")
+            deadline = time.monotonic() + STOP_RECORD_WAIT_S
+            while self.supervisor.mode in busy and time.monotonic() < deadline:
+                time.sleep(self.control.period_s)  # the stream ends, the stop is confirmed
+            try:
+                self.supervisor.disarm()  # with a last check (at once if stopping)
+            except SupervisorModeError as exc:
+                failed.append(str(exc))
             deadline = time.monotonic() + STOP_RECORD_WAIT_S
             while self.supervisor.mode is Mode.STOPPING and time.monotonic() < deadline:
-                time.sleep(self.control.period_s)  # a quick stop being confirmed ends first
+                time.sleep(self.control.period_s)
             if self.enabled or self._state in (SessionState.STOPPED, SessionState.FAULT):
                 try:
                     self._disable_drives("disable")
@@ -726,6 +761,7 @@ class DriveSession:
                 failed.append(f"NMT pre-operational: {exc}")
         finally:
             self.supervisor.set_heartbeat(False)
+            self._brought_up = False  # another master may take the drives from here on
             self._set_state(SessionState.CONNECTED)
         if self.stop_error is not None:
             failed.append(self.stop_error)
@@ -774,6 +810,7 @@ class DriveSession:
                 pass
         self._owned = []
 
+    @deferred_interrupts()
     def close(self) -> Path | None:
         """Stop everything (-> CLOSED); write the run record (if logging); return its path.
 

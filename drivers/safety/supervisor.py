@@ -52,6 +52,7 @@ from drivers.cycle import (
     EventLog,
     StreamResult,
 )
+from drivers.interrupts import deferred_interrupts
 from drivers.protocol import cia301, cia402
 from drivers.realtime import NORMAL_PRIORITY, process_settings
 from drivers.safety.causes import StopCause, StopKind, unique_causes
@@ -178,6 +179,7 @@ class Supervisor:
     def close(self) -> None:
         """Stop the thread (the mode goes OFF: no more frames from the supervisor)."""
         with self._lock:
+            self._stop_before_off()
             self.mode = Mode.OFF
             self.monitor.armed = False
         self._closing.set()
@@ -254,11 +256,27 @@ class Supervisor:
                     self.mode = Mode.HEARTBEAT
                 self.monitor.wake.set()
             else:
+                self._stop_before_off()
                 self.mode = Mode.OFF
                 self.monitor.armed = False
         if on and wait_s > 0:
             return self._hb_sent.wait(wait_s)
         return True
+
+    def _stop_before_off(self) -> None:
+        """Going OFF (finish, close) with the drives enabled or a stream running: quick
+        stop every axis first and end the stream with its result (under the lock)."""
+        if self.mode in (Mode.ARMED, Mode.STREAMING):
+            self._begin_stop(
+                [StopCause(StopKind.OPERATOR, "session closed while enabled", None,
+                           self.clock())],
+                self.clock(),
+            )  # fmt: skip
+        if self.mode is Mode.STOPPING and self._stopping is not None:
+            stop = self._stopping
+            stop.confirmed = False
+            self.events.add("quick_stop_unconfirmed", "supervisor going off while stopping")
+            self._finish_stop(stop)
 
     def arm(self, targets: np.ndarray) -> None:
         """Drives enabled, holding ``targets``: every idle watchdog from now on.
@@ -277,7 +295,7 @@ class Supervisor:
     def disarm(self) -> None:
         """Drives about to be disabled on purpose: heartbeat only, no watchdogs."""
         with self._lock:
-            if self.mode is Mode.STREAMING or self.mode is Mode.STOPPING:
+            if self.mode is Mode.STREAMING:
                 raise SupervisorModeError(f"supervisor: cannot disarm in mode {self.mode.name}")
             if self.mode is Mode.ARMED:
                 self.check_idle(self.clock())  # a last check: a cause now still stops
@@ -320,28 +338,40 @@ class Supervisor:
             )
             stream.stats.realtime = self.realtime_granted
             self.monitor.missing_run[:] = 0
-            self._stop_request.clear()
             causes = self._watchdogs(now, -1, self.monitor.hb_armed_at)
             self.events.add("stream_start", f"streaming {source.describe()}")
             self._stream = stream
             self.mode = Mode.STREAMING
-            if causes:
-                self._begin_stop(causes, now)
-                return stream
             try:
-                stream.pending = self._checked(source, 0, stream.applied)
-            except HrmError as exc:
-                stream.error = exc
-                self._begin_stop([self._limit_cause(exc)], now)
-                return stream
-            if stream.pending is None:
-                stream.completed = True
-                self._end_stream()
-                return stream
-            causes = self._send_rpdos(cia402.CW_ENABLE_OPERATION, stream.pending)
-            if causes:
-                self._begin_stop(causes, now)
+                self._first_setpoint(stream, causes, now)
+            except BaseException as exc:  # an interrupt or a bug: no stream left running
+                stream.crashed = exc
+                if self.mode is Mode.STREAMING:
+                    cause = StopCause(
+                        StopKind.INTERNAL, f"stream start interrupted: {exc!r}", None, now
+                    )
+                    self._begin_stop([cause], now)
+                raise
             return stream
+
+    def _first_setpoint(self, stream: _Stream, causes: list[StopCause], now: float) -> None:
+        """Causes queued before the stream stop it; else setpoint 0 checked and sent."""
+        if causes:
+            self._begin_stop(causes, now)
+            return
+        try:
+            stream.pending = self._checked(stream.source, 0, stream.applied)
+        except HrmError as exc:
+            stream.error = exc
+            self._begin_stop([self._limit_cause(exc)], now)
+            return
+        if stream.pending is None:
+            stream.completed = True
+            self._end_stream()
+            return
+        causes = self._send_rpdos(cia402.CW_ENABLE_OPERATION, stream.pending)
+        if causes:
+            self._begin_stop(causes, now)
 
     def play(self, source: SetpointSource, timeout_s: float) -> StreamResult:
         """Play a started source to its end or its stop; return how it ended.
@@ -352,9 +382,10 @@ class Supervisor:
         most ``timeout_s``, then stops every axis and raises :class:`DriverError`.
         """
         self.last_result = None
-        stream = self.begin(source)
+        stream: _Stream | None = None
         deadline = self.clock() + timeout_s
         try:
+            stream = self.begin(source)
             while not stream.done.wait(PLAY_POLL_S):
                 if not self.alive:
                     raise DriverError("supervisor thread is not running")
@@ -363,12 +394,18 @@ class Supervisor:
                     stream.done.wait(THREAD_JOIN_TIMEOUT_S)
                     raise DriverError(f"stream did not end within {timeout_s:g} s")
         except BaseException as exc:
-            if isinstance(exc, KeyboardInterrupt | SignalInterrupt):
-                name = exc.signal_name if isinstance(exc, SignalInterrupt) else "SIGINT"
-                self.request_stop(StopKind.SIGNAL, f"{name}: stop requested")
-            else:
-                self.request_stop(StopKind.INTERNAL, f"stream wait failed: {exc!r}")
-            stream.done.wait(THREAD_JOIN_TIMEOUT_S)
+            if isinstance(exc, SupervisorModeError):
+                raise  # refused before anything was sent
+            with deferred_interrupts():  # a second signal waits for this stop
+                if isinstance(exc, KeyboardInterrupt | SignalInterrupt):
+                    name = exc.signal_name if isinstance(exc, SignalInterrupt) else "SIGINT"
+                    self.request_stop(StopKind.SIGNAL, f"{name}: stop requested")
+                else:
+                    self.request_stop(StopKind.INTERNAL, f"stream wait failed: {exc!r}")
+                if stream is None:
+                    stream = self._stream
+                if stream is not None:
+                    stream.done.wait(THREAD_JOIN_TIMEOUT_S)
             raise
         if stream.crashed is not None:
             raise stream.crashed
@@ -605,6 +642,10 @@ class Supervisor:
             if confirmed
             else "some nodes did not confirm the quick stop by TPDO",
         )
+        self._finish_stop(stop)
+
+    def _finish_stop(self, stop: StopRecord) -> None:
+        """The stop is over: record it, end the stream with its result, tell the owner."""
         self._stopping = None
         self.last_stop = stop
         self.mode = Mode.HEARTBEAT

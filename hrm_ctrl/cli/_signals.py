@@ -23,19 +23,27 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from types import FrameType
 
+from drivers.interrupts import interrupt
 from hrm_ctrl.errors import SignalInterrupt
 
-HANDLED = (signal.SIGTERM, signal.SIGHUP)
+HANDLED = (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)
 
 
 def _raise(signum: int, _frame: FrameType | None) -> None:
-    raise SignalInterrupt(signal.Signals(signum).name, signum)
+    """Raise the interrupt now, or when the critical section running ends
+    (:func:`drivers.interrupts.deferred_interrupts`: enable, finish, close)."""
+    if signum == signal.SIGINT:
+        interrupt(KeyboardInterrupt())
+    else:
+        interrupt(SignalInterrupt(signal.Signals(signum).name, signum))
 
 
 @contextmanager
 def signals_as_interrupts() -> Iterator[None]:
     """Within the block, SIGTERM and SIGHUP raise :class:`SignalInterrupt` in the main
-    thread; the previous handlers come back afterwards (no-op off the main thread)."""
+    thread (SIGINT :class:`KeyboardInterrupt`, as usual), held until the end of a
+    critical section; the previous handlers come back afterwards (no-op off the main
+    thread)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return

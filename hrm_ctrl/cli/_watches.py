@@ -55,6 +55,9 @@ def feedback_watches(
                 min_N=t.slack_N,
                 max_N=t.limit_N,
                 max_bad_per_s=t.garbage_per_s,
+                # The port was opened before the bring-up: by the time the watch starts
+                # the board has had a second to answer, so no grace for a silent one.
+                grace_s=0.0,
             )
             watches.add("tension", watch, close=reader.close)
         if ropes:
