@@ -327,7 +327,7 @@ class TensionWatch:
 
     def stop(self) -> None:
         self._stop.set()
-        if self._thread is not None:
+        if self._thread is not None and self._thread.ident is not None:  # it did start
             self._thread.join(timeout=1.0)
 
     def bad_rate_problem(self, now: float) -> str | None:

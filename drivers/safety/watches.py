@@ -42,6 +42,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from drivers.interrupts import deferred_interrupts
 from drivers.safety.causes import StopKind
 from drivers.safety.monitor import NodeMonitor
 from hrm_ctrl.errors import DriverError
@@ -142,7 +143,7 @@ class RopeWatch:
 
     def stop(self) -> None:
         self._stop.set()
-        if self._thread is not None:
+        if self._thread is not None and self._thread.ident is not None:  # it did start
             self._thread.join(timeout=JOIN_TIMEOUT_S)
 
     def step(self) -> str | None:
@@ -208,11 +209,19 @@ class FeedbackWatches:
             self._closers.append(close)
 
     def start(self) -> FeedbackWatches:
-        for w in self.watches.values():
-            w.start()
+        with deferred_interrupts():  # all watches start, or an interrupt waits for them
+            for w in self.watches.values():
+                w.start()
         return self
 
     def stop(self) -> None:
+        """Stop every watch (also those never started) and close what they opened; an
+        interrupt waits until all are stopped."""
+        with deferred_interrupts():
+            self._stop_all()
+
+    def _stop_all(self) -> None:
+
         for w in self.watches.values():
             w.stop()
         for close in self._closers:

@@ -56,6 +56,7 @@ def register(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from drivers.config import load_box_config
+    from drivers.interrupts import deferred_interrupts
     from drivers.session import DriveSession, SafetyStopError
     from drivers.sources import CountsSource
     from hrm_ctrl.cli.ropes import setpoints_of_plan
@@ -107,11 +108,18 @@ def run(args: argparse.Namespace) -> int:
     stop: SafetyStopError | None = None
     try:
         sim.record_trace(True)
-        box = DriveSession(config, actuation, log_dir=out, log_suffix=".blf")
-        box.record_extra = {"demo": sc.name, "plan_file": str(out / PLAN_JSON), "wire": args.wire}
-        with box, contextlib.ExitStack() as watching:
-            # tension board opened first: a bad port is refused before any NMT reset
-            watches = watching.enter_context(feedback_watches(config, actuation, box, start=False))
+        with contextlib.ExitStack() as stack:
+            with deferred_interrupts():  # the session is open and entered, or not at all
+                box = stack.enter_context(
+                    DriveSession(config, actuation, log_dir=out, log_suffix=".blf")
+                )
+                box.record_extra = {
+                    "demo": sc.name,
+                    "plan_file": str(out / PLAN_JSON),
+                    "wire": args.wire,
+                }
+                # tension board opened first: a bad port is refused before any NMT reset
+                watches = stack.enter_context(feedback_watches(config, actuation, box, start=False))
             box.bring_up()
             watches.start()  # tension, ropes
             try:

@@ -153,6 +153,7 @@ def _source(
 def run(args: argparse.Namespace) -> int:
     from drivers.bus import ensure_log_dir
     from drivers.config import load_box_config
+    from drivers.interrupts import deferred_interrupts
     from drivers.session import DriveSession, SafetyStopError
     from drivers.sources import HoldSource
     from hrm_ctrl.cli._watches import feedback_watches
@@ -187,23 +188,26 @@ def run(args: argparse.Namespace) -> int:
         config, sim = start_in_process_sim(config, actuation, args.wire, prog="hrm run")
     summary: dict[str, Any] = {}
     try:
-        box = DriveSession(
-            config,
-            actuation,
-            log_dir=args.log_dir,
-            log_suffix=f".{args.log_format}",
-            take_over=args.take_over,
-        )
-        box.record_extra = {
-            "plan_file": None,
-            **plan_record,
-            "source": source.__class__.__name__,
-            "simulated_box": bool(args.sim),
-        }
         stop: SafetyStopError | None = None
-        with box, contextlib.ExitStack() as watching:
-            # tension board opened first: a bad port is refused before any NMT reset
-            watches = watching.enter_context(feedback_watches(config, actuation, box, start=False))
+        with contextlib.ExitStack() as stack:
+            with deferred_interrupts():  # the session is open and entered, or not at all
+                box = stack.enter_context(
+                    DriveSession(
+                        config,
+                        actuation,
+                        log_dir=args.log_dir,
+                        log_suffix=f".{args.log_format}",
+                        take_over=args.take_over,
+                    )
+                )
+                box.record_extra = {
+                    "plan_file": None,
+                    **plan_record,
+                    "source": source.__class__.__name__,
+                    "simulated_box": bool(args.sim),
+                }
+                # tension board opened first: a bad port is refused before any NMT reset
+                watches = stack.enter_context(feedback_watches(config, actuation, box, start=False))
             box.bring_up()
             watches.start()  # tension, ropes
             try:

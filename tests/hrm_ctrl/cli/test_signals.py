@@ -14,7 +14,18 @@ import can
 import pytest
 
 STARTUP_TIMEOUT_S = 60.0
-AFTER_LOGS_S = 2.0  # bring-up (listen 0.5 s, ~0.7 s) is over by then; the hold runs 30 s
+SYNCS_BEFORE_SIGNAL = 20  # the stream is running: the log (flushed every 0.1 s) shows it
+
+
+def syncs_logged(logs: Path) -> int:
+    """SYNC frames in the live CAN logs (whole lines only are ever on disk)."""
+    n = 0
+    for log in logs.glob("*.asc"):
+        try:
+            n += sum(1 for m in can.LogReader(log) if m.arbitration_id == 0x080)
+        except (ValueError, IndexError):  # a log still being opened
+            pass
+    return n
 
 
 @pytest.mark.parametrize(
@@ -30,11 +41,10 @@ def test_a_signal_stops_the_run_cleanly(tmp_path: Path, sig: int, status: int) -
     )  # fmt: skip
     try:
         t_end = time.monotonic() + STARTUP_TIMEOUT_S
-        while len(list(logs.glob("*.asc"))) < 2:
+        while syncs_logged(logs) < SYNCS_BEFORE_SIGNAL:
             if time.monotonic() > t_end or proc.poll() is not None:
-                pytest.fail(f"no CAN logs appeared: {proc.communicate(timeout=5)}")
-            time.sleep(0.05)
-        time.sleep(AFTER_LOGS_S)
+                pytest.fail(f"the stream did not start: {proc.communicate(timeout=5)}")
+            time.sleep(0.1)
         proc.send_signal(sig)
         _out, err = proc.communicate(timeout=30)
     finally:
@@ -63,3 +73,34 @@ def test_a_signal_stops_the_run_cleanly(tmp_path: Path, sig: int, status: int) -
             and bytes(m.data[:2]) == b"\x02\x00"
         ]  # fmt: skip
         assert stops, f"{log.name}: no quick stop in the log"
+
+
+def test_a_signal_during_bring_up_ends_cleanly(tmp_path: Path) -> None:
+    """SIGTERM while the session listens, resets and enables (before the stream): one
+    stderr line, no traceback, the run record written, the drives finished."""
+    logs = tmp_path / "runs"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hrm_ctrl.cli", "run", "--sim", "--hold", "30",
+         "--log-dir", str(logs), "--log-format", "asc"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        t_end = time.monotonic() + STARTUP_TIMEOUT_S
+        while len(list(logs.glob("*.asc"))) < 2:  # the session is open: bring-up begins
+            if time.monotonic() > t_end or proc.poll() is not None:
+                pytest.fail(f"no CAN logs appeared: {proc.communicate(timeout=5)}")
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGTERM)
+        _out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if not ln.startswith("hrm run: --sim:")]
+    assert lines == ["hrm run: stopped by SIGTERM"], err
+    records = list(logs.glob("*.json"))
+    assert len(records) == 1
+    record = json.loads(records[0].read_text())
+    assert record["session_state"] == "closed"
