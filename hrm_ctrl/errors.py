@@ -46,6 +46,9 @@ The whole tree, each class with the module that defines it::
      |    |    +-- WireConfigError          sim_bus.wire
      |    |    +-- FaultSpecError           sim_bus.faults
      |    +-- CalibrationError              hrm_ctrl.errors
+     |         +-- CalibrationDataError     hrm_ctrl.errors
+     |         +-- UnobservableError        hrm_ctrl.errors
+     |         +-- CalibrationFileError     hrm_ctrl.errors
      +-- SdoAbort                           sim_bus.drive.objects
     BaseException (Python standard library)
      +-- SignalInterrupt                    hrm_ctrl.errors
@@ -111,6 +114,19 @@ class SimError(HrmError):
 
 class CalibrationError(HrmError):
     """Calibration input or fit failures."""
+
+
+class CalibrationDataError(CalibrationError):
+    """A calibration data file (or array) is missing, malformed or out of range."""
+
+
+class UnobservableError(CalibrationError):
+    """The data leave a calibration fit ill-conditioned: some parameters are not observable."""
+
+
+class CalibrationFileError(CalibrationError):
+    """A calibration file or store (``calibration.store``) is missing, damaged, of
+    another format or robot, or cannot be written."""
 
 
 class SignalInterrupt(BaseException):
