@@ -19,7 +19,7 @@ from hrm_ctrl.errors import DriverError
 from hrm_ctrl.ropes.actuation import Actuation
 
 SIM_MISSING_TPDO_CYCLES = 10
-SIM_TENSION_STALE_S = 0.35  # = the heartbeat timeout: a stall that long stops the run anyway
+SIM_TENSION_STALE_S = 0.5  # the top of the safe range: the board shares this interpreter
 SIM_WIRES = ("virtual", "hrm_sim")
 
 
