@@ -22,7 +22,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
@@ -30,7 +29,7 @@ from hypothesis import strategies as st
 from drivers import default_box_path
 from hrm_ctrl.cli import EXIT_CLOSED_PIPE, main
 from hrm_ctrl.formats.planfile import write_plan
-from hrm_ctrl.model import default_robot
+from tests.hrm_ctrl.cli.cli_helpers import small_plan
 
 ROOT = Path(__file__).resolve().parents[3]
 SHIPPED_ROBOT = ROOT / "hrm_ctrl" / "data" / "robot.toml"
@@ -39,28 +38,6 @@ BOX_TEXT = default_box_path().read_text()
 VIRTUAL_BOX_TEXT = BOX_TEXT.replace('interface = "socketcan"', 'interface = "virtual"')
 PATH_CSV = "x,y,z\n1200,100,300\n1300,100,300\n1400,100,300\n"
 FAST = settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-
-
-def small_plan() -> dict[str, Any]:
-    """A four-step plan for the default robot (as ``hrm plan`` writes them)."""
-    steps = []
-    for k in range(4):
-        a = float(np.deg2rad(3.0) * k / 3)
-        steps.append(
-            {
-                "travel_mm": 5.0 * k,
-                "alpha_rad": [a] * 12,
-                "theta_rad": [0.0] * 12,
-                "joints_mm": [[0.0, 0.0, 0.0]] * 13,
-            }
-        )
-    return {
-        "format": "hrm-plan/1",
-        "robot": {"links_mm": [float(v) for v in default_robot().links]},
-        "path_mm": [[0.0, 0.0, 0.0], [15.0, 0.0, 0.0]],
-        "steps": steps,
-        "report": {},
-    }
 
 
 def snapshot(root: Path) -> dict[str, tuple[bool, bytes | str]]:

@@ -13,29 +13,11 @@ import pytest
 
 from hrm_ctrl.cli import main
 from hrm_ctrl.formats.planfile import write_plan
-from hrm_ctrl.model import default_robot
+from tests.hrm_ctrl.cli.cli_helpers import small_plan
 
 
 def write_small_plan(path: Path) -> None:
-    steps = []
-    for k in range(4):
-        a = float(np.deg2rad(3.0) * k / 3)
-        steps.append(
-            {
-                "travel_mm": 5.0 * k,
-                "alpha_rad": [a] * 12,
-                "theta_rad": [0.0] * 12,
-                "joints_mm": [[0.0, 0.0, 0.0]] * 13,
-            }
-        )
-    plan = {
-        "format": "hrm-plan/1",
-        "robot": {"links_mm": [float(v) for v in default_robot().links]},
-        "path_mm": [[0.0, 0.0, 0.0], [15.0, 0.0, 0.0]],
-        "steps": steps,
-        "report": {},
-    }
-    write_plan(path, plan)
+    write_plan(path, small_plan())
 
 
 def test_run_plan_on_the_simulated_box(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -85,19 +67,6 @@ def test_busload_command(capsys: pytest.CaptureFixture) -> None:
     assert main(["busload", "--rate", "200", "--json"]) == 1
     loads = json.loads(capsys.readouterr().out)
     assert [bl["fits"] for bl in loads] == [False, False]
-
-
-@pytest.fixture
-def no_bus(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
-    """Record (and refuse) every attempt to open a CAN bus."""
-    opened: list[dict[str, Any]] = []
-
-    def refuse(*args: Any, **kwargs: Any) -> None:
-        opened.append(kwargs)
-        raise AssertionError(f"a bus was opened: {kwargs}")
-
-    monkeypatch.setattr(can, "Bus", refuse)
-    return opened
 
 
 @pytest.mark.parametrize("where", ["file", "under_file", "proc"])

@@ -10,7 +10,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import can
 import pytest
 
 from hrm_ctrl.cli import _simwire, main
@@ -140,18 +139,6 @@ def test_the_whole_bent_pipe_at_the_demo_speed_raises_nothing(
     tension = record["watches"]["tension"]
     assert tension["fault"] is None and tension["frames"] > 1000
     assert 5.0 < tension["lowest_N"] and tension["highest_N"] < 150.0
-
-
-@pytest.fixture
-def no_bus(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
-    opened: list[dict[str, Any]] = []
-
-    def refuse(*args: Any, **kwargs: Any) -> None:
-        opened.append(kwargs)
-        raise AssertionError(f"a bus was opened: {kwargs}")
-
-    monkeypatch.setattr(can, "Bus", refuse)
-    return opened
 
 
 def test_a_tension_threshold_outside_its_range_is_refused_before_any_bus_opens(

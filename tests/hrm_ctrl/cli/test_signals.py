@@ -17,6 +17,15 @@ STARTUP_TIMEOUT_S = 60.0
 SYNCS_BEFORE_SIGNAL = 20  # the stream is running: the log (flushed every 0.1 s) shows it
 
 
+def start_hold_run(logs: Path) -> subprocess.Popen[str]:
+    """``hrm run --sim --hold 30`` in its own process, logging to ``logs`` as .asc."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "hrm_ctrl.cli", "run", "--sim", "--hold", "30",
+         "--log-dir", str(logs), "--log-format", "asc"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+
 def syncs_logged(logs: Path) -> int:
     """SYNC frames in the live CAN logs (whole lines only are ever on disk)."""
     n = 0
@@ -34,11 +43,7 @@ def syncs_logged(logs: Path) -> int:
 )
 def test_a_signal_stops_the_run_cleanly(tmp_path: Path, sig: int, status: int) -> None:
     logs = tmp_path / "runs"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "hrm_ctrl.cli", "run", "--sim", "--hold", "30",
-         "--log-dir", str(logs), "--log-format", "asc"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    proc = start_hold_run(logs)
     try:
         t_end = time.monotonic() + STARTUP_TIMEOUT_S
         while syncs_logged(logs) < SYNCS_BEFORE_SIGNAL:
@@ -79,11 +84,7 @@ def test_a_signal_during_bring_up_ends_cleanly(tmp_path: Path) -> None:
     """SIGTERM while the session listens, resets and enables (before the stream): one
     stderr line, no traceback, the run record written, the drives finished."""
     logs = tmp_path / "runs"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "hrm_ctrl.cli", "run", "--sim", "--hold", "30",
-         "--log-dir", str(logs), "--log-format", "asc"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    proc = start_hold_run(logs)
     try:
         t_end = time.monotonic() + STARTUP_TIMEOUT_S
         while len(list(logs.glob("*.asc"))) < 2:  # the session is open: bring-up begins

@@ -1,0 +1,32 @@
+"""Helpers shared by the CLI tests (imported by name; fixtures live in conftest.py)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from hrm_ctrl.model import default_robot
+
+
+def small_plan() -> dict[str, Any]:
+    """A four-step ``hrm-plan/1`` for the default robot: every alpha from 0 to 3 deg over
+    15 mm of travel (as ``hrm plan`` writes them)."""
+    steps = []
+    for k in range(4):
+        a = float(np.deg2rad(3.0) * k / 3)
+        steps.append(
+            {
+                "travel_mm": 5.0 * k,
+                "alpha_rad": [a] * 12,
+                "theta_rad": [0.0] * 12,
+                "joints_mm": [[0.0, 0.0, 0.0]] * 13,
+            }
+        )
+    return {
+        "format": "hrm-plan/1",
+        "robot": {"links_mm": [float(v) for v in default_robot().links]},
+        "path_mm": [[0.0, 0.0, 0.0], [15.0, 0.0, 0.0]],
+        "steps": steps,
+        "report": {},
+    }
