@@ -151,9 +151,7 @@ class Supervisor:
         self.mode = Mode.OFF
         self.targets: np.ndarray | None = None  # what the drives hold (last applied)
         self.seq = -1  # SYNC sequence number, continues across streams
-        self.last_stop: StopRecord | None = None
         self.last_result: StreamResult | None = None  # how the last stream ended
-        self.thread_error: BaseException | None = None
         self._lock = threading.RLock()
         self._stream: _Stream | None = None
         self._stop_request = threading.Event()
@@ -229,7 +227,6 @@ class Supervisor:
         try:
             fn(*args)
         except BaseException as exc:
-            self.thread_error = exc
             stream = self._stream
             if stream is not None:
                 stream.crashed = exc
@@ -287,7 +284,6 @@ class Supervisor:
             self.targets = np.asarray(targets, dtype=np.int64).copy()
             if self.monitor.hb_armed_at is None:
                 self.monitor.hb_armed_at = self.clock()
-            self.last_stop = None
             self._stop_request.clear()
             self.monitor.armed = True
             self.mode = Mode.ARMED
@@ -647,7 +643,6 @@ class Supervisor:
     def _finish_stop(self, stop: StopRecord) -> None:
         """The stop is over: record it, end the stream with its result, tell the owner."""
         self._stopping = None
-        self.last_stop = stop
         self.mode = Mode.HEARTBEAT
         stream = self._stream
         self._stream = None
