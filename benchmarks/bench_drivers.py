@@ -166,7 +166,9 @@ def main() -> None:
     sim_ctx: Any = contextlib.nullcontext(None) if args.sim_process else SimBox(cfg, actuation=act)
     with sim_ctx as sim:
         for k in range(max(1, args.bringups)):
-            box = DriveSession(cfg, act, log_dir=log_dir, run_name=f"bench{k}")
+            box = DriveSession(
+                cfg, act, log_dir=log_dir, run_name=f"bench{k}", allow_uncalibrated=True
+            )
             with box:
                 t = time.perf_counter()
                 box.bring_up()

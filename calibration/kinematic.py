@@ -167,6 +167,27 @@ def read_pose_csv(path: str | Path) -> PoseData:
     return PoseData(values[:, :n], values[:, n : 2 * n], values[:, 2 * n :], p)
 
 
+def format_pose_csv(alpha_rad: np.ndarray, theta_rad: np.ndarray, points_mm: np.ndarray) -> str:
+    """The text of a pose file (:data:`COLUMNS`), every number as Python writes it (the
+    shortest text that reads back to the same float), what :func:`read_pose_csv` reads.
+
+    >>> text = format_pose_csv(np.zeros((1, 12)), np.zeros((1, 12)), np.array([[1.5, 0, -2]]))
+    >>> text.splitlines()[0].split(",")[-3:], text.splitlines()[1].split(",")[-3:]
+    (['x_mm', 'y_mm', 'z_mm'], ['1.5', '0.0', '-2.0'])
+    """
+    a = np.asarray(alpha_rad, dtype=float)
+    t = np.asarray(theta_rad, dtype=float)
+    p = np.asarray(points_mm, dtype=float)
+    if a.ndim != 2 or a.shape[1] != N_JOINTS or t.shape != a.shape or p.shape != (len(a), 3):
+        raise CalibrationDataError(
+            f"poses: alpha {a.shape}, theta {t.shape} and points {p.shape} do not make a pose "
+            f"table of (N, {N_JOINTS}), (N, {N_JOINTS}), (N, 3)"
+        )
+    rows = [",".join(COLUMNS)]
+    rows += [",".join(repr(float(v)) for v in row) for row in np.concatenate([a, t, p], axis=1)]
+    return "\n".join(rows) + "\n"
+
+
 def spread_configurations(model: RobotModel, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` well-spread configurations ``(alpha, theta)``, each of shape (n, 12), rad.
 

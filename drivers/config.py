@@ -5,7 +5,9 @@ The file has a ``[control]`` table (rate and safety timing) and one
 ``bitrate``, optional ``[buses.NAME.options]`` (extra ``can.Bus`` keyword
 arguments) and ``[buses.NAME.nodes]`` mapping each rope motor id to its CANopen
 node id; an optional ``[tension]`` table names the tension-sensor board's serial port
-and its stop thresholds (:class:`TensionConfig`; no table: the box has no board).
+and its stop thresholds (:class:`TensionConfig`; no table: the box has no board); an
+optional ``[tracker]`` table names the laser tracker's serial port and the wait for each of
+its replies (:class:`TrackerConfig`; no table: no tracker).
 The interface is configuration, never code: any name python-can knows (built-in or
 registered under the ``can.interface`` entry point) is accepted.
 
@@ -211,6 +213,25 @@ class TensionConfig:
     garbage_per_s: float = 5.0
 
 
+TRACKER_TIMEOUT_RANGE_S = (0.01, 10.0)
+TRACKER_BAUD_RANGE = TENSION_BAUD_RANGE
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """The laser tracker (the optional ``[tracker]`` table): its serial port, baud rate and
+    the longest wait for each reply (``drivers.tracker.TrackerReader``).
+
+    Safe ranges, checked on load: ``timeout_s`` in [0.01, 10] s (a reading takes a few ms;
+    past 10 s a silent tracker holds a calibration up for nothing); ``baudrate`` as the
+    tension board's.
+    """
+
+    port: str
+    timeout_s: float = 1.0
+    baudrate: int = 115_200
+
+
 @dataclass(frozen=True)
 class BoxConfig:
     """Every bus of the box plus the control settings; immutable."""
@@ -220,6 +241,7 @@ class BoxConfig:
     source: str
     _where: Mapping[str, tuple[int, int]] = field(default_factory=dict, repr=False)
     tension: TensionConfig | None = None  # the [tension] table: None, the box has no board
+    tracker: TrackerConfig | None = None  # the [tracker] table: None, no laser tracker
 
     @property
     def motor_ids(self) -> tuple[str, ...]:
@@ -279,6 +301,12 @@ class BoxConfig:
         old = {} if self.tension is None else self.to_dict()["tension"]
         return replace(self, tension=_tension_from({**old, **changes}, self.source))
 
+    def with_tracker(self, **changes: Any) -> BoxConfig:
+        """A copy with a ``[tracker]`` table (or some of its values) changed, validated
+        again (e.g. the simulated tracker's pseudo-terminal as the port)."""
+        old = {} if self.tracker is None else self.to_dict()["tracker"]
+        return replace(self, tracker=_tracker_from({**old, **changes}, self.source))
+
     def to_dict(self) -> dict[str, Any]:
         c = self.control
         return {
@@ -294,6 +322,7 @@ class BoxConfig:
                 for b in self.buses
             },
             **({} if self.tension is None else {"tension": asdict(self.tension)}),
+            **({} if self.tracker is None else {"tracker": asdict(self.tracker)}),
         }
 
 
@@ -558,10 +587,42 @@ def _tension_from(doc: Any, where: str) -> TensionConfig:
     return t
 
 
+def _tracker_from(doc: Any, where: str) -> TrackerConfig:
+    """The ``[tracker]`` table, every value checked against its safe range."""
+    if not isinstance(doc, Mapping):
+        raise BusConfigError(f"{where}: [tracker] must be a table")
+    for key in doc:
+        if key not in TrackerConfig.__dataclass_fields__:
+            raise BusConfigError(f"{where}: tracker.{key}: unknown key")
+    if "port" not in doc:
+        raise BusConfigError(f"{where}: tracker.port: missing (the tracker's serial port)")
+    port = doc["port"]
+    if not isinstance(port, str) or not port.strip():
+        raise BusConfigError(f"{where}: tracker.port: expected a serial port path, got {port!r}")
+    values: dict[str, Any] = {"port": port}
+    lo_t, hi_t = TRACKER_TIMEOUT_RANGE_S
+    lo_b, hi_b = TRACKER_BAUD_RANGE
+    if "timeout_s" in doc:
+        v = doc["timeout_s"]
+        if isinstance(v, bool) or not isinstance(v, int | float) or not lo_t <= v <= hi_t:
+            raise BusConfigError(
+                f"{where}: tracker.timeout_s must be a number in [{lo_t:g}, {hi_t:g}] s, got {v!r}"
+            )
+        values["timeout_s"] = float(v)
+    if "baudrate" in doc:
+        v = doc["baudrate"]
+        if isinstance(v, bool) or not isinstance(v, int) or not lo_b <= v <= hi_b:
+            raise BusConfigError(
+                f"{where}: tracker.baudrate must be an integer in {lo_b}..{hi_b}, got {v!r}"
+            )
+        values["baudrate"] = v
+    return TrackerConfig(**values)
+
+
 def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
     """Validate a parsed bus configuration and build a :class:`BoxConfig`."""
     where = source
-    unknown = set(doc) - {"control", "buses", "tension"}
+    unknown = set(doc) - {"control", "buses", "tension", "tracker"}
     if unknown:
         raise BusConfigError(f"{where}: unknown table(s) {sorted(unknown)}")
     control = _control_from(doc.get("control", {}), where)
@@ -635,8 +696,14 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
         )
     _check_distinct_channels(buses, source)
     tension = _tension_from(doc["tension"], where) if "tension" in doc else None
+    tracker = _tracker_from(doc["tracker"], where) if "tracker" in doc else None
     return BoxConfig(
-        buses=tuple(buses), control=control, source=source, _where=placed, tension=tension
+        buses=tuple(buses),
+        control=control,
+        source=source,
+        _where=placed,
+        tension=tension,
+        tracker=tracker,
     )
 
 

@@ -34,6 +34,13 @@ the control loop, every watchdog and the host heartbeat.  Its states
    write the run record (JSON, atomically) beside them.
 
 A call from a state that does not allow it raises :class:`SessionStateError`.
+
+**Calibration.**  The session is told which calibration the rope layer it was given was
+built with (:class:`CalibrationRef`: version, the file's checksum, its path; the drivers
+never read calibrations themselves).  Without one, :meth:`enable` and :meth:`bring_up`
+refuse (:class:`SessionStateError`, one line, before anything is sent) unless the caller
+overrides explicitly (``allow_uncalibrated``); the run record names the version, or says
+``uncalibrated (override)``.
 The drivers never know what is at the other end of the wire (drives or a
 simulator): everything goes through python-can buses.
 """
@@ -49,6 +56,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 from typing import Any
@@ -117,6 +125,22 @@ class SessionStateError(DriverError):
     """A session call refused in the session's current state."""
 
 
+UNCALIBRATED = "uncalibrated (override)"  # what the run record says without a calibration
+
+
+@dataclass(frozen=True)
+class CalibrationRef:
+    """Which calibration the session's rope layer was built with: its version in the
+    store, the file's SHA-256 checksum and where it came from (a path)."""
+
+    version: int
+    sha256: str
+    source: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"version": self.version, "sha256": self.sha256, "source": self.source}
+
+
 class OtherMasterError(DriverError):
     """Another master is active on the box's buses: its drives are not reset."""
 
@@ -164,8 +188,14 @@ class DriveSession:
         clock: Callable[[], float] = time.monotonic,
         take_over: bool = False,
         listen_s: float = LISTEN_BEFORE_RESET_S,
+        calibration: CalibrationRef | None = None,
+        allow_uncalibrated: bool = False,
     ) -> None:
         config.check_motors(actuation.motor_ids)
+        if calibration is not None and not isinstance(calibration, CalibrationRef):
+            raise TypeError(f"calibration must be a CalibrationRef, not {type(calibration)}")
+        self.calibration = calibration
+        self.allow_uncalibrated = bool(allow_uncalibrated)
         if buses is not None and len(buses) != len(config.buses):
             raise DriverError(f"{len(config.buses)} buses configured, {len(buses)} given")
         self.config = config
@@ -503,12 +533,24 @@ class DriveSession:
         ]
         return "; ".join(heard) if heard else None
 
+    def _require_calibration(self, action: str) -> None:
+        """Refuse to enable drives without a calibration, unless overridden (sends nothing)."""
+        if self.calibration is None and not self.allow_uncalibrated:
+            text = (
+                f"{action} refused: no calibration (drives are not enabled without one; "
+                "the operator may override explicitly)"
+            )
+            self.events.add("error", text)
+            raise SessionStateError(text)
+
     @deferred_interrupts()
     def enable(self) -> np.ndarray:
         """Every drive to OPERATION_ENABLED in CSP (-> ENABLED); return the actual
         positions (counts).  A drive whose actual position is outside its limits, or
         that does not reach the state, fails the whole enable: every drive then gets a
-        quick stop by SDO and NMT pre-operational (-> FAULT)."""
+        quick stop by SDO and NMT pre-operational (-> FAULT).  Refused, before anything is
+        sent, without a calibration unless ``allow_uncalibrated``."""
+        self._require_calibration("enable")
         self._require("enable", SessionState.READY)
         foreign = self._foreign_frames()
         if foreign is not None and not self.take_over:
@@ -549,7 +591,9 @@ class DriveSession:
         return actual
 
     def bring_up(self) -> np.ndarray:
-        """:meth:`configure` then :meth:`enable`; return the actual positions (counts)."""
+        """:meth:`configure` then :meth:`enable`; return the actual positions (counts).
+        Without a calibration (and no override) refused before the configuration."""
+        self._require_calibration("bring-up")
         self.configure()
         return self.enable()
 
@@ -781,6 +825,13 @@ class DriveSession:
             "config_source": self.config.source,
             "config": self.config.to_dict(),
             "motor_ids": list(self.actuation.motor_ids),
+            "calibration": (
+                self.calibration.to_dict()
+                if self.calibration is not None
+                else UNCALIBRATED
+                if self.allow_uncalibrated
+                else "none (enable refused)"
+            ),
             "bus_loads": [bl.to_dict() for bl in self.loads],
             "bringup_s": self.bringup_s,
             "actual_counts_at_enable": None if self.actual is None else self.actual.tolist(),

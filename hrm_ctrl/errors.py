@@ -15,6 +15,10 @@ The whole tree, each class with the module that defines it::
      |    |    +-- PathFileError            hrm_ctrl.errors
      |    |    +-- UnreachableError         hrm_ctrl.errors
      |    |    +-- JointLimitError          hrm_ctrl.errors
+     |    |    +-- CollisionError           hrm_ctrl.errors
+     |    |    +-- SceneFileError           hrm_ctrl.formats.scene
+     |    |    +-- PointCloudError          hrm_ctrl.formats.pointcloud
+     |    |    +-- ScanFitError             hrm_ctrl.planning.scan
      |    +-- PlanFileError                 hrm_ctrl.errors
      |    +-- OverwriteInputError           hrm_ctrl.errors
      |    +-- PlotError                     hrm_ctrl.formats.plots
@@ -39,16 +43,21 @@ The whole tree, each class with the module that defines it::
      |    |    +-- OtherMasterError         drivers.session
      |    |    +-- SafetyStopError          drivers.session
      |    |    +-- ProcessSettingsError     drivers.realtime
+     |    |    +-- TrackerLineError         drivers.protocol.tracker
+     |    |    +-- TrackerError             drivers.tracker
+     |    |    |    +-- TrackerTargetLostError drivers.tracker
      |    |    +-- TensionSensorError       drivers.tension_sensor
      |    |         +-- StaleTensionError   drivers.tension_sensor
      |    +-- SimError                      hrm_ctrl.errors
      |    |    +-- DriveSimError            sim_bus.drive
      |    |    +-- WireConfigError          sim_bus.wire
      |    |    +-- FaultSpecError           sim_bus.faults
+     |    |    +-- TruthFileError           sim_bus.truth
      |    +-- CalibrationError              hrm_ctrl.errors
      |         +-- CalibrationDataError     hrm_ctrl.errors
      |         +-- UnobservableError        hrm_ctrl.errors
      |         +-- CalibrationFileError     hrm_ctrl.errors
+     |         +-- RopeTensionError         calibration.zero
      +-- SdoAbort                           sim_bus.drive.objects
     BaseException (Python standard library)
      +-- SignalInterrupt                    hrm_ctrl.errors
@@ -90,6 +99,10 @@ class UnreachableError(PlanningError):
 
 class JointLimitError(PlanningError):
     """A plan breaks a joint limit."""
+
+
+class CollisionError(PlanningError):
+    """A plan's arm meets an obstacle of its environment (negative clearance)."""
 
 
 class PlanFileError(HrmError):

@@ -1,17 +1,37 @@
 """The simulated arm: motor positions → rope lengths → joint angles → joint centres.
 
 Where the arm really is follows from where the motors really are (the drive
-simulators' actual positions, not the host's setpoints): the rope layer's
-inverse (:meth:`hrm_ctrl.ropes.actuation.Actuation.angles_from_counts`, with rope
-stretch at the ropes' tension) gives the 24 joint angles, the planner's FK the
-true joint centres.
+simulators' actual positions, not the host's setpoints) and from the arm's truth
+(:class:`sim_bus.truth.TrueArm`: how the real arm differs from its description; the
+default is the description itself).  Per rope m, with the true zero count ``z_m``, the true
+axial rigidity ``EA_m``, the pretension ``T0`` and the description's drum constants
+(``direction``, ``counts_per_mm``):
 
-Tension per rope: the pretension less ``EA · residual / free length`` (the
-inverse's residual is how much longer a rope is than the configuration needs:
-a slack rope loses tension, a short one gains), never below 0, plus a little
-sensor noise.  A snapped rope carries no tension and its joint drifts away from it
-(the other ropes of the joint pull it) at ``snap_drift_rad_per_s`` until the
-joint limit.
+* the drum has paid out the unstretched length ``u_m = u0_m - direction (c_m - z_m) /
+  counts_per_mm``, where ``u0_m = (box_m + L_m(phi = -offset)) / (1 + T0/EA_m)`` is the
+  length that holds rope m at ``T0`` on the physically straight arm (every physical joint
+  angle 0, so the rope-geometric angle phi is minus the joint's zero offset): at ``c_m =
+  z_m`` the rope is at its pretension on the straight arm, the truth's definition;
+* a rope carries tension only beyond its slack: its effective length is ``u_m + slack_m``;
+* the rope-geometric joint angles phi follow from the rope layer's inverse
+  (:meth:`hrm_ctrl.ropes.actuation.Actuation.angles_from_counts` of the description's
+  rope layer, fed the counts that give the same rope lengths at the pretension: each
+  joint settles where its ropes' length misfit is least, least squares per joint);
+* the physical joint angle is phi + offset (true angle = commanded angle + offset); the
+  joint centres are the planner's FK (:func:`hrm_ctrl.kinematics.joint_centres`) with the
+  TRUE link lengths;
+* tension ``T_m = EA_m (F_m - w_m) / w_m``, ``F_m`` the free length the pose needs
+  (``box_m + L_m(phi)``), ``w_m = u_m + slack_m``; never below 0 (a slack rope), plus
+  N(0, ``noise_N``) sensor noise.
+
+The straight fixture (the parking tube, :meth:`SimArm.set_fixture`): while on, every
+physical joint angle is held at 0 whatever the motors do, and each rope's tension follows
+from its own length alone, ``T_m = EA_m (box_m + L_m(-offset) - w_m) / w_m`` (>= 0): the
+pretension at ``c_m = z_m``, rising ``EA_m / u_m`` N per mm of rope wound in.  That is how
+the motor zeros and EAs are observable: on the free arm 3 ropes share 2 joint angles.
+
+A snapped rope carries no tension and its joint drifts away from it (the other ropes of
+the joint pull it) at ``snap_drift_rad_per_s`` until the joint limit (not in the fixture).
 
 >>> import numpy as np
 >>> from hrm_ctrl.model import default_robot
@@ -24,6 +44,10 @@ joint limit.
 (True, (13, 3))
 >>> float(s.tension_N.min()) > 29.0     # pretension 30 N, ropes consistent
 True
+>>> arm.set_fixture(True)
+>>> s = arm.state(np.zeros(36, dtype=np.int64), now=0.0)   # true zero counts: 0 here
+>>> float(np.abs(s.alpha).max()), bool(np.allclose(s.tension_N, 30.0))
+(0.0, True)
 """
 
 from __future__ import annotations
@@ -35,7 +59,8 @@ import numpy as np
 
 from hrm_ctrl.errors import SimError
 from hrm_ctrl.kinematics import joint_centres
-from hrm_ctrl.ropes.actuation import Actuation
+from hrm_ctrl.ropes.actuation import Actuation, load_actuation
+from sim_bus.truth import TrueArm
 
 
 @dataclass(frozen=True)
@@ -44,39 +69,83 @@ class ArmState:
 
     t: float
     counts: np.ndarray  # (n,) actual motor positions
-    alpha: np.ndarray  # (12,)
+    alpha: np.ndarray  # (12,) physical joint angles: rope-geometric + the joint's zero offset
     theta: np.ndarray  # (12,)
-    centres: np.ndarray  # (13, 3) joint centres O_1..O_12 and end point
+    centres: np.ndarray  # (13, 3) true joint centres O_1..O_12 and end point (true links)
     tension_N: np.ndarray  # (n,)
-    residual_mm: np.ndarray  # (n,)
+    residual_mm: np.ndarray  # (n,) rope length the counts give minus what the pose needs
+    rope_alpha: np.ndarray | None = None  # (12,) rope-geometric angles phi (alpha - offset)
+    rope_theta: np.ndarray | None = None
+    fixture: bool = False  # the arm was held straight by the fixture
 
 
 class SimArm:
-    """Arm state from motor counts, with snapped ropes (thread-safe)."""
+    """Arm state from motor counts, with its truth, fixture and snapped ropes (thread-safe).
+
+    ``actuation`` names the motors and gives the robot description; the arm's physics
+    uses the rope layer of the description with the true link lengths and nothing else
+    of a calibration (``load_actuation(truth.model(actuation.robot))``: zero offsets, EAs
+    and joint offsets a host's actuation may carry are not the arm's), with ``truth``
+    applied as the module docstring says.  So with an explicit truth the arm does not
+    depend on which calibration the host's actuation carries.
+    """
 
     def __init__(
         self,
         actuation: Actuation,
         *,
+        truth: TrueArm | None = None,
         noise_N: float = 0.05,
         snap_drift_rad_per_s: float = 0.2,
         seed: int = 0,
     ) -> None:
         self.actuation = actuation
+        if truth is None:
+            truth = TrueArm.nominal(load_actuation(actuation.robot))
+        self.truth = truth
+        self.model = truth.model(actuation.robot)  # true link lengths, for the FK
+        rope = load_actuation(self.model)  # the ropes of the true arm: no calibration in it
+        self.rope = rope
+        if self.truth.motor_ids != rope.motor_ids:
+            raise SimError(
+                f"{self.truth.source}: the truth's motors differ from the rope layer's "
+                f"({len(self.truth.motor_ids)} vs {rope.n_motors})"
+            )
         self.noise_N = float(noise_N)
         self.snap_drift_rad_per_s = float(snap_drift_rad_per_s)
         self._rng = np.random.default_rng(seed)
         self._snapped: dict[int, float] = {}  # motor index -> time of the snap
+        self._fixture = False
         self._lock = threading.Lock()
         self._warm: tuple[np.ndarray, np.ndarray] | None = None
-        self._cache: tuple[np.ndarray, tuple[np.ndarray, ...]] | None = None
-        pre = np.broadcast_to(
-            np.asarray(actuation.routing.pretension_N, dtype=float), (actuation.n_motors,)
-        )
-        self.pretension_N = pre.copy()
-        self.stiffness_EA_N = np.broadcast_to(
-            np.asarray(actuation.routing.stiffness_EA_N, dtype=float), (actuation.n_motors,)
+        self._cache: tuple[np.ndarray, bool, tuple[np.ndarray, ...]] | None = None
+        n = rope.n_motors
+        routing = rope.routing
+        self.pretension_N = np.broadcast_to(
+            np.asarray(routing.pretension_N, dtype=float), (n,)
         ).copy()
+        self.stiffness_EA_N = self.truth.rope_EA_N.copy()  # the true EA
+        self.slack_mm = self.truth.slack_mm.copy()
+        self._box = np.broadcast_to(np.asarray(routing.box_length, dtype=float), (n,)).copy()
+        self.offset_alpha = self.truth.alpha_offset_rad.copy()
+        self.offset_theta = self.truth.theta_offset_rad.copy()
+        joint = rope.joint_of_motor
+        # the rope geometry of the physically straight arm (phi = -offset)
+        self.straight_rope_mm = rope.rope_lengths(-self.offset_alpha, -self.offset_theta)
+        self.required_free_mm = self._box + self.straight_rope_mm  # fixture: free length needed
+        stretch = 1.0 + self.pretension_N / self.stiffness_EA_N
+        self.u0_mm = self.required_free_mm / stretch  # paid out at the true zero count
+        self._dir = np.asarray(rope.motors.direction, dtype=float)
+        self._cpm = np.asarray(rope.motors.counts_per_mm, dtype=float)
+        self._zero = self.truth.motor_zero_counts.astype(float)
+        # counts in the description's rope layer that give the same rope length at T0
+        ea_desc = np.broadcast_to(np.asarray(routing.stiffness_EA_N, dtype=float), (n,))
+        self._rho = stretch / (1.0 + self.pretension_N / ea_desc)
+        self._u_ref = np.asarray(rope.motors.u_ref, dtype=float)
+        self._rope_zero = np.asarray(rope.motors.zero_offsets_counts, dtype=float)
+        self._joint_of_motor = joint
+
+    # ---- faults and the fixture -----------------------------------------------------------
 
     def snap(self, motor: int | str, now: float) -> None:
         """Fault injection: the rope of ``motor`` (index or id) breaks at ``now``."""
@@ -93,6 +162,16 @@ class SimArm:
         with self._lock:
             return tuple(sorted(self._snapped))
 
+    def set_fixture(self, on: bool) -> None:
+        """The straight fixture (parking tube) on or off (see the module docstring)."""
+        with self._lock:
+            self._fixture = bool(on)
+
+    @property
+    def fixture(self) -> bool:
+        with self._lock:
+            return self._fixture
+
     def motor_index(self, motor: int | str) -> int:
         ids = self.actuation.motor_ids
         if isinstance(motor, str):
@@ -103,43 +182,86 @@ class SimArm:
             raise SimError(f"rope motor index {motor} outside 0..{len(ids) - 1}")
         return int(motor)
 
+    # ---- the ropes ------------------------------------------------------------------------
+
+    def unstretched_mm(self, counts: np.ndarray) -> np.ndarray:
+        """The true paid-out unstretched rope length (..., n) for motor counts (mm)."""
+        c = np.asarray(counts, dtype=float)
+        return self.u0_mm - self._dir * (c - self._zero) / self._cpm
+
+    def _equivalent_counts(self, w: np.ndarray) -> np.ndarray:
+        """Counts (float) at which the description's rope layer, at the pretension, gives
+        the rope length a rope of effective unstretched length ``w`` has at T0 with the
+        true EA: ``w (1 + T0/EA_true) = u_desc (1 + T0/EA_desc)``."""
+        return self._rope_zero + self._dir * self._cpm * (self._u_ref - w * self._rho)
+
+    def _tension(self, free_mm: np.ndarray, w: np.ndarray) -> np.ndarray:
+        return np.maximum(self.stiffness_EA_N * (free_mm - w) / w, 0.0)
+
+    # ---- the state ------------------------------------------------------------------------
+
     def state(self, counts: np.ndarray, now: float) -> ArmState:
         """The arm for actual motor positions ``counts`` (n,) at time ``now``."""
-        act = self.actuation
+        rope = self.rope
         c = np.asarray(counts, dtype=np.int64)
+        if c.shape != (rope.n_motors,):
+            raise SimError(f"expected {rope.n_motors} motor counts, got shape {c.shape}")
         with self._lock:
             warm = self._warm
             snapped = dict(self._snapped)
+            fixture = self._fixture
         cache = self._cache
-        if cache is not None and np.array_equal(cache[0], c):
-            alpha, theta, res, tension = (v.copy() for v in cache[1])  # motors did not move
+        if cache is not None and cache[1] == fixture and np.array_equal(cache[0], c):
+            phi_a, phi_t, res, tension = (v.copy() for v in cache[2])  # motors did not move
         else:
-            a0, t0 = warm if warm is not None else (None, None)
-            alpha, theta, res = act.angles_from_counts(c, self.pretension_N, a0, t0)
-            alpha = np.asarray(alpha, dtype=float).copy()
-            theta = np.asarray(theta, dtype=float).copy()
-            res = np.asarray(res, dtype=float)
-            free = act.free_lengths(alpha, theta)
-            tension = np.maximum(self.pretension_N - self.stiffness_EA_N * res / free, 0.0)
-            with self._lock:
-                self._warm = (alpha.copy(), theta.copy())
-            self._cache = (c.copy(), (alpha.copy(), theta.copy(), res.copy(), tension.copy()))
-        for i, t_snap in snapped.items():
-            j = int(act.joint_of_motor[i])
-            alpha[j], theta[j] = self._drift(alpha, theta, i, j, max(0.0, now - t_snap))
+            w = self.unstretched_mm(c) + self.slack_mm
+            stretched = w * (1.0 + self.pretension_N / self.stiffness_EA_N)  # at T0
+            if fixture:
+                phi_a, phi_t = -self.offset_alpha, -self.offset_theta
+                free = self.required_free_mm
+                res = stretched - free
+            else:
+                a0, t0 = warm if warm is not None else (None, None)
+                phi_a, phi_t, res = rope.angles_from_counts(
+                    self._equivalent_counts(w), self.pretension_N, a0, t0
+                )
+                phi_a = np.asarray(phi_a, dtype=float).copy()
+                phi_t = np.asarray(phi_t, dtype=float).copy()
+                res = np.asarray(res, dtype=float)
+                free = rope.free_lengths(phi_a, phi_t)
+                with self._lock:
+                    self._warm = (phi_a.copy(), phi_t.copy())
+            tension = self._tension(free, w)
+            self._cache = (
+                c.copy(),
+                fixture,
+                (phi_a.copy(), phi_t.copy(), np.array(res, dtype=float), tension.copy()),
+            )
+        if not fixture:
+            for i, t_snap in snapped.items():
+                j = int(rope.joint_of_motor[i])
+                phi_a[j], phi_t[j] = self._drift(phi_a, phi_t, i, j, max(0.0, now - t_snap))
+        for i in snapped:
             tension[i] = 0.0
         if self.noise_N > 0:
             tension = np.maximum(tension + self._rng.normal(0.0, self.noise_N, tension.shape), 0.0)
             for i in snapped:
                 tension[i] = 0.0
-        centres = joint_centres(act.robot, alpha, theta)
-        return ArmState(now, c, alpha, theta, centres, tension, res)
+        if fixture:
+            alpha = np.zeros_like(phi_a)
+            theta = np.zeros_like(phi_t)
+        else:
+            alpha = phi_a + self.offset_alpha
+            theta = phi_t + self.offset_theta
+        centres = joint_centres(self.model, alpha, theta)
+        return ArmState(now, c, alpha, theta, centres, tension, res, phi_a, phi_t, fixture)
 
     def _drift(
         self, alpha: np.ndarray, theta: np.ndarray, rope: int, joint: int, dt: float
     ) -> tuple[float, float]:
-        """Joint ``joint`` turned by ``rate·dt`` in the direction that lengthens ``rope``."""
-        act = self.actuation
+        """Joint ``joint`` (rope-geometric angles) turned by ``rate·dt`` in the direction that
+        lengthens ``rope``."""
+        act = self.rope
         h = 1e-4
         base = float(act.rope_lengths(alpha, theta)[rope])
         ga, gt = 0.0, 0.0

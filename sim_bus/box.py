@@ -5,7 +5,8 @@ creates a :class:`~sim_bus.drive.DriveSim` for every rope motor on it, and runs
 one thread per bus that receives frames, routes them by COB-ID to the drives
 listening to them and ticks the drives' timers every ``tick_s``.  The
 drives' actual positions make the arm (:class:`~sim_bus.arm.SimArm`): true
-joint angles and joint centres, rope tensions.
+joint angles and joint centres, rope tensions, all of the arm's truth
+(:class:`~sim_bus.truth.TrueArm`, ``truth=``; default the robot description itself).
 
 Frames the box sent itself and gets back (udp_multicast echoes them) are
 ignored: no drive listens to another drive's TPDO, SDO response, heartbeat or
@@ -15,9 +16,12 @@ Fault injection (thread-safe, from tests or ``hrm sim``): :meth:`stop_heartbeat`
 :meth:`fault_drive`, :meth:`jam`, :meth:`snap_rope`, :meth:`shift_encoder`,
 :meth:`drop_frames`, :meth:`delay_frames`, :meth:`set_bus_off`.  The box's tension-sensor
 board (:meth:`start_tension_board`, :attr:`tension_board`) serves the arm's rope tensions
-on a pseudo-terminal until the box stops.  On an ``hrm_sim`` wire the frame
-faults act on the wire (both directions, the host sees a bus-off as failing
-sends); on other interfaces the box applies them to the frames it sends and
+on a pseudo-terminal until the box stops, and so does its laser tracker
+(:meth:`start_tracker`, :attr:`tracker`: the true end point in the tracker's frame;
+:meth:`tracker_lose_target`).  :meth:`set_straight_fixture` puts the arm in its straight
+parking tube (every physical joint angle 0, each rope's tension its own).  On an
+``hrm_sim`` wire the frame faults act on the wire (both directions, the host sees a
+bus-off as failing sends); on other interfaces the box applies them to the frames it sends and
 (for drops) receives, and a bus-off box neither sends nor listens.
 
 >>> import can
@@ -56,6 +60,8 @@ from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.arm import ArmState, SimArm
 from sim_bus.drive import DriveParams, DriveSim
 from sim_bus.tension_board import TensionBoard
+from sim_bus.tracker import Tracker
+from sim_bus.truth import TrueArm
 from sim_bus.wire import FrameMatch, SimWireBus
 
 log = logging.getLogger("sim_bus.box")
@@ -146,6 +152,9 @@ class SimBox:
         tick_s: longest sleep of a bus thread between drive timer checks (the threads wake
             at each drive's next heartbeat / consumer deadline anyway).
         clock: monotonic clock (s).
+        truth: how the simulated arm differs from its description (``None``: it does not;
+            :class:`sim_bus.truth.TrueArm`), also the tracker's frame and noise.
+        seed: the seed of the box's noise (tension sensor, tracker).
     """
 
     def __init__(
@@ -161,6 +170,8 @@ class SimBox:
         snap_drift_rad_per_s: float = 0.2,
         tick_s: float = 0.05,
         clock: Callable[[], float] = time.monotonic,
+        truth: TrueArm | None = None,
+        seed: int = 0,
     ) -> None:
         self.config = config
         self.actuation = actuation if actuation is not None else load_actuation(default_robot())
@@ -183,8 +194,14 @@ class SimBox:
         self._accel = float(max_accel_counts_per_s2)
         self._qs_decel = float(quick_stop_decel_counts_per_s2)
         self.arm = SimArm(
-            self.actuation, noise_N=tension_noise_N, snap_drift_rad_per_s=snap_drift_rad_per_s
+            self.actuation,
+            truth=truth,
+            noise_N=tension_noise_N,
+            snap_drift_rad_per_s=snap_drift_rad_per_s,
+            seed=seed,
         )
+        self.truth: TrueArm = self.arm.truth
+        self._seed = int(seed)
         self._given = list(buses) if buses is not None else None
         self._buses: list[_BoxBus] = []
         self.drives: dict[str, DriveSim] = {}
@@ -194,8 +211,9 @@ class SimBox:
         self._threads: list[threading.Thread] = []
         self.events: list[str] = []
         self._cpu_closed_s = 0.0
-        self._tension_cache: tuple[float, np.ndarray, tuple[int, ...]] | None = None
+        self._tension_cache: tuple[float, np.ndarray, tuple[int, ...], bool] | None = None
         self.tension_board: TensionBoard | None = None
+        self.tracker: Tracker | None = None
         self._encoder_shift: dict[str, int] = {}
 
     # ------------------------------------------------------------ life cycle
@@ -252,11 +270,48 @@ class SimBox:
             self.tension_board = TensionBoard(self.tension_N, rate_hz).start()
         return self.tension_board
 
+    def start_tracker(self) -> Tracker:
+        """Start the box's laser tracker (once): the true end point O_13 in the tracker's
+        frame (the truth's), with its noise, answering requests on a pseudo-terminal
+        (:attr:`Tracker.port`, protocol ``drivers.protocol.tracker``), until the box stops."""
+        if self.tracker is None:
+            t = self.truth
+            self.tracker = Tracker(
+                self.end_point_mm,
+                t.tracker_rotation,
+                t.tracker_translation_mm,
+                noise_mm=t.tracker_noise_mm,
+                seed=self._seed + 1,
+            ).start()
+        return self.tracker
+
+    def end_point_mm(self) -> np.ndarray:
+        """The true end point O_13 now (base frame, mm)."""
+        return self.arm_state().centres[-1]
+
+    def tracker_lose_target(self, lost: bool = True) -> None:
+        """Fault injection: the tracker loses (or finds again) its target."""
+        if self.tracker is None:
+            raise SimError("the box's tracker is not started (start_tracker)")
+        self.tracker.lose_target(lost)
+        self._fault_event(f"fault: tracker target {'lost' if lost else 'found'}")
+
+    def set_straight_fixture(self, on: bool) -> None:
+        """The arm lies in (or leaves) its straight parking tube: while on, every physical
+        joint angle is 0 whatever the motors do and each rope's tension follows from its
+        own length (``sim_bus.arm``); the tension board shows it at once."""
+        self.arm.set_fixture(on)
+        self._tension_cache = None
+        self._fault_event(f"fixture: arm {'held straight' if on else 'free'}")
+
     def stop(self) -> None:
         """Stop the threads and close the buses the box opened (timeout 2 s each)."""
         if self.tension_board is not None:
             self.tension_board.stop()
             self.tension_board = None
+        if self.tracker is not None:
+            self.tracker.stop()
+            self.tracker = None
         self._stop.set()
         for t in self._threads:
             t.join(timeout=2.0)
@@ -417,9 +472,15 @@ class SimBox:
         large share of the box's CPU), and at once after a rope snaps."""
         now = self.clock()
         cached = self._tension_cache
-        if cached is None or now - cached[0] > max_age_s or cached[2] != self.arm.snapped:
+        snapped, fixture = self.arm.snapped, self.arm.fixture
+        if (
+            cached is None
+            or now - cached[0] > max_age_s
+            or cached[2] != snapped
+            or cached[3] != fixture
+        ):
             state = self.arm_state()
-            cached = (now, state.tension_N, self.arm.snapped)
+            cached = (now, state.tension_N, snapped, fixture)
             self._tension_cache = cached
         return cached[1]
 

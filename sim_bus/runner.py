@@ -3,13 +3,17 @@
 The process prints one JSON object per line on stdout:
 
 * ``{"event": "ready", "tension_port": "/dev/pts/N", "buses": [...], "motors": 36, ...}``
-  once every drive has sent its boot-up and the tension board runs;
+  once every drive has sent its boot-up and the tension board runs (with the tracker,
+  ``"tracker_port"`` too; ``"truth"`` names the arm's truth, ``"fixture"`` whether the
+  arm starts in its straight parking tube);
 * ``{"event": "fault", "fault": "...", "t_s": ...}`` whenever a fault is applied;
 * replies to control commands; ``{"event": "stopped", ...}`` at the end.
 
 With ``control=True`` it reads commands from stdin, one per line:
 ``fault SPEC`` (see :mod:`sim_bus.faults`), ``state`` (true arm state now),
-``trace on|off`` / ``trace`` (positions after every SYNC), ``stats``, ``quit``.
+``trace on|off`` / ``trace`` (positions after every SYNC), ``stats``, ``fixture on|off``
+(the straight parking tube), ``tracker-lost on|off`` (the tracker loses / finds its
+target), ``truth`` (the arm's truth, as a truth file's content), ``quit``.
 End of stdin also stops the box, so a parent that dies takes the box with it.
 
 Running the box changes no interpreter setting: the process entry (``hrm``, see
@@ -35,6 +39,7 @@ from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.box import SimBox
 from sim_bus.faults import Fault, apply_fault, parse_fault
 from sim_bus.tension_board import TensionBoard
+from sim_bus.truth import TrueArm
 from sim_bus.wire import SimWireBus
 
 
@@ -55,6 +60,7 @@ def arm_state_json(box: SimBox) -> dict[str, Any]:
         "tension_N": s.tension_N.round(3).tolist(),
         "statuswords": box.statuswords(),
         "snapped": list(box.arm.snapped),
+        "fixture": s.fixture,
     }
 
 
@@ -83,6 +89,9 @@ def run_box_process(
     control: bool = False,
     out: TextIO = sys.stdout,
     inp: TextIO = sys.stdin,
+    truth: TrueArm | None = None,
+    fixture: bool = False,
+    tracker: bool = False,
 ) -> int:
     """Run the box until ``duration_s``, ``quit``, end of stdin (with ``control``) or
     SIGTERM/SIGINT.  Returns the exit status (0)."""
@@ -91,11 +100,16 @@ def run_box_process(
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
-    box = SimBox(config, actuation=actuation)
+    box = SimBox(config, actuation=actuation, truth=truth)
+    if fixture:
+        box.set_straight_fixture(True)
     board = TensionBoard(box.tension_N, tension_rate_hz)
     box.start()
     try:
         board.start()
+        extra: dict[str, Any] = {}
+        if tracker:
+            extra["tracker_port"] = box.start_tracker().port
         t0 = time.monotonic()
         _emit(
             out,
@@ -109,6 +123,9 @@ def run_box_process(
                 "motors": len(config.motor_ids),
                 "motor_ids": list(box.actuation.motor_ids),
                 "source": config.source,
+                **extra,
+                "truth": box.truth.source,
+                "fixture": box.arm.fixture,
             },
         )
         if control:
@@ -153,6 +170,17 @@ def _command(cmd: str, box: SimBox, board: TensionBoard, out: TextIO, now: float
         _emit(out, arm_state_json(box))
     elif word == "stats":
         _emit(out, stats_json(box, board))
+    elif word in ("fixture", "tracker-lost"):
+        if rest not in ("on", "off"):
+            _emit(out, {"event": "error", "error": f"usage: {word} on|off"})
+        elif word == "fixture":
+            box.set_straight_fixture(rest == "on")
+            _emit(out, {"event": "fixture", "on": rest == "on", "t_s": now})
+        else:
+            box.tracker_lose_target(rest == "on")
+            _emit(out, {"event": "tracker", "target_lost": rest == "on", "t_s": now})
+    elif word == "truth":
+        _emit(out, {"event": "truth", "source": box.truth.source, **box.truth.to_dict()})
     elif word == "trace":
         if rest in ("on", "off"):
             box.record_trace(rest == "on")

@@ -18,6 +18,14 @@ STOPPING   quick stop (RPDO controlword 0x0002 + SYNC) to every node of every
            bus, repeated each period until every node's feedback confirms it
 ========== ==================================================================
 
+The quick stop's targets are a deceleration ramp, not a jump to standstill: from the
+speed of the last two applied targets each motor slows down by its acceleration limit
+every period (``floor(a T**2)`` counts per period, at least one), beginning with the
+very first quick-stop RPDO, and holds once at rest (clipped to the position limits).
+The drives decelerate on their own in quick stop (0x605A, 0x6085); the targets they get
+meanwhile stay within every motor's speed and acceleration limit, as the CAN log shows.
+A rope layer without acceleration limits (a test double) gets the last targets held.
+
 Any stop cause, found at a deadline or reported between deadlines by a receive
 callback (which wakes the thread at once), makes it send the quick stop to every
 node of every bus right away, so every axis stops within one control period of
@@ -56,7 +64,12 @@ from drivers.interrupts import deferred_interrupts
 from drivers.protocol import cia301, cia402
 from drivers.realtime import NORMAL_PRIORITY, process_settings
 from drivers.safety.causes import StopCause, StopKind, unique_causes
-from drivers.safety.limits import LimitChecker
+from drivers.safety.limits import (
+    LimitChecker,
+    SetpointError,
+    accel_limits,
+    acceleration_text,
+)
 from drivers.safety.monitor import NodeMonitor
 from drivers.sources import SetpointSource
 from hrm_ctrl.errors import DriverError, HrmError, SignalInterrupt
@@ -99,6 +112,7 @@ class _Stream:
     stats: CycleStats
     applied: np.ndarray  # last targets a SYNC applied
     pending: np.ndarray | None  # targets whose RPDOs went out, applied at the next SYNC
+    before: np.ndarray  # the targets applied one SYNC before ``applied`` (its speed)
     t0: float  # the stream's first SYNC deadline
     g: int = 0  # grid slot of the next SYNC
     k: int = 0  # setpoint index of the pending targets
@@ -163,6 +177,15 @@ class Supervisor:
         self._stopping: StopRecord | None = None
         self._confirm_cycles = 0
         self._next_deadline = 0.0
+        # the stop ramp: where it is, its speed and deceleration (counts per period)
+        self._accel = accel_limits(limits, fallback=False)  # counts/s^2, or None
+        self._stop_decel: np.ndarray | None = (
+            None
+            if self._accel is None
+            else np.maximum(np.floor(self._accel * self.period_s**2), 1).astype(np.int64)
+        )
+        self._ramp_pos: np.ndarray | None = None
+        self._ramp_vel: np.ndarray | None = None
 
     # ------------------------------------------------------------------ thread
     def start(self) -> None:
@@ -328,6 +351,7 @@ class Supervisor:
                 stats=CycleStats(T, self.late_threshold_s),
                 applied=self.targets.copy(),
                 pending=None,
+                before=self.targets.copy(),
                 t0=t0,
                 missing0=self.monitor.missing_total,
                 cpu0=time.process_time(),
@@ -356,7 +380,7 @@ class Supervisor:
             self._begin_stop(causes, now)
             return
         try:
-            stream.pending = self._checked(stream.source, 0, stream.applied)
+            stream.pending = self._checked(stream.source, 0, stream.applied, stream.before)
         except HrmError as exc:
             stream.error = exc
             self._begin_stop([self._limit_cause(exc)], now)
@@ -479,11 +503,22 @@ class Supervisor:
             causes.append(StopCause(kind, text, None, now))
         return causes
 
-    def _checked(self, source: SetpointSource, k: int, previous: np.ndarray) -> np.ndarray | None:
-        """Setpoint k of the source, checked against the rope layer (raises on a limit)."""
+    def _checked(
+        self, source: SetpointSource, k: int, previous: np.ndarray, before: np.ndarray
+    ) -> np.ndarray | None:
+        """Setpoint k of the source, checked against the rope layer (raises on a limit):
+        position and speed from ``previous``, acceleration (the second difference with
+        ``before``, applied one period earlier) against the motors' acceleration limits."""
         target = source.setpoint(k)
         if target is not None:
             self.limits.check_counts(target, previous=previous, dt_s=self.period_s)
+            if self._accel is not None:
+                t = np.asarray(target, dtype=np.int64)
+                acc = np.abs(t - 2 * previous + before) / self.period_s**2
+                hard = acc > self._accel
+                if hard.any():
+                    i = int(np.flatnonzero(hard)[0])
+                    raise SetpointError(acceleration_text(self.limits, i, float(acc[i])))
         return target
 
     def _limit_cause(self, exc: HrmError) -> StopCause:
@@ -531,13 +566,18 @@ class Supervisor:
         t_sync = self.clock()
         stream.due_seq = self.seq
         if stream.pending is not None:
+            stream.before = stream.applied
             stream.applied = stream.pending
             self.targets = stream.pending
+        else:
+            stream.before = stream.applied
         if causes:
             self._begin_stop(causes, now)
             return
         try:
-            stream.pending = self._checked(stream.source, stream.k + 1, stream.applied)
+            stream.pending = self._checked(
+                stream.source, stream.k + 1, stream.applied, stream.before
+            )
         except HrmError as exc:
             stream.error = exc
             stream.pending = None
@@ -589,12 +629,15 @@ class Supervisor:
         causes = unique_causes(causes)
         detected = min((x.time_s for x in causes if x.time_s > 0), default=now)
         hold = self.targets if self.targets is not None else np.zeros(self.monitor.n, np.int64)
+        before = hold
         stream = self._stream
         if stream is not None:
-            hold = stream.applied
+            hold, before = stream.applied, stream.before
         self.monitor.armed = False
         self._stop_request.clear()
-        failed = self.send_controlword(cia402.CW_QUICK_STOP, hold)
+        self._ramp_pos = np.asarray(hold, dtype=np.int64).copy()
+        self._ramp_vel = self._ramp_pos - np.asarray(before, dtype=np.int64)
+        failed = self.send_controlword(cia402.CW_QUICK_STOP, self._stop_targets())
         latency = self.clock() - detected
         for cause in causes:
             self.events.add("stop_cause", cause.text, cause=cause.kind.value, motor=cause.motor)
@@ -613,6 +656,30 @@ class Supervisor:
         self._confirm_cycles = 0
         self.mode = Mode.STOPPING
 
+    def _stop_targets(self) -> np.ndarray:
+        """The next targets of the stop ramp (module docstring): each motor's speed less
+        its deceleration, at once; held where the rope layer has no acceleration limits.
+        What the SYNC applies is what the drives hold from then on (``targets``)."""
+        pos, vel = self._ramp_pos, self._ramp_vel
+        if pos is None or vel is None:
+            pos = self.targets if self.targets is not None else np.zeros(self.monitor.n, np.int64)
+            return np.asarray(pos, dtype=np.int64)
+        if self._stop_decel is not None:
+            vel = np.sign(vel) * np.maximum(np.abs(vel) - self._stop_decel, 0)
+            lo = np.asarray(self.limits.counts_min, dtype=np.int64)
+            hi = np.asarray(self.limits.counts_max, dtype=np.int64)
+            nxt = np.clip(pos + vel, np.minimum(lo, pos), np.maximum(hi, pos))
+            vel = nxt - pos
+            pos = nxt
+        else:
+            vel = np.zeros_like(vel)
+        self._ramp_pos, self._ramp_vel = pos, vel
+        self.targets = pos
+        if self._stream is not None:
+            self._stream.before = self._stream.applied
+            self._stream.applied = pos
+        return pos
+
     def _confirm_stop(self, now: float) -> None:
         """Once a period while STOPPING: done when every node's fresh feedback shows it
         left OPERATION_ENABLED; else the quick stop again (at most STOP_CONFIRM_CYCLES)."""
@@ -626,10 +693,7 @@ class Supervisor:
         confirmed = bool(np.all(fresh & (states != int(cia402.State402.OPERATION_ENABLED))))
         self._confirm_cycles += 1
         if not confirmed and self._confirm_cycles < STOP_CONFIRM_CYCLES:
-            hold = self.targets if self.targets is not None else np.zeros(mon.n, np.int64)
-            if self._stream is not None:
-                hold = self._stream.applied
-            stop.failed += self.send_controlword(cia402.CW_QUICK_STOP, hold)
+            stop.failed += self.send_controlword(cia402.CW_QUICK_STOP, self._stop_targets())
             return
         stop.confirmed = confirmed
         self.events.add(

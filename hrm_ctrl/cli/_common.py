@@ -28,7 +28,7 @@ import argparse
 import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from hrm_ctrl.errors import OverwriteInputError
 
@@ -111,6 +111,105 @@ def config_input(config: Path | None) -> Input:
     from drivers import default_box_path
 
     return Input("bus configuration", default_box_path() if config is None else config)
+
+
+CALIBRATIONS_ENV = "HRM_CALIBRATIONS"
+DEFAULT_CALIBRATIONS = Path(".local", "share", "hrm", "calibrations")  # under the home folder
+
+
+def add_calibration_arguments(
+    parser: argparse.ArgumentParser, *, uncalibrated_help: str | None = None
+) -> None:
+    """``--calibrations DIR`` (the calibration store) and, with ``uncalibrated_help``,
+    ``--uncalibrated`` (the description's values, not the store's)."""
+    parser.add_argument(
+        "--calibrations",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help=f"calibration store (default: ${CALIBRATIONS_ENV}, else ~/{DEFAULT_CALIBRATIONS})",
+    )
+    if uncalibrated_help is not None:
+        parser.add_argument("--uncalibrated", action="store_true", help=uncalibrated_help)
+
+
+def calibrations_folder(given: Path | str | None) -> Path:
+    """The calibration store: ``--calibrations``, else ``$HRM_CALIBRATIONS``, else
+    ``~/.local/share/hrm/calibrations``."""
+    if given is not None:
+        return Path(given)
+    env = os.environ.get(CALIBRATIONS_ENV)
+    if env:
+        return Path(env)
+    return Path.home() / DEFAULT_CALIBRATIONS
+
+
+class Arm(NamedTuple):
+    """The arm a command works with: the robot description as loaded, the model with the
+    calibration's links, its rope layer, the active calibration used (None: the
+    description's values), and a line for stderr saying why there is none (``note``: the
+    command prints it once its own checks have passed, see :meth:`say_note`)."""
+
+    description: Any  # RobotModel
+    robot: Any  # RobotModel, calibrated links
+    actuation: Any  # Actuation
+    active: Any  # calibration.apply.ActiveCalibration | None
+    note: str | None = None
+
+    def say_note(self) -> None:
+        """Print :attr:`note` on stderr (if any)."""
+        if self.note is not None:
+            import sys
+
+            print(self.note, file=sys.stderr)
+
+    def calibration_ref(self) -> Any:
+        """The :class:`drivers.session.CalibrationRef` of the calibration used, or None."""
+        if self.active is None:
+            return None
+        from drivers.session import CalibrationRef
+
+        return CalibrationRef(self.active.version, self.active.sha256, self.active.path)
+
+
+def load_arm(
+    args: argparse.Namespace, description: Any, *, prog: str, simulated: bool = False
+) -> Arm:
+    """The arm of ``description`` with the store's active calibration for it.
+
+    A damaged calibration, or one for another robot description, is refused
+    (:class:`~hrm_ctrl.errors.CalibrationFileError`, one line).  ``--uncalibrated`` (when
+    the command has it) uses the description's values, and its ``note`` says so; so does a
+    ``simulated`` arm's when the store has no calibration.  Otherwise no calibration means
+    the description's values, and ``active`` None (a drive session refuses to enable).
+    """
+    from calibration.apply import active_for, calibrated_actuation, calibrated_model
+    from calibration.store import CalibrationStore
+    from hrm_ctrl.ropes.actuation import load_actuation
+
+    folder = calibrations_folder(getattr(args, "calibrations", None))
+    if getattr(args, "uncalibrated", False):
+        note = (
+            f"{prog}: --uncalibrated: the robot description's values, not the calibration "
+            f"store ({folder})"
+        )
+        return Arm(description, description, load_actuation(description), None, note)
+    active = active_for(CalibrationStore(folder), description)
+    if active is None:
+        note = None
+        if simulated:
+            note = (
+                f"{prog}: --sim: no calibration in {folder}: the robot description's values "
+                "(a simulated arm; real drives are not enabled without a calibration)"
+            )
+        return Arm(description, description, load_actuation(description), None, note)
+    cal = active.calibration
+    return Arm(
+        description,
+        calibrated_model(description, cal),
+        calibrated_actuation(description, cal),
+        active,
+    )
 
 
 def shipped_inputs(*, plan_schema: bool = False, eds: bool = False) -> list[Input]:

@@ -5,6 +5,10 @@ in-process buses (python-can ``virtual``, or ``hrm_sim``, the simulated wire at 
 configured bitrate) and a :class:`sim_bus.box.SimBox` is started on the other end,
 with its tension-sensor board on a pseudo-terminal, which becomes the configuration's
 ``[tension]`` port (thresholds from the file's table if it has one, else the defaults).
+With ``tracker`` the box's laser tracker is started too and its pseudo-terminal becomes
+the ``[tracker]`` port.  ``truth`` is how the simulated arm differs from its description
+(:class:`sim_bus.truth.TrueArm`; None: it does not), ``fixture`` starts it in its straight
+parking tube (``box.set_straight_fixture(False)`` frees it).
 Host and box take the same :class:`drivers.config.BoxConfig`: the one configuration.
 """
 
@@ -24,9 +28,26 @@ SIM_WIRES = ("virtual", "hrm_sim")
 
 
 def start_in_process_sim(
-    config: BoxConfig, actuation: Actuation, wire: str = "virtual", prog: str = "hrm"
+    config: BoxConfig,
+    actuation: Actuation,
+    wire: str = "virtual",
+    prog: str = "hrm",
+    *,
+    truth: Any = None,
+    tracker: bool = False,
+    fixture: bool = False,
+    initial_counts: Any = None,
 ) -> tuple[BoxConfig, Any]:
     """Return the configuration rewritten onto in-process buses and the started box.
+
+    ``actuation`` is the host's rope layer; the box takes the motors and the robot
+    description from it, nothing of a calibration it carries (``sim_bus.arm``).  Pass the
+    arm's ``truth`` explicitly when the host's actuation is calibrated: the default truth
+    (None) is the nominal arm of ``actuation.robot``, whose links may be calibrated ones.
+    ``initial_counts`` (n motor counts, the rope layer's order) is where the simulated
+    motors stand at power-on (default 0): a simulated box remembers nothing between
+    processes, so a command that follows a calibration starts it where the calibration
+    left the motors (:func:`calibration_counts`).
 
     The simulated drives and tension board run in this interpreter and share its CPU,
     so their TPDOs get ``SIM_MISSING_TPDO_CYCLES`` cycles before the host calls them
@@ -49,10 +70,14 @@ def start_in_process_sim(
     config = config.with_bus_kwargs(
         [{"interface": wire, "channel": f"hrm-sim-{tag}-{b.name}"} for b in config.buses]
     )
-    sim = SimBox(config, actuation=actuation)
+    sim = SimBox(config, actuation=actuation, truth=truth, initial_counts=initial_counts)
+    if fixture:
+        sim.set_straight_fixture(True)
     sim.start()
     try:
         config = config.with_tension(port=sim.start_tension_board().port, **tension)
+        if tracker:
+            config = config.with_tracker(port=sim.start_tracker().port)
     except BaseException:
         sim.stop()
         raise
@@ -62,3 +87,15 @@ def start_in_process_sim(
             file=sys.stderr,
         )
     return config, sim
+
+
+def calibration_counts(calibration: Any, actuation: Actuation) -> Any:
+    """The motor zero counts of a calibration (``calibration.store.Calibration``, or None:
+    all 0) in ``actuation``'s motor order: where the motors of a box a calibration has just
+    zeroed stand (its ropes at pretension, the arm straight)."""
+    import numpy as np
+
+    if calibration is None:
+        return None
+    zeros = calibration.motor_zero_counts
+    return np.array([int(zeros.get(m, 0)) for m in actuation.motor_ids], dtype=np.int64)

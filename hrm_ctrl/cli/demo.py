@@ -1,11 +1,33 @@
 """``hrm demo``: the whole stack on the simulated box, end to end.
 
-Plans a reference scenario (the bent pipe by default), writes the plan and its
-figures, turns it into rope-motor setpoints, brings up the 36 simulated CiA 402
-drives of the default box configuration on two CAN buses, streams the plan at the
-control rate (100 Hz), and compares where the simulated arm really was with the
-plan.  Everything goes to ``--out``: ``plan.json``, ``figures/*.png``, each bus's
-CAN traffic (``.blf``), the run record and ``demo.json`` (the summary).
+The simulated box starts with a *perturbed* true arm (``--perturb SEED``: link lengths
+±2 mm, joint zero offsets ±1°, rope EA ±20 %, motor zeros ±5000 counts; see
+``sim_bus/truth.py``), as a real arm differs from its drawing.  The demo then does what a
+technician and an operator would, on one simulated box:
+
+1. **pretension and zero** (``calibration.zero``): the arm lies in its straight parking
+   tube; every rope is brought to its pretension on the tension sensors and each motor's
+   count recorded as its zero;
+2. **kinematic calibration** (``calibration.collect``, ``calibration.kinematic``): the arm
+   leaves the tube, is driven through ``--poses`` well-spread configurations, the laser
+   tracker measures its end point at each, and the link lengths, joint zero offsets and
+   the tracker's frame are fitted by least squares;
+3. **plan** the scenario (the bent pipe by default) with the calibrated model (the
+   clearance fit of issue 10), write the plan and its figures;
+4. **play** it forward and back (``--no-return``: forward only) at the control rate
+   (100 Hz) on the 36 drives of two CAN buses, with the calibrated rope layer, and
+   compare where the simulated arm really was with the plan.
+
+Each calibration step saves a version in ``--out``/``calibrations`` (the store of
+``docs/calibration.md``); each drive session writes its run record and CAN logs into
+``--out``.  The end point's error against the path is reported with the calibration
+(the run) and without it: the same scenario planned and mapped to counts with the robot
+description's values, put through the simulated arm's physics (not played: with motor
+zeros 5000 counts off, the ropes would be far from their pretension).  ``--no-calibrate``
+plays on an unperturbed arm with the description's values (the demo before issue 12).
+Everything goes to ``--out``: ``plan.json``, ``figures/*.png``, ``calibrations/``, each
+session's CAN traffic (``.blf``) and run record, ``poses.csv`` and ``demo.json`` (the
+summary).
 """
 
 from __future__ import annotations
@@ -15,6 +37,8 @@ import contextlib
 import json
 import math
 import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -31,14 +55,23 @@ from hrm_ctrl.cli._common import (
 from hrm_ctrl.cli._simwire import SIM_WIRES, start_in_process_sim
 from hrm_ctrl.cli._watches import feedback_watches
 from hrm_ctrl.cli.plan import format_report
-from hrm_ctrl.errors import DriverError, PlanningError
+from hrm_ctrl.errors import CalibrationDataError, DriverError, PlanningError
 from hrm_ctrl.files import write_atomic
 from hrm_ctrl.planning.scenarios import SCENARIOS
+from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S
 
-HELP = "plan a scenario and play it on the simulated box over CAN (the whole stack)"
+HELP = (
+    "calibrate a perturbed simulated arm, plan a scenario with the calibrated model and play "
+    "it over CAN (the whole stack)"
+)
 PLAN_JSON = "plan.json"
 SUMMARY_JSON = "demo.json"
+POSES_CSV = "poses.csv"
 FIGURES_DIR = "figures"
+CALIBRATIONS_DIR = "calibrations"
+DEFAULT_PERTURB_SEED = 1
+DEFAULT_POSES = 24
+MAX_POSES = 200
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -47,90 +80,304 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, metavar="BOX.toml", help="bus configuration")
     p.add_argument("--step", type=float, default=5.0, metavar="MM", help="lambda (default 5 mm)")
     p.add_argument(
-        "--speed", type=float, default=50.0, metavar="MM_S", help="tip speed (default 50 mm/s)"
-    )
-    p.add_argument("--return", dest="ret", action="store_true", help="back out to the start")
+        "--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S, metavar="MM_S",
+        help=f"tip-speed cap (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s)",
+    )  # fmt: skip
+    p.add_argument(
+        "--return", dest="ret", action=argparse.BooleanOptionalAction, default=True,
+        help="back out to the start after reaching the end (default: yes)",
+    )  # fmt: skip
+    p.add_argument(
+        "--perturb", type=int, default=DEFAULT_PERTURB_SEED, metavar="SEED",
+        help=f"the simulated arm's differences from its description (default seed "
+        f"{DEFAULT_PERTURB_SEED})",
+    )  # fmt: skip
+    p.add_argument(
+        "--poses", type=int, default=DEFAULT_POSES, metavar="N",
+        help=f"configurations of the kinematic calibration (default {DEFAULT_POSES})",
+    )  # fmt: skip
+    p.add_argument(
+        "--no-calibrate", dest="calibrate", action="store_false",
+        help="an unperturbed arm, no calibration: plan and play with the description's values",
+    )  # fmt: skip
     p.add_argument("--wire", choices=SIM_WIRES, default="virtual", help="in-process bus kind")
-    p.add_argument("--out", type=Path, default=Path("out/demo"), metavar="DIR")
+    p.add_argument(
+        "--out", type=Path, default=Path("out/demo"), metavar="DIR",
+        help="where everything is written (default out/demo)",
+    )  # fmt: skip
+
+
+def _say(text: str) -> None:
+    print(text, flush=True)
+
+
+@contextlib.contextmanager
+def _session(
+    config: Any, actuation: Any, out: Path, name: str, ref: Any, *, watch: bool
+) -> Iterator[Any]:
+    """A drive session on the simulated box, brought up (and its feedback watches
+    running when ``watch``); finished and closed on leaving."""
+    from drivers.interrupts import deferred_interrupts
+    from drivers.session import DriveSession
+
+    with contextlib.ExitStack() as stack:
+        with deferred_interrupts():  # the session is open and entered, or not at all
+            box = stack.enter_context(
+                DriveSession(
+                    config,
+                    actuation,
+                    log_dir=out,
+                    log_suffix=".blf",
+                    run_name=name,
+                    calibration=ref,
+                    allow_uncalibrated=True,  # the simulated box; the first calibration
+                )
+            )
+            watches = (
+                stack.enter_context(feedback_watches(config, actuation, box, start=False))
+                if watch
+                else None
+            )
+        box.bring_up()
+        if watches is not None:
+            watches.start()  # tension, ropes
+        yield box
+
+
+def _ref(store: Any, version: int) -> Any:
+    from calibration.apply import file_sha256
+    from drivers.session import CalibrationRef
+
+    cal = store.load(version)
+    return CalibrationRef(version, file_sha256(cal, version), str(store.path_of(version)))
+
+
+def calibrate_on_box(
+    args: argparse.Namespace, description: Any, config: Any, sim: Any, store: Any
+) -> tuple[Any, int, dict[str, Any]]:
+    """Pretension and zero in the fixture, then the kinematic calibration out of it; each
+    saved as a version of ``store``.  Returns the calibration, its version and a summary."""
+    from calibration.apply import calibrated_actuation, nominal_calibration, updated
+    from calibration.collect import collect_poses
+    from calibration.kinematic import fit_kinematics, format_pose_csv, spread_configurations
+    from calibration.store import Routine
+    from calibration.zero import pretension_and_zero
+    from drivers.tension_sensor import TensionSensorReader
+    from drivers.tracker import TrackerReader
+    from hrm_ctrl.cli.calibrate import format_fit, kinematic_calibration
+
+    out: Path = args.out
+    base = nominal_calibration(description)
+    act0 = calibrated_actuation(description, base)
+    t = config.tension
+    t0 = time.monotonic()
+    _say("calibration 1/2: pretension and zero, the arm in its straight parking tube")
+    with (
+        TensionSensorReader(
+            t.port, act0.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
+        ) as reader,
+        _session(config, act0, out, "demo-zero", None, watch=False) as box,
+    ):
+        zr = pretension_and_zero(box, reader, act0)
+    zeros = {m: int(v) for m, v in zip(zr.motor_ids, zr.zero_counts, strict=True)}
+    cal_zero = updated(
+        base, routine=Routine.ZERO, residuals=zr.residuals(), motor_zero_counts=zeros
+    )
+    v_zero = store.save(cal_zero)
+    true_zero = np.asarray(sim.truth.motor_zero_counts, dtype=float)
+    zero_err = np.abs(np.asarray(zr.zero_counts, dtype=float) - true_zero)
+    t_zero = time.monotonic() - t0
+    _say(
+        f"  {len(zeros)} motor zeros in {t_zero:.1f} s ({zr.moves} moves): largest change "
+        f"{int(np.abs(zr.zero_shift_counts).max())} counts, error against the simulated "
+        f"truth at most {zero_err.max():.0f} counts; saved as v{v_zero:04d}"
+    )
+
+    sim.set_straight_fixture(False)  # the technician takes the arm out of the tube
+    t1 = time.monotonic()
+    act1 = calibrated_actuation(description, cal_zero)
+    alpha, theta = spread_configurations(description, args.poses, np.random.default_rng(7))
+    tr = config.tracker
+    _say(f"calibration 2/2: kinematic, {args.poses} poses read on the laser tracker")
+    with (
+        TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate) as tracker,
+        _session(config, act1, out, "demo-kinematic", _ref(store, v_zero), watch=True) as box,
+    ):
+        data = collect_poses(
+            box, act1, tracker, alpha, theta, period_s=config.control.period_s, samples=4
+        )
+    write_atomic(out / POSES_CSV, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
+    fit = fit_kinematics(
+        description,
+        data.alpha_rad,
+        data.theta_rad,
+        data.points_mm,
+        estimate_frame=True,
+        sigma_mm=0.05 / math.sqrt(4),
+    )
+    cal = kinematic_calibration(cal_zero, fit)
+    version = store.save(cal)
+    t_kin = time.monotonic() - t1
+    link_err = np.abs(np.asarray(cal.links_mm) - np.asarray(sim.truth.links_mm))
+    _say(format_fit(fit).splitlines()[0])
+    _say(
+        f"  kinematic calibration in {t_kin:.1f} s: link lengths within {link_err.max():.3f} mm "
+        f"of the simulated truth; saved as v{version:04d} (active)"
+    )
+    summary = {
+        "zero": {
+            "version": v_zero,
+            "seconds": t_zero,
+            "moves": zr.moves,
+            "max_error_vs_truth_counts": float(zero_err.max()),
+            "max_tension_error_N": float(np.abs(zr.tension_error_N).max()),
+        },
+        "kinematic": {
+            "version": version,
+            "seconds": t_kin,
+            "poses": args.poses,
+            "rms_before_mm": fit.rms_before_mm,
+            "rms_after_mm": fit.rms_after_mm,
+            "max_link_error_vs_truth_mm": float(link_err.max()),
+        },
+    }
+    return cal, version, summary
+
+
+def end_point_errors(sim: Any, counts: np.ndarray, path: Any) -> np.ndarray:
+    """Distance (mm) from the simulated arm's true end point to ``path`` for each row of
+    motor ``counts`` (the arm's physics of ``sim_bus.arm``, the box stopped)."""
+    tips = np.array([sim.arm.state(c, 0.0).centres[-1] for c in counts])
+    return np.asarray(path.distance_to(tips), dtype=float)
+
+
+def _plan(robot: Any, sc: Any, args: argparse.Namespace) -> Any:
+    from hrm_ctrl.planning.planner import PlanOptions, plan_path
+    from hrm_ctrl.planning.report import check_clearance, check_limits
+
+    plan = plan_path(
+        robot,
+        sc.path,
+        PlanOptions(step=args.step, return_to_start=args.ret),
+        scenario=sc,
+        environment=sc.environment,
+    )
+    check_limits(plan)
+    check_clearance(plan.report.get("clearance_mm"), sc.name)
+    return plan
+
+
+def _check_args(args: argparse.Namespace) -> None:
+    if not (math.isfinite(args.step) and args.step > 0.0):
+        raise PlanningError(f"--step must be > 0 mm, got {args.step}")
+    if not (math.isfinite(args.speed) and args.speed > 0.0):
+        raise DriverError(f"--speed must be > 0 mm/s, got {args.speed}")
+    if not 1 <= args.poses <= MAX_POSES:
+        raise CalibrationDataError(f"--poses must be 1..{MAX_POSES}, got {args.poses}")
 
 
 def run(args: argparse.Namespace) -> int:
+    from calibration.apply import calibrated_actuation, calibrated_model
+    from calibration.store import CalibrationStore
     from drivers.config import load_box_config
-    from drivers.interrupts import deferred_interrupts
-    from drivers.session import DriveSession, SafetyStopError
+    from drivers.session import SafetyStopError
     from drivers.sources import CountsSource
     from hrm_ctrl.cli.ropes import setpoints_of_plan
     from hrm_ctrl.formats.planfile import PlanDoc, write_plan
-    from hrm_ctrl.formats.plots import ANGLES_PNG, ARM_PNG, BACKBONE_PNG, write_plan_figures
+    from hrm_ctrl.formats.plots import (
+        ANGLES_PNG,
+        ARM_PNG,
+        BACKBONE_PNG,
+        CLEARANCE_PNG,
+        write_plan_figures,
+    )
     from hrm_ctrl.model import load_robot
-    from hrm_ctrl.planning.planner import PlanOptions, plan_path
-    from hrm_ctrl.planning.report import check_limits
     from hrm_ctrl.planning.scenarios import scenario
     from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.tracking import tracking_error
+    from sim_bus.truth import TrueArm
 
-    pngs = [f"{FIGURES_DIR}/{f}" for f in (BACKBONE_PNG, ARM_PNG, ANGLES_PNG)]
+    t_start = time.monotonic()
+    pngs = [f"{FIGURES_DIR}/{f}" for f in (BACKBONE_PNG, ARM_PNG, ANGLES_PNG, CLEARANCE_PNG)]
     refuse_overwriting_inputs(  # before anything is read or written
-        [Output("--out", args.out, [PLAN_JSON, SUMMARY_JSON, FIGURES_DIR, *pngs])],
+        [
+            Output(
+                "--out",
+                args.out,
+                [PLAN_JSON, SUMMARY_JSON, POSES_CSV, FIGURES_DIR, CALIBRATIONS_DIR, *pngs],
+            )
+        ],
         [
             robot_input(args.robot),
             config_input(args.config),
             *shipped_inputs(plan_schema=True, eds=True),
         ],
     )
-    if not (math.isfinite(args.step) and args.step > 0.0):
-        raise PlanningError(f"--step must be > 0 mm, got {args.step}")
-    if not (math.isfinite(args.speed) and args.speed > 0.0):
-        raise DriverError(f"--speed must be > 0 mm/s, got {args.speed}")
+    _check_args(args)
     # Everything that can refuse does so before anything is written or sent.
-    robot = load_robot(args.robot)
+    description = load_robot(args.robot)
     config = load_box_config(args.config)
-    actuation = load_actuation(robot)
-    config.check_motors(actuation.motor_ids)
+    nominal = load_actuation(description)
+    config.check_motors(nominal.motor_ids)
     sc = scenario(args.scenario)
-    plan = plan_path(robot, sc.path, PlanOptions(step=args.step, return_to_start=args.ret), sc)
-    print(format_report(plan, sc.name))
-    check_limits(plan)
-    doc = PlanDoc.from_dict(plan.to_dict(), sc.name)
-    sp = setpoints_of_plan(
-        doc, actuation, period_s=config.control.period_s, speed_mm_per_s=args.speed
-    )
-    info = {"plan": sc.name, "steps": sp.n_steps, "speed_mm_per_s": args.speed}
-    source = CountsSource(actuation, sp.counts, sp.period_s, name="plan", label=sp.label, info=info)
-    source.precheck(config.control.period_s)
-
+    plan_nominal = _plan(description, sc, args)  # the description's values: planned first
+    truth = TrueArm.perturbed(nominal, args.perturb) if args.calibrate else None
     out: Path = args.out
-    write_plan(out / PLAN_JSON, doc)
-    figures = write_plan_figures(doc, out / FIGURES_DIR)
-    print(f"plan and {len(figures)} figures written to {out}")
 
-    config, sim = start_in_process_sim(config, actuation, args.wire, prog="hrm demo")
+    box_config, sim = start_in_process_sim(
+        config, nominal, args.wire, prog="hrm demo", truth=truth, tracker=args.calibrate,
+        fixture=args.calibrate,
+    )  # fmt: skip
     stop: SafetyStopError | None = None
+    calib: dict[str, Any] | None = None
     try:
+        if args.calibrate:
+            _say(
+                f"simulated arm: seed {args.perturb}: links up to "
+                f"{np.abs(truth.links_mm - description.links).max():.2f} mm off, joint zero "
+                f"offsets up to {np.degrees(np.abs(np.r_[truth.alpha_offset_rad, truth.theta_offset_rad]).max()):.2f} deg, "  # noqa: E501
+                f"motor zeros up to {np.abs(truth.motor_zero_counts).max()} counts, rope EA "
+                f"{100 * (np.abs(truth.rope_EA_N / nominal.routing.stiffness_EA_N - 1)).max():.0f} %"  # noqa: E501
+            )
+            store = CalibrationStore(out / CALIBRATIONS_DIR)
+            cal, version, calib = calibrate_on_box(args, description, box_config, sim, store)
+            robot = calibrated_model(description, cal)
+            actuation = calibrated_actuation(description, cal)
+            ref = _ref(store, version)
+            plan = _plan(robot, sc, args)
+        else:
+            robot, actuation, ref, plan = description, nominal, None, plan_nominal
+        print(format_report(plan, sc.name))
+        doc = PlanDoc.from_dict(plan.to_dict(), sc.name)
+        sp = setpoints_of_plan(
+            doc, actuation, period_s=config.control.period_s, speed_mm_per_s=args.speed
+        )
+        info = {"plan": sc.name, "steps": sp.n_steps, "speed_mm_per_s": args.speed}
+        source = CountsSource(
+            actuation, sp.counts, sp.period_s, name="plan", label=sp.label, info=info
+        )
+        source.precheck(config.control.period_s)
+        write_plan(out / PLAN_JSON, doc)
+        figures = write_plan_figures(doc, out / FIGURES_DIR)
+        _say(f"plan and {len(figures)} figures written to {out}")
+
         sim.record_trace(True)
-        with contextlib.ExitStack() as stack:
-            with deferred_interrupts():  # the session is open and entered, or not at all
-                box = stack.enter_context(
-                    DriveSession(config, actuation, log_dir=out, log_suffix=".blf")
-                )
-                box.record_extra = {
-                    "demo": sc.name,
-                    "plan_file": str(out / PLAN_JSON),
-                    "wire": args.wire,
-                }
-                # tension board opened first: a bad port is refused before any NMT reset
-                watches = stack.enter_context(feedback_watches(config, actuation, box, start=False))
-            box.bring_up()
-            watches.start()  # tension, ropes
+        with _session(box_config, actuation, out, "demo-run", ref, watch=True) as box:
+            box.record_extra = {
+                "demo": sc.name,
+                "plan_file": str(out / PLAN_JSON),
+                "wire": args.wire,
+                "simulated_truth_seed": args.perturb if args.calibrate else None,
+            }
             try:
                 result = box.stream(source)
             except SafetyStopError as exc:
                 stop, result = exc, exc.result
             box.record_extra["setpoints"] = source.describe()
+            record_path = box.record_path
+            can_logs = box.record()["can_logs"]
+            bringup_s = box.bringup_s
         _times, counts = sim.trace()
-        record_path = box.record_path
-        can_logs = box.record()["can_logs"]
-        bringup_s = box.bringup_s
     finally:
         sim.stop()
 
@@ -143,10 +390,28 @@ def run(args: argparse.Namespace) -> int:
     cols = [np.array([ids.index(m) for m in b.nodes]) for b in config.buses]
     tr = tracking_error(actuation, source.table, lead, planned, counts, cols)
 
+    # the end point against the path: with the calibration (what was played, at every plan
+    # step) and without it (the same scenario with the description's values)
+    steps_cal = actuation.counts_from_angles(plan.alpha, plan.theta)
+    err_cal = end_point_errors(sim, steps_cal, sc.path)
+    played = counts[:: max(1, len(counts) // 400)]
+    err_run = end_point_errors(sim, played, sc.path) if len(played) else np.zeros(0)
+    steps_nom = nominal.counts_from_angles(plan_nominal.alpha, plan_nominal.theta)
+    err_nom = end_point_errors(sim, steps_nom, sc.path)
+    end_point = {
+        "calibrated_steps_max_mm": float(err_cal.max()),
+        "calibrated_steps_rms_mm": float(np.sqrt(np.mean(err_cal**2))),
+        "played_max_mm": float(err_run.max()) if len(err_run) else None,
+        "uncalibrated_steps_max_mm": float(err_nom.max()),
+        "uncalibrated_steps_rms_mm": float(np.sqrt(np.mean(err_nom**2))),
+    }
+
     st = result.stats
     summary: dict[str, Any] = {
         "scenario": sc.name,
         "plan_report": plan.report,
+        "calibration": calib,
+        "end_point_vs_path": end_point,
         "run": {
             "completed": result.completed,
             "cycles": result.cycles,
@@ -158,6 +423,7 @@ def run(args: argparse.Namespace) -> int:
         "wire": args.wire,
         "run_record": str(record_path),
         "can_logs": can_logs,
+        "seconds": time.monotonic() - t_start,
     }
     write_atomic(out / SUMMARY_JSON, json.dumps(summary, indent=1, default=str) + "\n")
     print(
@@ -175,9 +441,21 @@ def run(args: argparse.Namespace) -> int:
         f"(joint {tr.worst_joint}) over {tr.compared_cycles} of {tr.body_cycles} cycles, "
         f"drive lag {tr.median_lag_cycles:g} cycle(s) (p95 {tr.p95_lag_cycles:g})"
     )
+    label = "with the calibration" if args.calibrate else "with the description's values"
+    print(
+        f"end point vs path ({label}): at most {end_point['calibrated_steps_max_mm']:.3f} mm "
+        f"over the plan steps, {end_point['played_max_mm']:.3f} mm while playing"
+    )
+    if args.calibrate:
+        print(
+            "end point vs path without the calibration (the description's values through the "
+            f"simulated arm, not played): at most {end_point['uncalibrated_steps_max_mm']:.1f} "
+            f"mm, rms {end_point['uncalibrated_steps_rms_mm']:.1f} mm"
+        )
     print(f"run record: {record_path}")
     for log in can_logs:
         print(f"CAN log: {log}")
+    print(f"demo took {summary['seconds']:.1f} s")
     if stop is not None:
         print(f"hrm demo: safety stop: {stop}", file=sys.stderr)
         return 2

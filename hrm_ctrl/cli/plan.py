@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -13,17 +14,22 @@ from typing import Any
 from hrm_ctrl.cli._common import (
     Input,
     Output,
+    add_calibration_arguments,
     add_robot_argument,
+    load_arm,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
 )
 from hrm_ctrl.errors import HrmError, PlanningError
 from hrm_ctrl.formats.planfile import PlanDoc, write_plan
+from hrm_ctrl.formats.scene import read_scene
 from hrm_ctrl.model import load_robot
+from hrm_ctrl.planning.conditioning import check_path, round_corners
+from hrm_ctrl.planning.environment import Environment, Pipe
 from hrm_ctrl.planning.known_path import KnownPath, load_path_csv
-from hrm_ctrl.planning.planner import MAX_PLAN_STEPS, Plan, PlanOptions, plan_path
-from hrm_ctrl.planning.report import check_limits
+from hrm_ctrl.planning.planner import MAX_PLAN_STEPS, FitMode, Plan, PlanOptions, plan_path
+from hrm_ctrl.planning.report import check_clearance, check_limits
 from hrm_ctrl.planning.scenarios import SCENARIOS, Scenario, scenario
 
 HELP = "plan the arm along a scenario or a path file (Sec. 3 of the paper) and report on it"
@@ -33,10 +39,29 @@ def register(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--scenario", choices=sorted(SCENARIOS), help="a reference scenario")
     src.add_argument("--path", type=Path, metavar="FILE", help="CSV path file (header x,y,z; mm)")
+    src.add_argument(
+        "--scan",
+        type=Path,
+        metavar="FILE",
+        help="point cloud of a pipe's inner wall (.ply/.csv/.npy): plan along its centre line, "
+        "inside that pipe",
+    )
     add_robot_argument(p)
     p.add_argument("--step", type=float, default=5.0, metavar="MM", help="lambda (default 5 mm)")
     p.add_argument("--alpha-step", type=float, default=1.0, help="alpha_step of Eq. 11 (0, 1]")
     p.add_argument("--return", dest="ret", action="store_true", help="back out to the start")
+    p.add_argument(
+        "--fit",
+        choices=[m.value for m in FitMode],
+        help="paper: the paper's joint fitting; clearance: refined for the largest clearance "
+        "and joint-limit margin (default: clearance where an environment is known, else paper)",
+    )
+    p.add_argument(
+        "--round-corners",
+        type=float,
+        metavar="MM",
+        help="round every corner of a --path or --scan polyline to this radius",
+    )
     p.add_argument("--out", type=Path, metavar="PLAN.json", help="write the plan file")
     p.add_argument("--plot", type=Path, metavar="DIR", help="write figures (PNG) to DIR")
     p.add_argument(
@@ -49,29 +74,87 @@ def register(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="write the plan even if it breaks a joint limit",
     )
+    p.add_argument(
+        "--scene",
+        type=Path,
+        metavar="FILE.toml",
+        help="environment from a scene file (with --scenario: instead of the scenario's)",
+    )
+    p.add_argument(
+        "--allow-collision",
+        action="store_true",
+        help="write the plan even if a link meets an obstacle (negative clearance)",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_calibration_arguments(  # the calibrated link lengths (issue 12)
+        p, uncalibrated_help="the robot description's link lengths, not the calibration store's"
+    )
 
 
 def make_plan(args: argparse.Namespace) -> Plan:
     """Load the inputs named by the arguments and plan (no output written)."""
     if not (math.isfinite(args.step) and args.step > 0.0):
         raise PlanningError(f"--step must be a finite number > 0 mm, got {args.step}")
-    robot = load_robot(args.robot)
+    arm = load_arm(args, load_robot(args.robot), prog="hrm plan")
+    robot = arm.robot  # the calibrated link lengths
+    env = read_scene(args.scene) if args.scene is not None else None
     sc: Scenario | None = None
+    if args.round_corners is not None and args.scenario:
+        raise PlanningError(
+            "--round-corners rounds a --path or --scan polyline (a scenario's path and "
+            "obstacles are drawn for each other)"
+        )
     if args.scenario:
         sc = scenario(args.scenario)
+        if env is not None:
+            sc = sc.with_environment(env)
         path: KnownPath = sc.path
+    elif args.scan is not None:
+        from hrm_ctrl.planning.scan import path_and_pipe_from_scan
+
+        path, axis, d = path_and_pipe_from_scan(args.scan, start_near=robot.base_position)
+        obstacles = (Pipe(axis, d), *(env.obstacles if env is not None else ()))
+        sc = Scenario(
+            name=Path(args.scan).name,
+            path=path,
+            environment=Environment(obstacles),
+            description=f"scan {args.scan}: a pipe of inner diameter {d:.1f} mm",
+        )
     else:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             path = load_path_csv(args.path)
         for w in caught:
             print(f"hrm plan: warning: {w.message}", file=sys.stderr)
+        if env is not None:  # a path file through a scene: planned as a scenario of its own
+            sc = Scenario(
+                name=Path(args.path).name,
+                path=path,
+                environment=env,
+                description=f"path file {args.path} in scene {args.scene}",
+            )
+    if args.round_corners is not None:
+        if not (math.isfinite(args.round_corners) and args.round_corners > 0.0):
+            raise PlanningError(
+                f"--round-corners must be a radius > 0 mm, got {args.round_corners}"
+            )
+        path = round_corners(path, args.round_corners)
+        if sc is not None:
+            sc = dataclasses.replace(sc, path=path)
+    check = check_path(robot, path)
+    if not check.ok:
+        print(f"hrm plan: warning: {check.message()}", file=sys.stderr)
     steps = parse_plot_steps(args.plot_steps)
     opts = PlanOptions(
-        step=args.step, alpha_step=args.alpha_step, return_to_start=args.ret, backbone_steps=steps
+        step=args.step,
+        alpha_step=args.alpha_step,
+        return_to_start=args.ret,
+        backbone_steps=steps,
+        fit=FitMode(args.fit) if args.fit else None,
     )
-    plan = plan_path(robot, path, opts, scenario=sc)
+    environment = sc.environment if sc is not None else None
+    plan = plan_path(robot, path, opts, scenario=sc, environment=environment)
+    arm.say_note()
     if steps is not None and steps[-1] >= len(plan.travel):
         raise PlanningError(
             f"--plot-steps: step {steps[-1]} is past the plan's last step {len(plan.travel) - 1}"
@@ -143,13 +226,32 @@ def format_report(plan: Plan, name: str) -> str:
         if c["min"] is None:
             rows.append(("clearance", "no link meets an obstacle"))
         else:
-            verdict = "clear" if c["min"] >= 0 else "COLLISION: the link meets the wall"
+            verdict = "clear" if c["min"] >= 0 else "COLLISION: the link meets an obstacle"
             rows.append(
                 (
                     "clearance",
                     f"{c['min']:.2f} mm at step {c['step']}, link {c['link']} ({verdict})",
                 )
             )
+    if "fit" in r:
+        fit = r["fit"]
+        ref = r.get("refinement")
+        if isinstance(ref, dict) and ref.get("paper_clearance_min_mm") is not None:
+            fit += f" (the paper's fit: clearance {ref['paper_clearance_min_mm']:.2f} mm)"
+        rows.append(("fit", fit))
+    fp = r.get("free_parameters")
+    if isinstance(fp, dict) and fp.get("searched"):
+        k, t = fp["start_angles_deg"]
+        rows.append(
+            (
+                "free parameters",
+                f"start angles ({k:.1f}, {t:.1f}) deg, alpha_step {fp['alpha_step']:g}, "
+                f"joint-2 turn {fp['joint2_offset_deg']:.1f} deg "
+                f"(best of {fp['candidates']} candidates)",
+            )
+        )
+    if "margin_statement" in r:
+        rows.append(("margin", r["margin_statement"]))
     rows.append(("planning time", f"{r['plan_time_ms']:.1f} ms"))
     head = (
         f"plan: {name}: {r['steps']} steps over {r['path_length_mm']:.2f} mm "
@@ -162,13 +264,15 @@ def refuse_outputs_over_inputs(args: argparse.Namespace) -> None:
     """``--out`` and ``--plot`` (the directory and its figures) name no file read."""
     figures: tuple[str, ...] = ()
     if args.plot is not None:
-        from hrm_ctrl.formats.plots import ANGLES_PNG, ARM_PNG, BACKBONE_PNG
+        from hrm_ctrl.formats.plots import ANGLES_PNG, ARM_PNG, BACKBONE_PNG, CLEARANCE_PNG
 
-        figures = (BACKBONE_PNG, ARM_PNG, ANGLES_PNG)
+        figures = (BACKBONE_PNG, ARM_PNG, ANGLES_PNG, CLEARANCE_PNG)
     refuse_overwriting_inputs(
         [Output("--out", args.out), Output("--plot", args.plot, figures)],
         [
             Input("path file", args.path),
+            Input("scene file", args.scene),
+            Input("point cloud", args.scan),
             robot_input(args.robot),
             *shipped_inputs(plan_schema=True),
         ],
@@ -178,12 +282,15 @@ def refuse_outputs_over_inputs(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     refuse_outputs_over_inputs(args)  # before anything is read or written
     plan = make_plan(args)
-    name = args.scenario or str(args.path)
+    name = args.scenario or str(args.path or args.scan)
     if args.json:
         print(json.dumps(plan.report, indent=2))
     else:
         print(format_report(plan, name))
-    warn_collision(plan)
+    if args.allow_collision:
+        warn_collision(plan)
+    else:
+        check_clearance(plan.report.get("clearance_mm"), name)  # raises: nothing written
     if not args.allow_violations:
         check_limits(plan)  # raises: nothing written
     doc = PlanDoc.from_dict(plan.to_dict(), str(args.out or name))
@@ -207,11 +314,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def warn_collision(plan: Plan) -> None:
-    """One warning line on stderr when a link meets an obstacle of the scenario."""
+    """One warning line on stderr when a link meets an obstacle of the scenario (a plan
+    written with ``--allow-collision``)."""
     c = plan.report.get("clearance_mm")
     if c and c["min"] is not None and c["min"] < 0.0:
         print(
             f"hrm plan: warning: link {c['link']} meets an obstacle at step {c['step']} "
-            f"(clearance {c['min']:.2f} mm)",
+            f"(clearance {c['min']:.2f} mm); accepted as --allow-collision asks",
             file=sys.stderr,
         )

@@ -3,10 +3,14 @@
 The plan goes through the one plan -> counts path that playback (``hrm run``) uses,
 :func:`hrm_ctrl.ropes.setpoints.plan_setpoints`: every step's configuration through the
 rope layer (exact rope lengths, stretch at the pretension, drum and encoder), the
-plan at the control rate of the bus configuration (``--config``) at the given speed
-along the path, checked against the joint limits, the drum travel and the motors'
-speed before anything is written.  The CSV lists the counts of every plan step; the
-summary adds what playing it takes (cycles, peak motor speed).
+plan's time-parameterised trajectory at the control rate of the bus configuration
+(``--config``) with the tip at most ``--speed``, checked against the joint limits, the
+drum travel and the motors' speed and acceleration before anything is written.  The
+CSV lists the counts of every plan step with the time ``t_s`` the playback passes it
+(``--cycles``: every control cycle of the playback instead); the summary adds what
+playing it takes (duration, cycles, peak motor speed and acceleration).  The rope layer is the
+calibrated arm's: the store's active calibration for this robot description
+(``--calibrations DIR``; ``--uncalibrated``: the description's values).
 """
 
 from __future__ import annotations
@@ -23,8 +27,10 @@ import numpy as np
 from hrm_ctrl.cli._common import (
     Input,
     Output,
+    add_calibration_arguments,
     add_robot_argument,
     config_input,
+    load_arm,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
@@ -33,8 +39,13 @@ from hrm_ctrl.errors import HrmError, RopeError
 from hrm_ctrl.files import write_atomic
 from hrm_ctrl.formats.planfile import PlanDoc, read_plan
 from hrm_ctrl.model import load_robot
-from hrm_ctrl.ropes.actuation import Actuation, load_actuation
-from hrm_ctrl.ropes.setpoints import MAX_PLAN_DURATION_S, PlanSetpoints, plan_setpoints
+from hrm_ctrl.ropes.actuation import Actuation
+from hrm_ctrl.ropes.setpoints import (
+    DEFAULT_TIP_SPEED_MM_PER_S,
+    MAX_PLAN_DURATION_S,
+    PlanSetpoints,
+    plan_setpoints,
+)
 
 HELP = "motor setpoints (encoder counts per rope motor) for every step of a plan"
 
@@ -48,13 +59,20 @@ def register(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     p.add_argument("--out", type=Path, metavar="SETPOINTS.csv", help="write the setpoint table")
     p.add_argument(
+        "--cycles", action="store_true",
+        help="the table lists every control cycle of the playback, not every plan step",
+    )  # fmt: skip
+    p.add_argument(
         "--speed",
         type=float,
-        default=10.0,
+        default=DEFAULT_TIP_SPEED_MM_PER_S,
         metavar="MM_PER_S",
-        help="playback speed along the path, for the motor-speed check (default 10)",
+        help=f"tip-speed cap of the playback (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_calibration_arguments(
+        p, uncalibrated_help="the robot description's values, not the calibration store's"
+    )
 
 
 def setpoints_of_plan(
@@ -84,14 +102,15 @@ def setpoints_of_plan(
 
 def summary(act: Actuation, sp: PlanSetpoints) -> dict[str, Any]:
     """Largest travel and step-to-step change per motor (counts and mm of rope) over the
-    plan's steps, and the playback at the control rate (cycles, peak motor speed)."""
+    plan's steps, and the playback at the control rate (duration, cycles, peak motor
+    speed and acceleration: finite differences of the counts sent, from and to rest)."""
+    from hrm_ctrl.ropes.trajectory import finite_differences
+
     travel, counts = sp.travel_mm, sp.step_counts
     cpm = act.motors.counts_per_mm
-    if sp.n_cycles > 1:
-        rates = np.abs(np.diff(sp.counts, axis=0)).max(axis=0) / sp.period_s
-    else:
-        rates = np.zeros(act.n_motors)
+    rates, accels = finite_differences(sp.counts, sp.period_s)
     limit = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
+    a_limit = np.asarray(act.max_accel_counts_per_s2, dtype=np.float64)
     rel = counts - act.motors.zero_offsets_counts
     k_travel = np.abs(rel).argmax(axis=0)
     diff = np.abs(np.diff(counts, axis=0)) if counts.shape[0] > 1 else np.zeros((1, act.n_motors))
@@ -111,6 +130,8 @@ def summary(act: Actuation, sp: PlanSetpoints) -> dict[str, Any]:
                 "largest_change_step": int(k_diff[i]) + 1 if counts.shape[0] > 1 else 0,
                 "peak_rate_counts_per_s": float(rates[i]),
                 "rate_limit_counts_per_s": float(limit[i]),
+                "peak_accel_counts_per_s2": float(accels[i]),
+                "accel_limit_counts_per_s2": float(a_limit[i]),
             }
         )
     return {
@@ -120,18 +141,30 @@ def summary(act: Actuation, sp: PlanSetpoints) -> dict[str, Any]:
         "playback": {
             "speed_mm_per_s": sp.speed_mm_per_s,
             "period_s": sp.period_s,
-            "duration_s": sp.duration_s,
+            "duration_s": round(sp.duration_s, 9),
             "cycles": sp.n_cycles,
         },
     }
 
 
-def format_csv(act: Actuation, travel: np.ndarray, counts: np.ndarray) -> str:
-    """The setpoint table: ``step,travel_mm,<motor ids...>`` then one row per step."""
+def format_csv(act: Actuation, sp: PlanSetpoints, *, cycles: bool = False) -> str:
+    """The setpoint table: ``t_s,step,travel_mm,<motor ids...>``, then one row per plan
+    step (the time the playback passes it) or, with ``cycles``, per control cycle (the
+    plan step it came from, and its travel along the path)."""
     buf = io.StringIO()
-    buf.write(",".join(["step", "travel_mm", *act.motor_ids]) + "\n")
+    buf.write(",".join(["t_s", "step", "travel_mm", *act.motor_ids]) + "\n")
+    if cycles:
+        t, step, counts = sp.time_s, sp.step_of_row, sp.counts
+        travel = sp.row_travel_mm()
+    else:
+        t, step, counts = sp.step_time_s, np.arange(sp.n_steps), sp.step_counts
+        travel = sp.travel_mm
     for k in range(counts.shape[0]):
-        buf.write(f"{k},{travel[k]:.6f}," + ",".join(str(int(v)) for v in counts[k]) + "\n")
+        buf.write(
+            f"{t[k]:.6f},{int(step[k])},{travel[k]:.6f},"
+            + ",".join(str(int(v)) for v in counts[k])
+            + "\n"
+        )
     return buf.getvalue()
 
 
@@ -153,6 +186,9 @@ def format_summary(s: dict[str, Any]) -> str:
     worst_r = max(
         s["motors"], key=lambda m: m["peak_rate_counts_per_s"] / m["rate_limit_counts_per_s"]
     )
+    worst_a = max(
+        s["motors"], key=lambda m: m["peak_accel_counts_per_s2"] / m["accel_limit_counts_per_s2"]
+    )
     pb = s["playback"]
     lines.append(
         f"largest travel: {worst_t['motor']} {worst_t['largest_travel_mm']:.3f} mm at step "
@@ -160,11 +196,13 @@ def format_summary(s: dict[str, Any]) -> str:
         f"{worst_c['largest_change_counts']} counts at step {worst_c['largest_change_step']}"
     )
     lines.append(
-        f"played at {pb['speed_mm_per_s']:g} mm/s: {pb['duration_s']:.3f} s, {pb['cycles']} "
-        f"control cycles of {1e3 * pb['period_s']:g} ms; fastest motor {worst_r['motor']} "
-        f"{worst_r['peak_rate_counts_per_s']:.0f} counts/s "
+        f"played with the tip at most {pb['speed_mm_per_s']:g} mm/s: {pb['duration_s']:.3f} s, "
+        f"{pb['cycles']} control cycles of {1e3 * pb['period_s']:g} ms; fastest motor "
+        f"{worst_r['motor']} {worst_r['peak_rate_counts_per_s']:.0f} counts/s "
         f"({100 * worst_r['peak_rate_counts_per_s'] / worst_r['rate_limit_counts_per_s']:.1f}% "
-        "of its limit)"
+        f"of its limit), hardest accelerating {worst_a['motor']} "
+        f"{worst_a['peak_accel_counts_per_s2']:.0f} counts/s^2 "
+        f"({100 * worst_a['peak_accel_counts_per_s2'] / worst_a['accel_limit_counts_per_s2']:.1f}%)"
     )
     return "\n".join(lines)
 
@@ -184,13 +222,15 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.speed) and args.speed > 0.0):
         raise RopeError(f"--speed must be > 0 mm/s, got {args.speed}")
     doc = read_plan(args.plan)
-    act = load_actuation(load_robot(args.robot))
+    arm = load_arm(args, load_robot(args.robot), prog="hrm ropes")
+    act = arm.actuation
     period_s = load_box_config(args.config).control.period_s
     sp = setpoints_of_plan(doc, act, period_s=period_s, speed_mm_per_s=args.speed)
+    arm.say_note()
     s = summary(act, sp)
     if args.out is not None:
         try:
-            write_atomic(args.out, format_csv(act, sp.travel_mm, sp.step_counts))
+            write_atomic(args.out, format_csv(act, sp, cycles=args.cycles))
         except OSError as exc:
             raise HrmError(f"{args.out}: cannot write setpoints ({exc.strerror or exc})") from None
     print(json.dumps(s, indent=1) if args.json else format_summary(s))

@@ -15,6 +15,18 @@ virtual buses (or, with ``--wire hrm_sim``, on the simulated wire at the configu
 bitrate) instead of opening the configured interfaces; nothing else changes (the
 drivers only see buses).
 
+Calibration (issue 12): the rope layer is built with the active calibration of the store
+(``--calibrations DIR``, default ``$HRM_CALIBRATIONS`` or
+``~/.local/share/hrm/calibrations``) for this robot description, and the run record names
+its version.  A damaged calibration, or one for another description, is refused.  Real
+drives are not enabled without a calibration unless ``--uncalibrated`` overrides that
+explicitly (a stderr line says so); ``--sim`` without a stored calibration runs with the
+description's values and says so on stderr (a simulated arm: the gate is for real drives).
+
+A plan whose arm meets an obstacle of the environment it stores (negative clearance, stored
+or recomputed) is refused with one line naming step and link, before anything is sent,
+unless ``--allow-collision`` (then a stderr line says so).
+
 >>> import argparse
 >>> p = argparse.ArgumentParser(prog="hrm run")
 >>> register(p)
@@ -37,8 +49,10 @@ from typing import Any
 from hrm_ctrl.cli._common import (
     Input,
     Output,
+    add_calibration_arguments,
     add_robot_argument,
     config_input,
+    load_arm,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
@@ -46,6 +60,7 @@ from hrm_ctrl.cli._common import (
 from hrm_ctrl.cli._simwire import SIM_WIRES
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.formats.planfile import PLAN_FORMAT, PlanDoc
+from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S
 
 HELP = "play a plan (or hold / jog) on the CiA 402 rope-motor drives over CAN"
 
@@ -57,7 +72,14 @@ def register(parser: argparse.ArgumentParser) -> None:
     )
     add_robot_argument(parser)
     parser.add_argument(
-        "--sim", action="store_true", help="run against the in-process simulated box"
+        "--sim", action="store_true",
+        help="run against the in-process simulated box (without a stored calibration: with "
+        "the description's values, said on stderr)",
+    )  # fmt: skip
+    add_calibration_arguments(
+        parser,
+        uncalibrated_help="enable the drives without a calibration (explicit override: the "
+        "robot description's values)",
     )
     parser.add_argument(
         "--wire", choices=SIM_WIRES, default="virtual",
@@ -69,8 +91,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     parser.add_argument("--log-format", choices=("blf", "asc"), default="blf")
     parser.add_argument(
-        "--speed", type=float, default=20.0, metavar="MM_S",
-        help="plan playback speed along the path (default 20 mm/s)",
+        "--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S, metavar="MM_S",
+        help=f"tip-speed cap of the playback (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s)",
     )  # fmt: skip
     parser.add_argument(
         "--hold", type=float, default=None, metavar="S", help="hold the actual positions S s"
@@ -82,6 +104,10 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--take-over", action="store_true",
         help="reset the drives even when another master is heard on the buses",
+    )  # fmt: skip
+    parser.add_argument(
+        "--allow-collision", action="store_true",
+        help="play a plan even if a link meets an obstacle of its environment",
     )  # fmt: skip
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
@@ -98,6 +124,29 @@ def _plan_record(path: Path, plan: PlanDoc) -> dict[str, Any]:
         "plan_format": PLAN_FORMAT,
         "plan_steps": plan.n_steps,
     }
+
+
+def refuse_collision(doc: PlanDoc, allow: bool) -> None:
+    """Refuse (one line naming step and link) a plan whose arm meets an obstacle: its
+    stored clearance (``report.clearance_mm``), and the clearance recomputed against the
+    environment it stores (an edited summary cannot hide a collision).  With ``allow``
+    (``--allow-collision``) a warning line on stderr instead."""
+    from hrm_ctrl.planning.report import check_clearance, clearance_summary, plan_file_clearance
+
+    c = plan_file_clearance(doc)
+    for summary in (doc.clearance, None if c is None else clearance_summary(c)):
+        if summary is None:
+            continue
+        if not allow:
+            check_clearance(dict(summary), doc.source)
+        elif summary.get("min") is not None and summary["min"] < 0.0:
+            print(
+                f"hrm run: warning: {doc.source}: link {summary['link']} meets an obstacle at "
+                f"step {summary['step']} (clearance {summary['min']:.2f} mm); played as "
+                "--allow-collision asks",
+                file=sys.stderr,
+            )
+            return
 
 
 def _source(
@@ -132,6 +181,7 @@ def _source(
     from hrm_ctrl.formats.planfile import read_plan
 
     doc = read_plan(args.plan)
+    refuse_collision(doc, args.allow_collision)  # before anything is sent to a bus
     plan_record = _plan_record(Path(args.plan), doc)
     sp = setpoints_of_plan(
         doc,
@@ -172,8 +222,8 @@ def run(args: argparse.Namespace) -> int:
         ],
     )
     config = load_box_config(args.config)
-    robot = load_robot(args.robot)
-    actuation = load_actuation(robot)
+    arm = load_arm(args, load_robot(args.robot), prog="hrm run", simulated=args.sim)
+    actuation = arm.actuation
     config.check_motors(actuation.motor_ids)
     source, hold_s, plan_record = _source(args, actuation, config.control.period_s)
     if isinstance(source, HoldSource) and hold_s is not None:
@@ -181,11 +231,14 @@ def run(args: argparse.Namespace) -> int:
     source.precheck(config.control.period_s)  # refuse bad setpoints before any bus opens
     ensure_log_dir(args.log_dir)  # a bad log directory: one line, before any bus opens
 
+    arm.say_note()  # --sim or --uncalibrated without a calibration: said once checks passed
     sim = None
     if args.sim:
         from hrm_ctrl.cli._simwire import start_in_process_sim
 
-        config, sim = start_in_process_sim(config, actuation, args.wire, prog="hrm run")
+        # the simulated arm is the robot description's (links too), not the calibration's
+        physical = actuation if arm.active is None else load_actuation(arm.description)
+        config, sim = start_in_process_sim(config, physical, args.wire, prog="hrm run")
     summary: dict[str, Any] = {}
     try:
         stop: SafetyStopError | None = None
@@ -198,6 +251,8 @@ def run(args: argparse.Namespace) -> int:
                         log_dir=args.log_dir,
                         log_suffix=f".{args.log_format}",
                         take_over=args.take_over,
+                        calibration=arm.calibration_ref(),
+                        allow_uncalibrated=args.uncalibrated or args.sim,
                     )
                 )
                 box.record_extra = {

@@ -9,12 +9,21 @@ pseudo-terminal and prints JSON lines (``ready`` with the pseudo-terminal path
 first).  The process runs under :func:`drivers.realtime.process_settings`, entered
 by :func:`hrm_ctrl.cli.main` like every command.  See ``docs/sim.md``.
 
+The arm may differ from its description (issue 12): ``--truth FILE.toml`` (a truth file,
+``sim_bus.truth``) or ``--perturb SEED`` (drawn within the issue's ranges; ``--max-slack
+MM`` adds rope slack), and ``--write-truth FILE`` writes the truth used as a truth file
+(never over an input).  ``--fixture`` starts the arm in its straight parking tube,
+``--tracker`` starts the laser tracker (its pseudo-terminal in ``ready`` as
+``tracker_port``).
+
 >>> import argparse
 >>> p = argparse.ArgumentParser(prog="hrm sim")
 >>> register(p)
 >>> a = p.parse_args(["--fault", "rope-snap:j05r2@3", "--duration", "10"])
 >>> a.fault, a.duration
 (['rope-snap:j05r2@3'], 10.0)
+>>> p.parse_args(["--perturb", "7", "--tracker"]).perturb
+7
 """
 
 from __future__ import annotations
@@ -23,7 +32,14 @@ import argparse
 import math
 from pathlib import Path
 
-from hrm_ctrl.cli._common import add_robot_argument
+from hrm_ctrl.cli._common import (
+    Input,
+    Output,
+    add_robot_argument,
+    config_input,
+    refuse_overwriting_inputs,
+    robot_input,
+)
 from hrm_ctrl.errors import SimError
 
 HELP = "run the simulated manipulator box (CiA 402 drives, arm, tension board) on the buses"
@@ -64,7 +80,48 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--control",
         action="store_true",
-        help="read commands from stdin (fault SPEC, state, trace on|off, trace, stats, quit)",
+        help="read commands from stdin (fault SPEC, state, trace on|off, trace, stats, "
+        "fixture on|off, tracker-lost on|off, truth, quit)",
+    )
+    truth = parser.add_mutually_exclusive_group()
+    truth.add_argument(
+        "--truth",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="the simulated arm's truth file (TOML, hrm-sim-truth/1; docs/sim.md)",
+    )
+    truth.add_argument(
+        "--perturb",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="a true arm drawn from SEED: links +-2 mm, joint offsets +-1 deg, EA +-20%%, "
+        "motor zeros +-5000 counts",
+    )
+    parser.add_argument(
+        "--max-slack",
+        type=float,
+        default=0.0,
+        metavar="MM",
+        help="with --perturb: rope slack drawn in [0, MM] per rope (default 0)",
+    )
+    parser.add_argument(
+        "--write-truth",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the truth used as a truth file (atomic; never over an input)",
+    )
+    parser.add_argument(
+        "--fixture",
+        action="store_true",
+        help="start with the arm held straight in its parking tube (control: fixture off)",
+    )
+    parser.add_argument(
+        "--tracker",
+        action="store_true",
+        help="start the laser tracker (its pseudo-terminal in 'ready' as tracker_port)",
     )
 
 
@@ -74,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
     from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.faults import parse_fault
     from sim_bus.runner import run_box_process
+    from sim_bus.truth import TRUTH_SLACK_MAX_MM, TrueArm, read_truth, write_truth
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise SimError(f"--duration must be > 0 s, got {args.duration}")
@@ -83,8 +141,29 @@ def run(args: argparse.Namespace) -> int:
             f"got {args.tension_rate}"
         )
     faults = [parse_fault(f) for f in args.fault]
+    if args.max_slack and args.perturb is None:
+        raise SimError("--max-slack needs --perturb SEED (a truth file says its own slack)")
+    if not 0.0 <= args.max_slack <= TRUTH_SLACK_MAX_MM:  # nan fails too
+        raise SimError(
+            f"--max-slack must be in [0, {TRUTH_SLACK_MAX_MM:g}] mm, got {args.max_slack}"
+        )
+    refuse_overwriting_inputs(
+        [Output("--write-truth", args.write_truth)],
+        [
+            Input("truth file", args.truth),
+            robot_input(args.robot),
+            config_input(args.config),
+        ],
+    )
     config = load_box_config(args.config)
     actuation = load_actuation(load_robot(args.robot))
+    truth = None
+    if args.truth is not None:
+        truth = read_truth(args.truth, actuation)
+    elif args.perturb is not None:
+        truth = TrueArm.perturbed(actuation, args.perturb, max_slack_mm=args.max_slack)
+    if args.write_truth is not None:
+        write_truth(args.write_truth, truth if truth is not None else TrueArm.nominal(actuation))
     known = set(actuation.motor_ids)
     buses = {b.name for b in config.buses}
     for f in faults:
@@ -100,4 +179,7 @@ def run(args: argparse.Namespace) -> int:
         duration_s=args.duration,
         tension_rate_hz=args.tension_rate,
         control=args.control,
+        truth=truth,
+        fixture=args.fixture,
+        tracker=args.tracker,
     )

@@ -12,6 +12,10 @@ the format's definition; documents are validated against it (``jsonschema``, Dra
 2020-12) and, since JSON Schema cannot say so, every number read into an array must be
 finite.  Every problem is one :class:`~hrm_ctrl.errors.PlanFileError` line naming the
 file and the place, e.g. ``plan.json: steps[3].alpha_rad[2]: expected a finite number``.
+A plan made in an environment keeps it as ``scenario.environment`` (the data of a scene
+file, :mod:`hrm_ctrl.formats.scene`, checked on reading: :attr:`PlanDoc.environment`) and its
+clearance in ``report.clearance_mm`` (``min``, ``step``, ``link``: :attr:`PlanDoc.clearance`);
+both are optional (older plans have neither).
 
 >>> import tempfile, pathlib
 >>> p = pathlib.Path(tempfile.mkdtemp()) / "p.json"
@@ -36,7 +40,7 @@ import json
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
-from functools import cache
+from functools import cache, cached_property
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
@@ -49,6 +53,7 @@ from hrm_ctrl.files import parse_json, read_text_file, write_atomic
 
 if TYPE_CHECKING:
     from hrm_ctrl.model import RobotModel
+    from hrm_ctrl.planning.environment import Environment
 
 PLAN_FORMAT = "hrm-plan/1"
 SCHEMA_FILE = "hrm-plan-1.schema.json"
@@ -298,6 +303,25 @@ class PlanDoc:
         a, t = lim.get("alpha"), lim.get("theta")
         return (None if a is None else float(a)), (None if t is None else float(t))
 
+    @cached_property
+    def environment(self) -> Environment | None:
+        """The environment the plan was made in (``scenario.environment``, scene data of
+        :mod:`hrm_ctrl.formats.scene`), None for a plan that stores none (older files)."""
+        from hrm_ctrl.formats.scene import scene_from_dict
+
+        sc = self.extra.get("scenario")
+        data = sc.get("environment") if isinstance(sc, Mapping) else None
+        if data is None:
+            return None
+        return scene_from_dict(data, f"{self.source}: scenario.environment", PlanFileError)
+
+    @property
+    def clearance(self) -> Mapping[str, Any] | None:
+        """The report's clearance summary (``min`` mm or None, 0-based ``step``, 1-based
+        ``link``), None when the plan states none."""
+        c = self.report.get("clearance_mm")
+        return c if isinstance(c, Mapping) else None
+
     @property
     def title(self) -> str:
         """The scenario's name, else the robot's, else ``plan``."""
@@ -349,7 +373,7 @@ class PlanDoc:
             for k, st in enumerate(steps)
             if "backbone_mm" in st
         }
-        return cls(
+        plan = cls(
             links_mm=links,
             path_mm=path,
             travel_mm=travel,
@@ -367,6 +391,8 @@ class PlanDoc:
             explicit_phase=all(given),
             source=where,
         )
+        _ = plan.environment  # checked now: a broken environment is refused on reading
+        return plan
 
     def to_dict(self) -> dict[str, Any]:
         """The document as JSON-ready values (what :meth:`from_dict` read)."""

@@ -8,7 +8,13 @@
 - ``arm.png``: the arm (links as lines, joints as dots) at the chosen steps
   and the path, in 3D;
 - ``angles.png``: alpha and theta of every joint (degrees) against the
-  travelled distance, with the joint limits.
+  travelled distance, with the joint limits;
+- ``clearance.png`` (only for a plan that stores its environment): the worst link
+  clearance of each group of links against the travelled distance, zero marked.
+
+The 3D figures draw the plan's environment: a pipe as rings of its inner diameter along
+the axis, a wall as a translucent patch around its openings with the openings' outlines
+(cut where the wall is bounded), a box as its edges.
 
 The 3D axes are scaled equally, so bends look as bent as they are.  A dict is
 checked completely (:meth:`PlanDoc.from_dict`) before anything is drawn; a missing or
@@ -37,11 +43,18 @@ from matplotlib.figure import Figure
 from hrm_ctrl.errors import HrmError
 from hrm_ctrl.files import write_atomic
 from hrm_ctrl.formats.planfile import PlanDoc
+from hrm_ctrl.planning.environment import Box, Environment, Pipe, RoundOpening, Wall
+from hrm_ctrl.planning.report import plan_file_clearance
 
 DPI = 110
 BACKBONE_PNG = "backbone.png"
 ARM_PNG = "arm.png"
 ANGLES_PNG = "angles.png"
+CLEARANCE_PNG = "clearance.png"
+PIPE_RING_SPACING = 15.0  # mm between the rings drawn of a pipe
+LINK_GROUPS = ((1, 3), (4, 6), (7, 9), (10, 12))  # links drawn together in clearance.png
+CLEARANCE_SHOWN_MM = 100.0  # clearance.png shows clearances up to this
+ENV_COLOUR = "slategray"
 
 
 class PlotError(HrmError):
@@ -88,6 +101,120 @@ def _draw_path(ax: Any, data: PlanDoc) -> None:
     ax.plot(p[:, 0], p[:, 1], p[:, 2], color="crimson", lw=2.0, ls="--", label="path")
 
 
+def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors completing unit ``n`` to a right-handed frame."""
+    e = np.eye(3)[int(np.argmin(np.abs(n)))]
+    u = e - (e @ n) * n
+    u /= np.linalg.norm(u)
+    return u, np.cross(n, u)
+
+
+def _circle(c: np.ndarray, n: np.ndarray, r: float, k: int = 48) -> np.ndarray:
+    u, v = _plane_basis(n)
+    a = np.linspace(0.0, 2.0 * np.pi, k + 1)
+    return c + r * (np.cos(a)[:, None] * u + np.sin(a)[:, None] * v)
+
+
+def _clip(poly: np.ndarray, q: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """The convex polygon ``poly`` (k, 3) cut to the side ``(p - q) . m >= 0``."""
+    out = []
+    for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+        da, db = (a - q) @ m, (b - q) @ m
+        if da >= 0.0:
+            out.append(a)
+        if da * db < 0.0:
+            out.append(a + da / (da - db) * (b - a))
+    return np.array(out).reshape(-1, 3)
+
+
+def _wall_outline(w: Wall, near: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The patch drawn of a wall (a square around its openings, or around the point of
+    the wall nearest ``near``, cut by its bounds) and its openings' outlines."""
+    n = w.normal
+    outlines = []
+    for o in w.openings:
+        c = o.centre - ((o.centre - w.point) @ n) * n
+        if isinstance(o, RoundOpening):
+            outlines.append(_circle(c, n, 0.5 * o.diameter))
+        else:
+            u = o.u - (o.u @ n) * n
+            u /= np.linalg.norm(u)
+            v = np.cross(n, u)
+            hw, hh = 0.5 * o.width, 0.5 * o.height
+            corners = [(-hw, -hh), (hw, -hh), (hw, hh), (-hw, hh), (-hw, -hh)]
+            outlines.append(np.array([c + a * u + b * v for a, b in corners]))
+    if outlines:
+        pts = np.concatenate(outlines)
+        centre = pts.mean(axis=0)
+        half = max(float(np.abs(pts - centre).max()) * 1.6, 60.0)
+    else:
+        centre = near - ((near - w.point) @ n) * n
+        half = 150.0
+    u, v = _plane_basis(n)
+    patch = np.array(
+        [centre + half * (a * u + b * v) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    )
+    for q, m in w.bounds:
+        patch = _clip(patch, q, m)
+    return patch, outlines
+
+
+def _box_edges(b: Box) -> list[np.ndarray]:
+    h = 0.5 * b.size
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * h
+    world = b.centre + corners @ b.rotation.T
+    edges = []
+    for i in range(8):
+        for j in range(i + 1, 8):
+            if np.count_nonzero(corners[i] != corners[j]) == 1:
+                edges.append(world[[i, j]])
+    return edges
+
+
+def _draw_environment(ax: Any, env: Environment | None, near: np.ndarray) -> list[np.ndarray]:
+    """Draw ``env`` into the 3D axes; returns the points drawn (for the axes' limits)."""
+    if env is None:
+        return []
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    drawn: list[np.ndarray] = []
+    labelled = False
+
+    def label() -> dict[str, str]:
+        nonlocal labelled
+        first, labelled = not labelled, True
+        return {"label": "environment"} if first else {}
+
+    for o in env.obstacles:
+        if isinstance(o, Pipe):
+            axis = o.axis
+            k = max(2, int(np.ceil(axis.length / PIPE_RING_SPACING)) + 1)
+            for d in np.linspace(0.0, axis.length, k):
+                ring = _circle(axis.point_at(d), axis.tangent_at(d), o.inner_radius, 36)
+                ax.plot(*ring.T, color=ENV_COLOUR, lw=0.6, alpha=0.6, **label())
+                drawn.append(ring)
+            for d in (0.0, axis.length):  # the ends, bold
+                ring = _circle(axis.point_at(d), axis.tangent_at(d), o.inner_radius, 48)
+                ax.plot(*ring.T, color=ENV_COLOUR, lw=1.6)
+        elif isinstance(o, Wall):
+            patch, outlines = _wall_outline(o, near)
+            if len(patch) >= 3:
+                ax.add_collection3d(
+                    Poly3DCollection(
+                        [patch], facecolor=ENV_COLOUR, alpha=0.12, edgecolor=ENV_COLOUR
+                    )
+                )
+                drawn.append(patch)
+            for line in outlines:
+                ax.plot(*line.T, color=ENV_COLOUR, lw=1.6, **label())
+                drawn.append(line)
+        else:
+            for e in _box_edges(o):
+                ax.plot(*e.T, color=ENV_COLOUR, lw=1.2, **label())
+                drawn.append(e)
+    return drawn
+
+
 def _backbone_figure(data: PlanDoc, steps: Sequence[int]) -> Figure | None:
     shown = [k for k in steps if k in data.backbones_mm]
     if not shown:
@@ -96,6 +223,7 @@ def _backbone_figure(data: PlanDoc, steps: Sequence[int]) -> Figure | None:
     ax = fig.add_subplot(projection="3d")
     _draw_path(ax, data)
     pts = [data.path_mm, data.joints_mm[shown, 0, :]]
+    pts += _draw_environment(ax, data.environment, data.path_mm.mean(axis=0))
     for k, colour in zip(shown, _step_colours(len(shown)), strict=True):
         b = data.backbones_mm[k]
         ax.plot(b[:, 0], b[:, 1], b[:, 2], color=colour, lw=1.6, label=_step_label(data, k))
@@ -114,6 +242,7 @@ def _arm_figure(data: PlanDoc, steps: Sequence[int]) -> Figure:
     ax = fig.add_subplot(projection="3d")
     _draw_path(ax, data)
     pts = [data.path_mm]
+    pts += _draw_environment(ax, data.environment, data.path_mm.mean(axis=0))
     for k, colour in zip(steps, _step_colours(len(steps)), strict=True):
         j = data.joints_mm[k]
         ax.plot(j[:, 0], j[:, 1], j[:, 2], color=colour, lw=2.2, label=_step_label(data, k))
@@ -159,6 +288,41 @@ def _angles_figure(data: PlanDoc, steps: Sequence[int]) -> Figure:
     return fig
 
 
+def _clearance_figure(data: PlanDoc, steps: Sequence[int]) -> Figure | None:
+    c = plan_file_clearance(data)
+    if c is None or not np.isfinite(c).any():
+        return None
+    fig = Figure(figsize=(10.0, 5.5), layout="constrained")
+    ax = fig.add_subplot()
+    x = data.distance_mm
+    tab10 = colormaps["tab10"]
+    for g, (lo, hi) in enumerate(LINK_GROUPS):
+        if lo > c.shape[1]:
+            break
+        worst = c[:, lo - 1 : hi].min(axis=1)
+        ax.plot(x, np.where(np.isfinite(worst), worst, np.nan), color=tab10(g), lw=1.4,
+                label=f"links {lo}-{min(hi, c.shape[1])}")  # fmt: skip
+    i, j = np.unravel_index(int(np.argmin(c)), c.shape)
+    v = float(c[i, j])
+    ax.axhline(0.0, color="black", ls="--", lw=1.2, label="0: contact")
+    ax.scatter([x[i]], [v], color="red" if v < 0 else "black", zorder=5,
+               label=f"worst {v:.2f} mm: step {i}, link {j + 1}")  # fmt: skip
+    for k in steps:
+        ax.axvline(x[k], color="0.6", lw=0.8, ls=":")
+    finite = c[np.isfinite(c)]
+    top = min(float(finite.max()), CLEARANCE_SHOWN_MM)
+    ax.set_ylim(min(v, 0.0) - 0.08 * (top - min(v, 0.0)) - 1.0, top + 2.0)
+    ax.set_xlabel("travelled distance (mm)")
+    ax.set_ylabel("clearance (mm)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    ax.set_title(
+        f"{data.title}: worst link clearance against the environment "
+        f"(negative: collision; dotted: steps drawn in 3D)"
+    )
+    return fig
+
+
 def _png_bytes(fig: Figure) -> bytes:
     FigureCanvasAgg(fig)
     buf = io.BytesIO()
@@ -185,7 +349,8 @@ def write_plan_figures(
     ``steps`` are indices of the plan's steps to draw in 3D; by default the
     first, middle and last of the steps that carry ``backbone_mm`` (of all
     steps if none does).  Returns the written paths: ``backbone.png`` (only if
-    a drawn step carries a backbone), ``arm.png``, ``angles.png``.
+    a drawn step carries a backbone), ``arm.png``, ``angles.png``, ``clearance.png`` (only
+    if the plan stores its environment).
     """
     data = plan if isinstance(plan, PlanDoc) else PlanDoc.from_dict(plan, source)
     if steps is None:
@@ -212,6 +377,9 @@ def write_plan_figures(
         figures.append((BACKBONE_PNG, backbone))
     figures.append((ARM_PNG, _arm_figure(data, chosen)))
     figures.append((ANGLES_PNG, _angles_figure(data, chosen)))
+    clearance = _clearance_figure(data, chosen)
+    if clearance is not None:
+        figures.append((CLEARANCE_PNG, clearance))
     rendered = [(name, _png_bytes(fig)) for name, fig in figures]  # draw all before writing
 
     written: list[Path] = []
@@ -228,6 +396,10 @@ def write_plan_figures(
 
 
 __all__ = [
+    "ANGLES_PNG",
+    "ARM_PNG",
+    "BACKBONE_PNG",
+    "CLEARANCE_PNG",
     "PlotError",
     "default_figure_steps",
     "write_plan_figures",

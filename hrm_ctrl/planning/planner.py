@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from enum import Enum
 from typing import Any
 
 import numpy as np
@@ -37,9 +38,11 @@ from hrm_ctrl.planning.backbone import (
     solve_modal_cold,
     solve_modal_factors,
 )
+from hrm_ctrl.planning.environment import Environment, link_clearance
 from hrm_ctrl.planning.fitting import fit_joint_centres_batch
 from hrm_ctrl.planning.joint_angles import joint_angles_from_centres
 from hrm_ctrl.planning.known_path import KnownPath, tangent_angles
+from hrm_ctrl.planning.refine import Refinement, RefineOptions, angle_margin, refine_angles
 from hrm_ctrl.planning.report import plan_report
 from hrm_ctrl.planning.scenarios import Scenario
 
@@ -50,6 +53,23 @@ from hrm_ctrl.planning.scenarios import Scenario
 # MAX_PLAN_SAMPLES in all: ~170 bytes a sample at the peak, measured, so ~700 MB.
 MAX_PLAN_STEPS = 20_000
 MAX_PLAN_SAMPLES = 4_000_000
+# The free-parameter search (issue 10) plans each candidate at a coarser step, at least
+# this (mm), and asks for at least this joint-limit margin before it calls a plan safe.
+SEARCH_STEP_MM = 20.0
+SAFE_MARGIN_DEG = 3.0
+# A candidate replaces the given parameters only if it scores this much better (mm of
+# clearance, or margin at margin_weight_mm_per_deg): the score is the paper's plan, a
+# proxy of what refinement then reaches.
+SEARCH_MIN_GAIN = 2.0
+
+
+class FitMode(Enum):
+    """How the arm is put on the backbone: the paper's fit (Sec. 3.3: joint centres on
+    the backbone), or that fit refined for clearance and joint-limit margin
+    (:mod:`hrm_ctrl.planning.refine`)."""
+
+    PAPER = "paper"
+    CLEARANCE = "clearance"
 
 
 @dataclass(frozen=True)
@@ -64,6 +84,14 @@ class PlanOptions:
         start_angles: (b1k, b1t); by default the base's mounting direction.
         backbone_steps: steps whose backbone curve the plan keeps (for figures);
             by default the first, middle and last.  Indices past the end are ignored.
+        fit: :class:`FitMode`; by default CLEARANCE when an environment is given,
+            else PAPER.
+        search: choose start angles, alpha_step and joint 2 by a small search
+            around the given ones (:func:`choose_free_parameters`); by default when
+            the fit is CLEARANCE.
+        joint2_offset: turn of joint 2 about the O_1-O_3 axis from the paper's
+            choice (rad; Sec. 3.3 step 4 leaves it free).
+        refine: settings of the refinement (CLEARANCE).
     """
 
     step: float = 5.0
@@ -72,6 +100,10 @@ class PlanOptions:
     return_to_start: bool = False
     start_angles: tuple[float, float] | None = None
     backbone_steps: tuple[int, ...] | None = None
+    fit: FitMode | None = None
+    search: bool | None = None
+    joint2_offset: float = 0.0
+    refine: RefineOptions = field(default_factory=RefineOptions)
 
     def check(self) -> None:
         if not (math.isfinite(self.step) and self.step > 0.0):
@@ -80,6 +112,19 @@ class PlanOptions:
             raise PlanningError(f"alpha_step must be in (0, 1], got {self.alpha_step}")
         if self.Q < 20:
             raise PlanningError(f"Q must be >= 20 curve divisions, got {self.Q}")
+        if self.fit is not None and not isinstance(self.fit, FitMode):
+            raise PlanningError(f"fit must be a FitMode (paper, clearance), got {self.fit!r}")
+        if not (math.isfinite(self.joint2_offset) and abs(self.joint2_offset) <= math.pi):
+            raise PlanningError(
+                f"joint2_offset must be a finite angle within +-pi rad, got {self.joint2_offset}"
+            )
+        self.refine.check()
+
+    def fit_mode(self, environment: Environment | None) -> FitMode:
+        """The fit asked for, or its default for ``environment``."""
+        if self.fit is not None:
+            return self.fit
+        return FitMode.CLEARANCE if environment is not None else FitMode.PAPER
 
 
 @dataclass(eq=False)
@@ -188,8 +233,16 @@ def plan_path(
     path: KnownPath,
     options: PlanOptions | None = None,
     scenario: Scenario | None = None,
+    environment: Environment | None = None,
 ) -> Plan:
     """Plan the arm along ``path`` (Sec. 3.2-3.4); see the module docstring.
+
+    With ``fit=CLEARANCE`` (the default when ``environment`` is given) the paper's
+    fit is refined for the worst link clearance against ``environment`` and the
+    joint-limit margin (:func:`hrm_ctrl.planning.refine.refine_angles`), and with
+    ``search`` (the default for CLEARANCE) the free parameters are chosen first
+    (:func:`choose_free_parameters`).  ``plan.report`` then also holds ``fit``,
+    ``free_parameters``, ``refinement``, ``per_step`` and ``margin_statement``.
 
     Raises :class:`UnreachableError` (naming the step) when the backbone cannot
     reach the path, :class:`PlanningError` when the arm cannot be fitted.  Joint
@@ -205,69 +258,41 @@ def plan_path(
         path_points=len(path.points),
         Q=opt.Q,
     )
-    basis = ModalBasis(opt.Q)
-    X0 = model.base_position
-    A = path.points[0]
-    if opt.start_angles is None:
-        b1k, b1t = tangent_angles(model.base_direction)
-    else:
-        b1k, b1t = opt.start_angles
-    b2k, b2t = tangent_angles(path.tangent_at(0.0))
-    b = Boundary(b1k, b1t, b2k, b2t)
-    travel = travel_schedule(path.length, opt.step)
-    n = len(travel)
-    L_m = model.length - travel * opt.alpha_step
-
-    # 1. The modal curves, one solve per step, each warm-started from the last
-    #    (linearly extrapolated from the last two): sequential by nature.
+    fit = opt.fit_mode(environment)
+    search = opt.search if opt.search is not None else fit is FitMode.CLEARANCE
     t_start = time.perf_counter()
-    modal_a = np.empty((n, 3))
-    iters = np.zeros(n, dtype=np.int64)
-    step_time = np.empty(n)
-    for i in range(n):
-        t0 = time.perf_counter()
+    choice: dict[str, Any] | None = None
+    fw: _Forward | None = None
+    if search:
+        chosen, choice = choose_free_parameters(model, path, opt, environment)
         try:
-            if i == 0:
-                sol = solve_modal_cold(basis, X0, A, float(L_m[0]), b)
-            else:
-                guess = predict_modal_factors(modal_a[:i])
-                try:
-                    sol = solve_modal_factors(basis, X0, A, float(L_m[i]), b, a0=guess)
-                except UnreachableError:
-                    if i == 1:
-                        raise
-                    sol = solve_modal_factors(basis, X0, A, float(L_m[i]), b, a0=modal_a[i - 1])
-        except UnreachableError as exc:
-            raise UnreachableError(f"step {i} (travel {travel[i]:.1f} mm): {exc}") from None
-        modal_a[i] = sol.a
-        iters[i] = sol.iterations
-        step_time[i] = time.perf_counter() - t0
-    t_solve = time.perf_counter()
-
-    # 2. Every step's backbone: its modal curve, then the travelled path (Steps 2-3),
-    #    padded at the tip so that all steps share one array.
-    mode = backbone_points(basis, X0, L_m, modal_a, b)  # (n, Q+1, 3)
-    curves = np.concatenate((mode, travelled_path_padded(path, travel)), axis=1)
-    # 3. Fitting (Sec. 3.3), joint 2 nearest the modal curve at arc length l_1.
-    f = np.clip(model.links[0] / L_m, 0.0, 1.0) * opt.Q
-    k0 = np.minimum(np.floor(f).astype(np.int64), opt.Q - 1)
-    w = (f - k0)[:, None]
-    rows = np.arange(n)
-    ref2 = (1.0 - w) * mode[rows, k0] + w * mode[rows, k0 + 1]
-    O, seg = fit_joint_centres_batch(curves, model.links, ref2)
-    # 4. Joint angles (Sec. 3.4), and FK of those angles for everything reported.
-    alpha, theta = joint_angles_from_centres(model, O)
-    t_batch = time.perf_counter()
-    step_time += (t_batch - t_solve) / n  # the batched work, shared evenly
-    if opt.backbone_steps is None:
-        keep = sorted({0, n // 2, n - 1})
-    else:
-        keep = sorted({i for i in opt.backbone_steps if 0 <= i < n})
-    backbones = {
-        i: curves[i, : opt.Q + 1 + int(np.searchsorted(path.s, travel[i], "left"))] for i in keep
-    }
-    for i in keep:  # drop the padding: end the curve at the tip
-        backbones[i] = np.vstack((backbones[i], O[i, -1]))
+            fw = forward_configurations(model, path, chosen)
+            opt = chosen
+        except PlanningError:  # the coarse search found it, the fine plan did not
+            choice["note"] = "the chosen parameters failed at the plan's step; kept the given"
+    if fw is None:
+        fw = forward_configurations(model, path, opt)
+    t_forward = time.perf_counter()
+    alpha, theta = fw.alpha, fw.theta
+    refinement: Refinement | None = None
+    if fit is FitMode.CLEARANCE:
+        refinement = refine_angles(
+            model,
+            alpha,
+            theta,
+            path.points_at(fw.travel),
+            environment,
+            clearance_of=worst_link_clearance_of(model, environment),
+            options=opt.refine,
+            travel=fw.travel,
+        )
+        alpha, theta = refinement.alpha, refinement.theta
+    travel, iters, modal_a, seg = fw.travel, fw.iterations, fw.modal_a, fw.seg
+    step_time = fw.step_time_s.copy()
+    if refinement is not None:
+        step_time += refinement.time_s / len(travel)
+    n = len(travel)
+    backbones = dict(fw.backbones)
     phase = ["in"] * n
     if opt.return_to_start:
         back = np.arange(n - 2, -1, -1)
@@ -297,9 +322,346 @@ def plan_path(
         backbones=backbones,
         scenario=scenario,
     )
+    t_report = time.perf_counter()
     plan.report = plan_report(plan, seg, opt.Q)
-    plan.report["plan_time_ms"] = (time.perf_counter() - t_start) * 1e3
+    if fit is FitMode.CLEARANCE or search:
+        plan.report.update(
+            refinement_report(plan, fit, choice, refinement, environment, fw.forward_time_s)
+        )
+    t_end = time.perf_counter()
+    plan.report["plan_time_ms"] = (t_end - t_start) * 1e3
+    if fit is FitMode.CLEARANCE or search:
+        plan.report["time_split_ms"] = {
+            "search": (choice or {}).get("time_ms", 0.0),
+            "paper_plan": fw.forward_time_s * 1e3,
+            "refinement": refinement.time_s * 1e3 if refinement is not None else 0.0,
+            "report": (t_end - t_report) * 1e3,
+            "other": (t_report - t_forward) * 1e3
+            - (refinement.time_s * 1e3 if refinement is not None else 0.0),
+        }
     return plan
+
+
+@dataclass(frozen=True, eq=False)
+class _Forward:
+    """The paper's plan of the forward leg: Sec. 3.2-3.4 at every step."""
+
+    travel: np.ndarray
+    alpha: np.ndarray
+    theta: np.ndarray
+    seg: np.ndarray
+    modal_a: np.ndarray
+    iterations: np.ndarray
+    step_time_s: np.ndarray
+    backbones: dict[int, np.ndarray]
+    forward_time_s: float
+
+
+def forward_configurations(model: RobotModel, path: KnownPath, opt: PlanOptions) -> _Forward:
+    """The paper's configurations of the forward leg (modal curve, fit, angles)."""
+    t_start = time.perf_counter()
+    basis = ModalBasis(opt.Q)
+    X0 = model.base_position
+    A = path.points[0]
+    if opt.start_angles is None:
+        b1k, b1t = tangent_angles(model.base_direction)
+    else:
+        b1k, b1t = opt.start_angles
+    b2k, b2t = tangent_angles(path.tangent_at(0.0))
+    b = Boundary(b1k, b1t, b2k, b2t)
+    travel = travel_schedule(path.length, opt.step)
+    n = len(travel)
+    L_m = model.length - travel * opt.alpha_step
+
+    # 1. The modal curves, one solve per step, each warm-started from the last
+    #    (linearly extrapolated from the last two): sequential by nature.
+    modal_a = np.empty((n, 3))
+    iters = np.zeros(n, dtype=np.int64)
+    step_time = np.empty(n)
+    for i in range(n):
+        t0 = time.perf_counter()
+        try:
+            if i == 0:
+                sol = solve_modal_cold(basis, X0, A, float(L_m[0]), b)
+            else:
+                guess = predict_modal_factors(modal_a[:i])
+                try:
+                    sol = solve_modal_factors(basis, X0, A, float(L_m[i]), b, a0=guess)
+                except UnreachableError:
+                    if i == 1:
+                        raise
+                    sol = solve_modal_factors(basis, X0, A, float(L_m[i]), b, a0=modal_a[i - 1])
+        except UnreachableError as exc:
+            raise UnreachableError(f"step {i} (travel {travel[i]:.1f} mm): {exc}") from None
+        modal_a[i] = sol.a
+        iters[i] = sol.iterations
+        step_time[i] = time.perf_counter() - t0
+    t_solve = time.perf_counter()
+
+    # 2. Every step's backbone: its modal curve, then the travelled path (Steps 2-3),
+    #    padded at the tip so that all steps share one array.
+    mode = backbone_points(basis, X0, L_m, modal_a, b)  # (n, Q+1, 3)
+    curves = np.concatenate((mode, travelled_path_padded(path, travel)), axis=1)
+    # 3. Fitting (Sec. 3.3), joint 2 nearest the modal curve at arc length l_1,
+    #    turned about the O_1-O_3 axis by joint2_offset.
+    f = np.clip(model.links[0] / L_m, 0.0, 1.0) * opt.Q
+    k0 = np.minimum(np.floor(f).astype(np.int64), opt.Q - 1)
+    w = (f - k0)[:, None]
+    rows = np.arange(n)
+    ref2 = (1.0 - w) * mode[rows, k0] + w * mode[rows, k0 + 1]
+    O, seg = fit_joint_centres_batch(curves, model.links, ref2)
+    if opt.joint2_offset != 0.0:
+        O[:, 1] = turn_about_axis(O[:, 1], O[:, 0], O[:, 2], opt.joint2_offset)
+    # 4. Joint angles (Sec. 3.4).
+    alpha, theta = joint_angles_from_centres(model, O)
+    t_batch = time.perf_counter()
+    step_time += (t_batch - t_solve) / n  # the batched work, shared evenly
+    if opt.backbone_steps is None:
+        keep = sorted({0, n // 2, n - 1})
+    else:
+        keep = sorted({i for i in opt.backbone_steps if 0 <= i < n})
+    backbones = {
+        i: curves[i, : opt.Q + 1 + int(np.searchsorted(path.s, travel[i], "left"))] for i in keep
+    }
+    for i in keep:  # drop the padding: end the curve at the tip
+        backbones[i] = np.vstack((backbones[i], O[i, -1]))
+    return _Forward(
+        travel=travel,
+        alpha=alpha,
+        theta=theta,
+        seg=seg,
+        modal_a=modal_a,
+        iterations=iters,
+        step_time_s=step_time,
+        backbones=backbones,
+        forward_time_s=time.perf_counter() - t_start,
+    )
+
+
+def turn_about_axis(P: np.ndarray, A: np.ndarray, B: np.ndarray, phi: float) -> np.ndarray:
+    """Points P (N, 3) turned by phi (rad) about the axes A -> B (N, 3) (Rodrigues).
+
+    >>> turn_about_axis(np.array([[1.0, 1, 0]]), np.zeros((1, 3)), np.array([[1.0, 0, 0]]),
+    ...                 np.pi / 2).round(12).tolist()
+    [[1.0, 0.0, 1.0]]
+    """
+    k = B - A
+    k = k / np.linalg.norm(k, axis=1, keepdims=True)
+    v = P - A
+    kv = np.einsum("ij,ij->i", k, v)[:, None]
+    c, s = math.cos(phi), math.sin(phi)
+    return A + v * c + np.cross(k, v) * s + k * kv * (1.0 - c)
+
+
+def worst_link_clearance_of(model: RobotModel, environment: Environment | None) -> Any:
+    """``O (N, 13, 3) -> (N,)``: the worst link clearance of each step (mm) against
+    ``environment`` (:func:`hrm_ctrl.planning.environment.link_clearance`); +inf
+    without one."""
+    radius = 0.5 * np.asarray(model.outer_diameter, dtype=float)
+
+    def clearance_of(O: np.ndarray) -> np.ndarray:
+        if environment is None:
+            return np.full(len(O), math.inf)
+        return link_clearance(environment, O, radius).min(axis=1)
+
+    return clearance_of
+
+
+def sampled_worst_clearance(
+    model: RobotModel, environment: Environment | None, O: np.ndarray, samples: int = 9
+) -> float:
+    """The worst clearance (mm) of ``O`` (N, 13, 3) at ``samples`` points per link: a
+    quick estimate (:func:`link_clearance` finds the exact minimum)."""
+    if environment is None:
+        return math.inf
+    t = np.linspace(0.0, 1.0, samples)
+    P = O[:, :-1, None, :] + t[None, None, :, None] * (O[:, 1:] - O[:, :-1])[:, :, None, :]
+    d = environment.free_distance(P) - 0.5 * np.asarray(model.outer_diameter)[None, :, None]
+    return float(d.min())
+
+
+def choose_free_parameters(
+    model: RobotModel, path: KnownPath, opt: PlanOptions, environment: Environment | None
+) -> tuple[PlanOptions, dict[str, Any]]:
+    """Issue 10: the free parameters of the paper's method chosen by a small search.
+
+    Three rounds, each keeping the best so far: the modal curve's start angles
+    (b1k, b1t), the given ones and 12 deg either way in K and in T (only directions
+    within the base joint's reach: at most ``limit - margin goal`` from the base's
+    axis), then alpha_step (the given one, 0.98, 0.95), then the turn of joint 2
+    about O_1-O_3 (0, +-15 deg): at most 9 candidates.  Each candidate is the paper's
+    plan at a step of at least :data:`SEARCH_STEP_MM`, scored by its worst link
+    clearance (capped, sampled) plus ``margin_weight_mm_per_deg`` times its
+    joint-limit margin up to the goal (both of :class:`RefineOptions`).
+    Candidates the method cannot follow are skipped; the given parameters stay
+    unless the best candidate scores :data:`SEARCH_MIN_GAIN` more.
+
+    Returns the options to plan with (``search`` off) and what the search found.
+    """
+    t0 = time.perf_counter()
+    ro = opt.refine
+    goal = ro.margin_goal_deg
+    coarse = replace(
+        opt,
+        step=max(opt.step, SEARCH_STEP_MM),
+        return_to_start=False,
+        backbone_steps=(),
+        fit=FitMode.PAPER,
+        search=False,
+    )
+    tried: list[dict[str, Any]] = []
+
+    def score(cand: PlanOptions) -> float:
+        try:
+            fw = forward_configurations(model, path, cand)
+        except PlanningError:
+            tried.append({"ok": False})
+            return -math.inf
+        O = joint_centres(model, fw.alpha, fw.theta)
+        m = float(np.degrees(angle_margin(model, fw.alpha, fw.theta).min()))
+        c = sampled_worst_clearance(model, environment, O)
+        value = (min(c, ro.clearance_cap_mm) if math.isfinite(c) else 0.0) + (
+            ro.margin_weight_mm_per_deg * min(m, goal)
+        )
+        tried.append({"ok": True, "margin_deg": m, "clearance_mm": c, "score": value})
+        return value
+
+    if opt.start_angles is None:
+        K0, T0 = tangent_angles(model.base_direction)
+    else:
+        K0, T0 = opt.start_angles
+    base_dir = np.asarray(model.base_direction, dtype=float)
+    reach = min(model.limit_alpha, model.limit_theta) - math.radians(goal)
+    d = math.radians(12.0)
+    starts = []
+    for dK, dT in ((-d, 0.0), (d, 0.0), (0.0, -d), (0.0, d)):
+        K, T = K0 + dK, T0 + dT
+        u = np.array([math.sin(K) * math.cos(T), math.cos(K) * math.cos(T), math.sin(T)])
+        if math.acos(max(-1.0, min(1.0, float(u @ base_dir)))) <= reach:
+            starts.append({"start_angles": (K, T)})
+    alphas = [{"alpha_step": a} for a in (0.98, 0.95) if a < opt.alpha_step]
+    turns = [{"joint2_offset": math.radians(v)} for v in (-15.0, 15.0)]
+    best_opt = replace(coarse, start_angles=(K0, T0))
+    best = score(best_opt)
+    given = best
+    for round_ in (starts, alphas, turns):
+        round_best = best_opt
+        for change in round_:
+            cand = replace(best_opt, **change)
+            v = score(cand)
+            if v > best:
+                best, round_best = v, cand
+        best_opt = round_best
+    if not best > given + SEARCH_MIN_GAIN:  # the score is a proxy: move only for a clear gain
+        best_opt, best = replace(coarse, start_angles=(K0, T0)), given
+    chosen = replace(
+        opt,
+        start_angles=best_opt.start_angles,
+        alpha_step=best_opt.alpha_step,
+        joint2_offset=best_opt.joint2_offset,
+        search=False,
+    )
+    ok = [t for t in tried if t["ok"]]
+    K, T = chosen.start_angles or (K0, T0)
+    info: dict[str, Any] = {
+        "searched": True,
+        "start_angles_deg": [math.degrees(K), math.degrees(T)],
+        "alpha_step": chosen.alpha_step,
+        "joint2_offset_deg": math.degrees(chosen.joint2_offset),
+        "candidates": len(tried),
+        "candidates_followed": len(ok),
+        "score": best if math.isfinite(best) else None,
+        "given_score": given if math.isfinite(given) else None,
+        "search_step_mm": coarse.step,
+        "time_ms": (time.perf_counter() - t0) * 1e3,
+    }
+    return chosen, info
+
+
+def refinement_report(
+    plan: Plan,
+    fit: FitMode,
+    choice: dict[str, Any] | None,
+    refinement: Refinement | None,
+    environment: Environment | None,
+    paper_time_s: float,
+) -> dict[str, Any]:
+    """The report's issue-10 entries: ``fit``, ``free_parameters``, ``refinement``,
+    ``per_step`` (clearance, joint-limit margin, largest angle change into each step)
+    and ``margin_statement``."""
+    model = plan.model
+    n = len(plan.travel)
+    m_deg = np.degrees(angle_margin(model, plan.alpha, plan.theta))
+    change = np.zeros(n)
+    if n > 1:
+        change[1:] = np.degrees(
+            np.maximum(
+                np.abs(np.diff(plan.alpha, axis=0)), np.abs(np.diff(plan.theta, axis=0))
+            ).max(axis=1)
+        )
+    out: dict[str, Any] = {"fit": fit.value}
+    if choice is not None:
+        out["free_parameters"] = choice
+    else:
+        K, T = plan.options.start_angles or tangent_angles(model.base_direction)
+        out["free_parameters"] = {
+            "searched": False,
+            "start_angles_deg": [math.degrees(K), math.degrees(T)],
+            "alpha_step": plan.options.alpha_step,
+            "joint2_offset_deg": math.degrees(plan.options.joint2_offset),
+        }
+    per: dict[str, Any] = {
+        "joint_limit_margin_deg": m_deg.tolist(),
+        "max_angle_change_deg": change.tolist(),
+    }
+    if refinement is not None:
+        c = refinement.clearance_mm
+        c_in = refinement.paper_clearance_mm
+        n_in = len(c)
+        clear_all = c if n == n_in else np.concatenate((c, c[np.arange(n_in - 2, -1, -1)]))
+        per["clearance_mm"] = [float(v) if math.isfinite(v) else None for v in clear_all]
+        fin, fin_in = np.isfinite(c), np.isfinite(c_in)
+        out["refinement"] = {
+            "environment": environment is not None,
+            "paper_clearance_min_mm": float(c_in[fin_in].min()) if fin_in.any() else None,
+            "clearance_min_mm": float(c[fin].min()) if fin.any() else None,
+            "clearance_min_step": int(np.argmin(np.where(fin, c, np.inf))) if fin.any() else -1,
+            "margin_deg": float(refinement.margin_deg.min()),
+            "tip_error_mm": float(refinement.tip_error_mm.max()),
+            "steps_kept_paper_fit": list(refinement.kept_input),
+            "repair_passes": refinement.repair_passes,
+            "evaluations": refinement.evaluations,
+            "iterations": {
+                "total": int(refinement.iterations.sum()),
+                "max_per_step": int(refinement.iterations.max()),
+            },
+            "time_ms": refinement.time_s * 1e3,
+            "time_split_ms": {k: v * 1e3 for k, v in refinement.time_split_s.items()},
+            "paper_plan_ms": paper_time_s * 1e3,
+        }
+    out["per_step"] = per
+    out["margin_statement"] = margin_statement(plan)
+    return out
+
+
+def margin_statement(plan: Plan) -> str:
+    """One line on the plan's joint-limit margin against :data:`SAFE_MARGIN_DEG`."""
+    m = angle_margin(plan.model, plan.alpha, plan.theta)
+    i = int(np.argmin(m))
+    ma = plan.model.limit_alpha - np.abs(plan.alpha[i])
+    mt = plan.model.limit_theta - np.abs(plan.theta[i])
+    if ma.min() <= mt.min():
+        j, name = int(np.argmin(ma)), "alpha"
+    else:
+        j, name = int(np.argmin(mt)), "theta"
+    deg = math.degrees(float(m[i]))
+    where = f"step {i}, joint {j + 1} {name}"
+    if deg >= SAFE_MARGIN_DEG:
+        return f"joint-limit margin {deg:.2f} deg (>= {SAFE_MARGIN_DEG:g} deg), least at {where}"
+    return (
+        f"no plan with >= {SAFE_MARGIN_DEG:g} deg joint-limit margin found: the best has "
+        f"{deg:.2f} deg at {where}"
+    )
 
 
 def predict_modal_factors(history: np.ndarray) -> np.ndarray:

@@ -20,10 +20,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hrm_ctrl.errors import JointLimitError
+from hrm_ctrl.errors import CollisionError, JointLimitError
+from hrm_ctrl.planning.environment import Environment, link_clearance
 from hrm_ctrl.planning.scenarios import SAMPLES_PER_LINK
 
 if TYPE_CHECKING:  # the planner imports this module to fill in its report
+    from hrm_ctrl.formats.planfile import PlanDoc
     from hrm_ctrl.planning.planner import Plan
 
 
@@ -37,7 +39,8 @@ def plan_report(plan: Plan, seg: np.ndarray, Q: int) -> dict[str, Any]:
       ends on the path (chords cut corners, ``NOTES.md``);
     - ``joint_limit_margin_deg`` and ``first_violation`` (step, joint, angle);
     - ``max_angle_change_deg`` between consecutive steps, with where;
-    - solver iterations; ``clearance_mm`` against the scenario's obstacles.
+    - solver iterations; ``clearance_mm`` against the scenario's environment
+      (:func:`clearance_summary`).
     """
     model, path = plan.model, plan.path
     n = len(plan.travel)
@@ -93,14 +96,8 @@ def plan_report(plan: Plan, seg: np.ndarray, Q: int) -> dict[str, Any]:
         },
     }
     if plan.scenario is not None:
-        worst, where_step, where_link = plan.scenario.clearance(
-            plan.joints, 0.5 * model.outer_diameter
-        )
-        report["clearance_mm"] = {
-            "min": None if math.isinf(worst) else worst,
-            "step": where_step,
-            "link": where_link,
-        }
+        c = link_clearance(plan.scenario.environment, plan.joints, 0.5 * model.outer_diameter)
+        report["clearance_mm"] = clearance_summary(c)
     return report
 
 
@@ -130,3 +127,63 @@ def check_limits(plan: Plan) -> None:
             f"joint limit broken at step {v['step']} (travel {v['travel_mm']:.1f} mm): "
             f"joint {v['joint']} {v['angle']} = {v['deg']:.2f} deg"
         )
+
+
+def clearance_summary(c: np.ndarray) -> dict[str, Any]:
+    """The report's ``clearance_mm`` of a (N, 12) link clearance (mm, negative = collision):
+    ``min`` with its 0-based ``step`` and 1-based ``link`` (``None``, -1, 0 when no link is
+    near an obstacle), ``per_step`` (the worst link of each step, ``None`` where none is near)
+    and ``per_step_link``.
+
+    >>> s = clearance_summary(np.array([[3.0, 2.0], [4.0, -1.5], [np.inf, np.inf]]))
+    >>> s["min"], s["step"], s["link"], s["per_step"], s["per_step_link"]
+    (-1.5, 1, 2, [2.0, -1.5, None], [2, 2, 0])
+    """
+    c = np.asarray(c, dtype=float)
+    if c.size == 0 or not np.isfinite(c).any():
+        worst, step, link = None, -1, 0
+    else:
+        i, j = np.unravel_index(int(np.argmin(c)), c.shape)
+        worst, step, link = float(c[i, j]), int(i), int(j) + 1
+    per = c.min(axis=1) if c.size else np.zeros(0)
+    per_link = np.where(np.isfinite(per), np.argmin(c, axis=1) + 1 if c.size else 0, 0)
+    return {
+        "min": worst,
+        "step": step,
+        "link": link,
+        "per_step": [float(v) if math.isfinite(v) else None for v in per],
+        "per_step_link": [int(v) for v in per_link],
+    }
+
+
+def plan_file_clearance(
+    doc: PlanDoc, outer_diameter: np.ndarray | None = None
+) -> np.ndarray | None:
+    """(S, 12) link clearance of a plan read from a file against the environment it stores
+    (``None`` when it stores none): link outer diameters from ``outer_diameter`` (mm), else
+    the plan's robot (``outer_diameter_mm``), else 30 mm (``NOTES.md``)."""
+    env: Environment | None = doc.environment
+    if env is None:
+        return None
+    if outer_diameter is None:
+        od = doc.robot_extra.get("outer_diameter_mm")
+        outer_diameter = np.asarray(od if od is not None else [30.0] * 12, dtype=float)
+    return link_clearance(env, doc.joints_mm, 0.5 * np.asarray(outer_diameter, dtype=float))
+
+
+def check_clearance(summary: dict[str, Any] | None, where: str) -> None:
+    """Raise :class:`CollisionError` (one line naming step and link) when a clearance
+    summary (:func:`clearance_summary`) is negative.
+
+    >>> check_clearance({"min": -2.5, "step": 7, "link": 9}, "plan bent-pipe")
+    ... # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.CollisionError: plan bent-pipe: link 9 meets an obstacle at step 7 ...
+    """
+    if not summary or summary.get("min") is None or summary["min"] >= 0.0:
+        return
+    raise CollisionError(
+        f"{where}: link {summary['link']} meets an obstacle at step {summary['step']} "
+        f"(clearance {summary['min']:.2f} mm); pass --allow-collision to accept it"
+    )

@@ -6,30 +6,36 @@ A = (1200, 100, 300) to B = (1800, 100, 100), bends of radius 100 mm.
 radius of 150 mm, through round openings of 80 mm in the walls x = 1200 and y = 70.
 
 Each scenario carries its path (bends sampled every 1 deg: the chord sagitta is
-below 0.004 mm at radius 150) and its obstacles, and measures a link's
-clearance: the arm (outer diameter from the robot model) must stay inside the
-pipe, and must pass each wall through its opening.
+below 0.004 mm at radius 150) and its :class:`~hrm_ctrl.planning.environment.Environment`
+(bent-pipe: the pipe along the whole path; cabins: the two sheet walls with their
+openings); :func:`~hrm_ctrl.planning.environment.link_clearance` measures the arm
+against it.
 
 >>> sc = scenario("bent-pipe")
 >>> abs(sc.path.length - 674.237) < 0.01, sc.path.points[-1].round(6).tolist()
 (True, [1800.0, 100.0, 100.0])
 >>> abs(scenario("cabins").path.length - 419.44) < 0.01
 True
+>>> [type(o).__name__ for o in scenario("cabins").environment.obstacles]
+['Wall', 'Wall']
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from hrm_ctrl.errors import PlanningError
+from hrm_ctrl.planning.environment import Environment, Pipe, RoundOpening, Wall
 from hrm_ctrl.planning.known_path import KnownPath
 
 BEND_STEP_RAD = math.radians(1.0)
-SAMPLES_PER_LINK = 17  # every <= 11.2 mm along a 179 mm link
+SAMPLES_PER_LINK = 17  # every <= 11.2 mm along a 179 mm link (the report's links-off-path)
+PIPE_INNER_DIAMETER = 70.0  # mm, bent-pipe
+OPENING_DIAMETER = 80.0  # mm, both walls of cabins
 
 
 def arc_points(
@@ -46,90 +52,26 @@ def arc_points(
 
 @dataclass(frozen=True, eq=False)
 class Scenario:
-    """A known path with the obstacles it runs through."""
+    """A known path with the environment it runs through."""
 
     name: str
     path: KnownPath
-    pipe_radius: float | None = None  # inner radius of a pipe around the whole path
-    walls: tuple[dict[str, Any], ...] = field(default_factory=tuple)
+    environment: Environment = field(default_factory=Environment)
     alpha_step: float = 1.0
     description: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        obstacles: list[dict[str, Any]] = []
-        if self.pipe_radius is not None:
-            obstacles.append({"kind": "pipe", "inner_radius_mm": self.pipe_radius})
-        for w in self.walls:
-            obstacles.append(
-                {
-                    "kind": "wall",
-                    "axis": int(w["axis"]),
-                    "value_mm": float(w["value"]),
-                    "opening_centre_mm": [float(v) for v in w["centre"]],
-                    "opening_radius_mm": float(w["radius"]),
-                    **(
-                        {"beyond": {"axis": w["beyond"][0], "value_mm": w["beyond"][1]}}
-                        if "beyond" in w
-                        else {}
-                    ),
-                }
-            )
-        return {"name": self.name, "description": self.description, "obstacles": obstacles}
+        """Name, description and the environment as scene data
+        (:meth:`Environment.to_dict`, the tables of a scene file)."""
+        return {
+            "name": self.name,
+            "description": self.description,
+            "environment": self.environment.to_dict(),
+        }
 
-    def clearance(self, O: np.ndarray, outer_radius: np.ndarray) -> tuple[float, int, int]:
-        """Smallest clearance (mm, negative = collision) of the arm over the steps of
-        ``O`` (N, 13, 3) with link outer radii (12,), and the 0-based step and
-        1-based link that have it (-1, 0 where no link meets an obstacle).
-
-        Pipe: every link point past the entrance plane (normal to the path at A) and
-        before the exit plane must keep ``inner radius - link radius`` from the axis.
-        Wall: where a link's axis crosses the wall, the crossing must lie within
-        ``opening radius - link radius`` of the opening's centre (a link crossing
-        at an angle has a wider footprint; this takes the axis point).
-        """
-        O = np.asarray(O, dtype=float)
-        if O.ndim == 2:
-            O = O[None]
-        best, where = math.inf, (-1, 0)
-        if self.pipe_radius is not None:
-            t = np.linspace(0.0, 1.0, SAMPLES_PER_LINK)
-            seg = O[:, 1:] - O[:, :-1]
-            pts = O[:, :-1, None, :] + t[None, None, :, None] * seg[:, :, None, :]
-            start, end = self.path.points[0], self.path.points[-1]
-            t0, t1 = self.path.tangent_at(0.0), self.path.tangent_at(self.path.length)
-            inside = ((pts - start) @ t0 > 0.0) & ((pts - end) @ t1 < 0.0)  # (N, 12, S)
-            if inside.any():
-                c = np.full(inside.shape, math.inf)
-                c[inside] = (
-                    self.pipe_radius
-                    - np.broadcast_to(outer_radius[None, :, None], inside.shape)[inside]
-                    - self.path.distance_to(pts[inside])
-                )
-                k = np.unravel_index(int(np.argmin(c)), c.shape)
-                if c[k] < best:
-                    best, where = float(c[k]), (int(k[0]), int(k[1]) + 1)
-        for w in self.walls:
-            ax, val = int(w["axis"]), float(w["value"])
-            a, b = O[:, :-1, ax] - val, O[:, 1:, ax] - val
-            n_idx, l_idx = np.nonzero(a * b <= 0.0)
-            if len(n_idx) == 0:
-                continue
-            aa, bb = a[n_idx, l_idx], b[n_idx, l_idx]
-            denom = bb - aa
-            sfrac = np.where(denom == 0, 0.5, -aa / np.where(denom == 0, 1.0, denom))
-            P0 = O[n_idx, l_idx]
-            p = P0 + sfrac[:, None] * (O[n_idx, l_idx + 1] - P0)
-            keep = np.ones(len(p), dtype=bool)
-            if "beyond" in w:  # the wall does not extend there
-                keep = p[:, w["beyond"][0]] >= w["beyond"][1]
-            if not keep.any():
-                continue
-            c = w["radius"] - outer_radius[l_idx] - np.linalg.norm(p - w["centre"], axis=1)
-            c = np.where(keep, c, math.inf)
-            m = int(np.argmin(c))
-            if c[m] < best:
-                best, where = float(c[m]), (int(n_idx[m]), int(l_idx[m]) + 1)
-        return best, where[0], where[1]
+    def with_environment(self, environment: Environment) -> Scenario:
+        """The same path through another environment (``hrm plan --scene``)."""
+        return replace(self, environment=environment)
 
 
 def bent_pipe() -> Scenario:
@@ -152,7 +94,7 @@ def bent_pipe() -> Scenario:
     return Scenario(
         name="bent-pipe",
         path=path,
-        pipe_radius=35.0,
+        environment=Environment((Pipe(path, PIPE_INNER_DIAMETER),)),
         description="S-bend pipe, inner diameter 70 mm, bend radius 100 mm, A to B",
     )
 
@@ -188,15 +130,16 @@ def cabins() -> Scenario:
     k = int(np.flatnonzero(y[:-1] * y[1:] <= 0.0)[0])
     s = y[k] / (y[k] - y[k + 1])
     cross = path.points[k] + s * (path.points[k + 1] - path.points[k])
-    walls = (
-        {"axis": 0, "value": 1200.0, "centre": A.copy(), "radius": 40.0},
-        # the partition stands inside the first cabin only (x > 1200)
-        {"axis": 1, "value": 70.0, "centre": cross, "radius": 40.0, "beyond": (0, 1200.0)},
+    ex, ey = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    entrance = Wall(A, ex, openings=(RoundOpening(A, OPENING_DIAMETER),))
+    # the partition stands inside the first cabin only (x >= 1200)
+    partition = Wall(
+        cross, ey, openings=(RoundOpening(cross, OPENING_DIAMETER),), bounds=((A, ex),)
     )
     return Scenario(
         name="cabins",
         path=path,
-        walls=walls,
+        environment=Environment((entrance, partition)),
         description="two cabins: entrance x = 1200 and partition y = 70, openings 80 mm",
     )
 

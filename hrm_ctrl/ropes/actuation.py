@@ -4,6 +4,13 @@ Built once from the immutable :class:`~hrm_ctrl.model.RobotModel` (its ``[ropes]
 and ``[motors]`` tables) and the calibration's zero offsets; every array is
 read-only and every method is vectorised over leading batch dimensions.
 
+Joint angles in and out of every method are *true* joint angles.  A calibration's joint
+zero offsets (issue 12: true angle = commanded angle + offset) are applied here: the rope
+geometry (``geometry``, ``routing``) works in commanded angles, so
+``counts_from_angles(q)`` evaluates it at ``q - offset`` and ``angles_from_counts`` adds
+the offset back; the planner, the setpoints and the estimator's callers all see true
+angles.  The joint limits are checked on the true angles.
+
 >>> from hrm_ctrl.model import default_robot
 >>> act = load_actuation(default_robot())
 >>> act.n_motors, act.motor_ids[0], int(act.joint_of_motor[-1])
@@ -19,7 +26,9 @@ True
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,7 +44,8 @@ from hrm_ctrl.ropes.routing import RopeRouting, routing_from_model
 
 
 class RopeLimitError(RopeError):
-    """A configuration or setpoint breaks a joint, drum-travel or motor-speed limit."""
+    """A configuration or setpoint breaks a joint, drum-travel, motor-speed or
+    motor-acceleration limit."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,7 +54,8 @@ class Actuation:
 
     Attributes (contract): ``robot``, ``motor_ids`` (one per rope motor, "jKKrM"),
     ``joint_of_motor`` (0-based joint each rope ends at), ``counts_min`` /
-    ``counts_max`` (int64 software position limits), ``max_rate_counts_per_s``.
+    ``counts_max`` (int64 software position limits), ``max_rate_counts_per_s``,
+    ``max_accel_counts_per_s2`` and ``max_jerk_counts_per_s3`` (per motor).
     Extra: ``routing``, ``geometry``, ``motors`` (conversion constants).
     """
 
@@ -54,6 +65,8 @@ class Actuation:
     counts_min: np.ndarray
     counts_max: np.ndarray
     max_rate_counts_per_s: np.ndarray
+    max_accel_counts_per_s2: np.ndarray
+    max_jerk_counts_per_s3: np.ndarray
     routing: RopeRouting
     geometry: RopeGeometry
     motors: MotorMap
@@ -61,6 +74,8 @@ class Actuation:
     pre_c0: np.ndarray  # (n,) counts = pre_c0 - pre_k * length at the pretension
     pre_k: np.ndarray
     linear_inverse: np.ndarray  # (24, n): angles ~ linear_inverse @ (L - straight), small angles
+    alpha_offset_rad: np.ndarray  # (12,) joint zero offsets: true angle = commanded + offset
+    theta_offset_rad: np.ndarray  # (12,)
 
     @property
     def n_motors(self) -> int:
@@ -81,10 +96,15 @@ class Actuation:
             raise RopeError(f"alpha and theta must have shape (..., {n}), got {a.shape}, {t.shape}")
         return a, t
 
-    def rope_lengths(self, alpha: Any, theta: Any) -> np.ndarray:
-        """Geometric rope lengths (..., n) in mm from the base disk to each anchor."""
+    def commanded_angles(self, alpha: Any, theta: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The rope geometry's (commanded) angles of true joint angles: ``q - offset``."""
         a, t = self._angles(alpha, theta)
-        return _rope_lengths(self.geometry, a, t)
+        return a - self.alpha_offset_rad, t - self.theta_offset_rad
+
+    def rope_lengths(self, alpha: Any, theta: Any) -> np.ndarray:
+        """Geometric rope lengths (..., n) in mm from the base disk to each anchor, at
+        true joint angles."""
+        return _rope_lengths(self.geometry, *self.commanded_angles(alpha, theta))
 
     def free_lengths(self, alpha: Any, theta: Any) -> np.ndarray:
         """Free rope lengths (..., n) in mm, drum to anchor (box part + geometric)."""
@@ -145,7 +165,7 @@ class Actuation:
             )
         ):
             self.check_angles(a, t)  # raises, naming step and joint
-        L = _rope_lengths(self.geometry, a, t)
+        L = _rope_lengths(self.geometry, a - self.alpha_offset_rad, t - self.theta_offset_rad)
         if tension_N is None:  # pretension: counts are affine in the lengths (precomputed)
             c = self.pre_c0 - self.pre_k * L
             counts = np.rint(c, out=c).astype(np.int64)
@@ -179,10 +199,11 @@ class Actuation:
         *,
         robust: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Joint angles from motor counts: ``(alpha (...,12), theta (...,12), residual (...,n))``.
+        """True joint angles from motor counts: ``(alpha (...,12), theta (...,12), residual
+        (...,n))``.
 
         Uses the triangular rope structure (least squares per joint);
-        ``alpha0``/``theta0`` warm-start it.  The residual is measured minus
+        ``alpha0``/``theta0`` (true angles) warm-start it.  The residual is measured minus
         modelled geometric length per rope.  ``robust=False`` skips the slow
         joint-by-joint fallback for inconsistent data (see
         :func:`~hrm_ctrl.ropes.inverse.solve_angles`), e.g. when tracking a faulty arm.
@@ -193,10 +214,12 @@ class Actuation:
             lim = np.array([self.robot.limit_alpha, self.robot.limit_theta] * self.robot.n_joints)
             np.clip(x0, -lim, lim, out=x0)
             alpha0, theta0 = x0[..., 0::2], x0[..., 1::2]
+        else:
+            alpha0, theta0 = self.commanded_angles(alpha0, theta0)
         sol = solve_angles(
             self.geometry, self.joint_of_motor, L, alpha0, theta0, self.pad, robust=robust
         )
-        return sol.alpha, sol.theta, sol.residual
+        return sol.alpha + self.alpha_offset_rad, sol.theta + self.theta_offset_rad, sol.residual
 
     def _counts(self, counts: Any) -> np.ndarray:
         c = np.asarray(counts)
@@ -211,8 +234,13 @@ class Actuation:
 
         ``counts`` is (n,) or a table (steps, n); for a table the step (row) is
         named.  With ``dt_s`` the change from ``previous`` (n,) to the first row
-        and between consecutive rows is rate-checked; ``dt_s`` is a scalar or, for
-        a table, one interval per change (steps - 1, or steps with ``previous``).
+        and between consecutive rows is rate-checked, and the change of that rate from
+        one change to the next against ``max_accel_counts_per_s2`` (for a constant
+        ``dt_s`` exactly the second difference over ``dt_s**2``; the speed before
+        ``previous`` is not known here, so the first change is not acceleration-checked:
+        ``drivers.safety.limits.check_acceleration`` checks a start from rest); ``dt_s``
+        is a scalar or, for a table, one interval per change (steps - 1, or steps with
+        ``previous``).
         """
         c = self._counts(counts)
         table = c.reshape(-1, self.n_motors)
@@ -244,7 +272,8 @@ class Actuation:
             raise RopeError(f"dt_s must be > 0 s, one per change ({n_changes}), got {dt_s!r}")
         if n_changes == 0:
             return
-        rate = np.abs(np.diff(seq.astype(np.float64), axis=0)) / dt[:, None]
+        change = np.diff(seq.astype(np.float64), axis=0)
+        rate = np.abs(change) / dt[:, None]
         fast = rate > self.max_rate_counts_per_s
         if fast.any():
             row, i = (int(v) for v in np.argwhere(fast)[0])
@@ -254,16 +283,53 @@ class Actuation:
                 "faster than "
                 f"the motor's {float(self.max_rate_counts_per_s[i]):.0f} counts/s"
             )
+        if n_changes < 2:
+            return
+        # acceleration: the change of speed from one change to the next (the second
+        # difference over the mean interval), named by the row that ends the second change
+        acc = np.abs(np.diff(change / dt[:, None], axis=0)) / (0.5 * (dt[1:] + dt[:-1]))[:, None]
+        hard = acc > self.max_accel_counts_per_s2
+        if hard.any():
+            row, i = (int(v) for v in np.argwhere(hard)[0])
+            where = f"step {row + 1 + first}: " if is_table else ""
+            raise RopeLimitError(
+                f"{where}motor {self.motor_label(i)}: accelerates {acc[row, i]:.0f} "
+                "counts/s^2, more than "
+                f"the motor's {float(self.max_accel_counts_per_s2[i]):.0f} counts/s^2"
+            )
 
 
-def load_actuation(robot: RobotModel, zero_offsets_counts: Any = None) -> Actuation:
+def load_actuation(
+    robot: RobotModel,
+    zero_offsets_counts: Any = None,
+    *,
+    rope_EA_N: Any = None,
+    alpha_offset_rad: Any = None,
+    theta_offset_rad: Any = None,
+) -> Actuation:
     """Build the rope actuation of ``robot``.
 
     ``zero_offsets_counts``: the calibration's counts at the zero position (straight
     arm at pretension), as n ints or ``{motor_id: counts}``; default all 0.
+    ``rope_EA_N``: the calibration's axial rigidity per rope (n numbers or
+    ``{rope_id: EA}`` naming every rope), replacing the routing's.
+    ``alpha_offset_rad`` / ``theta_offset_rad``: the joint zero offsets (12 each, rad;
+    default 0): true angle = commanded angle + offset (see the module docstring).
     Raises :class:`RopeError` (subclasses) on a malformed routing or motor table.
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> off = np.radians(np.linspace(-1.0, 1.0, 12))
+    >>> act = load_actuation(default_robot(), alpha_offset_rad=off)
+    >>> nominal = load_actuation(default_robot())
+    >>> q = np.full(12, 0.3)
+    >>> bool(np.array_equal(act.counts_from_angles(q, q), nominal.counts_from_angles(q - off, q)))
+    True
     """
     routing = routing_from_model(robot)
+    if rope_EA_N is not None:
+        routing = dataclasses.replace(
+            routing, stiffness_EA_N=_per_rope(rope_EA_N, routing.rope_ids, robot.source)
+        )
     geom = rope_geometry(routing)
     u_ref = unstretched_length_mm(
         routing.box_length + geom.straight, routing.pretension_N, routing.stiffness_EA_N
@@ -284,12 +350,16 @@ def load_actuation(robot: RobotModel, zero_offsets_counts: Any = None) -> Actuat
     eye = np.eye(routing.n_ropes)
     lin = np.stack([newton_step(J0, eye[m][None], pad)[0] for m in range(routing.n_ropes)], axis=1)
     arrays = {
+        "alpha_offset_rad": _joint_offsets(alpha_offset_rad, robot, "alpha_offset_rad"),
+        "theta_offset_rad": _joint_offsets(theta_offset_rad, robot, "theta_offset_rad"),
         "linear_inverse": lin,
         "pre_c0": pre_c0,
         "pre_k": pre_k,
         "counts_min": motors.counts_min,
         "counts_max": motors.counts_max,
         "max_rate_counts_per_s": motors.max_rate_counts_per_s,
+        "max_accel_counts_per_s2": motors.max_accel_counts_per_s2,
+        "max_jerk_counts_per_s3": motors.max_jerk_counts_per_s3,
         "pad": pad,
     }
     for arr in arrays.values():
@@ -303,3 +373,37 @@ def load_actuation(robot: RobotModel, zero_offsets_counts: Any = None) -> Actuat
         motors=motors,
         **arrays,
     )
+
+
+def _per_rope(values: Any, ids: tuple[str, ...], where: str) -> np.ndarray:
+    """Per-rope axial rigidity (N): n numbers, or a table naming every rope id."""
+    if isinstance(values, Mapping):
+        unknown = sorted(set(values) - set(ids))
+        missing = [i for i in ids if i not in values]
+        if unknown or missing:
+            raise RopeError(
+                f"{where}: rope_EA_N names unknown ropes {unknown[:4]} / misses {missing[:4]}"
+            )
+        values = [values[i] for i in ids]
+    ea = np.array(values, dtype=float)
+    if ea.shape != (len(ids),):
+        raise RopeError(f"{where}: rope_EA_N must have {len(ids)} values, got shape {ea.shape}")
+    bad = np.flatnonzero(~(np.isfinite(ea) & (ea > 0.0)))
+    if bad.size:
+        i = int(bad[0])
+        v = float(ea[i])
+        raise RopeError(f"{where}: rope_EA_N of rope {ids[i]} is {v!r}, not a number > 0")
+    ea.setflags(write=False)
+    return ea
+
+
+def _joint_offsets(values: Any, robot: RobotModel, what: str) -> np.ndarray:
+    """A joint zero offset per joint (rad), zeros by default."""
+    n = robot.n_joints
+    off = np.zeros(n) if values is None else np.array(values, dtype=float)
+    if off.shape != (n,) or not np.all(np.isfinite(off)):
+        raise RopeError(
+            f"{robot.source}: {what} must be {n} finite angles (rad), got shape {off.shape}"
+            + ("" if off.shape != (n,) else " with a value that is not finite")
+        )
+    return off

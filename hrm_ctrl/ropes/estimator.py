@@ -145,6 +145,7 @@ class RopeStateEstimator:
     def initialise(self, counts: Any, tension_N: Any = None, angle_sigma: float = 0.01) -> None:
         """Start from the rope inverse of one feedback sample, at rest."""
         a, t, _ = self.act.angles_from_counts(counts, tension_N)
+        a, t = self.act.commanded_angles(a, t)  # the filter runs in the rope geometry's angles
         x = np.zeros((2 * self.n_x, 1))
         x[0 : self.n_x : 2, 0] = a
         x[1 : self.n_x : 2, 0] = t
@@ -182,8 +183,16 @@ class RopeStateEstimator:
         x = ekf.x[:, 0]
         a, t = x[0 : self.n_x : 2], x[1 : self.n_x : 2]
         act = self.act
-        sol = solve_angles(
-            act.geometry, act.joint_of_motor, z, a, t, act.pad, robust=False, max_iterations=2
+        sol = solve_angles(  # warm-started at the filter's estimate: on a fast move that
+            # lags the sample, and two Newton steps left a consistent sample 36 sigma off
+            act.geometry,
+            act.joint_of_motor,
+            z,
+            a,
+            t,
+            act.pad,
+            robust=False,
+            max_iterations=SAMPLE_ITERATIONS,
         )
         zstd = rope_misfit(act, sol, self.sigma_mm)
         self._stat += self._ewma * (zstd**2 - self._stat)
@@ -199,9 +208,9 @@ class RopeStateEstimator:
             top = own[cons[own] >= FLAG_SHARE * joint_cons[k]]
             flagged_joint = k + 1
             flagged = tuple(act.motor_ids[i] for i in top)
-        return Estimate(
-            alpha=a.copy(),
-            theta=t.copy(),
+        return Estimate(  # true angles: the rope geometry's plus the joint zero offsets
+            alpha=a + act.alpha_offset_rad,
+            theta=t + act.theta_offset_rad,
             alpha_rate=x[self.n_x :: 2].copy(),
             theta_rate=x[self.n_x + 1 :: 2].copy(),
             innovation_mm=nu.copy(),
@@ -213,6 +222,8 @@ class RopeStateEstimator:
         )
 
 
+# Newton steps of the per-sample rope inverse (it stops once converged: usually 1-2)
+SAMPLE_ITERATIONS = 6
 # A commanded configuration counts as consistent when its rope lengths fit one
 # configuration to within the feedback's own noise (standardised residual, in sigma).
 GATE_SIGMA = 1.0

@@ -15,9 +15,24 @@ calibration zero).
 The ``[motors]`` table of the robot description (all optional, defaults below):
 ``drum_radius_mm`` (10), ``gear_ratio`` (33, motor turns per drum turn),
 ``counts_per_turn`` (4096, encoder counts per motor turn), ``max_speed_rpm``
-(6000, motor shaft), ``travel_in_mm`` / ``travel_out_mm`` (200 / 200: rope the drum
-can wind in / pay out from the zero position) and ``direction`` (+1, -1, or a
-table ``{ j03r1 = -1, ... }`` per motor).
+(6000, motor shaft), ``max_accel_rpm_per_s`` (30 000, motor shaft: full speed in
+0.2 s), ``max_jerk_rpm_per_s2`` (600 000: full acceleration in 0.05 s),
+``travel_in_mm`` / ``travel_out_mm`` (200 / 200: rope the drum can wind in / pay out
+from the zero position) and ``direction`` (+1, -1, or a table ``{ j03r1 = -1, ... }``
+per motor).
+
+Why 30 000 rpm/s: a small servo (a few hundred W, rotor inertia about 1e-5 kg m^2,
+peak torque about 1 N m) could spin its own rotor up far faster, but behind a 33:1
+gearbox and a 10 mm drum it moves the rope at 952 mm/s^2 at this limit (2 048 000
+counts/s^2), which keeps the arm's joints well inside what the ropes, the gearbox
+backlash and the drives' following (the simulated drive follows at up to 2e7
+counts/s^2) take; servo drives ship with ramps of 10 000 - 100 000 rpm/s.  The jerk
+limit shapes the point-to-point moves of the drivers (lead-in, jog, end of a
+source); the plan's own time parameterisation limits speed and acceleration.
+
+>>> m = DEFAULT_MOTORS
+>>> m["max_accel_rpm_per_s"] / 60.0 * m["counts_per_turn"]        # counts/s^2
+2048000.0
 
 >>> round(float(unstretched_length_mm(2500.0, 30.0, 30000.0)), 4)   # 2.5 m at 30 N, EA 30 kN
 2497.5025
@@ -41,6 +56,8 @@ DEFAULT_MOTORS: dict[str, float] = {
     "gear_ratio": 33.0,
     "counts_per_turn": 4096.0,
     "max_speed_rpm": 6000.0,
+    "max_accel_rpm_per_s": 30000.0,
+    "max_jerk_rpm_per_s2": 600000.0,
     "travel_in_mm": 200.0,
     "travel_out_mm": 200.0,
 }
@@ -94,6 +111,8 @@ class MotorMap:
     travel_out_mm: float
     max_speed_rpm: float
     counts_per_turn: float
+    max_accel_rpm_per_s: float = DEFAULT_MOTORS["max_accel_rpm_per_s"]
+    max_jerk_rpm_per_s2: float = DEFAULT_MOTORS["max_jerk_rpm_per_s2"]
 
     def counts_from_unstretched(self, u: np.ndarray) -> np.ndarray:
         """Encoder counts (int64) for paid-out unstretched lengths ``u`` (..., n)."""
@@ -122,6 +141,18 @@ class MotorMap:
     def max_rate_counts_per_s(self) -> np.ndarray:
         rate = self.max_speed_rpm / 60.0 * self.counts_per_turn
         return np.full(self.direction.shape, rate)
+
+    @property
+    def max_accel_counts_per_s2(self) -> np.ndarray:
+        """Acceleration limit per motor, ``max_accel_rpm_per_s / 60 * counts_per_turn``."""
+        accel = self.max_accel_rpm_per_s / 60.0 * self.counts_per_turn
+        return np.full(self.direction.shape, accel)
+
+    @property
+    def max_jerk_counts_per_s3(self) -> np.ndarray:
+        """Jerk limit per motor, ``max_jerk_rpm_per_s2 / 60 * counts_per_turn``."""
+        jerk = self.max_jerk_rpm_per_s2 / 60.0 * self.counts_per_turn
+        return np.full(self.direction.shape, jerk)
 
 
 def _num(table: Mapping[str, Any], key: str, where: str, *, positive: bool = True) -> float:
@@ -224,5 +255,7 @@ def motor_map_from_table(
         travel_out_mm=vals["travel_out_mm"],
         max_speed_rpm=vals["max_speed_rpm"],
         counts_per_turn=vals["counts_per_turn"],
+        max_accel_rpm_per_s=vals["max_accel_rpm_per_s"],
+        max_jerk_rpm_per_s2=vals["max_jerk_rpm_per_s2"],
         **arrays,
     )

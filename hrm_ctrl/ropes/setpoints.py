@@ -1,19 +1,23 @@
 """The one path from a plan to motor counts: the plan's steps at the control rate.
 
 A plan is a sequence of steps, each a configuration (``alpha``, ``theta`` per joint)
-at a travel along the path.  Played at ``speed_mm_per_s``, the time of each step is its
-*distance along the sequence of steps* (the sum of ``|travel change|`` so far) over the
-speed, so a return leg (travel going back down) plays as well as the way in.  Between
-steps the joint angles are interpolated linearly and every control slot's angles go
-through the rope layer (:meth:`Actuation.counts_from_angles`).  Along an ``in`` phase
-travel must increase step by step, along a ``return`` phase decrease; a hand-edited plan
-whose travel goes the wrong way or repeats is refused naming the step.
+at a travel along the path.  Its playback is the time-parameterised trajectory of
+:mod:`hrm_ctrl.ropes.trajectory`: the joint angles a smooth (C2) spline through every
+step of a leg, as a function of the distance along the sequence of steps (the sum of
+``|travel change|`` so far, so a return leg plays as well as the way in, each leg from
+rest to rest), timed by TOPP-RA as fast as every rope motor's speed and acceleration
+limit and the tip-speed cap ``speed_mm_per_s`` allow, and every control slot's
+configuration through the rope layer (:meth:`Actuation.counts_from_angles`).  Along an
+``in`` phase travel must increase step by step, along a ``return`` phase decrease; a
+hand-edited plan whose travel goes the wrong way or repeats is refused naming the step.
 
-Everything is checked before anything is played: the joint limits at every step, the
-drum travel at every step and every control slot, and the motors' speed between control
-slots.  Every message names the *plan step* (``plan step 41 (travel 205.0 mm): motor
-j05r2 ...``), never a control-cycle row; each row of the table remembers the step it
-came from (the step being approached; a row on a step is that step's).
+Everything is checked before anything is played: the joint limits at every step and
+every control slot, the drum travel at every step and every control slot, and the
+motors' speed and acceleration between control slots (finite differences of the
+integer counts, from rest and to rest).  Every message names the *plan step*
+(``plan step 41 (travel 205.0 mm): motor j05r2 ...``), never a control-cycle row; each
+row of the table remembers the step it came from (the step being approached; a row on
+a step is that step's).
 
 >>> from hrm_ctrl.model import default_robot
 >>> from hrm_ctrl.ropes.actuation import load_actuation
@@ -21,11 +25,10 @@ came from (the step being approached; a row on a step is that step's).
 >>> a = np.zeros((3, 12)); a[1] = 0.01                         # out and back
 >>> sp = plan_setpoints(act, [0.0, 2.0, 0.0], a, np.zeros((3, 12)),
 ...                     period_s=0.01, speed_mm_per_s=100.0, phase=["in", "in", "return"])
->>> sp.n_cycles, sp.step_of_row.tolist()
-(5, [0, 1, 1, 2, 2])
->>> bool((sp.counts[2] == sp.step_counts[1]).all() and (sp.counts[-1] == sp.counts[0]).all())
+>>> k = int(np.flatnonzero(sp.step_of_row == 2)[0]) - 1         # the far end, at rest
+>>> bool((sp.counts[k] == sp.step_counts[1]).all() and (sp.counts[-1] == sp.counts[0]).all())
 True
->>> sp.label(3)
+>>> sp.label(k + 1)
 'plan step 2 (travel 0.0 mm)'
 >>> plan_setpoints(act, [0.0, 2.0, 1.0], a, a, period_s=0.01, speed_mm_per_s=100.0)
 ... # doctest: +ELLIPSIS
@@ -45,8 +48,13 @@ import numpy as np
 
 from hrm_ctrl.errors import RopeError
 from hrm_ctrl.ropes.actuation import Actuation, RopeLimitError
+from hrm_ctrl.ropes.trajectory import StepPath, step_path, time_parameterise
 
 MAX_PLAN_DURATION_S = 3600.0  # default longest playback (bounds the table's memory)
+# The tip-speed cap of a playback unless the operator gives one (hrm ropes, run, demo):
+# 50 mm/s is a tenth of the arm's length a second; the motors are then far from their
+# speed limit (the bent pipe needs 2 % of it).
+DEFAULT_TIP_SPEED_MM_PER_S = 50.0
 # The most control slots (rows) a playback may have, whatever the control rate: 3600 s at
 # 100 Hz fits; the (rows, motors) int64 table is then 115 MB for 36 motors.  Checked before
 # the table is allocated; rows are converted (and their motor speeds checked) _BLOCK_ROWS at
@@ -83,9 +91,11 @@ class PlanSetpoints:
     """A plan's motor counts at the control rate, checked against every rope-layer limit.
 
     ``counts`` (cycles, motors) int64, one row per control slot from the plan's first
-    step (time 0) to its last (``duration_s``); ``step_of_row`` (cycles,) the plan step
-    each row came from; ``step_counts`` (S, motors) the counts at the steps themselves;
-    ``step_time_s`` (S,) when each step is reached.  Arrays are read-only.
+    step at rest (time 0, ``time_s``) to its last at rest (``duration_s``);
+    ``step_of_row`` (cycles,) the plan step each row came from; ``step_counts`` (S,
+    motors) the counts at the steps themselves; ``step_time_s`` (S,) when each step is
+    passed; ``sigma_mm`` (cycles,) where each row is along the sequence of steps on
+    ``path``.  ``speed_mm_per_s`` is the tip-speed cap.  Arrays are read-only.
     """
 
     counts: np.ndarray
@@ -98,6 +108,8 @@ class PlanSetpoints:
     theta_rad: np.ndarray
     period_s: float
     speed_mm_per_s: float
+    sigma_mm: np.ndarray  # (cycles,) where each row is along the sequence of steps (mm)
+    path: StepPath
 
     @property
     def n_cycles(self) -> int:
@@ -109,7 +121,7 @@ class PlanSetpoints:
 
     @property
     def duration_s(self) -> float:
-        return float(self.step_time_s[-1])
+        return float(self.time_s[-1])
 
     def step_label(self, k: int) -> str:
         """``plan step 41 (travel 205.0 mm)``."""
@@ -119,13 +131,18 @@ class PlanSetpoints:
         """The plan step control-slot ``row`` came from, as :meth:`step_label` says it."""
         return self.step_label(int(self.step_of_row[int(row)]))
 
+    def row_travel_mm(self) -> np.ndarray:
+        """(cycles,) the travel along the known path of every row (between two steps of a
+        leg, as far from the earlier step as the row is along the sequence of steps)."""
+        d = self.path.distance_mm
+        k = np.clip(np.searchsorted(d, self.sigma_mm, side="right") - 1, 0, d.shape[0] - 1)
+        k1 = np.minimum(k + 1, d.shape[0] - 1)
+        sign = np.sign(self.travel_mm[k1] - self.travel_mm[k])
+        return self.travel_mm[k] + sign * (self.sigma_mm - d[k])
+
     def row_angles(self) -> tuple[np.ndarray, np.ndarray]:
         """(alpha, theta) (cycles, 12) of every row: the configurations ``counts`` encode."""
-        n = self.alpha_rad.shape[1]
-        ang = interpolate_rows(
-            self.time_s, self.step_time_s, np.hstack([self.alpha_rad, self.theta_rad])
-        )
-        return ang[:, :n], ang[:, n:]
+        return self.path.angles_at(self.sigma_mm)
 
 
 def _step_label(travel: np.ndarray, k: int) -> str:
@@ -187,15 +204,16 @@ def plan_setpoints(
     max_duration_s: float = MAX_PLAN_DURATION_S,
     where: str | None = None,
 ) -> PlanSetpoints:
-    """The plan's (cycles, motors) counts at the control period ``period_s``, played at
-    ``speed_mm_per_s`` along the sequence of steps, with the plan step of every row.
+    """The plan's (cycles, motors) counts at the control period ``period_s``, played as
+    fast as the motors' speed and acceleration limits allow with the arm's tip at most
+    ``speed_mm_per_s``, with the plan step of every row.
 
     ``travel_mm`` (S,), ``alpha_rad`` / ``theta_rad`` (S, 12); ``phase`` (S,) ``in`` /
     ``return`` (default all ``in``).  ``where`` (e.g. the plan file) starts every message.
     Raises :class:`RopeError` for bad arguments, travel that goes the wrong way or repeats
     within a phase, or a playback longer than ``max_duration_s``, and
-    :class:`RopeLimitError` for a joint, drum-travel or motor-speed limit, naming the plan
-    step.
+    :class:`RopeLimitError` for a joint, drum-travel, motor-speed or -acceleration limit,
+    naming the plan step.
     """
     if not (math.isfinite(period_s) and period_s > 0.0):
         raise RopeError(_prefixed(where, f"control period must be > 0 s, got {period_s}"))
@@ -230,61 +248,58 @@ def plan_setpoints(
     step_counts = actuation.counts_from_angles(alpha, theta, check=False)
     _check_positions(actuation, step_counts, lambda k: _step_label(travel, k), where)
 
-    # time along the sequence of steps, and the control slots
-    distance = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(travel)))))
-    step_time = distance / speed_mm_per_s
-    duration = float(step_time[-1])
-    if not duration <= max_duration_s + period_s:
-        raise RopeError(
-            _prefixed(
-                where,
-                f"{duration:.4g} s at {speed_mm_per_s:g} mm/s exceeds the longest run of "
-                f"{max_duration_s:g} s",
-            )
+    # the path through the steps, and its time law (the tip speed caps its duration from
+    # below: too long a playback is refused before anything is parameterised)
+    path = step_path(travel, alpha, theta, phases)
+    _check_duration(path.length_mm / speed_mm_per_s, speed_mm_per_s, max_duration_s, period_s,
+                    where)  # fmt: skip
+    try:
+        traj = time_parameterise(
+            actuation,
+            path,
+            period_s=period_s,
+            tip_speed_mm_per_s=speed_mm_per_s,
+            max_rows=MAX_PLAYBACK_ROWS,
         )
-    cycles = duration / period_s
-    if not cycles < MAX_PLAYBACK_ROWS - 1:
-        raise RopeError(
-            _prefixed(
-                where,
-                f"{duration:.4g} s at {speed_mm_per_s:g} mm/s is {cycles:.4g} control cycles of "
-                f"{period_s:g} s, more than the {MAX_PLAYBACK_ROWS} a playback may have",
-            )
-        )
-    n = math.floor(cycles + 1e-9) + 1
-    t = np.minimum(np.arange(n, dtype=np.float64) * period_s, duration)
-    if duration > 0.0 and (duration - t[-1] > _ON_STEP_S or n == 1):
-        t = np.append(t, duration)  # the last row is the last step, however short the run
-    knots = np.hstack([alpha, theta])
-    counts = np.empty((t.shape[0], actuation.n_motors), dtype=np.int64)
-    for lo in range(0, t.shape[0], _BLOCK_ROWS):
-        ang = interpolate_rows(t[lo : lo + _BLOCK_ROWS], step_time, knots)
-        counts[lo : lo + _BLOCK_ROWS] = actuation.counts_from_angles(
-            ang[:, :n_j], ang[:, n_j:], check=False
-        )
-    del knots
-    step_of_row = np.minimum(np.searchsorted(step_time, t - _ON_STEP_S, side="left"), s - 1)
-    step_of_row[-1] = s - 1  # at the duration: the last step
+    except RopeError as exc:
+        raise type(exc)(_prefixed(where, str(exc))) from None
+    _check_duration(traj.duration_s, speed_mm_per_s, max_duration_s, period_s, where)
+    counts, step_of_row, t = traj.counts, traj.step_of_row, traj.time_s
 
     def row_label(r: int) -> str:
         return _step_label(travel, int(step_of_row[r]))
 
     _check_positions(actuation, counts, row_label, where)
-    _check_rates(actuation, counts, period_s, travel, step_of_row, t, step_time, where)
-    for arr in (counts, step_of_row, t, step_counts, step_time, travel, alpha, theta):
+    _check_rates(actuation, counts, period_s, travel, step_of_row, t, traj.step_time_s, where)
+    for arr in (step_counts, travel, alpha, theta):
         arr.setflags(write=False)
     return PlanSetpoints(
         counts=counts,
         step_of_row=step_of_row,
         time_s=t,
         step_counts=step_counts,
-        step_time_s=step_time,
+        step_time_s=traj.step_time_s,
         travel_mm=travel,
         alpha_rad=alpha,
         theta_rad=theta,
         period_s=float(period_s),
         speed_mm_per_s=float(speed_mm_per_s),
+        sigma_mm=traj.sigma_mm,
+        path=path,
     )
+
+
+def _check_duration(
+    duration: float, speed: float, max_duration_s: float, period_s: float, where: str | None
+) -> None:
+    if not duration <= max_duration_s + period_s:
+        raise RopeError(
+            _prefixed(
+                where,
+                f"{duration:.4g} s at {speed:g} mm/s exceeds the longest run of "
+                f"{max_duration_s:g} s",
+            )
+        )
 
 
 def _check_positions(act: Actuation, counts: np.ndarray, label: Any, where: str | None) -> None:
@@ -305,27 +320,39 @@ def _check_rates(
     step_time: np.ndarray,
     where: str | None,
 ) -> None:
-    """Every change from one control slot to the next within the motors' speed; the first
-    too fast one is named by the plan steps it moves through."""
-    r = 0  # the change from row r - 1 to row r is the first too fast one
-    for lo in range(0, counts.shape[0] - 1, _BLOCK_ROWS):
-        block = counts[lo : lo + _BLOCK_ROWS + 1]
-        rate = np.abs(np.diff(block, axis=0)).astype(np.float64) / period_s
-        fast = (rate > act.max_rate_counts_per_s).any(axis=1)
-        if fast.any():
-            r = lo + int(np.flatnonzero(fast)[0]) + 1
+    """Every change from one control slot to the next within the motors' speed, and
+    every change of that speed within their acceleration, from rest and to rest (the
+    time law makes it so; this checks the integers that are sent); the first offending
+    change is named by the plan steps it moves through."""
+    c = np.concatenate([counts[:1], counts, counts[-1:]], axis=0)  # at rest before, after
+    r = 0  # rows of c: the change ending at row r of c is the first offending one
+    for lo in range(0, c.shape[0] - 1, _BLOCK_ROWS):
+        block = c[lo : lo + _BLOCK_ROWS + 2]
+        d1 = np.diff(block, axis=0).astype(np.float64)
+        fast = (np.abs(d1) / period_s > act.max_rate_counts_per_s).any(axis=1)
+        hard = np.zeros_like(fast)
+        hard[1:] = (np.abs(np.diff(d1, axis=0)) / period_s**2 > act.max_accel_counts_per_s2).any(
+            axis=1
+        )
+        bad = fast | hard
+        if bad.any():
+            r = lo + int(np.flatnonzero(bad)[0]) + 1
             break
     if r == 0:
         return
-    j = int(step_of_row[r - 1])
-    first = j + 1 if abs(step_time[j] - t[r - 1]) <= _ON_STEP_S else j
-    label = _steps_label(travel, min(first, int(step_of_row[r])), int(step_of_row[r]))
+    row = min(max(r - 1, 0), counts.shape[0] - 1)  # back to rows of counts
+    prev = max(row - 1, 0)
+    j = int(step_of_row[prev])
+    first = j + 1 if abs(step_time[j] - t[prev]) <= _ON_STEP_S else j
+    label = _steps_label(travel, min(first, int(step_of_row[row])), int(step_of_row[row]))
+    lo = max(row - 2, 0)
     _raise_labelled(
-        where, label, act.check_counts, counts[r], previous=counts[r - 1], dt_s=period_s
+        where, label, act.check_counts, counts[lo : row + 1], previous=None, dt_s=period_s
     )
 
 
 __all__ = [
+    "DEFAULT_TIP_SPEED_MM_PER_S",
     "MAX_PLAN_DURATION_S",
     "MAX_PLAYBACK_ROWS",
     "PHASES",

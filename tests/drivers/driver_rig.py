@@ -68,6 +68,7 @@ class Rig:
 
     def open_box(self, log_dir: Path | None = None, **kw: Any) -> DriveSession:
         kw.setdefault("listen_s", RIG_LISTEN_S)
+        kw.setdefault("allow_uncalibrated", True)  # the rig tests the drivers, not calibration
         self.box = DriveSession(self.config, self.limits, log_dir=log_dir, **kw)
         return self.box
 

@@ -64,7 +64,8 @@ def test_log_reads_back_with_the_same_frames(
     rig = rig_factory()
     box = rig.open_box(log_dir=tmp_path, log_suffix=suffix, run_name="t")
     box.bring_up()
-    box.stream(JogSource(rig.limits, "j01r0", 30_000.0, 0.05))
+    jog = JogSource(rig.limits, "j01r0", 30_000.0, 0.05)
+    box.stream(jog)
     box.finish()
     rig.sim.stop()  # the drives fall silent (no more heartbeats): the wire's end is known
     wait_for_quiet(rig.sniffers)
@@ -98,7 +99,7 @@ def test_log_reads_back_with_the_same_frames(
     assert record["format"] == "hrm-run/1"
     assert record["motor_ids"] == ["j01r0", "j01r1", "j07r0"]
     assert record["streams"][0]["completed"] is True
-    assert record["streams"][0]["stats"]["cycles"] == 15
+    assert record["streams"][0]["stats"]["cycles"] == jog.n_cycles >= 15  # ramps: issue 10
     kinds = [e["kind"] for e in record["events"]]
     for kind in ("open", "bootup", "configured", "enabled", "stream_start", "stream_end"):
         assert kind in kinds

@@ -135,7 +135,7 @@ def test_rpdos_reach_the_wire_before_their_sync_on_a_priority_arbitrated_bus(
         sniffer = Sniffer()
         notifier = can.Notifier(sniffer_bus, [sniffer], 0.05)
         try:
-            with DriveSession(cfg, sub) as box:
+            with DriveSession(cfg, sub, allow_uncalibrated=True) as box:
                 box.bring_up()
                 sniffer.clear()
                 src = JogSource(sub, "j01r0", 50_000.0, 0.1, hold_s=0.0)
@@ -146,7 +146,7 @@ def test_rpdos_reach_the_wire_before_their_sync_on_a_priority_arbitrated_bus(
             )
             per_sync = rpdo_targets_per_sync(sniffer.snapshot(), list(range(1, 19)))
             assert [len(p) for p in per_sync[:10]] == [18] * 10
-            assert [p[1][1] for p in per_sync[:10]] == src.table[:, 0].tolist()
+            assert [p[1][1] for p in per_sync[:10]] == src.table[:10, 0].tolist()
         finally:
             notifier.stop(1.0)
             sniffer_bus.shutdown()

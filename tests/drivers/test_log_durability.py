@@ -118,7 +118,7 @@ def test_kill_9_leaves_readable_logs_with_their_start_and_all_but_the_last_quart
         t_launch = time.time()
         run = subprocess.Popen(
             _hrm(
-                "run", "--config", f"{config}", "--hold", "120",
+                "run", "--config", f"{config}", "--hold", "120", "--uncalibrated",
                 "--log-dir", f"{logs}", "--log-format", fmt,
             ),
             stdout=subprocess.DEVNULL, stderr=err, cwd=REPO,

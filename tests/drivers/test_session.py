@@ -3,13 +3,16 @@ several sources one after another (jog, hold, table, hold) without a new NMT res
 
 from __future__ import annotations
 
+import json
+import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from drivers.protocol import cia301, cia402
-from drivers.session import SessionState, SessionStateError
+from drivers.session import UNCALIBRATED, CalibrationRef, SessionState, SessionStateError
 from drivers.sources import HoldSource, JogSource, TableSource
 from tests.drivers.driver_rig import Rig, wait_until
 
@@ -123,3 +126,60 @@ def test_after_a_stop_disable_and_enable_recover_without_a_reset(
     assert box.stream(HoldSource(n_cycles=5)).completed
     assert nmt_resets(rig) == [1, 1]
     box.finish()
+
+
+# --- calibration (issue 12): no drive is enabled without one, unless overridden ------------
+
+
+def test_enable_is_refused_without_a_calibration_and_sends_nothing(
+    rig_factory: Callable[..., Rig], tmp_path: Path
+) -> None:
+    rig = rig_factory()
+    box = rig.open_box(log_dir=tmp_path, allow_uncalibrated=False)
+    with pytest.raises(SessionStateError, match=r"^bring-up refused: no calibration") as exc:
+        box.bring_up()
+    assert "\n" not in str(exc.value)
+    assert nmt_resets(rig) == [0, 0]  # refused before the NMT reset
+    assert box.state is SessionState.CONNECTED
+    box.configure()  # configuring powers nothing; enabling is what the gate refuses
+    time.sleep(0.3)  # let the sniffers take the configuration's last frames
+    for sn in rig.sniffers:
+        sn.clear()
+    with pytest.raises(SessionStateError, match=r"^enable refused: no calibration"):
+        box.enable()
+    assert box.state is SessionState.READY and not box.enabled
+    sdo_requests = [
+        m for sn in rig.sniffers for m in sn.snapshot() if 0x600 < m.arbitration_id < 0x680
+    ]
+    assert sdo_requests == []  # no controlword written: nothing sent for the refused enable
+    assert all(
+        cia402.decode_state(sw) is not cia402.State402.OPERATION_ENABLED
+        for sw in rig.sim.statuswords().values()
+    )
+    box.finish()
+    record = json.loads(box.close().read_text())  # type: ignore[union-attr]
+    rig.box = None
+    assert record["calibration"] == "none (enable refused)"
+    assert any("enable refused: no calibration" in e["text"] for e in record["events"])
+
+
+def test_the_run_record_names_the_calibration(
+    rig_factory: Callable[..., Rig], tmp_path: Path
+) -> None:
+    ref = CalibrationRef(version=7, sha256="ab" * 32, source="/store/v0007.json")
+    rig = rig_factory()
+    box = rig.open_box(log_dir=tmp_path / "a", calibration=ref, allow_uncalibrated=False)
+    box.bring_up()
+    assert box.stream(HoldSource(n_cycles=3)).completed
+    box.finish()
+    record = json.loads(box.close().read_text())  # type: ignore[union-attr]
+    assert record["calibration"] == {"version": 7, "sha256": "ab" * 32, "source": ref.source}
+    rig.box = None
+    box = rig.open_box(log_dir=tmp_path / "b")  # the rig's explicit override
+    box.bring_up()
+    box.finish()
+    record = json.loads(box.close().read_text())  # type: ignore[union-attr]
+    rig.box = None
+    assert record["calibration"] == UNCALIBRATED == "uncalibrated (override)"
+    with pytest.raises(TypeError, match="CalibrationRef"):
+        rig.open_box(calibration={"version": 1})

@@ -74,7 +74,9 @@ def run_host(
         # One box process serves the module's tests: a fault test can leave drives
         # operational that its host could no longer reach (bus off), and the next host
         # takes them over on purpose.
-        DriveSession(cfg, limits, log_dir=log_dir, take_over=True) as box,
+        DriveSession(  # the simulated box: its arm is the description's
+            cfg, limits, log_dir=log_dir, take_over=True, allow_uncalibrated=True
+        ) as box,
         TensionSensorReader(port, actuation.n_motors, stale_after_s=TENSION_STALE_S) as reader,
     ):
         for port_ in box._ports:  # see sim_bus.box.enlarge_receive_buffer

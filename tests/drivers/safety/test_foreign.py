@@ -102,7 +102,9 @@ def test_a_second_host_does_not_reset_drives_another_master_operates(
         second.close()
     first.finish()
     # An explicit take-over resets them.
-    third = type(first)(rig.config, rig.limits, listen_s=0.2, take_over=True)
+    third = type(first)(
+        rig.config, rig.limits, listen_s=0.2, take_over=True, allow_uncalibrated=True
+    )
     try:
         third.bring_up()
         assert third.state is SessionState.ENABLED

@@ -429,9 +429,10 @@ def test_a_hold_too_long_is_one_line(hold: float) -> None:
     [
         ("1000", "0.19", "more than the 400000 a playback may have"),
         ("100", "1e-300", "exceeds the longest run of 3600 s"),
-        ("100", "1e308", "faster than the motor's"),  # the whole plan within one slot
+        # (a cap faster than the motors, 1e308 mm/s, plays at their limits since issue 10:
+        # tests/hrm_ctrl/cli/test_ropes.py)
     ],
-    ids=["rows", "duration", "one-slot"],
+    ids=["rows", "duration"],
 )
 def test_a_speed_that_would_size_a_huge_table_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture, rate: str, speed: str, wanted: str
@@ -520,7 +521,7 @@ def _closed_stdout_run(argv: list[str], cwd: Path, buffered: bool) -> subprocess
 @pytest.mark.parametrize(
     "argv",
     [
-        ["plan", "--scenario", "bent-pipe", "--step", "50"],
+        ["plan", "--scenario", "bent-pipe", "--step", "50", "--allow-collision"],
         ["ropes", "plan.json", "--json"],
         ["urdf"],
         ["busload"],

@@ -35,6 +35,7 @@ def test_demo_plays_a_scenario_on_the_simulated_box(
         "angles.png",
         "arm.png",
         "backbone.png",
+        "clearance.png",
     }
     logs = summary["can_logs"]
     assert len(logs) == 2

@@ -40,6 +40,7 @@ def test_plan_scenario_writes_plan_and_figures(tmp_path: Path, capsys) -> None:
             str(out),
             "--plot",
             str(tmp_path / "fig"),
+            "--allow-collision",  # the paper plan grazes the partition's rim (-0.3 mm)
         ],
         capsys,
     )
@@ -51,6 +52,7 @@ def test_plan_scenario_writes_plan_and_figures(tmp_path: Path, capsys) -> None:
         "angles.png",
         "arm.png",
         "backbone.png",
+        "clearance.png",
     ]
 
 
@@ -196,9 +198,11 @@ def test_unwritable_out_is_one_line_and_leaves_no_figures(tmp_path: Path, capsys
             str(tmp_path / "adir"),  # a folder, not a file
             "--plot",
             str(tmp_path / "fig"),
+            "--allow-collision",
         ],
         capsys,
     )
+    err = "".join(x for x in err.splitlines(True) if "warning: " not in x)  # the collision's
     assert rc == 2 and "cannot write plan file" in err and err.count("\n") == 1
     assert not list((tmp_path / "fig").glob("*.png"))
 
@@ -207,18 +211,43 @@ def test_unwritable_plot_dir_leaves_no_plan(tmp_path: Path, capsys) -> None:
     (tmp_path / "afile").write_text("")
     out = tmp_path / "plan.json"
     rc, _, err = run(
-        ["plan", "--scenario", "cabins", "--out", str(out), "--plot", str(tmp_path / "afile")],
+        [
+            "plan",
+            "--scenario",
+            "cabins",
+            "--out",
+            str(out),
+            "--plot",
+            str(tmp_path / "afile"),
+            "--allow-collision",
+        ],
         capsys,
     )
+    err = "".join(x for x in err.splitlines(True) if "warning: " not in x)  # the collision's
     assert rc == 2 and err.count("\n") == 1 and "afile" in err
     assert not out.exists()
 
 
-def test_a_collision_is_warned_on_stderr(capsys) -> None:
-    rc, stdout, err = run(["plan", "--scenario", "bent-pipe"], capsys)
-    assert rc == 0
+def test_a_collision_is_refused_and_writes_nothing(tmp_path: Path, capsys) -> None:
+    """The bent-pipe paper plan (--fit paper) cuts the last bend with link 9 (NOTES.md)."""
+    out, fig = tmp_path / "plan.json", tmp_path / "fig"
+    argv = ["plan", "--scenario", "bent-pipe", "--fit", "paper", "--out", str(out)]
+    argv += ["--plot", str(fig)]
+    rc, stdout, err = run(argv, capsys)
+    assert rc == 2
     assert "COLLISION" in stdout
+    assert err.count("\n") == 1 and "link 9 meets an obstacle at step 135" in err
+    assert "--allow-collision" in err
+    assert not out.exists() and not fig.exists()
+    rc, stdout, err = run([*argv, "--allow-collision"], capsys)
+    assert rc == 0, err
     assert "warning: link 9 meets an obstacle at step 135" in err
+    doc = read_plan(out)
+    assert doc.clearance["min"] < 0.0 and (doc.clearance["step"], doc.clearance["link"]) == (
+        135,
+        9,
+    )
+    assert (fig / "clearance.png").exists()
 
 
 def test_plot_steps_choose_the_steps_drawn(tmp_path: Path, capsys) -> None:
@@ -234,6 +263,7 @@ def test_plot_steps_choose_the_steps_drawn(tmp_path: Path, capsys) -> None:
             str(tmp_path / "fig"),
             "--plot-steps",
             "0,60,135",
+            "--allow-collision",
         ],
         capsys,
     )

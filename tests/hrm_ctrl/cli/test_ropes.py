@@ -54,35 +54,56 @@ def test_setpoint_table_and_summary(
     out = tmp_path / "sp.csv"
     assert main(["ropes", str(write(tmp_path, plan)), "--out", str(out)]) == 0
     rows = list(csv.reader(out.open()))
-    assert rows[0] == ["step", "travel_mm", *act.motor_ids]
+    assert rows[0] == ["t_s", "step", "travel_mm", *act.motor_ids]
     assert len(rows) == 21
-    table = np.array([[int(v) for v in r[2:]] for r in rows[1:]])
+    table = np.array([[int(v) for v in r[3:]] for r in rows[1:]])
     expected = act.counts_from_angles(
         np.array([s["alpha_rad"] for s in plan["steps"]]),
         np.array([s["theta_rad"] for s in plan["steps"]]),
     )
     np.testing.assert_array_equal(table, expected)
+    t_s = np.array([float(r[0]) for r in rows[1:]])
+    assert t_s[0] == 0.0 and np.all(np.diff(t_s) > 0)  # when the playback passes each step
     text = capsys.readouterr().out
     assert "20 steps, 36 rope motors" in text and "largest travel" in text
     assert "j12r2" in text
-    # 95 mm at the default 10 mm/s, at the shipped box's 100 Hz control rate
-    assert "played at 10 mm/s: 9.500 s, 951 control cycles of 10 ms" in text
+    # 95 mm with the tip at most the default 50 mm/s, at the shipped box's 100 Hz, with the
+    # ramps from and to rest
+    assert "played with the tip at most 50 mm/s: " in text and "control cycles of 10 ms" in text
+    assert float(t_s[-1]) >= 95.0 / 50.0 and "hardest accelerating" in text
+
+
+def test_every_control_cycle_table(tmp_path: Path, act: Actuation) -> None:
+    """``--cycles``: the trajectory hrm run plays, with its time column, differentiable."""
+    from hrm_ctrl.ropes.trajectory import finite_differences
+
+    out = tmp_path / "cycles.csv"
+    assert main(["ropes", str(write(tmp_path, make_plan())), "--cycles", "--out", str(out)]) == 0
+    header, *rows = list(csv.reader(out.open()))
+    assert header[:3] == ["t_s", "step", "travel_mm"]
+    t_s = np.array([float(r[0]) for r in rows])
+    np.testing.assert_allclose(np.diff(t_s), 0.01, atol=1e-6)
+    travel = np.array([float(r[2]) for r in rows])
+    assert travel[0] == 0.0 and travel[-1] == pytest.approx(95.0) and np.all(np.diff(travel) >= 0)
+    assert np.diff(travel).max() / 0.01 <= 50.0 + 1e-6  # the tip-speed cap
+    counts = np.array([[int(v) for v in r[3:]] for r in rows])
+    v, a = finite_differences(counts, 0.01)
+    assert np.all(v <= act.max_rate_counts_per_s) and np.all(a <= act.max_accel_counts_per_s2)
 
 
 def test_json_summary(tmp_path: Path, act: Actuation, capsys: pytest.CaptureFixture) -> None:
-    assert main(["ropes", str(write(tmp_path, make_plan())), "--json"]) == 0
+    assert main(["ropes", str(write(tmp_path, make_plan())), "--json", "--speed", "10"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["steps"] == 20 and len(s["motors"]) == 36
     m = s["motors"][0]
     assert m["largest_travel_step"] == 19  # the bend grows along the plan
     assert m["largest_change_counts"] > 0
     assert 0 < m["peak_rate_counts_per_s"] < m["rate_limit_counts_per_s"]
-    assert s["playback"] == {
-        "speed_mm_per_s": 10.0,
-        "period_s": 0.01,
-        "duration_s": 9.5,
-        "cycles": 951,
-    }
+    assert 0 < m["peak_accel_counts_per_s2"] <= m["accel_limit_counts_per_s2"]
+    pb = s["playback"]
+    assert pb["speed_mm_per_s"] == 10.0 and pb["period_s"] == 0.01
+    assert 9.5 <= pb["duration_s"] <= 9.8  # 95 mm at up to 10 mm/s, from and to rest
+    assert pb["cycles"] == round(pb["duration_s"] / 0.01) + 1
 
 
 def test_a_plan_with_a_return_leg(tmp_path: Path, act: Actuation, capsys) -> None:
@@ -94,10 +115,12 @@ def test_a_plan_with_a_return_leg(tmp_path: Path, act: Actuation, capsys) -> Non
     assert main(["ropes", str(write(tmp_path, plan)), "--out", str(out), "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["steps"] == 19 and s["travel_mm"] == [0.0, 0.0]
-    assert s["playback"]["duration_s"] == pytest.approx(9.0)  # 45 mm in and 45 mm back
+    assert 1.8 <= s["playback"]["duration_s"] <= 2.2  # 45 mm in and back at up to 50 mm/s
     rows = list(csv.reader(out.open()))[1:]
-    table = np.array([[int(v) for v in r[2:]] for r in rows])
+    table = np.array([[int(v) for v in r[3:]] for r in rows])
     np.testing.assert_array_equal(table[10:], table[8::-1])  # back the way it came
+    t_s = [float(r[0]) for r in rows]
+    assert t_s[9] == pytest.approx(t_s[-1] / 2, abs=0.011)  # the far end half way
 
 
 def bad_plans() -> list[tuple[str, Any, str]]:
@@ -132,15 +155,22 @@ def test_bad_plans_one_line_no_output(
     assert not out.exists()
 
 
-def test_too_fast_for_the_motors(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_a_cap_faster_than_the_motors_plays_at_their_limits(
+    tmp_path: Path, act: Actuation, capsys: pytest.CaptureFixture
+) -> None:
+    """A tip-speed cap the motors cannot follow: the playback is as fast as their speed
+    and acceleration allow, within both (it used to be refused)."""
     plan = make_plan(n=20, scale=0.9)
     out = tmp_path / "sp.csv"
-    assert main(["ropes", str(write(tmp_path, plan)), "--out", str(out), "--speed", "5000"]) == 2
-    err = capsys.readouterr().err
-    # the first too fast control cycle moves through plan steps 1 to 10 (1 ms a step)
-    assert "plan steps 1-10 (travel 5.0-50.0 mm): motor j" in err and "faster than the motor" in err
-    assert err.count("\n") == 1
-    assert not out.exists()
+    assert main(["ropes", str(write(tmp_path, plan)), "--out", str(out), "--speed", "5000"]) == 0
+    text = capsys.readouterr().out
+    assert "played with the tip at most 5000 mm/s" in text
+    assert main(["ropes", str(write(tmp_path, plan)), "--speed", "5000", "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    rate = max(m["peak_rate_counts_per_s"] / m["rate_limit_counts_per_s"] for m in s["motors"])
+    acc = max(m["peak_accel_counts_per_s2"] / m["accel_limit_counts_per_s2"] for m in s["motors"])
+    assert 0.8 < max(rate, acc) <= 1.0 and rate <= 1.0 and acc <= 1.0  # near time-optimal
+    assert s["playback"]["duration_s"] > 95.0 / 5000 * 5
     assert main(["ropes", str(write(tmp_path, plan)), "--speed", "-1"]) == 2
     assert "--speed" in capsys.readouterr().err
 

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from hrm_ctrl.formats.planfile import validate_plan
 from hrm_ctrl.model import default_robot
+from hrm_ctrl.planning.environment import Environment, worst_clearance
 from hrm_ctrl.planning.known_path import KnownPath
 from hrm_ctrl.planning.planner import PlanOptions, plan_path
 from hrm_ctrl.planning.scenarios import scenario
@@ -77,10 +78,26 @@ def test_plan_document_is_hrm_plan_1_and_fk_consistent(planned) -> None:
     assert len(st0["joints_mm"]) == 13
 
 
-def test_cabins_pass_through_both_openings() -> None:
+def test_cabins_clearance_is_the_links_footprint_in_the_openings() -> None:
+    """The paper plan passes the entrance (along its normal) with room to spare; the end
+    link crosses the partition obliquely (the corner is rounded), so its footprint in the
+    opening is wider than its diameter: the report measures the link, not its axis point."""
     sc = scenario("cabins")
     plan = plan_path(MODEL, sc.path, scenario=sc)
-    assert plan.report["clearance_mm"]["min"] > 0.0
+    c = plan.report["clearance_mm"]
+    entrance, partition = sc.environment.obstacles
+    r = 0.5 * MODEL.outer_diameter
+    assert worst_clearance(Environment((entrance,)), plan.joints, r)[0] > 5.0
+    at_partition = worst_clearance(Environment((partition,)), plan.joints, r)
+    assert (c["min"], c["step"], c["link"]) == pytest.approx(at_partition)
+    # a dense search along that link agrees
+    O = plan.joints[c["step"], c["link"] - 1 : c["link"] + 1]
+    t = np.linspace(0.0, 1.0, 20_001)[:, None]
+    dense = sc.environment.free_distance(O[0] + t * (O[1] - O[0])).min() - r[c["link"] - 1]
+    assert c["min"] == pytest.approx(dense, abs=0.01)
+    assert len(c["per_step"]) == len(plan.travel) and min(
+        v for v in c["per_step"] if v is not None
+    ) == pytest.approx(c["min"])
 
 
 def test_bent_pipe_reports_the_link_that_cuts_the_corner() -> None:

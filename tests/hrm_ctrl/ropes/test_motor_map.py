@@ -103,3 +103,29 @@ def test_bad_motor_config(motors: dict, offsets: object, match: str) -> None:
     assert "\n" not in str(info.value)
     if offsets is None:
         assert isinstance(info.value, MotorConfigError)
+
+
+def test_acceleration_and_jerk_limits_default_and_validate(act: Actuation) -> None:
+    """``max_accel_rpm_per_s`` / ``max_jerk_rpm_per_s2``: optional (a description without
+    them gets 30 000 rpm/s and 600 000 rpm/s^2), per motor in counts, and validated like
+    the other keys."""
+    np.testing.assert_allclose(act.max_accel_counts_per_s2, 30_000.0 / 60.0 * 4096.0)
+    np.testing.assert_allclose(act.max_jerk_counts_per_s3, 600_000.0 / 60.0 * 4096.0)
+    assert (
+        act.max_accel_counts_per_s2.shape == (36,)
+        and not act.max_accel_counts_per_s2.flags.writeable
+    )
+    own = load_actuation(robot_with(motors={"max_accel_rpm_per_s": 6000.0, "gear_ratio": 10.0}))
+    np.testing.assert_allclose(own.max_accel_counts_per_s2, 6000.0 / 60.0 * 4096.0)
+    bare = load_actuation(
+        robot_with(motors={"max_accel_rpm_per_s": None, "max_jerk_rpm_per_s2": None})
+    )
+    np.testing.assert_array_equal(bare.max_accel_counts_per_s2, act.max_accel_counts_per_s2)
+    for key, value in (
+        ("max_accel_rpm_per_s", -1.0),
+        ("max_accel_rpm_per_s", float("inf")),
+        ("max_jerk_rpm_per_s2", 0.0),
+        ("max_jerk_rpm_per_s2", "fast"),
+    ):
+        with pytest.raises(MotorConfigError, match=rf"\[motors\]\.{key}: "):
+            load_actuation(robot_with(motors={key: value}))

@@ -1,0 +1,232 @@
+"""Applying a calibration: which robot it belongs to, the calibrated model and rope layer,
+and a new calibration carrying the others' results.
+
+**Which robot.**  :func:`robot_sha256` is the SHA-256 of the robot description's
+*content*, not of its file's bytes: the canonical JSON (sorted keys, floats written as
+Python writes them, so bit for bit) of every value the description holds: name, link
+lengths, outer diameters, joint limits, base position and rotation, and the raw
+``[ropes]`` and ``[motors]`` tables.  The shipped default and a ``--robot FILE`` are
+treated alike, the file's path, comments and layout do not count, and any value that
+changes makes another robot (whose calibrations are refused).  It is always taken of the
+description as loaded, never of a calibrated model (whose links differ).
+
+**Applying.**  :func:`calibrated_model` replaces the link lengths; :func:`calibrated_actuation`
+builds the rope layer from that model with the calibration's motor zero counts, per-rope
+axial rigidity and joint zero offsets (:func:`hrm_ctrl.ropes.actuation.load_actuation`:
+true angle = commanded angle + offset).
+
+**A new version.**  Every routine estimates some of the fields; :func:`updated` makes the
+next calibration from the active one with those fields replaced, so each routine's new
+version carries the other routines' results (:func:`starting_point` is the active one for
+this robot, or the description's own values).
+
+>>> from hrm_ctrl.model import default_robot
+>>> m = default_robot()
+>>> cal = nominal_calibration(m)
+>>> cal.robot_sha256 == robot_sha256(m), len(cal.motor_ids), cal.routine.value
+(True, 36, 'manual')
+>>> new = updated(cal, routine="kinematic", residuals={"rms_after_mm": 0.05},
+...               links_mm=m.links + 0.5)
+>>> float(calibrated_model(m, new).links[0]), new.routine.value, dict(new.rope_EA_N) == dict(
+...     cal.rope_EA_N)
+(179.5, 'kinematic', True)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Mapping
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+
+from calibration.store import Calibration, CalibrationStore, Routine, checksum
+from hrm_ctrl.errors import CalibrationFileError
+from hrm_ctrl.model import RobotModel
+from hrm_ctrl.ropes.actuation import Actuation, load_actuation
+from hrm_ctrl.ropes.routing import routing_from_model
+
+UPDATABLE = frozenset(
+    {"links_mm", "alpha_offset_rad", "theta_offset_rad", "motor_zero_counts", "rope_EA_N"}
+)
+"""The fields a routine may replace (:func:`updated`)."""
+
+
+def _plain(value: Any) -> Any:
+    """Plain JSON types (numpy arrays and scalars, tuples, mappings)."""
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def robot_content(model: RobotModel) -> dict[str, Any]:
+    """The values of a robot description that :func:`robot_sha256` covers."""
+    return {
+        "name": model.name,
+        "links_mm": _plain(model.links),
+        "outer_diameter_mm": _plain(model.outer_diameter),
+        "limit_alpha_rad": float(model.limit_alpha),
+        "limit_theta_rad": float(model.limit_theta),
+        "base_position_mm": _plain(model.base_position),
+        "base_rotation": _plain(model.base_rotation),
+        "tables": _plain(model.tables),
+    }
+
+
+def robot_sha256(model: RobotModel) -> str:
+    """SHA-256 (64 lower-case hex digits) of the description's content (module docstring).
+
+    >>> import dataclasses
+    >>> from hrm_ctrl.model import default_robot
+    >>> m = default_robot()
+    >>> robot_sha256(m) == robot_sha256(dataclasses.replace(m, source="elsewhere.toml"))
+    True
+    >>> robot_sha256(m) == robot_sha256(dataclasses.replace(m, name="other"))
+    False
+    """
+    text = json.dumps(
+        robot_content(model),
+        sort_keys=True,
+        separators=(",", ":"),
+        ensure_ascii=True,
+        allow_nan=True,
+        default=str,  # a TOML date or time in a raw table
+    )
+    return hashlib.sha256(text.encode("ascii")).hexdigest()
+
+
+def nominal_calibration(model: RobotModel, routine: Routine = Routine.MANUAL) -> Calibration:
+    """The description's own values as a calibration: its links, zero offsets, zero motor
+    counts and the routing's axial rigidity per rope."""
+    routing = routing_from_model(model)
+    return Calibration.nominal(
+        links_mm=model.links,
+        motor_ids=routing.rope_ids,
+        rope_EA_N=dict(zip(routing.rope_ids, routing.stiffness_EA_N.tolist(), strict=True)),
+        robot_sha256=robot_sha256(model),
+        routine=routine,
+    )
+
+
+def file_sha256(cal: Calibration, version: int) -> str:
+    """The ``sha256`` member of version ``version``'s file (its checksum)."""
+    return checksum({**cal.content(), "version": version})
+
+
+def check_belongs(model: RobotModel, cal: Calibration, where: str = "calibration") -> None:
+    """Refuse (:class:`CalibrationFileError`, one line) a calibration for another robot
+    description, or one whose motors and ropes are not the description's."""
+    sha = robot_sha256(model)
+    if cal.robot_sha256 != sha:
+        raise CalibrationFileError(
+            f"{where}: belongs to robot description {cal.robot_sha256[:12]}…, not to this one "
+            f"({model.source}, {sha[:12]}…)"
+        )
+    ids = routing_from_model(model).rope_ids
+    for what, have in (("motor_zero_counts", cal.motor_ids), ("rope_EA_N", cal.rope_ids)):
+        if set(have) != set(ids):
+            extra = sorted(set(have) - set(ids))[:4]
+            missing = [i for i in ids if i not in have][:4]
+            raise CalibrationFileError(
+                f"{where}: {what} does not name the description's ropes (unknown {extra}, "
+                f"missing {missing})"
+            )
+
+
+def calibrated_model(model: RobotModel, cal: Calibration) -> RobotModel:
+    """``model`` with the calibration's link lengths (everything else as described)."""
+    if cal.links_mm.shape != model.links.shape:
+        raise CalibrationFileError(
+            f"calibration has {cal.links_mm.shape[0]} links, the description {model.n_joints}"
+        )
+    links = np.array(cal.links_mm, dtype=float)
+    links.setflags(write=False)
+    return dataclasses.replace(model, links=links)
+
+
+def calibrated_actuation(model: RobotModel, cal: Calibration) -> Actuation:
+    """The rope layer of the calibrated arm: calibrated links, the motor zero counts, the
+    per-rope axial rigidity and the joint zero offsets of ``cal``."""
+    return load_actuation(
+        calibrated_model(model, cal),
+        dict(cal.motor_zero_counts),
+        rope_EA_N=dict(cal.rope_EA_N),
+        alpha_offset_rad=cal.alpha_offset_rad,
+        theta_offset_rad=cal.theta_offset_rad,
+    )
+
+
+def updated(
+    base: Calibration,
+    *,
+    routine: Routine | str,
+    residuals: Mapping[str, float],
+    **fields: Any,
+) -> Calibration:
+    """A new calibration from ``base``: the routine's ``fields`` (of :data:`UPDATABLE`)
+    replaced, its ``routine`` and ``residuals``, created now; every other field, and the
+    robot it belongs to, carried over.  A field not in :data:`UPDATABLE` is a TypeError."""
+    unknown = sorted(set(fields) - UPDATABLE)
+    if unknown:
+        raise TypeError(f"updated(): {unknown} are not fields a routine replaces")
+    return dataclasses.replace(
+        base,
+        routine=Routine(routine),
+        residuals=dict(residuals),
+        created_utc=datetime.now(UTC),
+        **fields,
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class ActiveCalibration:
+    """The active calibration of a store for one robot, or None when there is none."""
+
+    calibration: Calibration
+    version: int
+    path: str
+    sha256: str  # the file's checksum
+
+
+def active_for(store: CalibrationStore, model: RobotModel) -> ActiveCalibration | None:
+    """The store's active calibration, checked and refused unless it belongs to ``model``
+    (:class:`CalibrationFileError`, one line); None when no version is active."""
+    version = store.active()
+    if version is None:
+        return None
+    cal = store.load(version)
+    path = str(store.path_of(version))
+    check_belongs(model, cal, path)
+    return ActiveCalibration(cal, version, path, file_sha256(cal, version))
+
+
+def starting_point(
+    store: CalibrationStore, model: RobotModel
+) -> tuple[Calibration, ActiveCalibration | None, str | None]:
+    """What a routine's new version starts from: the active calibration for ``model``, or
+    the description's values.  Returns ``(base, active, note)``: ``note`` says why the
+    description's values are used (no active version, or the active one belongs to another
+    robot description).  A damaged active file is refused."""
+    version = store.active()
+    if version is None:
+        return nominal_calibration(model), None, "no active calibration: the description's values"
+    cal = store.load(version)  # a damaged file is refused here
+    path = str(store.path_of(version))
+    if cal.robot_sha256 != robot_sha256(model):
+        return (
+            nominal_calibration(model),
+            None,
+            f"{path} (active) belongs to robot description {cal.robot_sha256[:12]}…: "
+            "starting from this description's values",
+        )
+    check_belongs(model, cal, path)
+    return cal, ActiveCalibration(cal, version, path, file_sha256(cal, version)), None

@@ -1,0 +1,355 @@
+"""``hrm calibrate zero`` and ``hrm calibrate stiffness``: the rope-tension routines
+(issue 12), sub-commands of ``hrm calibrate`` (:mod:`hrm_ctrl.cli.calibrate` calls
+:func:`register`).
+
+Both run with the arm lying in its straight zero fixture (the parking tube: every
+physical joint angle held at 0, so each rope's tension depends on its own motor only);
+with ``--sim`` the simulated arm is put into its fixture (the technician lays the arm in
+the tube), with ``--config BOX.toml`` the real arm must lie in it.  The tension board is
+the configuration's ``[tension]`` port (with ``--sim`` the simulated box's board).  The
+feedback watches of ``hrm run`` do not run (a slack rope is what the zero routine starts
+from, and the fixture holds the arm against its ropes): the routines guard the tensions
+themselves (:class:`calibration.zero.TensionGuard`).
+
+* ``zero``: :func:`calibration.zero.pretension_and_zero`; every motor's count at the
+  target tension (``--target-N``, default the pretension) becomes its zero;
+* ``stiffness``: :func:`calibration.stiffness.estimate_rope_stiffness` from the active
+  zero; every rope's EA.
+
+Each starts from the active calibration for this robot (the description's values when
+there is none), prints a line per rope group and a summary, and saves a new version with
+its own fields replaced (``calibration.apply.updated``), or with ``--out FILE`` writes that
+one file.  A refusal (a slack or snapped rope, a tension over its limit, a saturated or
+invalid sensor) is one line, exit 2, nothing saved.  The zero routine may run on drives
+without a calibration (it is how the first one is made: its moves are small and guarded
+by the tension sensors); the stiffness routine needs one unless ``--sim`` or
+``--uncalibrated``.
+
+>>> import argparse
+>>> p = argparse.ArgumentParser(prog="hrm calibrate")
+>>> register(p.add_subparsers(dest="calibrate"))
+>>> a = p.parse_args(["zero", "--sim", "--perturb", "3", "--target-N", "25"])
+>>> a.calibrate, a.sim, a.perturb, a.target_N
+('zero', True, 3, 25.0)
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hrm_ctrl.cli._common import (
+    Input,
+    Output,
+    add_calibration_arguments,
+    add_robot_argument,
+    calibrations_folder,
+    config_input,
+    refuse_overwriting_inputs,
+    robot_input,
+    shipped_inputs,
+)
+from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    add_robot_argument(p)
+    add_calibration_arguments(p)
+    p.add_argument("--sim", action="store_true", help="the in-process simulated box")
+    p.add_argument(
+        "--perturb", type=int, default=None, metavar="SEED",
+        help="with --sim: a simulated arm that differs from its description (seeded)",
+    )  # fmt: skip
+    p.add_argument("--config", type=Path, default=None, metavar="BOX.toml", help="bus config")
+    p.add_argument("--out", type=Path, metavar="FILE", help="write this one calibration file")
+    p.add_argument(
+        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
+        help="the run record and CAN logs (default ./runs)",
+    )  # fmt: skip
+    p.add_argument(
+        "--uncalibrated", action="store_true",
+        help="on real drives without a calibration: enable them anyway (explicit override)",
+    )  # fmt: skip
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def register(subparsers: Any) -> None:
+    """Add ``zero`` and ``stiffness`` to ``hrm calibrate``'s sub-commands."""
+    p = subparsers.add_parser(
+        "zero",
+        help="pretension every rope in the zero fixture and record the motor zeros",
+        description="pretension every rope in the zero fixture and record the motor zeros",
+    )
+    _arguments(p)
+    p.add_argument(
+        "--target-N", type=float, default=None, metavar="N",
+        help="target tension (default the routing's pretension)",
+    )  # fmt: skip
+    p.add_argument(
+        "--tol-N", type=float, default=None, metavar="N", help="tension tolerance (default 0.2)"
+    )
+    p.add_argument(
+        "--max-travel-counts", type=int, default=None, metavar="COUNTS",
+        help="longest travel of a motor from where it starts (default 12000)",
+    )  # fmt: skip
+    p.set_defaults(_run=run_zero)
+
+    p = subparsers.add_parser(
+        "stiffness",
+        help="each rope's EA from tension sweeps in the zero fixture",
+        description="each rope's EA from tension sweeps in the zero fixture",
+    )
+    _arguments(p)
+    p.add_argument(
+        "--sweep-N", type=float, default=None, metavar="N",
+        help="tension each sweep spans above the pretension (default 10)",
+    )  # fmt: skip
+    p.add_argument(
+        "--steps", type=int, default=None, metavar="K", help="readings per sweep (default 5)"
+    )
+    p.set_defaults(_run=run_stiffness)
+
+
+def _check(args: argparse.Namespace) -> None:
+    if args.sim == (args.config is not None):
+        raise CalibrationDataError(f"{args.calibrate}: give --sim or --config BOX.toml")
+    if args.perturb is not None and not args.sim:
+        raise CalibrationDataError("--perturb goes with --sim")
+    for name in ("target_N", "tol_N", "sweep_N"):
+        v = getattr(args, name, None)
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise CalibrationDataError(f"--{name.replace('_', '-')} must be > 0, got {v}")
+
+
+def _write_file(path: Path, text: str) -> None:
+    from hrm_ctrl.files import write_atomic
+
+    try:
+        write_atomic(path, text)
+    except OSError as exc:
+        raise CalibrationFileError(f"{path}: cannot write ({exc.strerror or exc})") from None
+
+
+def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any, Any, Any]:
+    """Open the store and the box (``--sim``: the simulated one, its arm in the fixture),
+    bring the drives up and run ``routine(session, reader, actuation)``; return
+    ``(result, base calibration, store)``."""
+    from calibration.apply import calibrated_actuation, starting_point
+    from calibration.store import CalibrationStore
+    from drivers.bus import ensure_log_dir
+    from drivers.config import load_box_config
+    from drivers.interrupts import deferred_interrupts
+    from drivers.session import CalibrationRef, DriveSession
+    from drivers.tension_sensor import TensionSensorReader
+    from hrm_ctrl.model import load_robot
+    from hrm_ctrl.ropes.actuation import load_actuation
+
+    store = CalibrationStore(calibrations_folder(args.calibrations))
+    active_file = store.path_of(store.active()) if store.active() is not None else None
+    refuse_overwriting_inputs(  # before anything is read or written
+        [Output("--out", args.out), Output("--log-dir", args.log_dir)],
+        [
+            robot_input(args.robot),
+            Input("active calibration", active_file),
+            config_input(args.config),
+            *shipped_inputs(eds=True),
+        ],
+    )
+    description = load_robot(args.robot)
+    config = load_box_config(args.config)
+    base, active, note = starting_point(store, description)
+    if note is not None:
+        print(f"{prog}: {note}", file=sys.stderr)
+    actuation = calibrated_actuation(description, base)
+    config.check_motors(actuation.motor_ids)
+    ensure_log_dir(args.log_dir)
+    ref = None if active is None else CalibrationRef(active.version, active.sha256, active.path)
+    allow = args.sim or args.uncalibrated or args.calibrate == "zero"
+    if ref is None and not allow:
+        raise CalibrationFileError(
+            f"{store.folder}: no calibration for this robot: run hrm calibrate zero first "
+            "(or --uncalibrated to enable the drives anyway)"
+        )
+    if ref is None:
+        print(f"{prog}: drives enabled without a calibration (this routine makes one)",
+              file=sys.stderr)  # fmt: skip
+
+    sim = None
+    if args.sim:
+        from hrm_ctrl.cli._simwire import calibration_counts, start_in_process_sim
+        from sim_bus.truth import TrueArm
+
+        physical = load_actuation(description)  # the simulated arm: its description ...
+        truth = None if args.perturb is None else TrueArm.perturbed(physical, args.perturb)
+        config, sim = start_in_process_sim(  # ... or a perturbed one, in its fixture
+            config,
+            physical,
+            prog=prog,
+            truth=truth,
+            fixture=True,
+            initial_counts=calibration_counts(None if active is None else base, physical),
+        )
+    else:
+        print(f"{prog}: the arm must lie in its zero fixture (parking tube)", file=sys.stderr)
+    try:
+        t = config.tension
+        if t is None:
+            raise CalibrationDataError(
+                f"{config.source}: no [tension] table: {args.calibrate} needs the tension sensors"
+            )
+        with contextlib.ExitStack() as stack:
+            reader = stack.enter_context(
+                TensionSensorReader(
+                    t.port, actuation.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
+                )
+            )
+            with deferred_interrupts():  # the session is open and entered, or not at all
+                box = stack.enter_context(
+                    DriveSession(
+                        config,
+                        actuation,
+                        log_dir=args.log_dir,
+                        calibration=ref,
+                        allow_uncalibrated=allow,
+                    )
+                )
+                box.record_extra = {"routine": args.calibrate, "simulated_box": bool(args.sim)}
+            box.bring_up()
+            result = routine(box, reader, actuation)
+    finally:
+        if sim is not None:
+            sim.stop()
+    return result, base, store
+
+
+def _save(args: argparse.Namespace, store: Any, new: Any) -> tuple[int, str]:
+    from calibration.store import to_json
+
+    if args.out is not None:
+        version = max(store.versions(), default=0) + 1  # the number it would have in the store
+        _write_file(args.out, to_json(new, version))
+        return version, f"written to {args.out} (not in the store)"
+    version = store.save(new)
+    return version, f"saved as v{version:04d} in {store.folder} (active)"
+
+
+def _progress(args: argparse.Namespace) -> Any:
+    stream = sys.stderr if args.json else sys.stdout
+    return lambda line: print(line, file=stream, flush=True)
+
+
+def run_zero(args: argparse.Namespace) -> int:
+    from calibration.apply import updated
+    from calibration.store import Routine
+    from calibration.zero import pretension_and_zero
+
+    prog = "hrm calibrate zero"
+    _check(args)
+    kw: dict[str, Any] = {}
+    if args.tol_N is not None:
+        kw["tol_N"] = args.tol_N
+    if args.max_travel_counts is not None:
+        if args.max_travel_counts <= 0:
+            raise CalibrationDataError(
+                f"--max-travel-counts must be > 0, got {args.max_travel_counts}"
+            )
+        kw["max_travel_counts"] = args.max_travel_counts
+    t0 = time.monotonic()
+
+    def routine(box: Any, reader: Any, actuation: Any) -> Any:
+        return pretension_and_zero(
+            box, reader, actuation, target_N=args.target_N, progress=_progress(args), **kw
+        )
+
+    result, base, store = _session_run(args, prog, routine)
+    zeros = {m: int(v) for m, v in zip(result.motor_ids, result.zero_counts, strict=True)}
+    residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
+    new = updated(base, routine=Routine.ZERO, residuals=residuals, motor_zero_counts=zeros)
+    version, where = _save(args, store, new)
+    shift = result.zero_shift_counts
+    worst = int(np.argmax(np.abs(shift)))
+    err = np.abs(result.tension_error_N)
+    summary = {
+        "motors": len(result.motor_ids),
+        "target_N": result.target_N,
+        "tol_N": result.tol_N,
+        "max_abs_zero_shift_counts": int(abs(shift[worst])),
+        "max_shift_motor": result.motor_ids[worst],
+        "max_abs_tension_error_N": float(err.max()),
+        "moves": result.moves,
+        "routine_s": result.elapsed_s,
+        "total_s": time.monotonic() - t0,
+        "version": version,
+        "file": where,
+        "zero_counts": zeros,
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"zero: {len(result.motor_ids)} motors at {result.target_N:g} N: max |zero - before| "
+            f"{abs(int(shift[worst]))} counts ({result.motor_ids[worst]}), final tension error "
+            f"max {err.max():.3f} N (tol {result.tol_N:g}), {result.moves} moves, "
+            f"{result.elapsed_s:.1f} s"
+        )
+        print(f"calibration {where}")
+    return 0
+
+
+def run_stiffness(args: argparse.Namespace) -> int:
+    from calibration.apply import updated
+    from calibration.stiffness import estimate_rope_stiffness
+    from calibration.store import Routine
+
+    prog = "hrm calibrate stiffness"
+    _check(args)
+    kw: dict[str, Any] = {}
+    if args.sweep_N is not None:
+        kw["sweep_N"] = args.sweep_N
+    if args.steps is not None:
+        kw["steps"] = args.steps
+    t0 = time.monotonic()
+
+    def routine(box: Any, reader: Any, actuation: Any) -> Any:
+        return estimate_rope_stiffness(box, reader, actuation, progress=_progress(args), **kw)
+
+    result, base, store = _session_run(args, prog, routine)
+    ea = {m: float(v) for m, v in zip(result.motor_ids, result.EA_N, strict=True)}
+    residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
+    new = updated(base, routine=Routine.STIFFNESS, residuals=residuals, rope_EA_N=ea)
+    version, where = _save(args, store, new)
+    rel = result.EA_sigma_N / result.EA_N
+    change = result.EA_N / result.before_EA_N - 1.0
+    worst = int(np.nanargmax(np.abs(change)))
+    summary = {
+        "ropes": len(result.motor_ids),
+        "max_rel_sigma_EA": float(np.nanmax(rel)),
+        "max_rel_change_EA": float(abs(change[worst])),
+        "max_change_rope": result.motor_ids[worst],
+        "max_fit_rms_N": float(np.nanmax(result.fit_rms_N)),
+        "moves": result.moves,
+        "routine_s": result.elapsed_s,
+        "total_s": time.monotonic() - t0,
+        "version": version,
+        "file": where,
+        "rope_EA_N": ea,
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"stiffness: {len(result.motor_ids)} ropes: EA {result.EA_N.min():.0f} .. "
+            f"{result.EA_N.max():.0f} N, sigma at most {100 * np.nanmax(rel):.2f} %, largest "
+            f"change {100 * change[worst]:+.1f} % ({result.motor_ids[worst]}), "
+            f"{result.moves} moves, {result.elapsed_s:.1f} s"
+        )
+        print(f"calibration {where}")
+    return 0

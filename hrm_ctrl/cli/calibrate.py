@@ -1,0 +1,534 @@
+"""``hrm calibrate``: the calibration store and the calibration routines (issue 12).
+
+Sub-commands:
+
+* ``show [--json]``: the active calibration for this robot description, every field and
+  the routine's residuals;
+* ``history [--json]``: every version in the store (time, routine, robot, the active
+  mark; a damaged file is listed with its problem);
+* ``use VERSION``: make an older version active (it must load and belong to this robot);
+* ``kinematic DATA.csv [--estimate-frame]``: fit link lengths and joint zero offsets (and
+  the instrument's frame) to a pose file (``calibration.kinematic``: header
+  ``alpha_1_rad..alpha_12_rad,theta_1_rad..theta_12_rad,x_mm,y_mm,z_mm``, the commanded
+  angles, true angle = commanded + offset), print the residuals before and after and each
+  parameter's standard deviation, and save a new version (or, with ``--out FILE``, write
+  that one file instead); data that leave the fit ill-conditioned are refused, naming the
+  parameters that are not observable;
+* ``kinematic --collect N (--sim [--perturb SEED] | --config BOX.toml)``: drive the arm
+  through N well-spread configurations, read the laser tracker at each (its own frame:
+  ``--estimate-frame`` implied), write the poses as a pose file into ``--log-dir`` beside
+  the run record, and fit them as above;
+* ``zero``, ``stiffness``: the rope-tension routines (``hrm_ctrl.cli._calibrate_tension``).
+
+Every routine starts from the active calibration for this robot (the description's values
+when there is none) and saves a new version with its own fields replaced, the others
+carried over (``calibration.apply.updated``).  The store is ``--calibrations DIR``, else
+``$HRM_CALIBRATIONS``, else ``~/.local/share/hrm/calibrations``.
+
+>>> import argparse
+>>> p = argparse.ArgumentParser(prog="hrm calibrate")
+>>> register(p)
+>>> a = p.parse_args(["kinematic", "poses.csv", "--estimate-frame"])
+>>> a.calibrate, str(a.data), a.estimate_frame, a.collect
+('kinematic', 'poses.csv', True, None)
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hrm_ctrl.cli._calibrate_tension import register as register_tension_routines
+from hrm_ctrl.cli._common import (
+    Input,
+    Output,
+    add_calibration_arguments,
+    add_robot_argument,
+    calibrations_folder,
+    config_input,
+    refuse_overwriting_inputs,
+    robot_input,
+    shipped_inputs,
+)
+from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
+
+HELP = "calibration: the store (show, history, use) and the routines (kinematic, zero, stiffness)"
+DEFAULT_SAMPLES = 10
+MAX_COLLECT = 1000
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    add_robot_argument(p)
+    add_calibration_arguments(p)
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(
+        dest="calibrate", metavar="ROUTINE", required=True, parser_class=type(parser)
+    )
+    p = sub.add_parser("show", help="the active calibration for this robot (every field)")
+    _common(p)
+    p.add_argument("--json", action="store_true", help="print it as JSON")
+    p.set_defaults(_run=run_show)
+
+    p = sub.add_parser("history", help="every version in the store")
+    _common(p)
+    p.add_argument("--json", action="store_true", help="print it as JSON")
+    p.set_defaults(_run=run_history)
+
+    p = sub.add_parser("use", help="make VERSION the active calibration")
+    p.add_argument("version", type=int, metavar="VERSION")
+    _common(p)
+    p.set_defaults(_run=run_use)
+
+    p = sub.add_parser(
+        "kinematic",
+        help="link lengths and joint zero offsets from measured end points (least squares)",
+    )
+    p.add_argument("data", nargs="?", type=Path, metavar="DATA.csv", help="pose file")
+    _common(p)
+    p.add_argument("--out", type=Path, metavar="FILE", help="write this one calibration file")
+    p.add_argument(
+        "--estimate-frame", action="store_true",
+        help="fit the instrument's pose too (its points are not in the base frame)",
+    )  # fmt: skip
+    p.add_argument(
+        "--sigma-mm", type=float, default=None, metavar="MM",
+        help="instrument noise per coordinate for the observability check (default 0.05; "
+        "with --collect divided by the square root of --samples)",
+    )  # fmt: skip
+    p.add_argument(
+        "--collect", type=int, default=None, metavar="N",
+        help="drive the arm through N well-spread configurations and read the tracker",
+    )  # fmt: skip
+    p.add_argument("--sim", action="store_true", help="with --collect: the simulated box")
+    p.add_argument(
+        "--perturb", type=int, default=None, metavar="SEED",
+        help="with --sim: a simulated arm that differs from its description (seeded)",
+    )  # fmt: skip
+    p.add_argument("--config", type=Path, default=None, metavar="BOX.toml", help="bus config")
+    p.add_argument(
+        "--samples", type=int, default=DEFAULT_SAMPLES, metavar="N",
+        help=f"tracker readings averaged per pose (default {DEFAULT_SAMPLES})",
+    )  # fmt: skip
+    p.add_argument("--seed", type=int, default=0, help="of the configurations (default 0)")
+    p.add_argument(
+        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
+        help="with --collect: the run record, CAN logs and pose file (default ./runs)",
+    )  # fmt: skip
+    p.add_argument(
+        "--uncalibrated", action="store_true",
+        help="with --collect on real drives: enable them without a calibration (override)",
+    )  # fmt: skip
+    p.add_argument("--json", action="store_true", help="print the fit as JSON")
+    p.set_defaults(_run=run_kinematic)
+
+    register_tension_routines(sub)  # zero, stiffness
+
+
+def run(args: argparse.Namespace) -> int:  # every sub-command sets its own _run
+    raise CalibrationDataError("hrm calibrate: give a sub-command (show, history, use, ...)")
+
+
+# ---- the store ----------------------------------------------------------------------------
+
+
+def _store(args: argparse.Namespace) -> Any:
+    from calibration.store import CalibrationStore
+
+    return CalibrationStore(calibrations_folder(args.calibrations))
+
+
+def _description(args: argparse.Namespace) -> Any:
+    from hrm_ctrl.model import load_robot
+
+    return load_robot(args.robot)
+
+
+def calibration_dict(cal: Any, version: int | None, path: str | None) -> dict[str, Any]:
+    """A calibration as JSON: the file's members (and where it is)."""
+    from calibration.apply import file_sha256
+
+    doc: dict[str, Any] = {"version": version, "path": path}
+    doc.update(cal.content())
+    if version is not None:
+        doc["sha256"] = file_sha256(cal, version)
+    return doc
+
+
+def format_calibration(cal: Any, description: Any, version: int, path: str) -> str:
+    """The human-readable ``show``: header, a line per joint, per motor, the residuals."""
+    lines = [
+        f"calibration v{version:04d} (active): {cal.routine.value}, "
+        f"{cal.created_utc.isoformat(timespec='seconds')}",
+        f"file {path}",
+        f"robot description {cal.robot_sha256[:12]}… ({description.source})",
+        f"{'joint':>5} {'link mm':>10} {'(descr.)':>9} {'alpha offset deg':>17} "
+        f"{'theta offset deg':>17}",
+    ]
+    for j in range(len(cal.links_mm)):
+        lines.append(
+            f"{j + 1:>5} {cal.links_mm[j]:>10.4f} {description.links[j]:>9.3f} "
+            f"{math.degrees(cal.alpha_offset_rad[j]):>17.5f} "
+            f"{math.degrees(cal.theta_offset_rad[j]):>17.5f}"
+        )
+    lines.append(f"{'motor':>6} {'zero counts':>12} {'EA N':>10}")
+    for m in cal.motor_ids:
+        ea = cal.rope_EA_N.get(m)
+        lines.append(f"{m:>6} {cal.motor_zero_counts[m]:>12} {'' if ea is None else f'{ea:10.1f}'}")
+    res = ", ".join(f"{k} {v:.6g}" for k, v in cal.residuals.items()) or "none"
+    lines.append(f"residuals: {res}")
+    return "\n".join(lines)
+
+
+def run_show(args: argparse.Namespace) -> int:
+    from calibration.apply import active_for
+
+    store = _store(args)
+    description = _description(args)
+    active = active_for(store, description)
+    if active is None:
+        raise CalibrationFileError(f"{store.folder}: no active calibration")
+    if args.json:
+        print(json.dumps(calibration_dict(active.calibration, active.version, active.path)))
+    else:
+        print(format_calibration(active.calibration, description, active.version, active.path))
+    return 0
+
+
+def run_history(args: argparse.Namespace) -> int:
+    from calibration.apply import robot_sha256
+
+    store = _store(args)
+    mine = robot_sha256(_description(args))
+    rows = []
+    for h in store.history():
+        cal = h.calibration
+        rows.append(
+            {
+                "version": h.version,
+                "active": h.active,
+                "path": str(h.path),
+                "created_utc": None if cal is None else cal.created_utc.isoformat(),
+                "routine": None if cal is None else cal.routine.value,
+                "robot_sha256": None if cal is None else cal.robot_sha256,
+                "this_robot": None if cal is None else cal.robot_sha256 == mine,
+                "problem": h.problem,
+            }
+        )
+    if args.json:
+        print(json.dumps({"store": str(store.folder), "versions": rows}))
+        return 0
+    if not rows:
+        print(f"{store.folder}: no calibration yet")
+        return 0
+    for r in rows:
+        mark = "*" if r["active"] else " "
+        if r["problem"] is not None:
+            print(f"{mark} v{r['version']:04d}  refused: {r['problem']}")
+            continue
+        robot = r["robot_sha256"][:12] + "…" + ("" if r["this_robot"] else " (another robot)")
+        print(
+            f"{mark} v{r['version']:04d}  {r['created_utc'][:19]}Z  {r['routine']:<9}  "
+            f"robot {robot}"
+        )
+    return 0
+
+
+def run_use(args: argparse.Namespace) -> int:
+    from calibration.apply import check_belongs, robot_sha256
+
+    store = _store(args)
+    description = _description(args)
+    check_belongs(description, store.load(args.version), str(store.path_of(args.version)))
+    store.use(args.version, robot_sha256(description))
+    print(f"active: v{args.version:04d} ({store.path_of(args.version)})")
+    return 0
+
+
+# ---- the kinematic routine ----------------------------------------------------------------
+
+
+def fit_report(fit: Any) -> dict[str, Any]:
+    """The fit as JSON: residuals, every parameter with its standard deviation."""
+    return {
+        "n_poses": fit.n_poses,
+        "rms_before_mm": fit.rms_before_mm,
+        "max_before_mm": fit.max_before_mm,
+        "rms_after_mm": fit.rms_after_mm,
+        "max_after_mm": fit.max_after_mm,
+        "sigma_mm": fit.sigma_mm,
+        "params": dict(fit.params),
+        "std": dict(fit.std),
+        "fixed": dict(fit.fixed),
+        "links_mm": fit.links_mm.tolist(),
+    }
+
+
+def format_fit(fit: Any) -> str:
+    """Residuals before and after, then each parameter and its standard deviation."""
+    from calibration.kinematic import ALPHA_NAMES, FRAME_NAMES, LINK_NAMES, THETA_NAMES
+
+    def cell(name: str, scale: float, digits: int) -> str:
+        if name in fit.fixed:
+            return f"{'fixed':>{digits + 14}}"
+        v, s = fit.params[name] * scale, fit.std[name] * scale
+        return f"{v:>+{digits + 5}.{digits}f} ± {s:<{digits + 2}.{digits}f}"
+
+    deg = math.degrees(1.0)
+    lines = [
+        f"{fit.n_poses} poses: residual rms {fit.rms_before_mm:.4f} mm (max "
+        f"{fit.max_before_mm:.4f}) before, {fit.rms_after_mm:.4f} mm (max "
+        f"{fit.max_after_mm:.4f}) after; sigma {fit.sigma_mm:.4f} mm per coordinate",
+        f"{'joint':>5} {'link correction mm':>22} {'alpha offset deg':>22} "
+        f"{'theta offset deg':>22}",
+    ]
+    for j in range(len(LINK_NAMES)):
+        lines.append(
+            f"{j + 1:>5} {cell(LINK_NAMES[j], 1.0, 4)} {cell(ALPHA_NAMES[j], deg, 4)} "
+            f"{cell(THETA_NAMES[j], deg, 4)}"
+        )
+    if fit.frame_rotation is not None:
+        frame = ", ".join(
+            f"{n} {fit.params[n]:.6g} ± {fit.std[n]:.2g}" for n in FRAME_NAMES if n in fit.std
+        )
+        lines.append(f"instrument frame (rad, mm): {frame}")
+    for name, why in fit.fixed.items():
+        lines.append(f"{name} fixed: {why}")
+    return "\n".join(lines)
+
+
+def _residuals(fit: Any) -> dict[str, float]:
+    from calibration.kinematic import ALPHA_NAMES, LINK_NAMES, THETA_NAMES
+
+    links = [fit.std[n] for n in LINK_NAMES if n in fit.std]
+    offsets = [fit.std[n] for n in (*ALPHA_NAMES, *THETA_NAMES) if n in fit.std]
+    out = {
+        "n_poses": float(fit.n_poses),
+        "rms_before_mm": fit.rms_before_mm,
+        "max_before_mm": fit.max_before_mm,
+        "rms_after_mm": fit.rms_after_mm,
+        "max_after_mm": fit.max_after_mm,
+        "sigma_mm": fit.sigma_mm,
+        "max_std_link_mm": max(links),
+        "max_std_offset_rad": max(offsets),
+    }
+    for name, value in fit.params.items():
+        if name.startswith("frame_"):
+            out[name] = value
+    return out
+
+
+def kinematic_calibration(base: Any, fit: Any) -> Any:
+    """The next calibration from ``base`` with the fit's links and offsets; a parameter the
+    fit held fixed (``alpha_offset_1`` with a free instrument frame) keeps ``base``'s."""
+    from calibration.apply import updated
+    from calibration.kinematic import ALPHA_NAMES, THETA_NAMES
+    from calibration.store import Routine
+
+    alpha = np.array(fit.alpha_offset_rad, dtype=float)
+    theta = np.array(fit.theta_offset_rad, dtype=float)
+    for j, name in enumerate(ALPHA_NAMES):
+        if name in fit.fixed:
+            alpha[j] = base.alpha_offset_rad[j]
+    for j, name in enumerate(THETA_NAMES):
+        if name in fit.fixed:
+            theta[j] = base.theta_offset_rad[j]
+    return updated(
+        base,
+        routine=Routine.KINEMATIC,
+        residuals=_residuals(fit),
+        links_mm=np.array(fit.links_mm, dtype=float),
+        alpha_offset_rad=alpha,
+        theta_offset_rad=theta,
+    )
+
+
+def _check_kinematic_args(args: argparse.Namespace) -> None:
+    if args.collect is None:
+        if args.data is None:
+            raise CalibrationDataError("kinematic: give DATA.csv or --collect N")
+        for flag, given in (("--sim", args.sim), ("--perturb", args.perturb is not None)):
+            if given:
+                raise CalibrationDataError(f"kinematic: {flag} goes with --collect N")
+        return
+    if args.data is not None:
+        raise CalibrationDataError("kinematic: give DATA.csv or --collect N, not both")
+    if not 1 <= args.collect <= MAX_COLLECT:
+        raise CalibrationDataError(f"--collect must be 1..{MAX_COLLECT} poses, got {args.collect}")
+    if not (args.sim or args.config is not None):
+        raise CalibrationDataError("--collect needs --sim or --config BOX.toml")
+    if args.perturb is not None and not args.sim:
+        raise CalibrationDataError("--perturb goes with --sim")
+    if not 1 <= args.samples <= 10_000:
+        raise CalibrationDataError(f"--samples must be 1..10000, got {args.samples}")
+
+
+def run_kinematic(args: argparse.Namespace) -> int:
+    from calibration.apply import starting_point
+    from calibration.kinematic import fit_kinematics, read_pose_csv
+    from calibration.store import to_json
+
+    _check_kinematic_args(args)
+    if args.sigma_mm is not None and not (math.isfinite(args.sigma_mm) and args.sigma_mm > 0):
+        raise CalibrationDataError(f"--sigma-mm must be > 0, got {args.sigma_mm}")
+    store = _store(args)
+    inputs = [
+        Input("pose file", args.data),
+        robot_input(args.robot),
+        Input("calibration store's pointer", store.folder / "active"),
+        *(Input(f"calibration v{v:04d}", store.path_of(v)) for v in store.versions()),
+    ]
+    outputs = [Output("--out", args.out)]
+    if args.collect is not None:
+        inputs += [config_input(args.config), *shipped_inputs(eds=True)]
+        outputs.append(Output("--log-dir", args.log_dir))
+    refuse_overwriting_inputs(outputs, inputs)  # before anything is read or written
+    description = _description(args)
+    base, active, note = starting_point(store, description)
+
+    estimate_frame = args.estimate_frame
+    sigma_mm = 0.05 if args.sigma_mm is None else args.sigma_mm
+    if args.collect is None:
+        data = read_pose_csv(args.data)
+    else:
+        data, pose_file = _collect(args, description, base, active)
+        print(f"poses written to {pose_file}")
+        estimate_frame = True  # the tracker has a frame of its own
+        if args.sigma_mm is None:
+            sigma_mm /= math.sqrt(args.samples)
+    fit = fit_kinematics(
+        description,
+        data.alpha_rad,
+        data.theta_rad,
+        data.points_mm,
+        estimate_frame=estimate_frame,
+        sigma_mm=sigma_mm,
+    )
+    new = kinematic_calibration(base, fit)
+    if note is not None:  # what the new version starts from, once there is one
+        print(f"hrm calibrate kinematic: {note}", file=sys.stderr)
+    if args.out is not None:
+        version = max(store.versions(), default=0) + 1  # the number it would have in the store
+        _write_file(args.out, to_json(new, version))
+        where = f"written to {args.out} (not in the store)"
+    else:
+        version = store.save(new)
+        where = f"saved as v{version:04d} in {store.folder} (active)"
+    if args.json:
+        print(json.dumps({"fit": fit_report(fit), "version": version, "file": where}))
+    else:
+        print(format_fit(fit))
+        print(f"calibration {where}")
+    return 0
+
+
+def _write_file(path: Path, text: str) -> None:
+    from hrm_ctrl.files import write_atomic
+
+    try:
+        write_atomic(path, text)
+    except OSError as exc:
+        raise CalibrationFileError(f"{path}: cannot write ({exc.strerror or exc})") from None
+
+
+def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any) -> Any:
+    """Drive the arm through ``args.collect`` configurations and read the tracker; return
+    the poses and the pose file written into the log folder."""
+    from calibration.apply import calibrated_actuation
+    from calibration.collect import collect_poses
+    from calibration.kinematic import format_pose_csv, spread_configurations
+    from drivers.bus import ensure_log_dir
+    from drivers.config import load_box_config
+    from drivers.interrupts import deferred_interrupts
+    from drivers.session import CalibrationRef, DriveSession
+    from drivers.tracker import TrackerReader
+    from hrm_ctrl.cli._watches import feedback_watches
+    from hrm_ctrl.files import write_atomic
+    from hrm_ctrl.ropes.actuation import load_actuation
+
+    prog = "hrm calibrate kinematic"
+    config = load_box_config(args.config)
+    actuation = calibrated_actuation(description, base)
+    config.check_motors(actuation.motor_ids)
+    rng = np.random.default_rng(args.seed)
+    alpha, theta = spread_configurations(description, args.collect, rng)
+    actuation.check_angles(alpha, theta)
+    ensure_log_dir(args.log_dir)
+    ref = None if active is None else CalibrationRef(active.version, active.sha256, active.path)
+    if ref is None and args.uncalibrated:
+        print(f"{prog}: --uncalibrated: drives enabled without a calibration", file=sys.stderr)
+    elif ref is None and args.sim:
+        print(
+            f"{prog}: --sim: no calibration: the robot description's values (a simulated arm)",
+            file=sys.stderr,
+        )
+
+    sim = None
+    if args.sim:
+        from hrm_ctrl.cli._simwire import calibration_counts, start_in_process_sim
+        from sim_bus.truth import TrueArm
+
+        physical = load_actuation(description)  # the simulated arm: its description ...
+        truth = None if args.perturb is None else TrueArm.perturbed(physical, args.perturb)
+        config, sim = start_in_process_sim(  # ... or a perturbed one
+            config,
+            physical,
+            prog=prog,
+            truth=truth,
+            tracker=True,
+            initial_counts=calibration_counts(None if active is None else base, physical),
+        )
+    try:
+        tracker = config.tracker
+        if tracker is None:
+            raise CalibrationDataError(
+                f"{config.source}: no [tracker] table: --collect needs the laser tracker"
+            )
+        with contextlib.ExitStack() as stack:
+            reader = stack.enter_context(
+                TrackerReader(tracker.port, tracker.timeout_s, baudrate=tracker.baudrate)
+            )
+            with deferred_interrupts():  # the session is open and entered, or not at all
+                box = stack.enter_context(
+                    DriveSession(
+                        config,
+                        actuation,
+                        log_dir=args.log_dir,
+                        calibration=ref,
+                        allow_uncalibrated=args.uncalibrated or args.sim,
+                    )
+                )
+                box.record_extra = {"routine": "kinematic", "poses": args.collect}
+                watches = stack.enter_context(feedback_watches(config, actuation, box, start=False))
+            box.bring_up()
+            watches.start()
+
+            def progress(k: int, n: int, p: np.ndarray) -> None:
+                print(f"pose {k}/{n}: {p[0]:.3f} {p[1]:.3f} {p[2]:.3f} mm", file=sys.stderr)
+
+            data = collect_poses(
+                box,
+                actuation,
+                reader,
+                alpha,
+                theta,
+                period_s=config.control.period_s,
+                samples=args.samples,
+                source=f"{box.run_name} (collected)",
+                progress=progress,
+            )
+            pose_file = Path(args.log_dir) / f"{box.run_name}-poses.csv"
+            write_atomic(pose_file, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
+            box.record_extra["pose_file"] = str(pose_file)
+    finally:
+        if sim is not None:
+            sim.stop()
+    return data, pose_file

@@ -1,0 +1,74 @@
+"""Issue 10 through ``hrm plan``: the clearance fit by default where an environment is
+known (``--fit paper`` keeps the paper's), planning along a scan (``--scan``) inside the
+fitted pipe, and ``--round-corners`` making a sharp polyline followable."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hrm_ctrl.cli import main
+from hrm_ctrl.planning.known_path import KnownPath
+from hrm_ctrl.planning.scan import synthetic_pipe_scan
+from hrm_ctrl.planning.scenarios import scenario
+
+
+def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    try:
+        rc = main(argv)
+    except SystemExit as exc:
+        rc = int(exc.code or 0)
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_bent_pipe_is_refined_by_default_and_the_paper_fit_collides(capsys) -> None:
+    rc, out, err = run(["plan", "--scenario", "bent-pipe", "--json"], capsys)
+    assert rc == 0, err
+    r = json.loads(out)
+    assert r["fit"] == "clearance"
+    assert r["clearance_mm"]["min"] >= 5.0  # link axes within 15 mm of the pipe axis
+    assert r["joint_limit_margin_deg"] >= 5.0
+    rc, out, err = run(["plan", "--scenario", "bent-pipe", "--fit", "paper"], capsys)
+    assert rc == 2 and "meets an obstacle" in err and err.count("\n") == 1
+
+
+def test_plan_along_a_scan_stays_inside_the_scanned_pipe(tmp_path: Path, capsys) -> None:
+    bp = scenario("bent-pipe")
+    cloud = synthetic_pipe_scan(
+        bp.path, 70.0, 60_000, noise_mm=0.5, outlier_fraction=0.02, rng=np.random.default_rng(4)
+    )
+    scan = tmp_path / "pipe.npy"
+    np.save(scan, cloud)
+    out = tmp_path / "plan.json"
+    rc, stdout, err = run(["plan", "--scan", str(scan), "--json", "--out", str(out)], capsys)
+    assert rc == 0, err
+    r = json.loads(stdout.split("\nplan written")[0])
+    assert r["fit"] == "clearance" and r["clearance_mm"]["min"] > 4.0
+    doc = json.loads(out.read_text())
+    end = np.asarray(doc["steps"][-1]["joints_mm"][-1])
+    assert float(np.linalg.norm(end - bp.path.points[-1])) < 1.0  # the scan's far end
+    rc, _, err = run(["plan", "--scan", str(scan), "--out", str(scan)], capsys)
+    assert rc == 2 and "point cloud" in err  # never an output over an input
+
+
+def test_round_corners_makes_the_cabins_corner_followable(tmp_path: Path, capsys) -> None:
+    A, B, C = (1200.0, 100.0, 300.0), (1470.0, 190.0, 300.0), (1470.0, -50.0, 200.0)
+    csv = tmp_path / "abc.csv"
+    csv.write_text("x,y,z\n" + "\n".join(",".join(f"{v:g}" for v in p) for p in (A, B, C)))
+    rc, _, err = run(["plan", "--path", str(csv), "--fit", "paper"], capsys)
+    assert "cannot" in err or "can't" in err or "corner" in err  # the conditioning warning
+    rc, out, err = run(["plan", "--path", str(csv), "--round-corners", "150", "--json"], capsys)
+    assert rc == 0, err
+    assert "warning" not in err
+    r = json.loads(out)
+    assert r["first_violation"] is None
+    rounded = scenario("cabins").path
+    assert abs(r["path_length_mm"] - KnownPath.from_points(rounded.points).length) < 1e-6
+    rc, _, err = run(["plan", "--scenario", "cabins", "--round-corners", "150"], capsys)
+    assert rc == 2 and "--round-corners" in err
+    rc, _, err = run(["plan", "--path", str(csv), "--round-corners", "nan"], capsys)
+    assert rc == 2 and "--round-corners" in err
