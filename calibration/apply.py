@@ -78,6 +78,7 @@ def robot_content(model: RobotModel) -> dict[str, Any]:
         "limit_theta_rad": float(model.limit_theta),
         "base_position_mm": _plain(model.base_position),
         "base_rotation": _plain(model.base_rotation),
+        "base_fiducials_mm": _plain(model.base_fiducials),
         "tables": _plain(model.tables),
     }
 

@@ -137,6 +137,27 @@ def _point_of(measurement: Any) -> np.ndarray:
     return p
 
 
+def travel_order(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """An order of the configurations (N, 12) each that keeps the moves short: from the
+    straight arm, always on to the nearest not yet visited (largest joint-angle change);
+    the set of poses, and so the fit, is the same in any order.
+
+    >>> a = np.array([[0.5] * 12, [0.1] * 12, [0.3] * 12]); t = np.zeros((3, 12))
+    >>> travel_order(a, t).tolist()
+    [1, 2, 0]
+    """
+    q = np.concatenate([np.asarray(alpha, float), np.asarray(theta, float)], axis=1)
+    left = list(range(len(q)))
+    here = np.zeros(q.shape[1])
+    order: list[int] = []
+    while left:
+        d = np.abs(q[left] - here).max(axis=1)
+        k = left.pop(int(np.argmin(d)))
+        order.append(k)
+        here = q[k]
+    return np.array(order, dtype=np.int64)
+
+
 def collect_poses(
     session: SessionLike,
     actuation: Actuation,
@@ -147,11 +168,15 @@ def collect_poses(
     period_s: float,
     samples: int = 10,
     settle_s: float = SETTLE_S,
+    rate_fraction: float = RATE_FRACTION,
+    return_home: bool = True,
     source: str = "collected",
     progress: Callable[[int, int, np.ndarray], None] | None = None,
 ) -> PoseData:
     """Drive the arm to each target configuration (true angles, (N, 12) each), hold
-    ``settle_s``, read ``reader.measure(samples)``; return the poses (commanded angles and
+    ``settle_s``, read ``reader.measure(samples)`` (moves at ``rate_fraction`` of the motor
+    limits, at most 1), and at the end (``return_home``) move back to the configuration the
+    arm started in; return the poses (commanded angles and
     measured points, see the module docstring).  ``progress(k, N, point)`` is called after
     each pose.  A safety stop raises what the session raises (nothing is measured after)."""
     a = np.asarray(alpha, dtype=float)
@@ -164,14 +189,17 @@ def collect_poses(
         )
     if not (isinstance(samples, int) and samples >= 1):
         raise CalibrationDataError(f"collect: samples must be an integer >= 1, got {samples!r}")
+    if not (math.isfinite(rate_fraction) and 0.0 < rate_fraction <= 1.0):
+        raise CalibrationDataError(f"collect: rate_fraction must be in (0, 1], got {rate_fraction}")
     actuation.check_angles(a, t)  # every target inside the joint limits, before moving
     if session.actual is None:
         raise CalibrationDataError("collect: the session is not brought up (no actual counts)")
     here = actuation.angles_from_counts(np.asarray(session.actual, dtype=np.int64))[:2]
+    start = here
     points = np.empty((len(a), 3))
     reached = np.empty((2, len(a), nj))  # the true angles the commanded counts mean
     for k in range(len(a)):
-        table = move_table(actuation, here, (a[k], t[k]), period_s)
+        table = move_table(actuation, here, (a[k], t[k]), period_s, rate_fraction=rate_fraction)
         src = CountsSource(
             actuation,
             table,
@@ -186,5 +214,11 @@ def collect_poses(
         reached[0, k], reached[1, k] = actuation.angles_from_counts(table[-1], None, *here)[:2]
         if progress is not None:
             progress(k + 1, len(a), points[k])
+    if return_home:  # back where the arm started, along a joint path (a move in counts
+        # strains the ropes of a bent arm: a later lead-in would start from a bent pose)
+        table = move_table(actuation, here, start, period_s, rate_fraction=rate_fraction)
+        session.stream(
+            CountsSource(actuation, table, period_s, name="calibration: back to the start")
+        )
     a_cmd, t_cmd = actuation.commanded_angles(reached[0], reached[1])
     return PoseData(np.array(a_cmd), np.array(t_cmd), points, source)

@@ -303,6 +303,57 @@ def _kabsch(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, qc - R @ pc
 
 
+FIDUCIAL_RMS_LIMIT_MM = 0.5  # nests measured further from their drawing: the wrong nests
+
+
+@dataclass(frozen=True)
+class InstrumentFrame:
+    """An instrument's frame found from the base plate's nests: ``p_instrument = R p_base +
+    t``; ``rms_mm`` how well the measured nests fit the drawn ones after the transform."""
+
+    rotation: np.ndarray  # (3, 3)
+    translation_mm: np.ndarray  # (3,)
+    rms_mm: float
+    max_mm: float
+
+    def to_base(self, points_mm: np.ndarray) -> np.ndarray:
+        """Points (n, 3) in the instrument's frame -> the base frame."""
+        return (np.asarray(points_mm, dtype=float) - self.translation_mm) @ self.rotation
+
+
+def instrument_frame(model: RobotModel, measured_mm: np.ndarray) -> InstrumentFrame:
+    """The instrument's frame from its readings ``measured_mm`` (k, 3) of the base plate's
+    nests ``model.base_fiducials`` (k, 3), by the least-squares rigid fit (Kabsch).  With
+    the frame known, every joint offset is observable, ``alpha_offset_1`` too (a free
+    frame carries a rotation of the whole arm about the base's first axis).  Refuses
+    (:class:`CalibrationDataError`, one line) readings that fit the drawing worse than
+    :data:`FIDUCIAL_RMS_LIMIT_MM` (the wrong nests, or nests moved).
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> m = default_robot()
+    >>> R = _exp(np.array([0.1, -0.2, 1.2])); t = np.array([-1000.0, 1200.0, 200.0])
+    >>> f = instrument_frame(m, m.base_fiducials @ R.T + t)
+    >>> bool(np.allclose(f.rotation, R) and np.allclose(f.translation_mm, t)), f.rms_mm < 1e-9
+    (True, True)
+    """
+    q = np.asarray(measured_mm, dtype=float)
+    p = np.asarray(model.base_fiducials, dtype=float)
+    if q.shape != p.shape or not np.isfinite(q).all():
+        raise CalibrationDataError(
+            f"instrument frame: {p.shape[0]} base nests drawn, readings of shape {q.shape}"
+        )
+    R, t = _kabsch(p, q)
+    d = np.linalg.norm(p @ R.T + t - q, axis=1)
+    rms, worst = float(np.sqrt(np.mean(d**2))), float(d.max())
+    if rms > FIDUCIAL_RMS_LIMIT_MM:
+        raise CalibrationDataError(
+            f"instrument frame: the base nests fit their drawing to {rms:.3f} mm rms (nest "
+            f"{int(np.argmax(d)) + 1} {worst:.3f} mm off), more than {FIDUCIAL_RMS_LIMIT_MM} mm: "
+            "wrong nests, or the base moved"
+        )
+    return InstrumentFrame(R, t, rms, worst)
+
+
 def _chain(model, dl, da, dt, alpha, theta):
     """End points (N, 3) and their Jacobian (N, 3, 36) w.r.t. (dl, da, dt)."""
     m = _with_links(model, model.links + dl)

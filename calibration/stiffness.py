@@ -167,8 +167,8 @@ def estimate_rope_stiffness(
 ) -> StiffnessResult:
     """Sweep each rope group (of ``joints``, 0-based; default all), one group at a time,
     from its zero (``zero_counts``, default the rope layer's zero offsets: run the zero
-    calibration first; in the fixture the pretension's count on the physically straight
-    arm, :func:`calibration.zero.fixture_offset_counts`) over ``sweep_counts`` (default
+    calibration first; in the fixture, which holds the rope geometry straight, the pretension
+    count, :func:`calibration.zero.fixture_offset_counts`) over ``sweep_counts`` (default
     ``sweep_N`` of tension on the model's slope) in ``steps`` readings, fit each rope's EA
     (module docstring), and put the group back at its zero (after a refusal: where it
     started).  ``session`` is ENABLED and left so.  Refuses

@@ -26,16 +26,14 @@ group (the ropes of one joint) at a time, the three ropes of a group moving toge
    slope).
 
 **Which zero.**  The rope layer's zero is the count at the pretension with the rope
-geometry straight (commanded angles 0); the fixture holds the *physical* angles at 0,
-which differ by the joint zero offsets (true = commanded + offset), and the target may
-differ from the pretension.  The routine converts through the rope layer it is given
-(:func:`fixture_offset_counts`: its offsets, EA, links): ``zero = c(T*) - d c_mm (u_ref -
-u(-offset, T*))``.  Without joint offsets at the pretension the two are the same count;
-with offsets from a kinematic calibration (1 deg: a few hundred counts) the zeros are
-right only for those offsets, so run the zero after the kinematic calibration (or again
-after it); a target other than the pretension is converted on the rope layer's EA (on
-the longest rope 171 counts per N of difference, so 1.7 counts per N per 1 % of EA error:
-run the stiffness calibration first).
+geometry straight (the joint's two rope disks coaxial); the zero fixture holds exactly
+that pose (``sim_bus/arm.py``), whatever the joint zero offsets (true = commanded +
+offset: in the fixture the links stand at their offsets, which the kinematic calibration
+finds), so at the pretension the count measured is the zero.  A target other than the
+pretension is converted through the rope layer it is given (:func:`fixture_offset_counts`):
+``zero = c(T*) - d c_mm (u_ref - u(0, T*))``, on its EA (on the longest rope 171 counts per
+N of difference, so 1.7 counts per N per 1 % of EA error: run the stiffness calibration
+first).
 
 Refusals (:class:`RopeTensionError`, one line naming the rope and motor), after moving
 the group back to where it started: a rope still slack at ``max_travel_counts`` from its
@@ -198,10 +196,10 @@ def tension_slope_N_per_count(actuation: Actuation, tension_N: Any, EA_N: Any = 
 
 def fixture_offset_counts(actuation: Actuation, tension_N: float | None = None) -> np.ndarray:
     """Counts (n,) from each motor's zero in the rope layer's convention (the count at the
-    pretension with the rope geometry straight: commanded angles 0) to its count at
-    ``tension_N`` (default the pretension) on the fixture's physically straight arm (true
-    angles 0): ``d c_mm (u_ref - u(-offset, T))``, through the rope layer's own model
-    (its joint offsets, EA, link lengths).  0 without joint offsets at the pretension.
+    pretension with the rope geometry straight) to its count at ``tension_N`` (default the
+    pretension) in the fixture, which holds that same pose (true angles = the joint
+    offsets): ``d c_mm (u_ref - u(0, T))``, through the rope layer's own model (its EA).
+    0 at the pretension.
 
     >>> from hrm_ctrl.model import default_robot
     >>> from hrm_ctrl.ropes.actuation import load_actuation
@@ -209,8 +207,9 @@ def fixture_offset_counts(actuation: Actuation, tension_N: float | None = None) 
     >>> int(np.abs(fixture_offset_counts(act)).max()), int(fixture_offset_counts(act, 25.0)[0])
     (0, -188)
     """
-    z = np.zeros(actuation.robot.n_joints)
-    at = actuation.counts_from_angles(z, z, tension_N, check=False)
+    a0 = np.asarray(actuation.alpha_offset_rad, dtype=float)  # the rope geometry straight
+    t0 = np.asarray(actuation.theta_offset_rad, dtype=float)
+    at = actuation.counts_from_angles(a0, t0, tension_N, check=False)
     return np.asarray(at, dtype=np.int64) - np.asarray(actuation.motors.zero_offsets_counts)
 
 

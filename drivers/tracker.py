@@ -28,9 +28,9 @@ import numpy as np
 from drivers.config import TRACKER_TIMEOUT_RANGE_S
 from drivers.protocol.tracker import (
     MAX_LINE_BYTES,
-    REQUEST_MEASURE,
     TrackerLineError,
     TrackerReply,
+    make_request,
     parse_reply,
 )
 from hrm_ctrl.errors import DriverError
@@ -105,14 +105,15 @@ class TrackerReader:
             )
         raise self._fail(f"no reply within {self.timeout_s:g} s")
 
-    def read_one(self) -> TrackerReply:
-        """Request one reading and return its reply (a point: ``point_mm`` is set)."""
+    def read_one(self, fiducial: int = 0) -> TrackerReply:
+        """Request one reading (of the end point, or of base nest ``fiducial`` >= 1) and
+        return its reply (a point: ``point_mm`` is set)."""
         ser = self._serial
         if ser is None:
             raise self._fail("reader is closed")
         try:
             ser.reset_input_buffer()
-            ser.write(REQUEST_MEASURE)
+            ser.write(make_request(fiducial))  # a bad fiducial number raises TrackerLineError
             ser.flush()
             line = self._read_line()
         except TrackerError:
@@ -131,14 +132,14 @@ class TrackerReader:
         self.readings += 1
         return reply
 
-    def measure(self, n: int = 1) -> np.ndarray:
-        """The mean of ``n`` readings (3,), mm in the tracker's frame; any failed reading
-        raises (no partial mean)."""
+    def measure(self, n: int = 1, fiducial: int = 0) -> np.ndarray:
+        """The mean of ``n`` readings (3,), mm in the tracker's frame, of the end point or
+        of base nest ``fiducial``; any failed reading raises (no partial mean)."""
         if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_READINGS:
             raise self._fail(f"readings per measurement must be 1..{MAX_READINGS}, got {n!r}")
         total = np.zeros(3)
         for _ in range(n):
-            p = self.read_one().point_mm
+            p = self.read_one(fiducial).point_mm
             total += p  # type: ignore[operator]
         mean = total / n
         if not all(math.isfinite(float(v)) for v in mean):

@@ -33,6 +33,13 @@ from hrm_ctrl.errors import RobotDescriptionError
 from hrm_ctrl.files import read_toml
 
 N_JOINTS = 12
+MAX_FIDUCIALS = 16
+# The base plate's reference nests (base frame, mm): behind and around joint 1, not in one
+# plane, so that three or more of them fix an instrument's frame.
+DEFAULT_FIDUCIALS_MM = np.array(
+    [[-100.0, 120.0, 120.0], [-100.0, -120.0, 120.0], [-100.0, 0.0, -150.0], [-250.0, 0.0, 0.0]]
+)
+DEFAULT_FIDUCIALS_MM.setflags(write=False)
 DEFAULT_ROBOT_RESOURCE = "robot.toml"
 
 PLAIN_KEYS = frozenset({"name", "links_mm", "outer_diameter_mm"})
@@ -40,7 +47,7 @@ PLAIN_KEYS = frozenset({"name", "links_mm", "outer_diameter_mm"})
 
 TABLE_KEYS: Mapping[str, frozenset[str] | None] = {
     "joint_limits": frozenset({"alpha_deg", "theta_deg"}),
-    "base": frozenset({"position_mm", "yaw_deg", "pitch_deg"}),
+    "base": frozenset({"position_mm", "yaw_deg", "pitch_deg", "fiducials_mm"}),
     "ropes": None,  # keys checked by hrm_ctrl.ropes.routing when the rope layer is built
     "motors": None,  # keys checked by hrm_ctrl.ropes.motor_map when the rope layer is built
 }
@@ -61,6 +68,8 @@ class RobotModel:
         base_position: centre of joint 1 in the world frame (mm), shape (3,).
         base_rotation: world-from-base rotation, shape (3, 3); the arm's zero
             direction is ``base_rotation @ (1, 0, 0)``.
+        base_fiducials: (k, 3) the base plate's reference nests in the base frame (mm):
+            where an instrument (the laser tracker) measures the base to find its own frame.
         source: where the description came from (file path or resource name).
         tables: the raw TOML tables the planner does not interpret (``ropes``
             and ``motors``, when present), read by the layers that own them.
@@ -75,6 +84,7 @@ class RobotModel:
     base_rotation: np.ndarray
     source: str
     tables: Mapping[str, Any] = field(default_factory=dict)
+    base_fiducials: np.ndarray = field(default_factory=lambda: DEFAULT_FIDUCIALS_MM.copy())
 
     @property
     def n_joints(self) -> int:
@@ -103,6 +113,7 @@ class RobotModel:
             "base": {
                 "position_mm": [float(v) for v in self.base_position],
                 "rotation": self.base_rotation.tolist(),
+                "fiducials_mm": self.base_fiducials.tolist(),
             },
             "source": self.source,
         }
@@ -250,9 +261,29 @@ def robot_from_dict(doc: Mapping[str, Any], source: str) -> RobotModel:
     pos = np.array([_number(v, f"{where}: base.position_mm[{i}]") for i, v in enumerate(pos_raw)])
     yaw = _number(base.get("yaw_deg", 0.0), f"{where}: base.yaw_deg")
     pitch = _number(base.get("pitch_deg", 0.0), f"{where}: base.pitch_deg")
+    fid = DEFAULT_FIDUCIALS_MM.copy()
+    if "fiducials_mm" in base:
+        raw = base["fiducials_mm"]
+        if not isinstance(raw, list) or not 3 <= len(raw) <= MAX_FIDUCIALS:
+            raise RobotDescriptionError(
+                f"{where}: base.fiducials_mm must be a list of 3..{MAX_FIDUCIALS} points [x, y, z]"
+            )
+        rows = []
+        for k, p in enumerate(raw):
+            if not isinstance(p, list) or len(p) != 3:
+                raise RobotDescriptionError(f"{where}: base.fiducials_mm[{k}] must be [x, y, z]")
+            rows.append(
+                [_number(v, f"{where}: base.fiducials_mm[{k}][{i}]") for i, v in enumerate(p)]
+            )
+        fid = np.array(rows)
+        centred = fid - fid.mean(axis=0)
+        if np.linalg.matrix_rank(centred, tol=1.0) < 2:
+            raise RobotDescriptionError(
+                f"{where}: base.fiducials_mm lie on one line: they cannot fix a frame"
+            )
 
     tables = {k: doc[k] for k in ("ropes", "motors") if k in doc}
-    for arr in (links, od, pos):
+    for arr in (links, od, pos, fid):
         arr.setflags(write=False)
     R = base_rotation_from(math.radians(yaw), math.radians(pitch))
     R.setflags(write=False)
@@ -266,6 +297,7 @@ def robot_from_dict(doc: Mapping[str, Any], source: str) -> RobotModel:
         base_rotation=R,
         source=source,
         tables=tables,
+        base_fiducials=fid,
     )
 
 

@@ -8,10 +8,10 @@ axial rigidity ``EA_m``, the pretension ``T0`` and the description's drum consta
 (``direction``, ``counts_per_mm``):
 
 * the drum has paid out the unstretched length ``u_m = u0_m - direction (c_m - z_m) /
-  counts_per_mm``, where ``u0_m = (box_m + L_m(phi = -offset)) / (1 + T0/EA_m)`` is the
-  length that holds rope m at ``T0`` on the physically straight arm (every physical joint
-  angle 0, so the rope-geometric angle phi is minus the joint's zero offset): at ``c_m =
-  z_m`` the rope is at its pretension on the straight arm, the truth's definition;
+  counts_per_mm``, where ``u0_m = (box_m + L_m(phi = 0)) / (1 + T0/EA_m)`` is the length
+  that holds rope m at ``T0`` with the rope geometry straight (every joint's two rope
+  disks coaxial, phi = 0): at ``c_m = z_m`` the rope is at its pretension there, the
+  truth's definition of the motor zero;
 * a rope carries tension only beyond its slack: its effective length is ``u_m + slack_m``;
 * the rope-geometric joint angles phi follow from the rope layer's inverse
   (:meth:`hrm_ctrl.ropes.actuation.Actuation.angles_from_counts` of the description's
@@ -24,11 +24,19 @@ axial rigidity ``EA_m``, the pretension ``T0`` and the description's drum consta
   (``box_m + L_m(phi)``), ``w_m = u_m + slack_m``; never below 0 (a slack rope), plus
   N(0, ``noise_N``) sensor noise.
 
-The straight fixture (the parking tube, :meth:`SimArm.set_fixture`): while on, every
-physical joint angle is held at 0 whatever the motors do, and each rope's tension follows
-from its own length alone, ``T_m = EA_m (box_m + L_m(-offset) - w_m) / w_m`` (>= 0): the
-pretension at ``c_m = z_m``, rising ``EA_m / u_m`` N per mm of rope wound in.  That is how
-the motor zeros and EAs are observable: on the free arm 3 ropes share 2 joint angles.
+The zero fixture (:meth:`SimArm.set_fixture`): a jig that clamps every joint's two rope
+disks coaxial, so the rope geometry is held straight (phi = 0) whatever the motors do; the
+links then stand at their joint zero offsets (physical angle = 0 + offset, which the jig
+does not see), and each rope's tension follows from its own length alone, ``T_m = EA_m
+(box_m + L_m(0) - w_m) / w_m`` (>= 0): the pretension at ``c_m = z_m``, rising ``EA_m /
+u_m`` N per mm of rope wound in.  That is how the motor zeros and EAs are observable (on
+the free arm 3 ropes share 2 joint angles), and why the zeros it gives are the rope
+layer's (the count at the pretension with the rope geometry straight, commanded angles 0):
+the joint offsets stay for the kinematic calibration to find, exactly as its convention
+(true angle = commanded angle + offset) has them.  (A fixture that held the *links*
+straight would fold the offsets into the zeros to first order and leave pose-dependent
+errors of the order of angle x offset, millimetres at the tip, that no constant offset
+explains.)
 
 A snapped rope carries no tension and its joint drifts away from it (the other ropes of
 the joint pull it) at ``snap_drift_rad_per_s`` until the joint limit (not in the fixture).
@@ -130,8 +138,9 @@ class SimArm:
         self.offset_alpha = self.truth.alpha_offset_rad.copy()
         self.offset_theta = self.truth.theta_offset_rad.copy()
         joint = rope.joint_of_motor
-        # the rope geometry of the physically straight arm (phi = -offset)
-        self.straight_rope_mm = rope.rope_lengths(-self.offset_alpha, -self.offset_theta)
+        # the rope geometry held straight (phi = 0): the zero fixture's pose
+        zero = np.zeros_like(self.offset_alpha)
+        self.straight_rope_mm = rope.rope_lengths(zero, zero)
         self.required_free_mm = self._box + self.straight_rope_mm  # fixture: free length needed
         stretch = 1.0 + self.pretension_N / self.stiffness_EA_N
         self.u0_mm = self.required_free_mm / stretch  # paid out at the true zero count
@@ -217,7 +226,7 @@ class SimArm:
             w = self.unstretched_mm(c) + self.slack_mm
             stretched = w * (1.0 + self.pretension_N / self.stiffness_EA_N)  # at T0
             if fixture:
-                phi_a, phi_t = -self.offset_alpha, -self.offset_theta
+                phi_a, phi_t = np.zeros_like(self.offset_alpha), np.zeros_like(self.offset_theta)
                 free = self.required_free_mm
                 res = stretched - free
             else:
@@ -247,12 +256,8 @@ class SimArm:
             tension = np.maximum(tension + self._rng.normal(0.0, self.noise_N, tension.shape), 0.0)
             for i in snapped:
                 tension[i] = 0.0
-        if fixture:
-            alpha = np.zeros_like(phi_a)
-            theta = np.zeros_like(phi_t)
-        else:
-            alpha = phi_a + self.offset_alpha
-            theta = phi_t + self.offset_theta
+        alpha = phi_a + self.offset_alpha  # physical: in the fixture, the offsets
+        theta = phi_t + self.offset_theta
         centres = joint_centres(self.model, alpha, theta)
         return ArmState(now, c, alpha, theta, centres, tension, res, phi_a, phi_t, fixture)
 

@@ -282,6 +282,7 @@ class SimBox:
                 t.tracker_translation_mm,
                 noise_mm=t.tracker_noise_mm,
                 seed=self._seed + 1,
+                fiducials_mm=self.actuation.robot.base_fiducials,  # the base is as drawn
             ).start()
         return self.tracker
 

@@ -32,10 +32,9 @@ from drivers.protocol.tracker import (
     MAX_REQUEST_BYTES,
     STATUS_OK,
     STATUS_TARGET_LOST,
-    Request,
     make_error_line,
     make_point_line,
-    parse_request,
+    parse_request_target,
 )
 from hrm_ctrl.errors import SimError
 
@@ -53,6 +52,7 @@ class Tracker:
         *,
         noise_mm: float = 0.05,
         seed: int = 0,
+        fiducials_mm: np.ndarray | None = None,
     ) -> None:
         if not (0.0 <= noise_mm <= 1.0):
             raise SimError(f"tracker noise must be in [0, 1] mm, got {noise_mm!r}")
@@ -60,6 +60,9 @@ class Tracker:
         self.rotation = np.array(rotation, dtype=float)
         self.translation_mm = np.array(translation_mm, dtype=float)
         self.noise_mm = float(noise_mm)
+        self.fiducials_mm = (  # the base plate's nests, base frame (request "MEAS F<k>")
+            np.zeros((0, 3)) if fiducials_mm is None else np.array(fiducials_mm, dtype=float)
+        )
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
         self._lost = False
@@ -118,9 +121,14 @@ class Tracker:
             self._garbage = int(replies)
 
     # ------------------------------------------------------------ engine
-    def measured_point(self) -> np.ndarray:
-        """One reading (tracker frame, mm): ``R p + t`` plus the noise."""
-        p = np.asarray(self.source(), dtype=float)
+    def measured_point(self, fiducial: int = 0) -> np.ndarray:
+        """One reading (tracker frame, mm): ``R p + t`` plus the noise, of the end point or
+        (``fiducial`` k >= 1) of base nest k."""
+        p = (
+            np.asarray(self.source(), dtype=float)
+            if fiducial == 0
+            else self.fiducials_mm[fiducial - 1]
+        )
         q = self.rotation @ p + self.translation_mm
         if self.noise_mm > 0:
             q = q + self._rng.normal(0.0, self.noise_mm, 3)
@@ -141,11 +149,14 @@ class Tracker:
         if garbage:
             n = int(self._rng.integers(8, 40))
             return self._rng.integers(0x21, 0x7F, n, dtype=np.uint8).tobytes() + b"\r\n"
-        if parse_request(request) is not Request.MEASURE:
+        target = parse_request_target(request)
+        if target is None:
             return make_error_line(seq, "BADCMD")
-        if lost:
+        if target > len(self.fiducials_mm):
+            return make_error_line(seq, "NONEST")
+        if lost and target == 0:
             return make_point_line(seq, None, STATUS_TARGET_LOST)
-        return make_point_line(seq, self.measured_point(), STATUS_OK)
+        return make_point_line(seq, self.measured_point(target), STATUS_OK)
 
     def _run(self) -> None:
         buf = bytearray()

@@ -12,20 +12,20 @@ find:
   rope lengths) and the physical angle is phi + offset;
 * ``rope_EA_N`` (n,): each rope's axial rigidity EA (the description's +- 20 %);
 * ``motor_zero_counts`` (n,) int: the true encoder count at which rope m is at its
-  pretension with the arm physically straight (every physical joint angle 0); the
-  description's is 0 for every motor (+- 5000 counts);
+  pretension with the rope geometry straight (the joint's rope disks coaxial, as the zero
+  fixture holds them; the links then stand at the joint offsets); the description's is 0
+  for every motor (+- 5000 counts);
 * ``slack_mm`` (n,): rope that must be taken up before the rope carries any tension
   (default 0: none);
 * ``tracker_rotation`` (3, 3), ``tracker_translation_mm`` (3,): the laser tracker's frame,
   ``p_tracker = R p_base + t`` (the kinematic calibration's convention), and its noise
   ``tracker_noise_mm`` (sigma per axis, 0.05 mm).
 
-Because the motor zeros are defined on the physically straight arm, the joint offsets are
-absorbed by them to first order in the angles: a host with the true zeros and no offsets
-gets the commanded angles to within second-order terms (``docs/sim.md``, "Joint offsets and
-motor zeros"); :meth:`TrueArm.host_zero_counts` gives the zeros in the host rope layer's
-convention (at the rope geometry's zero) and :meth:`TrueArm.ideal_actuation` the rope layer
-a perfect calibration gives.
+Because the motor zeros are defined with the rope geometry straight, a host with the true
+zeros and the true joint offsets puts the physical joints exactly where it commands them
+(``docs/sim.md``, "Joint offsets and motor zeros"); :meth:`TrueArm.host_zero_counts` gives
+the zeros in the host rope layer's convention (the slack taken up) and
+:meth:`TrueArm.ideal_actuation` the rope layer a perfect calibration gives.
 
 Every array is in the rope layer's motor order (``Actuation.motor_ids``).
 :meth:`TrueArm.nominal` is the description itself (the simulator's default);
@@ -64,7 +64,6 @@ from hrm_ctrl.errors import SimError
 from hrm_ctrl.files import read_toml, write_atomic
 from hrm_ctrl.model import RobotModel
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
-from hrm_ctrl.ropes.length import rope_lengths
 
 TRUTH_FORMAT = "hrm-sim-truth/1"
 N_JOINTS = 12
@@ -278,28 +277,16 @@ class TrueArm:
 
     def host_zero_counts(self, actuation: Actuation) -> np.ndarray:
         """The motor zeros (n,) int64 in the host rope layer's convention: the count at
-        which rope m is at its pretension at the rope geometry's zero (commanded straight,
-        phi = 0, i.e. physical angle = offset), with the true EA and the slack taken up.
+        which rope m is at its pretension with the rope geometry straight (phi = 0; the
+        physical angle is then the joint's offset), with the slack taken up.
 
-        ``motor_zero_counts`` is the count at pretension on the *physically* straight arm
-        (phi = -offset), what the straight fixture measures; the two differ by the rope
-        length the joint offsets change, ``direction counts_per_mm (u(-offset) + slack -
-        u(0))``: a few hundred counts for 1 deg at the hole radius.  ``actuation``: the
-        rope layer of the true arm, ``load_actuation(truth.model(robot))`` (the rope
-        lengths inside the links follow the link lengths), no calibration in it.
+        ``motor_zero_counts`` is defined at that same pose (``sim_bus.arm``: the zero
+        fixture clamps the rope disks coaxial), so the two differ only by the slack,
+        ``direction counts_per_mm slack``.  ``actuation``: the rope layer of the true arm,
+        ``load_actuation(truth.model(robot))``, no calibration in it.
         """
-        rt = actuation.routing
-        stretch = 1.0 + np.asarray(rt.pretension_N, float) / self.rope_EA_N
-        straight = actuation.geometry.straight  # rope lengths at phi = 0 (description)
-        bent = rope_lengths(
-            actuation.geometry, -self.alpha_offset_rad[None], -self.theta_offset_rad[None]
-        )[0]
-        u_phys = (rt.box_length + bent) / stretch
-        u_zero = (rt.box_length + straight) / stretch
         m = actuation.motors
-        z = self.motor_zero_counts + m.direction * m.counts_per_mm * (
-            u_phys + self.slack_mm - u_zero
-        )
+        z = self.motor_zero_counts + m.direction * m.counts_per_mm * self.slack_mm
         return np.rint(z).astype(np.int64)
 
     def ideal_actuation(self, robot: RobotModel) -> Actuation:

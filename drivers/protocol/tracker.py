@@ -5,7 +5,9 @@ An ASCII line protocol on a serial line (a pseudo-terminal for the simulated ins
 request line, the instrument answers one reply line:
 
 * request ``MEAS\\n`` (a trailing ``\\r`` is ignored): measure the target (the end point)
-  once;
+  once; ``MEAS F<k>\\n`` (k = 1..16): measure the base plate's reference nest k instead
+  (the robot description's ``[base] fiducials_mm``, an instrument's way of finding its own
+  frame);
 * reply ``$PT,<seq>,<x_mm>,<y_mm>,<z_mm>,<status>*<cs>\\r\\n``: ``seq`` the instrument's
   reply counter (decimal, 0..65535, +1 per reply, wraps), the point in the tracker's own
   frame in mm with exactly 4 decimals (``-?\\d{1,7}\\.\\d{4}``), ``status`` two hex digits
@@ -41,6 +43,7 @@ import numpy as np
 from hrm_ctrl.errors import DriverError
 
 REQUEST_MEASURE = b"MEAS\n"
+MAX_FIDUCIAL = 16
 MAX_LINE_BYTES = 96  # "$PT,65535," + 3 x "-1234567.1234," + "FF*FF\r\n" = 60 bytes
 MAX_REQUEST_BYTES = 32
 SEQ_MODULO = 65536
@@ -182,6 +185,38 @@ def parse_reply(line: bytes) -> TrackerReply:
             raise TrackerLineError(f"sequence number {seq} beyond {SEQ_MODULO - 1}")
         return TrackerReply(seq, None, STATUS_OK, error=m.group(2))
     raise TrackerLineError(f"not a $PT or $ER reply: {shown}")
+
+
+def make_request(fiducial: int = 0) -> bytes:
+    """The request line: the end point (``fiducial`` 0) or base nest ``fiducial`` (1..16).
+
+    >>> make_request(), make_request(3)
+    (b'MEAS\\n', b'MEAS F3\\n')
+    """
+    if isinstance(fiducial, bool) or not isinstance(fiducial, int):
+        raise TrackerLineError(f"fiducial must be an integer, got {fiducial!r}")
+    if fiducial == 0:
+        return REQUEST_MEASURE
+    if not 1 <= fiducial <= MAX_FIDUCIAL:
+        raise TrackerLineError(f"fiducial {fiducial} outside 1..{MAX_FIDUCIAL}")
+    return f"MEAS F{fiducial}\n".encode("ascii")
+
+
+def parse_request_target(line: bytes) -> int | None:
+    """What a request measures: 0 the end point, k base nest k; None if not a request.
+
+    >>> parse_request_target(b"MEAS\\r\\n"), parse_request_target(b"MEAS F2\\n")
+    (0, 2)
+    >>> parse_request_target(b"MEAS F0\\n"), parse_request_target(b"MEAS F17\\n")
+    (None, None)
+    """
+    text = line.rstrip(b"\r\n")
+    if text == b"MEAS":
+        return 0
+    m = re.fullmatch(rb"MEAS F(\d{1,2})", text)
+    if m is None or not 1 <= int(m.group(1)) <= MAX_FIDUCIAL:
+        return None
+    return int(m.group(1))
 
 
 def parse_request(line: bytes) -> Request | None:

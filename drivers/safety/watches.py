@@ -101,9 +101,15 @@ def take_snapshot(
         counts = monitor.position.copy()
         ref = reference()
         if seq >= 0 and monitor.seq == seq and bool(np.all(rx == seq)):
-            ref = None if ref is None else np.array(ref, dtype=np.int64)
-            return FeedbackSnapshot(int(seq), counts, ref)
-        if k + 1 < tries:
+            # A TPDO is labelled with the SYNC last sent when it arrives, so a box that
+            # answers a SYNC more than a period late shows its previous position under the
+            # new SYNC until its next TPDO overwrites it: it then comes in the same burst.
+            # Positions that change under the same SYNC were such a mix: try again.
+            time.sleep(retry_s)
+            if monitor.seq == seq and np.array_equal(monitor.position, counts):
+                ref = None if ref is None else np.array(ref, dtype=np.int64)
+                return FeedbackSnapshot(int(seq), counts, ref)
+        elif k + 1 < tries:
             time.sleep(retry_s)
     return None
 

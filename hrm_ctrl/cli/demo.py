@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import math
 import sys
@@ -72,6 +73,9 @@ CALIBRATIONS_DIR = "calibrations"
 DEFAULT_PERTURB_SEED = 1
 DEFAULT_POSES = 24
 MAX_POSES = 200
+COLLECT_SETTLE_S = 0.2  # the simulated drives settle within a cycle
+COLLECT_RATE_FRACTION = 0.9  # of the motor limits (hrm calibrate: 0.5)
+DEMO_TIP_SPEED_MM_PER_S = 100.0
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -80,8 +84,9 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, metavar="BOX.toml", help="bus configuration")
     p.add_argument("--step", type=float, default=5.0, metavar="MM", help="lambda (default 5 mm)")
     p.add_argument(
-        "--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S, metavar="MM_S",
-        help=f"tip-speed cap (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s)",
+        "--speed", type=float, default=DEMO_TIP_SPEED_MM_PER_S, metavar="MM_S",
+        help=f"tip-speed cap (default {DEMO_TIP_SPEED_MM_PER_S:g} mm/s; hrm run's default "
+        f"{DEFAULT_TIP_SPEED_MM_PER_S:g})",
     )  # fmt: skip
     p.add_argument(
         "--return", dest="ret", action=argparse.BooleanOptionalAction, default=True,
@@ -113,10 +118,11 @@ def _say(text: str) -> None:
 
 @contextlib.contextmanager
 def _session(
-    config: Any, actuation: Any, out: Path, name: str, ref: Any, *, watch: bool
+    config: Any, actuation: Any, out: Path, name: str, ref: Any, *, watch: bool, ropes: bool = True
 ) -> Iterator[Any]:
     """A drive session on the simulated box, brought up (and its feedback watches
-    running when ``watch``); finished and closed on leaving."""
+    running when ``watch``: tension, and rope consistency unless not ``ropes``); finished
+    and closed on leaving."""
     from drivers.interrupts import deferred_interrupts
     from drivers.session import DriveSession
 
@@ -134,7 +140,9 @@ def _session(
                 )
             )
             watches = (
-                stack.enter_context(feedback_watches(config, actuation, box, start=False))
+                stack.enter_context(
+                    feedback_watches(config, actuation, box, start=False, ropes=ropes)
+                )
                 if watch
                 else None
             )
@@ -158,8 +166,13 @@ def calibrate_on_box(
     """Pretension and zero in the fixture, then the kinematic calibration out of it; each
     saved as a version of ``store``.  Returns the calibration, its version and a summary."""
     from calibration.apply import calibrated_actuation, nominal_calibration, updated
-    from calibration.collect import collect_poses
-    from calibration.kinematic import fit_kinematics, format_pose_csv, spread_configurations
+    from calibration.collect import collect_poses, travel_order
+    from calibration.kinematic import (
+        fit_kinematics,
+        format_pose_csv,
+        instrument_frame,
+        spread_configurations,
+    )
     from calibration.store import Routine
     from calibration.zero import pretension_and_zero
     from drivers.tension_sensor import TensionSensorReader
@@ -197,22 +210,40 @@ def calibrate_on_box(
     t1 = time.monotonic()
     act1 = calibrated_actuation(description, cal_zero)
     alpha, theta = spread_configurations(description, args.poses, np.random.default_rng(7))
+    order = travel_order(alpha, theta)  # short moves: the same poses
+    alpha, theta = alpha[order], theta[order]
     tr = config.tracker
     _say(f"calibration 2/2: kinematic, {args.poses} poses read on the laser tracker")
     with (
         TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate) as tracker,
-        _session(config, act1, out, "demo-kinematic", _ref(store, v_zero), watch=True) as box,
+        _session(  # the rope-consistency watch left out, as hrm calibrate kinematic does
+            config, act1, out, "demo-kinematic", _ref(store, v_zero), watch=True, ropes=False
+        ) as box,
     ):
-        data = collect_poses(
-            box, act1, tracker, alpha, theta, period_s=config.control.period_s, samples=4
+        frame = instrument_frame(
+            description,
+            np.array(
+                [tracker.measure(4, fiducial=k + 1) for k in range(len(description.base_fiducials))]
+            ),
         )
+        data = collect_poses(
+            box,
+            act1,
+            tracker,
+            alpha,
+            theta,
+            period_s=config.control.period_s,
+            samples=4,
+            settle_s=COLLECT_SETTLE_S,
+            rate_fraction=COLLECT_RATE_FRACTION,
+        )
+    data = dataclasses.replace(data, points_mm=frame.to_base(data.points_mm))
     write_atomic(out / POSES_CSV, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
     fit = fit_kinematics(
         description,
         data.alpha_rad,
         data.theta_rad,
         data.points_mm,
-        estimate_frame=True,
         sigma_mm=0.05 / math.sqrt(4),
     )
     cal = kinematic_calibration(cal_zero, fit)
@@ -374,9 +405,9 @@ def run(args: argparse.Namespace) -> int:
             except SafetyStopError as exc:
                 stop, result = exc, exc.result
             box.record_extra["setpoints"] = source.describe()
-            record_path = box.record_path
             can_logs = box.record()["can_logs"]
             bringup_s = box.bringup_s
+        record_path = box.record_path  # written as the session closed
         _times, counts = sim.trace()
     finally:
         sim.stop()
@@ -394,7 +425,8 @@ def run(args: argparse.Namespace) -> int:
     # step) and without it (the same scenario with the description's values)
     steps_cal = actuation.counts_from_angles(plan.alpha, plan.theta)
     err_cal = end_point_errors(sim, steps_cal, sc.path)
-    played = counts[:: max(1, len(counts) // 400)]
+    played = counts[lead:]  # the trace after the lead-in: the plan itself
+    played = played[:: max(1, len(played) // 400)]
     err_run = end_point_errors(sim, played, sc.path) if len(played) else np.zeros(0)
     steps_nom = nominal.counts_from_angles(plan_nominal.alpha, plan_nominal.theta)
     err_nom = end_point_errors(sim, steps_nom, sc.path)
@@ -442,9 +474,13 @@ def run(args: argparse.Namespace) -> int:
         f"drive lag {tr.median_lag_cycles:g} cycle(s) (p95 {tr.p95_lag_cycles:g})"
     )
     label = "with the calibration" if args.calibrate else "with the description's values"
+    played_text = (
+        "not played" if end_point["played_max_mm"] is None
+        else f"{end_point['played_max_mm']:.3f} mm while playing"
+    )  # fmt: skip
     print(
         f"end point vs path ({label}): at most {end_point['calibrated_steps_max_mm']:.3f} mm "
-        f"over the plan steps, {end_point['played_max_mm']:.3f} mm while playing"
+        f"over the plan steps, {played_text}"
     )
     if args.calibrate:
         print(

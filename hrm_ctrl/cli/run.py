@@ -126,14 +126,16 @@ def _plan_record(path: Path, plan: PlanDoc) -> dict[str, Any]:
     }
 
 
-def refuse_collision(doc: PlanDoc, allow: bool) -> None:
+def refuse_collision(doc: PlanDoc, allow: bool, model: Any = None) -> None:
     """Refuse (one line naming step and link) a plan whose arm meets an obstacle: its
     stored clearance (``report.clearance_mm``), and the clearance recomputed against the
-    environment it stores (an edited summary cannot hide a collision).  With ``allow``
-    (``--allow-collision``) a warning line on stderr instead."""
+    environment it stores, of the stored joint centres and of the joints its angles put
+    ``model``'s arm at (the robot that plays it: an edited summary or edited joint centres
+    cannot hide a collision).  With ``allow`` (``--allow-collision``) a warning line on
+    stderr instead."""
     from hrm_ctrl.planning.report import check_clearance, clearance_summary, plan_file_clearance
 
-    c = plan_file_clearance(doc)
+    c = plan_file_clearance(doc, model=model)
     for summary in (doc.clearance, None if c is None else clearance_summary(c)):
         if summary is None:
             continue
@@ -181,7 +183,7 @@ def _source(
     from hrm_ctrl.formats.planfile import read_plan
 
     doc = read_plan(args.plan)
-    refuse_collision(doc, args.allow_collision)  # before anything is sent to a bus
+    refuse_collision(doc, args.allow_collision, actuation.robot)  # before anything is sent to a bus
     plan_record = _plan_record(Path(args.plan), doc)
     sp = setpoints_of_plan(
         doc,

@@ -7,7 +7,8 @@ The format comes from the file's suffix (``.ply``, ``.csv``, ``.npy``, any case)
 - **CSV**: either a header naming the columns, which must include ``x``, ``y`` and ``z``
   (any order, any case; other columns such as normals or intensity are ignored), or no
   header and exactly three numeric columns ``x,y,z``.  A first line that is not all
-  numbers is the header.  Blank lines are skipped.
+  numbers is the header.  Blank lines are skipped.  At most :data:`MAX_CSV_COLUMNS`
+  columns and :data:`MAX_CSV_LINES` lines (counted before the text is split).
 - **NPY** (``np.load`` with ``allow_pickle=False``): one array of shape (n, 3) of real
   numbers (float or integer).
 
@@ -44,6 +45,8 @@ from hrm_ctrl.files import read_text_file
 MAX_POINT_CLOUD_POINTS = 20_000_000  # 20 M points: 480 MB as float64 (n, 3)
 MAX_POINT_CLOUD_BYTES = 2**30  # 1 GiB: an ASCII cloud of 20 M points is about 600 MB
 MAX_PLY_HEADER_BYTES = 2**16  # a PLY header is a few hundred bytes
+MAX_CSV_COLUMNS = 1_000  # x, y, z and whatever a scanner adds (normals, colour, ...)
+MAX_CSV_LINES = MAX_POINT_CLOUD_POINTS + 1  # lines of a CSV (a header, blank lines too)
 MAX_COORDINATE_MM = 1e6  # as for path files: 1 km from the world origin
 SUFFIXES = (".ply", ".csv", ".npy")
 
@@ -112,6 +115,10 @@ def _cell(cell: str) -> str:
 
 
 def _is_number(cell: str) -> bool:
+    """A number as the CSV reader (``np.loadtxt``) reads it: ASCII, no ``_`` (which
+    ``float`` alone would take)."""
+    if not cell.isascii() or "_" in cell:
+        return False
     try:
         float(cell)
     except ValueError:
@@ -119,13 +126,29 @@ def _is_number(cell: str) -> bool:
     return True
 
 
+def _columns(p: Path, n: int, line: str) -> int:
+    """The columns of CSV line n, refused (before the line is split) beyond the bound."""
+    k = line.count(",") + 1
+    if k > MAX_CSV_COLUMNS:
+        raise PointCloudError(
+            f"{p}:{n}: {k} columns, more than the {MAX_CSV_COLUMNS} a point cloud may have"
+        )
+    return k
+
+
 def _read_csv(p: Path) -> np.ndarray:
     text = read_text_file(p, PointCloudError, "point cloud", max_bytes=MAX_POINT_CLOUD_BYTES)
+    n_lines = text.count("\n") + (not text.endswith("\n"))
+    if n_lines > MAX_CSV_LINES:  # before the split (8 bytes a line, blank ones too)
+        raise PointCloudError(
+            f"{p}: {n_lines} lines, more than the {MAX_CSV_LINES} a CSV point cloud may have"
+        )
     lines = text.split("\n")
     numbered = [n for n, line in enumerate(lines, start=1) if line.strip()]
     if not numbered:
         raise PointCloudError(f"{p}: point cloud is empty")
     n0 = numbered[0]
+    _columns(p, n0, lines[n0 - 1])
     first = [c.strip() for c in lines[n0 - 1].split(",")]
     if all(_is_number(c) for c in first):
         cols, width, rows = [0, 1, 2], 3, numbered
@@ -141,6 +164,9 @@ def _read_csv(p: Path) -> np.ndarray:
                 f"{p}:{n0}: the header must name columns x, y and z, missing "
                 f"{', '.join(missing)} (got {','.join(first)[:60]!r})"
             )
+        twice = [c for c in "xyz" if names.count(c) > 1]
+        if twice:
+            raise PointCloudError(f"{p}:{n0}: the header names column {twice[0]} more than once")
         cols, width, rows = [names.index(c) for c in "xyz"], len(names), numbered[1:]
     if not rows:
         raise PointCloudError(f"{p}: point cloud has a header but no points")
@@ -150,11 +176,13 @@ def _read_csv(p: Path) -> np.ndarray:
             f"{MAX_POINT_CLOUD_POINTS} it may have"
         )
     body = [lines[n - 1] for n in rows]
-    try:
-        pts = np.loadtxt(body, delimiter=",", usecols=cols, ndmin=2, dtype=np.float64)
-        ragged = any(line.count(",") != width - 1 for line in body)
-    except ValueError:
-        pts, ragged = None, True
+    ragged = any(line.count(",") != width - 1 for line in body)  # before any line is parsed
+    pts = None
+    if not ragged:
+        try:
+            pts = np.loadtxt(body, delimiter=",", usecols=cols, ndmin=2, dtype=np.float64)
+        except ValueError:
+            pts = None
     if ragged or pts is None:
         _first_bad_row(p, lines, rows, cols, width)  # raises
     pts = np.asarray(pts)
@@ -176,16 +204,13 @@ def _read_csv(p: Path) -> np.ndarray:
 def _first_bad_row(p: Path, lines: list[str], rows: list[int], cols: list[int], width: int) -> None:
     """Raise the error of the first line the fast reader refused."""
     for n in rows:
+        k = lines[n - 1].count(",") + 1
+        if k != width:
+            raise PointCloudError(f"{p}:{n}: expected {width} columns, got {k}")
         cells = lines[n - 1].split(",")
-        if len(cells) != width:
-            raise PointCloudError(f"{p}:{n}: expected {width} columns, got {len(cells)}")
         for name, c in zip("xyz", cols, strict=True):
-            try:
-                float(cells[c])
-            except ValueError:
-                raise PointCloudError(
-                    f"{p}:{n}: {name} is not a number: {_cell(cells[c])}"
-                ) from None
+            if not _is_number(cells[c]):
+                raise PointCloudError(f"{p}:{n}: {name} is not a number: {_cell(cells[c])}")
     raise PointCloudError(f"{p}: not a CSV point cloud")  # pragma: no cover
 
 
@@ -197,6 +222,7 @@ def _read_npy(p: Path) -> np.ndarray:
                 shape, _, dtype = np.lib.format.read_array_header_1_0(f)
             else:
                 shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+            data_bytes = os.fstat(f.fileno()).st_size - f.tell()
     except OSError as exc:
         raise PointCloudError(f"{p}: cannot read point cloud ({exc})") from None
     except ValueError as exc:
@@ -210,6 +236,11 @@ def _read_npy(p: Path) -> np.ndarray:
             f"{p}: point cloud has {shape[0]} points, more than the {MAX_POINT_CLOUD_POINTS} "
             "it may have"
         )
+    if shape[0] * 3 * dtype.itemsize > data_bytes:  # a lying header: nothing allocated for it
+        raise PointCloudError(
+            f"{p}: NPY header states {shape[0]} points ({shape[0] * 3 * dtype.itemsize} "
+            f"bytes), but the file has {data_bytes} bytes of data (is it cut short?)"
+        )
     try:
         pts = np.load(p, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
@@ -217,19 +248,44 @@ def _read_npy(p: Path) -> np.ndarray:
     return _check_points(pts, p, "row")
 
 
+_PLY_TYPE_BYTES = {
+    **dict.fromkeys(("char", "int8", "uchar", "uint8"), 1),
+    **dict.fromkeys(("short", "int16", "ushort", "uint16"), 2),
+    **dict.fromkeys(("int", "int32", "uint", "uint32", "float", "float32"), 4),
+    **dict.fromkeys(("double", "float64"), 8),
+}
+
+
 def _ply_counts(p: Path) -> None:
-    """Refuse, from the header alone, a PLY whose elements hold more than the bound."""
+    """Refuse, from the header alone, a PLY whose elements hold more than the bound, or
+    more than the file's bytes after its header can hold (a header that lies about its
+    counts: nothing is allocated for it).  The header ends at the line ``end_header``
+    (not at those words in a comment)."""
     with open(p, "rb") as f:
         head = f.read(MAX_PLY_HEADER_BYTES)
+        size = os.fstat(f.fileno()).st_size
     if not head.startswith(b"ply"):
         raise PointCloudError(f"{p}: not a PLY file (it does not start with 'ply')")
-    end = head.find(b"end_header")
-    if end < 0:
+    lines = head.split(b"\n")
+    end = next((i for i, x in enumerate(lines[:-1]) if x.strip() == b"end_header"), None)
+    if end is None:
         raise PointCloudError(
             f"{p}: PLY header has no end_header within {MAX_PLY_HEADER_BYTES} bytes"
         )
-    for line in head[:end].decode("ascii", errors="replace").splitlines():
+    body = size - sum(len(x) + 1 for x in lines[: end + 1])
+    ascii_ = True
+    need = 0  # the fewest bytes the elements the header states can take
+    count, row = 0, 0
+    for line in [x.decode("ascii", errors="replace") for x in lines[:end]] + ["element"]:
         words = line.split()
+        if words[:1] == ["format"] and len(words) > 1:
+            ascii_ = words[1] == "ascii"
+        if words[:1] == ["property"] and len(words) > 2:  # ascii: a value and a separator
+            kind = words[2] if words[1] == "list" else words[1]
+            row += 2 if ascii_ else _PLY_TYPE_BYTES.get(kind, 1)
+        if words[:1] == ["element"]:
+            need += count * row
+            count, row = 0, 0
         if len(words) == 3 and words[0] == "element":
             try:
                 count = int(words[2])
@@ -242,6 +298,12 @@ def _ply_counts(p: Path) -> None:
                     f"{p}: PLY element {words[1]} has {count} items, more than the "
                     f"{MAX_POINT_CLOUD_POINTS} a point cloud may have"
                 )
+            count = max(count, 0)
+    if need - (1 if ascii_ else 0) > body:  # ascii: the last newline may be missing
+        raise PointCloudError(
+            f"{p}: PLY header states elements of at least {need} bytes, but the file has "
+            f"{body} bytes after its header (is it cut short?)"
+        )
 
 
 def _read_ply(p: Path) -> np.ndarray:

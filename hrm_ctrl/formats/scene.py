@@ -41,6 +41,9 @@ opening is) is in :mod:`hrm_ctrl.planning.environment`.  Every problem (an unkno
 key or shape, a missing key, a size <= 0, NaN or inf, a list of the wrong length) is one
 :class:`SceneFileError` line naming the file, the table and its index (0-based) and the
 key, e.g. ``scene.toml: wall[1].opening[0].diameter_mm: expected a number > 0, got -80``.
+A scene's pipes may have axes of at most :data:`MAX_PIPE_AXIS_MM` in all (each axis is
+resampled every 0.5 mm for its distance queries), its walls :data:`MAX_WALL_LIMITS`
+openings and bounds in all (each is a term of every distance query, as a table is).
 The same data (:meth:`Environment.to_dict`) is what a plan file keeps of its environment.
 
 >>> import tempfile, pathlib
@@ -79,10 +82,12 @@ from hrm_ctrl.planning.environment import (
     RoundOpening,
     Wall,
 )
-from hrm_ctrl.planning.known_path import MAX_COORDINATE_MM, KnownPath
+from hrm_ctrl.planning.known_path import MAX_COORDINATE_MM, MAX_PATH_LENGTH_MM, KnownPath
 
 MAX_OBSTACLES = 1000  # tables of a scene (every one costs each clearance query)
 MAX_OPENINGS = 100  # openings (and bounds) of one wall
+MAX_WALL_LIMITS = 1000  # openings and bounds of all walls (each costs every query, as a table)
+MAX_PIPE_AXIS_MM = MAX_PATH_LENGTH_MM  # all pipes' axes: 200,000 points resampled, ~10 MB
 
 _TOP = {"description", "pipe", "wall", "box"}
 _PIPE = {"axis_mm", "inner_diameter_mm"}
@@ -153,10 +158,12 @@ class _Reader:
         return v
 
     def direction(self, value: Any, place: str) -> np.ndarray:
+        """A direction of any length > 0, scaled to a largest component of 1 (its norm
+        neither overflows, as of [1e308, 1e308, 0], nor underflows)."""
         v = self.vector(value, place)
-        if np.linalg.norm(v) < 1e-9:
+        if not np.any(v):
             raise self.fail(place, "expected a direction, got the zero vector")
-        return v
+        return v / np.abs(v).max()
 
     def points(self, value: Any, place: str) -> np.ndarray:
         if not isinstance(value, list) or len(value) < 2:
@@ -306,9 +313,26 @@ finite number, got nan
     if sum(counts.values()) > MAX_OBSTACLES:
         raise r.fail("", f"{sum(counts.values())} obstacles, more than the {MAX_OBSTACLES} allowed")
     obstacles: list[Any] = []
+    axis_mm, limits = 0.0, 0
     for key, make in (("pipe", _pipe), ("wall", _wall), ("box", _box)):
         for i, t in enumerate(r.tables(doc.get(key, []), key, MAX_OBSTACLES)):
             obstacles.append(make(r, t, f"{key}[{i}]"))
+            if isinstance(obstacles[-1], Pipe):  # each resampled every 0.5 mm when queried
+                axis_mm += obstacles[-1].axis.length
+                if axis_mm > MAX_PIPE_AXIS_MM:
+                    raise r.fail(
+                        f"{key}[{i}].axis_mm",
+                        f"the pipes' axes are {axis_mm:.6g} mm long in all, longer than the "
+                        f"{MAX_PIPE_AXIS_MM:g} mm a scene's may be",
+                    )
+            if isinstance(obstacles[-1], Wall):
+                limits += len(obstacles[-1].openings) + len(obstacles[-1].bounds)
+                if limits > MAX_WALL_LIMITS:
+                    raise r.fail(
+                        f"{key}[{i}]",
+                        f"{limits} wall openings and bounds in all, more than the "
+                        f"{MAX_WALL_LIMITS} a scene may have",
+                    )
     return Environment(tuple(obstacles))
 
 

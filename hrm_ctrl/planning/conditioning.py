@@ -49,7 +49,7 @@ import numpy as np
 
 from hrm_ctrl.errors import PlanningError
 from hrm_ctrl.model import RobotModel
-from hrm_ctrl.planning.known_path import KnownPath
+from hrm_ctrl.planning.known_path import MAX_PATH_POINTS, KnownPath
 
 BEND_STEP_RAD = math.radians(1.0)  # arcs sampled every 1 deg, as the scenarios sample them
 CHECK_SPACING = 0.5  # mm: the places along the path where a joint's bend is measured
@@ -342,7 +342,8 @@ def round_corners(path: KnownPath, radius_mm: float) -> KnownPath:
     tangent to both segments at ``R tan(β/2)`` from the corner (β the turn there).
 
     Raises :class:`PlanningError` (one line naming the corner) when a segment is too
-    short for the tangent lengths of its corners, or the path turns back on itself.
+    short for the tangent lengths of its corners, or the path turns back on itself; and,
+    before any arc is made, when the arcs would give more than ``MAX_PATH_POINTS`` points.
 
     >>> P = KnownPath.from_points(np.array([[0, 0, 0], [100, 0, 0], [100, 100, 0]], float))
     >>> Q = round_corners(P, 50.0)
@@ -392,6 +393,14 @@ a 150 mm radius needs 150.0 mm of the 100.0 mm segment from point 1 to point 2
                 f"{where(j)}: a {R:g} mm radius needs {t[j]:.1f} mm of the {seg[k]:.1f} mm "
                 f"segment from point {k + 1} to point {k + 2}{also}"
             )
+    arcs = np.where(corner, np.maximum(2, np.ceil(phi / BEND_STEP_RAD)) + 1, 0.0)
+    n_out = int(n_pts + arcs.sum())  # at most: each corner its arc and tangent point
+    if n_out > MAX_PATH_POINTS:
+        raise PlanningError(
+            f"{path.source}: rounding its {int(corner.sum())} corners (one point every "
+            f"{math.degrees(BEND_STEP_RAD):g} deg of turn) would give {n_out} points, more "
+            f"than the {MAX_PATH_POINTS} a path may have"
+        )
     out: list[np.ndarray] = [P[0]]
     for j in range(1, n_pts - 1):
         if not corner[j]:

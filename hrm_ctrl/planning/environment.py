@@ -83,10 +83,10 @@ def _vec3(v: object, what: str) -> np.ndarray:
 
 def _unit(v: object, what: str) -> np.ndarray:
     a = np.array(_vec3(v, what))
-    n = float(np.linalg.norm(a))
-    if n < 1e-9:
+    if not np.any(a):
         raise PlanningError(f"{what} must not be the zero vector")
-    a /= n
+    a /= np.abs(a).max()  # first: the norm of [1e308, 1e308, 0] is no overflow
+    a /= np.linalg.norm(a)
     a.setflags(write=False)
     return a
 

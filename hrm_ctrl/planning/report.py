@@ -20,9 +20,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hrm_ctrl.errors import CollisionError, JointLimitError
+from hrm_ctrl.errors import CollisionError, JointLimitError, PlanFileError
+from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.model import RobotModel
 from hrm_ctrl.planning.environment import Environment, link_clearance
 from hrm_ctrl.planning.scenarios import SAMPLES_PER_LINK
+
+SAME_JOINTS_MM = 1e-6  # stored joint centres this near their angles' are the same arm
 
 if TYPE_CHECKING:  # the planner imports this module to fill in its report
     from hrm_ctrl.formats.planfile import PlanDoc
@@ -157,18 +161,82 @@ def clearance_summary(c: np.ndarray) -> dict[str, Any]:
 
 
 def plan_file_clearance(
-    doc: PlanDoc, outer_diameter: np.ndarray | None = None
+    doc: PlanDoc, outer_diameter: np.ndarray | None = None, model: RobotModel | None = None
 ) -> np.ndarray | None:
     """(S, 12) link clearance of a plan read from a file against the environment it stores
     (``None`` when it stores none): link outer diameters from ``outer_diameter`` (mm), else
-    the plan's robot (``outer_diameter_mm``), else 30 mm (``NOTES.md``)."""
+    :func:`plan_outer_diameter` (the plan's robot's, the larger of it and ``model``'s).
+    With ``model`` (the robot that plays the plan), each step's worse of the stored joint
+    centres and those its stored angles put ``model``'s joints at (Eq. 4): joint centres
+    edited away from an obstacle do not hide it.  (Where the two agree to
+    :data:`SAME_JOINTS_MM`, the stored clearance less their distance, measured once.)
+
+    >>> from hrm_ctrl.formats.planfile import PlanDoc
+    >>> from hrm_ctrl.model import default_robot
+    >>> doc = {"format": "hrm-plan/1", "robot": {"links_mm": [100.0] * 12},
+    ...        "path_mm": [[0, 0, 0], [1, 0, 0]], "report": {}, "steps": [{"travel_mm": 0,
+    ...        "alpha_rad": [0.0] * 12, "theta_rad": [0.0] * 12,
+    ...        "joints_mm": [[0.0, 0.0, 5000.0]] * 13}],
+    ...        "scenario": {"environment": {"box": [{"centre_mm": [0, 0, 0],
+    ...                                              "size_mm": [50, 50, 50]}]}}}
+    >>> bool(plan_file_clearance(PlanDoc.from_dict(doc)).min() > 0)  # the stored joints
+    True
+    >>> m = default_robot()
+    >>> bool(plan_file_clearance(PlanDoc.from_dict(doc), model=m).min() < 0)  # the angles
+    True
+    """
     env: Environment | None = doc.environment
     if env is None:
         return None
-    if outer_diameter is None:
-        od = doc.robot_extra.get("outer_diameter_mm")
-        outer_diameter = np.asarray(od if od is not None else [30.0] * 12, dtype=float)
-    return link_clearance(env, doc.joints_mm, 0.5 * np.asarray(outer_diameter, dtype=float))
+    if outer_diameter is None:  # the plan's robot's, checked; the larger where both are known
+        outer_diameter = plan_outer_diameter(doc, None if model is None else model.outer_diameter)
+    radius = 0.5 * np.asarray(outer_diameter, dtype=float)
+    c = link_clearance(env, doc.joints_mm, radius)
+    if model is not None:
+        O = joint_centres(model, doc.alpha_rad, doc.theta_rad)
+        dev = np.linalg.norm(O - doc.joints_mm, axis=2).max(axis=1)  # (S,) mm
+        moved = dev > SAME_JOINTS_MM
+        # the free distance is 1-Lipschitz: a link whose ends moved by dev is at most dev
+        # nearer; steps moved farther are measured again
+        c[~moved] -= dev[~moved, None]
+        if moved.any():
+            c[moved] = np.minimum(c[moved], link_clearance(env, O[moved], radius))
+    return c
+
+
+def plan_outer_diameter(doc: PlanDoc, known: np.ndarray | None = None) -> np.ndarray:
+    """(12,) link outer diameters (mm) a plan file's robot states (``outer_diameter_mm``: a
+    number or 12 numbers, each finite and > 0; where it states none, ``known``, else 30 mm,
+    ``NOTES.md``), at least ``known`` (the robot's own).  Raises :class:`PlanFileError`
+    naming the key otherwise.
+
+    >>> from hrm_ctrl.formats.planfile import PlanDoc
+    >>> doc = {"format": "hrm-plan/1", "robot": {"links_mm": [100.0] * 12,
+    ...        "outer_diameter_mm": -30}, "path_mm": [[0, 0, 0], [1, 0, 0]], "report": {},
+    ...        "steps": [{"travel_mm": 0, "alpha_rad": [0.0] * 12, "theta_rad": [0.0] * 12,
+    ...        "joints_mm": [[0.0, 0.0, 0.0]] * 13}]}
+    >>> plan_outer_diameter(PlanDoc.from_dict(doc, "p.json"))
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.PlanFileError: p.json: robot.outer_diameter_mm: expected a number > 0 \
+or an array of 12 of them, got -30
+    """
+    od = doc.robot_extra.get("outer_diameter_mm")
+    if od is None:
+        return np.full(12, 30.0) if known is None else np.array(known, dtype=float)
+    values = od if isinstance(od, list | tuple) else [od]
+    ok = len(values) in (1, 12) and all(
+        isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+        for v in values
+    )
+    if not ok:
+        text = repr(od) if len(repr(od)) <= 40 else repr(od)[:37] + "..."
+        raise PlanFileError(
+            f"{doc.source}: robot.outer_diameter_mm: expected a number > 0 or an array of 12 "
+            f"of them, got {text}"
+        )
+    stated = np.broadcast_to(np.asarray(values, dtype=float), (12,))
+    return np.array(stated if known is None else np.maximum(stated, known))
 
 
 def check_clearance(summary: dict[str, Any] | None, where: str) -> None:

@@ -4,7 +4,8 @@ The paper's introduction suggests taking the principal axes of slices along the 
 this module slices the cloud normal to the pipe's local axis and fits a circle to each
 slice, robustly (noise and outliers expected):
 
-1. **Seed.**  The slab through the cloud's median along its principal axis (PCA): a
+1. **Seed.**  The slab through the cloud's median along its principal axis (PCA of the
+   99 % of points nearest the median: a few stray points far away turn no axis): a
    RANSAC circle (3-point circles, the one most points lie near) refined as below, then
    the local axis from two slices one radius either side, three times.  If that fails
    (a slab across a bend), slabs at other quantiles along the principal axis are tried.
@@ -27,7 +28,9 @@ slice, robustly (noise and outliers expected):
 4. **Diameter and residuals.**  The inner diameter is twice the median slice radius; the
    residual of every point is its distance to the fitted wall (its distance to the axis
    less the radius).  Inliers are within ``max(3 sigma, 0.05 mm)`` of the wall, sigma
-   estimated as 1.4826 times the median absolute deviation of the residuals.
+   estimated as 1.4826 times the median absolute deviation of the residuals.  A band
+   wider than half the radius (points not on a wall: a solid, a box of noise) or a
+   diameter below 1 mm (a scan in metres) is refused.
 
 Clouds of more than ``max_fit_points`` (default 500,000) are fitted on a random subset of
 that many points (seeded: the same cloud gives the same fit); the residuals are measured on
@@ -77,6 +80,9 @@ IRLS_ITERATIONS = 12
 SMOOTH_WINDOW = 7  # slices of the Savitzky-Golay smoothing of the centre line
 INLIER_SIGMAS = 3.0
 MIN_INLIER_BAND_MM = 0.05
+MAX_BAND_PER_RADIUS = 0.5  # a wider 3-sigma band about the wall: no wall (noise 5 mm: 0.44 r)
+MIN_INNER_DIAMETER_MM = 1.0  # a narrower fit is a scan in other units
+CORE_PERCENTILE = 99.0  # the seed's principal axis: the points this near the median
 STATS_CHUNK = 1_000_000  # residuals are measured this many points at a time
 
 
@@ -485,14 +491,16 @@ def pipe_from_scan(
 
     # 1. seed: the middle slab across the principal axis (or one nearby, if that fails)
     mu = np.median(M, axis=0)
-    _, _, Vt = np.linalg.svd(np.cov((M - M.mean(axis=0)).T))
+    r_mu = np.linalg.norm(M - mu, axis=1)
+    core = M[r_mu <= np.percentile(r_mu, CORE_PERCENTILE)]  # a stray point turns no axis
+    _, _, Vt = np.linalg.svd(np.cov((core - core.mean(axis=0)).T))
     e1 = Vt[0]
     t = (M - mu) @ e1
     lo, hi = np.percentile(t, [1.0, 99.0])
     extent = float(hi - lo)
     if not extent > 0.0:
         raise ScanFitError("the scan points do not extend along any direction")
-    cross_extent = float(np.ptp((M - mu) @ Vt[1:].T, axis=0).max())
+    cross_extent = float(np.ptp((core - mu) @ Vt[1:].T, axis=0).max())
     width0 = max(extent / 50.0, 1e-6)
     seeded = None
     for f in SEED_QUANTILES:
@@ -611,6 +619,17 @@ def pipe_from_scan(
         ]
     )
     band = max(INLIER_SIGMAS * _mad_scale(e), MIN_INLIER_BAND_MM)
+    if 2.0 * r_fit < MIN_INNER_DIAMETER_MM:
+        raise ScanFitError(
+            f"the fitted inner diameter is {2.0 * r_fit:.3g} mm, below "
+            f"{MIN_INNER_DIAMETER_MM:g} mm (is the scan in metres? mm are expected)"
+        )
+    if band > MAX_BAND_PER_RADIUS * r_fit:
+        raise ScanFitError(
+            f"the points spread {band:.3g} mm (3 sigma) about the fitted wall, more than "
+            f"{MAX_BAND_PER_RADIUS:g} of its radius ({r_fit:.3g} mm): not a scan of a pipe's "
+            "inner wall"
+        )
     inl = np.abs(e) <= band
     n_in = int(inl.sum())
     ei = e[inl]

@@ -195,6 +195,20 @@ class RopeStateEstimator:
             max_iterations=SAMPLE_ITERATIONS,
         )
         zstd = rope_misfit(act, sol, self.sigma_mm)
+        if np.abs(zstd).max() > self.flag_sigma:
+            # Confirm from the rope inverse's own start before it counts: on a fast move the
+            # filter lags (or its linearisation runs off), and a warm start there can end in
+            # a misfit the sample does not have (a consistent sample read 109 sigma).
+            try:
+                cold = solve_angles(act.geometry, act.joint_of_motor, z, pad=act.pad)
+            except RopeError:
+                cold = None  # no configuration from there either: the warm result stands
+            if cold is not None:
+                zcold = rope_misfit(act, cold, self.sigma_mm)
+                if np.abs(zcold).max() < np.abs(zstd).max():
+                    sol, zstd = cold, zcold
+                    x[0 : self.n_x : 2] = cold.alpha  # x views the filter's state: it
+                    x[1 : self.n_x : 2] = cold.theta  # restarts from the cold solution
         self._stat += self._ewma * (zstd**2 - self._stat)
         cons = np.sqrt(self._stat)
         joint_cons = np.zeros(act.robot.n_joints)

@@ -174,26 +174,27 @@ def test_ropes_half_and_twice_as_stiff_as_described() -> None:
         assert result.iterations[g].max() <= 8, result.iterations[g]
 
 
-def test_zeros_in_the_rope_layers_convention_with_the_joint_offsets() -> None:
+def test_zeros_do_not_depend_on_the_joint_offsets() -> None:
     """With the true links, joint offsets and EAs in the host's rope layer (as after the
-    kinematic and stiffness calibrations), the counts found in the fixture (physically
-    straight) convert to the truth's zeros in the rope layer's convention (commanded
-    straight: ``TrueArm.host_zero_counts``), here up to 980 counts apart; also from a
-    target other than the pretension."""
+    kinematic and stiffness calibrations), the fixture (rope geometry straight) gives the
+    truth's zeros as they are: the joint offsets do not enter; a target other than the
+    pretension is converted on the rope layer's model."""
     act = load_actuation(default_robot())
     truth = TrueArm.perturbed(act, SEED)
     host = truth.ideal_actuation(act.robot)
+    assert np.abs(host.alpha_offset_rad).max() > np.radians(0.5)  # offsets that matter
     ideal = np.asarray(host.motors.zero_offsets_counts)
     g = np.flatnonzero(np.isin(act.joint_of_motor, [8, 11]))
-    assert np.abs(ideal - truth.motor_zero_counts)[g].max() > 500  # the conversion matters
     with fixture_rig(host=host) as rig:
         result = pretension_and_zero(rig.session, rig.reader, host, joints=[8, 11])
-        assert np.abs(result.fixture_counts[g] - truth.motor_zero_counts[g]).max() <= 50
+        assert np.array_equal(result.fixture_counts[g], result.zero_counts[g])
+        assert np.abs(result.zero_counts[g] - truth.motor_zero_counts[g]).max() <= 50
         assert np.abs(result.zero_counts[g] - ideal[g]).max() <= ZERO_TOLERANCE_COUNTS
         other = pretension_and_zero(rig.session, rig.reader, host, target_N=25.0, joints=[11])
         g12 = g[3:]
         assert np.abs(other.zero_counts[g12] - ideal[g12]).max() <= ZERO_TOLERANCE_COUNTS
         assert np.all(np.abs(other.tension_error_N[g12]) < DEFAULT_TOL_N)
+        assert np.abs(other.fixture_counts[g12] - other.zero_counts[g12]).min() > 100
 
 
 # ---- refusals ------------------------------------------------------------------------------

@@ -106,19 +106,21 @@ def test_joint_offset_shows_in_the_physical_angle() -> None:
     assert np.abs(s.alpha - (a + off_a)).max() < 1e-3
     assert np.allclose(s.centres, joint_centres(ACT.robot, s.alpha, s.theta))
     assert np.allclose(s.tension_N, ACT.routing.pretension_N, atol=0.2)
-    # the truth's motor zeros (0 here) hold the ropes at pretension on the physically
-    # straight arm, so the description's counts for (a, t) put the rope geometry a little
-    # off (a, t) - offset: the offset is absorbed but for the ropes' curvature
+    # the truth's motor zeros (0 here) hold the ropes at pretension with the rope geometry
+    # straight, so the description's counts for (a, t) give the rope geometry (a, t) exactly
+    # and the physical joints (a, t) + offset: the offset is the kinematic calibration's
     s0 = arm.state(rope_geometry_zero, now=0.0)
-    assert np.abs(s0.alpha - a).max() < 0.01 < np.abs(s0.rope_alpha - a).max()
-    # counts 0 are the physically straight arm; the fixture holds it there whatever
+    assert np.abs(s0.rope_alpha - a).max() < 1e-3 and np.abs(s0.rope_theta - t).max() < 1e-3
+    assert np.abs(s0.alpha - (a + off_a)).max() < 1e-3
+    # counts 0 are the rope geometry straight, the links at their offsets; the fixture
+    # holds the rope geometry there whatever the motors do
     zero = np.zeros(36, dtype=np.int64)
-    assert np.abs(arm.state(zero, now=0.0).alpha).max() < 1e-6
+    assert np.allclose(arm.state(zero, now=0.0).alpha, off_a, atol=1e-6)
     arm.set_fixture(True)
     fixed = arm.state(ideal.counts_from_angles(a, t), now=0.0)
-    assert fixed.fixture and not fixed.alpha.any() and not fixed.theta.any()
-    assert np.allclose(fixed.rope_alpha, -off_a)
-    assert np.allclose(fixed.centres[-1], [ACT.robot.length, 0.0, 0.0])
+    assert fixed.fixture and not fixed.rope_alpha.any() and not fixed.rope_theta.any()
+    assert np.allclose(fixed.alpha, off_a) and np.allclose(fixed.theta, off_t)
+    assert np.allclose(fixed.centres, joint_centres(ACT.robot, off_a, off_t))
 
 
 def test_the_ideal_actuation_puts_the_true_arm_where_commanded() -> None:
@@ -162,7 +164,8 @@ def test_fixture_tension_is_each_ropes_own(seed: int, m: int, delta: int) -> Non
         slope = (s.tension_N[m] - pre) / (delta / cpm)
         EA_over_u = truth.rope_EA_N[m] / float(arm.u0_mm[m])
         assert slope == pytest.approx(EA_over_u, rel=0.02)
-    assert not s.alpha.any() and not s.theta.any()
+    assert not s.rope_alpha.any() and not s.rope_theta.any()  # the rope geometry held straight
+    assert np.array_equal(s.alpha, truth.alpha_offset_rad)  # the links at their offsets
 
 
 def test_fixture_zero_tension_within_noise_of_the_pretension() -> None:

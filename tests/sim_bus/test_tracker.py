@@ -55,11 +55,20 @@ def test_tracker_measures_the_true_end_point_in_its_frame(box: SimBox) -> None:
         assert np.abs(p - want).max() < 0.03  # sigma 0.005 mm for the mean of 100
         # the tracker's frame is not the base's: the raw point is metres away from O_13
         assert np.linalg.norm(p - box.end_point_mm()) > 500.0
-        # in the fixture the arm is straight, with the true links
+        # in the fixture the rope geometry is straight: the links at their offsets
         box.set_straight_fixture(True)
-        straight = joint_centres(TRUTH.model(ACT.robot), np.zeros(12), np.zeros(12))[-1]
-        assert np.allclose(box.end_point_mm(), straight)
-        assert np.abs(reader.measure(100) - TRUTH.to_tracker(straight)).max() < 0.03
+        held = joint_centres(
+            TRUTH.model(ACT.robot), TRUTH.alpha_offset_rad, TRUTH.theta_offset_rad
+        )[-1]
+        assert np.allclose(box.end_point_mm(), held)
+        assert np.abs(reader.measure(100) - TRUTH.to_tracker(held)).max() < 0.03
+        # the base plate's nests, in the tracker's frame: the frame is found from them
+        fid = ACT.robot.base_fiducials
+        for k in range(len(fid)):
+            got = reader.measure(50, fiducial=k + 1)
+            assert np.abs(got - TRUTH.to_tracker(fid[k])).max() < 0.04
+        with pytest.raises(TrackerError, match="NONEST"):
+            reader.measure(1, fiducial=len(fid) + 1)
         box.tracker_lose_target(True)
         with pytest.raises(TrackerTargetLostError):
             reader.measure()
@@ -73,13 +82,14 @@ def test_fixture_tensions_at_the_true_zero_and_freed(box: SimBox) -> None:
     box.set_straight_fixture(True)
     assert np.allclose(box.tension_N(), pre, atol=1e-6)  # at the true zero counts
     s = box.arm_state()
-    assert s.fixture and not s.alpha.any()
+    assert s.fixture and not s.rope_alpha.any() and np.allclose(s.alpha, TRUTH.alpha_offset_rad)
     box.set_straight_fixture(False)
     free = box.arm_state()
     assert not free.fixture
-    # off the fixture the arm at its true zeros is straight (its ropes set phi = -offset)
-    assert np.abs(free.alpha).max() < 1e-4 and np.abs(free.theta).max() < 1e-4
-    assert np.allclose(free.rope_alpha, -TRUTH.alpha_offset_rad, atol=1e-4)
+    # off the fixture the arm at its true zeros keeps its rope geometry straight (phi = 0):
+    # the links stand at the joint offsets
+    assert np.abs(free.rope_alpha).max() < 1e-4 and np.abs(free.rope_theta).max() < 1e-4
+    assert np.allclose(free.alpha, TRUTH.alpha_offset_rad, atol=1e-4)
 
 
 def test_tracker_stops_with_the_box_and_needs_starting() -> None:
@@ -135,7 +145,7 @@ def test_runner_with_truth_fixture_and_tracker() -> None:
     assert Path(ready["tracker_port"]).name.isdigit() and ready["fixture"] is True
     assert ready["truth"] == TRUTH.source
     assert events[1]["fixture"] is True and events[6]["fixture"] is False
-    assert not any(events[1]["alpha"])
+    assert np.allclose(events[1]["alpha"], TRUTH.alpha_offset_rad)  # rope geometry straight
     assert "on|off" in events[4]["error"]
     truth = {k: v for k, v in events[5].items() if k not in ("event", "source")}
     assert truth == TRUTH.to_dict()

@@ -184,13 +184,13 @@ def test_written_file_is_commented_toml_and_writing_fails_cleanly(tmp_path: Path
         write_truth(blocker / "t.toml", TrueArm.nominal(ACT))  # its folder is a file
 
 
-def test_host_zero_counts_shift_by_the_rope_the_offsets_change() -> None:
+def test_host_zero_counts_are_the_truths_with_the_slack_taken_up() -> None:
     t = TrueArm.perturbed(ACT, 4)
     rope = load_actuation(t.model(ACT.robot))
-    z = t.host_zero_counts(rope)
-    # without joint offsets and slack the host's zero is the truth's
-    plain = t.replace(alpha_offset_rad=np.zeros(12), theta_offset_rad=np.zeros(12))
-    assert np.array_equal(plain.host_zero_counts(rope), plain.motor_zero_counts)
-    # with offsets of up to 1 deg the difference is some hundreds of counts at most
-    d = np.abs(z - t.motor_zero_counts)
-    assert 10 < d.max() < 2000
+    # the truth's zeros are at the rope geometry's zero, the host's convention: joint
+    # offsets do not move them
+    assert t.alpha_offset_rad.any()
+    assert np.array_equal(t.host_zero_counts(rope), t.motor_zero_counts)
+    slack = t.replace(slack_mm=np.full(36, 0.5))
+    d = slack.host_zero_counts(rope) - t.motor_zero_counts
+    assert np.array_equal(d, np.rint(rope.motors.direction * rope.motors.counts_per_mm * 0.5))

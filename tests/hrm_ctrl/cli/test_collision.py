@@ -161,3 +161,53 @@ def test_run_plays_a_colliding_plan_with_allow_collision(
     assert rc == 0, out.err
     assert "hrm run: warning: " in out.err and "--allow-collision" in out.err
     assert json.loads(out.out)["completed"] is True
+
+
+# ---- red team (issue 10): edited plan files cannot hide a collision ----------------------
+
+
+@pytest.mark.parametrize("od", ["abc", [30.0, 30.0], [-1000.0] * 12, {"a": 1}, 0.0, True], ids=repr)
+def test_run_refuses_an_edited_link_diameter(
+    tmp_path: Path, capsys: pytest.CaptureFixture, no_bus: list[Any], od: Any
+) -> None:
+    """Found: a string or a short list was a traceback, a negative diameter (radius -500 mm)
+    made the colliding arm clear by 475 mm and the plan was played."""
+    plan = colliding_plan(None)
+    plan["robot"]["outer_diameter_mm"] = od
+    write_plan(tmp_path / "plan.json", plan)
+    rc = main(["run", str(tmp_path / "plan.json"), "--sim", "--log-dir", str(tmp_path / "r")])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = [x for x in err.splitlines() if x.startswith("hrm run: error: ")]
+    assert len(lines) == 1 and "robot.outer_diameter_mm: expected a number > 0" in lines[0]
+    assert "Traceback" not in err and no_bus == []
+
+
+def test_run_refuses_a_collision_hidden_by_edited_joint_centres(
+    tmp_path: Path, capsys: pytest.CaptureFixture, no_bus: list[Any]
+) -> None:
+    """Found: the check used the stored joint centres only; moved 5 m away (the angles, which
+    are what is played, unchanged) they hid the arm's collision with a box around it."""
+    import numpy as np
+
+    from hrm_ctrl.kinematics import joint_centres
+    from hrm_ctrl.model import default_robot
+
+    plan = small_plan()
+    a = np.array([st["alpha_rad"] for st in plan["steps"]])
+    O = joint_centres(default_robot(), a, np.zeros_like(a))
+    middle = O[0, 6].tolist()
+    for st, Ok in zip(plan["steps"], O, strict=True):
+        st["joints_mm"] = (Ok + np.array([0.0, 0.0, 5000.0])).tolist()
+    plan["scenario"] = {
+        "name": "boxed",
+        "environment": {"box": [{"centre_mm": middle, "size_mm": [60, 60, 60]}]},
+    }
+    plan["report"]["clearance_mm"] = {"min": 4000.0, "step": 0, "link": 1}
+    write_plan(tmp_path / "plan.json", plan)
+    rc = main(["run", str(tmp_path / "plan.json"), "--sim", "--log-dir", str(tmp_path / "r")])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = [x for x in err.splitlines() if x.startswith("hrm run: error: ")]
+    assert len(lines) == 1 and "meets an obstacle at step" in lines[0], err
+    assert no_bus == []

@@ -1,4 +1,6 @@
-"""``hrm demo``: the whole stack on the in-process simulated box."""
+"""``hrm demo``: the whole stack on the in-process simulated box: a perturbed arm
+calibrated (zero in the fixture, kinematic from the tracker), the scenario planned with the
+calibrated model and played there and back."""
 
 from __future__ import annotations
 
@@ -12,17 +14,8 @@ from hrm_ctrl.cli import main
 from hrm_ctrl.formats.planfile import read_plan
 
 
-@pytest.mark.parametrize("wire", ["virtual", "hrm_sim"])
-def test_demo_plays_a_scenario_on_the_simulated_box(
-    wire: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    rc = main(
-        ["demo", "--scenario", "cabins", "--out", str(tmp_path), "--speed", "50", "--wire", wire]
-    )
-    out, err = capsys.readouterr()
-    assert rc == 0, err
-    summary = json.loads((tmp_path / "demo.json").read_text())
-    assert summary["run"]["completed"] is True
+def _check_run(tmp_path: Path, summary: dict) -> None:
+    assert summary["run"]["completed"] is True, summary["run"]["causes"]
     assert summary["run"]["causes"] == []
     tr = summary["tracking"]
     assert tr["compared_cycles"] > 0.8 * tr["body_cycles"]
@@ -31,6 +24,7 @@ def test_demo_plays_a_scenario_on_the_simulated_box(
     assert tr["p95_lag_cycles"] <= 2
     plan = read_plan(tmp_path / "plan.json")
     assert plan.report["tip_error_mm"] < 0.01
+    assert plan.report["clearance_mm"]["min"] >= 2.0  # the clearance fit (issue 10)
     assert {p.name for p in (tmp_path / "figures").iterdir()} == {
         "angles.png",
         "arm.png",
@@ -43,11 +37,55 @@ def test_demo_plays_a_scenario_on_the_simulated_box(
         frames = list(can.LogReader(log))
         assert any(f.arbitration_id == 0x80 for f in frames)  # SYNC
         assert any(0x200 < f.arbitration_id < 0x280 for f in frames)  # RPDO1 setpoints
-    assert "simulated arm vs plan" in out
+
+
+def test_demo_calibrates_a_perturbed_arm_and_plays_with_the_calibration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rc = main(["demo", "--scenario", "cabins", "--out", str(tmp_path), "--perturb", "3"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    summary = json.loads((tmp_path / "demo.json").read_text())
+    _check_run(tmp_path, summary)
+    cal = summary["calibration"]
+    # the zero: within 50 counts of the simulated truth (0.05 N noise, tol 0.2 N: about
+    # 10 counts; docs/calibration.md), the ropes at their pretension
+    assert cal["zero"]["max_error_vs_truth_counts"] <= 50
+    assert cal["zero"]["max_tension_error_N"] <= 0.2
+    # the kinematic fit from 24 poses, the rope EA still the description's (+-20 %)
+    assert cal["kinematic"]["rms_after_mm"] < 0.5 < 10.0 < cal["kinematic"]["rms_before_mm"]
+    assert cal["kinematic"]["max_link_error_vs_truth_mm"] < 0.5
+    ep = summary["end_point_vs_path"]
+    assert ep["calibrated_steps_max_mm"] < 1.0 and ep["played_max_mm"] < 1.0
+    assert ep["uncalibrated_steps_max_mm"] > 10.0  # what the calibration was for
+    versions = sorted(p.name for p in (tmp_path / "calibrations").glob("v*.json"))
+    assert versions == ["v0001.json", "v0002.json"]
+    record = json.loads(Path(summary["run_record"]).read_text())
+    assert record["calibration"]["version"] == 2
+    assert "simulated arm vs plan" in out and "without the calibration" in out
+
+
+def test_demo_without_calibration_over_the_simulated_wire(tmp_path: Path, capsys) -> None:
+    argv = ["demo", "--scenario", "cabins", "--out", str(tmp_path), "--no-calibrate"]
+    rc = main([*argv, "--no-return", "--wire", "hrm_sim"])
+    _, err = capsys.readouterr()
+    assert rc == 0, err
+    summary = json.loads((tmp_path / "demo.json").read_text())
+    _check_run(tmp_path, summary)
+    assert summary["calibration"] is None
+    assert summary["end_point_vs_path"]["played_max_mm"] < 0.5  # the arm is its description
+    assert not (tmp_path / "calibrations").exists()
 
 
 def test_demo_refuses_bad_input_before_anything_is_written(tmp_path: Path, capsys) -> None:
     rc = main(["demo", "--out", str(tmp_path / "d"), "--speed", "-1"])
     _, err = capsys.readouterr()
     assert rc == 2 and "--speed must be > 0" in err and err.count("\n") == 1
+    assert not (tmp_path / "d").exists()
+
+
+def test_demo_refuses_a_bad_pose_count(tmp_path: Path, capsys) -> None:
+    rc = main(["demo", "--out", str(tmp_path / "d"), "--poses", "0"])
+    _, err = capsys.readouterr()
+    assert rc == 2 and "--poses must be" in err and err.count("\n") == 1
     assert not (tmp_path / "d").exists()

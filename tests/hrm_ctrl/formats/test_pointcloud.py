@@ -123,7 +123,7 @@ def test_bad_npy_files(tmp_path: Path) -> None:
     one_line_error(p, r"row 42: y is not finite")
     np.save(p, PTS)
     p.write_bytes(p.read_bytes()[:-100])  # truncated
-    one_line_error(p, "cannot read NPY array")
+    one_line_error(p, "cut short")
     p.write_bytes(b"not numpy at all")
     one_line_error(p, "not an NPY file")
     np.save(p, np.array([{"a": 1}], dtype=object))
@@ -142,7 +142,7 @@ def test_bad_ply_files(tmp_path: Path) -> None:
         "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
         "property float y\nproperty float z\nend_header\n1 2 3\n"
     )
-    one_line_error(p, "not a readable PLY file")
+    one_line_error(p, "states elements of at least 18 bytes, but the file has 6 bytes")
     p.write_text("hello")
     one_line_error(p, "not a PLY file")
     p.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\n")
@@ -152,7 +152,7 @@ def test_bad_ply_files(tmp_path: Path) -> None:
     write_ply(p, PTS, text=False)
     raw = p.read_bytes()
     p.write_bytes(raw[: len(raw) // 2])  # truncated binary
-    one_line_error(p, "not a readable PLY file")
+    one_line_error(p, "cut short")
 
 
 def test_a_count_beyond_the_bound_is_refused_before_reading(tmp_path: Path) -> None:
@@ -176,3 +176,95 @@ def test_a_file_beyond_the_size_bound_is_refused_unread(
     np.savetxt(p, PTS, delimiter=",")
     monkeypatch.setattr(pointcloud, "MAX_POINT_CLOUD_BYTES", 100)
     one_line_error(p, "larger than the 100 bytes")
+
+
+# ---- red team (issue 10) ------------------------------------------------------------------
+
+PLY_XYZ = "property float x\nproperty float y\nproperty float z\n"
+
+
+def test_end_header_in_a_comment_does_not_end_the_header(tmp_path: Path) -> None:
+    """Found: the count check stopped at the first 'end_header' bytes, a comment's, so the
+    vertex count after it (1e11) went unchecked to plyfile (an allocation of 1.09 TiB)."""
+    p = tmp_path / "c.ply"
+    p.write_text(
+        "ply\nformat ascii 1.0\ncomment end_header\nelement vertex 99999999999\n"
+        f"{PLY_XYZ}end_header\n1 2 3\n"
+    )
+    one_line_error(p, r"vertex has 99999999999 items, more than the 20000000")
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
+@pytest.mark.parametrize("stated", [2, 1000, 19_000_000])
+def test_a_header_stating_more_points_than_the_file_holds_is_refused_unread(
+    tmp_path: Path, fmt: str, stated: int
+) -> None:
+    """A lying header (within the bound) is refused from the file's size, before plyfile
+    allocates its rows (19 M rows: 228 MB for a 12-byte body)."""
+    p = tmp_path / "c.ply"
+    p.write_bytes(
+        f"ply\nformat {fmt} 1.0\nelement vertex {stated}\n{PLY_XYZ}end_header\n".encode()
+        + (b"1 2 3\n" if fmt == "ascii" else b"\0" * 12)
+    )
+    one_line_error(p, r"states elements of at least \d+ bytes, but the file has \d+ bytes")
+
+
+@pytest.mark.parametrize("text", [True, False])
+def test_the_size_check_passes_every_well_formed_ply(tmp_path: Path, text: bool) -> None:
+    p = write_ply(tmp_path / "c.ply", PTS[:5], text=text, extra=True)  # a face list too
+    assert read_point_cloud(p).shape == (5, 3)
+    p.write_text(  # the last line without its newline
+        f"ply\nformat ascii 1.0\nelement vertex 2\n{PLY_XYZ}end_header\n1 2 3\n4 5 6"
+    )
+    assert read_point_cloud(p).tolist() == [[1, 2, 3], [4, 5, 6]]
+
+
+def test_a_csv_of_too_many_columns_is_refused_before_it_is_split(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Found: a line of 10^7 columns (20 MB) was split into 10^7 strings (a 1 GiB one:
+    5 x 10^8, tens of GB) before its width was looked at."""
+    p = tmp_path / "c.csv"
+    p.write_text("0," * 10**6 + "0\n")
+    one_line_error(p, r"c.csv:1: 1000001 columns, more than the 1000")
+    p.write_text("x,y,z\n1,2,3\n" + "4," * 10**6 + "4\n")  # a ragged data line
+    one_line_error(p, r"c.csv:3: expected 3 columns, got 1000001")
+
+
+def test_a_csv_of_too_many_lines_is_refused_before_it_is_split(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Found: 1 GiB of newlines became a list of 10^9 lines (8 GB) before any check."""
+    monkeypatch.setattr(pointcloud, "MAX_CSV_LINES", 1000)
+    p = tmp_path / "c.csv"
+    p.write_text("1,2,3\n" + "\n" * 1000)
+    one_line_error(p, r"1001 lines, more than the 1000")
+    p.write_text("x,y,z\n" + "1,2,3\n" * 999)  # the bound itself, its last newline too
+    assert read_point_cloud(p).shape == (999, 3)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("x,y,x,z\n1,2,3,4\n", r":1: the header names column x more than once"),
+        ("0,0,0\n1_000,2,3\n", r":2: x is not a number: '1_000'"),  # was: no line named
+        ("0,0,0\n1,\u0661,3\n", r":2: y is not a number"),  # an Arabic-Indic digit
+    ],
+)
+def test_csv_cells_loadtxt_refuses_are_named(tmp_path: Path, text: str, match: str) -> None:
+    p = tmp_path / "c.csv"
+    p.write_text(text)
+    one_line_error(p, match)
+
+
+def test_an_npy_header_stating_more_points_than_the_file_holds_is_refused_unread(
+    tmp_path: Path,
+) -> None:
+    """A 128-byte file whose header states 10^6 points had np.load allocate 24 MB (up to
+    480 MB within the bound) before it found the data missing."""
+    q = tmp_path / "lie.npy"
+    header = {"descr": "<f8", "fortran_order": False, "shape": (10**6, 3)}
+    with open(q, "wb") as f:
+        np.lib.format.write_array_header_1_0(f, header)
+        f.write(b"\0" * 48)
+    one_line_error(q, r"states 1000000 points \(24000000 bytes\), but the file has 48 bytes")

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from hrm_ctrl.errors import PlanFileError, PlanningError
 from hrm_ctrl.formats.planfile import PlanDoc, read_plan, write_plan
@@ -229,3 +231,48 @@ def test_plan_file_clearance_summary_is_checked_by_the_schema(cabins_doc: dict) 
     bad["report"]["clearance_mm"] = {"min": None, "step": -1, "link": 0}
     assert PlanDoc.from_dict(bad, "p.json").clearance["min"] is None
     assert math.isfinite(cabins_doc["report"]["clearance_mm"]["min"])
+
+
+# ---- red team (issue 10) ------------------------------------------------------------------
+
+
+def test_the_pipes_of_a_scene_have_a_bounded_total_length(tmp_path: Path) -> None:
+    """Found: 10 pipes of 100 m (650 bytes of TOML) took 106 MB at the first distance query
+    (each axis resampled every 0.5 mm), so 1000 of them (65 kB) about 10 GB."""
+    p = tmp_path / "s.toml"
+    pipe = "[[pipe]]\naxis_mm = [[-50000, {i}, 0], [49999, {i}, 0]]\ninner_diameter_mm = 70\n"
+    p.write_text(pipe.format(i=0))
+    assert len(read_scene(p).obstacles) == 1  # one pipe of the longest a path may be: fine
+    p.write_text(pipe.format(i=0) + pipe.format(i=1))
+    with pytest.raises(SceneFileError, match=r"pipe\[1\]\.axis_mm: the pipes' axes are 199998 mm"):
+        read_scene(p)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    v=st.lists(
+        st.one_of(st.just(0.0), st.floats(1e-300, 1e308), st.floats(-1e308, -1e-300)),
+        min_size=3,
+        max_size=3,
+    ).filter(any)
+)
+@example(v=[1e308, 1e308, 0.0])  # found: the norm overflowed, the wall's normal became 0
+@example(v=[1e-10, 0.0, 0.0])  # found: refused as "the zero vector" (any length > 0 is valid)
+def test_a_wall_normal_of_any_length_is_a_unit_normal(v: list[float]) -> None:
+    env = scene_from_dict({"wall": [{"point_mm": [0, 0, 0], "normal": v}]}, "s")
+    n = env.obstacles[0].normal
+    assert abs(float(np.linalg.norm(n)) - 1.0) < 1e-12
+    u = np.array(v) / np.abs(v).max()
+    assert np.allclose(n, u / np.linalg.norm(u))
+    d = env.free_distance(np.array([[0.0, 0, 0], *(10.0 * n)[None]]))
+    assert d.tolist() == pytest.approx([0.0, 10.0])
+
+
+def test_the_openings_of_a_scene_are_bounded_in_all() -> None:
+    """Found: 1000 walls of 100 openings each were accepted (as a plan file's environment);
+    one distance query of 4000 points then took 16 s, a plan's clearance over an hour."""
+    opening = {"shape": "round", "centre_mm": [0, 0, 0], "diameter_mm": 1}
+    wall = {"point_mm": [0, 0, 0], "normal": [0, 0, 1], "opening": [opening] * 100}
+    assert len(scene_from_dict({"wall": [wall] * 10}).obstacles) == 10  # 1000: fine
+    with pytest.raises(SceneFileError, match=r"s: wall\[10\]: 1100 wall openings and bounds"):
+        scene_from_dict({"wall": [wall] * 11}, "s")

@@ -185,3 +185,36 @@ def test_round_corners_keeps_straight_vertices_and_rounds_every_corner() -> None
     # still too sharp: 90 deg within 79 mm of path, less than a 130 mm link
     c = check_path(ROBOT, Q)
     assert not c.ok and c.local_radius == pytest.approx(50.0, rel=1e-3)
+
+
+def zigzag(n: int, turn_deg: float, segment_mm: float = 1.0) -> KnownPath:
+    """n points, every interior vertex turning by turn_deg, segments of segment_mm."""
+    half = math.radians(90.0 - turn_deg / 2.0)
+    dx, dy = segment_mm * math.sin(half), segment_mm * math.cos(half)
+    k = np.arange(n)
+    return KnownPath.from_points(np.column_stack((k * dx, np.where(k % 2, dy, 0.0), 0 * k)))
+
+
+def test_round_corners_refuses_too_many_points_before_making_them() -> None:
+    """Found: a path file of 100,000 points zigzagging by 170 deg with --round-corners 0.01
+    built 17 million arc points (3.6 GB, 16 s) before the path refused them."""
+    P = zigzag(5_000, 170.0)
+    with pytest.raises(PlanningError, match=r"would give \d+ points, more than the 100000"):
+        round_corners(P, 0.01)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(3, 40),
+    turn=st.floats(1.0, 175.0),
+    radius=st.floats(0.001, 0.02),  # 2 R tan(87.5 deg) < 1 mm: fits every segment
+)
+@example(n=3, turn=175.0, radius=0.02)
+def test_round_corners_makes_no_more_points_than_it_allows(
+    n: int, turn: float, radius: float
+) -> None:
+    P = zigzag(n, turn)
+    Q = round_corners(P, radius)
+    corners = n - 2
+    assert len(Q.points) <= n + corners * (max(2, math.ceil(turn)) + 1)
+    assert len(Q.points) > n - 1  # every corner became an arc

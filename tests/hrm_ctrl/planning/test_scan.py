@@ -184,3 +184,42 @@ def test_a_u_bend_whose_middle_slab_cuts_both_legs() -> None:
     to_true, to_fit, ends = axis_error(U, fit.axis)
     assert max(to_true, to_fit, ends) < 1.0
     assert abs(fit.inner_diameter - 70.0) < 0.5
+
+
+# ---- red team (issue 10) ------------------------------------------------------------------
+
+STRAIGHT = KnownPath.from_points(np.array([[0.0, 0, 0], [500, 0, 0]]))
+
+
+@settings(max_examples=8, deadline=None, phases=[Phase.explicit, Phase.generate])
+@given(far=st.floats(1e3, 1e6), k=st.integers(1, 20), seed=st.integers(0, 3))
+@example(far=1e6, k=1, seed=0)  # found: one stray point at 1 km turned the seed's axis
+def test_a_few_stray_points_far_away_do_not_break_the_fit(far: float, k: int, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    cloud = synthetic_pipe_scan(STRAIGHT, 70.0, 20_000, 0.3, 0.0, rng)
+    stray = np.tile([far, far, -far], (k, 1))
+    fit = pipe_from_scan(np.vstack((cloud, stray)))
+    assert abs(fit.inner_diameter - 70.0) < 0.5
+    assert max(axis_error(STRAIGHT, fit.axis)) < 1.5
+
+
+@settings(max_examples=10, deadline=None, phases=[Phase.explicit, Phase.generate])
+@given(seed=st.integers(0, 1000), shape=st.sampled_from(["cube", "long box"]))
+@example(seed=21, shape="cube")  # found: fitted as a pipe of 69.5 mm, band 66 mm, 100 % inliers
+@example(seed=1, shape="long box")  # found: a pipe of 74.9 mm over 240 mm
+@example(seed=24, shape="long box")  # found: a pipe of 83.7 mm
+def test_points_filling_a_volume_are_not_a_pipe(seed: int, shape: str) -> None:
+    rng = np.random.default_rng(seed)
+    size = [100.0, 100, 100] if shape == "cube" else [400.0, 100, 100]
+    with pytest.raises(ScanFitError) as err:
+        pipe_from_scan(rng.uniform(0.0, 1.0, (20_000, 3)) * size)
+    assert "\n" not in str(err.value)
+
+
+def test_a_noisy_wall_is_still_a_pipe_and_a_scan_in_metres_is_refused() -> None:
+    rng = np.random.default_rng(5)
+    cloud = synthetic_pipe_scan(STRAIGHT, 70.0, 20_000, 4.0, 0.02, rng)  # sigma 4 mm
+    assert abs(pipe_from_scan(cloud).inner_diameter - 70.0) < 2.0
+    metres = synthetic_pipe_scan(STRAIGHT, 70.0, 20_000, 0.3, 0.0, rng) / 1000.0
+    with pytest.raises(ScanFitError, match=r"0\.07 mm, below 1 mm \(is the scan in metres"):
+        pipe_from_scan(metres)
