@@ -19,7 +19,7 @@ board (:meth:`start_tension_board`, :attr:`tension_board`) serves the arm's rope
 on a pseudo-terminal until the box stops, and so does its laser tracker
 (:meth:`start_tracker`, :attr:`tracker`: the true end point in the tracker's frame;
 :meth:`tracker_lose_target`).  :meth:`set_straight_fixture` puts the arm in its straight
-parking tube (every physical joint angle 0, each rope's tension its own).  On an
+zero fixture (the rope geometry held straight, each rope's tension its own).  On an
 ``hrm_sim`` wire the frame faults act on the wire (both directions, the host sees a
 bus-off as failing sends); on other interfaces the box applies them to the frames it sends and
 (for drops) receives, and a bus-off box neither sends nor listens.
@@ -298,9 +298,10 @@ class SimBox:
         self._fault_event(f"fault: tracker target {'lost' if lost else 'found'}")
 
     def set_straight_fixture(self, on: bool) -> None:
-        """The arm lies in (or leaves) its straight parking tube: while on, every physical
-        joint angle is 0 whatever the motors do and each rope's tension follows from its
-        own length (``sim_bus.arm``); the tension board shows it at once."""
+        """The arm lies in (or leaves) its zero fixture: while on, every joint's rope geometry
+        is held straight whatever the motors do (the links at their joint offsets) and each
+        rope's tension follows from its own length (``sim_bus.arm``); the tension board
+        shows it at once."""
         self.arm.set_fixture(on)
         self._tension_cache = None
         self._fault_event(f"fixture: arm {'held straight' if on else 'free'}")

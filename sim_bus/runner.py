@@ -5,14 +5,14 @@ The process prints one JSON object per line on stdout:
 * ``{"event": "ready", "tension_port": "/dev/pts/N", "buses": [...], "motors": 36, ...}``
   once every drive has sent its boot-up and the tension board runs (with the tracker,
   ``"tracker_port"`` too; ``"truth"`` names the arm's truth, ``"fixture"`` whether the
-  arm starts in its straight parking tube);
+  arm starts in its zero fixture);
 * ``{"event": "fault", "fault": "...", "t_s": ...}`` whenever a fault is applied;
 * replies to control commands; ``{"event": "stopped", ...}`` at the end.
 
 With ``control=True`` it reads commands from stdin, one per line:
 ``fault SPEC`` (see :mod:`sim_bus.faults`), ``state`` (true arm state now),
 ``trace on|off`` / ``trace`` (positions after every SYNC), ``stats``, ``fixture on|off``
-(the straight parking tube), ``tracker-lost on|off`` (the tracker loses / finds its
+(the zero fixture), ``tracker-lost on|off`` (the tracker loses / finds its
 target), ``truth`` (the arm's truth, as a truth file's content), ``quit``.
 End of stdin also stops the box, so a parent that dies takes the box with it.
 

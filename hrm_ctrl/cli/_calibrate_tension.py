@@ -2,10 +2,10 @@
 (issue 12), sub-commands of ``hrm calibrate`` (:mod:`hrm_ctrl.cli.calibrate` calls
 :func:`register`).
 
-Both run with the arm lying in its straight zero fixture (the parking tube: every
-physical joint angle held at 0, so each rope's tension depends on its own motor only);
-with ``--sim`` the simulated arm is put into its fixture (the technician lays the arm in
-the tube), with ``--config BOX.toml`` the real arm must lie in it.  The tension board is
+Both run with the arm in its zero fixture (a jig that clamps each joint's rope disks
+coaxial: the rope geometry held straight, so each rope's tension depends on its own motor
+only); with ``--sim`` the simulated arm is put into its fixture (the technician lays the
+arm in it), with ``--config BOX.toml`` the real arm must lie in it.  The tension board is
 the configuration's ``[tension]`` port (with ``--sim`` the simulated box's board).  The
 feedback watches of ``hrm run`` do not run (a slack rope is what the zero routine starts
 from, and the fixture holds the arm against its ropes): the routines guard the tensions
@@ -198,7 +198,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
             initial_counts=calibration_counts(None if active is None else base, physical),
         )
     else:
-        print(f"{prog}: the arm must lie in its zero fixture (parking tube)", file=sys.stderr)
+        print(f"{prog}: the arm must lie in its zero fixture", file=sys.stderr)
     try:
         t = config.tension
         if t is None:
@@ -230,7 +230,9 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     return result, base, store
 
 
-def _save(args: argparse.Namespace, store: Any, new: Any) -> tuple[int, str]:
+def save_calibration(args: argparse.Namespace, store: Any, new: Any) -> tuple[int, str]:
+    """Save ``new`` as the store's next version (active), or with ``--out FILE`` write that
+    one file (numbered as the store's next); returns the version and where it went."""
     from calibration.store import to_json
 
     if args.out is not None:
@@ -273,7 +275,7 @@ def run_zero(args: argparse.Namespace) -> int:
     zeros = {m: int(v) for m, v in zip(result.motor_ids, result.zero_counts, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
     new = updated(base, routine=Routine.ZERO, residuals=residuals, motor_zero_counts=zeros)
-    version, where = _save(args, store, new)
+    version, where = save_calibration(args, store, new)
     shift = result.zero_shift_counts
     worst = int(np.argmax(np.abs(shift)))
     err = np.abs(result.tension_error_N)
@@ -325,7 +327,7 @@ def run_stiffness(args: argparse.Namespace) -> int:
     ea = {m: float(v) for m, v in zip(result.motor_ids, result.EA_N, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
     new = updated(base, routine=Routine.STIFFNESS, residuals=residuals, rope_EA_N=ea)
-    version, where = _save(args, store, new)
+    version, where = save_calibration(args, store, new)
     rel = result.EA_sigma_N / result.EA_N
     change = result.EA_N / result.before_EA_N - 1.0
     worst = int(np.nanargmax(np.abs(change)))

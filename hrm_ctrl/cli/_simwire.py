@@ -7,8 +7,8 @@ with its tension-sensor board on a pseudo-terminal, which becomes the configurat
 ``[tension]`` port (thresholds from the file's table if it has one, else the defaults).
 With ``tracker`` the box's laser tracker is started too and its pseudo-terminal becomes
 the ``[tracker]`` port.  ``truth`` is how the simulated arm differs from its description
-(:class:`sim_bus.truth.TrueArm`; None: it does not), ``fixture`` starts it in its straight
-parking tube (``box.set_straight_fixture(False)`` frees it).
+(:class:`sim_bus.truth.TrueArm`; None: it does not), ``fixture`` starts it in its zero
+fixture (``box.set_straight_fixture(False)`` frees it).
 Host and box take the same :class:`drivers.config.BoxConfig`: the one configuration.
 """
 

@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from hrm_ctrl.cli._calibrate_tension import register as register_tension_routines
+from hrm_ctrl.cli._calibrate_tension import save_calibration
 from hrm_ctrl.cli._common import (
     Input,
     Output,
@@ -63,6 +64,9 @@ from hrm_ctrl.cli._common import (
 )
 from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
 
+# Readings averaged per base nest: the frame's error reaches the tip over the arm's 2 m, so
+# the nests get more than a pose (0.05 mm / sqrt(200) = 3.5 um a nest; 0.2 ms a reading)
+NEST_READINGS = 200
 HELP = "calibration: the store (show, history, use) and the routines (kinematic, zero, stiffness)"
 DEFAULT_SAMPLES = 10
 MAX_COLLECT = 1000
@@ -378,7 +382,6 @@ def _check_kinematic_args(args: argparse.Namespace) -> None:
 def run_kinematic(args: argparse.Namespace) -> int:
     from calibration.apply import starting_point
     from calibration.kinematic import fit_kinematics, read_pose_csv
-    from calibration.store import to_json
 
     _check_kinematic_args(args)
     if args.sigma_mm is not None and not (math.isfinite(args.sigma_mm) and args.sigma_mm > 0):
@@ -419,28 +422,13 @@ def run_kinematic(args: argparse.Namespace) -> int:
     new = kinematic_calibration(base, fit)
     if note is not None:  # what the new version starts from, once there is one
         print(f"hrm calibrate kinematic: {note}", file=sys.stderr)
-    if args.out is not None:
-        version = max(store.versions(), default=0) + 1  # the number it would have in the store
-        _write_file(args.out, to_json(new, version))
-        where = f"written to {args.out} (not in the store)"
-    else:
-        version = store.save(new)
-        where = f"saved as v{version:04d} in {store.folder} (active)"
+    version, where = save_calibration(args, store, new)
     if args.json:
         print(json.dumps({"fit": fit_report(fit), "version": version, "file": where}))
     else:
         print(format_fit(fit))
         print(f"calibration {where}")
     return 0
-
-
-def _write_file(path: Path, text: str) -> None:
-    from hrm_ctrl.files import write_atomic
-
-    try:
-        write_atomic(path, text)
-    except OSError as exc:
-        raise CalibrationFileError(f"{path}: cannot write ({exc.strerror or exc})") from None
 
 
 def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any) -> Any:
@@ -529,7 +517,7 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
                 description,
                 np.array(
                     [
-                        reader.measure(args.samples, fiducial=k + 1)
+                        reader.measure(NEST_READINGS, fiducial=k + 1)
                         for k in range(len(description.base_fiducials))
                     ]
                 ),

@@ -177,14 +177,14 @@ def calibrate_on_box(
     from calibration.zero import pretension_and_zero
     from drivers.tension_sensor import TensionSensorReader
     from drivers.tracker import TrackerReader
-    from hrm_ctrl.cli.calibrate import format_fit, kinematic_calibration
+    from hrm_ctrl.cli.calibrate import NEST_READINGS, format_fit, kinematic_calibration
 
     out: Path = args.out
     base = nominal_calibration(description)
     act0 = calibrated_actuation(description, base)
     t = config.tension
     t0 = time.monotonic()
-    _say("calibration 1/2: pretension and zero, the arm in its straight parking tube")
+    _say("calibration 1/2: pretension and zero, the arm in its zero fixture")
     with (
         TensionSensorReader(
             t.port, act0.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
@@ -223,7 +223,10 @@ def calibrate_on_box(
         frame = instrument_frame(
             description,
             np.array(
-                [tracker.measure(4, fiducial=k + 1) for k in range(len(description.base_fiducials))]
+                [
+                    tracker.measure(NEST_READINGS, fiducial=k + 1)
+                    for k in range(len(description.base_fiducials))
+                ]
             ),
         )
         data = collect_poses(

@@ -85,6 +85,16 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--wire", choices=SIM_WIRES, default="virtual",
         help="with --sim: python-can virtual buses, or hrm_sim (simulated wire at the bitrate)",
     )  # fmt: skip
+    truth = parser.add_mutually_exclusive_group()
+    truth.add_argument(
+        "--perturb", type=int, default=None, metavar="SEED",
+        help="with --sim: a simulated arm that differs from its description (seeded; its motors "
+        "start at the active calibration's zeros)",
+    )  # fmt: skip
+    truth.add_argument(
+        "--truth", type=Path, default=None, metavar="FILE.toml",
+        help="with --sim: the simulated arm's truth file (docs/sim.md)",
+    )  # fmt: skip
     parser.add_argument(
         "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
         help="where the CAN logs and the run record go (default ./runs)",
@@ -214,10 +224,13 @@ def run(args: argparse.Namespace) -> int:
 
     if not (math.isfinite(args.speed) and args.speed > 0):
         raise DriverError(f"--speed must be > 0 mm/s, got {args.speed}")
+    if not args.sim and (args.perturb is not None or args.truth is not None):
+        raise DriverError("--perturb and --truth describe the simulated arm: they go with --sim")
     refuse_overwriting_inputs(  # before anything is read or written
         [Output("--log-dir", args.log_dir)],
         [
             Input("plan file", args.plan),
+            Input("truth file", args.truth),
             robot_input(args.robot),
             config_input(args.config),
             *shipped_inputs(plan_schema=True, eds=True),
@@ -236,11 +249,27 @@ def run(args: argparse.Namespace) -> int:
     arm.say_note()  # --sim or --uncalibrated without a calibration: said once checks passed
     sim = None
     if args.sim:
-        from hrm_ctrl.cli._simwire import start_in_process_sim
+        from hrm_ctrl.cli._simwire import calibration_counts, start_in_process_sim
+        from sim_bus.truth import TrueArm, read_truth
 
-        # the simulated arm is the robot description's (links too), not the calibration's
+        # the simulated arm is the robot description's (links too), not the calibration's,
+        # or one that differs from it (--perturb, --truth)
         physical = actuation if arm.active is None else load_actuation(arm.description)
-        config, sim = start_in_process_sim(config, physical, args.wire, prog="hrm run")
+        truth = None
+        if args.perturb is not None:
+            truth = TrueArm.perturbed(physical, args.perturb)
+        elif args.truth is not None:
+            truth = read_truth(args.truth, physical)
+        config, sim = start_in_process_sim(
+            config,
+            physical,
+            args.wire,
+            prog="hrm run",
+            truth=truth,
+            initial_counts=calibration_counts(
+                None if arm.active is None else arm.active.calibration, physical
+            ),
+        )
     summary: dict[str, Any] = {}
     try:
         stop: SafetyStopError | None = None

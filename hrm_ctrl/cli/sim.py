@@ -12,7 +12,7 @@ by :func:`hrm_ctrl.cli.main` like every command.  See ``docs/sim.md``.
 The arm may differ from its description (issue 12): ``--truth FILE.toml`` (a truth file,
 ``sim_bus.truth``) or ``--perturb SEED`` (drawn within the issue's ranges; ``--max-slack
 MM`` adds rope slack), and ``--write-truth FILE`` writes the truth used as a truth file
-(never over an input).  ``--fixture`` starts the arm in its straight parking tube,
+(never over an input).  ``--fixture`` starts the arm in its zero fixture (rope geometry straight),
 ``--tracker`` starts the laser tracker (its pseudo-terminal in ``ready`` as
 ``tracker_port``).
 
@@ -116,7 +116,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--fixture",
         action="store_true",
-        help="start with the arm held straight in its parking tube (control: fixture off)",
+        help="start with the arm in its zero fixture (control: fixture off)",
     )
     parser.add_argument(
         "--tracker",

@@ -41,7 +41,8 @@ opening is) is in :mod:`hrm_ctrl.planning.environment`.  Every problem (an unkno
 key or shape, a missing key, a size <= 0, NaN or inf, a list of the wrong length) is one
 :class:`SceneFileError` line naming the file, the table and its index (0-based) and the
 key, e.g. ``scene.toml: wall[1].opening[0].diameter_mm: expected a number > 0, got -80``.
-A scene's pipes may have axes of at most :data:`MAX_PIPE_AXIS_MM` in all (each axis is
+A scene's pipes may have axes of at most :data:`MAX_PIPE_AXIS_MM` and 100,000 points in
+all (each axis is
 resampled every 0.5 mm for its distance queries), its walls :data:`MAX_WALL_LIMITS`
 openings and bounds in all (each is a term of every distance query, as a table is).
 The same data (:meth:`Environment.to_dict`) is what a plan file keeps of its environment.
@@ -82,7 +83,12 @@ from hrm_ctrl.planning.environment import (
     RoundOpening,
     Wall,
 )
-from hrm_ctrl.planning.known_path import MAX_COORDINATE_MM, MAX_PATH_LENGTH_MM, KnownPath
+from hrm_ctrl.planning.known_path import (
+    MAX_COORDINATE_MM,
+    MAX_PATH_LENGTH_MM,
+    MAX_PATH_POINTS,
+    KnownPath,
+)
 
 MAX_OBSTACLES = 1000  # tables of a scene (every one costs each clearance query)
 MAX_OPENINGS = 100  # openings (and bounds) of one wall
@@ -313,12 +319,19 @@ finite number, got nan
     if sum(counts.values()) > MAX_OBSTACLES:
         raise r.fail("", f"{sum(counts.values())} obstacles, more than the {MAX_OBSTACLES} allowed")
     obstacles: list[Any] = []
-    axis_mm, limits = 0.0, 0
+    axis_mm, axis_points, limits = 0.0, 0, 0
     for key, make in (("pipe", _pipe), ("wall", _wall), ("box", _box)):
         for i, t in enumerate(r.tables(doc.get(key, []), key, MAX_OBSTACLES)):
             obstacles.append(make(r, t, f"{key}[{i}]"))
             if isinstance(obstacles[-1], Pipe):  # each resampled every 0.5 mm when queried
                 axis_mm += obstacles[-1].axis.length
+                axis_points += len(obstacles[-1].axis.points)
+                if axis_points > MAX_PATH_POINTS:
+                    raise r.fail(
+                        f"{key}[{i}].axis_mm",
+                        f"the pipes' axes have {axis_points} points in all, more than the "
+                        f"{MAX_PATH_POINTS} a scene's may have",
+                    )
                 if axis_mm > MAX_PIPE_AXIS_MM:
                     raise r.fail(
                         f"{key}[{i}].axis_mm",

@@ -49,7 +49,7 @@ import numpy as np
 
 from hrm_ctrl.errors import PlanningError
 from hrm_ctrl.model import RobotModel
-from hrm_ctrl.planning.known_path import MAX_PATH_POINTS, KnownPath
+from hrm_ctrl.planning.known_path import MAX_PATH_POINTS, KnownPath, drop_consecutive_duplicates
 
 BEND_STEP_RAD = math.radians(1.0)  # arcs sampled every 1 deg, as the scenarios sample them
 CHECK_SPACING = 0.5  # mm: the places along the path where a joint's bend is measured
@@ -415,4 +415,5 @@ a 150 mm radius needs 150.0 mm of the 100.0 mm segment from point 1 to point 2
         out.extend(_arc(T1, d1, n, R, float(phi[j])))
     if np.linalg.norm(P[-1] - out[-1]) > 1e-9:
         out.append(P[-1])
-    return KnownPath.from_points(np.array(out), source=path.source)
+    pts, _ = drop_consecutive_duplicates(np.array(out))  # the arc of a tiny turn: no warning
+    return KnownPath.from_points(pts, source=path.source)

@@ -12,6 +12,10 @@ gradient of that distance:
   space is open: only the rim, the circle of radius ``D/2`` where the bore meets
   the end plane, is material there, and the free distance is the distance to the
   nearest rim circle.  This is continuous across an end plane inside the bore.
+  "Outside an end plane" is beyond it with that end the nearest sample of the axis:
+  where a folded axis (a U-bend of unequal legs) runs behind an end plane, the
+  points about that leg are the pipe's, not open space (to the sample spacing,
+  :data:`AXIS_SPACING`, about where the two are equally near).
 - :class:`Wall`: an infinite plane slab (mid-plane through ``point``, unit
   ``normal``, ``thickness`` >= 0, 0 = a sheet) with openings cut through it
   (:class:`RoundOpening`, :class:`RectOpening`: prisms along the normal) and
@@ -144,6 +148,26 @@ class Pipe:
         a = self.axis
         return (a.points[0], a.tangent_at(0.0)), (a.points[-1], -a.tangent_at(a.length))
 
+    @cached_property
+    def _open_radii(self) -> tuple[float, float]:
+        """Per end: the distance (mm) from the end's axis line (through the end, along its
+        normal) within which a point beyond the end's plane has that end as its nearest
+        axis sample X (not nearer when ``w . (X - E) <= |X - E|^2 / 2``, w the point's
+        offset from the line); 0 where the axis runs behind the plane (always looked up)."""
+        dense = self._dense[0]
+        radii = []
+        for P, n in self._ends:
+            rel = dense - P
+            h = rel @ n
+            if np.any(h < -1e-9):
+                radii.append(0.0)
+                continue
+            lateral = _norm(rel - h[:, None] * n)
+            far = lateral > 1e-9
+            ratio = np.einsum("ij,ij->i", rel[far], rel[far]) / (2.0 * lateral[far])
+            radii.append(float(ratio.min()) if far.any() else math.inf)
+        return radii[0], radii[1]
+
     def nearest_axis_point(self, q: np.ndarray) -> np.ndarray:
         """The point of the axis polyline nearest each point of ``q`` (P, 3)."""
         dense, tree = self._dense
@@ -165,9 +189,24 @@ class Pipe:
         d = np.empty(len(q))
         g = np.zeros_like(q)
         (A, nA), (B, nB) = self._ends
-        hA = (q - A) @ nA  # > 0: past the start plane
-        hB = (q - B) @ nB  # > 0: before the end plane
+        relA, relB = q - A, q - B
+        hA = relA @ nA  # > 0: past the start plane
+        hB = relB @ nB  # > 0: before the end plane
         inside = (hA >= 0.0) & (hB >= 0.0)
+        # beyond a plane: open space only where that end is the nearest axis sample (a
+        # folded axis's other leg may run behind the plane); surely so within _open_radii
+        # of the end's axis line, else looked up
+        beyond = ~inside
+        if beyond.any():
+            rA, rB = self._open_radii
+            near_A = (hA < 0.0) & (np.einsum("ij,ij->i", relA, relA) - hA * hA < rA * rA)
+            near_B = (hB < 0.0) & (np.einsum("ij,ij->i", relB, relB) - hB * hB < rB * rB)
+            look = np.flatnonzero(beyond & ~near_A & ~near_B)
+            if len(look):
+                dense, tree = self._dense
+                v = np.asarray(tree.query(q[look], k=1)[1])
+                at_end = ((v == 0) & (hA[look] < 0.0)) | ((v == len(dense) - 1) & (hB[look] < 0.0))
+                inside[look[~at_end]] = True
         if inside.any():
             qi = q[inside]
             rel = qi - self.nearest_axis_point(qi)
@@ -177,9 +216,9 @@ class Pipe:
         if out.any():
             best = np.full(int(out.sum()), math.inf)
             bg = np.zeros((len(best), 3))
-            for P, n in ((A, nA), (B, nB)):  # distance to the rim circle of each end
-                rel = q[out] - P
-                radial = rel - (rel @ n)[:, None] * n
+            for rel_all, h_all, n in ((relA, hA, nA), (relB, hB, nB)):  # to each end's rim
+                rel = rel_all[out]
+                radial = rel - h_all[out][:, None] * n
                 u = _safe_unit(radial)
                 flat = _norm(radial) <= _EPS  # on the axis line: any rim point
                 if flat.any():

@@ -9,6 +9,12 @@ tension (joint 12's 2395 mm ropes, EA 20 % below the description); the mean of 1
 of sigma 0.05 N has at most 0.035 N (the simulated board repeats a sample for up to 50 ms,
 so only about every fifth frame is independent: 0.05 / sqrt(2)), i.e. about 8 counts, and
 the residual inside ``tol_N`` = 0.2 N is extrapolated away on the fitted slope.
+
+The module fixture zeroes joints 1 and 12, not all twelve (about 1 s a group): joint 12's
+ropes are that budget's worst case (the fewest newtons a count), joint 1's the other end
+(the stiffest, the largest tension step a count); joint 1 is on can0, joint 12 on can1.
+The other groups run the same code on ropes in between; every tension in the fixture
+depends on its own rope's motor only.
 """
 
 from __future__ import annotations
@@ -47,6 +53,7 @@ from sim_bus.truth import TrueArm
 
 SEED = 11
 ZERO_TOLERANCE_COUNTS = 50
+ZEROED_JOINTS = (0, 11)  # 0-based: the shortest and the longest ropes (module docstring)
 
 
 @dataclass
@@ -104,33 +111,40 @@ def assert_disabled_after_finish(rig: Rig) -> None:
 
 
 @pytest.fixture(scope="module")
-def zeroed() -> Iterator[tuple[Rig, Any]]:
+def zeroed() -> Iterator[tuple[Rig, Any, np.ndarray]]:
+    """The rig, the result and the zeroed motors' indices."""
     with fixture_rig() as rig:
-        result = pretension_and_zero(rig.session, rig.reader, rig.actuation)
-        yield rig, result
+        result = pretension_and_zero(
+            rig.session, rig.reader, rig.actuation, joints=list(ZEROED_JOINTS)
+        )
+        g = np.flatnonzero(np.isin(rig.actuation.joint_of_motor, ZEROED_JOINTS))
+        assert len(g) == 3 * len(ZEROED_JOINTS)
+        yield rig, result, g
 
 
-def test_every_zero_recovered_within_50_counts(zeroed: tuple[Rig, Any]) -> None:
-    rig, result = zeroed
-    error = result.zero_counts - rig.truth.motor_zero_counts
+def test_every_zero_recovered_within_50_counts(zeroed: tuple[Rig, Any, np.ndarray]) -> None:
+    rig, result, g = zeroed
+    error = result.zero_counts[g] - rig.truth.motor_zero_counts[g]
     worst = int(np.argmax(np.abs(error)))
-    assert abs(int(error[worst])) <= ZERO_TOLERANCE_COUNTS, (result.motor_ids[worst], error)
+    assert abs(int(error[worst])) <= ZERO_TOLERANCE_COUNTS, (result.motor_ids[g[worst]], error)
     # the perturbation is thousands of counts: the routine did move the zeros that far
-    assert np.abs(result.zero_shift_counts).max() > 1000
+    assert np.abs(result.zero_shift_counts[g]).max() > 1000
 
 
-def test_final_tensions_within_tol(zeroed: tuple[Rig, Any]) -> None:
-    rig, result = zeroed
-    assert np.all(np.abs(result.tension_error_N) < DEFAULT_TOL_N), result.tension_error_N
+def test_final_tensions_within_tol(zeroed: tuple[Rig, Any, np.ndarray]) -> None:
+    rig, result, g = zeroed
+    assert np.all(np.abs(result.tension_error_N[g]) < DEFAULT_TOL_N), result.tension_error_N
     # an independent reading now, every rope at once (mean of 20 frames, sigma < 0.03 N)
     again = read_tensions(rig.reader, rig.actuation.motor_ids, n_samples=20)
-    assert np.all(np.abs(again.tensions_N - result.target_N) < DEFAULT_TOL_N + 0.1)
+    assert np.all(np.abs(again.tensions_N[g] - result.target_N) < DEFAULT_TOL_N + 0.1)
 
 
-def test_few_moves_per_group_and_the_drives_hold_where_reported(zeroed: tuple[Rig, Any]) -> None:
-    rig, result = zeroed
-    assert result.iterations.max() <= 6, result.iterations
-    assert result.moves == sum(int(result.iterations[3 * j]) for j in range(12))
+def test_few_moves_per_group_and_the_drives_hold_where_reported(
+    zeroed: tuple[Rig, Any, np.ndarray],
+) -> None:
+    rig, result, g = zeroed
+    assert result.iterations[g].max() <= 6, result.iterations
+    assert result.moves == sum(int(result.iterations[3 * j]) for j in ZEROED_JOINTS)
     assert rig.session.state is SessionState.ENABLED
     assert np.array_equal(rig.sim.counts(), result.final_counts)
     assert np.abs(result.final_counts - result.zero_counts).max() <= 60  # within tol of it

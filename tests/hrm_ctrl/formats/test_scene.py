@@ -246,6 +246,10 @@ def test_the_pipes_of_a_scene_have_a_bounded_total_length(tmp_path: Path) -> Non
     p.write_text(pipe.format(i=0) + pipe.format(i=1))
     with pytest.raises(SceneFileError, match=r"pipe\[1\]\.axis_mm: the pipes' axes are 199998 mm"):
         read_scene(p)
+    axis = [[0.001 * k, 0, 0] for k in range(60_000)]  # 60 mm each, 60,000 points
+    doc = {"pipe": [{"axis_mm": axis, "inner_diameter_mm": 70}] * 2}
+    with pytest.raises(SceneFileError, match=r"pipe\[1\]\.axis_mm: .* 120000 points in all"):
+        scene_from_dict(doc, "plan.json: scenario.environment")
 
 
 @settings(max_examples=40, deadline=None)

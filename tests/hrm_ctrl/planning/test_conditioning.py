@@ -218,3 +218,18 @@ def test_round_corners_makes_no_more_points_than_it_allows(
     corners = n - 2
     assert len(Q.points) <= n + corners * (max(2, math.ceil(turn)) + 1)
     assert len(Q.points) > n - 1  # every corner became an arc
+
+
+@settings(max_examples=30, deadline=None)
+@given(offset=st.floats(3e-7, 1e-4), radius=st.floats(1e-3, 10.0))
+@example(offset=1e-6, radius=1.0)  # found: a 1e-8 rad turn's arc points 7e-9 mm apart
+def test_rounding_a_tiny_turn_warns_nothing(offset: float, radius: float) -> None:
+    """Found: the arc of a corner turning 1e-8 rad had points closer than 1e-9 mm; the path
+    dropped them with a DuplicatePointsWarning, two lines of Python on hrm plan's stderr."""
+    import warnings
+
+    P = KnownPath.from_points(np.array([[1200.0, 0, 0], [1300.0, 0, 0], [1400.0, offset, 0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Q = round_corners(P, radius)
+    assert np.allclose(Q.points[[0, -1]], P.points[[0, -1]])

@@ -278,3 +278,38 @@ def test_segment_minimum_matches_a_dense_search(seed):
 def test_bad_obstacles_are_refused(make):
     with pytest.raises(PlanningError):
         make()
+
+
+# ---- red team (issue 10) ------------------------------------------------------------------
+
+
+def _u_bend_unequal_legs() -> KnownPath:
+    """+x from the origin to 300, a 180 deg bend of radius 100, back along y = 200 to
+    x = -300: the second leg runs 300 mm behind the start's end plane (x = 0)."""
+    psi = np.radians(np.arange(0, 181))
+    arc = np.column_stack((300 + 100 * np.sin(psi), 100 - 100 * np.cos(psi), 0 * psi))
+    return KnownPath.from_points(np.vstack(([0, 0, 0], arc, [-300, 200, 0])))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    x=st.floats(-280.0, -20.0),
+    rho=st.floats(0.0, 90.0),
+    phi=st.floats(0.0, 2 * math.pi),
+)
+@example(x=-200.0, rho=50.0, phi=math.pi / 2)  # found: 15 mm inside the wall, seen 101 mm free
+def test_a_leg_behind_an_end_plane_is_inside_its_pipe(x: float, rho: float, phi: float) -> None:
+    """Found: "open space" was any point beyond an end plane, so the second leg of a U-bend
+    of unequal legs, behind the start's end plane, had no wall: a link 15 mm into it was
+    101 mm clear (the distance to the far rim)."""
+    pipe = Pipe(_u_bend_unequal_legs(), 70.0)
+    q = np.array([[x, 200.0 + rho * math.cos(phi), rho * math.sin(phi)]])
+    assert float(pipe.free_distance(q)[0]) == pytest.approx(35.0 - rho, abs=1e-9)
+
+
+def test_beyond_an_end_it_is_still_open_space() -> None:
+    pipe = Pipe(_u_bend_unequal_legs(), 70.0)
+    q = np.array([[-30.0, 0, 0], [-30.0, 0, 40], [-330.0, 200, 0]])
+    assert pipe.free_distance(q).tolist() == pytest.approx(
+        [math.hypot(30, 35), math.hypot(30, 5), math.hypot(30, 35)]
+    )

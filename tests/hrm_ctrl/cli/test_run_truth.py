@@ -1,0 +1,44 @@
+"""``hrm run --sim --perturb SEED | --truth FILE``: the in-process box with a true arm that
+differs from its description; without a calibration of it, its ropes are far from their
+pretension and the tension watch stops the run before anything moves far."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from hrm_ctrl.cli import main
+from tests.hrm_ctrl.cli.cli_helpers import small_plan
+
+
+def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    try:
+        rc = main(argv)
+    except SystemExit as exc:
+        rc = int(exc.code or 0)
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_a_true_arm_needs_the_simulated_box(tmp_path: Path, capsys, monkeypatch) -> None:
+    monkeypatch.setenv("HRM_CALIBRATIONS", str(tmp_path / "cal"))
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps(small_plan()))
+    rc, _, err = run(["run", str(plan), "--perturb", "3", "--log-dir", str(tmp_path)], capsys)
+    assert rc == 2 and "go with --sim" in err and err.count("\n") == 1
+    rc, _, err = run(["run", str(plan), "--sim", "--perturb", "3", "--truth", "t.toml"], capsys)
+    assert rc == 2 and "not allowed with" in err
+
+
+def test_an_uncalibrated_perturbed_arm_is_stopped_by_its_tensions(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
+    monkeypatch.setenv("HRM_CALIBRATIONS", str(tmp_path / "cal"))
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps(small_plan()))
+    argv = ["run", str(plan), "--sim", "--perturb", "3", "--log-dir", str(tmp_path / "runs")]
+    rc, _, err = run(argv, capsys)
+    assert rc == 2
+    assert "tension" in err and ("slack" in err or "above" in err)
