@@ -57,6 +57,7 @@ from hrm_ctrl.cli._common import (
     robot_input,
     shipped_inputs,
 )
+from hrm_ctrl.cli._simwire import sim_listen
 from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
 
 
@@ -219,6 +220,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
                         log_dir=args.log_dir,
                         calibration=ref,
                         allow_uncalibrated=allow,
+                        **sim_listen(args.sim),
                     )
                 )
                 box.record_extra = {"routine": args.calibrate, "simulated_box": bool(args.sim)}

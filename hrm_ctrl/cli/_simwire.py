@@ -25,6 +25,10 @@ from hrm_ctrl.ropes.actuation import Actuation
 SIM_MISSING_TPDO_CYCLES = 10
 SIM_TENSION_STALE_S = 0.5  # the top of the safe range: the board shares this interpreter
 SIM_WIRES = ("virtual", "hrm_sim")
+# How long a session on the in-process box listens for another master before its first NMT
+# reset: the box's buses are private channels of this process (a fresh name each time), so
+# no other master can be on them; the listen still runs, shorter than a real bus's 1.1 s.
+SIM_LISTEN_S = 0.1
 
 
 def start_in_process_sim(
@@ -99,3 +103,9 @@ def calibration_counts(calibration: Any, actuation: Actuation) -> Any:
         return None
     zeros = calibration.motor_zero_counts
     return np.array([int(zeros.get(m, 0)) for m in actuation.motor_ids], dtype=np.int64)
+
+
+def sim_listen(simulated: bool) -> dict[str, float]:
+    """The drive session's ``listen_s`` for a session on the in-process box (else none:
+    the session's own default)."""
+    return {"listen_s": SIM_LISTEN_S} if simulated else {}

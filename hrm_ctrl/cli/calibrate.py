@@ -62,6 +62,7 @@ from hrm_ctrl.cli._common import (
     robot_input,
     shipped_inputs,
 )
+from hrm_ctrl.cli._simwire import sim_listen
 from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
 
 # Readings averaged per base nest: the frame's error reaches the tip over the arm's 2 m, so
@@ -498,6 +499,7 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
                         log_dir=args.log_dir,
                         calibration=ref,
                         allow_uncalibrated=args.uncalibrated or args.sim,
+                        **sim_listen(args.sim),
                     )
                 )
                 box.record_extra = {"routine": "kinematic", "poses": args.collect}

@@ -53,7 +53,7 @@ from hrm_ctrl.cli._common import (
     robot_input,
     shipped_inputs,
 )
-from hrm_ctrl.cli._simwire import SIM_WIRES, start_in_process_sim
+from hrm_ctrl.cli._simwire import SIM_WIRES, sim_listen, start_in_process_sim
 from hrm_ctrl.cli._watches import feedback_watches
 from hrm_ctrl.cli.plan import format_report
 from hrm_ctrl.errors import CalibrationDataError, DriverError, PlanningError
@@ -137,6 +137,7 @@ def _session(
                     run_name=name,
                     calibration=ref,
                     allow_uncalibrated=True,  # the simulated box; the first calibration
+                    **sim_listen(True),
                 )
             )
             watches = (

@@ -57,7 +57,7 @@ from hrm_ctrl.cli._common import (
     robot_input,
     shipped_inputs,
 )
-from hrm_ctrl.cli._simwire import SIM_WIRES
+from hrm_ctrl.cli._simwire import SIM_WIRES, sim_listen
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.formats.planfile import PLAN_FORMAT, PlanDoc
 from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S
@@ -284,6 +284,7 @@ def run(args: argparse.Namespace) -> int:
                         take_over=args.take_over,
                         calibration=arm.calibration_ref(),
                         allow_uncalibrated=args.uncalibrated or args.sim,
+                        **sim_listen(args.sim),
                     )
                 )
                 box.record_extra = {

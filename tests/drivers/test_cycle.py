@@ -20,6 +20,7 @@ from hrm_ctrl.errors import DriverError
 from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.box import SimBox
 from tests.drivers.driver_rig import (
+    RIG_LISTEN_S,
     Rig,
     Sniffer,
     make_config,
@@ -135,7 +136,8 @@ def test_rpdos_reach_the_wire_before_their_sync_on_a_priority_arbitrated_bus(
         sniffer = Sniffer()
         notifier = can.Notifier(sniffer_bus, [sniffer], 0.05)
         try:
-            with DriveSession(cfg, sub, allow_uncalibrated=True) as box:
+            # a fresh simulator: the rig's short listen (driver_rig.RIG_LISTEN_S)
+            with DriveSession(cfg, sub, allow_uncalibrated=True, listen_s=RIG_LISTEN_S) as box:
                 box.bring_up()
                 sniffer.clear()
                 src = JogSource(sub, "j01r0", 50_000.0, 0.1, hold_s=0.0)

@@ -30,6 +30,7 @@ from hrm_ctrl.ropes.actuation import Actuation
 from hrm_ctrl.ropes.setpoints import plan_setpoints
 from hrm_ctrl.ropes.trajectory import finite_differences
 from sim_bus.box import SimBox
+from tests.drivers.driver_rig import RIG_LISTEN_S
 
 
 def assert_within_limits(actuation: Actuation, table: np.ndarray, start: np.ndarray) -> None:
@@ -224,8 +225,13 @@ def test_full_box_36_drives_short_run(actuation: Actuation, tmp_path: Path) -> N
         [{"interface": "virtual", "channel": f"full-{tag}-{b.name}"} for b in cfg.buses]
     ).with_control(missing_tpdo_cycles=25)
     with SimBox(cfg, actuation=actuation) as sim:
-        with DriveSession(
-            cfg, actuation, log_dir=tmp_path, run_name="full", allow_uncalibrated=True
+        with DriveSession(  # a fresh simulator: the rig's short listen (driver_rig.RIG_LISTEN_S)
+            cfg,
+            actuation,
+            log_dir=tmp_path,
+            run_name="full",
+            allow_uncalibrated=True,
+            listen_s=RIG_LISTEN_S,
         ) as box:
             actual = box.bring_up()
             assert actual.shape == (36,)

@@ -33,6 +33,10 @@ from tests.hil.hil_rig import BoxProcess
 
 PLAN_SPEED_MM_PER_S = 120.0
 TENSION_STALE_S = 0.3  # 30 frames at 100 Hz; see hil_rig.HIL_CONTROL for why not tighter
+# The host's listen for another master before its first reset (1.1 s by default): with
+# take_over=True what it hears only names an event, so a short one (as the driver rig's
+# RIG_LISTEN_S) saves 0.9 s a run; the listen itself: tests/drivers/safety/test_foreign.py
+HOST_LISTEN_S = 0.2
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +79,12 @@ def run_host(
         # operational that its host could no longer reach (bus off), and the next host
         # takes them over on purpose.
         DriveSession(  # the simulated box: its arm is the description's
-            cfg, limits, log_dir=log_dir, take_over=True, allow_uncalibrated=True
+            cfg,
+            limits,
+            log_dir=log_dir,
+            take_over=True,
+            allow_uncalibrated=True,
+            listen_s=HOST_LISTEN_S,
         ) as box,
         TensionSensorReader(port, actuation.n_motors, stale_after_s=TENSION_STALE_S) as reader,
     ):

@@ -16,7 +16,7 @@ from drivers.protocol import cia402 as c
 from drivers.session import DriveSession, SafetyStopError
 from drivers.sources import HoldSource, TableSource
 from hrm_ctrl.errors import DriverError
-from tests.drivers.driver_rig import Rig, first_time, wait_until
+from tests.drivers.driver_rig import RIG_LISTEN_S, Rig, first_time, wait_until
 
 PERIOD_S = 0.01
 # Wire-level timing (frame on the bus -> quick-stop SYNC on the bus) includes the receive
@@ -182,7 +182,9 @@ def flaky_box(rig: Rig) -> Iterator[tuple[DriveSession, list[FlakyBus]]]:
     """A DriveSession on :class:`FlakyBus` wrappers of the rig's buses; on leaving, the
     failures are cleared, the box closed and the buses shut down."""
     buses = [FlakyBus(can.Bus(**b.bus_kwargs())) for b in rig.config.buses]
-    box = DriveSession(rig.config, rig.limits, buses=buses, allow_uncalibrated=True)
+    box = DriveSession(  # fresh simulators: the rig's short listen (driver_rig.RIG_LISTEN_S)
+        rig.config, rig.limits, buses=buses, allow_uncalibrated=True, listen_s=RIG_LISTEN_S
+    )
     rig.box = box
     try:
         yield box, buses
