@@ -168,67 +168,124 @@ class Pipe:
             radii.append(float(ratio.min()) if far.any() else math.inf)
         return radii[0], radii[1]
 
-    def nearest_axis_point(self, q: np.ndarray) -> np.ndarray:
-        """The point of the axis polyline nearest each point of ``q`` (P, 3)."""
+    @cached_property
+    def _segments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per segment of the resampled axis: its start A (S, 3), A -> B (S, 3) and |AB|^2
+        (S,), 1 where 0 (the constants of :meth:`nearest_axis_point`)."""
+        dense = self._dense[0]
+        if len(dense) < 2:  # segs are clipped to -1 then: the one sample, a point
+            return dense, np.zeros_like(dense), np.ones(len(dense))
+        A = dense[:-1]
+        AB = dense[1:] - A
+        L2 = np.einsum("sj,sj->s", AB, AB)
+        for a in (A, AB, L2):
+            a.setflags(write=False)
+        return A, AB, np.where(L2 > 0, L2, 1.0)
+
+    def _samples(self, q: np.ndarray) -> np.ndarray:
+        """(P, 3) points -> (P, k) indices of their nearest (k = 2) axis samples, nearest first."""
         dense, tree = self._dense
         _, v = tree.query(q, k=min(2, len(dense)))
-        v = np.asarray(v).reshape(len(q), -1)
-        segs = np.clip(np.concatenate((v - 1, v), axis=1), 0, len(dense) - 2)  # (P, 4)
-        A = dense[segs]
-        AB = dense[segs + 1] - A
-        L2 = np.einsum("pkj,pkj->pk", AB, AB)
-        rel = q[:, None, :] - A
-        t = np.clip(np.einsum("pkj,pkj->pk", rel, AB) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
-        C = A + t[..., None] * AB
-        best = np.argmin(_norm(q[:, None, :] - C), axis=1)
-        return C[np.arange(len(q)), best]
+        return np.asarray(v).reshape(len(q), -1)
+
+    def _nearest(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(P, 3) points and their nearest samples ``v`` (:meth:`_samples`) -> the nearest
+        axis points C (P, 3), q - C (P, 3) and |q - C| (P,): the segments on either side of
+        the samples (four per point) projected in one batch."""
+        A_s, AB_s, L2_s = self._segments
+        segs = np.clip(np.concatenate((v - 1, v), axis=1), 0, len(self._dense[0]) - 2)  # (P, 4)
+        A, AB = A_s[segs], AB_s[segs]
+        t = np.einsum("pkj,pkj->pk", q[:, None, :] - A, AB)
+        t /= L2_s[segs]
+        np.clip(t, 0.0, 1.0, out=t)
+        C = t[..., None] * AB
+        C += A
+        rel = q[:, None, :] - C
+        dist = np.sqrt(np.einsum("pkj,pkj->pk", rel, rel))
+        best = np.argmin(dist, axis=1)
+        i = np.arange(len(q))
+        return C[i, best], rel[i, best], dist[i, best]
+
+    def nearest_axis_point(self, q: np.ndarray) -> np.ndarray:
+        """The point of the axis polyline nearest each point of ``q`` (P, 3)."""
+        return self._nearest(q, self._samples(q))[0]
+
+    def _inside_distance_and_gradient(
+        self, q: np.ndarray, v: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(P, 3) points of the pipe, their nearest samples -> ``r - |q - C|``, its gradient."""
+        _, rel, dist = self._nearest(q, v)
+        g = rel / np.where(dist > _EPS, -dist, -1.0)[:, None]  # = -(q - C) / |q - C|
+        return self.inner_radius - dist, g
+
+    def _rim_distance_and_gradient(
+        self, rel: np.ndarray, h: np.ndarray, n: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Points ``rel`` (M, 3) from an end's centre, ``h`` (M,) along its normal ``n`` ->
+        their distance to the end's rim circle and its gradient."""
+        radial = rel - h[:, None] * n
+        nr = _norm(radial)
+        u = radial / np.where(nr > _EPS, nr, 1.0)[:, None]
+        flat = nr <= _EPS  # on the axis line: any rim point
+        if flat.any():
+            e = np.eye(3)[int(np.argmin(np.abs(n)))]
+            u[flat] = _safe_unit(e - (e @ n) * n)
+        w = rel - self.inner_radius * u  # from the nearest rim point
+        dw = _norm(w)
+        return dw, w / np.where(dw > _EPS, dw, 1.0)[:, None]
 
     def free_distance_and_gradient(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(P, 3) points -> distance (P,) to the pipe's material and its gradient (P, 3)."""
         r = self.inner_radius
         d = np.empty(len(q))
         g = np.zeros_like(q)
+        if not len(q):
+            return d, g
         (A, nA), (B, nB) = self._ends
         relA, relB = q - A, q - B
         hA = relA @ nA  # > 0: past the start plane
         hB = relB @ nB  # > 0: before the end plane
         inside = (hA >= 0.0) & (hB >= 0.0)
+        if inside.all():  # no masks
+            return self._inside_distance_and_gradient(q, self._samples(q))
         # beyond a plane: open space only where that end is the nearest axis sample (a
         # folded axis's other leg may run behind the plane); surely so within _open_radii
-        # of the end's axis line, else looked up
-        beyond = ~inside
-        if beyond.any():
-            rA, rB = self._open_radii
-            near_A = (hA < 0.0) & (np.einsum("ij,ij->i", relA, relA) - hA * hA < rA * rA)
-            near_B = (hB < 0.0) & (np.einsum("ij,ij->i", relB, relB) - hB * hB < rB * rB)
-            look = np.flatnonzero(beyond & ~near_A & ~near_B)
-            if len(look):
-                dense, tree = self._dense
-                v = np.asarray(tree.query(q[look], k=1)[1])
-                at_end = ((v == 0) & (hA[look] < 0.0)) | ((v == len(dense) - 1) & (hB[look] < 0.0))
-                inside[look[~at_end]] = True
-        if inside.any():
-            qi = q[inside]
-            rel = qi - self.nearest_axis_point(qi)
-            d[inside] = r - _norm(rel)
-            g[inside] = -_safe_unit(rel)
-        out = ~inside
-        if out.any():
-            best = np.full(int(out.sum()), math.inf)
-            bg = np.zeros((len(best), 3))
-            for rel_all, h_all, n in ((relA, hA, nA), (relB, hB, nB)):  # to each end's rim
-                rel = rel_all[out]
-                radial = rel - h_all[out][:, None] * n
-                u = _safe_unit(radial)
-                flat = _norm(radial) <= _EPS  # on the axis line: any rim point
-                if flat.any():
-                    e = np.eye(3)[int(np.argmin(np.abs(n)))]
-                    u[flat] = _safe_unit(e - (e @ n) * n)
-                w = rel - r * u  # from the nearest rim point
-                dw = _norm(w)
+        # of the end's axis line, else looked up (with the samples of the inside points)
+        rA, rB = self._open_radii
+        near_A, near_B = hA < 0.0, hB < 0.0
+        if near_A.any():
+            near_A &= np.einsum("ij,ij->i", relA, relA) - hA * hA < rA * rA
+        if near_B.any():
+            near_B &= np.einsum("ij,ij->i", relB, relB) - hB * hB < rB * rB
+        look = ~(inside | near_A | near_B)
+        cand = np.flatnonzero(inside | look)
+        out = near_A | near_B
+        if len(cand):
+            v = self._samples(q[cand])
+            v0, lc = v[:, 0], look[cand]
+            at_end = lc & (
+                ((v0 == 0) & (hA[cand] < 0.0))
+                | ((v0 == len(self._dense[0]) - 1) & (hB[cand] < 0.0))
+            )
+            out[cand[at_end]] = True
+            keep = ~at_end
+            i = cand[keep]
+            d[i], g[i] = self._inside_distance_and_gradient(q[i], v[keep])
+        if out.any():  # to the start's rim, then the end's where nearer
+            dw, gw = self._rim_distance_and_gradient(relA[out], hA[out], nA)
+            seen = dw < math.inf
+            best, bg = dw, gw
+            if not seen.all():
+                best = np.where(seen, dw, math.inf)
+                bg = np.where(seen[:, None], gw, 0.0)
+            relB = relB[out]
+            # |q - B| - r is a lower bound of the distance to the end's rim: skip it where
+            # that is surely no nearer (the margin covers rounding)
+            if not np.all(_norm(relB) - (r + 1e-6) >= best):
+                dw, gw = self._rim_distance_and_gradient(relB, hB[out], nB)
                 better = dw < best
                 best = np.where(better, dw, best)
-                bg = np.where(better[:, None], _safe_unit(w), bg)
+                bg = np.where(better[:, None], gw, bg)
             d[out], g[out] = best, bg
         return d, g
 
@@ -514,6 +571,9 @@ class Environment:
             for o in self.obstacles:
                 dk, gk = o.free_distance_and_gradient(q)
                 take = dk < d
+                if take.all():  # the first obstacle (or one nearer everywhere): no blend
+                    d, g = dk, gk
+                    continue
                 d = np.where(take, dk, d)
                 g = np.where(take[:, None], gk, g)
         return d.reshape(shape), g.reshape(*shape, 3)

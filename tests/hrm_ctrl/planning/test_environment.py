@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from hrm_ctrl.errors import PlanningError
 from hrm_ctrl.planning.environment import (
+    AXIS_SPACING,
     Box,
     Environment,
     Pipe,
@@ -313,3 +314,60 @@ def test_beyond_an_end_it_is_still_open_space() -> None:
     assert pipe.free_distance(q).tolist() == pytest.approx(
         [math.hypot(30, 35), math.hypot(30, 5), math.hypot(30, 35)]
     )
+
+
+# ---- the pipe's fast queries against a brute-force reference (issue 10, speed) ----------
+
+
+def _reference_pipe_distance(pipe: Pipe, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The module docstring's definition by brute force over the axis polyline's segments
+    (no KD-tree, no shortcuts): the free distance, and per point the margin (mm) between the
+    nearest axis point being an end and not (small: near the boundary, to the sampling)."""
+    P, r = pipe.axis.points, pipe.inner_radius
+    A, AB = P[:-1], np.diff(P, axis=0)
+    rel = q[:, None, :] - A
+    t = np.clip(np.einsum("pkj,kj->pk", rel, AB) / np.einsum("kj,kj->k", AB, AB), 0.0, 1.0)
+    dist = np.linalg.norm(rel - t[..., None] * AB, axis=2)
+    d_axis = dist.min(axis=1)
+    ends = ((P[0], pipe.axis.tangent_at(0.0)), (P[-1], -pipe.axis.tangent_at(pipe.axis.length)))
+    d_end = [np.linalg.norm(q - E, axis=1) for E, _ in ends]
+    rim = []
+    beyond = []
+    for E, n in ends:
+        relE = q - E
+        h = relE @ n
+        radial = relE - h[:, None] * n
+        rim.append(
+            np.linalg.norm(
+                radial - r * radial / np.linalg.norm(radial, axis=1)[:, None] + h[:, None] * n,
+                axis=1,
+            )
+        )
+        beyond.append(h < 0.0)
+    # "beyond an end plane with that end the nearest sample of the axis"
+    open_ = (beyond[0] & (d_end[0] <= d_axis + 1e-9)) | (beyond[1] & (d_end[1] <= d_axis + 1e-9))
+    at_end = np.zeros_like(dist, dtype=bool)
+    at_end[:, 0], at_end[:, -1] = t[:, 0] == 0.0, t[:, -1] == 1.0
+    d_other = np.where(at_end, np.inf, dist).min(axis=1)  # nearest axis point not an end
+    margin = np.where(beyond[0] | beyond[1], np.minimum(d_end[0], d_end[1]) - d_other, np.inf)
+    return np.where(open_, np.minimum(rim[0], rim[1]), r - d_axis), margin
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), u_bend=st.booleans())
+def test_pipe_distance_matches_a_brute_force_reference(seed: int, u_bend: bool) -> None:
+    """Random points around the bent pipe (and the U-bend of unequal legs, whose second leg
+    runs behind the start plane): the KD-tree lookup, the batched projection and the skipped
+    far rim give the definition's distance and a unit gradient."""
+    axis = _u_bend_unequal_legs() if u_bend else bent_pipe().path
+    pipe = Pipe(axis, 70.0)
+    rng = np.random.default_rng(seed)
+    lo, hi = axis.points.min(axis=0) - 120.0, axis.points.max(axis=0) + 120.0
+    near = axis.points[rng.integers(len(axis.points), size=150)] + rng.normal(0, 30, (150, 3))
+    q = np.vstack((rng.uniform(lo, hi, (150, 3)), near))
+    want, margin = _reference_pipe_distance(pipe, q)
+    ok = np.abs(margin) > AXIS_SPACING  # away from the leg/end boundary (the sampling)
+    d, g = pipe.free_distance_and_gradient(q)
+    assert np.abs(d - want)[ok].max() < 1e-9
+    assert np.abs(np.linalg.norm(g, axis=1) - 1.0).max() < 1e-9
+    assert pipe.free_distance(q[:0]).shape == (0,)
