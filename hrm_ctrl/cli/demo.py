@@ -71,9 +71,9 @@ POSES_CSV = "poses.csv"
 FIGURES_DIR = "figures"
 CALIBRATIONS_DIR = "calibrations"
 DEFAULT_PERTURB_SEED = 1
-DEFAULT_POSES = 24
+DEFAULT_POSES = 20
 MAX_POSES = 200
-COLLECT_SETTLE_S = 0.2  # the simulated drives settle within a cycle
+COLLECT_SETTLE_S = 0.15  # the simulated drives settle within a cycle
 COLLECT_RATE_FRACTION = 0.9  # of the motor limits (hrm calibrate: 0.5)
 DEMO_TIP_SPEED_MM_PER_S = 100.0
 

@@ -54,7 +54,7 @@ def test_demo_calibrates_a_perturbed_arm_and_plays_with_the_calibration(
     # 10 counts; docs/calibration.md), the ropes at their pretension
     assert cal["zero"]["max_error_vs_truth_counts"] <= 50
     assert cal["zero"]["max_tension_error_N"] <= 0.2
-    # the kinematic fit from 24 poses, the rope EA still the description's (+-20 %)
+    # the kinematic fit from 20 poses, the rope EA still the description's (+-20 %)
     assert cal["kinematic"]["rms_after_mm"] < 0.5 < 10.0 < cal["kinematic"]["rms_before_mm"]
     assert cal["kinematic"]["max_link_error_vs_truth_mm"] < 0.5
     ep = summary["end_point_vs_path"]
