@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import pytest
 
 from hrm_ctrl.model import default_robot
 
@@ -30,3 +31,15 @@ def small_plan() -> dict[str, Any]:
         "steps": steps,
         "report": {},
     }
+
+
+def run_cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    """``hrm ARGV`` in this process: its exit status (argparse's exits too), stdout, stderr."""
+    from hrm_ctrl.cli import main
+
+    try:
+        rc = main(argv)
+    except SystemExit as exc:  # argparse errors
+        rc = int(exc.code or 0)
+    out, err = capsys.readouterr()
+    return rc, out, err

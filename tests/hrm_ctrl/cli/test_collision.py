@@ -12,21 +12,13 @@ import pytest
 
 from hrm_ctrl.cli import main
 from hrm_ctrl.formats.planfile import read_plan, write_plan
+from tests.hrm_ctrl.cli.cli_helpers import run_cli as run
 from tests.hrm_ctrl.cli.cli_helpers import small_plan
 
 # a straight path along +x in front of the base, and a box 40 mm wide across it
 PATH_CSV = "x,y,z\n1200,0,0\n1300,0,0\n1400,0,0\n"
 BOX_ON_PATH = "[[box]]\ncentre_mm = [1350, 0, 0]\nsize_mm = [20, 40, 40]\n"
 BOX_BESIDE = "[[box]]\ncentre_mm = [1350, 0, 200]\nsize_mm = [20, 40, 40]\n"
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    try:
-        rc = main(argv)
-    except SystemExit as exc:
-        rc = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 @pytest.fixture

@@ -9,17 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from hrm_ctrl.cli import main
 from hrm_ctrl.formats.planfile import read_plan
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    try:
-        rc = main(argv)
-    except SystemExit as exc:  # argparse errors
-        rc = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return rc, out, err
+from tests.hrm_ctrl.cli.cli_helpers import run_cli as run
 
 
 def write(tmp_path: Path, name: str, text: str) -> Path:

@@ -8,21 +8,11 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 
-from hrm_ctrl.cli import main
 from hrm_ctrl.planning.known_path import KnownPath
 from hrm_ctrl.planning.scan import synthetic_pipe_scan
 from hrm_ctrl.planning.scenarios import scenario
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    try:
-        rc = main(argv)
-    except SystemExit as exc:
-        rc = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return rc, out, err
+from tests.hrm_ctrl.cli.cli_helpers import run_cli as run
 
 
 def test_bent_pipe_is_refined_by_default_and_the_paper_fit_collides(capsys) -> None:

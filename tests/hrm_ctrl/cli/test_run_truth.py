@@ -7,19 +7,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import pytest
-
-from hrm_ctrl.cli import main
+from tests.hrm_ctrl.cli.cli_helpers import run_cli as run
 from tests.hrm_ctrl.cli.cli_helpers import small_plan
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    try:
-        rc = main(argv)
-    except SystemExit as exc:
-        rc = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def test_a_true_arm_needs_the_simulated_box(tmp_path: Path, capsys, monkeypatch) -> None:

@@ -8,21 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hrm_ctrl.cli import main
 from hrm_ctrl.planning.known_path import load_path_csv
 from hrm_ctrl.planning.scan import synthetic_pipe_scan
 from hrm_ctrl.planning.scenarios import scenario
+from tests.hrm_ctrl.cli.cli_helpers import run_cli as run
 
 BENT = scenario("bent-pipe").path
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    try:
-        rc = main(argv)
-    except SystemExit as exc:  # argparse errors
-        rc = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 @pytest.fixture(scope="module")
