@@ -31,12 +31,12 @@ import os
 import struct
 import threading
 import time
-import tty
 from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from hrm_ctrl.errors import SimError
+from sim_bus.pty_device import PtyDevice
 
 SYNC = b"\xa5\x5a"
 FRAME_TENSION = 0x01
@@ -76,12 +76,14 @@ def make_tension_frame(
     return SYNC + body + struct.pack("<H", crc16_ccitt(body))
 
 
-class TensionBoard:
+class TensionBoard(PtyDevice):
     """A board thread writing frames from ``source()`` (tensions, N) to a pseudo-terminal.
 
     Fault hooks: :meth:`set_silent` (stops sending), :meth:`inject_garbage` (random
     bytes between frames), :meth:`corrupt_frames` (next frames with a bad CRC).
     """
+
+    THREAD_NAME = "tension-board"
 
     def __init__(
         self,
@@ -92,6 +94,7 @@ class TensionBoard:
     ) -> None:
         if not 0 < rate_hz <= 10_000:
             raise SimError(f"tension board rate must be in (0, 10000] Hz, got {rate_hz!r}")
+        super().__init__()
         self.source = source
         self.rate_hz = float(rate_hz)
         self._rng = np.random.default_rng(seed)
@@ -100,39 +103,9 @@ class TensionBoard:
         self._garbage_bytes = 0
         self._garbage_continuous = False
         self._corrupt = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._master = -1
-        self._slave = -1
-        self.port = ""
         self.frames_sent = 0
         self.frames_dropped = 0
         self.errors: list[str] = []
-
-    def start(self) -> TensionBoard:
-        master, slave = os.openpty()
-        tty.setraw(slave)
-        os.set_blocking(master, False)
-        self._master, self._slave = master, slave
-        self.port = os.ttyname(slave)
-        self._thread = threading.Thread(target=self._run, name="tension-board", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                os.close(fd)
-        self._master = self._slave = -1
-
-    def __enter__(self) -> TensionBoard:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     # ------------------------------------------------------------ faults
     def set_silent(self, silent: bool = True) -> None:

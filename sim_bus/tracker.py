@@ -23,7 +23,6 @@ from __future__ import annotations
 import os
 import select
 import threading
-import tty
 from collections.abc import Callable
 
 import numpy as np
@@ -37,12 +36,15 @@ from drivers.protocol.tracker import (
     parse_request_target,
 )
 from hrm_ctrl.errors import SimError
+from sim_bus.pty_device import PtyDevice
 
 POLL_S = 0.05  # the thread checks for stop this often
 
 
-class Tracker:
+class Tracker(PtyDevice):
     """A laser tracker thread answering requests on a pseudo-terminal (see module doc)."""
+
+    THREAD_NAME = "sim-tracker"
 
     def __init__(
         self,
@@ -56,6 +58,7 @@ class Tracker:
     ) -> None:
         if not (0.0 <= noise_mm <= 1.0):
             raise SimError(f"tracker noise must be in [0, 1] mm, got {noise_mm!r}")
+        super().__init__()
         self.source = source
         self.rotation = np.array(rotation, dtype=float)
         self.translation_mm = np.array(translation_mm, dtype=float)
@@ -69,40 +72,9 @@ class Tracker:
         self._silent = False
         self._garbage = 0  # replies still to be replaced by garbage
         self._seq = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._master = -1
-        self._slave = -1
-        self.port = ""
         self.requests = 0
         self.replies = 0
         self.errors: list[str] = []
-
-    # ------------------------------------------------------------ life cycle
-    def start(self) -> Tracker:
-        master, slave = os.openpty()
-        tty.setraw(slave)
-        os.set_blocking(master, False)
-        self._master, self._slave = master, slave
-        self.port = os.ttyname(slave)
-        self._thread = threading.Thread(target=self._run, name="sim-tracker", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                os.close(fd)
-        self._master = self._slave = -1
-
-    def __enter__(self) -> Tracker:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     # ------------------------------------------------------------ faults
     def lose_target(self, lost: bool = True) -> None:
