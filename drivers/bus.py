@@ -4,9 +4,12 @@ Each bus of the box is wrapped in a :class:`BusPort`.  Frames the host sends go
 through :meth:`BusPort.send` (a failed send raises :class:`BusSendError`, a
 :class:`DriverError` naming the bus); frames it receives reach the
 :class:`TrafficLog` as a ``can.Listener``.  The log is written by a background
-thread so the control cycle never waits for the disk; any format ``can.Logger``
-knows works (``.asc`` and ``.blf`` are the usual ones, read back by
-``can.LogReader``).
+thread so the control cycle never waits for the disk, in one of the formats python-can
+writes (:func:`log_formats`: ``blf``, ``asc``, candump ``log``, ``trc``, and ``mf4`` where
+asammdf is installed), read back by ``can.LogReader``.  Channels follow python-can's
+numbering: the first bus (``can0``) is channel 0 for python-can, ``1`` in an ASC, BLF or
+TRC file (python-can's writers add one, its readers take it off) and ``can0`` in a candump
+``.log``.
 
 >>> import tempfile, pathlib
 >>> path = pathlib.Path(tempfile.mkdtemp()) / "doc.asc"
@@ -41,7 +44,34 @@ from drivers.protocol.cia301 import (
 )
 from hrm_ctrl.errors import DriverError
 
-LOG_SUFFIXES = (".asc", ".blf")
+LOG_FORMATS_ALWAYS = ("blf", "asc", "log", "trc")
+"""Log formats python-can writes with what it needs installed (``--log-format``)."""
+
+LOG_FORMAT_DURABILITY = {
+    "blf": "crash-safe: at most FLUSH_S behind, whole frames after a kill -9",
+    "asc": "crash-safe: at most FLUSH_S behind, whole lines after a kill -9",
+    "log": "crash-safe: at most FLUSH_S behind, whole lines after a kill -9",
+    "trc": "crash-safe: at most FLUSH_S behind, whole lines after a kill -9; python-can's "
+    "writer leaves out error and remote frames",
+    "mf4": "written when the log closes: a killed process leaves no readable file",
+}
+"""What a process killed mid-run keeps of a log in each format (docs/drivers.md)."""
+
+
+def log_formats() -> tuple[str, ...]:
+    """The log formats this installation writes: :data:`LOG_FORMATS_ALWAYS`, plus ``mf4``
+    when asammdf (python-can's MF4 writer needs it) is installed.
+
+    >>> log_formats()[:4]
+    ('blf', 'asc', 'log', 'trc')
+    """
+    import importlib.util
+
+    extra = ("mf4",) if importlib.util.find_spec("asammdf") is not None else ()
+    return LOG_FORMATS_ALWAYS + extra
+
+
+LOG_SUFFIXES = tuple(f".{f}" for f in (*LOG_FORMATS_ALWAYS, "mf4"))
 WRITER_IDLE_S = 0.05
 
 # COB-ID ranges the host transmits (CiA 301 predefined connection set): NMT, SYNC,
@@ -109,11 +139,20 @@ class TrafficLog(can.Listener):
 
     def __init__(self, path: str | Path, channel: int = 1) -> None:
         self.path = Path(path)
-        self.channel = int(channel)  # channel number written in the log (1-based, as in CANalyzer)
+        # ``channel``: the number an ASC, BLF or TRC file shows (1 for the first bus, as
+        # CANalyzer and python-can's writers number them); frames carry python-can's
+        # 0-based number (channel - 1), which its readers give back and candump writes
+        # as ``can0``.
+        self.channel = int(channel)
+        self._msg_channel = self.channel - 1
         self.write_errors = 0
         self.first_error: str | None = None
-        if self.path.suffix.lower() not in LOG_SUFFIXES:
-            raise DriverError(f"{self.path}: CAN log must end in {' or '.join(LOG_SUFFIXES)}")
+        formats = log_formats()
+        if self.path.suffix.lower().lstrip(".") not in formats:
+            raise DriverError(
+                f"{self.path}: CAN log must end in "
+                f"{', '.join('.' + f for f in formats)} (python-can's formats here)"
+            )
         ensure_log_dir(self.path.parent)
         self.n_frames = 0  # frames in the file (handed to the writer, for another writer)
         self.n_lost = 0  # frames that never reached the file (it could not take more)
@@ -121,11 +160,11 @@ class TrafficLog(can.Listener):
         self._last_ts: float | None = None  # timestamp of the last frame handed over
         self._logged_until: float | None = None  # ... and of the last one in the file
         self._broken = False
-        self._durable: str | None = None  # "blf" or "asc": this class writes the file
+        self._durable: str | None = None  # "blf", "asc" or "text": this class writes the file
         self._reserve = self._hold_reserve()
         try:
             self._writer: Any = can.Logger(str(self.path))
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, NotImplementedError) as exc:
             self._release_reserve()
             raise DriverError(f"{self.path}: cannot open CAN log ({exc})") from None
         try:
@@ -149,12 +188,12 @@ class TrafficLog(can.Listener):
         """Record a received frame (every one: the bus's receiver has already dropped
         the echoes of our own frames, which were logged when sent)."""
         # Interfaces name channels freely (a virtual bus: any string); logs want a number.
-        msg.channel = self.channel
+        msg.channel = self._msg_channel
         self._queue.append(msg)
 
     def log_sent(self, msg: can.Message) -> None:
         """Record a frame the host sent (``is_rx=False``)."""
-        msg.channel = self.channel
+        msg.channel = self._msg_channel
         self._queue.append(msg)
 
     def _failed(self, text: str) -> None:
@@ -169,7 +208,7 @@ class TrafficLog(can.Listener):
                 q.popleft()
                 self.n_lost += 1
             return
-        write = self._writer.on_message_received
+        write = self._blf_fast() if self._durable == "blf" else self._writer.on_message_received
         durable = self._durable is not None
         while q:
             msg = q.popleft()
@@ -183,6 +222,50 @@ class TrafficLog(can.Listener):
                 self._last_ts = msg.timestamp
             else:
                 self.n_frames += 1
+
+    def _blf_fast(self) -> Any:
+        """python-can's ``BLFWriter.on_message_received`` for a classic CAN frame in one
+        ``struct`` pack (object header, its time header and the CAN_MESSAGE body: the
+        same 48 bytes python-can appends, ~10x cheaper); error and FD frames go to
+        python-can's writer."""
+        w = self._writer
+        pack = _BLF_CAN_OBJECT.pack
+        slow = w.on_message_received
+        buf = w._buffer
+        start = w.start_timestamp
+
+        def write(msg: can.Message) -> None:
+            nonlocal buf
+            if msg.is_error_frame or msg.is_fd or start is None:
+                slow(msg)
+                buf = w._buffer  # python-can may have swapped it (a flush)
+                return
+            ch = msg.channel
+            if type(ch) is not int:
+                ch = can.util.channel2int(ch)
+            ch = w.channel if ch is None else ch + 1  # python-can's numbering
+            arb = msg.arbitration_id | (_BLF_CAN_MSG_EXT if msg.is_extended_id else 0)
+            flags = (_BLF_REMOTE_FLAG if msg.is_remote_frame else 0) | (
+                0 if msg.is_rx else _BLF_DIR
+            )
+            ts = msg.timestamp
+            t_ns = int((ts - start) * 1e9)
+            if w._buffer is not buf:
+                buf = w._buffer
+            buf.append(
+                pack(
+                    b"LOBJ", _BLF_HEADER_SIZE, 1, _BLF_OBJ_SIZE, _BLF_CAN_MESSAGE,
+                    _BLF_TIME_ONE_NANS, 0, 0, t_ns if t_ns > 0 else 0,
+                    ch, flags, msg.dlc, arb, bytes(msg.data),
+                )
+            )  # fmt: skip
+            w.stop_timestamp = ts
+            w._buffer_size += _BLF_OBJ_SIZE
+            w.object_count += 1
+            if w._buffer_size >= w.max_container_size:
+                w._flush()
+
+        return write
 
     def _run(self) -> None:
         next_flush = time.monotonic() + self.FLUSH_S
@@ -219,14 +302,16 @@ class TrafficLog(can.Listener):
 
     # -------------------------------------------------------------- durability
     # Crash safety (kill -9): the file on disk is at most FLUSH_S behind, always readable
-    # by can.LogReader and carries its absolute start time.  For python-can's BLF and ASC
-    # writers this class does the file writes itself: the writer only formats (BLF objects
-    # into its buffer, ASC lines into a StringIO); every FLUSH_S the formatted frames go
-    # out in one write(2) (BLF: zlib containers; ASC: whole lines), then the BLF header is
-    # rewritten in place.  A SIGKILL can cut a write(2) only between pages (the kernel
-    # checks for it page by page), so no line and no container header is let straddle a
-    # page boundary: a cut file still ends with whole lines, or with a container whose
-    # headers are whole (its cut zlib stream yields every whole frame in it).
+    # by can.LogReader and carries its absolute start time.  For python-can's BLF writer
+    # and its text writers (ASC, candump .log, TRC) this class does the file writes itself:
+    # the writer only formats (BLF objects into its buffer, text lines into a StringIO);
+    # every FLUSH_S the formatted frames go out in one write(2) (BLF: zlib containers;
+    # text: whole lines), then the BLF header is rewritten in place.  MF4 (asammdf) is
+    # written when the log closes (LOG_FORMAT_DURABILITY).  A SIGKILL can cut a write(2)
+    # only between pages (the kernel checks for it page by page), so no line and no
+    # container header is let straddle a page boundary: a cut file still ends with whole
+    # lines, or with a container whose headers are whole (its cut zlib stream yields
+    # every whole frame in it).
     # Disk full: the file is cut back to its last whole write and ends there, the frames
     # that missed it are counted (``n_lost``) and the error named (``first_error``).
 
@@ -260,8 +345,9 @@ class TrafficLog(can.Listener):
             pass
 
     def _take_over_writes(self) -> str | None:
-        """Make python-can's BLF or ASC writer format only; this class writes the file
-        (see above).  Another writer (a wrapper) is left alone: flushed when it stops."""
+        """Make python-can's BLF, ASC, candump or TRC writer format only; this class
+        writes the file (see above).  Another writer (MF4) is left alone: it writes the
+        file when it stops."""
         import datetime as dt
         import io
 
@@ -296,6 +382,16 @@ class TrafficLog(can.Listener):
             self._end = os.lseek(self._fd, 0, os.SEEK_END)
             w.file = io.StringIO()
             return "asc"
+        if isinstance(w, can.CanutilsLogWriter | can.TRCWriter):
+            # candump: no header; TRC: its header goes out with the first frame (with the
+            # frame's time as the file's start), "\r\n" line ends as python-can's writer.
+            w.file.flush()
+            self._file = w.file
+            self._encoding = w.file.encoding
+            self._fd = w.file.fileno()
+            self._end = os.lseek(self._fd, 0, os.SEEK_END)
+            w.file = io.StringIO(newline="\r\n" if isinstance(w, can.TRCWriter) else None)
+            return "text"
         return None
 
     def _flush(self) -> None:
@@ -365,9 +461,9 @@ class TrafficLog(can.Listener):
         os.pwrite(self._fd, header, 0)
 
     def _asc_lines(self) -> bytes:
-        """The whole lines the writer formatted, each kept within one page (a line that
-        would straddle a page boundary is put after a blank line that fills the page:
-        readers skip blank lines)."""
+        """The whole lines the writer formatted (ASC, candump, TRC), each kept within one
+        page (a line that would straddle a page boundary is put after a blank line that
+        fills the page: the readers of all three skip blank lines)."""
         text_io = self._writer.file
         text = text_io.getvalue()
         cut = text.rfind("\n") + 1
@@ -414,14 +510,14 @@ class TrafficLog(can.Listener):
         w = self._writer
         self._flush()
         if self._broken:  # python-can's stop() would write on: close the file as it is
-            file = self._file if self._durable == "asc" else w.file
+            file = w.file if self._durable == "blf" else self._file
             try:
                 file.close()
             except OSError:
                 pass
             return
-        if self._durable == "asc":
-            w.file = self._file  # the writer ends the file itself ("End TriggerBlock")
+        if self._durable in ("asc", "text"):
+            w.file = self._file  # the writer ends the file itself (ASC: "End TriggerBlock")
         else:
             w.max_container_size = self._container_bytes
         try:
@@ -429,6 +525,29 @@ class TrafficLog(can.Listener):
         except Exception as exc:  # flush/close failed (disk full, I/O error)
             self._failed(f"{self.path.name}: cannot close ({exc})")
 
+
+def _blf_struct() -> Any:
+    import struct
+
+    from can.io import blf
+
+    return struct.Struct(
+        "<"
+        + blf.OBJ_HEADER_BASE_STRUCT.format.lstrip("<")
+        + blf.OBJ_HEADER_V1_STRUCT.format.lstrip("<")
+        + blf.CAN_MSG_STRUCT.format.lstrip("<")
+    )
+
+
+# One BLF CAN_MESSAGE object as python-can writes it (TrafficLog._blf_fast).
+_BLF_CAN_OBJECT = _blf_struct()
+_BLF_HEADER_SIZE = can.io.blf.OBJ_HEADER_BASE_STRUCT.size + can.io.blf.OBJ_HEADER_V1_STRUCT.size
+_BLF_OBJ_SIZE = _BLF_HEADER_SIZE + can.io.blf.CAN_MSG_STRUCT.size  # 48: no padding
+_BLF_CAN_MESSAGE = can.io.blf.CAN_MESSAGE
+_BLF_TIME_ONE_NANS = can.io.blf.TIME_ONE_NANS
+_BLF_CAN_MSG_EXT = can.io.blf.CAN_MSG_EXT
+_BLF_REMOTE_FLAG = can.io.blf.REMOTE_FLAG
+_BLF_DIR = can.io.blf.DIR
 
 EchoKey = tuple[int, bool, bool, bytes]
 ECHO_WINDOW_S = 2.0  # an echo of our own frame comes back within this, or never
@@ -528,6 +647,10 @@ class BusPort:
         self.echoes = EchoLedger() if echoes else None
         self._lock = threading.Lock()
         self.n_sent = 0
+        # the bus's batch send (duck-typed: hrm_ipc has one; drivers never import it)
+        self._send_batch = getattr(bus, "send_many", None)
+        if not callable(self._send_batch):
+            self._send_batch = None
 
     def is_own_echo(self, msg: can.Message) -> bool:
         """Whether a received frame is one this process sent, coming back."""
@@ -554,10 +677,36 @@ class BusPort:
             self.log.log_sent(msg)
 
     def send_many(self, msgs: list[can.Message], timeout_s: float = 0.05) -> None:
-        """Send frames in order under one lock acquisition."""
+        """Send frames in order under one lock acquisition; through the bus's own
+        ``send_many`` when it has one (``hrm_ipc``: one datagram per peer), else frame
+        by frame."""
         now = time.time()
         echoes = self.echoes
         mono = time.monotonic()
+        batch = self._send_batch
+        if batch is not None:
+            log_ = self.log
+            try:
+                with self._lock:
+                    for msg in msgs:
+                        msg.timestamp = now
+                        msg.is_rx = False
+                        if echoes is not None:
+                            echoes.add(msg, mono)
+                    try:
+                        batch(msgs, timeout=timeout_s)
+                    except BaseException:
+                        if echoes is not None:
+                            for msg in msgs:
+                                echoes.discard(msg)
+                        raise
+                    self.n_sent += len(msgs)
+                    if log_ is not None:
+                        for msg in msgs:
+                            log_.log_sent(msg)
+            except (can.CanError, OSError, ValueError) as exc:
+                raise BusSendError(f"bus {self.name}: send failed ({exc})") from None
+            return
         try:
             with self._lock:
                 for msg in msgs:

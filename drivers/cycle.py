@@ -5,10 +5,11 @@ The control loop itself is :class:`drivers.safety.supervisor.Supervisor`, the on
 thread that owns the cycle: at every deadline of a fixed grid ``t0 + g T`` it
 evaluates the watchdogs, sends the SYNC on every bus (which applies the RPDOs sent
 during the previous period), then checks the next setpoint against the rope
-layer's limits and sends every node's RPDO.  So every period carries each node's
-RPDO and then the SYNC that applies it, and the RPDOs have the rest of the period
-to reach the wire: a SYNC (0x080) sent right behind a burst of RPDOs (0x2xx) could
-overtake them on a controller that sends pending frames in identifier order.
+layer's limits and sends every node's RPDO (one ``BusPort.send_many`` per bus: one
+datagram on ``hrm_ipc``).  So every period carries each node's RPDO and then the SYNC
+that applies it, and the RPDOs have the rest of the period to reach the wire: a SYNC
+(0x080) sent right behind a burst of RPDOs (0x2xx) could overtake them on a controller
+that sends pending frames in identifier order.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from drivers.protocol import cia301, cia402
 from drivers.safety.monitor import StopCause
 from hrm_ctrl.errors import HrmError
 
+_RPDO_PACK = cia402.RPDO_TARGET_LAYOUT.pack
 LATE_THRESHOLD_S = 0.002
 STOP_CONFIRM_CYCLES = 10
 SYNC_MARGIN_S = 0.0005
@@ -38,26 +40,34 @@ class BusLayout:
     port: BusPort
     index: np.ndarray  # global motor indices on this bus
     node_ids: np.ndarray
-    notifier: can.Notifier | None = None
+    notifier: Any = None  # the bus's receive thread: has ``.exception`` (None: alive)
     burst_s: float = 0.0  # wire time of one cycle's worst-case traffic on this bus
 
     def __post_init__(self) -> None:
         self.rpdo_ids = [cia301.COB_RPDO1 + int(n) for n in self.node_ids]
 
     def rpdo_frames(self, controlword: int | np.ndarray, targets: np.ndarray) -> list[can.Message]:
-        """RPDO frames of this bus for global target vector ``targets``."""
-        payload = cia402.make_rpdo_target_payloads(
-            np.broadcast_to(np.asarray(controlword), (len(self.index),)), targets[self.index]
-        )
-        n = cia402.RPDO_TARGET_SIZE
+        """RPDO frames of this bus for global target vector ``targets`` (one ``struct``
+        pack per node; a target outside INTEGER32 raises :class:`FrameError`).
+
+        >>> from drivers.bus import BusPort
+        >>> lay = BusLayout(BusPort("b", None), np.array([1, 0]), np.array([5, 6]))
+        >>> [(hex(m.arbitration_id), m.data.hex()) for m in lay.rpdo_frames(15, np.array([-1, 7]))]
+        [('0x205', '0f0007000000'), ('0x206', '0f00ffffffff')]
+        """
+        tg = np.asarray(targets)[self.index].astype(np.int64, copy=False).tolist()
+        if tg and (min(tg) < cia402.INT32_MIN or max(tg) > cia402.INT32_MAX):
+            raise cia402.FrameError("target position outside INTEGER32")
+        pack = _RPDO_PACK
+        if np.ndim(controlword) == 0:
+            cw = int(controlword) & 0xFFFF
+            payloads = [pack(cw, t) for t in tg]
+        else:
+            cws = np.broadcast_to(np.asarray(controlword), (len(self.index),)).tolist()
+            payloads = [pack(c & 0xFFFF, t) for c, t in zip(cws, tg, strict=True)]
         return [
-            can.Message(
-                arbitration_id=cid,
-                data=payload[n * i : n * i + n],
-                is_extended_id=False,
-                check=False,
-            )
-            for i, cid in enumerate(self.rpdo_ids)
+            can.Message(arbitration_id=cid, data=data, is_extended_id=False, check=False)
+            for cid, data in zip(self.rpdo_ids, payloads, strict=True)
         ]
 
 

@@ -1,6 +1,15 @@
 """The receive path of one bus: every frame the bus delivers, sorted once.
 
-A :class:`BusReceiver` is the only listener of its bus's notifier.  For each frame:
+A :class:`BusReader` (one thread per bus, in place of python-can's ``can.Notifier``:
+no listener dispatch, no lock per frame) reads the bus with ``bus.recv`` and hands every
+frame to the bus's :class:`BusReceiver`.  For each frame:
+
+0. a configured node's TPDO1 (11-bit data frame) takes the short path: logged, then
+   parsed straight into the monitor's arrays (:meth:`NodeMonitor.on_tpdo`); such a
+   frame is never one of ours (the host never sends 0x180 + node), so the echo ledger
+   is not asked; a configured node's heartbeat likewise goes straight to
+   :meth:`NodeMonitor.on_heartbeat` (while listening for another master both take the
+   full path below);
 
 1. our own frame coming back (udp_multicast echoes a sender's frames) is dropped: it
    was logged when sent (:meth:`drivers.bus.BusPort.is_own_echo`, by identifier and
@@ -38,6 +47,7 @@ import canopen
 from drivers.bus import BusPort, TrafficLog, is_host_frame
 from drivers.protocol import cia301
 from drivers.safety.causes import StopKind
+from hrm_ctrl.errors import DriverError
 
 MAX_TRACKED_IDS = 2048  # identifiers counted per kind (29-bit ids could be 2**29)
 log = logging.getLogger("drivers.receive")
@@ -163,8 +173,41 @@ class BusReceiver(can.Listener):
         self.host_node_id = host_node_id
         self.traffic = BusTraffic(port.name)
         self.fast: dict[int, Callable[[bytes], None]] = {}
+        # COB-ID of a configured node's TPDO1 -> (monitor, slot): the short path
+        self.tpdo: dict[int, tuple[Any, int]] = {}
+        # COB-ID of a configured node's heartbeat -> (monitor, slot): short path too
+        # (the monitor is the one consumer of heartbeats; canopen's NMT master is not
+        # asked for the drives' states)
+        self.heartbeat: dict[int, tuple[Any, int]] = {}
 
     def on_message_received(self, msg: can.Message) -> None:
+        cid = msg.arbitration_id
+        slot = self.tpdo.get(cid)
+        if (
+            slot is not None
+            and not msg.is_extended_id
+            and not msg.is_remote_frame
+            and not msg.is_error_frame
+            and not self.traffic.listening
+        ):
+            log_ = self.log
+            if log_ is not None:
+                log_.on_message_received(msg)
+            slot[0].on_tpdo(slot[1], msg.data)
+            return
+        slot = self.heartbeat.get(cid)
+        if (
+            slot is not None
+            and not msg.is_extended_id
+            and not msg.is_remote_frame
+            and not msg.is_error_frame
+            and not self.traffic.listening
+        ):
+            log_ = self.log
+            if log_ is not None:
+                log_.on_message_received(msg)
+            slot[0].on_heartbeat(slot[1], msg.data)
+            return
         if self.port.is_own_echo(msg):
             self.traffic.echoes_dropped += 1
             return
@@ -183,10 +226,14 @@ class BusReceiver(can.Listener):
                 self.traffic.guarding_requests += 1
             return
         handler = self.fast.get(cid)
-        if handler is not None:
+        if handler is not None or cid in self.tpdo:
             if self.traffic.listening:  # drives sending PDOs are operational: someone's
                 self.traffic.pdo_nodes.add(cid & cia301.NODE_ID_MASK)
-            handler(msg.data)
+            if handler is not None:
+                handler(msg.data)
+            else:
+                monitor, idx = self.tpdo[cid]
+                monitor.on_tpdo(idx, msg.data)
             return
         if is_host_frame(cid, self.host_node_id):
             self._foreign(cid, bytes(msg.data))
@@ -255,3 +302,110 @@ def wait_quiet_listen(receivers: list[BusReceiver], listen_s: float) -> str | No
             r.traffic.listening = False
     heard = [h for r in receivers if (h := r.traffic.other_master()) is not None]
     return "; ".join(heard) if heard else None
+
+
+RECV_TIMEOUT_S = 0.1  # how often a reader looks whether it is asked to stop
+
+
+class BusReader:
+    """The receive thread of one bus: ``bus.recv`` in a loop, every frame to the bus's
+    :class:`BusReceiver` (what ``can.Notifier`` did, without its per-frame listener
+    dispatch and lock).  A failure of the bus (or a bug in the receiver) ends the
+    thread and is kept in :attr:`exception`, which the supervisor reports as a stop
+    cause (and canopen's ``Network.check`` raises); :meth:`stop` ends it.
+
+    >>> import can
+    >>> bus = can.Bus(interface="virtual", channel="doc-reader")
+    >>> got = []
+    >>> class Sink:
+    ...     def on_message_received(self, msg):
+    ...         got.append(msg.arbitration_id)
+    >>> reader = BusReader(bus, Sink(), name="doc")
+    >>> other = can.Bus(interface="virtual", channel="doc-reader")
+    >>> other.send(can.Message(arbitration_id=0x181, data=b"\\x01", is_extended_id=False))
+    >>> t_end = time.monotonic() + 5.0
+    >>> while not got and time.monotonic() < t_end:
+    ...     time.sleep(0.01)
+    >>> reader.stop(1.0); other.shutdown(); bus.shutdown()
+    >>> [hex(x) for x in got], reader.exception
+    (['0x181'], None)
+    """
+
+    def __init__(
+        self, bus: can.BusABC, receiver: Any, name: str, timeout_s: float = RECV_TIMEOUT_S
+    ) -> None:
+        self.bus = bus
+        self.receiver = receiver
+        self.timeout_s = float(timeout_s)
+        self._exception: BaseException | None = None
+        self.n_frames = 0
+        self._stopped = False
+        self._thread = threading.Thread(target=self._run, name=f"hrm-rx-{name}", daemon=True)
+        self._thread.start()
+
+    def _recv(self) -> Callable[[float], can.Message | None]:
+        """The bus's receive: python-can's ``BusABC.recv`` wraps the interface's
+        ``_recv_internal`` with filtering and a log call per frame; a bus without
+        filters that does not override ``recv`` is read through ``_recv_internal``
+        directly (the same frames, without that per-frame work)."""
+        bus = self.bus
+        internal = getattr(bus, "_recv_internal", None)
+        if (
+            type(bus).recv is not can.BusABC.recv
+            or getattr(bus, "_filters", None)
+            or not callable(internal)
+        ):
+            return bus.recv
+
+        def recv(timeout_s: float) -> can.Message | None:
+            msg, _filtered = internal(timeout_s)
+            return msg
+
+        return recv
+
+    def _run(self) -> None:
+        recv = self._recv()
+        handle = self.receiver.on_message_received
+        timeout_s = self.timeout_s
+        n = 0
+        try:
+            while not self._stopped:
+                msg = recv(timeout_s)
+                # a frame that comes in while the reader is being stopped is not handled
+                # (the log and the monitor may be closed behind stop())
+                if msg is not None and not self._stopped:
+                    n += 1
+                    handle(msg)
+                    if n & 0x3FF == 0:
+                        self.n_frames = n
+        except BaseException as exc:  # kept for the supervisor: a RECEIVE stop cause
+            # (BaseException too: a SystemExit raised in a handler ends the thread as
+            # surely as an OSError of the bus; a failure while stopping is the close)
+            if not self._stopped:
+                self._exception = exc
+                log.error("receive thread %s ended: %r", self._thread.name, exc)
+        self.n_frames = n
+
+    @property
+    def exception(self) -> BaseException | None:
+        """Why the thread ended unasked (None: alive, or ended by :meth:`stop`): the
+        failure of the bus or the receiver, or a :class:`DriverError` when it ended
+        without one.  The supervisor's watchdogs read it every cycle."""
+        exc = self._exception
+        if exc is None and not self._stopped and not self._thread.is_alive():
+            exc = DriverError(f"receive thread {self._thread.name} ended unasked")
+        return exc
+
+    @exception.setter
+    def exception(self, exc: BaseException | None) -> None:
+        self._exception = exc
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """End the thread (waits at most ``timeout`` s; idempotent)."""
+        self._stopped = True
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout)

@@ -48,8 +48,9 @@ simulator): everything goes through python-can buses.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import datetime as dt
-import functools
+import gc
 import json
 import logging
 import math
@@ -82,7 +83,7 @@ from drivers.config import BoxConfig
 from drivers.cycle import BusLayout, EventLog, StreamResult
 from drivers.interrupts import deferred_interrupts
 from drivers.protocol import cia301, cia402
-from drivers.receive import BusReceiver, wait_quiet_listen
+from drivers.receive import BusReader, BusReceiver, wait_quiet_listen
 from drivers.safety.causes import StopCause, StopKind
 from drivers.safety.limits import MAX_SOURCE_DURATION_S, LimitChecker
 from drivers.safety.monitor import NodeMonitor
@@ -107,6 +108,27 @@ HEARTBEAT_START_WAIT_S = 0.5  # the first host heartbeat precedes the NMT reset
 STOP_RECORD_WAIT_S = 2.0  # longest wait for a stop being confirmed (10 periods at most)
 EMCY_WAIT_S = 0.25  # a drive seen in FAULT: its EMCY is on the wire, the stop follows
 log = logging.getLogger("drivers.session")
+
+
+@contextlib.contextmanager
+def quiet_gc() -> Any:
+    """While a stream plays: everything allocated so far (the OD, canopen's objects,
+    numpy tables) is frozen out of the garbage collector (``gc.freeze``), so a
+    collection during the stream walks only what the stream itself allocated (no
+    pause of tens of ms in the middle of the cycle); undone afterwards.  No
+    ``gc.collect()`` first: with the drives enabled a full collection holds every
+    thread for as long as it takes (57 ms with the drivers and the EDS loaded; in the loaded test
+    process the drives' heartbeats were then seen 490-560 ms apart: a heartbeat timeout).
+
+    >>> with quiet_gc():
+    ...     gc.get_freeze_count() > 0
+    True
+    """
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 class SessionState(Enum):
@@ -368,8 +390,11 @@ class DriveSession:
                 node.sdo.RESPONSE_TIMEOUT = self.control.sdo_timeout_s
                 self.links[i] = DriveLink(node, b.name, motor)
                 self._subscribe(net, i, nid)
-                router.fast[cia301.COB_TPDO1 + nid] = functools.partial(self.monitor.on_tpdo, i)
-            net.notifier = can.Notifier(bus, [router], 0.1)
+                router.tpdo[cia301.COB_TPDO1 + nid] = (self.monitor, i)
+                router.heartbeat[cia301.COB_NMT_ERROR_CONTROL + nid] = (self.monitor, i)
+            # our own receive thread (no can.Notifier dispatch); canopen's Network only
+            # asks it for .exception (check) and .stop (disconnect)
+            net.notifier = BusReader(bus, router, b.name)  # type: ignore[assignment]
             self._networks.append(net)
             load = self.loads[bi]
             self._layouts.append(
@@ -727,7 +752,8 @@ class DriveSession:
             self._unclaim_stream()  # nothing was sent
             raise
         try:
-            result = self.supervisor.play(source, self._stream_timeout_s(source))
+            with quiet_gc():
+                result = self.supervisor.play(source, self._stream_timeout_s(source))
         except SupervisorModeError:  # stopped between the checks and the hand-over
             self._unclaim_stream()
             self._raise_if_stopped()
@@ -906,6 +932,186 @@ class DriveSession:
                     self.events.add("error", f"finish after {after}: {err}")
         finally:
             self.close()
+
+    # ------------------------------------------------------------------ console (issue 11)
+    def track_emergencies(self) -> None:
+        """Keep each drive's last EMCY (for :meth:`status_snapshot`); idempotent.  The
+        console calls it right after opening the session (before any NMT reset)."""
+        if getattr(self, "_last_emcy", None) is not None:
+            return
+        self._last_emcy: list[str | None] = [None] * self.monitor.n
+        order = {m: i for i, m in enumerate(self.actuation.motor_ids)}
+        for b, net in zip(self.config.buses, self._networks, strict=True):
+            for motor, nid in b.nodes.items():
+                i = order[motor]
+
+                def keep(_cid: int, data: bytes, _ts: float, i: int = i, nid: int = nid) -> None:
+                    try:
+                        emcy = cia301.parse_emcy(nid, data)
+                    except cia301.FrameError:
+                        return  # the monitor reports the bad frame
+                    self._last_emcy[i] = emcy.describe()
+
+                net.subscribe(cia301.COB_EMCY + nid, keep)
+
+    def status_snapshot(
+        self, tension_N: np.ndarray | None = None, *, read_drives: bool = True
+    ) -> Any:
+        """A :class:`drivers.status.SessionStatus` of the box now.  While streaming (or
+        without ``read_drives``) the node values are the feedback TPDOs' (none before the
+        first); otherwise every drive's statusword and actual position are read by SDO
+        in parallel (bounded by the SDO timeouts; a drive that does not answer shows
+        unknown values).  ``tension_N`` (n, the rope layer's order): the tension board's
+        newest sample, if the caller reads one.  Sends nothing but SDO uploads."""
+        from drivers.bringup import sdo_read
+        from drivers.status import BusStatus, SessionStatus, node_statuses
+
+        mon = self.monitor
+        n = mon.n
+        order = {m: i for i, m in enumerate(self.actuation.motor_ids)}
+        bus_of = [""] * n
+        nid_of = [0] * n
+        for b in self.config.buses:
+            for motor, nid in b.nodes.items():
+                bus_of[order[motor]], nid_of[order[motor]] = b.name, nid
+        statusword: list[int | None] = [None] * n
+        position: list[int | None] = [None] * n
+        live = self._state not in (SessionState.CLOSED,)
+        by_sdo = read_drives and live and self._state is not SessionState.STREAMING
+        if by_sdo:
+
+            def read(link: DriveLink) -> tuple[int, int] | None:
+                try:
+                    sw = int(sdo_read(link, cia402.OD_STATUSWORD))
+                    return sw, int(sdo_read(link, cia402.OD_POSITION_ACTUAL_VALUE))
+                except HrmError:
+                    return None
+
+            links = self._links()
+            values = self._parallel("status", read, self._budget_s(2))
+            for link, v in zip(links, values, strict=True):
+                if v is not None:
+                    i = order[link.motor]
+                    statusword[i], position[i] = v
+        else:
+            for i in range(n):
+                if mon.n_tpdo[i] > 0:
+                    statusword[i], position[i] = int(mon.statusword[i]), int(mon.position[i])
+        held = self.enabled or self._state is SessionState.STOPPED
+        targets = self.supervisor.targets if held else None
+        emcy = getattr(self, "_last_emcy", None) or [None] * n
+        nodes = node_statuses(
+            self.actuation.motor_ids, bus_of, nid_of,
+            hb_state=mon.hb_state.copy(), hb_time_s=mon.hb_time.copy(), now_s=mon.clock(),
+            statusword=statusword, position=position,
+            targets=None if targets is None else np.asarray(targets).copy(),
+            tension_N=tension_N, last_emcy=list(emcy),
+        )  # fmt: skip
+        buses = []
+        for k, b in enumerate(self.config.buses):
+            port = self._ports[k] if k < len(self._ports) else None
+            state = None
+            if port is not None:
+                try:
+                    state = port.bus.state.name
+                except (NotImplementedError, AttributeError, can.CanError):
+                    state = None
+            traffic = self._receivers[k].traffic if k < len(self._receivers) else None
+            log_ = self._logs[k] if k < len(self._logs) else None
+            buses.append(
+                BusStatus(
+                    name=b.name,
+                    bitrate=b.bitrate,
+                    load=float(self.loads[k].load),
+                    load_limit=float(self.loads[k].limit),
+                    frames_sent=0 if port is None else int(port.n_sent),
+                    error_frames=0 if traffic is None else int(traffic.error_frames),
+                    foreign_frames=0 if traffic is None else int(sum(traffic.foreign.values())),
+                    log_frames_lost=0 if log_ is None else int(log_.n_lost),
+                    state=state,
+                )
+            )
+        causes = self.idle_causes or (self.results[-1].causes if self.results else [])
+        stopped = self._state in (SessionState.STOPPED, SessionState.FAULT)
+        cal = (
+            f"version {self.calibration.version}" if self.calibration is not None
+            else UNCALIBRATED if self.allow_uncalibrated else "none (enable refused)"
+        )  # fmt: skip
+        return SessionStatus(
+            state=self._state.name,
+            calibration=cal,
+            stop_causes=tuple(x.text for x in causes) if stopped else (),
+            nodes=nodes,
+            buses=tuple(buses),
+            taken_s=mon.clock(),
+            by_sdo=by_sdo,
+        )
+
+    def actual_positions(self) -> np.ndarray:
+        """Every drive's actual position (0x6064, counts, the rope layer's order) read by
+        SDO in parallel, bounded by the SDO timeouts (not while streaming: the feedback
+        TPDOs have it); a drive that does not answer raises :class:`DriverError`."""
+        from drivers.bringup import sdo_read
+
+        self._require(
+            "actual positions",
+            SessionState.CONNECTED, SessionState.READY, SessionState.ENABLED,
+            SessionState.STOPPED, SessionState.FAULT,
+        )  # fmt: skip
+        order = {m: i for i, m in enumerate(self.actuation.motor_ids)}
+        values = self._parallel(
+            "actual positions",
+            lambda link: int(sdo_read(link, cia402.OD_POSITION_ACTUAL_VALUE)),
+            self._budget_s(1),
+        )
+        out = np.zeros(self.monitor.n, dtype=np.int64)
+        for link, v in zip(self._links(), values, strict=True):
+            out[order[link.motor]] = v
+        return out
+
+    @deferred_interrupts()
+    def reset_fault(self) -> list[str]:
+        """After a stop: the fault reset of every drive in FAULT (CiA 402 transition 15,
+        the statusword confirming it), then every drive disabled to READY_TO_SWITCH_ON
+        (power stage off) along the transition table (-> READY: :meth:`enable` may follow).
+        From STOPPED, FAULT or READY; returns the labels of the drives that were in FAULT.
+        A drive that stays in FAULT (its cause persists) raises :class:`DriverError`
+        naming it (-> FAULT); nothing moves (no target is written)."""
+        from drivers.bringup import drive_to
+
+        self._require("reset-fault", SessionState.STOPPED, SessionState.FAULT, SessionState.READY)
+        deadline = time.monotonic() + STOP_RECORD_WAIT_S
+        while self.supervisor.mode is Mode.STOPPING and time.monotonic() < deadline:
+            time.sleep(self.control.period_s)  # the stop is confirmed first
+        try:
+            self.supervisor.disarm()
+        except SupervisorModeError as exc:
+            self.events.add("error", f"reset-fault: {exc}")
+        timeout_s = self.control.state_timeout_s
+        faulty = (cia402.State402.FAULT, cia402.State402.FAULT_REACTION_ACTIVE)
+
+        def reset_one(link: DriveLink) -> str | None:
+            state, _sw = read_state(link)
+            drive_to(link, cia402.State402.READY_TO_SWITCH_ON, timeout_s)
+            return link.label if state in faulty else None
+
+        try:
+            labels = self._parallel("fault reset", reset_one, self._budget_s(2, 4))
+        except HrmError:
+            self._set_state(SessionState.FAULT)
+            raise
+        reset = [x for x in labels if x is not None]
+        self.events.add(
+            "fault_reset",
+            f"fault reset of {len(reset)} drive(s)"
+            + (f" ({', '.join(reset)})" if reset else "")
+            + "; every drive disabled (READY_TO_SWITCH_ON)",
+        )
+        self.idle_causes = []
+        self.stop_error = None
+        self.monitor.drain()  # causes of the stop that was just cleared
+        self._set_state(SessionState.READY)
+        return reset
 
 
 def _jsonable(value: Any) -> Any:

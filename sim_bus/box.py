@@ -39,6 +39,7 @@ bus-off as failing sends); on other interfaces the box applies them to the frame
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import logging
 import math
@@ -374,7 +375,9 @@ class SimBox:
                 self._event(f"bus {bb.name}: receive failed ({exc})")
                 if self._stop.wait(0.05):
                     break
-            with self._lock:
+            # one datagram per peer for what this burst makes the drives send, on a bus
+            # that batches (hrm_ipc); a no-op on the others
+            with self._lock, getattr(bb.bus, "batch", contextlib.nullcontext)():
                 now = self.clock()
                 if not bb.bus_off:
                     for msg in batch:

@@ -27,11 +27,20 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from drivers.realtime import process_settings
 
 BACKENDS = ("virtual", "udp_multicast", "socketcan")
 _group_counter = itertools.count(1)
+
+# Hypothesis measures wall time: a 200 ms deadline per example and a "too slow" check on
+# data generation.  With both cores busy examples of tests/hrm_ctrl/planning/
+# test_environment.py took 261-496 ms and failed as DeadlineExceeded / FlakyFailure.  No
+# requirement here is an example's wall time, so neither applies anywhere (a test's own
+# @settings still sets everything else).
+settings.register_profile("hrm", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("hrm")
 
 
 @pytest.fixture(scope="session", autouse=True)

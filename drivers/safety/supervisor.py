@@ -186,6 +186,7 @@ class Supervisor:
         )
         self._ramp_pos: np.ndarray | None = None
         self._ramp_vel: np.ndarray | None = None
+        self._rpdos_sent_at = -math.inf  # clock() when the last RPDO burst was handed over
 
     # ------------------------------------------------------------------ thread
     def start(self) -> None:
@@ -531,7 +532,16 @@ class Supervisor:
                 layout.port.send_many(layout.rpdo_frames(controlword, targets))
             except BusSendError as exc:
                 failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
+        self._rpdos_sent_at = self.clock()
         return failed
+
+    def _after_rpdo_burst(self) -> None:
+        """A SYNC never overtakes the RPDOs before it: when a late cycle handed its RPDOs
+        over less than :attr:`sync_delay_s` ago (the next deadline came early), wait out the
+        rest (at most ``sync_delay_s``), so every node applies the same cycle's target."""
+        wait = self._rpdos_sent_at + self.sync_delay_s - self.clock()
+        if wait > 0.0:
+            self.sleep(min(wait, self.sync_delay_s))
 
     def _send_syncs(self) -> list[StopCause]:
         self.seq += 1
@@ -562,6 +572,7 @@ class Supervisor:
         if causes:
             self._begin_stop(causes, now)
             return
+        self._after_rpdo_burst()
         causes = self._send_syncs()
         t_sync = self.clock()
         stream.due_seq = self.seq

@@ -24,6 +24,7 @@ from hrm_ctrl.ropes.actuation import Actuation
 
 SIM_MISSING_TPDO_CYCLES = 10
 SIM_TENSION_STALE_S = 0.5  # the top of the safe range: the board shares this interpreter
+SIM_HEARTBEAT_TIMEOUT_MS = 1000  # the box's heartbeats share this interpreter too (the top: 2 s)
 SIM_WIRES = ("virtual", "hrm_sim")
 # How long a session on the in-process box listens for another master before its first NMT
 # reset: the box's buses are private channels of this process (a fresh name each time), so
@@ -55,7 +56,8 @@ def start_in_process_sim(
 
     The simulated drives and tension board run in this interpreter and share its CPU,
     so their TPDOs get ``SIM_MISSING_TPDO_CYCLES`` cycles before the host calls them
-    missing and the tension samples ``SIM_TENSION_STALE_S`` before they are stale (a line
+    missing, their heartbeats ``SIM_HEARTBEAT_TIMEOUT_MS`` (seen 379-860 ms apart with
+    both cores busy) and the tension samples ``SIM_TENSION_STALE_S`` before they are stale (a line
     on stderr says so, and the run record keeps the configuration used).
     """
     from sim_bus.box import SimBox
@@ -66,6 +68,9 @@ def start_in_process_sim(
     if config.control.missing_tpdo_cycles < SIM_MISSING_TPDO_CYCLES:
         config = config.with_control(missing_tpdo_cycles=SIM_MISSING_TPDO_CYCLES)
         raised.append(f"TPDO tolerance raised to {SIM_MISSING_TPDO_CYCLES} cycles")
+    if config.control.heartbeat_timeout_ms < SIM_HEARTBEAT_TIMEOUT_MS:
+        config = config.with_control(heartbeat_timeout_ms=SIM_HEARTBEAT_TIMEOUT_MS)
+        raised.append(f"heartbeat timeout to {SIM_HEARTBEAT_TIMEOUT_MS} ms")
     tension: dict[str, Any] = {}
     if config.tension is None or config.tension.stale_s < SIM_TENSION_STALE_S:
         tension["stale_s"] = SIM_TENSION_STALE_S

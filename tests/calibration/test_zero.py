@@ -80,7 +80,13 @@ def fixture_rig(
     cfg = load_box_config(None)
     cfg = cfg.with_bus_kwargs(
         [{"interface": "virtual", "channel": f"zero-{tag}-{b.name}"} for b in cfg.buses]
-    ).with_control(missing_tpdo_cycles=10)
+    ).with_control(
+        # the box shares this interpreter: with both cores busy heartbeats came 374-428 ms
+        # apart (box.toml's 350 ms timeout stopped the routine); 1000 ms as box_udp.toml
+        # for a loaded machine.  The 350 ms watch itself: tests/drivers/safety/test_stops.py
+        missing_tpdo_cycles=10,
+        heartbeat_timeout_ms=1000,
+    )
     sim = SimBox(cfg, actuation=act, truth=truth)
     sim.set_straight_fixture(True)
     sim.start()

@@ -1,12 +1,34 @@
-"""Fixtures of the hardware-in-the-loop tests (helpers live in ``hil_rig``)."""
+"""Shared fixtures of the project's HIL tests; the box, the host, faults and the true arm
+come from the ``hrm_hil`` plugin (``hrm_ctrl/hil/plugin.py``, ``docs/hil.md``)."""
 
-from tests.hil.hil_rig import (
-    bent_pipe_plan,
-    bus_kind,
-    fault_box,
-    fault_config,
-    full_box,
-    full_config,
-)
+from __future__ import annotations
 
-__all__ = ["bent_pipe_plan", "bus_kind", "fault_box", "fault_config", "full_box", "full_config"]
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hrm_ctrl.formats.planfile import PlanDoc, read_plan
+from hrm_ctrl.model import default_robot
+from hrm_ctrl.ropes.actuation import Actuation, load_actuation
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def actuation() -> Actuation:
+    return load_actuation(default_robot())
+
+
+@pytest.fixture(scope="module")
+def bent_pipe_plan(tmp_path_factory: pytest.TempPathFactory) -> PlanDoc:
+    out = tmp_path_factory.mktemp("plan") / "bp.json"
+    subprocess.run(
+        [sys.executable, "-m", "hrm_ctrl.cli", "plan", "--scenario", "bent-pipe", "--out", out],
+        check=True,
+        capture_output=True,
+        timeout=60,
+        cwd=REPO,
+    )
+    return read_plan(out)

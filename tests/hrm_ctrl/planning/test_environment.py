@@ -247,8 +247,10 @@ def test_gradient_matches_finite_differences(p, near):
 @given(
     seed=st.integers(0, 2**31 - 1),
 )
+@example(seed=43010)  # the golden-section minimum 4e-5 mm above the dense one's
 def test_segment_minimum_matches_a_dense_search(seed):
-    """link_clearance finds the minimum over each segment to 0.01 mm of a 20,001-point search."""
+    """link_clearance finds the minimum over each segment to 0.01 mm of a 20,001-point search
+    (never above it by more than the golden-section search's < 0.001 mm)."""
     rng = np.random.default_rng(seed)
     A = rng.uniform([-300, -300, -300], [1800, 400, 400])
     u = rng.normal(size=3)
@@ -256,7 +258,7 @@ def test_segment_minimum_matches_a_dense_search(seed):
     c = link_clearance(ENV, O, np.array([15.0]))[0, 0]
     t = np.linspace(0.0, 1.0, 20_001)
     dense = ENV.free_distance(O[0, 0] + t[:, None] * (O[0, 1] - O[0, 0])).min() - 15.0
-    assert c <= dense + 1e-9
+    assert c <= dense + 1e-3
     assert c >= dense - 0.01
 
 

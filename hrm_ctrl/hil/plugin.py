@@ -1,0 +1,291 @@
+"""pytest plugin ``hrm_hil``: fixtures for hardware-in-the-loop tests on the simulated box
+(``docs/hil.md``).  Installed with the package (entry point ``pytest11``), so any pytest run
+where ``hrm`` is installed has it; nothing is imported or started until a test asks for a
+fixture.
+
+Options (command line, or ``addopts`` in the ini file):
+
+``--hrm-bus KIND[,KIND...]`` (``auto``, ``virtual``, ``ipc``, ``udp_multicast``, ``socketcan``)
+    the CAN buses between host and box; several: every HIL test runs on each (default: a
+    module's ``@pytest.mark.hrm_buses(...)``, else ``auto``: the cross-process bus ``ipc``
+    where python-can has it, else ``udp_multicast``); ``virtual`` needs the box in process,
+    ``socketcan`` vcan0/vcan1 (tests skip, naming the reason, where a bus is unavailable).
+``--hrm-box {process,inprocess}``
+    the box as its own process (``hrm sim --control``, default) or in the test process.
+
+Fixtures (``hrm_box*`` module-scoped: one box serves a test module; the rest per test):
+
+* ``hrm_bus_kind``, ``hrm_box_mode``: the options (:class:`~hrm_ctrl.hil.rig.BusKind`,
+  :class:`~hrm_ctrl.hil.rig.BoxMode`);
+* ``hrm_box_nodes``: the box's node map per bus (default the 36 motors of the drivers'
+  ``box.toml``; override it in a test module for a smaller box);
+* ``hrm_control``: ``[control]`` keys overriding the production settings (default none;
+  a run with overrides is not a run at production settings; with ``--hrm-box inprocess``
+  the TPDO tolerance is ``hrm run --sim``'s 10 cycles and the tension staleness 500 ms);
+* ``hrm_box_config``: the box configuration file (``Path``) host and box share;
+* ``hrm_box``: the started box (:class:`~hrm_ctrl.hil.rig.HilBox`: ``command``, ``ready``);
+* ``hrm_host``: a :class:`~hrm_ctrl.hil.rig.HilHost` brought up on the box (the box's
+  faults reset first), closed after the test; ``hrm_session``: its ``DriveSession``;
+* ``hrm_fault``: fault injection (``sim_bus.faults`` grammar): ``hrm_fault(SPEC)`` now,
+  ``hrm_fault.after(S, SPEC)`` in ``S`` seconds; every fault is undone after the test;
+* ``hrm_arm_state``: ``hrm_arm_state()`` is the true arm now
+  (:class:`~hrm_ctrl.hil.rig.ArmSnapshot`).
+"""
+
+from __future__ import annotations
+
+import threading
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import pytest
+
+if TYPE_CHECKING:
+    from hrm_ctrl.hil.rig import ArmSnapshot, BoxMode, BusKind, HilBox, HilHost
+
+BUS_CHOICES = ("auto", "virtual", "ipc", "udp_multicast", "socketcan")
+BOX_CHOICES = ("process", "inprocess")
+
+
+def bus_list(text: str) -> tuple[str, ...]:
+    """``--hrm-bus`` value: one bus kind or several, comma-separated.
+
+    >>> bus_list("ipc,udp_multicast")
+    ('ipc', 'udp_multicast')
+    """
+    import argparse
+
+    kinds = tuple(k.strip() for k in text.split(","))
+    bad = [k for k in kinds if k not in BUS_CHOICES]
+    if bad or not kinds:
+        raise argparse.ArgumentTypeError(
+            f"unknown bus kind(s) {', '.join(bad) or repr(text)} "
+            f"(choose from {', '.join(BUS_CHOICES)})"
+        )
+    return kinds
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("hrm_hil", "hrm hardware-in-the-loop (simulated box)")
+    group.addoption(
+        "--hrm-bus",
+        type=bus_list,
+        default=None,
+        metavar="KIND[,KIND...]",
+        help=f"CAN buses between host and simulated box, one of {', '.join(BUS_CHOICES)} "
+        "or several comma-separated (each HIL test runs on each); default: a module's "
+        "hrm_buses marker, else auto (ipc if available, else udp_multicast)",
+    )
+    group.addoption(
+        "--hrm-box",
+        choices=BOX_CHOICES,
+        default="process",
+        help="the simulated box as its own process (default) or in the test process",
+    )
+
+
+@pytest.fixture(scope="session")
+def hrm_box_mode(request: pytest.FixtureRequest) -> BoxMode:
+    """Where the simulated box runs (``--hrm-box``)."""
+    from hrm_ctrl.hil.rig import BoxMode
+
+    return BoxMode(request.config.getoption("--hrm-box"))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "hrm_buses(*kinds): the bus kinds a HIL test runs on when --hrm-bus is not given",
+    )
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    """Every test that uses the box runs once per bus kind (``--hrm-bus``, else its
+    ``hrm_buses`` marker, else ``auto``); one box per module and kind."""
+    if "hrm_bus_kind" not in metafunc.fixturenames:
+        return
+    kinds: tuple[str, ...] | None = metafunc.config.getoption("--hrm-bus")
+    if kinds is None:
+        marker = metafunc.definition.get_closest_marker("hrm_buses")
+        kinds = ("auto",)
+        if marker is not None:
+            import argparse
+
+            try:
+                kinds = bus_list(",".join(marker.args))
+            except argparse.ArgumentTypeError as exc:
+                where = metafunc.definition.nodeid
+                raise pytest.UsageError(f"{where}: hrm_buses marker: {exc}") from None
+    metafunc.parametrize("hrm_bus_kind", kinds, indirect=True, scope="module")
+
+
+@pytest.fixture(scope="session")
+def hrm_bus_kind(request: pytest.FixtureRequest, hrm_box_mode: BoxMode) -> BusKind:
+    """The buses between host and box (``--hrm-bus``); skips where they are unavailable."""
+    from hrm_ctrl.hil.rig import BusKind, ipc_available, unavailable
+
+    name = getattr(request, "param", "auto")
+    if name == "auto":
+        kind = BusKind.IPC if ipc_available() else BusKind.UDP_MULTICAST
+    else:
+        kind = BusKind(name)
+    why = unavailable(kind, hrm_box_mode)
+    if why is not None:
+        pytest.skip(why)
+    return kind
+
+
+@pytest.fixture(scope="session")
+def hrm_process_settings() -> Iterator[None]:
+    """The interpreter settings every ``hrm`` process runs under (GIL switch interval)."""
+    from drivers.realtime import process_settings
+
+    with process_settings():
+        yield
+
+
+@pytest.fixture(scope="module")
+def hrm_box_nodes() -> tuple[dict[str, int], ...]:
+    """Rope motor -> node id, per bus (default: the drivers' 36-motor ``box.toml``)."""
+    from hrm_ctrl.hil.rig import default_nodes
+
+    return default_nodes()
+
+
+@pytest.fixture(scope="module")
+def hrm_control() -> dict[str, Any]:
+    """``[control]`` keys overriding the production settings (default: none)."""
+    return {}
+
+
+@pytest.fixture(scope="module")
+def hrm_box_config(
+    hrm_bus_kind: BusKind,
+    hrm_box_mode: BoxMode,
+    hrm_box_nodes: tuple[dict[str, int], ...],
+    hrm_control: dict[str, Any],
+    tmp_path_factory: pytest.TempPathFactory,
+) -> Path:
+    """The bus configuration host and box share (production ``[control]``; a box in the
+    test process gets ``hrm run --sim``'s TPDO tolerance, with a warning)."""
+    from hrm_ctrl.hil.rig import INPROCESS_CONTROL, BoxMode, write_box_toml
+
+    control = dict(hrm_control)
+    if hrm_box_mode is BoxMode.INPROCESS:
+        control = {**INPROCESS_CONTROL, **control}
+        warnings.warn(
+            f"--hrm-box inprocess: the box shares the host's interpreter: {INPROCESS_CONTROL}"
+            " and tension staleness 500 ms, as hrm run --sim (not production settings)",
+            stacklevel=1,
+        )
+    path = tmp_path_factory.mktemp("hrm-hil") / "box.toml"
+    return write_box_toml(path, hrm_bus_kind, hrm_box_nodes, control)
+
+
+@pytest.fixture(scope="module")
+def hrm_box(
+    hrm_box_config: Path, hrm_box_mode: BoxMode, hrm_process_settings: None
+) -> Iterator[HilBox]:
+    """The simulated box, started (its drives booted, its tension board running)."""
+    from hrm_ctrl.hil.rig import start_box
+
+    box = start_box(hrm_box_config, hrm_box_mode)
+    try:
+        yield box
+    finally:
+        box.close()
+
+
+class FaultInjector:
+    """``hrm_fault``: faults on the box now or later; undone after the test."""
+
+    def __init__(self, box: HilBox) -> None:
+        self.box = box
+        self.applied: list[dict[str, Any]] = []
+        self.errors: list[str] = []
+        self._timers: list[threading.Timer] = []
+
+    def __call__(self, spec: str) -> dict[str, Any]:
+        """Apply ``spec`` now; the box's reply (``{"event": "fault", "fault": ...}``)."""
+        from hrm_ctrl.hil.rig import fault
+
+        reply = fault(self.box, spec)
+        self.applied.append(reply)
+        return reply
+
+    def after(self, delay_s: float, spec: str) -> threading.Timer:
+        """Apply ``spec`` in ``delay_s`` seconds (a started timer); a failure to apply it
+        is raised after the test."""
+        from sim_bus.faults import parse_fault
+
+        parse_fault(spec)  # a bad spec fails here, not in the timer's thread
+        timer = threading.Timer(delay_s, self._later, args=(spec,))
+        timer.daemon = True
+        self._timers.append(timer)
+        timer.start()
+        return timer
+
+    def _later(self, spec: str) -> None:
+        try:
+            self(spec)
+        except Exception as exc:  # the timer's thread: kept for undo() to raise
+            self.errors.append(f"fault {spec!r}: {exc}")
+
+    def undo(self) -> None:
+        """Cancel pending faults, undo every fault (``reset``); raise a delayed fault's
+        failure."""
+        from hrm_ctrl.errors import SimError
+        from hrm_ctrl.hil.rig import REPLY_TIMEOUT_S, fault
+
+        for timer in self._timers:
+            timer.cancel()
+            timer.join(REPLY_TIMEOUT_S)
+        fault(self.box, "reset")
+        if self.errors:
+            raise SimError("; ".join(self.errors))
+
+
+@pytest.fixture
+def hrm_fault(hrm_box: HilBox) -> Iterator[FaultInjector]:
+    """Fault injection on the box (``sim_bus.faults`` grammar)."""
+    injector = FaultInjector(hrm_box)
+    try:
+        yield injector
+    finally:
+        injector.undo()
+
+
+@pytest.fixture
+def hrm_arm_state(hrm_box: HilBox) -> Any:
+    """A callable: the true arm state now (:class:`~hrm_ctrl.hil.rig.ArmSnapshot`)."""
+    from hrm_ctrl.hil.rig import arm_state
+
+    def now() -> ArmSnapshot:
+        return arm_state(hrm_box)
+
+    return now
+
+
+@pytest.fixture
+def hrm_host(
+    hrm_box: HilBox, hrm_box_mode: BoxMode, tmp_path: Path, hrm_process_settings: None
+) -> Iterator[HilHost]:
+    """The host stack brought up on the box (faults reset first); closed after the test.
+    Its CAN logs and run record go to ``tmp_path``."""
+    from hrm_ctrl.hil.rig import INPROCESS_TENSION_STALE_S, BoxMode, HilHost, fault
+
+    fault(hrm_box, "reset")
+    stale = INPROCESS_TENSION_STALE_S if hrm_box_mode is BoxMode.INPROCESS else None
+    host = HilHost(hrm_box, tmp_path, tension_stale_s=stale)
+    try:
+        yield host
+    finally:
+        host.close()
+
+
+@pytest.fixture
+def hrm_session(hrm_host: HilHost) -> Any:
+    """The connected, brought-up :class:`drivers.session.DriveSession` of ``hrm_host``."""
+    return hrm_host.session

@@ -1,0 +1,58 @@
+"""Soak test of issue 13 (marker ``soak``, not in the default run: ``pytest -m soak
+tests/drivers/test_soak.py``; ``HRM_SOAK_S`` sets its length, default 600 s): the 36-drive
+100 Hz cycle against the simulated box in its own process over ``hrm_ipc``, at the production
+watchdogs of ``drivers/data/box.toml``, through the same :func:`run` that
+``benchmarks/bench_drivers.py --soak`` uses.
+
+It asserts the issue's targets, which a quiet 2-core machine is expected to meet and a loaded
+one is not: no stop at all (no spurious watchdog), no missing-feedback node-cycle, SYNC jitter
+p99 <= 0.5 ms, no cycle more than 2 ms late, every frame on the wire in the CAN logs (sent +
+received, none lost), host memory flat (RSS sampled every 10 s), host CPU <= 1 ms per cycle."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+SOAK_S = float(os.environ.get("HRM_SOAK_S", "600") or 600)
+RSS_GROWTH_MB = 5.0  # flat: a leak of one small object per frame (7,800 frames/s) is far more
+HOST_CPU_MS = 1.0  # per 10 ms cycle (issue 13)
+JITTER_P99_MS = 0.5
+LATE_MS = 2.0
+
+
+def bench() -> Any:
+    spec = importlib.util.spec_from_file_location(
+        "bench_drivers", REPO / "benchmarks" / "bench_drivers.py"
+    )
+    if spec is None or spec.loader is None:
+        raise RuntimeError("benchmarks/bench_drivers.py not found")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.soak
+@pytest.mark.timeout(SOAK_S * 2 + 120)
+def test_a_long_stream_against_a_box_process_meets_the_production_targets(tmp_path: Path) -> None:
+    out = bench().run(SOAK_S, box_process=True, wire="ipc", rss_sample_s=10.0, work=tmp_path)
+    stream = out["stream"]
+    assert stream["completed"], stream["stop_causes"]
+    assert stream["cycles"] == round(SOAK_S * 100)
+    assert stream["missing_feedback_node_cycles"] == 0, stream
+    assert stream["jitter_ms"]["p99"] <= JITTER_P99_MS, stream["jitter_ms"]
+    assert stream["sync_lateness_ms"]["max"] <= LATE_MS, stream["sync_lateness_ms"]
+    logs = out["can_log_frames"]
+    assert logs["lost"] == [0, 0]
+    assert logs["in_logs"] == [
+        s + r for s, r in zip(logs["sent"], logs["received_by_readers"], strict=True)
+    ]
+    rss = out["rss_mb"]
+    assert len(rss["samples"]) >= SOAK_S // 10
+    assert rss["host_end"] - rss["host_start"] <= RSS_GROWTH_MB, rss
+    assert out["cpu_per_cycle_ms"]["host_process"] <= HOST_CPU_MS, out["cpu_per_cycle_ms"]
