@@ -9,7 +9,14 @@ and its stop thresholds (:class:`TensionConfig`; no table: the box has no board)
 optional ``[tracker]`` table names the laser tracker's serial port and the wait for each of
 its replies (:class:`TrackerConfig`; no table: no tracker).
 The interface is configuration, never code: any name python-can knows (built-in or
-registered under the ``can.interface`` entry point) is accepted.
+registered under the ``can.interface`` entry point) is accepted.  A bus table without an
+``interface`` takes python-can's own configuration (:func:`can.util.load_config` with the
+bus's name as context: ``CAN_INTERFACE_NAME`` / ``CAN_CHANNEL_NAME`` / ``CAN_BITRATE_NAME``,
+then ``CAN_INTERFACE`` / ``CAN_CHANNEL`` / ``CAN_BITRATE``, then the ``[NAME]`` and
+``[default]`` sections of ``~/can.conf``, ``/etc/can.conf``, ``~/.can``, ``~/.canrc``);
+a ``channel`` or ``bitrate`` the table does give wins over python-can's.  One bus can be
+replaced from the command line (``--bus NAME=INTERFACE:CHANNEL[@BITRATE]``,
+:func:`parse_bus_override`, :meth:`BoxConfig.with_bus_overrides`).
 
 This module is the one reader of the file and :class:`BoxConfig` the one typed
 configuration: the host's drivers and the simulated box (``sim_bus``, ``hrm sim``)
@@ -295,6 +302,54 @@ class BoxConfig:
         _check_distinct_channels(buses, self.source)
         return replace(self, buses=tuple(buses))
 
+    def with_bus_overrides(
+        self, overrides: Sequence[BusOverride], where: str = "--bus"
+    ) -> BoxConfig:
+        """A copy with some buses opened on another interface and channel (and bitrate,
+        when the override gives one), their nodes kept; a bus's ``options`` are kept only
+        when its interface stays the same (they are that interface's ``can.Bus``
+        arguments).  A bus named twice, or not in the file, is refused.
+
+        >>> cfg = load_box_config(None)
+        >>> new = cfg.with_bus_overrides([parse_bus_override("can1=virtual:left@500000")])
+        >>> b = new.buses[1]
+        >>> b.interface, b.channel, b.bitrate, len(b.nodes)
+        ('virtual', 'left', 500000, 18)
+        >>> cfg.with_bus_overrides([parse_bus_override("can7=virtual:x")])
+        Traceback (most recent call last):
+        ...
+        drivers.config.BusConfigError: --bus can7=virtual:x: no bus 'can7' in ...(buses: can0, can1)
+        """
+        names = [b.name for b in self.buses]
+        by_name: dict[str, BusOverride] = {}
+        for o in overrides:
+            w = f"{where} {o.text}"
+            if o.name not in names:
+                raise BusConfigError(
+                    f"{w}: no bus {o.name!r} in {self.source} (buses: {', '.join(names)})"
+                )
+            if o.name in by_name:
+                first = by_name[o.name].text
+                raise BusConfigError(f"{w}: bus {o.name} is already given as {first}")
+            _check_interface(o.interface, w)
+            by_name[o.name] = o
+        buses = []
+        for b in self.buses:
+            o = by_name.get(b.name)
+            if o is not None:
+                b = replace(
+                    b,
+                    interface=o.interface,
+                    channel=o.channel,
+                    bitrate=b.bitrate if o.bitrate is None else o.bitrate,
+                    options=b.options if o.interface == b.interface else {},
+                )
+            buses.append(b)
+        if by_name:
+            given = " ".join(f"{where} {o.text}" for o in by_name.values())
+            _check_distinct_channels(buses, f"{self.source} with {given}")
+        return replace(self, buses=tuple(buses))
+
     def with_tension(self, **changes: Any) -> BoxConfig:
         """A copy with a ``[tension]`` table (or some of its values) changed, validated
         again (e.g. the simulated board's pseudo-terminal as the port)."""
@@ -324,6 +379,66 @@ class BoxConfig:
             **({} if self.tension is None else {"tension": asdict(self.tension)}),
             **({} if self.tracker is None else {"tracker": asdict(self.tracker)}),
         }
+
+
+BITRATE_MAX = 1_000_000
+"""Classical CAN's top bitrate (bit/s): every bus's ``bitrate`` lies in 1..1000000."""
+
+
+@dataclass(frozen=True)
+class BusOverride:
+    """One bus replaced from the command line: ``NAME=INTERFACE:CHANNEL[@BITRATE]``."""
+
+    name: str
+    interface: str
+    channel: str | int
+    bitrate: int | None  # None: the bus keeps the file's (or python-can's) bitrate
+    text: str  # as given, for messages
+
+
+BUS_OVERRIDE_FORM = "NAME=INTERFACE:CHANNEL[@BITRATE]"
+
+
+def parse_bus_override(text: str) -> BusOverride:
+    """Parse ``NAME=INTERFACE:CHANNEL[@BITRATE]`` (the ``--bus`` option).
+
+    The channel is everything after the first ``:`` (an IPv6 group keeps its colons) up to
+    a last ``@`` followed by digits; a channel of digits only is an integer (as python-can's
+    configuration reads it).  A channel that itself contains ``@`` (slcan's ``PORT@BAUD``)
+    needs the ``@BITRATE`` after it.  Raises :class:`BusConfigError` naming what is wrong.
+
+    >>> o = parse_bus_override("can0=socketcan:can3@500000")
+    >>> o.name, o.interface, o.channel, o.bitrate
+    ('can0', 'socketcan', 'can3', 500000)
+    >>> parse_bus_override("a=kvaser:0").channel
+    0
+    >>> parse_bus_override("can0=socketcan")
+    Traceback (most recent call last):
+    ...
+    drivers.config.BusConfigError: 'can0=socketcan': expected NAME=INTERFACE:CHANNEL[@BITRATE]
+    """
+    name, eq, rest = text.partition("=")
+    interface, colon, channel_text = rest.partition(":")
+    if not (eq and colon and name and interface and channel_text):
+        raise BusConfigError(f"{text!r}: expected {BUS_OVERRIDE_FORM}")
+    if not BUS_NAME_PATTERN.fullmatch(name):
+        raise BusConfigError(
+            f"{text!r}: bus name {name!r} may only use letters, digits, '_' and '-'"
+        )
+    bitrate: int | None = None
+    head, at, tail = channel_text.rpartition("@")
+    if at:
+        if not (tail.isascii() and tail.isdigit()) or not head:
+            raise BusConfigError(
+                f"{text!r}: bitrate {tail!r} after '@' must be an integer in 1..{BITRATE_MAX}"
+            )
+        if len(tail) > 7 or not 0 < int(tail) <= BITRATE_MAX:
+            raise BusConfigError(f"{text!r}: bitrate {tail} outside 1..{BITRATE_MAX}")
+        bitrate, channel_text = int(tail), head
+    channel: str | int = (
+        int(channel_text) if channel_text.isascii() and channel_text.isdigit() else channel_text
+    )
+    return BusOverride(name, interface, channel, bitrate, text)
 
 
 def known_interfaces() -> set[str]:
@@ -643,6 +758,8 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
         extra = set(b) - {"interface", "channel", "bitrate", "options", "nodes"}
         if extra:
             raise BusConfigError(f"{w}: unknown key(s) {sorted(extra)}")
+        if "interface" not in b:
+            b = _with_python_can_config(b, str(name), w)
         for key in ("interface", "channel", "bitrate", "nodes"):
             if key not in b:
                 raise BusConfigError(f"{w}: missing key '{key}'")
@@ -654,9 +771,11 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
         if (
             isinstance(bitrate, bool)
             or not isinstance(bitrate, int)
-            or not 0 < bitrate <= 1_000_000
+            or not 0 < bitrate <= BITRATE_MAX
         ):
-            raise BusConfigError(f"{w}.bitrate: expected an integer in 1..1000000, got {bitrate!r}")
+            raise BusConfigError(
+                f"{w}.bitrate: expected an integer in 1..{BITRATE_MAX}, got {bitrate!r}"
+            )
         options = b.get("options", {})
         if not isinstance(options, Mapping):
             raise BusConfigError(f"{w}.options: must be a table")
@@ -705,6 +824,49 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
         tension=tension,
         tracker=tracker,
     )
+
+
+PYTHON_CAN_CONFIG_WHERE = (
+    "CAN_{KEY}_{name} or CAN_{KEY}, or {key} in [{name}] or [default] of ~/can.conf"
+)
+"""Where python-can's configuration takes a value from, for messages."""
+
+_PYTHON_CAN_KEYS = ("interface", "channel", "bitrate")
+
+
+def _with_python_can_config(b: Mapping[str, Any], name: str, where: str) -> dict[str, Any]:
+    """A bus table without an ``interface``, completed from python-can's configuration
+    (:func:`can.util.load_config`, context: the bus's name); the table's own ``channel``,
+    ``bitrate`` and ``options`` win.  Other keys python-can's configuration gives become
+    ``options`` (``can.Bus`` keyword arguments)."""
+    given = {k: b[k] for k in ("channel", "bitrate") if k in b}
+    try:
+        found = dict(can.util.load_config(config=given, context=name))
+    except can.CanInterfaceNotImplementedError as exc:
+        there = PYTHON_CAN_CONFIG_WHERE.format(KEY="INTERFACE", key="interface", name=name)
+        raise BusConfigError(
+            f"{where}: no interface in the file and none python-can can use in its "
+            f"configuration ({exc}); set interface here, or {there}"
+        ) from None
+    except Exception as exc:  # a malformed CAN_CONFIG (JSON), port or state value
+        raise BusConfigError(
+            f"{where}: python-can's configuration: {type(exc).__name__}: {exc}"
+        ) from None
+    out = {k: v for k, v in b.items() if k not in _PYTHON_CAN_KEYS}
+    for key in _PYTHON_CAN_KEYS:
+        if found.get(key) is None:
+            there = PYTHON_CAN_CONFIG_WHERE.format(KEY=key.upper(), key=key, name=name)
+            raise BusConfigError(
+                f"{where}: interface {found['interface']!r} from python-can's configuration, "
+                f"but no {key}: set {key} here, or {there}"
+            )
+        out[key] = found[key]
+    extra = {k: v for k, v in found.items() if k not in _PYTHON_CAN_KEYS}
+    if extra:
+        options = b.get("options", {})
+        if isinstance(options, Mapping):
+            out["options"] = {**extra, **options}
+    return out
 
 
 def _check_distinct_channels(buses: Sequence[BusConfig], source: str) -> None:

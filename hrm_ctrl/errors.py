@@ -23,11 +23,15 @@ The whole tree, each class with the module that defines it::
      |    +-- OverwriteInputError           hrm_ctrl.errors
      |    +-- PlotError                     hrm_ctrl.formats.plots
      |    +-- UrdfWriteError                hrm_ctrl.formats.urdf
+     |    +-- RunLogError                   hrm_ctrl.formats.runlog
+     |    +-- ViewError                     hrm_ctrl.view.server
+     |    +-- ConsoleError                  hrm_ctrl.cli._console.table
      |    +-- RopeError                     hrm_ctrl.errors
      |    |    +-- RoutingError             hrm_ctrl.ropes.routing
      |    |    +-- MotorConfigError         hrm_ctrl.ropes.motor_map
      |    |    +-- RopeInverseError         hrm_ctrl.ropes.inverse
      |    |    +-- RopeLimitError           hrm_ctrl.ropes.actuation
+     |    |    +-- JogError                 hrm_ctrl.ropes.jog
      |    +-- DriverError                   hrm_ctrl.errors
      |    |    +-- FrameError               drivers.protocol.cia301
      |    |    +-- TransitionError          drivers.protocol.cia402

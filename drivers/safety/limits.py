@@ -11,6 +11,7 @@ before its RPDOs go out.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
@@ -160,10 +161,16 @@ def first_too_hard(
 
 
 def check_acceleration(
-    limits: Any, table: np.ndarray, period_s: float, previous: np.ndarray | None = None
+    limits: Any,
+    table: np.ndarray,
+    period_s: float,
+    previous: np.ndarray | None = None,
+    name_of_row: Callable[[int], str] | None = None,
 ) -> None:
     """Refuse (:class:`SetpointError`, one line naming the row and the motor) a table whose
     second difference exceeds a motor's acceleration limit (see :func:`first_too_hard`).
+    ``name_of_row`` says what a row is (e.g. the plan step it came from); without it a
+    row is the control cycle of the table it is.
 
     >>> class Lim:
     ...     max_accel_counts_per_s2 = np.array([4.0]); motor_ids = ("m0",)
@@ -171,13 +178,14 @@ def check_acceleration(
     ... # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    drivers.safety.limits.SetpointError: row 0: motor m0: accelerates 20 counts/s^2, more ...
+    drivers.safety.limits.SetpointError: cycle 0: motor m0: accelerates 20 counts/s^2, more ...
     """
     hit = first_too_hard(limits, table, period_s, previous)
     if hit is None:
         return
     row, i, acc = hit
-    raise SetpointError(f"row {row}: {acceleration_text(limits, i, acc)}")
+    where = f"cycle {row}" if name_of_row is None else name_of_row(row)
+    raise SetpointError(f"{where}: {acceleration_text(limits, i, acc)}")
 
 
 def acceleration_text(limits: Any, i: int, acc: float) -> str:

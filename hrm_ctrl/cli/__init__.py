@@ -38,6 +38,17 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(EXIT_ERROR, f"{self.prog}: error: {message}\n")
 
 
+def _version() -> str:
+    """The installed package's version (``importlib.metadata``; ``unknown`` when hrm runs
+    from a tree that is not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("hrm")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def _commands() -> list[str]:
     pkg = importlib.import_module("hrm_ctrl.cli")
     return sorted(m.name for m in pkgutil.iter_modules(pkg.__path__) if not m.name.startswith("_"))
@@ -47,6 +58,10 @@ def build_parser() -> OneLineParser:
     parser = OneLineParser(
         prog="hrm", description="Rope-driven hyper-redundant manipulator console"
     )
+    parser.add_argument(
+        "--version", action="version", version=f"hrm {_version()}",
+        help="print hrm's version (the installed package's) and exit",
+    )  # fmt: skip
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     sub.required = True
     for name in _commands():

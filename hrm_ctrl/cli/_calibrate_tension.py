@@ -50,9 +50,12 @@ from hrm_ctrl.cli._common import (
     Input,
     Output,
     add_calibration_arguments,
+    add_config_argument,
+    add_log_format_argument,
     add_robot_argument,
     calibrations_folder,
     config_input,
+    load_box,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
@@ -69,12 +72,13 @@ def _arguments(p: argparse.ArgumentParser) -> None:
         "--perturb", type=int, default=None, metavar="SEED",
         help="with --sim: a simulated arm that differs from its description (seeded)",
     )  # fmt: skip
-    p.add_argument("--config", type=Path, default=None, metavar="BOX.toml", help="bus config")
+    add_config_argument(p)  # --config, --bus
     p.add_argument("--out", type=Path, metavar="FILE", help="write this one calibration file")
     p.add_argument(
         "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
         help="the run record and CAN logs (default ./runs)",
     )  # fmt: skip
+    add_log_format_argument(p)
     p.add_argument(
         "--uncalibrated", action="store_true",
         help="on real drives without a calibration: enable them anyway (explicit override)",
@@ -91,12 +95,13 @@ def register(subparsers: Any) -> None:
     )
     _arguments(p)
     p.add_argument(
-        "--target-N", type=float, default=None, metavar="N",
+        "--target-N", type=float, default=None, metavar="NEWTON",
         help="target tension (default the routing's pretension)",
     )  # fmt: skip
     p.add_argument(
-        "--tol-N", type=float, default=None, metavar="N", help="tension tolerance (default 0.2)"
-    )
+        "--tol-N", type=float, default=None, metavar="NEWTON",
+        help="tension tolerance (default 0.2 N)",
+    )  # fmt: skip
     p.add_argument(
         "--max-travel-counts", type=int, default=None, metavar="COUNTS",
         help="longest travel of a motor from where it starts (default 12000)",
@@ -110,11 +115,11 @@ def register(subparsers: Any) -> None:
     )
     _arguments(p)
     p.add_argument(
-        "--sweep-N", type=float, default=None, metavar="N",
-        help="tension each sweep spans above the pretension (default 10)",
+        "--sweep-N", type=float, default=None, metavar="NEWTON",
+        help="tension each sweep spans above the pretension (default 10 N)",
     )  # fmt: skip
     p.add_argument(
-        "--steps", type=int, default=None, metavar="K", help="readings per sweep (default 5)"
+        "--steps", type=int, default=None, metavar="N", help="readings per sweep (default 5)"
     )
     p.set_defaults(_run=run_stiffness)
 
@@ -146,7 +151,6 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     from calibration.apply import calibrated_actuation, starting_point
     from calibration.store import CalibrationStore
     from drivers.bus import ensure_log_dir
-    from drivers.config import load_box_config
     from drivers.interrupts import deferred_interrupts
     from drivers.session import CalibrationRef, DriveSession
     from drivers.tension_sensor import TensionSensorReader
@@ -165,7 +169,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
         ],
     )
     description = load_robot(args.robot)
-    config = load_box_config(args.config)
+    config = load_box(args)  # --config with the --bus overrides
     base, active, note = starting_point(store, description)
     if note is not None:
         print(f"{prog}: {note}", file=sys.stderr)
@@ -218,6 +222,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
                         config,
                         actuation,
                         log_dir=args.log_dir,
+                        log_suffix=f".{args.log_format}",
                         calibration=ref,
                         allow_uncalibrated=allow,
                         **sim_listen(args.sim),

@@ -11,31 +11,30 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
+from hrm_ctrl.cli._common import add_config_argument, load_box
 from hrm_ctrl.errors import DriverError
 
 HELP = "print every CAN bus's worst-case load (bit stuffing included) and the highest rate"
 
 
 def register(parser: argparse.ArgumentParser) -> None:
+    add_config_argument(parser)  # --config, --bus
     parser.add_argument(
-        "--config", type=Path, default=None, metavar="BOX.toml", help="bus configuration"
-    )
-    parser.add_argument(
-        "--rate", type=float, default=None, metavar="HZ", help="control rate to check"
-    )
+        "--rate", type=float, default=None, metavar="HZ",
+        help="control rate to check (default: the configuration's)",
+    )  # fmt: skip
     parser.add_argument("--json", action="store_true", help="print JSON")
 
 
 def run(args: argparse.Namespace) -> int:
     """Exit 0 when every bus fits its load limit, 1 otherwise."""
     from drivers.busload import bus_loads
-    from drivers.config import load_box_config, rate_problem
+    from drivers.config import rate_problem
 
     if args.rate is not None and (problem := rate_problem(args.rate)) is not None:
         raise DriverError(f"--rate {args.rate:g}: {problem}")
-    cfg = load_box_config(args.config)
+    cfg = load_box(args)  # --config with the --bus overrides
     if args.rate is not None:
         cfg = cfg.with_control(rate_hz=args.rate)
     loads = bus_loads(cfg)

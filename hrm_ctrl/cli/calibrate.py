@@ -55,9 +55,12 @@ from hrm_ctrl.cli._common import (
     Input,
     Output,
     add_calibration_arguments,
+    add_config_argument,
+    add_log_format_argument,
     add_robot_argument,
     calibrations_folder,
     config_input,
+    load_box,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
@@ -93,7 +96,10 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.set_defaults(_run=run_history)
 
     p = sub.add_parser("use", help="make VERSION the active calibration")
-    p.add_argument("version", type=int, metavar="VERSION")
+    p.add_argument(
+        "version", type=int, metavar="VERSION",
+        help="the version to activate (see hrm calibrate history)",
+    )  # fmt: skip
     _common(p)
     p.set_defaults(_run=run_use)
 
@@ -122,16 +128,20 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--perturb", type=int, default=None, metavar="SEED",
         help="with --sim: a simulated arm that differs from its description (seeded)",
     )  # fmt: skip
-    p.add_argument("--config", type=Path, default=None, metavar="BOX.toml", help="bus config")
+    add_config_argument(p)  # --config, --bus
     p.add_argument(
         "--samples", type=int, default=DEFAULT_SAMPLES, metavar="N",
         help=f"tracker readings averaged per pose (default {DEFAULT_SAMPLES})",
     )  # fmt: skip
-    p.add_argument("--seed", type=int, default=0, help="of the configurations (default 0)")
+    p.add_argument(
+        "--seed", type=int, default=0, metavar="SEED",
+        help="seed of the drawn configurations (default 0)",
+    )  # fmt: skip
     p.add_argument(
         "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
         help="with --collect: the run record, CAN logs and pose file (default ./runs)",
     )  # fmt: skip
+    add_log_format_argument(p)
     p.add_argument(
         "--uncalibrated", action="store_true",
         help="with --collect on real drives: enable them without a calibration (override)",
@@ -439,7 +449,6 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
     from calibration.collect import collect_poses, travel_order
     from calibration.kinematic import format_pose_csv, instrument_frame, spread_configurations
     from drivers.bus import ensure_log_dir
-    from drivers.config import load_box_config
     from drivers.interrupts import deferred_interrupts
     from drivers.session import CalibrationRef, DriveSession
     from drivers.tracker import TrackerReader
@@ -448,7 +457,7 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
     from hrm_ctrl.ropes.actuation import load_actuation
 
     prog = "hrm calibrate kinematic"
-    config = load_box_config(args.config)
+    config = load_box(args)  # --config with the --bus overrides
     actuation = calibrated_actuation(description, base)
     config.check_motors(actuation.motor_ids)
     rng = np.random.default_rng(args.seed)
@@ -497,6 +506,7 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
                         config,
                         actuation,
                         log_dir=args.log_dir,
+                        log_suffix=f".{args.log_format}",
                         calibration=ref,
                         allow_uncalibrated=args.uncalibrated or args.sim,
                         **sim_listen(args.sim),
@@ -509,11 +519,20 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
                 watches = stack.enter_context(
                     feedback_watches(config, actuation, box, start=False, ropes=False)
                 )
-            box.bring_up()
+            from hrm_ctrl.cli._progress import ProgressBar, bring_up_with_progress, wanted
+
+            show = wanted(getattr(args, "json", False))
+            bring_up_with_progress(box, enabled=show)
             watches.start()
+            bar = stack.enter_context(ProgressBar("calibration poses", enabled=show))
 
             def progress(k: int, n: int, p: np.ndarray) -> None:
-                print(f"pose {k}/{n}: {p[0]:.3f} {p[1]:.3f} {p[2]:.3f} mm", file=sys.stderr)
+                text = f"pose {k}/{n}: {p[0]:.3f} {p[1]:.3f} {p[2]:.3f} mm"
+                if show:
+                    bar(k / n)
+                    bar.line(text)
+                else:
+                    print(text, file=sys.stderr)
 
             frame = instrument_frame(  # the tracker's frame, from the base plate's nests
                 description,

@@ -47,6 +47,7 @@ import numpy as np
 
 from hrm_ctrl.cli._common import (
     Output,
+    add_config_argument,
     add_robot_argument,
     config_input,
     refuse_overwriting_inputs,
@@ -75,18 +76,20 @@ DEFAULT_POSES = 20
 MAX_POSES = 200
 COLLECT_SETTLE_S = 0.15  # the simulated drives settle within a cycle
 COLLECT_RATE_FRACTION = 0.9  # of the motor limits (hrm calibrate: 0.5)
-DEMO_TIP_SPEED_MM_PER_S = 100.0
 
 
 def register(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenario", choices=sorted(SCENARIOS), default="bent-pipe")
+    p.add_argument(
+        "--scenario", choices=sorted(SCENARIOS), default="bent-pipe",
+        help="the reference scenario to plan and play (default bent-pipe)",
+    )  # fmt: skip
     add_robot_argument(p)
-    p.add_argument("--config", type=Path, metavar="BOX.toml", help="bus configuration")
+    add_config_argument(p, bus=False)  # the demo's buses are the in-process box's
     p.add_argument("--step", type=float, default=5.0, metavar="MM", help="lambda (default 5 mm)")
     p.add_argument(
-        "--speed", type=float, default=DEMO_TIP_SPEED_MM_PER_S, metavar="MM_S",
-        help=f"tip-speed cap (default {DEMO_TIP_SPEED_MM_PER_S:g} mm/s; hrm run's default "
-        f"{DEFAULT_TIP_SPEED_MM_PER_S:g})",
+        "--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S, metavar="MM_S",
+        help=f"tip-speed cap of the playback (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s, "
+        "as hrm run and hrm ropes)",
     )  # fmt: skip
     p.add_argument(
         "--return", dest="ret", action=argparse.BooleanOptionalAction, default=True,

@@ -77,7 +77,7 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--scene",
         type=Path,
-        metavar="FILE.toml",
+        metavar="SCENE.toml",
         help="environment from a scene file (with --scenario: instead of the scenario's)",
     )
     p.add_argument(
@@ -153,7 +153,11 @@ def make_plan(args: argparse.Namespace) -> Plan:
         fit=FitMode(args.fit) if args.fit else None,
     )
     environment = sc.environment if sc is not None else None
-    plan = plan_path(robot, path, opts, scenario=sc, environment=environment)
+    from hrm_ctrl.cli._progress import progress_bar, wanted
+
+    refined = environment is not None and opts.fit_mode(environment) is FitMode.CLEARANCE
+    with progress_bar("refinement", enabled=refined and wanted(args.json)) as bar:
+        plan = plan_path(robot, path, opts, scenario=sc, environment=environment, progress=bar)
     arm.say_note()
     if steps is not None and steps[-1] >= len(plan.travel):
         raise PlanningError(

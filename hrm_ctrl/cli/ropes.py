@@ -19,6 +19,7 @@ import argparse
 import io
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -66,7 +67,7 @@ def register(p: argparse.ArgumentParser) -> None:
         "--speed",
         type=float,
         default=DEFAULT_TIP_SPEED_MM_PER_S,
-        metavar="MM_PER_S",
+        metavar="MM_S",
         help=f"tip-speed cap of the playback (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -82,6 +83,7 @@ def setpoints_of_plan(
     period_s: float,
     speed_mm_per_s: float,
     max_duration_s: float = MAX_PLAN_DURATION_S,
+    progress: Callable[[float], None] | None = None,
 ) -> PlanSetpoints:
     """The plan's checked counts at the control rate for this arm: what ``hrm ropes``
     reports and ``hrm run`` plays.  Refuses a plan made for other link lengths; every
@@ -97,6 +99,7 @@ def setpoints_of_plan(
         speed_mm_per_s=speed_mm_per_s,
         max_duration_s=max_duration_s,
         where=doc.source,
+        progress=progress,
     )
 
 
@@ -225,7 +228,11 @@ def run(args: argparse.Namespace) -> int:
     arm = load_arm(args, load_robot(args.robot), prog="hrm ropes")
     act = arm.actuation
     period_s = load_box_config(args.config).control.period_s
-    sp = setpoints_of_plan(doc, act, period_s=period_s, speed_mm_per_s=args.speed)
+    from hrm_ctrl.cli._progress import progress_bar, wanted
+
+    with progress_bar("time parameterisation", enabled=wanted(args.json)) as bar:
+        sp = setpoints_of_plan(doc, act, period_s=period_s, speed_mm_per_s=args.speed,
+                               progress=bar)  # fmt: skip
     arm.say_note()
     s = summary(act, sp)
     if args.out is not None:

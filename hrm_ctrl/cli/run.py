@@ -8,7 +8,9 @@ control rate and disables the drives at the end.  While the drives are enabled t
 tension-sensor board (when the configuration has a ``[tension]`` table) and the rope
 layer's consistency check on the feedback watch the arm (``hrm_ctrl.cli._watches``):
 either stops every axis, naming the rope.  Every run writes each bus's
-traffic (``.blf`` or ``.asc``) and a run record JSON into ``--log-dir``.
+traffic (``--log-format``: ``.blf``, ``.asc``, ``.log``, ``.trc``, ...) and a run
+record JSON into ``--log-dir``; ``--bus NAME=INTERFACE:CHANNEL[@BITRATE]`` opens one bus
+of the configuration elsewhere.
 
 ``--sim`` starts the simulated box (``sim_bus``) in this process on python-can
 virtual buses (or, with ``--wire hrm_sim``, on the simulated wire at the configured
@@ -43,6 +45,7 @@ import hashlib
 import json
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -50,13 +53,17 @@ from hrm_ctrl.cli._common import (
     Input,
     Output,
     add_calibration_arguments,
+    add_config_argument,
+    add_log_format_argument,
     add_robot_argument,
     config_input,
     load_arm,
+    load_box,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
 )
+from hrm_ctrl.cli._runcontrol import add_run_control_arguments
 from hrm_ctrl.cli._simwire import SIM_WIRES, sim_listen
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.formats.planfile import PLAN_FORMAT, PlanDoc
@@ -67,9 +74,7 @@ HELP = "play a plan (or hold / jog) on the CiA 402 rope-motor drives over CAN"
 
 def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("plan", nargs="?", type=Path, metavar="PLAN.json", help="plan to play")
-    parser.add_argument(
-        "--config", type=Path, default=None, metavar="BOX.toml", help="bus configuration"
-    )
+    add_config_argument(parser)  # --config, --bus
     add_robot_argument(parser)
     parser.add_argument(
         "--sim", action="store_true",
@@ -92,14 +97,14 @@ def register(parser: argparse.ArgumentParser) -> None:
         "start at the active calibration's zeros)",
     )  # fmt: skip
     truth.add_argument(
-        "--truth", type=Path, default=None, metavar="FILE.toml",
+        "--truth", type=Path, default=None, metavar="TRUTH.toml",
         help="with --sim: the simulated arm's truth file (docs/sim.md)",
     )  # fmt: skip
     parser.add_argument(
         "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
         help="where the CAN logs and the run record go (default ./runs)",
     )  # fmt: skip
-    parser.add_argument("--log-format", choices=("blf", "asc"), default="blf")
+    add_log_format_argument(parser)
     parser.add_argument(
         "--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S, metavar="MM_S",
         help=f"tip-speed cap of the playback (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s)",
@@ -120,6 +125,7 @@ def register(parser: argparse.ArgumentParser) -> None:
         help="play a plan even if a link meets an obstacle of its environment",
     )  # fmt: skip
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_run_control_arguments(parser)  # --pause-at, --resume-after, --abort-at
 
 
 def _plan_record(path: Path, plan: PlanDoc) -> dict[str, Any]:
@@ -162,7 +168,10 @@ def refuse_collision(doc: PlanDoc, allow: bool, model: Any = None) -> None:
 
 
 def _source(
-    args: argparse.Namespace, actuation: Any, period_s: float
+    args: argparse.Namespace,
+    actuation: Any,
+    period_s: float,
+    progress: Callable[[float], None] | None = None,
 ) -> tuple[Any, Any, dict[str, Any]]:
     """The setpoint source the arguments ask for, the hold time (s) of a hold, and what the
     run record keeps of a plan.  A plan goes through the rope layer's one plan -> counts
@@ -201,6 +210,7 @@ def _source(
         period_s=period_s,
         speed_mm_per_s=args.speed,
         max_duration_s=MAX_SOURCE_DURATION_S,
+        progress=progress,
     )
     info = {
         "plan": str(args.plan),
@@ -209,15 +219,18 @@ def _source(
         "duration_s": sp.duration_s,
     }
     source = CountsSource(actuation, sp.counts, sp.period_s, name="plan", label=sp.label, info=info)
+    source.plan_setpoints = sp  # type: ignore[attr-defined]  # the live line's travel
     return source, None, plan_record
 
 
 def run(args: argparse.Namespace) -> int:
     from drivers.bus import ensure_log_dir
-    from drivers.config import load_box_config
     from drivers.interrupts import deferred_interrupts
     from drivers.session import DriveSession, SafetyStopError
-    from drivers.sources import HoldSource
+    from drivers.sources import HoldSource, PausableSource
+    from hrm_ctrl.cli._progress import ProgressBar, bring_up_with_progress
+    from hrm_ctrl.cli._progress import wanted as progress_wanted
+    from hrm_ctrl.cli._runcontrol import RunDisplay, RunDriver, RunScript, write_run_tensions
     from hrm_ctrl.cli._watches import feedback_watches
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.ropes.actuation import load_actuation
@@ -236,11 +249,19 @@ def run(args: argparse.Namespace) -> int:
             *shipped_inputs(plan_schema=True, eds=True),
         ],
     )
-    config = load_box_config(args.config)
+    config = load_box(args)  # --config with the --bus overrides
     arm = load_arm(args, load_robot(args.robot), prog="hrm run", simulated=args.sim)
     actuation = arm.actuation
     config.check_motors(actuation.motor_ids)
-    source, hold_s, plan_record = _source(args, actuation, config.control.period_s)
+    script = RunScript.from_args(args)  # --pause-at etc.: refused before anything is sent
+    if not script.empty and args.plan is None:
+        raise DriverError("--pause-at and --abort-at go with a PLAN.json")
+    show = progress_wanted(args.json)
+    with ProgressBar("time parameterisation", enabled=show and args.plan is not None) as bar:
+        source, hold_s, plan_record = _source(args, actuation, config.control.period_s, bar)
+    setpoints = getattr(source, "plan_setpoints", None)
+    if setpoints is not None:  # a plan: played pausable (keys, --pause-at, --abort-at)
+        source = PausableSource(source, actuation)
     if isinstance(source, HoldSource) and hold_s is not None:
         source = HoldSource(n_cycles=max(1, round(hold_s * config.control.rate_hz)))
     source.precheck(config.control.period_s)  # refuse bad setpoints before any bus opens
@@ -271,6 +292,8 @@ def run(args: argparse.Namespace) -> int:
             ),
         )
     summary: dict[str, Any] = {}
+    interrupted: str | None = None
+    driver = None
     try:
         stop: SafetyStopError | None = None
         with contextlib.ExitStack() as stack:
@@ -295,23 +318,53 @@ def run(args: argparse.Namespace) -> int:
                 }
                 # tension board opened first: a bad port is refused before any NMT reset
                 watches = stack.enter_context(feedback_watches(config, actuation, box, start=False))
-            box.bring_up()
+            bring_up_with_progress(box, enabled=show)
             watches.start()  # tension, ropes
+            if isinstance(source, PausableSource):
+                display = RunDisplay(source, setpoints, box, actuation.robot, watches)
+                bar = stack.enter_context(ProgressBar("run", enabled=show))
+                driver = RunDriver(source, script, keys=show, display=display, bar=bar)
+                driver.start()
             try:
                 result = box.stream(source)
             except SafetyStopError as exc:
                 stop = exc
                 result = exc.result
+            except KeyboardInterrupt:  # every axis stopped (the supervisor): say where
+                interrupted = (
+                    f" at {display.where_text()}" if isinstance(source, PausableSource) else ""
+                )
+                result = box.supervisor.last_result
+            finally:
+                if driver is not None:
+                    driver.stop()
             box.record_extra["setpoints"] = source.describe()
+            if driver is not None:
+                box.record_extra["run_control"] = [
+                    {"action": a, "fraction": round(f, 4)} for a, f in driver.events
+                ]
         record = box.record()
         log_errors = [str(e) for e in record["can_log_errors"]]
+        tension_file = write_run_tensions(driver, box.record_path, actuation.motor_ids)
+        if interrupted is not None and result is None:
+            print(f"hrm run: interrupted{interrupted}: every axis stopped", file=sys.stderr)
+            return 130
+        outcome = "completed"
+        if interrupted is not None:
+            outcome = "interrupted"
+        elif stop is not None:
+            outcome = "stopped"
+        elif isinstance(source, PausableSource) and source.state.value == "aborted":
+            outcome = "aborted"
         summary = {
+            "outcome": outcome,
             "completed": result.completed,
             "cycles": result.cycles,
             "bringup_s": box.bringup_s,
             "causes": [x.text for x in result.causes],
             "stats": result.stats,
             "run_record": str(box.record_path),
+            "tension_file": None if tension_file is None else str(tension_file),
             "can_logs": record["can_logs"],
             "can_log_errors": log_errors,
         }
@@ -330,6 +383,15 @@ def run(args: argparse.Namespace) -> int:
         )
         print(f"run record: {summary['run_record']}")
     status = 0
+    if interrupted is not None:
+        print(f"hrm run: interrupted{interrupted}: every axis stopped", file=sys.stderr)
+        return 130
+    if summary["outcome"] == "aborted":
+        where = source.describe().get("abort_reason") or "aborted"
+        print(
+            f"hrm run: {where}: stopped on the path at {display.where_text()}",
+            file=sys.stderr if args.json else sys.stdout,
+        )
     if stop is not None:
         print(f"hrm run: {stop}", file=sys.stderr)
         status = 2

@@ -35,8 +35,10 @@ from pathlib import Path
 from hrm_ctrl.cli._common import (
     Input,
     Output,
+    add_config_argument,
     add_robot_argument,
     config_input,
+    load_box,
     refuse_overwriting_inputs,
     robot_input,
 )
@@ -50,13 +52,7 @@ MIN_TENSION_RATE_HZ = 1.0
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--config",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="bus configuration TOML (default: drivers/data/box.toml)",
-    )
+    add_config_argument(parser)  # --config, --bus
     add_robot_argument(parser)
     parser.add_argument(
         "--fault",
@@ -75,7 +71,7 @@ def register(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=100.0,
         metavar="HZ",
-        help="tension-sensor frame rate (default 100)",
+        help="tension-sensor frame rate (default 100 Hz)",
     )
     parser.add_argument(
         "--control",
@@ -88,7 +84,7 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--truth",
         type=Path,
         default=None,
-        metavar="FILE",
+        metavar="TRUTH.toml",
         help="the simulated arm's truth file (TOML, hrm-sim-truth/1; docs/sim.md)",
     )
     truth.add_argument(
@@ -110,7 +106,7 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--write-truth",
         type=Path,
         default=None,
-        metavar="FILE",
+        metavar="TRUTH.toml",
         help="write the truth used as a truth file (atomic; never over an input)",
     )
     parser.add_argument(
@@ -126,7 +122,6 @@ def register(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.config import load_box_config
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.faults import parse_fault
@@ -155,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
             config_input(args.config),
         ],
     )
-    config = load_box_config(args.config)
+    config = load_box(args)  # --config with the --bus overrides
     actuation = load_actuation(load_robot(args.robot))
     truth = None
     if args.truth is not None:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
@@ -234,6 +235,7 @@ def plan_path(
     options: PlanOptions | None = None,
     scenario: Scenario | None = None,
     environment: Environment | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> Plan:
     """Plan the arm along ``path`` (Sec. 3.2-3.4); see the module docstring.
 
@@ -247,7 +249,8 @@ def plan_path(
     Raises :class:`UnreachableError` (naming the step) when the backbone cannot
     reach the path, :class:`PlanningError` when the arm cannot be fitted.  Joint
     limits are checked in the report, not here (see
-    :func:`hrm_ctrl.planning.report.check_limits`).
+    :func:`hrm_ctrl.planning.report.check_limits`).  ``progress(fraction)`` (optional)
+    is told the share of the refinement done (the long part of a refined plan).
     """
     opt = options or PlanOptions()
     opt.check()
@@ -285,6 +288,7 @@ def plan_path(
             clearance_of=worst_link_clearance_of(model, environment),
             options=opt.refine,
             travel=fw.travel,
+            progress=progress,
         )
         alpha, theta = refinement.alpha, refinement.theta
     travel, iters, modal_a, seg = fw.travel, fw.iterations, fw.modal_a, fw.seg

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any, Protocol
@@ -472,6 +473,7 @@ def refine_angles(
     clearance_of: Any = None,
     options: RefineOptions | None = None,
     travel: np.ndarray | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> Refinement:
     """Refine the configurations ``alpha, theta`` (N, 12), whose tips should lie on
     ``targets`` (N, 3), step by step in order (see the module docstring).
@@ -488,6 +490,9 @@ def refine_angles(
     its input with a jump larger than ``max_step_change_deg`` is planned again with
     the ``pull_steps`` before it started from the input's angles (at most
     ``repair_passes`` passes in all).  A step still worse keeps its input.
+
+    ``progress(fraction)`` (optional) is told the share of the steps of the current pass
+    refined so far (a repair pass reports again from its first step).
     """
     opt = options or RefineOptions()
     opt.check()
@@ -548,6 +553,8 @@ def refine_angles(
                 f, Q_in, Q_out, targets, i, bound[i], c_in_est[i], judge, i in exact, i in pull, opt
             )
             Q_out[i] = q
+            if progress is not None:
+                progress((i + 1) / N)
             iters[i] += k
             (kept.add if keep else kept.discard)(i)
             if keep and i > 0 and np.abs(q - Q_out[i - 1]).max() > d_max[i]:

@@ -40,7 +40,7 @@ hrm_ctrl.errors.RopeError: plan step 2 (travel 1.0 mm): travel goes back from 2.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -203,6 +203,7 @@ def plan_setpoints(
     phase: Sequence[str] | None = None,
     max_duration_s: float = MAX_PLAN_DURATION_S,
     where: str | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> PlanSetpoints:
     """The plan's (cycles, motors) counts at the control period ``period_s``, played as
     fast as the motors' speed and acceleration limits allow with the arm's tip at most
@@ -260,6 +261,7 @@ def plan_setpoints(
             period_s=period_s,
             tip_speed_mm_per_s=speed_mm_per_s,
             max_rows=MAX_PLAYBACK_ROWS,
+            progress=progress,
         )
     except RopeError as exc:
         raise type(exc)(_prefixed(where, str(exc))) from None

@@ -61,7 +61,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -434,6 +434,7 @@ def time_parameterise(
     margin: float = DEFAULT_MARGIN,
     max_rows: int | None = None,
     label_of_leg: Any = None,
+    progress: Callable[[float], None] | None = None,
 ) -> Trajectory:
     """The fastest playback of ``path`` at the control period within every motor's speed
     and acceleration limit and the tip-speed cap, each leg from rest to rest, as int64
@@ -443,7 +444,8 @@ def time_parameterise(
     rows (:class:`RopeError` saying how many).  ``label_of_leg(j)`` names leg j in
     messages (default: its plan steps).  Raises :class:`RopeLimitError` if no time law
     within the limits is found, or where the path between two steps leaves the joint
-    limits (naming the step approached).
+    limits (naming the step approached).  ``progress(fraction)`` (optional) is told the
+    share of the legs time-parameterised so far.
     """
     if not (math.isfinite(period_s) and period_s > 0.0):
         raise RopeError(f"control period must be > 0 s, got {period_s}")
@@ -453,10 +455,11 @@ def time_parameterise(
     v_lim = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
     a_lim = np.asarray(act.max_accel_counts_per_s2, dtype=np.float64)
     v_plan, a_plan = plan_limits(act, period_s, margin)
-    legs = [
-        _toppra_leg(act, path, j, v_plan, a_plan, tip_speed_mm_per_s, label(j))
-        for j in range(len(path.legs))
-    ]
+    legs = []
+    for j in range(len(path.legs)):
+        legs.append(_toppra_leg(act, path, j, v_plan, a_plan, tip_speed_mm_per_s, label(j)))
+        if progress is not None:
+            progress((j + 1) / len(path.legs))
     if max_rows is not None:
         rows = 1 + sum(
             max(1, math.ceil(leg.duration_unstretched_s / period_s - 1e-9)) for leg in legs

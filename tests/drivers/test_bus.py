@@ -283,7 +283,7 @@ def test_writer_failure_is_counted_and_named(
 
 
 def test_traffic_log_rejects_unknown_suffix(tmp_path: Path) -> None:
-    with pytest.raises(Exception, match=r"must end in \.asc or \.blf"):
+    with pytest.raises(Exception, match=r"must end in \.blf, \.asc, \.log, \.trc"):
         TrafficLog(tmp_path / "x.txt")
 
 

@@ -104,8 +104,8 @@ def test_counts_source_stops_a_body_that_ends_moving(actuation: Actuation) -> No
     end = src.table[-1]
     assert np.all(end > body[-1]) and np.array_equal(src.table[-5:], np.repeat(end[None], 5, 0))
     assert_within_limits(actuation, src.table, np.zeros(n, dtype=np.int64))
-    assert src._row_name(src.n_lead_in + 40) == "stop after row 39"
-    assert src._row_name(src.n_cycles - 1) == "final hold after row 39"
+    assert src._row_name(src.n_lead_in + 40) == "stop after cycle 39"
+    assert src._row_name(src.n_cycles - 1) == "final hold after cycle 39"
 
 
 def test_counts_source_names_the_row_by_its_label(actuation: Actuation) -> None:
@@ -208,7 +208,7 @@ def test_check_table_refuses_an_acceleration_naming_row_and_motor(actuation: Act
     msg = str(info.value)
     assert msg.startswith("plan: plan step 2: motor j03r1 (joint 3, rope 1): accelerates")
     assert "counts/s^2, more than the motor's 2048000 counts/s^2" in msg and "\n" not in msg
-    with pytest.raises(SetpointError, match=r"^row 2: motor j03r1"):
+    with pytest.raises(SetpointError, match=r"^cycle 2: motor j03r1"):
         check_acceleration(actuation, table, 0.01, previous=np.zeros(n, dtype=np.int64))
     table[2:, 7] = [100, 300, 500]  # within: 1e6 then 1e6 counts/s^2
     check_table(actuation, table, 0.01, str, "plan", previous=np.zeros(n, dtype=np.int64))

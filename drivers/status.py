@@ -1,0 +1,167 @@
+"""A snapshot of the box as the drive session sees it (``hrm status``, the console's
+``status``): typed, immutable, for the CLI to format.
+
+Per node (one rope motor's drive): its NMT state from its last heartbeat, its CiA 402
+state and actual position (by SDO while the drives do not stream, from the feedback
+TPDOs while they do), the position the host holds or commands (the following error is
+the difference), the rope's tension from the tension-sensor board (when one is read),
+how old its last heartbeat is and its last EMCY.  Per bus: the worst-case load at the
+control rate, frames sent, error frames and frames of another master heard, frames the
+CAN log could not take.  And the session's state with the causes of its last stop.
+
+>>> n = NodeStatus("j01r0", "bus0", 1, "OPERATIONAL", "OPERATION_ENABLED", 0x0637, 10, 12,
+...                 31.5, 0.05, None)
+>>> n.following_error_counts
+-2
+>>> n.fault
+False
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.protocol.cia301 import NMT_STATE_NAMES
+from drivers.protocol.cia402 import SW_FAULT, State402, decode_state
+
+
+@dataclass(frozen=True)
+class NodeStatus:
+    """One drive.  ``None`` where a value is not known (no heartbeat yet, no answer, no
+    tension board).  ``target_counts`` is what the host holds or commands (the
+    supervisor's last setpoint; None while the drives are not enabled)."""
+
+    motor: str
+    bus: str
+    node_id: int
+    nmt_state: str | None
+    state402: str | None
+    statusword: int | None
+    position_counts: int | None
+    target_counts: int | None
+    tension_N: float | None
+    heartbeat_age_s: float | None
+    last_emcy: str | None
+
+    @property
+    def following_error_counts(self) -> int | None:
+        """Actual minus held/commanded position (counts), when both are known."""
+        if self.position_counts is None or self.target_counts is None:
+            return None
+        return self.position_counts - self.target_counts
+
+    @property
+    def fault(self) -> bool:
+        """The statusword has the fault bit (the drive is in FAULT or reacting to one)."""
+        return self.statusword is not None and bool(self.statusword & SW_FAULT)
+
+
+@dataclass(frozen=True)
+class BusStatus:
+    """One bus: its configured bitrate and worst-case load (a fraction of the bitrate at
+    the control rate, against its limit), frames sent, error frames received, frames of
+    another master heard (host-direction COB-IDs we did not send), and CAN-log losses."""
+
+    name: str
+    bitrate: int
+    load: float
+    load_limit: float
+    frames_sent: int
+    error_frames: int
+    foreign_frames: int
+    log_frames_lost: int
+    state: str | None  # python-can's bus state (ACTIVE, PASSIVE, ERROR) where it knows it
+
+
+@dataclass(frozen=True)
+class SessionStatus:
+    """The whole box: the session's state, its calibration, the causes of its last stop
+    (idle or streaming; empty: none), when the snapshot was taken (monotonic s) and
+    whether the node values came from SDO reads (``by_sdo``) or the feedback TPDOs."""
+
+    state: str
+    calibration: str
+    stop_causes: tuple[str, ...]
+    nodes: tuple[NodeStatus, ...]
+    buses: tuple[BusStatus, ...]
+    taken_s: float
+    by_sdo: bool
+
+    @property
+    def faulted(self) -> tuple[NodeStatus, ...]:
+        """The drives in FAULT (fault bit set)."""
+        return tuple(n for n in self.nodes if n.fault)
+
+
+def nmt_name(state: int) -> str | None:
+    """The NMT state's name of a heartbeat's state byte (None: no heartbeat yet).
+
+    >>> nmt_name(0x05), nmt_name(-1)
+    ('OPERATIONAL', None)
+    """
+    if state < 0:
+        return None
+    return NMT_STATE_NAMES.get(int(state), f"0x{int(state):02X}")
+
+
+def state_name(statusword: int | None) -> str | None:
+    """The CiA 402 state's name of a statusword (None: not known).
+
+    >>> state_name(0x0637), state_name(None)
+    ('OPERATION_ENABLED', None)
+    """
+    if statusword is None:
+        return None
+    return State402(decode_state(int(statusword))).name
+
+
+def node_statuses(
+    motors: Sequence[str],
+    buses: Sequence[str],
+    node_ids: Sequence[int],
+    *,
+    hb_state: np.ndarray,
+    hb_time_s: np.ndarray,
+    now_s: float,
+    statusword: Sequence[int | None],
+    position: Sequence[int | None],
+    targets: np.ndarray | None,
+    tension_N: np.ndarray | None,
+    last_emcy: Sequence[str | None],
+) -> tuple[NodeStatus, ...]:
+    """One :class:`NodeStatus` per motor from the session's arrays (rope-layer order).
+
+    >>> st = node_statuses(["m0"], ["b"], [1], hb_state=np.array([5]),
+    ...     hb_time_s=np.array([9.5]), now_s=10.0, statusword=[0x0637], position=[7],
+    ...     targets=np.array([5]), tension_N=None, last_emcy=[None])
+    >>> st[0].heartbeat_age_s, st[0].following_error_counts, st[0].tension_N
+    (0.5, 2, None)
+    """
+    out = []
+    for i, motor in enumerate(motors):
+        t_hb = float(hb_time_s[i])
+        tension = None
+        if tension_N is not None and math.isfinite(float(tension_N[i])):
+            tension = float(tension_N[i])
+        sw = statusword[i]
+        pos = position[i]
+        out.append(
+            NodeStatus(
+                motor=motor,
+                bus=buses[i],
+                node_id=int(node_ids[i]),
+                nmt_state=nmt_name(int(hb_state[i])),
+                state402=state_name(sw),
+                statusword=None if sw is None else int(sw),
+                position_counts=None if pos is None else int(pos),
+                target_counts=None if targets is None else int(targets[i]),
+                tension_N=tension,
+                heartbeat_age_s=(now_s - t_hb) if math.isfinite(t_hb) else None,
+                last_emcy=last_emcy[i],
+            )
+        )
+    return tuple(out)

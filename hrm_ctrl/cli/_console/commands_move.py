@@ -1,0 +1,125 @@
+"""The console's small moves: ``jog JOINT AXIS DEG``, ``jog MOTOR COUNTS`` and ``home``.
+
+Every move starts from what the drives hold, is checked against the joint, rope and
+motor limits before anything is sent (one line naming the limit when it would leave
+one), is jerk-limited (Ruckig: :func:`drivers.sources.move_table`,
+:class:`~drivers.sources.JogSource`) or time-parameterised within every motor's limits
+(``home``: :func:`hrm_ctrl.ropes.jog.home_setpoints`), and is stopped by Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hrm_ctrl.cli._console.context import ConsoleContext
+from hrm_ctrl.cli._console.streaming import play
+from hrm_ctrl.cli._console.table import ConsoleError, Need, command
+
+# A jog moves at no more than this share of each motor's speed: a small move an operator
+# watches (at the shipped motors' 409600 counts/s, 20480 counts/s: 9.5 mm of rope a second).
+JOG_SPEED_FRACTION = 0.05
+JOG_HOLD_S = 0.1  # held at the end of a jog before the stream ends (the drives settle)
+HOME_SPEED_MM_S = 20.0  # the tip's speed cap of `home` unless given
+
+
+def _held_and_actual(ctx: ConsoleContext) -> tuple[np.ndarray, np.ndarray]:
+    """What the drives hold (the supervisor's targets) and where they are (by SDO)."""
+    session = ctx.session
+    held = session.supervisor.targets
+    if held is None:
+        raise ConsoleError("the drives hold no known position (enable first)")
+    actual = session.actual_positions()
+    return np.asarray(held, dtype=np.int64).copy(), actual
+
+
+def _complete_jog(ctx: ConsoleContext, words: list[str]) -> list[str]:
+    n_j = ctx.actuation.robot.n_joints
+    if len(words) <= 2:
+        return [str(j) for j in range(1, n_j + 1)] + list(ctx.actuation.motor_ids)
+    if len(words) == 3 and words[1].isdigit():
+        return ["alpha", "theta"]
+    return []
+
+
+@command("jog", "a small jerk-limited move: one joint's angle by DEG (from the feedback), or "
+         "one rope motor by COUNTS; refused when it would leave a joint, rope or motor limit",
+         "jog JOINT alpha|theta DEG | jog MOTOR COUNTS", needs=Need.ENABLED,
+         complete=_complete_jog)  # fmt: skip
+def _jog(ctx: ConsoleContext, args: list[str]) -> None:
+    from drivers.safety.limits import accel_limits, check_joint_limits, jerk_limits
+    from drivers.sources import CountsSource, JogSource, move_table
+    from hrm_ctrl.ropes.jog import check_motor_jog, joint_jog
+
+    act = ctx.actuation
+    period_s = ctx.config.control.period_s
+    if len(args) == 3:
+        try:
+            joint, deg = int(args[0]), float(args[2])
+        except ValueError:
+            raise ConsoleError("usage: jog JOINT alpha|theta DEG (e.g. jog 5 theta +2)") from None
+        held, actual = _held_and_actual(ctx)
+        jj = joint_jog(act, held, actual, joint, args[1], deg)
+        v = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
+        rows = move_table(
+            held, jj.target_counts, period_s, v, accel_limits(act), jerk_limits(act),
+            speed_cap_counts_per_s=JOG_SPEED_FRACTION * v,
+        )  # fmt: skip
+        what = f"jog {joint} {jj.axis.value} {deg:+g} deg"
+        check_joint_limits(act, rows, what)
+        body = np.vstack([held[None, :], rows])
+        source = CountsSource(act, body, period_s, name="jog", hold_s=JOG_HOLD_S,
+                              label=lambda r: f"{what}, cycle {r}",
+                              info={"joint": joint, "axis": jj.axis.value, "deg": deg})  # fmt: skip
+        angles = jj.alpha_from if jj.axis == "alpha" else jj.theta_from
+        before = math.degrees(float(angles[joint - 1]))
+        result = play(ctx, source, "jog")
+        ctx.out(
+            f"{what}: done, {result.cycles} cycles ({result.cycles * period_s:.2f} s); "
+            f"joint {joint} {jj.axis.value} {before:.2f} -> {before + deg:.2f} deg"
+        )
+        return
+    if len(args) == 2:
+        motor = args[0]
+        try:
+            counts = int(args[1])
+        except ValueError:
+            raise ConsoleError("usage: jog MOTOR COUNTS (e.g. jog j05r1 -800)") from None
+        held = ctx.session.supervisor.targets
+        if held is None:
+            raise ConsoleError("the drives hold no known position (enable first)")
+        i = check_motor_jog(act, motor, counts, held)
+        speed = JOG_SPEED_FRACTION * float(act.max_rate_counts_per_s[i])
+        source = JogSource(act, motor, math.copysign(speed, counts), abs(counts) / speed,
+                           hold_s=JOG_HOLD_S)  # fmt: skip
+        result = play(ctx, source, "jog")
+        ctx.out(f"jog {motor} {counts:+d} counts: done, {result.cycles} cycles "
+                f"({result.cycles * period_s:.2f} s)")  # fmt: skip
+        return
+    raise ConsoleError("usage: jog JOINT alpha|theta DEG | jog MOTOR COUNTS")
+
+
+@command("home", "back to the calibrated zero configuration (the straight arm) by a "
+         "checked, time-parameterised trajectory", "home [SPEED_MM_S]",
+         needs=Need.ENABLED)  # fmt: skip
+def _home(ctx: ConsoleContext, args: list[str]) -> None:
+    from drivers.sources import CountsSource
+    from hrm_ctrl.ropes.jog import home_setpoints
+
+    if len(args) > 1:
+        raise ConsoleError("usage: home [SPEED_MM_S]")
+    try:
+        speed = float(args[0]) if args else HOME_SPEED_MM_S
+    except ValueError:
+        raise ConsoleError("usage: home [SPEED_MM_S] (a number)") from None
+    if not (math.isfinite(speed) and speed > 0):
+        raise ConsoleError(f"SPEED_MM_S must be > 0, got {args[0]}")
+    _held, actual = _held_and_actual(ctx)
+    period_s = ctx.config.control.period_s
+    sp = home_setpoints(ctx.actuation, actual, period_s=period_s, speed_mm_per_s=speed)
+    source = CountsSource(ctx.actuation, sp.counts, sp.period_s, name="home", label=sp.label,
+                          info={"speed_mm_per_s": speed})  # fmt: skip
+    result = play(ctx, source, "home")
+    ctx.out(f"home: done, {result.cycles} cycles ({result.cycles * period_s:.2f} s) at up to "
+            f"{speed:g} mm/s")  # fmt: skip

@@ -1,0 +1,299 @@
+"""Running console commands: the interactive shell (prompt_toolkit), scripts line by
+line, and the context both work on (:func:`build_context`, :func:`finish_context`).
+
+Interactive (stdin a terminal): a ``PromptSession`` with the history in
+``$HOME/.local/state/hrm/console_history``, completion of command names and of each
+command's arguments (joint numbers, axes, motor ids, plan files), Ctrl-C clearing the
+line at the prompt and stopping every axis while the arm moves, Ctrl-D or ``quit``
+ending.  An error is one line; the shell goes on.
+
+Scripts (stdin not a terminal, or a file given): one command per line, ``#`` comments,
+blank lines skipped; the first error ends the script with ``FILE:LINE: command: ...``
+(exit status 2).  The end of the input is ``quit``.  Whichever way the console ends,
+every drive is disabled and the session finished and closed (run record written), and
+the simulated box (``--sim``) stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any, TextIO
+
+from hrm_ctrl.cli._console.context import ConsoleContext
+from hrm_ctrl.cli._console.table import (
+    COMMANDS,
+    MAX_LINE_CHARS,
+    ConsoleError,
+    load_commands,
+    run_words,
+    split_line,
+)
+from hrm_ctrl.errors import HrmError
+
+HISTORY_FILE = Path(".local", "state", "hrm", "console_history")  # under $HOME
+MAX_SCRIPT_LINES = 100_000  # a script longer than this is refused at that line
+
+
+def add_context_arguments(parser: argparse.ArgumentParser) -> None:
+    """The arguments of a console over one box: ``--sim`` / ``--config``, ``--robot``,
+    the calibration store, where the runs go, ``--take-over``."""
+    from hrm_ctrl.cli._common import (
+        add_calibration_arguments,
+        add_config_argument,
+        add_log_format_argument,
+        add_robot_argument,
+    )
+    from hrm_ctrl.cli._simwire import SIM_WIRES
+
+    add_config_argument(parser)  # --config BOX.toml, --bus NAME=INTERFACE:CHANNEL[@BITRATE]
+    parser.add_argument(
+        "--sim", action="store_true",
+        help="the in-process simulated box (without a stored calibration: the description's "
+        "values, said on stderr)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--wire", choices=SIM_WIRES, default="virtual",
+        help="with --sim: python-can virtual buses, or hrm_sim (simulated wire at the bitrate)",
+    )  # fmt: skip
+    add_robot_argument(parser)
+    add_calibration_arguments(
+        parser,
+        uncalibrated_help="enable the drives without a calibration (explicit override: the "
+        "robot description's values)",
+    )
+    parser.add_argument(
+        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
+        help="where each session's CAN logs and run record go (default ./runs)",
+    )  # fmt: skip
+    add_log_format_argument(parser)
+    parser.add_argument(
+        "--take-over", action="store_true",
+        help="reset the drives even when another master is heard on the buses",
+    )  # fmt: skip
+
+
+def _out(text: str) -> None:
+    print(text, flush=True)
+
+
+def _err(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def build_context(args: argparse.Namespace, prog: str) -> ConsoleContext:
+    """Load the bus configuration, the robot and its active calibration, start the
+    simulated box with ``--sim``; nothing is sent to a drive (that is ``connect``).  Bad
+    input raises :class:`~hrm_ctrl.errors.HrmError` (one line) before anything starts."""
+    from hrm_ctrl.cli._common import (
+        Output,
+        config_input,
+        load_arm,
+        load_box,
+        refuse_overwriting_inputs,
+        robot_input,
+        shipped_inputs,
+    )
+    from hrm_ctrl.model import load_robot
+    from hrm_ctrl.ropes.actuation import load_actuation
+
+    refuse_overwriting_inputs(
+        [Output("--log-dir", args.log_dir)],
+        [robot_input(args.robot), config_input(args.config), *shipped_inputs(eds=True)],
+    )
+    config = load_box(args)  # --config with the --bus overrides
+    arm = load_arm(args, load_robot(args.robot), prog=prog, simulated=args.sim)
+    config.check_motors(arm.actuation.motor_ids)
+    load_commands()
+    arm.say_note()
+    sim = None
+    if args.sim:
+        from hrm_ctrl.cli._simwire import calibration_counts, start_in_process_sim
+
+        # the simulated arm is the description's (links too), not the calibration's
+        physical = arm.actuation if arm.active is None else load_actuation(arm.description)
+        config, sim = start_in_process_sim(
+            config,
+            physical,
+            args.wire,
+            prog=prog,
+            initial_counts=calibration_counts(
+                None if arm.active is None else arm.active.calibration, physical
+            ),
+        )
+    ctx = ConsoleContext(
+        config=config,
+        description=arm.description,
+        model=arm.robot,
+        actuation=arm.actuation,
+        out=_out,
+        err=_err,
+        calibration=arm.calibration_ref(),
+        active=arm.active,
+        allow_uncalibrated=bool(args.uncalibrated or args.sim),
+        sim=sim,
+        simulated=bool(args.sim),
+        runs_dir=Path(args.log_dir),
+        log_suffix=f".{args.log_format}",
+        take_over=bool(args.take_over),
+        prog=prog,
+    )
+    ctx.extra["args"] = args  # the command line (calibrate show: the store, the robot)
+    return ctx
+
+
+def finish_context(ctx: ConsoleContext) -> None:
+    """Disable every drive, finish and close the session, stop the simulated box;
+    whatever fails, the rest is still done (the first error is raised at the end)."""
+    from drivers.interrupts import deferred_interrupts
+    from hrm_ctrl.cli._console.commands_session import close_session
+
+    with deferred_interrupts():
+        try:
+            close_session(ctx)
+        finally:
+            if ctx.sim is not None:
+                ctx.sim.stop()
+                ctx.sim = None
+
+
+# ---------------------------------------------------------------------------- scripts
+def bounded_lines(stream: TextIO) -> Iterator[str]:
+    """The lines of ``stream``, each read with a bound (a longer line is refused by
+    :func:`split_line`: the rest of it is not read into memory)."""
+    while True:
+        line = stream.readline(MAX_LINE_CHARS + 1)
+        if not line:
+            return
+        yield line
+
+
+def script_name(stream: TextIO) -> str:
+    """The name of the file a script comes from: stdin redirected from a file shows as
+    that file's path (``procedure.txt``), else ``stdin``."""
+    name = getattr(stream, "name", None)
+    if isinstance(name, str) and not name.startswith("<"):
+        return name
+    try:
+        target = os.readlink(f"/proc/self/fd/{stream.fileno()}")
+    except (OSError, ValueError, AttributeError):
+        return "stdin"
+    if target.startswith("/") and os.path.isfile(target):
+        try:
+            rel = os.path.relpath(target)
+        except ValueError:
+            return target
+        return rel if not rel.startswith("..") else target
+    return "stdin"
+
+
+def run_script(ctx: ConsoleContext, lines: Iterable[str], where: str) -> None:
+    """Run ``lines`` one command each; the first error raises :class:`ConsoleError`
+    ``WHERE:LINE: command: ...``.  Each command is echoed (``> line``) before it runs."""
+    for lineno, line in enumerate(lines, start=1):
+        if lineno > MAX_SCRIPT_LINES:
+            raise ConsoleError(f"{where}:{lineno}: more than {MAX_SCRIPT_LINES} lines")
+        try:
+            words = split_line(line)
+            if not words:
+                continue
+            ctx.out(f"> {' '.join(words)}")
+            run_words(ctx, words)
+        except HrmError as exc:
+            raise ConsoleError(f"{where}:{lineno}: {exc}") from None
+        except KeyboardInterrupt:
+            raise ConsoleError(f"{where}:{lineno}: interrupted (Ctrl-C)") from None
+        if ctx.quit_requested:
+            return
+
+
+# ---------------------------------------------------------------------------- interactive
+def history_path() -> Path:
+    """``$HOME/.local/state/hrm/console_history``."""
+    return Path.home() / HISTORY_FILE
+
+
+def _completer(ctx: ConsoleContext) -> Any:
+    from prompt_toolkit.completion import Completer, Completion
+
+    class ConsoleCompleter(Completer):
+        """Command names, then each command's own completer."""
+
+        def get_completions(self, document: Any, complete_event: Any) -> Iterator[Any]:
+            text = document.text_before_cursor
+            words = text.split()
+            if not words or text[-1:].isspace():
+                words.append("")
+            current = words[-1]
+            if len(words) == 1:
+                candidates = sorted(COMMANDS)
+            else:
+                cmd = COMMANDS.get(words[0])
+                if cmd is None or cmd.complete is None:
+                    return
+                try:
+                    candidates = cmd.complete(ctx, words)
+                except (HrmError, OSError):
+                    return
+            for c in candidates:
+                if c.startswith(current):
+                    yield Completion(c, start_position=-len(current))
+
+    return ConsoleCompleter()
+
+
+def prompt_text(ctx: ConsoleContext) -> str:
+    """``hrm> `` before ``connect``, then ``hrm:STATE> `` (``hrm:enabled> ``)."""
+    if ctx.session is None:
+        return "hrm> "
+    return f"hrm:{ctx.session.state.value}> "
+
+
+def run_interactive(ctx: ConsoleContext) -> None:
+    """The shell at a terminal, until ``quit`` or Ctrl-D."""
+    from prompt_toolkit import PromptSession
+    from prompt_toolkit.history import FileHistory, InMemoryHistory
+
+    ctx.interactive = True
+    path = history_path()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        history: Any = FileHistory(str(path))
+    except OSError as exc:
+        ctx.err(f"{ctx.prog}: history not kept ({path}: {exc.strerror or exc})")
+        history = InMemoryHistory()
+    session: Any = PromptSession(history=history, completer=_completer(ctx))
+    ctx.out(f"{ctx.prog}: 'help' lists the commands; connect, then enable, before any move")
+    while not ctx.quit_requested:
+        try:
+            line = session.prompt(prompt_text(ctx))
+        except KeyboardInterrupt:
+            continue  # Ctrl-C at the prompt: the line is cleared
+        except EOFError:
+            return
+        try:
+            run_words(ctx, split_line(line))
+        except HrmError as exc:
+            ctx.err(f"error: {exc}")
+        except KeyboardInterrupt:
+            ctx.err("interrupted")
+
+
+def run_console(ctx: ConsoleContext, script: TextIO | None) -> None:
+    """The interactive shell (``script`` None) or a script; always finishes the context
+    (a failing finish after an error is said on stderr, the first error is raised)."""
+    try:
+        if script is None:
+            run_interactive(ctx)
+        else:
+            run_script(ctx, bounded_lines(script), script_name(script))
+    except BaseException:
+        try:
+            finish_context(ctx)
+        except HrmError as exc:
+            ctx.err(f"{ctx.prog}: while finishing: {exc}")
+        raise
+    finish_context(ctx)

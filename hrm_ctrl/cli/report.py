@@ -1,0 +1,121 @@
+"""``hrm report RUN``: the figures of a run, from its run record and CAN logs.
+
+``RUN`` is a run record (``runs/run-....json``) or a run's name in ``--log-dir``.  The
+CAN logs are read with python-can (``hrm_ctrl.formats.runlog``) and the counts mapped to
+joint angles by the rope layer of the robot description with the active calibration
+(``--calibrations``, ``--uncalibrated``: as ``hrm run``; a stderr line says so when the
+run named another calibration).  Writes ``angles.png`` (planned vs measured joint
+angles), ``tracking.png`` (tracking error and, with a tension side file, tensions over
+time) and ``lateness.png`` (cycle lateness) into ``--out`` (default: ``<run>_report/``
+beside the record) and prints where, with the figures' numbers (``--json``: as JSON).
+
+>>> p = argparse.ArgumentParser(prog="hrm report")
+>>> register(p)
+>>> a = p.parse_args(["runs/run-1.json", "--stream", "0"])
+>>> str(a.run), a.stream
+('runs/run-1.json', 0)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+HELP = "write the figures of a run (planned vs measured angles, tracking, tensions, lateness)"
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    from hrm_ctrl.cli._common import add_calibration_arguments, add_robot_argument
+
+    parser.add_argument("run", type=Path, metavar="RUN", help="run record, or a run's name")
+    parser.add_argument(
+        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
+        help="where runs are looked up by name (default ./runs)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--out", type=Path, default=None, metavar="DIR",
+        help="where the figures go (default <run>_report/ beside the record)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--stream", type=int, default=-1, metavar="N",
+        help="which stream of the session (0 first; default the last)",
+    )  # fmt: skip
+    add_robot_argument(parser)
+    add_calibration_arguments(parser, uncalibrated_help="the robot description's values")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def find_record(run: Path, log_dir: Path) -> Path:
+    """A run record: the path given, or ``<log_dir>/<run>.json`` for a run's name."""
+    from hrm_ctrl.formats.runlog import RunLogError
+
+    if run.suffix == ".json" or run.exists():
+        if not run.is_file():
+            raise RunLogError(f"{run}: no such run record")
+        return run
+    cand = log_dir / f"{run.name}.json"
+    if cand.is_file():
+        return cand
+    raise RunLogError(f"{run}: no such run record (nor {cand})")
+
+
+def report(
+    record: Path, actuation: Any, out: Path | None, stream: int = -1
+) -> tuple[dict[str, Any], list[Path]]:
+    """Read the run, write its figures; (summary, figure paths)."""
+    from hrm_ctrl.formats.runlog import read_run
+    from hrm_ctrl.formats.runplots import run_analysis, write_run_figures
+
+    log = read_run(record)
+    analysis = run_analysis(log, actuation, stream)
+    folder = out if out is not None else record.with_name(record.stem + "_report")
+    figures = write_run_figures(analysis, folder, title=str(log.record.get("run", "")))
+    summary = {
+        "run": log.record.get("run"),
+        "record": str(record),
+        "stream": stream,
+        "streams": len(log.streams),
+        **analysis.summary(),
+        "figures": [str(p) for p in figures],
+    }
+    return summary, figures
+
+
+def run(args: argparse.Namespace) -> int:
+    from hrm_ctrl.cli._common import load_arm
+    from hrm_ctrl.cli._progress import ProgressBar, wanted
+    from hrm_ctrl.formats.runlog import read_record
+    from hrm_ctrl.model import load_robot
+
+    record = find_record(args.run, args.log_dir)
+    doc = read_record(record)
+    arm = load_arm(args, load_robot(args.robot), prog="hrm report")
+    ran = doc.get("calibration")
+    used = None if arm.active is None else arm.calibration_ref()
+    if isinstance(ran, dict) and (used is None or ran.get("sha256") != used.sha256):
+        print(
+            f"hrm report: note: the run used calibration version {ran.get('version')}, "
+            "the angles are mapped with "
+            + ("the description's values" if used is None else f"version {used.version}"),
+            file=sys.stderr,
+        )
+    with ProgressBar("report", enabled=wanted(args.json)) as bar:
+        summary, _figs = report(record, arm.actuation, args.out, args.stream)
+        bar(1.0)
+    if args.json:
+        print(json.dumps(summary, indent=1))
+        return 0
+    print(f"run {summary['run']}: {summary['cycles']} cycles, {summary['duration_s']:.2f} s")
+    for key, label, unit in (
+        ("max_angle_error_deg", "largest joint-angle error", "deg"),
+        ("max_tip_error_mm", "largest tip error", "mm"),
+        ("max_sync_lateness_ms", "largest SYNC lateness", "ms"),
+    ):
+        v = summary[key]
+        print(f"{label}: {'-' if v is None else f'{v:.3f}'} {unit}")
+    for f in summary["figures"]:
+        print(f"figure: {f}")
+    return 0

@@ -1,0 +1,409 @@
+"""The 3D view in the browser (issue 11): a viser server on 127.0.0.1 showing the
+environment (pipe, walls with their openings, boxes), the planned path and backbone, the
+arm at a step chosen with a slider, and, fed by :meth:`ArmView.update`, the arm as the
+host estimates it, every link a cylinder coloured by its clearance band
+(:mod:`hrm_ctrl.view.geometry`).
+
+viser ships its built web client in its wheel: the page needs no internet.  The viewer's
+unit is the metre (the stack's millimetres scaled by :data:`M_PER_MM`).
+
+Scene names (a test or a tool finds the objects by them in viser's scene tree):
+``/env/...``, ``/plan/path``, ``/plan/backbone``, ``/plan/arm/linkNN`` (the planned arm
+at the slider's step) and ``/arm/linkNN`` (the arm shown: the planned one, or with
+``live`` the estimated one, hidden until the first :meth:`ArmView.update`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from hrm_ctrl.errors import HrmError
+from hrm_ctrl.formats.planfile import PlanDoc
+from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.model import RobotModel
+from hrm_ctrl.planning.environment import Box, Environment, Pipe, Wall, link_clearance
+from hrm_ctrl.view import geometry as g
+
+M_PER_MM = 1e-3
+HOST = "127.0.0.1"  # the view is served to this machine only
+# update() pushes at most this many poses a second to the browser (a faster caller's poses
+# in between are dropped; the latest is kept for flush()).
+MAX_UPDATE_RATE_HZ = 30.0
+SAME_POSE_MM = 0.01  # a pose within this of the one shown is not sent again
+CLEARANCE_REUSE_MM = 0.25  # the clearance shown may be this much off (see ArmView._push)
+PLANNED_OPACITY = 0.35
+ENV_OPACITY = 0.18
+
+
+class ViewError(HrmError):
+    """The view cannot be served (port, bad step, bad pose)."""
+
+
+def _link_name(prefix: str, i: int) -> str:
+    return f"{prefix}/link{i + 1:02d}"
+
+
+class ArmView:
+    """A running view; ``close()`` (or leaving the ``with`` block) stops its server.
+
+    ``plan`` gives the path, the backbone and the slider over its steps (``step`` first);
+    ``live``: the arm shown is the one :meth:`update` gives (the plan's arm at the slider
+    step drawn translucent beside it).  ``port`` 0 picks a free port.
+    """
+
+    def __init__(
+        self,
+        model: RobotModel,
+        environment: Environment | None = None,
+        plan: PlanDoc | None = None,
+        *,
+        port: int = 0,
+        step: int = 0,
+        live: bool = False,
+        max_rate_hz: float = MAX_UPDATE_RATE_HZ,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        import viser
+
+        if not (isinstance(port, int) and 0 <= port <= 65535):
+            raise ViewError(f"--port must be 0..65535, got {port!r}")
+        if not (math.isfinite(max_rate_hz) and max_rate_hz > 0):
+            raise ViewError(f"max_rate_hz must be > 0, got {max_rate_hz}")
+        if plan is not None and not 0 <= step < plan.n_steps:
+            raise ViewError(f"--step must be 0..{plan.n_steps - 1} (the plan's steps), got {step}")
+        self.model = model
+        self.environment = environment
+        self.plan = plan
+        self.live = live
+        self.radius_mm = 0.5 * np.asarray(model.outer_diameter, dtype=float)
+        self._min_dt_s = 1.0 / max_rate_hz
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._last_push = -math.inf
+        self._pending: tuple[np.ndarray, np.ndarray] | None = None
+        self.updates = 0  # update() calls
+        self.pushes = 0  # poses sent to the browser
+        self.last_clearance_mm: np.ndarray | None = None
+        self.step = step
+        self._pushed_O: np.ndarray | None = None
+        self._clearance_O: np.ndarray | None = None
+        self._clearance = np.zeros(0)
+        self._names: list[str] = []
+        self._sent: dict[int, dict[tuple[str, int], Any]] = {}
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: we print the URL
+                self.server = viser.ViserServer(host=HOST, port=port, verbose=False)
+        except OSError as exc:
+            raise ViewError(f"cannot serve on {HOST}:{port} ({exc.strerror or exc})") from None
+        self.port = int(self.server.get_port())
+        self.url = f"http://{HOST}:{self.port}/"
+        self._closed = False
+        if port and self.port != port:  # viser moves on to the next free port: refuse that
+            self.close()
+            raise ViewError(f"--port {port}: the port is in use on {HOST}")
+        try:
+            self._build()
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ scene
+    def _build(self) -> None:
+        gui = self.server.gui
+        n = self.model.n_joints
+        env_pts = self._draw_environment()
+        self._arm = [
+            self._add(
+                "add_cylinder",
+                _link_name("/arm", i),
+                radius=float(self.radius_mm[i]) * M_PER_MM,
+                height=1.0,
+                color=g.BAND_RGB[g.ClearanceBand.FREE],
+                receive_shadow=False,
+                cast_shadow=False,
+                visible=False,
+            )
+            for i in range(n)
+        ]
+        self._planned: list[Any] = []
+        self._backbone = None
+        gui.add_text(
+            "arm shown",
+            initial_value="estimated from drive feedback" if self.live else "the plan's",
+            disabled=True,
+        )
+        self._clearance_text = gui.add_text("worst clearance", initial_value="-", disabled=True)
+        gui.add_markdown(
+            f"links: **green** clearance ≥ {g.WARN_CLEARANCE_MM:g} mm, **amber** "
+            f"0–{g.WARN_CLEARANCE_MM:g} mm, **red** collision, **blue** no obstacle known"
+        )
+        pts = [env_pts]
+        if self.plan is not None:
+            p = self.plan
+            self._add(
+                "add_line_segments",
+                "/plan/path",
+                g.polyline_segments(p.path_mm) * M_PER_MM,
+                g.PATH_RGB,
+                thickness=3.0,
+                thickness_units="screen",
+            )
+            pts.append(p.path_mm)
+            pts.append(p.joints_mm.reshape(-1, 3))
+            if self.live:
+                self._planned = [
+                    self._add(
+                        "add_cylinder",
+                        _link_name("/plan/arm", i),
+                        radius=float(self.radius_mm[i]) * M_PER_MM,
+                        height=1.0,
+                        color=g.PLANNED_ARM_RGB,
+                        opacity=PLANNED_OPACITY,
+                        receive_shadow=False,
+                        cast_shadow=False,
+                    )
+                    for i in range(n)
+                ]
+            self._step_slider = gui.add_slider(
+                "plan step", min=0, max=max(p.n_steps - 1, 1), step=1, initial_value=self.step
+            )
+            self._step_text = gui.add_text("travel", initial_value="", disabled=True)
+            self._step_slider.on_update(lambda _e: self.show_step(int(self._step_slider.value)))
+            self.show_step(self.step)
+        else:
+            pts.append(joint_centres(self.model, np.zeros(n), np.zeros(n)))
+        allp = np.concatenate([q.reshape(-1, 3) for q in pts if q.size])
+        lo, hi = allp.min(axis=0), allp.max(axis=0)
+        centre, size = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+        cam = self.server.initial_camera
+        cam.look_at = tuple(centre * M_PER_MM)
+        cam.position = tuple((centre + size * np.array([0.25, -0.55, 0.45])) * M_PER_MM)
+
+    def _add(self, method: str, name: str, *args: Any, **kwargs: Any) -> Any:
+        """``self.server.scene.<method>(name, ...)``, the name kept for :meth:`scene_names`."""
+        handle = getattr(self.server.scene, method)(name, *args, **kwargs)
+        self._names.append(name)
+        return handle
+
+    def _draw_environment(self) -> np.ndarray:
+        drawn: list[np.ndarray] = []
+        near = self.plan.path_mm.mean(axis=0) if self.plan is not None else np.zeros(3)
+        for k, o in enumerate(g.obstacles(self.environment)):
+            name = f"/env/{type(o).__name__.lower()}{k + 1:02d}"
+            if isinstance(o, Pipe):
+                v, f = g.pipe_mesh(o)
+                self._add(
+                    "add_mesh_simple",
+                    name,
+                    v * M_PER_MM,
+                    f,
+                    color=g.ENV_RGB,
+                    opacity=ENV_OPACITY,
+                    side="double",
+                    cast_shadow=False,
+                    receive_shadow=False,
+                )
+                drawn.append(v)
+            elif isinstance(o, Wall):
+                patch, outlines = g.wall_shapes(o, near)
+                if len(patch) >= 3:
+                    self._add(
+                        "add_mesh_simple",
+                        name,
+                        patch * M_PER_MM,
+                        g.fan(patch),
+                        color=g.ENV_RGB,
+                        opacity=ENV_OPACITY,
+                        side="double",
+                        cast_shadow=False,
+                        receive_shadow=False,
+                    )
+                    drawn.append(patch)
+                for j, line in enumerate(outlines):
+                    self._add(
+                        "add_line_segments",
+                        f"{name}/opening{j + 1:02d}",
+                        g.polyline_segments(line) * M_PER_MM,
+                        g.ENV_RGB,
+                        thickness=2.0,
+                        thickness_units="screen",
+                    )
+                    drawn.append(line)
+            elif isinstance(o, Box):
+                self._add(
+                    "add_box",
+                    name,
+                    color=g.ENV_RGB,
+                    dimensions=tuple(o.size * M_PER_MM),
+                    opacity=0.35,
+                    wxyz=g.box_wxyz(o),
+                    position=tuple(o.centre * M_PER_MM),
+                    cast_shadow=False,
+                    receive_shadow=False,
+                )
+                drawn.append(o.centre[None] + 0.5 * o.size[None])
+                drawn.append(o.centre[None] - 0.5 * o.size[None])
+        return np.concatenate(drawn) if drawn else np.zeros((0, 3))
+
+    def _place(self, handles: list[Any], O: np.ndarray, colours: np.ndarray | None) -> None:
+        """Put the link cylinders ``handles`` on joint centres ``O``; only what changed is
+        sent (a live pose: positions and orientations, a colour when its band changes)."""
+        c, q, h = g.link_cylinders(O)
+        state = self._sent.setdefault(id(handles), {})
+        for i, hd in enumerate(handles):
+            hd.position = tuple(c[i] * M_PER_MM)
+            hd.wxyz = tuple(q[i])
+            height = round(float(h[i]) * M_PER_MM, 7)
+            if state.get(("h", i)) != height:
+                hd.height = state[("h", i)] = height
+            if colours is not None:
+                rgb = tuple(int(x) for x in colours[i])
+                if state.get(("c", i)) != rgb:
+                    hd.color = state[("c", i)] = rgb
+            if not state.get(("v", i)):
+                hd.visible = state[("v", i)] = True
+
+    def clearance_mm(self, O: np.ndarray) -> np.ndarray:
+        """(12,) link clearance (mm) of joint centres ``O`` (13, 3) against the
+        environment (+inf where none is known)."""
+        if self.environment is None:
+            return np.full(len(O) - 1, math.inf)
+        return link_clearance(self.environment, O[None], self.radius_mm)[0]
+
+    def _show_clearance(self, c: np.ndarray) -> None:
+        self.last_clearance_mm = c
+        if np.isfinite(c).any():
+            i = int(np.argmin(c))
+            self._clearance_text.value = f"{c[i]:.1f} mm (link {i + 1})"
+        else:
+            self._clearance_text.value = "no obstacle known"
+
+    def show_step(self, step: int) -> None:
+        """Show the plan's arm at ``step`` (0-based): the arm itself, or with ``live`` the
+        translucent planned arm beside the estimated one."""
+        if self.plan is None:
+            raise ViewError("no plan: no steps to show")
+        if not 0 <= step < self.plan.n_steps:
+            raise ViewError(f"step must be 0..{self.plan.n_steps - 1}, got {step}")
+        p = self.plan
+        O = p.joints_mm[step]
+        with self._lock, self.server.atomic():
+            self.step = step
+            if self.live:
+                self._place(self._planned, O, None)
+            else:
+                c = self.clearance_mm(O)
+                self._place(self._arm, O, g.clearance_colours(c))
+                self._show_clearance(c)
+            self._step_text.value = f"{p.travel_mm[step]:.1f} mm ({p.phase[step].value})"
+            bb = p.backbones_mm.get(step)
+            if bb is not None:
+                seg = g.polyline_segments(bb) * M_PER_MM
+                if self._backbone is None:
+                    self._backbone = self._add(
+                        "add_line_segments",
+                        "/plan/backbone",
+                        seg,
+                        g.BACKBONE_RGB,
+                        thickness=2.0,
+                        thickness_units="screen",
+                    )
+                else:
+                    self._backbone.points = seg
+                    self._backbone.visible = True
+            elif self._backbone is not None:
+                self._backbone.visible = False
+
+    # ------------------------------------------------------------------ live
+    def update(self, alpha: np.ndarray, theta: np.ndarray) -> bool:
+        """Show the arm at joint angles ``alpha``, ``theta`` (rad, 12 each), coloured by
+        clearance; thread-safe.  At most ``max_rate_hz`` poses a second reach the
+        browser: a call sooner after the last one shown keeps its pose for the next call
+        or :meth:`flush` and returns False.  A pose within :data:`SAME_POSE_MM` of the
+        one shown sends nothing; the clearance is recomputed once a joint has moved
+        :data:`CLEARANCE_REUSE_MM` (the colours and the worst value shown are off by less)."""
+        a = np.asarray(alpha, dtype=float).reshape(-1)
+        t = np.asarray(theta, dtype=float).reshape(-1)
+        n = self.model.n_joints
+        if (
+            a.shape != (n,)
+            or t.shape != (n,)
+            or not (np.isfinite(a).all() and np.isfinite(t).all())
+        ):
+            raise ViewError(f"update: alpha and theta must be {n} finite angles each")
+        with self._lock:
+            self.updates += 1
+            if self._closed:
+                return False
+            now = self._clock()
+            if now - self._last_push < self._min_dt_s:
+                self._pending = (a, t)
+                return False
+            self._last_push = now
+            self._pending = None
+            self._push(a, t)
+            return True
+
+    def flush(self) -> bool:
+        """Show the pose an :meth:`update` held back, if any; True if one was shown."""
+        with self._lock:
+            if self._pending is None or self._closed:
+                return False
+            a, t = self._pending
+            self._pending = None
+            self._last_push = self._clock()
+            self._push(a, t)
+            return True
+
+    def _push(self, a: np.ndarray, t: np.ndarray) -> None:
+        O = joint_centres(self.model, a, t)
+        moved = math.inf if self._pushed_O is None else float(np.abs(O - self._pushed_O).max())
+        if moved < SAME_POSE_MM:  # a held arm: nothing to send
+            return
+        # Clearance is 1-Lipschitz in the joints (a free distance along segments): within
+        # CLEARANCE_REUSE_MM of the pose it was computed for, it is off by less than that.
+        if self._clearance_O is None or float(np.abs(O - self._clearance_O).max()) >= (
+            CLEARANCE_REUSE_MM
+        ):
+            self._clearance = self.clearance_mm(O)
+            self._clearance_O = O
+        c = self._clearance
+        with self.server.atomic():
+            self._place(self._arm, O, g.clearance_colours(c))
+            self._show_clearance(c)
+        self._pushed_O = O
+        self.pushes += 1
+
+    @property
+    def arm_links(self) -> tuple[Any, ...]:
+        """The scene handles of the arm shown (``/arm/linkNN``): ``position`` (m),
+        ``wxyz``, ``height`` (m), ``color``, ``visible``."""
+        return tuple(self._arm)
+
+    def scene_names(self) -> list[str]:
+        """The names of the scene nodes this view added, in the order added."""
+        return list(self._names)
+
+    # ------------------------------------------------------------------ life
+    def close(self) -> None:
+        """Stop the server (idempotent)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
+            self.server.stop()
+
+    def __enter__(self) -> ArmView:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,152 @@
+"""The CAN log formats python-can writes (issue 11): every format ``--log-format`` offers is
+written by :class:`drivers.bus.TrafficLog` and read back by ``can.LogReader`` with the same
+frames, in python-can's channel numbering (the first bus, can0, is channel 0: ``1`` in an
+ASC file, ``can0`` in a candump ``.log``); the text formats stay crash-safe like ASC."""
+
+from __future__ import annotations
+
+import importlib.util
+import time
+from pathlib import Path
+
+import can
+import pytest
+
+from drivers.bus import LOG_FORMAT_DURABILITY, LOG_FORMATS_ALWAYS, TrafficLog, log_formats
+
+HAS_ASAMMDF = importlib.util.find_spec("asammdf") is not None
+
+
+def frames(t0: float, remote: bool) -> list[tuple[can.Message, bool]]:
+    """(frame, sent by the host) pairs: standard and extended ids, 0..8 data bytes, both
+    directions, and with ``remote`` a remote frame (TRC's writer leaves those out)."""
+    out = []
+    for k in range(24):
+        out.append(
+            (
+                can.Message(
+                    arbitration_id=(0x18FF0000 + k) if k % 7 == 3 else 0x181 + k,
+                    is_extended_id=k % 7 == 3,
+                    data=bytes(range(k % 9)),
+                    timestamp=t0 + 0.01 * k,
+                    is_rx=k % 3 != 0,
+                    channel="virtual-name-the-log-renumbers",
+                ),
+                k % 3 == 0,
+            )
+        )
+    if remote:
+        msg = can.Message(arbitration_id=0x701, is_remote_frame=True, dlc=1, timestamp=t0 + 1)
+        out.append((msg, False))
+    return out
+
+
+def key(m: can.Message) -> tuple:
+    return (m.arbitration_id, m.is_extended_id, m.is_remote_frame, bytes(m.data), m.is_rx)
+
+
+def write_log(path: Path, channel: int, msgs: list[tuple[can.Message, bool]]) -> TrafficLog:
+    log = TrafficLog(path, channel=channel)
+    for msg, sent in msgs:
+        (log.log_sent if sent else log.on_message_received)(msg)
+    log.stop()
+    return log
+
+
+def test_the_offered_formats_are_python_cans() -> None:
+    assert LOG_FORMATS_ALWAYS == ("blf", "asc", "log", "trc")
+    assert log_formats() == LOG_FORMATS_ALWAYS + (("mf4",) if HAS_ASAMMDF else ())
+    for fmt in log_formats():
+        assert f".{fmt}" in can.io.logger.MESSAGE_WRITERS  # python-can writes it
+        assert fmt in LOG_FORMAT_DURABILITY  # and the docs say what a kill leaves of it
+
+
+@pytest.mark.parametrize("fmt", log_formats())
+def test_each_format_reads_back_the_same_frames(tmp_path: Path, fmt: str) -> None:
+    t0 = time.time() + 1.0  # after the log opens (BLF keeps times relative to its start)
+    msgs = frames(t0, remote=fmt != "trc")
+    log = write_log(tmp_path / f"bus.{fmt}", 1, msgs)
+    assert log.write_errors == 0 and log.n_frames == len(msgs) and log.n_lost == 0
+    back = list(can.LogReader(tmp_path / f"bus.{fmt}"))
+    assert [key(m) for m in back] == [key(m) for m, _ in msgs]
+    rel = [m.timestamp - back[0].timestamp for m in back]
+    assert rel == pytest.approx([m.timestamp - t0 for m, _ in msgs], abs=2e-6)
+
+
+@pytest.mark.parametrize("fmt", ["asc", "log", "blf"])
+def test_can0_is_channel_0_as_python_can_numbers_it(tmp_path: Path, fmt: str) -> None:
+    """The session gives bus k the log channel k + 1 (as an ASC file shows it): python-can
+    reads can0 back as channel 0 and can1 as 1; a candump log names them can0 and can1."""
+    t0 = time.time()
+    for bus in (0, 1):
+        write_log(tmp_path / f"can{bus}.{fmt}", bus + 1, frames(t0, remote=True))
+    for bus in (0, 1):
+        back = list(can.LogReader(tmp_path / f"can{bus}.{fmt}"))
+        want: int | str = f"can{bus}" if fmt == "log" else bus
+        assert {m.channel for m in back} == {want}
+    if fmt == "asc":
+        line = next(x for x in (tmp_path / "can0.asc").read_text().splitlines() if "181" in x)
+        assert line.split()[1] == "1"  # CANalyzer's first channel
+    if fmt == "log":
+        first = (tmp_path / "can1.log").read_text().splitlines()[0]
+        assert first.split()[1] == "can1"
+
+
+@pytest.mark.parametrize("fmt", ["log", "trc"])
+def test_a_text_log_cut_at_any_page_boundary_reads_back_whole_frames(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fmt: str
+) -> None:
+    """candump and TRC logs are written like ASC: whole lines, none across a page, at most
+    FLUSH_S behind; a SIGKILL cuts a write(2) only between pages."""
+    monkeypatch.setattr(TrafficLog, "FLUSH_S", 0.002)  # many flushes: many cut writes
+    path = tmp_path / f"x.{fmt}"
+    log = TrafficLog(path)
+    t0 = time.time()
+    n = 0
+    for k in range(60):
+        for j in range(37):
+            msg = can.Message(
+                arbitration_id=0x181 + j % 18,
+                data=bytes([k % 256, j, 1, 2, 3, 4, 5, 6][: 1 + (k + j) % 8]),
+                timestamp=t0 + k * 0.01 + j * 1e-5,
+                is_extended_id=False,
+            )
+            (log.log_sent if j % 3 == 0 else log.on_message_received)(msg)
+            n += 1
+        if k % 5 == 0:
+            time.sleep(0.004)
+    log.stop()
+    assert log.write_errors == 0 and log.n_frames == n
+    full = [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(path)]
+    assert len(full) == n
+    data = path.read_bytes()
+    page = TrafficLog.PAGE_BYTES
+    assert len(data) > 8 * page
+    cut = tmp_path / f"cut.{fmt}"
+    for size in range(page, len(data), page):
+        cut.write_bytes(data[:size])
+        got = [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(cut)]
+        assert got == full[: len(got)], f"cut at {size}: frames differ"
+        assert len(got) >= (size - page) // 64  # every line is < 64 bytes: no frame lost early
+
+
+def test_a_text_log_is_on_disk_within_the_flush_period(tmp_path: Path) -> None:
+    """What a kill -9 would find: the frames handed over, in the file after FLUSH_S."""
+    path = tmp_path / "live.log"
+    log = TrafficLog(path)
+    try:
+        msg = can.Message(arbitration_id=0x181, data=b"\x01", timestamp=1.0, is_extended_id=False)
+        log.on_message_received(msg)
+        deadline = time.monotonic() + 10.0  # generous: the writer thread on a busy machine
+        while time.monotonic() < deadline and "181#01" not in path.read_text():
+            time.sleep(TrafficLog.FLUSH_S / 4)
+        assert "(1.000000) can0 181#01 R" in path.read_text()
+    finally:
+        log.stop()
+
+
+@pytest.mark.skipif(HAS_ASAMMDF, reason="asammdf is installed: mf4 is offered")
+def test_mf4_without_asammdf_is_refused_naming_the_formats(tmp_path: Path) -> None:
+    with pytest.raises(Exception, match=r"must end in \.blf, \.asc, \.log, \.trc \(python-can"):
+        TrafficLog(tmp_path / "x.mf4")
+    assert not (tmp_path / "x.mf4").exists()

@@ -1,0 +1,168 @@
+"""PausableSource (drivers/sources.py): pause, resume and abort along the path, never a
+setpoint beyond a motor's speed or acceleration limit (checked as the supervisor checks)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from drivers.safety.limits import SetpointError, first_too_hard
+from drivers.sources import CountsSource, PausableSource, PlayState
+from hrm_ctrl.model import default_robot
+from hrm_ctrl.ropes.actuation import load_actuation
+
+T = 0.01
+FIXTURE = [HealthCheck.function_scoped_fixture]
+
+
+@pytest.fixture(scope="module")
+def act():
+    return load_actuation(default_robot())
+
+
+def _bang_bang_body(act, cruise: int = 40) -> np.ndarray:
+    """Every motor accelerating and braking at (the floor of) its limit up to 90 % of its
+    speed: the hardest table for a pause, the second difference at the limit wherever it
+    is not zero."""
+    a = np.floor(act.max_accel_counts_per_s2 * T**2).astype(np.int64)  # counts/cycle^2
+    q = int(0.9 * act.max_rate_counts_per_s[0] * T // a[0])
+    sign = np.where(np.arange(act.n_motors) % 2 == 0, 1, -1)
+    profile = [0] + [1] * q + [0] * cruise + [-1] * (2 * q) + [0] * cruise + [1] * q
+    acc = np.array(profile, dtype=np.int64)[:, None] * (a * sign)[None, :]
+    vel = np.cumsum(acc, axis=0)
+    return np.cumsum(vel, axis=0).astype(np.int64)
+
+
+def _play(src, actual, events, max_cycles=20000):
+    """Play ``src`` as the supervisor does; ``events``: {cycle: method name}."""
+    out = []
+    src.start(actual, T)
+    for k in range(max_cycles):
+        if k in events:
+            getattr(src, events[k])()
+        p = src.setpoint(k)
+        if p is None:
+            return np.array(out)
+        out.append(np.array(p))
+    raise AssertionError("the source never ended")
+
+
+def _check_like_supervisor(act, actual, out):
+    act.check_counts(out, previous=actual, dt_s=T)  # positions, speeds, accelerations
+    assert first_too_hard(act, out, T, previous=actual) is None  # from rest, too
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=FIXTURE)
+@given(
+    pause_at=st.integers(1, 150),
+    paused_for=st.integers(0, 80),
+    ramp_s=st.sampled_from([0.05, 0.2, 0.5]),
+    second=st.booleans(),
+)
+def test_pause_resume_within_limits(act, pause_at, paused_for, ramp_s, second):
+    body = _bang_bang_body(act)
+    actual = body[0].copy()
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.05), act, ramp_s=ramp_s)
+    events = {pause_at: "pause", pause_at + paused_for: "resume"}
+    if second:  # a second pause while it speeds up again
+        events[pause_at + paused_for + 3] = "pause"
+        events[pause_at + paused_for + 60] = "resume"
+    out = _play(src, actual, events)
+    _check_like_supervisor(act, actual, out)
+    assert src.state is PlayState.DONE
+    assert np.array_equal(out[-1], src.inner.table[-1])  # it still gets to the end
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=FIXTURE)
+@given(abort_at=st.integers(1, 155), pause_first=st.booleans())
+def test_abort_stops_on_the_path_within_limits(act, abort_at, pause_first):
+    body = _bang_bang_body(act)
+    actual = body[0].copy()
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act)
+    events = {abort_at: "abort"}
+    if pause_first and abort_at > 5:
+        events[abort_at - 5] = "pause"
+    out = _play(src, actual, events)
+    _check_like_supervisor(act, actual, out)
+    table = src.inner.table
+    if src.state is PlayState.ABORTED:
+        assert len(out) < len(table) + 200
+        # at rest at the end, on the path: between the two rows around the stop position
+        assert np.array_equal(out[-1], out[-2])
+        i = int(np.floor(src.position))
+        j = min(i + 1, len(table) - 1)
+        lo = np.minimum(table[i], table[j]) - 1
+        hi = np.maximum(table[i], table[j]) + 1
+        assert ((out[-1] >= lo) & (out[-1] <= hi)).all()
+    else:  # the table ended while it slowed down
+        assert src.state is PlayState.DONE
+
+
+def test_full_rate_plays_the_table_unchanged(act):
+    body = _bang_bang_body(act, 10)
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act)
+    out = _play(src, body[0].copy(), {})
+    assert np.array_equal(out, src.inner.table)
+
+
+def test_long_pause_aborts(act):
+    body = _bang_bang_body(act)
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act, max_pause_s=0.3)
+    out = _play(src, body[0].copy(), {30: "pause"})  # while it cruises
+    assert src.state is PlayState.ABORTED
+    assert src.abort_reason == "paused longer than 0.3 s"
+    assert src.describe()["play_state"] == "aborted"
+    assert 30 + 40 <= len(out) <= 30 + 50 + 31 + 3  # the ramp (0.5 s: 50 cycles), 0.3 s at rest
+
+
+def test_bad_ramp_refused(act):
+    body = _bang_bang_body(act, 2)
+    with pytest.raises(SetpointError, match="pause ramp"):
+        PausableSource(CountsSource(act, body, T), act, ramp_s=0.0)
+
+
+@settings(max_examples=10, deadline=None, suppress_health_check=FIXTURE)
+@given(abort_at=st.integers(5, 150))
+def test_way_back_is_a_table_within_the_limits_to_the_start(act, abort_at):
+    body = _bang_bang_body(act)
+    actual = body[0].copy()
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act)
+    events = {abort_at // 2: "pause", abort_at // 2 + 20: "resume", abort_at: "abort"}
+    out = _play(src, actual, events)
+    back = src.way_back()
+    assert np.array_equal(back[0], out[-1]) and np.array_equal(back[-1], actual)
+    same = np.all(back[1:] == back[:-1], axis=1)
+    assert not (same[1:] & same[:-1]).any()  # no stretch at rest longer than two rows
+    ret = CountsSource(act, back, T, name="return", hold_s=0.0)
+    ret.start(out[-1].copy(), T)  # checked from rest where the arm stands: no lead-in
+    assert ret.n_lead_in == 0
+    _check_like_supervisor(act, out[-1], ret.table)
+
+
+def test_abort_while_paused_and_resume_while_pausing(act):
+    body = _bang_bang_body(act)
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act, ramp_s=0.1)
+    src.start(body[0].copy(), T)
+    states = []
+    k = 0
+    for k in range(30):
+        if k == 25:
+            src.pause()
+        src.setpoint(k)
+    src.resume()  # before it came to rest: speeds up again, never PAUSED
+    while src.setpoint(k := k + 1) is not None and k < 2000:
+        states.append(src.state)
+    assert src.state is PlayState.DONE and PlayState.PAUSED not in states
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act, ramp_s=0.1)
+    src.start(body[0].copy(), T)
+    src.pause()
+    for k in range(200):
+        src.setpoint(k)
+    assert src.state is PlayState.PAUSED and src.requested == "pause"
+    src.abort()  # at rest: ends at once (next cycle)
+    assert src.setpoint(200) is not None and src.state is PlayState.ABORTED
+    assert src.setpoint(201) is None
+    src.resume()  # too late: stays aborted
+    assert src.requested == "abort" and src.setpoint(202) is None

@@ -1,0 +1,165 @@
+"""The console's ``run`` (pause / resume / abort from its script arguments), ``return``
+and ``log`` (list, show, replay) on the in-process simulated box."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from hrm_ctrl.cli._console.shell import run_script
+from hrm_ctrl.cli._console.table import ConsoleError
+from tests.hrm_ctrl.cli.cli_helpers import small_plan
+
+
+def _relaxed_box(tmp_path: Path) -> Path:
+    """The shipped box with watchdogs that bear a loaded test machine."""
+    import drivers
+
+    box = (Path(drivers.__file__).parent / "data" / "box.toml").read_text()
+    box = box.replace("heartbeat_timeout_ms = 350", "heartbeat_timeout_ms = 2000")
+    box = box.replace("missing_tpdo_cycles = 3 ", "missing_tpdo_cycles = 25 ")
+    assert "heartbeat_timeout_ms = 2000" in box and "missing_tpdo_cycles = 25" in box
+    p = tmp_path / "box.toml"
+    p.write_text(box)
+    return p
+
+
+def run(ctx: object, *lines: str) -> None:
+    run_script(ctx, list(lines), "test")
+
+
+@pytest.fixture
+def plan(tmp_path: Path) -> Path:
+    p = tmp_path / "small.json"
+    p.write_text(json.dumps(small_plan()))
+    return p
+
+
+def _positions(ctx: object) -> np.ndarray:
+    return np.array([ctx.sim.drives[m].position_counts for m in ctx.actuation.motor_ids])
+
+
+@pytest.mark.slow
+def test_run_pause_resume_then_return_to_the_start(make_ctx, plan: Path, tmp_path: Path) -> None:
+    ctx = make_ctx("--config", str(_relaxed_box(tmp_path)))
+    run(ctx, "connect", "enable")
+    start = _positions(ctx)
+    run(ctx, f"run {plan} --speed 10 --pause-at 30% --resume-after 0.3s")
+    done = [x for x in ctx.lines if x.startswith(f"run {plan}: done")]
+    assert done and "paused" in done[0] and "paused 0.00 s" not in done[0]
+    figs = [x for x in ctx.lines if x.startswith("figures: ")]
+    assert figs
+    folder = Path(figs[0].split()[1])
+    assert {p.name for p in folder.glob("*.png")} == {"angles.png", "tracking.png", "lateness.png"}
+    moved = _positions(ctx)
+    assert np.abs(moved - start).max() > 1000  # the plan moved the ropes
+    run(ctx, "return")
+    assert any(x.startswith("return: back at the start") for x in ctx.lines)
+    back = _positions(ctx)
+    # the drives' own positions: where the run started, within the following error of
+    # a position loop at rest (none for the simulated drive: exactly)
+    assert np.array_equal(back, start)
+    with pytest.raises(ConsoleError, match="no run to return from"):
+        run(ctx, "return")
+
+
+@pytest.mark.slow
+def test_run_abort_stops_on_the_path_and_log_lists_it(make_ctx, plan: Path, tmp_path: Path) -> None:
+    ctx = make_ctx("--config", str(_relaxed_box(tmp_path)))
+    run(ctx, "connect", "enable", f"run {plan} --speed 10 --abort-at 20% --no-figures")
+    aborted = [x for x in ctx.lines if "aborted by the operator: stopped on the path" in x]
+    assert aborted and "plan step" in aborted[0]
+    run(ctx, "disconnect", "log")
+    rows = [x for x in ctx.lines if x.strip().startswith("1 ")]
+    assert rows and "small.json" in rows[0] and "aborted" in rows[0]
+    run(ctx, "log show 1")
+    assert any(x.startswith("play: aborted") for x in ctx.lines)
+    with pytest.raises(ConsoleError, match="run 9: the log lists 1 run"):
+        run(ctx, "log show 9")
+
+
+def _frames(path: str) -> list[tuple[int, bytes]]:
+    with can.LogReader(path) as reader:
+        return [(m.arbitration_id, bytes(m.data)) for m in reader if not m.is_error_frame]
+
+
+@pytest.mark.slow
+def test_log_replay_sends_the_logged_frames_in_order(make_ctx, tmp_path: Path) -> None:
+    ctx = make_ctx("--config", str(_relaxed_box(tmp_path)))
+    run(ctx, "connect", "disconnect")  # a short session: bring-up traffic only
+    record = json.loads(Path(ctx.last_run).read_text())
+    got: dict[str, list[tuple[int, bytes]]] = {"can0": [], "can1": []}
+    buses = {name: can.Bus(interface="virtual", channel=f"h7-replay-test-{name}") for name in got}
+    stop = threading.Event()
+
+    def listen(name: str) -> None:
+        while not stop.is_set():
+            m = buses[name].recv(0.05)
+            if m is not None:
+                got[name].append((m.arbitration_id, bytes(m.data)))
+
+    threads = [threading.Thread(target=listen, args=(n,), daemon=True) for n in got]
+    for t in threads:
+        t.start()
+    try:
+        run(ctx, "log replay 1 --bus can0=virtual:h7-replay-test-can0 "
+                 "--bus can1=virtual:h7-replay-test-can1")  # fmt: skip
+    finally:
+        import time
+
+        time.sleep(0.3)
+        stop.set()
+        for t in threads:
+            t.join(2.0)
+        for b in buses.values():
+            b.shutdown()
+    for name, logged in zip(("can0", "can1"), record["can_logs"], strict=True):
+        want = _frames(logged)
+        assert len(want) > 100  # NMT, SDO configuration, heartbeats
+        assert got[name] == want  # the same frames, in the same order
+    assert any(x.startswith("replayed ") and "can0" in x for x in ctx.lines)
+
+
+def test_log_replay_refuses_the_live_sessions_bus(make_ctx, tmp_path: Path) -> None:
+    ctx = make_ctx("--config", str(_relaxed_box(tmp_path)))
+    run(ctx, "connect", "disconnect", "connect")
+    bus0 = ctx.config.buses[0]
+    with pytest.raises(ConsoleError, match="this console's session drives that bus"):
+        run(ctx, f"log replay 1 --bus {bus0.name}={bus0.interface}:{bus0.channel}")
+    with pytest.raises(ConsoleError, match="the run has no bus 'nope'"):
+        run(ctx, "log replay 1 --bus nope=virtual:x")
+
+
+def test_check_reports_each_limit_and_refuses_a_broken_plan(make_ctx, plan: Path) -> None:
+    ctx = make_ctx()
+    run(ctx, f"check {plan} 20")  # needs no session
+    text = "\n".join(ctx.lines)
+    for what in ("joint limits: ok", "rope travel: ok", "motor speed: ok",
+                 "motor acceleration: ok", "clearance: no environment"):  # fmt: skip
+        assert what in text
+    assert ctx.lines[-1] == f"{plan}: ok to run at up to 20 mm/s"
+    bad = json.loads(plan.read_text())
+    bad["steps"][-1]["alpha_rad"] = [1.2] * 12  # 68.8 deg: beyond the 60 deg limit
+    broken = plan.with_name("broken.json")
+    broken.write_text(json.dumps(bad))
+    with pytest.raises(ConsoleError, match=r"broken.json: \d problem\(s\)"):
+        run(ctx, f"check {broken}")
+    assert any(x.startswith("joint limits: BROKEN") for x in ctx.lines)
+    with pytest.raises(ConsoleError, match="SPEED_MM_S must be > 0"):
+        run(ctx, f"check {plan} -3")
+
+
+@pytest.mark.slow
+def test_plan_is_hrm_plan(make_ctx, tmp_path: Path) -> None:
+    ctx = make_ctx()
+    out = tmp_path / "p.json"
+    run(ctx, f"plan --scenario bent-pipe --out {out}")
+    assert json.loads(out.read_text())["format"] == "hrm-plan/1"
+    assert ctx.lines  # the plan's report
+    with pytest.raises(ConsoleError, match=r"plan: .*--scenario"):
+        run(ctx, "plan --scenario")

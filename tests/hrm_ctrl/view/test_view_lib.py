@@ -1,0 +1,178 @@
+"""The view library (hrm_ctrl/view): the scene built from a plan, the clearance colours
+against link_clearance on a hand case, the update() rate bound, bad input.  The server
+is real (viser on 127.0.0.1, port 0); what it holds is read from its scene handles."""
+
+from __future__ import annotations
+
+import socket
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hrm_ctrl.formats.planfile import PlanDoc
+from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.model import default_robot
+from hrm_ctrl.planning.environment import Box, Environment, link_clearance
+from hrm_ctrl.view import geometry as g
+from hrm_ctrl.view.server import M_PER_MM, ArmView, ViewError
+
+MODEL = default_robot()
+R = 0.5 * MODEL.outer_diameter  # link radii (15 mm)
+
+
+def _box_beside(link: int, gap_mm: float) -> Box:
+    """A 40 mm cube beside the middle of 1-based ``link`` of the straight arm (along +x),
+    ``gap_mm`` from the link's surface (in +y)."""
+    O = joint_centres(MODEL, np.zeros(12), np.zeros(12))
+    mid = 0.5 * (O[link - 1] + O[link])
+    return Box(mid + np.array([0.0, R[link - 1] + gap_mm + 20.0, 0.0]), np.full(3, 40.0))
+
+
+def _plan(steps: int, env: Environment | None) -> PlanDoc:
+    """A plan of ``steps`` steps bending every alpha from 0 to 10 deg, joints by Eq. 4."""
+    out = []
+    for k in range(steps):
+        a = np.full(12, np.deg2rad(10.0) * k / max(steps - 1, 1))
+        t = np.zeros(12)
+        out.append(
+            {
+                "travel_mm": 5.0 * k,
+                "alpha_rad": a.tolist(),
+                "theta_rad": t.tolist(),
+                "joints_mm": joint_centres(MODEL, a, t).tolist(),
+            }
+        )
+    doc: dict[str, Any] = {
+        "format": "hrm-plan/1",
+        "robot": {"links_mm": [float(v) for v in MODEL.links]},
+        "path_mm": [[2007.0, 0.0, 0.0], [2100.0, 0.0, 0.0]],
+        "steps": out,
+        "report": {},
+    }
+    if env is not None:
+        doc["scenario"] = {"environment": env.to_dict()}
+    return PlanDoc.from_dict(doc)
+
+
+def _centres_m(view: ArmView) -> np.ndarray:
+    return np.array([h.position for h in view.arm_links])
+
+
+def test_scene_from_a_plan_holds_environment_path_and_arm_at_the_step() -> None:
+    env = Environment((_box_beside(3, 50.0),))
+    plan = _plan(5, env)
+    with ArmView(MODEL, plan.environment, plan, step=2) as view:
+        assert view.url == f"http://127.0.0.1:{view.port}/" and view.port > 0
+        names = view.scene_names()
+        assert "/env/box01" in names and "/plan/path" in names
+        assert [f"/arm/link{i:02d}" for i in range(1, 13)] == [
+            n for n in names if n.startswith("/arm/")
+        ]
+        c, _q, h = g.link_cylinders(plan.joints_mm[2])
+        assert np.allclose(_centres_m(view), c * M_PER_MM, atol=1e-9)
+        assert np.allclose([hd.height for hd in view.arm_links], h * M_PER_MM, atol=1e-6)
+        assert all(hd.visible for hd in view.arm_links)
+        view.show_step(4)  # what the slider does
+        c4 = g.link_cylinders(plan.joints_mm[4])[0]
+        assert np.allclose(_centres_m(view), c4 * M_PER_MM, atol=1e-9)
+        assert np.abs(c4 - c)[-1].max() > 50.0  # the tip moved: the step shown changed
+
+
+def test_link_cylinder_turns_z_onto_the_link() -> None:
+    O = joint_centres(MODEL, np.full(12, 0.2), np.full(12, -0.1))
+    _c, q, h = g.link_cylinders(O)
+    for i in range(12):
+        w, x, y, z = q[i]
+        # rotate +z by the quaternion
+        v = np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+        d = (O[i + 1] - O[i]) / h[i]
+        assert np.allclose(v, d, atol=1e-12)
+
+
+def test_clearance_colours_match_link_clearance_on_a_hand_case() -> None:
+    # link 3 is 2 mm into a box, link 7 is 3 mm off another, link 10 is 30 mm off a third
+    env = Environment((_box_beside(3, -2.0), _box_beside(7, 3.0), _box_beside(10, 30.0)))
+    a = t = np.zeros(12)
+    c = link_clearance(env, joint_centres(MODEL, a, t)[None], R)[0]
+    assert c[2] == pytest.approx(-2.0, abs=1e-3)
+    assert c[6] == pytest.approx(3.0, abs=1e-3)
+    assert c[9] == pytest.approx(30.0, abs=1e-3)
+    with ArmView(MODEL, env, live=True) as view:
+        assert not any(h.visible for h in view.arm_links)  # nothing before the first pose
+        assert view.update(a, t)
+        colours = [tuple(int(v) for v in h.color) for h in view.arm_links]
+        assert np.allclose(view.last_clearance_mm, c)
+    want = [g.BAND_RGB[g.clearance_band(v)] for v in c]
+    assert colours == want
+    assert colours[2] == g.BAND_RGB[g.ClearanceBand.COLLISION]
+    assert colours[6] == g.BAND_RGB[g.ClearanceBand.CLOSE]
+    assert colours[9] == g.BAND_RGB[g.ClearanceBand.CLEAR]
+    assert g.clearance_colours(np.full(2, np.inf)).tolist() == [list(g.BAND_RGB["free"])] * 2
+
+
+def test_update_is_bounded_to_its_rate_and_flush_shows_the_last_pose() -> None:
+    now = [0.0]
+    with ArmView(MODEL, None, live=True, max_rate_hz=30.0, clock=lambda: now[0]) as view:
+        shown = 0
+        for k in range(200):  # 200 poses in 0.2 s (1 kHz)
+            now[0] = 0.001 * k
+            shown += view.update(np.full(12, 0.001 * k), np.zeros(12))
+        assert view.updates == 200
+        assert shown == view.pushes
+        assert 6 <= view.pushes <= 0.2 * 30.0 + 1  # every 1/30 s, the first at once
+        last = joint_centres(MODEL, np.full(12, 0.199), np.zeros(12))
+        assert not np.allclose(_centres_m(view), g.link_cylinders(last)[0] * M_PER_MM)
+        assert view.flush()
+        assert np.allclose(_centres_m(view), g.link_cylinders(last)[0] * M_PER_MM, atol=1e-9)
+        assert not view.flush()  # nothing held back any more
+        n = view.pushes
+        now[0] = 1.0
+        assert view.update(np.full(12, 0.199), np.zeros(12))  # the same pose again
+        assert view.pushes == n  # nothing sent
+
+
+def test_update_from_threads_is_consistent() -> None:
+    import threading
+
+    with ArmView(MODEL, None, live=True, max_rate_hz=1e6) as view:
+
+        def feed(sign: float) -> None:
+            for k in range(50):
+                view.update(np.full(12, sign * 0.002 * k), np.zeros(12))
+
+        th = [threading.Thread(target=feed, args=(s,)) for s in (1.0, -1.0)]
+        for x in th:
+            x.start()
+        for x in th:
+            x.join(30.0)
+        assert view.updates == 100
+        # every link shows one pose: all centres from the same alpha
+        got = _centres_m(view) / M_PER_MM
+        ok = False
+        for s in (1.0, -1.0):
+            for k in range(50):
+                c = g.link_cylinders(joint_centres(MODEL, np.full(12, s * 0.002 * k), np.zeros(12)))
+                ok |= bool(np.allclose(got, c[0], atol=1e-6))
+        assert ok
+
+
+def test_bad_input_is_refused() -> None:
+    plan = _plan(3, None)
+    with pytest.raises(ViewError, match=r"--step must be 0\.\.2"):
+        ArmView(MODEL, None, plan, step=3)
+    with pytest.raises(ViewError, match="--port"):
+        ArmView(MODEL, None, plan, port=70000)
+    with ArmView(MODEL, None, live=True) as view:
+        with pytest.raises(ViewError, match="12 finite angles"):
+            view.update(np.zeros(11), np.zeros(12))
+        with pytest.raises(ViewError, match="12 finite angles"):
+            view.update(np.full(12, np.nan), np.zeros(12))
+        with pytest.raises(ViewError, match="no plan"):
+            view.show_step(0)
+    with socket.socket() as s:  # a port in use is refused, not silently moved
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        with pytest.raises(ViewError, match=f"--port {port}: the port is in use"):
+            ArmView(MODEL, None, plan, port=port)
