@@ -204,10 +204,13 @@ class NodeMonitor:
             # the nodes that are not (decode_states is ~20 us for 36 nodes)
             bad = (self.statusword & _OE_MASK) != _OE_VALUE
             if bad.any():
-                bad &= self.rx_seq >= 0
-                states = decode_states(self.statusword)
+                # one copy for the test, the decode and the message: a TPDO handled in
+                # between must not give a stop whose message shows the drive enabled
+                words = self.statusword.copy()
+                bad = ((words & _OE_MASK) != _OE_VALUE) & (self.rx_seq >= 0)
+                states = decode_states(words)
                 for i in np.flatnonzero(bad):
-                    sw = int(self.statusword[i])
+                    sw = int(words[i])
                     kind = StopKind.FAULT if sw & SW_FAULT else StopKind.STATE
                     causes.append(
                         StopCause(

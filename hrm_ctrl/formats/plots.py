@@ -43,8 +43,9 @@ from matplotlib.figure import Figure
 from hrm_ctrl.errors import HrmError
 from hrm_ctrl.files import write_atomic
 from hrm_ctrl.formats.planfile import PlanDoc
-from hrm_ctrl.planning.environment import Box, Environment, Pipe, RoundOpening, Wall
+from hrm_ctrl.planning.environment import Box, Environment, Pipe, Wall
 from hrm_ctrl.planning.report import plan_file_clearance
+from hrm_ctrl.view.geometry import circle, wall_shapes
 
 DPI = 110
 BACKBONE_PNG = "backbone.png"
@@ -101,62 +102,9 @@ def _draw_path(ax: Any, data: PlanDoc) -> None:
     ax.plot(p[:, 0], p[:, 1], p[:, 2], color="crimson", lw=2.0, ls="--", label="path")
 
 
-def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors completing unit ``n`` to a right-handed frame."""
-    e = np.eye(3)[int(np.argmin(np.abs(n)))]
-    u = e - (e @ n) * n
-    u /= np.linalg.norm(u)
-    return u, np.cross(n, u)
-
-
-def _circle(c: np.ndarray, n: np.ndarray, r: float, k: int = 48) -> np.ndarray:
-    u, v = _plane_basis(n)
-    a = np.linspace(0.0, 2.0 * np.pi, k + 1)
-    return c + r * (np.cos(a)[:, None] * u + np.sin(a)[:, None] * v)
-
-
-def _clip(poly: np.ndarray, q: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """The convex polygon ``poly`` (k, 3) cut to the side ``(p - q) . m >= 0``."""
-    out = []
-    for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
-        da, db = (a - q) @ m, (b - q) @ m
-        if da >= 0.0:
-            out.append(a)
-        if da * db < 0.0:
-            out.append(a + da / (da - db) * (b - a))
-    return np.array(out).reshape(-1, 3)
-
-
-def _wall_outline(w: Wall, near: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-    """The patch drawn of a wall (a square around its openings, or around the point of
-    the wall nearest ``near``, cut by its bounds) and its openings' outlines."""
-    n = w.normal
-    outlines = []
-    for o in w.openings:
-        c = o.centre - ((o.centre - w.point) @ n) * n
-        if isinstance(o, RoundOpening):
-            outlines.append(_circle(c, n, 0.5 * o.diameter))
-        else:
-            u = o.u - (o.u @ n) * n
-            u /= np.linalg.norm(u)
-            v = np.cross(n, u)
-            hw, hh = 0.5 * o.width, 0.5 * o.height
-            corners = [(-hw, -hh), (hw, -hh), (hw, hh), (-hw, hh), (-hw, -hh)]
-            outlines.append(np.array([c + a * u + b * v for a, b in corners]))
-    if outlines:
-        pts = np.concatenate(outlines)
-        centre = pts.mean(axis=0)
-        half = max(float(np.abs(pts - centre).max()) * 1.6, 60.0)
-    else:
-        centre = near - ((near - w.point) @ n) * n
-        half = 150.0
-    u, v = _plane_basis(n)
-    patch = np.array(
-        [centre + half * (a * u + b * v) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
-    )
-    for q, m in w.bounds:
-        patch = _clip(patch, q, m)
-    return patch, outlines
+# the environment's drawn shapes are the live view's (one place for the geometry)
+_circle = circle
+_wall_outline = wall_shapes
 
 
 def _box_edges(b: Box) -> list[np.ndarray]:

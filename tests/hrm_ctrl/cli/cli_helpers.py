@@ -43,3 +43,19 @@ def run_cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, s
         rc = int(exc.code or 0)
     out, err = capsys.readouterr()
     return rc, out, err
+
+
+#: A long run on the in-process simulated box ends on a watchdog when the shared machine
+#: stalls the whole interpreter (seen on this 2-core VM: heartbeats 1.5 s apart on an idle
+#: machine, at the commit before issue 13 as well): the stop is the safety behaviour
+#: working, and the run tested nothing of what its test asserts.  Such a test is re-run
+#: (at most twice, pytest-rerunfailures) only when it failed on one of these stop causes.
+STALL_RERUN = pytest.mark.flaky(
+    reruns=2,
+    only_rerun=[
+        "no TPDO for",
+        "heartbeat lost",
+        "error code 0x8130",  # a drive lost the host's heartbeat
+        "newest frame is",  # the tension board's frames late
+    ],
+)

@@ -17,6 +17,7 @@ from hrm_ctrl.formats.planfile import PlanDoc, write_plan
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.planning.planner import PlanOptions, plan_path
 from hrm_ctrl.planning.scenarios import scenario
+from tests.hrm_ctrl.cli.cli_helpers import STALL_RERUN
 
 DEMO_SPEED = "50"  # mm/s, hrm demo's default
 PERIOD_S = 0.01
@@ -129,6 +130,7 @@ def test_sensor_garbage_past_the_rate_stops_the_run(
     assert_stopped(record, "tension", "tension sensor /dev/")
 
 
+@STALL_RERUN
 def test_the_whole_bent_pipe_at_the_demo_speed_raises_nothing(
     bent_pipe: Path, tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:
