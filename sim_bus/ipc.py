@@ -211,8 +211,13 @@ class _Counters:
 
 
 def _is_gone(exc: OSError) -> bool:
-    return exc.errno in (errno.EPIPE, errno.ECONNRESET, errno.ECONNREFUSED, errno.ENOENT,
-                         errno.ENOTCONN)
+    return exc.errno in (
+        errno.EPIPE,
+        errno.ECONNRESET,
+        errno.ECONNREFUSED,
+        errno.ENOENT,
+        errno.ENOTCONN,
+    )
 
 
 class IpcBus(can.BusABC):
@@ -255,8 +260,10 @@ class IpcBus(can.BusABC):
             raise can.CanInitializationError(
                 f"hrm_ipc: channel {name!r} must be 1-64 characters of A-Z a-z 0-9 . _ -"
             )
-        if isinstance(rx_queue_size, bool) or not isinstance(rx_queue_size, int) or not (
-            1 <= rx_queue_size <= 10_000_000
+        if (
+            isinstance(rx_queue_size, bool)
+            or not isinstance(rx_queue_size, int)
+            or not (1 <= rx_queue_size <= 10_000_000)
         ):
             raise can.CanInitializationError(
                 f"hrm_ipc channel {name!r}: rx_queue_size must be 1..10000000, "
@@ -271,8 +278,10 @@ class IpcBus(can.BusABC):
                 f"hrm_ipc channel {name!r}: send_wait_s must be 0..1 s, got {send_wait_s!r}"
             )
         self.channel = name
-        if isinstance(send_buffer_bytes, bool) or not isinstance(send_buffer_bytes, int) or not (
-            4096 <= send_buffer_bytes <= 1 << 30
+        if (
+            isinstance(send_buffer_bytes, bool)
+            or not isinstance(send_buffer_bytes, int)
+            or not (4096 <= send_buffer_bytes <= 1 << 30)
         ):
             raise can.CanInitializationError(
                 f"hrm_ipc channel {name!r}: send_buffer_bytes must be 4096..2**30, "
@@ -422,11 +431,7 @@ class IpcBus(can.BusABC):
         self._scan_t = time.time()
         self._n.rescans += 1
         try:
-            names = {
-                e.name
-                for e in os.scandir(self.folder)
-                if e.name.endswith(".sock")
-            }
+            names = {e.name for e in os.scandir(self.folder) if e.name.endswith(".sock")}
         except OSError:
             return
         if not self.receive_own_messages:
@@ -602,9 +607,7 @@ class IpcBus(can.BusABC):
                     events = self._epoll.poll(left)
                 except (OSError, ValueError):
                     if self._closed:
-                        raise can.CanOperationError(
-                            "hrm_ipc: bus closed while receiving"
-                        ) from None
+                        raise can.CanOperationError("hrm_ipc: bus closed while receiving") from None
                     raise
                 if self._closed:
                     raise can.CanOperationError("hrm_ipc: bus closed while receiving")

@@ -205,9 +205,14 @@ class NodeMonitor:
             bad = (self.statusword & _OE_MASK) != _OE_VALUE
             if bad.any():
                 # one copy for the test, the decode and the message: a TPDO handled in
-                # between must not give a stop whose message shows the drive enabled
+                # between must not give a stop whose message shows the drive enabled.
+                # Only the nodes whose TPDO of the due SYNC is in: an older statusword
+                # (e.g. SWITCH_ON_DISABLED from before an enable, its node's first TPDO
+                # of the stream late) says nothing of the drive now; the late node is the
+                # missing-TPDO watch's (seen: a jog after reset-fault and enable stopped
+                # on 16 such stale words while the box was behind)
                 words = self.statusword.copy()
-                bad = ((words & _OE_MASK) != _OE_VALUE) & (self.rx_seq >= 0)
+                bad = ((words & _OE_MASK) != _OE_VALUE) & (self.rx_seq >= last_seq)
                 states = decode_states(words)
                 for i in np.flatnonzero(bad):
                     sw = int(words[i])

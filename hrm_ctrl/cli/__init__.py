@@ -8,7 +8,7 @@ closed stdout (``hrm plan ... | head -1``) ends the command quietly with status 
 (128 + SIGPIPE, as a shell reports for other tools a closed pipe ends).
 
 :func:`main` is the process entry of ``hrm`` (host and ``hrm sim`` alike): it runs the
-command under :func:`drivers.realtime.process_settings` (GIL switch interval 0.2 ms),
+command under :func:`drivers.realtime.process_settings` (GIL switch interval 1 ms),
 the one place the process's interpreter settings change.
 """
 

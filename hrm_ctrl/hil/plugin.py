@@ -21,7 +21,7 @@ Fixtures (``hrm_box*`` module-scoped: one box serves a test module; the rest per
   ``box.toml``; override it in a test module for a smaller box);
 * ``hrm_control``: ``[control]`` keys overriding the production settings (default none;
   a run with overrides is not a run at production settings; with ``--hrm-box inprocess``
-  the TPDO tolerance is ``hrm run --sim``'s 10 cycles and the tension staleness 500 ms);
+  the TPDO tolerance is ``hrm run --sim``'s 25 cycles and the tension staleness 500 ms);
 * ``hrm_box_config``: the box configuration file (``Path``) host and box share;
 * ``hrm_box``: the started box (:class:`~hrm_ctrl.hil.rig.HilBox`: ``command``, ``ready``);
 * ``hrm_host``: a :class:`~hrm_ctrl.hil.rig.HilHost` brought up on the box (the box's

@@ -69,10 +69,10 @@ SETTLE_TIMEOUT_S = 2.5
 
 #: With the box in the test process (``--hrm-box inprocess``) its 36 simulated drives and
 #: its tension board share the host's interpreter: the plugin then runs the tolerances
-#: ``hrm run --sim`` runs with (``hrm_ctrl/cli/_simwire.py``: TPDO tolerance 10 cycles,
+#: ``hrm run --sim`` runs with (``hrm_ctrl/cli/_simwire.py``: TPDO tolerance 25 cycles,
 #: tension staleness 500 ms), says so in a warning, and the run record keeps them.  A box
 #: in its own process runs the production settings.
-INPROCESS_CONTROL: dict[str, Any] = {"missing_tpdo_cycles": 10}
+INPROCESS_CONTROL: dict[str, Any] = {"missing_tpdo_cycles": 25}
 INPROCESS_TENSION_STALE_S = 0.5
 
 

@@ -301,7 +301,7 @@ def test_disk_full_during_a_run_is_one_line_exit_2_and_the_run_record_is_written
     assert record_path.parent == disk and line.endswith(f"; see {record_path}"), line
     record = json.loads(record_path.read_text())  # present, whole, valid JSON
     assert record["format"] == "hrm-run/1"
-    assert record["streams"][0]["completed"] is True
+    assert record["streams"][0]["completed"] is True, record["streams"][0]["causes"]
     names = [Path(p).name for p in record["can_logs"]]
     assert record["can_log_errors"], record["can_log_errors"]
     for e in record["can_log_errors"]:

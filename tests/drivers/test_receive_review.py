@@ -266,3 +266,27 @@ def test_a_receive_thread_killed_by_a_base_exception_stops_the_supervisor() -> N
         c.kind is StopKind.RECEIVE and "sys.exit" in c.text for c in stops[0].causes
     )
     bus.shutdown()
+
+
+def test_a_statusword_from_before_the_due_sync_is_not_judged() -> None:
+    # The reported symptom: after reset-fault and enable, a jog's first cycle stopped on
+    # "j01r2 ...: statusword 0x0250 (SWITCH_ON_DISABLED), expected OPERATION_ENABLED
+    # (+15 more)": words of the TPDOs from before the enable, the nodes' first TPDO of the
+    # stream late.  A node is judged by its TPDO of the due SYNC; a late one is the
+    # missing-TPDO watch's.
+    mon = NodeMonitor(["a", "b"], 3, HB_TIMEOUT_S, clock=Clock(0.0))
+    enabled, disabled = bytes.fromhex("370200000000"), bytes.fromhex("500200000000")
+    mon.on_tpdo(0, disabled, seq=3)
+    mon.on_tpdo(1, disabled, seq=3)
+    mon.on_tpdo(0, enabled, seq=4)  # b's TPDO of SYNC 4 is late
+    causes = mon.check(0.0, 4, None)
+    assert causes == [] and mon.missing_run.tolist() == [0, 1]
+    mon.on_tpdo(1, disabled, seq=5)  # b's TPDO of SYNC 5 says SWITCH_ON_DISABLED: a stop
+    mon.on_tpdo(0, enabled, seq=5)
+    causes = mon.check(0.0, 5, None)
+    assert [(c.kind, c.text) for c in causes] == [
+        (
+            StopKind.STATE,
+            "b: statusword 0x0250 (SWITCH_ON_DISABLED), expected OPERATION_ENABLED",
+        )
+    ]
