@@ -11,8 +11,8 @@ it got (:class:`AppliedSettings`) and restores both on exit.
   5 ms lets one busy thread keep the interpreter lock that long.  The stack's deadlines
   are much shorter: a SYNC every 10 ms at 100 Hz, the simulated drives answering it
   from their bus threads, an ``hrm_sim`` wire node waiting 135 us for a frame at
-  1 Mbit/s.  :data:`SWITCH_INTERVAL_S` (1 ms) hands the lock over within a tenth
-  of a period; shorter costs more than it gives (below).
+  1 Mbit/s.  :data:`SWITCH_INTERVAL_S` (0.2 ms) hands the lock over within a small
+  fraction of a period for a few percent of interpreter overhead.
 * **Scheduling priority** (Linux ``SCHED_FIFO``, best effort): needs ``CAP_SYS_NICE``
   or an ``RLIMIT_RTPRIO`` of at least the priority.  When refused the context carries
   on under normal scheduling and says why (:attr:`AppliedSettings.realtime_refusal`,
@@ -47,17 +47,15 @@ from hrm_ctrl.errors import DriverError
 
 log = logging.getLogger("drivers.realtime")
 
-SWITCH_INTERVAL_S = 1e-3
+SWITCH_INTERVAL_S = 2e-4
 """GIL switch interval the stack's processes run with (CPython default: 5 ms).
 
-A thread waiting for a CAN frame or a control deadline gets the interpreter lock back
-within a tenth of a control period (10 ms at 100 Hz).  Measured on the 2-core development
-machine, ``hrm run --sim`` of the bent-pipe plan (the box, the host and their 13 threads
-in one interpreter), four runs each: at 1 ms the process used 6.6 ms of CPU per 10 ms
-cycle and no run stopped; at 0.2 ms (the value before) 7.8 ms, and 5 of 16 runs were
-stopped by late TPDOs: every forced hand-over is a futex round and a cold cache, and
-the bursts (a rope check, a SYNC's 18 TPDOs) were cut into more of them.  5 ms was no
-better than 1 ms."""
+A thread waiting for a CAN frame or a control deadline must get the interpreter lock
+back within a fraction of a frame time (135 us at 1 Mbit/s) and of a control period
+(10 ms at 100 Hz); 0.2 ms does, for a few percent of interpreter overhead.  A process
+that runs many busy threads besides the control loop (the host with the simulated box in
+the same interpreter) pays more for the hand-overs than it gains: its entry point passes a
+longer interval (``hrm`` with an in-process box: ``hrm_ctrl.cli._simwire``)."""
 
 NORMAL_PRIORITY = 0
 """Realtime priority 0: keep the normal (``SCHED_OTHER``) policy.  The default, because

@@ -4,7 +4,7 @@ the drives are enabled, and report a stop cause through :meth:`NodeMonitor.repor
 A report queues the cause and wakes the supervisor, which quick-stops every axis within
 one control period (``drivers.safety.supervisor``); a watch never runs on the
 supervisor's thread, so its work does not cost the control cycle its deadline beyond
-the interpreter lock (held at most one switch interval, 1 ms, at a time).
+the interpreter lock (held at most one switch interval, 0.2 ms, at a time).
 
 * **Tension** (:class:`drivers.tension_sensor.TensionWatch`, every 10 ms): a rope below
   its slack threshold or above its limit, a stale sensor, or bad data past a rate

@@ -26,6 +26,15 @@ from hrm_ctrl.ropes.actuation import Actuation
 # stopped on a late TPDO on the 2-core machine (the box's 36 drives, the host and 11 other
 # threads in one interpreter use ~0.7 of a core; a busy moment puts the box behind)
 SIM_MISSING_TPDO_CYCLES = 25
+SIM_SWITCH_INTERVAL_S = 1e-3
+"""The GIL switch interval of a command that runs the simulated box in its interpreter
+(``drivers.realtime.SWITCH_INTERVAL_S``, 0.2 ms, elsewhere).  Measured on the 2-core
+development machine, ``hrm run --sim`` of the bent-pipe plan (box, host and their 13
+threads in one interpreter), four runs each: at 1 ms the process used 5.9-7.2 ms of CPU
+per 10 ms cycle and no run stopped; at 0.2 ms 7.5-8.2 ms, and 5 of 16 runs stopped on a
+late TPDO (each forced hand-over is a futex round and a cold cache, and the bursts, a rope
+check or a SYNC's 18 TPDOs, were cut into more of them); 5 ms was no better than 1 ms.
+Across processes (``bench_drivers.py --box-process``) 0.2 ms kept the SYNC jitter lower."""
 SIM_TENSION_STALE_S = 0.5  # the top of the safe range: the board shares this interpreter
 SIM_HEARTBEAT_TIMEOUT_MS = 1000  # the box's heartbeats share this interpreter too (the top: 2 s)
 SIM_WIRES = ("virtual", "hrm_sim")

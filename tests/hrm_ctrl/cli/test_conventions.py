@@ -172,3 +172,26 @@ def test_bad_log_format_or_bus_is_one_line_exit_2(
     if expected is not None:
         assert err.count("\n") == 1 and expected in err, err
     assert not logs.exists() or not list(logs.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("argv", "in_process_box"),
+    [
+        (["run", "plan.json", "--sim"], True),
+        (["demo"], True),
+        (["status", "--sim"], True),
+        (["run", "plan.json"], False),
+        (["sim", "--config", "box.toml"], False),  # the box in its own process
+        (["plan", "--scenario", "bent-pipe"], False),
+    ],
+)
+def test_the_switch_interval_is_the_longer_one_only_with_the_box_in_this_interpreter(
+    argv: list[str], in_process_box: bool
+) -> None:
+    from drivers.realtime import SWITCH_INTERVAL_S
+    from hrm_ctrl.cli import _switch_interval_s, build_parser
+    from hrm_ctrl.cli._simwire import SIM_SWITCH_INTERVAL_S
+
+    args = build_parser().parse_args(argv)
+    want = SIM_SWITCH_INTERVAL_S if in_process_box else SWITCH_INTERVAL_S
+    assert _switch_interval_s(args) == want and SIM_SWITCH_INTERVAL_S > SWITCH_INTERVAL_S
