@@ -195,9 +195,12 @@ class BoxProcess:
     """``hrm sim --control`` in its own process (context manager): started, waited for
     its ``ready`` line, told ``quit`` at the end (killed if it does not go)."""
 
-    def __init__(self, config_path: Path) -> None:
+    def __init__(self, config_path: Path, rt_priority: int = 0) -> None:
+        # the whole box under SCHED_FIFO (every thread of it: what holds its interpreter
+        # lock too) with ``chrt``, as a drive's firmware runs in real time; 0: normal
+        chrt = ["chrt", "-f", str(rt_priority)] if rt_priority > 0 else []
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "hrm_ctrl.cli", "sim", "--config", str(config_path),
+            [*chrt, sys.executable, "-m", "hrm_ctrl.cli", "sim", "--config", str(config_path),
              "--control"],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
@@ -258,6 +261,7 @@ def run(
     missing_tpdo_cycles: int | None = None,
     heartbeat_timeout_ms: int | None = None,
     rt_priority: int = 0,
+    box_rt_priority: int = 0,
     rss_sample_s: float | None = None,
     work: Path | None = None,
 ) -> dict[str, Any]:
@@ -267,7 +271,7 @@ def run(
     work = Path(tempfile.mkdtemp(prefix="bench_drivers_")) if work is None else work
     if box_process:
         kwargs = wire_config(work / f"box_{wire}.toml", cfg, wire)
-        box_ctx: Any = BoxProcess(work / f"box_{wire}.toml")
+        box_ctx: Any = BoxProcess(work / f"box_{wire}.toml", box_rt_priority)
     else:
         from sim_bus.box import SimBox
 
@@ -382,6 +386,7 @@ def run(
             "missing_tpdo_cycles": cfg.control.missing_tpdo_cycles,
             "heartbeat_timeout_ms": cfg.control.heartbeat_timeout_ms,
             "realtime_scheduling": s.get("realtime_scheduling"),
+            "box_sched_fifo_priority": box_rt_priority if box_process else None,
         },
         "bringup_s": [round(b, 3) for b in bringup_s],
         "stream": {
@@ -640,6 +645,15 @@ def main() -> None:
         "--rt-priority", type=int, default=0, help="SCHED_FIFO priority of the supervisor (0: off)"
     )
     ap.add_argument(
+        "--host-rt-priority", type=int, default=0, metavar="PRIORITY",
+        help="this whole process (every thread of the host: supervisor, receive, log writers) "
+        "under SCHED_FIFO at PRIORITY, entered at the process start (0: off)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--box-rt-priority", type=int, default=0, metavar="PRIORITY",
+        help="with --box-process: the box process under SCHED_FIFO at PRIORITY (chrt -f; 0: off)",
+    )  # fmt: skip
+    ap.add_argument(
         "--box-process", action="store_true", help="the simulated box in its own process"
     )
     ap.add_argument("--wire", choices=WIRES, default="ipc", help="with --box-process (ipc)")
@@ -653,17 +667,38 @@ def main() -> None:
     )
     args = ap.parse_args()
     if args.costs:
-        print(json.dumps(cycle_costs(), indent=1))
+        with process_settings():
+            print(json.dumps(cycle_costs(), indent=1))
         return
     if args.sim_process:
         args.box_process, args.wire = True, "udp_multicast"
     if args.soak:
         args.box_process = True
     duration = args.duration if args.duration is not None else (600.0 if args.soak else 60.0)
+    for flag, prio in (
+        ("--rt-priority", args.rt_priority),
+        ("--host-rt-priority", args.host_rt_priority),
+        ("--box-rt-priority", args.box_rt_priority),
+    ):
+        if not 0 <= prio <= 49:  # box.toml's safe range of realtime_priority
+            print(f"bench_drivers: {flag} must be in 0..49, got {prio}", file=sys.stderr)
+            raise SystemExit(2)
     if not (duration > 0 and np.isfinite(duration)):
         print(f"bench_drivers: --duration must be > 0 s, got {duration}", file=sys.stderr)
         raise SystemExit(2)
-    out = run(
+    with process_settings(realtime_priority=args.host_rt_priority) as applied:
+        if args.host_rt_priority and not applied.realtime_granted:
+            print(f"bench_drivers: --host-rt-priority: {applied.realtime_refusal}", file=sys.stderr)
+            raise SystemExit(2)
+        out = _run_from(args, duration)
+        out["setup"]["host_sched_fifo_priority"] = args.host_rt_priority
+    if not args.soak:
+        out["rss_mb"].pop("samples")
+    print(json.dumps(out, indent=1))
+
+
+def _run_from(args: argparse.Namespace, duration: float) -> dict[str, Any]:
+    return run(
         duration,
         box_process=args.box_process,
         wire=args.wire,
@@ -673,13 +708,10 @@ def main() -> None:
         missing_tpdo_cycles=args.missing_tpdo_cycles,
         heartbeat_timeout_ms=args.heartbeat_timeout_ms,
         rt_priority=args.rt_priority,
+        box_rt_priority=args.box_rt_priority,
         rss_sample_s=RSS_SAMPLE_S if args.soak else None,
     )
-    if not args.soak:
-        out["rss_mb"].pop("samples")
-    print(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":
-    with process_settings():  # the process entry: GIL switch interval as `hrm` sets it
-        main()
+    main()  # the process entry: process_settings (GIL switch interval as `hrm` sets it) inside
