@@ -21,11 +21,14 @@ from typing import Any
 from drivers.config import BoxConfig
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.ropes.actuation import Actuation
+from sim_bus.in_process import (
+    IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
+    IN_PROCESS_MISSING_TPDO_CYCLES,
+    IN_PROCESS_TENSION_STALE_S,
+)
 
-# 25 (the top of the safe range, 250 ms at 100 Hz): with 10, one in-process run in three
-# stopped on a late TPDO on the 2-core machine (the box's 36 drives, the host and 11 other
-# threads in one interpreter use ~0.7 of a core; a busy moment puts the box behind)
-SIM_MISSING_TPDO_CYCLES = 25
+# the tolerances and why: sim_bus/in_process.py
+SIM_MISSING_TPDO_CYCLES = IN_PROCESS_MISSING_TPDO_CYCLES
 SIM_SWITCH_INTERVAL_S = 1e-3
 """The GIL switch interval of a command that runs the simulated box in its interpreter
 (``drivers.realtime.SWITCH_INTERVAL_S``, 0.2 ms, elsewhere).  Measured on the 2-core
@@ -35,8 +38,8 @@ per 10 ms cycle and no run stopped; at 0.2 ms 7.5-8.2 ms, and 5 of 16 runs stopp
 late TPDO (each forced hand-over is a futex round and a cold cache, and the bursts, a rope
 check or a SYNC's 18 TPDOs, were cut into more of them); 5 ms was no better than 1 ms.
 Across processes (``bench_drivers.py --box-process``) 0.2 ms kept the SYNC jitter lower."""
-SIM_TENSION_STALE_S = 0.5  # the top of the safe range: the board shares this interpreter
-SIM_HEARTBEAT_TIMEOUT_MS = 1000  # the box's heartbeats share this interpreter too (the top: 2 s)
+SIM_TENSION_STALE_S = IN_PROCESS_TENSION_STALE_S
+SIM_HEARTBEAT_TIMEOUT_MS = IN_PROCESS_HEARTBEAT_TIMEOUT_MS
 SIM_WIRES = ("virtual", "hrm_sim")
 # How long a session on the in-process box listens for another master before its first NMT
 # reset: the box's buses are private channels of this process (a fresh name each time), so

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from hrm_ctrl.errors import SimError
+from sim_bus.in_process import IN_PROCESS_MISSING_TPDO_CYCLES, IN_PROCESS_TENSION_STALE_S
 
 
 class BusKind(StrEnum):
@@ -69,11 +70,11 @@ SETTLE_TIMEOUT_S = 2.5
 
 #: With the box in the test process (``--hrm-box inprocess``) its 36 simulated drives and
 #: its tension board share the host's interpreter: the plugin then runs the tolerances
-#: ``hrm run --sim`` runs with (``hrm_ctrl/cli/_simwire.py``: TPDO tolerance 25 cycles,
+#: ``hrm run --sim`` runs with (``sim_bus/in_process.py``: TPDO tolerance 25 cycles,
 #: tension staleness 500 ms), says so in a warning, and the run record keeps them.  A box
 #: in its own process runs the production settings.
-INPROCESS_CONTROL: dict[str, Any] = {"missing_tpdo_cycles": 25}
-INPROCESS_TENSION_STALE_S = 0.5
+INPROCESS_CONTROL: dict[str, Any] = {"missing_tpdo_cycles": IN_PROCESS_MISSING_TPDO_CYCLES}
+INPROCESS_TENSION_STALE_S = IN_PROCESS_TENSION_STALE_S
 
 
 def _free_udp_port() -> int:

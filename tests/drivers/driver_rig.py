@@ -24,6 +24,7 @@ from drivers.session import DriveSession
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.box import SimBox
+from sim_bus.in_process import IN_PROCESS_MISSING_TPDO_CYCLES
 
 # The rig's drives are fresh simulators (pre-operational, no other master): a short
 # listen before the first reset keeps the suite fast; tests of the listen set their own.
@@ -126,6 +127,9 @@ def rig_factory(
         sim_counts: dict[str, int] | None = None,
         **control: Any,
     ) -> Rig:
+        # the simulated drives share this interpreter: the in-process TPDO tolerance unless
+        # the test sets its own (CI saw a 3-node rig's TPDOs 3 cycles late at 3)
+        control.setdefault("missing_tpdo_cycles", IN_PROCESS_MISSING_TPDO_CYCLES)
         kwargs = [bus_backend() for _ in buses]
         config = make_config(kwargs, buses, **control)
         sim_cfg = make_config(kwargs, sim_buses or buses, **control)
