@@ -83,6 +83,7 @@ from drivers.config import BoxConfig
 from drivers.cycle import BusLayout, EventLog, StreamResult
 from drivers.interrupts import deferred_interrupts
 from drivers.protocol import cia301, cia402
+from drivers.realtime import NORMAL_PRIORITY, AppliedSettings, process_settings
 from drivers.receive import BusReader, BusReceiver, wait_quiet_listen
 from drivers.safety.causes import StopCause, StopKind
 from drivers.safety.limits import MAX_SOURCE_DURATION_S, LimitChecker
@@ -260,31 +261,61 @@ class DriveSession:
             self.control.heartbeat_timeout_ms / 1000.0,
             clock=clock,
         )
-        with deferred_interrupts():  # the buses and logs open whole, or close again
-            try:
-                self._open(buses)
-            except BaseException:
-                self._close_io()
-                raise
-        self.supervisor = Supervisor(
-            self._layouts,
-            self.monitor,
-            actuation,
-            self.control.period_s,
-            self.control.host_heartbeat_ms / 1000.0,
-            self.control.host_node_id,
-            self.events,
-            on_stop=self._on_stop,
-            realtime_priority=self.control.realtime_priority,
-            clock=clock,
-        )
-        self.supervisor.start()
+        # Every thread the session starts (the buses' readers and log writers, the
+        # supervisor) inherits the scheduling of the thread that starts it: they start
+        # under SCHED_FIFO at realtime_priority, and the caller's thread gets its own
+        # policy back.  The threads share one GIL: one of them at normal priority holding
+        # it while the machine's other work preempts it keeps the FIFO ones waiting
+        # (measured: the supervisor alone under FIFO, 1430 node-cycles without feedback
+        # in 30 s; every host thread, 54; BENCHMARKS.md).
+        with process_settings(
+            switch_interval_s=None, realtime_priority=self.control.realtime_priority
+        ) as applied:
+            self.realtime_granted = applied.realtime_granted
+            with deferred_interrupts():  # the buses and logs open whole, or close again
+                try:
+                    self._open(buses)
+                except BaseException:
+                    self._close_io()
+                    raise
+            self.supervisor = Supervisor(
+                self._layouts,
+                self.monitor,
+                actuation,
+                self.control.period_s,
+                self.control.host_heartbeat_ms / 1000.0,
+                self.control.host_node_id,
+                self.events,
+                on_stop=self._on_stop,
+                # refused once: the session's threads run under normal scheduling (one
+                # warning said so), the supervisor does not ask again
+                realtime_priority=self._granted_priority(),
+                clock=clock,
+            )
+            self.supervisor.start()
         self._state = SessionState.CONNECTED
+        if applied.realtime_priority:
+            self.events.add(
+                "realtime",
+                f"session threads under SCHED_FIFO {applied.realtime_priority}"
+                if applied.realtime_granted
+                else f"{applied.realtime_refusal}; normal scheduling",
+            )
         self.events.add(
             "open",
             f"{len(config.buses)} bus(es), {n} drives, {self.control.rate_hz:g} Hz",
             bus_loads=[bl.to_dict() for bl in self.loads],
         )
+
+    def _granted_priority(self) -> int:
+        return self.control.realtime_priority if self.realtime_granted else NORMAL_PRIORITY
+
+    def thread_scheduling(self) -> contextlib.AbstractContextManager[AppliedSettings]:
+        """A context in which the caller starts a thread that works for this session (a
+        feedback watch): it gets the session's threads' scheduling, SCHED_FIFO at
+        ``realtime_priority`` when the session got it, and the caller's thread its own
+        policy back on leaving."""
+        return process_settings(switch_interval_s=None, realtime_priority=self._granted_priority())
 
     # ------------------------------------------------------------------ states
     @property

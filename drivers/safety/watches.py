@@ -37,6 +37,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -204,9 +205,14 @@ class RopeWatch:
 class FeedbackWatches:
     """A set of named watches started and stopped together; a context manager."""
 
-    def __init__(self) -> None:
+    def __init__(
+        self, scheduling: Callable[[], AbstractContextManager[object]] = nullcontext
+    ) -> None:
+        """``scheduling``: the context the watches' threads start in (a session's
+        :meth:`~drivers.session.DriveSession.thread_scheduling`: its SCHED_FIFO)."""
         self.watches: dict[str, Watch] = {}
         self._closers: list[Callable[[], None]] = []
+        self._scheduling = scheduling
 
     def add(self, name: str, watch: Watch, close: Callable[[], None] | None = None) -> None:
         """Add a watch (``close``: what to release after it stopped, e.g. its port)."""
@@ -215,7 +221,8 @@ class FeedbackWatches:
             self._closers.append(close)
 
     def start(self) -> FeedbackWatches:
-        with deferred_interrupts():  # all watches start, or an interrupt waits for them
+        # all watches start, or an interrupt waits for them
+        with deferred_interrupts(), self._scheduling():
             for w in self.watches.values():
                 w.start()
         return self

@@ -24,20 +24,13 @@ from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.in_process import (
     IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
     IN_PROCESS_MISSING_TPDO_CYCLES,
+    IN_PROCESS_SWITCH_INTERVAL_S,
     IN_PROCESS_TENSION_STALE_S,
 )
 
 # the tolerances and why: sim_bus/in_process.py
 SIM_MISSING_TPDO_CYCLES = IN_PROCESS_MISSING_TPDO_CYCLES
-SIM_SWITCH_INTERVAL_S = 1e-3
-"""The GIL switch interval of a command that runs the simulated box in its interpreter
-(``drivers.realtime.SWITCH_INTERVAL_S``, 0.2 ms, elsewhere).  Measured on the 2-core
-development machine, ``hrm run --sim`` of the bent-pipe plan (box, host and their 13
-threads in one interpreter), four runs each: at 1 ms the process used 5.9-7.2 ms of CPU
-per 10 ms cycle and no run stopped; at 0.2 ms 7.5-8.2 ms, and 5 of 16 runs stopped on a
-late TPDO (each forced hand-over is a futex round and a cold cache, and the bursts, a rope
-check or a SYNC's 18 TPDOs, were cut into more of them); 5 ms was no better than 1 ms.
-Across processes (``bench_drivers.py --box-process``) 0.2 ms kept the SYNC jitter lower."""
+SIM_SWITCH_INTERVAL_S = IN_PROCESS_SWITCH_INTERVAL_S
 SIM_TENSION_STALE_S = IN_PROCESS_TENSION_STALE_S
 SIM_HEARTBEAT_TIMEOUT_MS = IN_PROCESS_HEARTBEAT_TIMEOUT_MS
 SIM_WIRES = ("virtual", "hrm_sim")

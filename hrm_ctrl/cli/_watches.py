@@ -41,13 +41,15 @@ def feedback_watches(
     from hrm_ctrl.ropes.estimator import RopeConsistencyCheck
 
     monitor = box.monitor
-    watches = FeedbackWatches()
+    # the watches' threads get the session's scheduling (SCHED_FIFO when it has it)
+    watches = FeedbackWatches(scheduling=box.thread_scheduling)
     try:
         t = config.tension
         if t is not None and tension:
-            reader = TensionSensorReader(
-                t.port, actuation.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
-            ).open()
+            with box.thread_scheduling():
+                reader = TensionSensorReader(
+                    t.port, actuation.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
+                ).open()
             watch = TensionWatch(
                 reader,
                 actuation.motor_ids,

@@ -44,11 +44,18 @@ from calibration.zero import (
 )
 from drivers.config import load_box_config
 from drivers.protocol import cia402
+from drivers.realtime import process_settings
 from drivers.session import DriveSession, SessionState
 from drivers.tension_sensor import TensionSample, TensionSensorReader
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.box import SimBox
+from sim_bus.in_process import (
+    IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
+    IN_PROCESS_MISSING_TPDO_CYCLES,
+    IN_PROCESS_SWITCH_INTERVAL_S,
+    IN_PROCESS_TENSION_STALE_S,
+)
 from sim_bus.truth import TrueArm
 
 SEED = 11
@@ -81,11 +88,11 @@ def fixture_rig(
     cfg = cfg.with_bus_kwargs(
         [{"interface": "virtual", "channel": f"zero-{tag}-{b.name}"} for b in cfg.buses]
     ).with_control(
-        # the box shares this interpreter: with both cores busy heartbeats came 374-428 ms
-        # apart (box.toml's 350 ms timeout stopped the routine); 1000 ms as box_udp.toml
-        # for a loaded machine.  The 350 ms watch itself: tests/drivers/safety/test_stops.py
-        missing_tpdo_cycles=10,
-        heartbeat_timeout_ms=1000,
+        # the box shares this interpreter: the tolerances hrm --sim runs with (with both
+        # cores busy heartbeats came 374-428 ms apart and TPDOs 10 cycles late).  The
+        # production watches themselves: tests/drivers/safety/test_stops.py, tests/hil
+        missing_tpdo_cycles=IN_PROCESS_MISSING_TPDO_CYCLES,
+        heartbeat_timeout_ms=IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
     )
     sim = SimBox(cfg, actuation=act, truth=truth)
     sim.set_straight_fixture(True)
@@ -93,7 +100,11 @@ def fixture_rig(
     try:
         board = sim.start_tension_board()
         with (
-            TensionSensorReader(board.port, act.n_motors, stale_after_s=0.5) as reader,
+            # and the switch interval of a process that runs the box (hrm --sim)
+            process_settings(switch_interval_s=IN_PROCESS_SWITCH_INTERVAL_S),
+            TensionSensorReader(
+                board.port, act.n_motors, stale_after_s=IN_PROCESS_TENSION_STALE_S
+            ) as reader,
             DriveSession(cfg, host or act, allow_uncalibrated=True, listen_s=0.2) as session,
         ):
             session.bring_up()

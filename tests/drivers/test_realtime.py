@@ -174,3 +174,66 @@ def test_applied_settings_is_a_plain_record() -> None:
         "realtime_refusal": None,
     }
     assert rt.NORMAL_PRIORITY == 0 and rt.REALTIME_PRIORITY_MAX == 99
+
+
+# ---- a drive session's threads ---------------------------------------------------------------
+
+
+def _policies(prefixes: tuple[str, ...]) -> dict[str, int]:
+    import threading
+
+    return {
+        t.name: os.sched_getscheduler(t.native_id)
+        for t in threading.enumerate()
+        if t.name.startswith(prefixes) and t.native_id is not None
+    }
+
+
+SESSION_THREADS = ("hrm-rx-", "hrm-supervisor", "canlog-")
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="no SCHED_FIFO on this platform")
+def test_every_thread_of_a_session_runs_at_its_realtime_priority(
+    rig_factory: Any, tmp_path: Any
+) -> None:
+    """The readers, the log writers and the supervisor all start under SCHED_FIFO (one of
+    them at normal priority holding the GIL would keep the others waiting); the thread
+    that opened the session keeps its own policy.  Priority 1, the lowest FIFO one."""
+    before = os.sched_getscheduler(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        os.sched_setscheduler(0, before, os.sched_param(0))
+    except PermissionError:
+        pytest.skip("SCHED_FIFO needs CAP_SYS_NICE or an RLIMIT_RTPRIO this account lacks")
+    rig = rig_factory(realtime_priority=1)
+    box = rig.open_box(log_dir=tmp_path, log_suffix=".asc", run_name="rt")
+    assert box.realtime_granted
+    seen = _policies(SESSION_THREADS)
+    assert all(any(n.startswith(p) for n in seen) for p in SESSION_THREADS), seen
+    assert set(seen.values()) == {os.SCHED_FIFO}, seen
+    assert os.sched_getscheduler(0) == before
+    with box.thread_scheduling() as applied:  # a watch's thread started for the session
+        assert applied.realtime_granted and os.sched_getscheduler(0) == os.SCHED_FIFO
+    assert os.sched_getscheduler(0) == before
+    assert any(
+        e["kind"] == "realtime" and "SCHED_FIFO 1" in e["text"] for e in box.events.to_list()
+    )
+
+
+def test_a_refused_priority_is_asked_once_per_session_and_recorded(
+    rig_factory: Any, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def refuse(pid: int, policy: int, param: Any) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse, raising=False)
+    rig = rig_factory(realtime_priority=5)
+    with caplog.at_level("WARNING", logger="drivers.realtime"):
+        box = rig.open_box()
+        box.bring_up()
+        with box.thread_scheduling() as applied:
+            assert not applied.realtime_granted
+    assert not box.realtime_granted and box.supervisor.realtime_priority == 0
+    assert caplog.text.count("SCHED_FIFO priority 5 refused") == 1
+    texts = [e["text"] for e in box.events.to_list() if e["kind"] == "realtime"]
+    assert texts == ["SCHED_FIFO priority 5 refused (Operation not permitted); normal scheduling"]
