@@ -352,10 +352,7 @@ class RunDisplay:
         stream = getattr(self.session.supervisor, "_stream", None)
         if stream is None:
             return 0
-        st = stream.stats
-        n = min(len(st.sync_sent), len(st.deadline))
-        late = np.asarray(st.sync_sent[:n]) - np.asarray(st.deadline[:n])
-        return int(np.count_nonzero(late > st.late_threshold_s))
+        return int(stream.stats.late_cycles)
 
     def text(self) -> str:
         step, travel = self.where()
