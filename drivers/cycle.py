@@ -255,6 +255,7 @@ class StreamResult:
     stats: dict[str, Any]
     last_targets: np.ndarray
     stop_latency_s: float | None = None
+    stop_syncs_after_detection: int | None = None  # setpoint SYNCs between cause and stop
     stop_confirmed: bool | None = None
     final_statuswords: list[int] = field(default_factory=list)
     error: HrmError | None = None
@@ -265,6 +266,7 @@ class StreamResult:
             "cycles": self.cycles,
             "causes": [x.to_dict() for x in self.causes],
             "stop_latency_s": self.stop_latency_s,
+            "stop_syncs_after_detection": self.stop_syncs_after_detection,
             "stop_confirmed": self.stop_confirmed,
             "final_statuswords": self.final_statuswords,
             "stats": self.stats,

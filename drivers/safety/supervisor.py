@@ -41,6 +41,7 @@ clock, without the thread.
 
 from __future__ import annotations
 
+import collections
 import math
 import threading
 import time
@@ -74,6 +75,7 @@ from drivers.safety.monitor import NodeMonitor
 from drivers.sources import SetpointSource
 from hrm_ctrl.errors import DriverError, HrmError, SignalInterrupt
 
+RECENT_SYNCS = 4  # SYNC times kept to count those after a stop cause's detection
 PLAY_POLL_S = 0.25  # how often a caller waiting for a stream looks at the thread
 THREAD_JOIN_TIMEOUT_S = 5.0
 
@@ -102,6 +104,11 @@ class StopRecord:
     while_streaming: bool
     failed: list[StopCause] = field(default_factory=list)
     confirmed: bool | None = None  # None: still being confirmed
+    #: setpoint SYNCs the stream sent after the first cause's detection, before the quick
+    #: stop (0 or 1: within one control cycle; counted up to ``RECENT_SYNCS``).  Counted
+    #: in cycles, it does not depend on how busy the machine is: a thread held off the CPU
+    #: sends no SYNC either
+    syncs_after_detection: int = 0
 
 
 @dataclass
@@ -187,6 +194,7 @@ class Supervisor:
         self._ramp_pos: np.ndarray | None = None
         self._ramp_vel: np.ndarray | None = None
         self._rpdos_sent_at = -math.inf  # clock() when the last RPDO burst was handed over
+        self._recent_syncs: collections.deque[float] = collections.deque(maxlen=RECENT_SYNCS)
 
     # ------------------------------------------------------------------ thread
     def start(self) -> None:
@@ -575,6 +583,7 @@ class Supervisor:
         self._after_rpdo_burst()
         causes = self._send_syncs()
         t_sync = self.clock()
+        self._recent_syncs.append(t_sync)
         stream.due_seq = self.seq
         if stream.pending is not None:
             stream.before = stream.applied
@@ -618,6 +627,7 @@ class Supervisor:
         )
         if stop is not None:
             result.stop_latency_s = stop.latency_s
+            result.stop_syncs_after_detection = stop.syncs_after_detection
             result.stop_confirmed = stop.confirmed
         result.final_statuswords = [int(v) for v in self.monitor.statusword]
         self.last_result = result
@@ -650,6 +660,8 @@ class Supervisor:
         self._ramp_vel = self._ramp_pos - np.asarray(before, dtype=np.int64)
         failed = self.send_controlword(cia402.CW_QUICK_STOP, self._stop_targets())
         latency = self.clock() - detected
+        syncs_after = sum(1 for t in self._recent_syncs if t > detected) if stream else 0
+        self._recent_syncs.clear()
         for cause in causes:
             self.events.add("stop_cause", cause.text, cause=cause.kind.value, motor=cause.motor)
         where = "" if stream is not None else " while idle"
@@ -663,7 +675,9 @@ class Supervisor:
                 f"quick stop (RPDO + SYNC) sent to every node of every bus{where} "
                 f"{latency * 1000:.2f} ms after detection",
             )
-        self._stopping = StopRecord(causes, latency, stream is not None, failed)
+        self._stopping = StopRecord(
+            causes, latency, stream is not None, failed, syncs_after_detection=syncs_after
+        )
         self._confirm_cycles = 0
         self.mode = Mode.STOPPING
 

@@ -77,6 +77,7 @@ def test_emcy_and_fault_stop_every_node_within_one_cycle(rig_factory: Callable[.
     # Host side (EMCY callback -> quick-stop SYNC sent) strictly within one period; on the
     # wire (EMCY frame -> quick-stop SYNC frame) also the receive thread's latency counts.
     assert err.result.stop_latency_s is not None and err.result.stop_latency_s <= PERIOD_S
+    assert err.result.stop_syncs_after_detection in (0, 1)
     assert 0.0 < t_stop - t_emcy <= PERIOD_S + 2 * RECEIVE_SLACK_S, t_stop - t_emcy
     assert wait_until(lambda: all_left_operation_enabled(rig))
     assert any(e["kind"] == "quick_stop" for e in rig.box.events.to_list())
@@ -93,6 +94,7 @@ def test_lost_heartbeat_stops_every_node(rig_factory: Callable[..., Rig]) -> Non
     detected = err.causes[0].time_s
     assert 0.350 <= detected - last_hb <= 0.350 + PERIOD_S + RECEIVE_SLACK_S
     assert err.result.stop_latency_s is not None and err.result.stop_latency_s <= PERIOD_S
+    assert err.result.stop_syncs_after_detection in (0, 1)
     # On the wire: the quick-stop SYNC follows the last heartbeat frame by about the timeout.
     frames = rig.sniffers[0].snapshot()
     hb = [m.timestamp for m in frames if m.arbitration_id == 0x702]

@@ -3,6 +3,8 @@ watchdogs, the host heartbeat, and the one-period stop, step by step (no thread)
 
 from __future__ import annotations
 
+from typing import Any
+
 import can
 import numpy as np
 import pytest
@@ -255,3 +257,55 @@ def test_quick_stop_keeps_repeating_until_confirmed_then_gives_up() -> None:
     assert stops[0].causes[0].kind is StopKind.OPERATOR
     assert len(quick_stop_rpdos(port, 0.0)) == 2 * 10  # STOP_CONFIRM_CYCLES times, per node
     assert cia402.CW_QUICK_STOP == 0x0002
+
+
+def _stopped_stream(detect_late_by_periods: float | None) -> Any:
+    """A 2-node stream on the fake clock, stopped after 5 cycles: by a cause reported
+    ``detect_late_by_periods`` periods before the supervisor sees it, or (None) by m1's
+    TPDOs ceasing (found at a deadline).  Returns the stream's result."""
+    from drivers.safety.causes import StopCause
+
+    clock = FakeClock()
+    sup, mon, _port, _stops = armed(clock)
+    src = HoldSource(n_cycles=1000)
+    src.start(np.array([0, 0]), T)
+    stream = sup.begin(src)
+
+    def feedback() -> None:
+        heartbeat(mon, 0), heartbeat(mon, 1)
+        for i in (0, 1):
+            if detect_late_by_periods is not None or i == 0 or sup.seq < 5:
+                tpdo(mon, i)
+                mon.rx_seq[i] = sup.seq
+
+    run_until(sup, clock, clock.t + (0.055 if detect_late_by_periods is not None else 0.2),
+              each=feedback)  # fmt: skip
+    if detect_late_by_periods is not None:
+        assert sup.mode is Mode.STREAMING
+        t_detect = round(clock.t - detect_late_by_periods * T, 9)
+        cause = StopCause(StopKind.TENSION, "m0: rope snapped", "m0", t_detect)
+        sup._begin_stop([cause], clock.t)
+    run_until(
+        sup, clock, clock.t + 0.1,
+        each=lambda: (tpdo(mon, 0, sw=0x0217), tpdo(mon, 1, sw=0x0217),
+                      mon.rx_seq.__setitem__(slice(None), sup.seq)),
+    )  # fmt: skip
+    assert stream.done.is_set() and stream.result is not None
+    return stream.result
+
+
+def test_a_stop_counts_the_setpoint_syncs_sent_after_its_cause_was_detected() -> None:
+    """Counted in cycles (load does not change it): a cause the supervisor sees only
+    after it already sent SYNCs (its detection earlier) counts those SYNCs."""
+    # the supervisor has just sent the SYNC of the current deadline: seen 0.5 periods
+    # late the cause counts that one, 1.5 periods late the one before it too
+    assert _stopped_stream(0.5).stop_syncs_after_detection == 1
+    assert _stopped_stream(1.5).stop_syncs_after_detection == 2
+    assert _stopped_stream(0.0).stop_syncs_after_detection == 0  # at that SYNC: not after
+
+
+def test_a_cause_found_at_the_deadline_stops_before_that_cycles_sync() -> None:
+    result = _stopped_stream(None)
+    assert any(c.kind is StopKind.TPDO_MISSING for c in result.causes)
+    assert result.stop_syncs_after_detection == 0
+    assert result.to_dict()["stop_syncs_after_detection"] == 0

@@ -125,6 +125,7 @@ def assert_stopped_in_one_period(err: SafetyStopError, rig: Rig, kind: StopKind)
     assert err.causes[0].kind is kind, [c.text for c in err.causes]
     assert err.result.stop_latency_s is not None
     assert err.result.stop_latency_s <= rig.config.control.period_s  # one period of detection
+    assert err.result.stop_syncs_after_detection in (0, 1)
     assert err.result.completed is False and err.result.cycles < 250
 
 

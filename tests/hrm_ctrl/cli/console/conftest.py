@@ -35,8 +35,12 @@ def console_args(tmp_path: Path, *extra: str) -> argparse.Namespace:
 def make_ctx(tmp_path: Path, isolated_home: Path) -> Iterator[object]:
     """``make_ctx(*extra_args)``: a console context on a fresh in-process simulated box
     whose lines are collected in ``ctx.lines`` (out) and ``ctx.errors`` (err); finished
-    (drives disabled, session closed, box stopped) at the end of the test."""
+    (drives disabled, session closed, box stopped) at the end of the test.  The process
+    runs with the switch interval ``hrm console --sim`` runs with (``hrm_ctrl.cli.main``
+    sets it; these tests build the context without it)."""
+    from drivers.realtime import process_settings
     from hrm_ctrl.cli._console.shell import build_context, finish_context
+    from sim_bus.in_process import IN_PROCESS_SWITCH_INTERVAL_S
 
     made: list[ConsoleContext] = []
 
@@ -51,6 +55,7 @@ def make_ctx(tmp_path: Path, isolated_home: Path) -> Iterator[object]:
         made.append(ctx)
         return ctx
 
-    yield make
-    for ctx in made:
-        finish_context(ctx)
+    with process_settings(switch_interval_s=IN_PROCESS_SWITCH_INTERVAL_S):
+        yield make
+        for ctx in made:
+            finish_context(ctx)
