@@ -41,6 +41,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -256,12 +257,23 @@ def _progress(args: argparse.Namespace) -> Any:
 
 
 def run_zero(args: argparse.Namespace) -> int:
-    from calibration.apply import updated
-    from calibration.store import Routine
-    from calibration.zero import pretension_and_zero
-
     prog = "hrm calibrate zero"
     _check(args)
+    routine = zero_routine(args)
+    t0 = time.monotonic()
+    result, base, store = _session_run(args, prog, routine)
+    report_zero(args, result, base, store, t0, print)
+    return 0
+
+
+def zero_routine(
+    args: argparse.Namespace, progress: Callable[[str], None] | None = None
+) -> Callable[[Any, Any, Any], Any]:
+    """``routine(session, reader, actuation)`` of ``zero`` with ``args``' options
+    (``target_N``, ``tol_N``, ``max_travel_counts``; checked here, before anything moves);
+    ``progress`` gets a line per rope group (default: stdout, stderr with ``--json``)."""
+    from calibration.zero import pretension_and_zero
+
     kw: dict[str, Any] = {}
     if args.tol_N is not None:
         kw["tol_N"] = args.tol_N
@@ -271,14 +283,25 @@ def run_zero(args: argparse.Namespace) -> int:
                 f"--max-travel-counts must be > 0, got {args.max_travel_counts}"
             )
         kw["max_travel_counts"] = args.max_travel_counts
-    t0 = time.monotonic()
 
     def routine(box: Any, reader: Any, actuation: Any) -> Any:
         return pretension_and_zero(
-            box, reader, actuation, target_N=args.target_N, progress=_progress(args), **kw
-        )
+            box, reader, actuation, target_N=args.target_N,
+            progress=progress or _progress(args), **kw,
+        )  # fmt: skip
 
-    result, base, store = _session_run(args, prog, routine)
+    return routine
+
+
+def report_zero(
+    args: argparse.Namespace, result: Any, base: Any, store: Any, t0: float,
+    out: Callable[[str], None],
+) -> int:  # fmt: skip
+    """Save the zero's calibration (:func:`save_calibration`) and print its summary
+    (``out``: one line each; JSON with ``args.json``); returns the version."""
+    from calibration.apply import updated
+    from calibration.store import Routine
+
     zeros = {m: int(v) for m, v in zip(result.motor_ids, result.zero_counts, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
     new = updated(base, routine=Routine.ZERO, residuals=residuals, motor_zero_counts=zeros)
@@ -301,36 +324,57 @@ def run_zero(args: argparse.Namespace) -> int:
         "zero_counts": zeros,
     }
     if args.json:
-        print(json.dumps(summary))
+        out(json.dumps(summary))
     else:
-        print(
+        out(
             f"zero: {len(result.motor_ids)} motors at {result.target_N:g} N: max |zero - before| "
             f"{abs(int(shift[worst]))} counts ({result.motor_ids[worst]}), final tension error "
             f"max {err.max():.3f} N (tol {result.tol_N:g}), {result.moves} moves, "
             f"{result.elapsed_s:.1f} s"
         )
-        print(f"calibration {where}")
-    return 0
+        out(f"calibration {where}")
+    return version
 
 
 def run_stiffness(args: argparse.Namespace) -> int:
-    from calibration.apply import updated
-    from calibration.stiffness import estimate_rope_stiffness
-    from calibration.store import Routine
-
     prog = "hrm calibrate stiffness"
     _check(args)
+    routine = stiffness_routine(args)
+    t0 = time.monotonic()
+    result, base, store = _session_run(args, prog, routine)
+    report_stiffness(args, result, base, store, t0, print)
+    return 0
+
+
+def stiffness_routine(
+    args: argparse.Namespace, progress: Callable[[str], None] | None = None
+) -> Callable[[Any, Any, Any], Any]:
+    """``routine(session, reader, actuation)`` of ``stiffness`` with ``args``' options
+    (``sweep_N``, ``steps``); ``progress`` as :func:`zero_routine`'s."""
+    from calibration.stiffness import estimate_rope_stiffness
+
     kw: dict[str, Any] = {}
     if args.sweep_N is not None:
         kw["sweep_N"] = args.sweep_N
     if args.steps is not None:
         kw["steps"] = args.steps
-    t0 = time.monotonic()
 
     def routine(box: Any, reader: Any, actuation: Any) -> Any:
-        return estimate_rope_stiffness(box, reader, actuation, progress=_progress(args), **kw)
+        return estimate_rope_stiffness(
+            box, reader, actuation, progress=progress or _progress(args), **kw
+        )
 
-    result, base, store = _session_run(args, prog, routine)
+    return routine
+
+
+def report_stiffness(
+    args: argparse.Namespace, result: Any, base: Any, store: Any, t0: float,
+    out: Callable[[str], None],
+) -> int:  # fmt: skip
+    """Save the stiffness's calibration and print its summary; returns the version."""
+    from calibration.apply import updated
+    from calibration.store import Routine
+
     ea = {m: float(v) for m, v in zip(result.motor_ids, result.EA_N, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
     new = updated(base, routine=Routine.STIFFNESS, residuals=residuals, rope_EA_N=ea)
@@ -352,13 +396,13 @@ def run_stiffness(args: argparse.Namespace) -> int:
         "rope_EA_N": ea,
     }
     if args.json:
-        print(json.dumps(summary))
+        out(json.dumps(summary))
     else:
-        print(
+        out(
             f"stiffness: {len(result.motor_ids)} ropes: EA {result.EA_N.min():.0f} .. "
             f"{result.EA_N.max():.0f} N, sigma at most {100 * np.nanmax(rel):.2f} %, largest "
             f"change {100 * change[worst]:+.1f} % ({result.motor_ids[worst]}), "
             f"{result.moves} moves, {result.elapsed_s:.1f} s"
         )
-        print(f"calibration {where}")
-    return 0
+        out(f"calibration {where}")
+    return version

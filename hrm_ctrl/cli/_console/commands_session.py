@@ -62,6 +62,8 @@ def _connect(ctx: ConsoleContext, args: list[str]) -> None:
     if ctx.session is not None:
         raise ConsoleError(f"connected already (session {ctx.session.state.name})")
     ensure_log_dir(ctx.runs_dir)
+    if ctx.extra.get("reload_arm"):  # a calibration was saved in the last session
+        reload_arm(ctx)
     session = DriveSession(
         ctx.config,
         ctx.actuation,
@@ -78,9 +80,10 @@ def _connect(ctx: ConsoleContext, args: list[str]) -> None:
     try:
         t = ctx.config.tension
         if t is not None:  # opened before any NMT reset: a bad port is refused first
-            ctx.extra["tension_reader"] = TensionSensorReader(
-                t.port, ctx.actuation.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
-            ).open()
+            with session.thread_scheduling():
+                ctx.extra["tension_reader"] = TensionSensorReader(
+                    t.port, ctx.actuation.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
+                ).open()
         session.configure()
     except BaseException:
         close_session(ctx)
@@ -90,6 +93,21 @@ def _connect(ctx: ConsoleContext, args: list[str]) -> None:
         f"connected: {ctx.actuation.n_motors} drives on {n_buses} bus(es) up in "
         f"{session.bringup_s:.2f} s, session {session.state.name} (enable to move)"
     )
+
+
+def reload_arm(ctx: ConsoleContext) -> None:
+    """The robot model, rope layer and calibration from the store's active version (after
+    a ``calibrate`` saved one); the simulated arm stays what it is."""
+    from hrm_ctrl.cli._common import load_arm
+
+    given = ctx.extra.get("args")
+    arm = load_arm(given, ctx.description, prog=ctx.prog, simulated=ctx.simulated)
+    ctx.config.check_motors(arm.actuation.motor_ids)
+    ctx.model, ctx.actuation = arm.robot, arm.actuation
+    ctx.calibration, ctx.active = arm.calibration_ref(), arm.active
+    ctx.extra.pop("reload_arm", None)
+    version = "the description's values" if arm.active is None else f"v{arm.active.version:04d}"
+    ctx.out(f"calibration: {version}")
 
 
 def close_session(ctx: ConsoleContext) -> None:
@@ -106,6 +124,7 @@ def close_session(ctx: ConsoleContext) -> None:
         session.__exit__(None, None, None)  # finish, then close whatever happens
     finally:
         ctx.session = None
+        ctx.extra.pop("calibrated_version", None)
         reader = ctx.extra.pop("tension_reader", None)
         if reader is not None:
             reader.close()

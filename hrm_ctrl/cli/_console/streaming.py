@@ -126,7 +126,7 @@ def start_watches(ctx: ConsoleContext) -> None:
     stop_watches(ctx)
     session = ctx.session
     monitor = session.monitor
-    watches = FeedbackWatches()
+    watches = FeedbackWatches(scheduling=session.thread_scheduling)
     t = ctx.config.tension
     reader = ctx.extra.get("tension_reader")
     if t is not None and reader is not None:

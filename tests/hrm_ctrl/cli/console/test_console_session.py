@@ -243,8 +243,10 @@ def test_calibrate_show_and_history_read_the_console_store(make_ctx, tmp_path, c
         run(ctx, "calibrate show")
     run(ctx, "calibrate history")
     assert f"{tmp_path / 'calibrations'}: no calibration yet" in capsys.readouterr().out
-    with pytest.raises(ConsoleError, match=r"usage: calibrate show\|history"):
+    with pytest.raises(ConsoleError, match=r"calibrate zero: enable the drives first"):
         run(ctx, "calibrate zero")
+    with pytest.raises(ConsoleError, match=r"usage: calibrate show\|history"):
+        run(ctx, "calibrate kinematic")
     assert ctx.session is None  # nothing was connected
 
 
