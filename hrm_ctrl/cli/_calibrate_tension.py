@@ -256,14 +256,19 @@ def _progress(args: argparse.Namespace) -> Any:
     return lambda line: print(line, file=stream, flush=True)
 
 
-def run_zero(args: argparse.Namespace) -> int:
-    prog = "hrm calibrate zero"
+def _run_routine(args: argparse.Namespace, build: Any, report: Any) -> int:
+    """Check the options, build the routine (refusing bad ones before anything opens),
+    run it on its own session, save and print (``hrm calibrate zero|stiffness``)."""
     _check(args)
-    routine = zero_routine(args)
+    routine = build(args)
     t0 = time.monotonic()
-    result, base, store = _session_run(args, prog, routine)
-    report_zero(args, result, base, store, t0, print)
+    result, base, store = _session_run(args, f"hrm calibrate {args.calibrate}", routine)
+    report(args, result, base, store, t0, print)
     return 0
+
+
+def run_zero(args: argparse.Namespace) -> int:
+    return _run_routine(args, zero_routine, report_zero)
 
 
 def zero_routine(
@@ -337,13 +342,7 @@ def report_zero(
 
 
 def run_stiffness(args: argparse.Namespace) -> int:
-    prog = "hrm calibrate stiffness"
-    _check(args)
-    routine = stiffness_routine(args)
-    t0 = time.monotonic()
-    result, base, store = _session_run(args, prog, routine)
-    report_stiffness(args, result, base, store, t0, print)
-    return 0
+    return _run_routine(args, stiffness_routine, report_stiffness)
 
 
 def stiffness_routine(
