@@ -642,8 +642,10 @@ def main() -> None:
     )  # fmt: skip
     ap.add_argument("--no-log", action="store_true", help="do not write CAN logs")
     ap.add_argument(
-        "--rt-priority", type=int, default=0, help="box.toml's realtime_priority: every thread of the drive session (readers, log writers, supervisor) under SCHED_FIFO at it (0: off)"
-    )
+        "--rt-priority", type=int, default=0, metavar="PRIORITY",
+        help="box.toml's realtime_priority: every thread of the drive session (readers, "
+        "log writers, supervisor) under SCHED_FIFO at PRIORITY (0: off)",
+    )  # fmt: skip
     ap.add_argument(
         "--host-rt-priority", type=int, default=0, metavar="PRIORITY",
         help="this whole process (every thread of the host: supervisor, receive, log writers) "
