@@ -267,7 +267,8 @@ class DriveSession:
         # policy back.  The threads share one GIL: one of them at normal priority holding
         # it while the machine's other work preempts it keeps the FIFO ones waiting
         # (measured: the supervisor alone under FIFO, 1430 node-cycles without feedback
-        # in 30 s; every host thread, 54; BENCHMARKS.md).
+        # in 30 s; the whole host process, 54; BENCHMARKS.md, which also has the runs of
+        # the session's threads alone).
         with process_settings(
             switch_interval_s=None, realtime_priority=self.control.realtime_priority
         ) as applied:

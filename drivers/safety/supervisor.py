@@ -660,7 +660,7 @@ class Supervisor:
         self._ramp_vel = self._ramp_pos - np.asarray(before, dtype=np.int64)
         failed = self.send_controlword(cia402.CW_QUICK_STOP, self._stop_targets())
         latency = self.clock() - detected
-        syncs_after = sum(1 for t in self._recent_syncs if t > detected) if stream else 0
+        syncs_after = sum(t > detected for t in self._recent_syncs) if stream is not None else 0
         self._recent_syncs.clear()
         for cause in causes:
             self.events.add("stop_cause", cause.text, cause=cause.kind.value, motor=cause.motor)
