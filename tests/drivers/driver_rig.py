@@ -79,6 +79,10 @@ def make_config(
     buses: tuple[dict[str, int], ...] = SMALL_BUSES,
     **control: Any,
 ) -> BoxConfig:
+    # the rigs' simulated drives share this interpreter: the in-process TPDO tolerance
+    # unless the test sets its own (CI saw a 3-node rig's TPDOs 3 cycles late at 3, and an
+    # 18-drive one under load)
+    control.setdefault("missing_tpdo_cycles", IN_PROCESS_MISSING_TPDO_CYCLES)
     doc: dict[str, Any] = {
         "control": {"bootup_timeout_s": 2.0, **control},
         "buses": {},
@@ -127,9 +131,6 @@ def rig_factory(
         sim_counts: dict[str, int] | None = None,
         **control: Any,
     ) -> Rig:
-        # the simulated drives share this interpreter: the in-process TPDO tolerance unless
-        # the test sets its own (CI saw a 3-node rig's TPDOs 3 cycles late at 3)
-        control.setdefault("missing_tpdo_cycles", IN_PROCESS_MISSING_TPDO_CYCLES)
         kwargs = [bus_backend() for _ in buses]
         config = make_config(kwargs, buses, **control)
         sim_cfg = make_config(kwargs, sim_buses or buses, **control)
