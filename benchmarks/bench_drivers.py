@@ -199,6 +199,7 @@ class BoxProcess:
         # the whole box under SCHED_FIFO (every thread of it: what holds its interpreter
         # lock too) with ``chrt``, as a drive's firmware runs in real time; 0: normal
         chrt = ["chrt", "-f", str(rt_priority)] if rt_priority > 0 else []
+        chrt = os.environ.get("HRM_BOX_PREFIX", "").split() + chrt
         self.proc = subprocess.Popen(
             [*chrt, sys.executable, "-m", "hrm_ctrl.cli", "sim", "--config", str(config_path),
              "--control"],
@@ -397,6 +398,10 @@ def run(
                 "p50": ms(s.get("lateness_p50_s")),
                 "p99": ms(s.get("lateness_p99_s")),
                 "max": ms(s.get("lateness_max_s")),
+            },
+            "wake_lateness_ms": {  # the thread awake after its deadline (scheduling)
+                "p99": ms(s.get("wake_lateness_p99_s")),
+                "max": ms(s.get("wake_lateness_max_s")),
             },
             "jitter_ms": {
                 "p50": ms(s.get("jitter_p50_s")),

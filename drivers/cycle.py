@@ -24,7 +24,7 @@ import can
 import numpy as np
 
 from drivers.bus import BusPort
-from drivers.protocol import cia301, cia402
+from drivers.protocol import batch, cia301, cia402
 from drivers.safety.monitor import StopCause
 from hrm_ctrl.errors import HrmError
 
@@ -46,6 +46,29 @@ class BusLayout:
 
     def __post_init__(self) -> None:
         self.rpdo_ids = [cia301.COB_RPDO1 + int(n) for n in self.node_ids]
+        # this bus's RPDO1s as one record array, refilled every cycle (rpdo_batch)
+        self._rpdo = batch.rpdo_batch(np.asarray(self.rpdo_ids, dtype=np.uint32), 0, 0)
+        self._rpdo_view = self._rpdo.view(batch.RPDO_VIEW)
+
+    def rpdo_batch(self, controlword: int, targets: np.ndarray) -> np.ndarray:
+        """This bus's RPDO frames for global target vector ``targets`` as one record array
+        (:data:`drivers.protocol.batch.FRAME_DTYPE`; the same frames as
+        :meth:`rpdo_frames`, filled into a buffer the layout keeps: valid until the next
+        call).  A target outside INTEGER32 raises :class:`FrameError`.
+
+        >>> from drivers.bus import BusPort
+        >>> lay = BusLayout(BusPort("b", None), np.array([1, 0]), np.array([5, 6]))
+        >>> b = lay.rpdo_batch(15, np.array([-1, 7]))
+        >>> [(hex(i), bytes(d[:6]).hex()) for i, d in zip(b["id"], b["data"])]
+        [('0x205', '0f0007000000'), ('0x206', '0f00ffffffff')]
+        """
+        tg = np.asarray(targets)[self.index]
+        if len(tg) and (tg.min() < cia402.INT32_MIN or tg.max() > cia402.INT32_MAX):
+            raise cia402.FrameError("target position outside INTEGER32")
+        v = self._rpdo_view
+        v["controlword"] = int(controlword) & 0xFFFF
+        v["target"] = tg
+        return self._rpdo
 
     def rpdo_frames(self, controlword: int | np.ndarray, targets: np.ndarray) -> list[can.Message]:
         """RPDO frames of this bus for global target vector ``targets`` (one ``struct``

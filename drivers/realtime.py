@@ -19,6 +19,10 @@ it got (:class:`AppliedSettings`) and restores both on exit.
   one warning on the ``drivers.realtime`` logger).  It applies to the calling thread
   and to the threads it starts afterwards: entered by the supervisor thread only that
   thread runs under FIFO; entered at process start, every thread does.
+* **CPUs** (Linux CPU affinity, ``cpus``): the calling thread and the threads it starts
+  afterwards run on those CPUs only.  ``hrm sim --cpus`` keeps a simulated box off the
+  CPUs of the host's control loop, as the drives' own hardware would be (on a two-core
+  machine a box thread woken on the host's CPU delays the next SYNC: BENCHMARKS.md).
 
 >>> import sys
 >>> before = sys.getswitchinterval()
@@ -70,6 +74,48 @@ class ProcessSettingsError(DriverError):
     """A process setting asked of :func:`process_settings` is out of range."""
 
 
+MAX_CPU = 4095
+"""Highest CPU number accepted in a CPU list (Linux's default NR_CPUS range)."""
+
+
+def parse_cpus(text: str, where: str = "--cpus") -> frozenset[int]:
+    """A CPU list as ``taskset -c`` writes it (``1``, ``0,2``, ``2-3``), each CPU one this
+    process may run on; else a one-line :class:`ProcessSettingsError`.
+
+    >>> sorted(parse_cpus("0"))
+    [0]
+    >>> parse_cpus("1-0")
+    Traceback (most recent call last):
+    ...
+    drivers.realtime.ProcessSettingsError: --cpus: '1-0' is not a CPU list (e.g. 1, 0,2 or 2-3)
+    """
+    cpus: set[int] = set()
+    for part in text.split(","):
+        lo, _, hi = part.strip().partition("-")
+        try:
+            a, b = int(lo), int(hi) if hi else int(lo)
+        except ValueError:
+            a, b = 1, 0
+        if not 0 <= a <= b <= MAX_CPU:
+            raise ProcessSettingsError(f"{where}: {text!r} is not a CPU list (e.g. 1, 0,2 or 2-3)")
+        cpus.update(range(a, b + 1))
+    usable = available_cpus()
+    missing = sorted(cpus - usable)
+    if missing:
+        raise ProcessSettingsError(
+            f"{where}: CPU {missing[0]} is not available to this process "
+            f"(available: {','.join(str(c) for c in sorted(usable))})"
+        )
+    return frozenset(cpus)
+
+
+def available_cpus() -> frozenset[int]:
+    """The CPUs this thread may run on (all of them where the platform cannot tell)."""
+    if hasattr(os, "sched_getaffinity"):
+        return frozenset(os.sched_getaffinity(0))
+    return frozenset(range(os.cpu_count() or 1))
+
+
 @dataclass(frozen=True)
 class AppliedSettings:
     """What :func:`process_settings` put in force (yielded by the context)."""
@@ -79,6 +125,7 @@ class AppliedSettings:
     realtime_priority: int  # SCHED_FIFO priority asked for (0: none asked)
     realtime_granted: bool  # the calling thread runs under SCHED_FIFO at that priority
     realtime_refusal: str | None = None  # why it was not granted (None: granted or not asked)
+    cpus: frozenset[int] | None = None  # the CPUs the calling thread is kept on (None: all)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -162,6 +209,7 @@ def _raise_priority(priority: int) -> tuple[Callable[[], None] | None, str | Non
 def process_settings(
     switch_interval_s: float | None = SWITCH_INTERVAL_S,
     realtime_priority: int = NORMAL_PRIORITY,
+    cpus: frozenset[int] | None = None,
 ) -> Iterator[AppliedSettings]:
     """Apply the GIL switch interval and the scheduling priority; restore both on exit.
 
@@ -170,6 +218,8 @@ def process_settings(
             leave it as it is (e.g. when a thread only raises its own priority).
         realtime_priority: ``SCHED_FIFO`` priority 1..99 for the calling thread (and the
             threads it starts inside the context), best effort; 0 leaves the policy alone.
+        cpus: the CPUs the calling thread (and the threads it starts inside the context)
+            runs on (:func:`parse_cpus`); ``None`` leaves the affinity alone.
 
     Yields the :class:`AppliedSettings`.  Raises :class:`ProcessSettingsError` on an
     out-of-range argument (before changing anything).  Enter it once per process (or
@@ -178,9 +228,17 @@ def process_settings(
     """
     new_interval = None if switch_interval_s is None else check_switch_interval(switch_interval_s)
     priority = check_realtime_priority(realtime_priority)
+    if cpus is not None and (not cpus or not cpus <= available_cpus()):
+        raise ProcessSettingsError(
+            f"cpus: {sorted(cpus)} is not a non-empty set of CPUs this process may run on"
+        )
     previous = sys.getswitchinterval()
     restore_sched: Callable[[], None] | None = None
     refusal: str | None = None
+    previous_cpus = None
+    if cpus is not None and hasattr(os, "sched_setaffinity"):
+        previous_cpus = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, cpus)
     if new_interval is not None:
         _set_switch_interval(new_interval)
     try:
@@ -194,9 +252,12 @@ def process_settings(
             realtime_priority=priority,
             realtime_granted=restore_sched is not None,
             realtime_refusal=refusal,
+            cpus=None if previous_cpus is None else frozenset(cpus or ()),
         )
     finally:
         if restore_sched is not None:
             restore_sched()
+        if previous_cpus is not None:
+            os.sched_setaffinity(0, previous_cpus)
         if new_interval is not None:
             _set_switch_interval(previous)

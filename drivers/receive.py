@@ -43,13 +43,19 @@ from typing import Any
 
 import can
 import canopen
+import numpy as np
 
 from drivers.bus import BusPort, TrafficLog, is_host_frame
 from drivers.protocol import cia301
+from drivers.protocol.batch import to_messages
+from drivers.protocol.cia402 import TPDO_FEEDBACK_SIZE
 from drivers.safety.causes import StopKind
 from hrm_ctrl.errors import DriverError
 
 MAX_TRACKED_IDS = 2048  # identifiers counted per kind (29-bit ids could be 2**29)
+#: A batch of up to this many frames (a heartbeat, an EMCY) takes the per-frame path.
+SMALL_BATCH_FRAMES = 2
+_TABLE_SIZE = 0x801  # 11-bit COB-IDs, and one entry for every flagged (29-bit, RTR, error) id
 log = logging.getLogger("drivers.receive")
 
 
@@ -151,6 +157,41 @@ class BusTraffic:
             }
 
 
+class _Routes(dict[int, tuple[Any, int]]):
+    """A dict that counts its changes (``version``), so a lookup table built from it
+    is rebuilt only when it changed."""
+
+    version = 0
+
+    def __setitem__(self, key: int, value: tuple[Any, int]) -> None:
+        self.version += 1
+        super().__setitem__(key, value)
+
+    def __delitem__(self, key: int) -> None:
+        self.version += 1
+        super().__delitem__(key)
+
+    def clear(self) -> None:
+        self.version += 1
+        super().clear()
+
+    def pop(self, *args: Any) -> Any:
+        self.version += 1
+        return super().pop(*args)
+
+    def popitem(self) -> tuple[int, tuple[Any, int]]:
+        self.version += 1
+        return super().popitem()
+
+    def setdefault(self, *args: Any) -> Any:
+        self.version += 1
+        return super().setdefault(*args)
+
+    def update(self, *args: Any, **kwargs: Any) -> None:
+        self.version += 1
+        super().update(*args, **kwargs)
+
+
 class BusReceiver(can.Listener):
     """The receive path of one bus (see the module docstring)."""
 
@@ -174,13 +215,67 @@ class BusReceiver(can.Listener):
         self.traffic = BusTraffic(port.name)
         self.fast: dict[int, Callable[[bytes], None]] = {}
         # COB-ID of a configured node's TPDO1 -> (monitor, slot): the short path
-        self.tpdo: dict[int, tuple[Any, int]] = {}
+        self.tpdo: dict[int, tuple[Any, int]] = _Routes()
         # COB-ID of a configured node's heartbeat -> (monitor, slot): short path too
         # (the monitor is the one consumer of heartbeats; canopen's NMT master is not
         # asked for the drives' states)
         self.heartbeat: dict[int, tuple[Any, int]] = {}
+        self._table: np.ndarray | None = None  # self.tpdo as a lookup table (on_batch)
+        self._table_version = -1
+        self._monitor: Any = None
 
     def on_message_received(self, msg: can.Message) -> None:
+        self._handle(msg, self.log)
+
+    def on_batch(self, frames: np.ndarray) -> None:
+        """The frames of a received batch (a :data:`drivers.protocol.batch.FRAME_DTYPE`
+        array, from a bus with ``recv_batch``): logged as one entry, the configured nodes'
+        TPDO1s straight into the monitor in a few NumPy calls (step 0 for all of them at
+        once), every other frame as :meth:`on_message_received` takes it.  While
+        listening for another master, or on a bus that echoes our frames, every frame
+        takes the full path."""
+        table = self._tpdo_table()
+        if (
+            len(frames) <= SMALL_BATCH_FRAMES
+            or table is None
+            or self.traffic.listening
+            or self.port.echoes is not None
+        ):
+            for msg in to_messages(frames, channel=self.port.name):
+                self._handle(msg, self.log)
+            return
+        if self.log is not None:
+            self.log.log_batch(frames, is_rx=True)
+        slots = table[np.minimum(frames["id"], _TABLE_SIZE - 1)]
+        hit = (slots >= 0) & (frames["dlc"] == TPDO_FEEDBACK_SIZE)
+        if hit.all():
+            self._monitor.on_tpdo_batch(slots, frames)
+            return
+        if hit.any():
+            self._monitor.on_tpdo_batch(slots[hit], frames[hit])
+        for msg in to_messages(frames[~hit], channel=self.port.name):
+            self._handle(msg, None)
+
+    def _tpdo_table(self) -> np.ndarray | None:
+        """COB-ID -> monitor slot of every configured TPDO1 (-1: none; flagged ids land
+        on the last entry), rebuilt when :attr:`tpdo` changed; None when the TPDOs do not
+        all go to one monitor (then every frame takes the full path)."""
+        routes = self.tpdo
+        version = routes.version if isinstance(routes, _Routes) else -2  # -2: a plain dict
+        if version != self._table_version or version == -2:
+            monitors = {id(mon) for mon, _slot in self.tpdo.values()}
+            table = None
+            if len(monitors) == 1:
+                table = np.full(_TABLE_SIZE, -1, dtype=np.int64)
+                for cid, (mon, slot) in self.tpdo.items():
+                    if 0 <= cid < _TABLE_SIZE - 1:
+                        table[cid] = slot
+                        self._monitor = mon
+            self._table, self._table_version = table, version
+        return self._table
+
+    def _handle(self, msg: can.Message, log_: TrafficLog | None) -> None:
+        """Step 0-7 of the module docstring for one frame (``log_`` None: logged already)."""
         cid = msg.arbitration_id
         slot = self.tpdo.get(cid)
         if (
@@ -190,7 +285,6 @@ class BusReceiver(can.Listener):
             and not msg.is_error_frame
             and not self.traffic.listening
         ):
-            log_ = self.log
             if log_ is not None:
                 log_.on_message_received(msg)
             slot[0].on_tpdo(slot[1], msg.data)
@@ -203,7 +297,6 @@ class BusReceiver(can.Listener):
             and not msg.is_error_frame
             and not self.traffic.listening
         ):
-            log_ = self.log
             if log_ is not None:
                 log_.on_message_received(msg)
             slot[0].on_heartbeat(slot[1], msg.data)
@@ -211,8 +304,8 @@ class BusReceiver(can.Listener):
         if self.port.is_own_echo(msg):
             self.traffic.echoes_dropped += 1
             return
-        if self.log is not None:
-            self.log.on_message_received(msg)
+        if log_ is not None:
+            log_.on_message_received(msg)
         if msg.is_error_frame:
             self.traffic.error_frames += 1
             return
@@ -409,3 +502,120 @@ class BusReader:
         self._stopped = True
         if self._thread is not threading.current_thread():
             self._thread.join(timeout)
+
+
+def pollable(bus: can.BusABC) -> bool:
+    """Whether a bus gives a descriptor that is readable while a frame waits (SocketCAN,
+    udp_multicast, ``hrm_ipc``; python-can's ``virtual`` does not).
+
+    >>> import can
+    >>> bus = can.Bus(interface="virtual", channel="doc-pollable")
+    >>> pollable(bus)
+    False
+    >>> bus.shutdown()
+    """
+    try:
+        return bus.fileno() >= 0
+    except (NotImplementedError, can.CanError, OSError, ValueError):
+        return False
+
+
+class BusPoller:
+    """The receive path of one bus without a thread of its own: the supervisor's thread
+    waits on :meth:`fileno` (beside its deadline) and calls :meth:`poll`, which hands every
+    frame waiting to the bus's :class:`BusReceiver`.  One thread then owns the whole cycle:
+    no hand-over of the interpreter lock between a reader and the supervisor for every
+    datagram (BENCHMARKS.md).  Same face as :class:`BusReader` (``exception``, ``alive``,
+    ``n_frames``, ``stop``): a failure of the bus or the receiver is kept in
+    :attr:`exception` and is a stop cause.
+
+    >>> import can
+    >>> bus = can.Bus(interface="udp_multicast", channel="239.74.0.9", port=43219,
+    ...               hop_limit=0)
+    >>> got = []
+    >>> class Sink:
+    ...     def on_message_received(self, msg):
+    ...         got.append(msg.arbitration_id)
+    >>> poller = BusPoller(bus, Sink(), name="doc")
+    >>> poller.poll(), got, poller.exception
+    (0, [], None)
+    >>> poller.stop(); bus.shutdown()
+    """
+
+    #: frames handled per :meth:`poll` at most (the rest at the next one: a flood cannot
+    #: hold the control cycle)
+    MAX_FRAMES_PER_POLL = 512
+
+    def __init__(self, bus: can.BusABC, receiver: Any, name: str) -> None:
+        self.bus = bus
+        self.receiver = receiver
+        self.name = f"hrm-rx-{name}"
+        self._fd = bus.fileno()
+        self._recv = BusReader._recv(self)  # type: ignore[arg-type]
+        # a bus that hands over whole datagrams (hrm_ipc), unfiltered, to a receiver that
+        # takes batches: no Python object per frame
+        batch = getattr(bus, "recv_batch", None)
+        self._recv_batch = (
+            batch
+            if callable(batch)
+            and not getattr(bus, "_filters", None)
+            and callable(getattr(receiver, "on_batch", None))
+            else None
+        )
+        self._exception: BaseException | None = None
+        self._stopped = False
+        self.n_frames = 0
+
+    def fileno(self) -> int:
+        return self._fd
+
+    def poll(self) -> int:
+        """Hand every frame waiting (at most :data:`MAX_FRAMES_PER_POLL`) to the receiver;
+        return how many.  A failure ends the poller (kept in :attr:`exception`)."""
+        if self._stopped or self._exception is not None:
+            return 0
+        recv = self._recv
+        handle = self.receiver.on_message_received
+        n = 0
+        try:
+            if self._recv_batch is not None:
+                while n < self.MAX_FRAMES_PER_POLL:
+                    got = self._recv_batch(0.0)
+                    if got is None:
+                        break
+                    frames, is_rx = got
+                    n += len(frames)
+                    if is_rx:
+                        self.receiver.on_batch(frames)
+                    else:  # our own frames (receive_own_messages): the echo path
+                        for msg in to_messages(frames, channel=self.bus.channel, is_rx=False):
+                            handle(msg)
+            else:
+                while n < self.MAX_FRAMES_PER_POLL:
+                    msg = recv(0.0)
+                    if msg is None:
+                        break
+                    n += 1
+                    handle(msg)
+        except BaseException as exc:  # a RECEIVE stop cause, as a reader thread's end
+            if not self._stopped:
+                self._exception = exc
+                log.error("receive path %s ended: %r", self.name, exc)
+        self.n_frames += n
+        return n
+
+    @property
+    def exception(self) -> BaseException | None:
+        return self._exception
+
+    @exception.setter
+    def exception(self, exc: BaseException | None) -> None:
+        self._exception = exc
+
+    @property
+    def alive(self) -> bool:
+        return not self._stopped and self._exception is None
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """No more frames are handled (idempotent; ``timeout`` as :meth:`BusReader.stop`)."""
+        self._stopped = True

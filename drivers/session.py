@@ -84,7 +84,7 @@ from drivers.cycle import BusLayout, EventLog, StreamResult
 from drivers.interrupts import deferred_interrupts
 from drivers.protocol import cia301, cia402
 from drivers.realtime import NORMAL_PRIORITY, AppliedSettings, process_settings
-from drivers.receive import BusReader, BusReceiver, wait_quiet_listen
+from drivers.receive import BusPoller, BusReader, BusReceiver, pollable, wait_quiet_listen
 from drivers.safety.causes import StopCause, StopKind
 from drivers.safety.limits import MAX_SOURCE_DURATION_S, LimitChecker
 from drivers.safety.monitor import NodeMonitor
@@ -426,7 +426,10 @@ class DriveSession:
                 router.heartbeat[cia301.COB_NMT_ERROR_CONTROL + nid] = (self.monitor, i)
             # our own receive thread (no can.Notifier dispatch); canopen's Network only
             # asks it for .exception (check) and .stop (disconnect)
-            net.notifier = BusReader(bus, router, b.name)  # type: ignore[assignment]
+            # a bus with a descriptor is read by the supervisor's thread (BusPoller)
+            net.notifier = (  # type: ignore[assignment]
+                BusPoller(bus, router, b.name) if pollable(bus) else BusReader(bus, router, b.name)
+            )
             self._networks.append(net)
             load = self.loads[bi]
             self._layouts.append(

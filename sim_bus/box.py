@@ -2,8 +2,11 @@
 
 :class:`SimBox` opens (or is given) one python-can bus per configured bus,
 creates a :class:`~sim_bus.drive.DriveSim` for every rope motor on it, and runs
-one thread per bus that receives frames, routes them by COB-ID to the drives
-listening to them and ticks the drives' timers every ``tick_s``.  The
+a thread that receives frames, routes them by COB-ID to the drives listening to
+them and ticks the drives' timers every ``tick_s``: one thread for every bus that has
+a descriptor to wait on (``hrm_ipc``, SocketCAN, udp_multicast), else one per bus (two
+threads of one interpreter answering two SYNCs at once only queue for its lock, and on a
+two-core machine they take the core the host's control loop needs).  The
 drives' actual positions make the arm (:class:`~sim_bus.arm.SimArm`): true
 joint angles and joint centres, rope tensions, all of the arm's truth
 (:class:`~sim_bus.truth.TrueArm`, ``truth=``; default the robot description itself).
@@ -43,6 +46,7 @@ import contextlib
 import heapq
 import logging
 import math
+import select
 import socket
 import threading
 import time
@@ -114,6 +118,7 @@ class _BoxBus:
         self.trace: list[tuple[float, list[int]]] | None = None
         self.cpu_s = 0.0
         self.timers_dirty = True
+        self.next_tick = -math.inf  # the drives' timers are due (box clock)
 
     def rebuild_routes(self) -> None:
         routes: dict[int, list[DriveSim]] = {}
@@ -125,6 +130,15 @@ class _BoxBus:
     @property
     def wire(self) -> Any:
         return self.bus.wire if isinstance(self.bus, SimWireBus) else None
+
+
+def _fileno(bus: can.BusABC) -> int | None:
+    """The bus's descriptor to wait on (None: it has none, e.g. python-can's virtual)."""
+    try:
+        fd = bus.fileno()
+    except (NotImplementedError, can.CanError, OSError, ValueError):
+        return None
+    return fd if isinstance(fd, int) and fd >= 0 else None
 
 
 def _take(rules: list[list[Any]], msg: can.Message) -> list[Any] | None:
@@ -257,8 +271,14 @@ class SimBox:
         except BaseException:
             self._close_buses()
             raise
-        for bb in self._buses:
-            t = threading.Thread(target=self._run_bus, args=(bb,), name=f"simbox:{bb.name}")
+        fds = [_fileno(bb.bus) for bb in self._buses]
+        if self._buses and all(fd is not None for fd in fds):
+            groups = [self._buses]  # one thread waits on every bus
+        else:
+            groups = [[bb] for bb in self._buses]
+        for group in groups:
+            name = "simbox:" + "+".join(bb.name for bb in group)
+            t = threading.Thread(target=self._run_buses, args=(group,), name=name)
             t.daemon = True
             self._threads.append(t)
             t.start()
@@ -357,48 +377,77 @@ class SimBox:
 
         return send
 
-    def _run_bus(self, bb: _BoxBus) -> None:
-        next_tick = self.clock()
+    def _run_buses(self, group: list[_BoxBus]) -> None:
+        """The thread of ``group``: one bus waited on with ``recv`` (its timeout up to the
+        next drive timer), several with one ``select`` on their descriptors."""
+        fds = {_fileno(bb.bus): bb for bb in group} if len(group) > 1 else {}
         cpu0 = time.thread_time()
         while not self._stop.is_set():
             now = self.clock()
-            wake = next_tick
-            if bb.delayed:
-                wake = min(wake, bb.delayed[0][0])
-            batch: list[can.Message] = []
+            wake = min(min(bb.next_tick, bb.delayed[0][0] if bb.delayed else math.inf)
+                       for bb in group)  # fmt: skip
+            timeout = min(max(0.0, wake - now), 0.05)
+            if fds:
+                try:
+                    ready = [fds[fd] for fd in select.select(list(fds), [], [], timeout)[0]]
+                except (OSError, ValueError) as exc:
+                    self._event(f"box buses: wait failed ({exc})")
+                    if self._stop.wait(0.05):
+                        break
+                    continue
+                for bb in group:
+                    self._serve(bb, bb in ready, 0.0)
+            else:
+                self._serve(group[0], True, timeout)
+            t = time.thread_time()
+            share = (t - cpu0) / len(group)
+            for bb in group:
+                bb.cpu_s += share
+            cpu0 = t
+
+    def _serve(self, bb: _BoxBus, receive: bool, timeout: float) -> None:
+        """One round of a bus: what it delivers (waiting at most ``timeout``), the drives'
+        timers when due, delayed frames whose time came."""
+        batch: list[can.Message] = []
+        if receive:
             try:
-                msg = bb.bus.recv(timeout=min(max(0.0, wake - now), 0.05))
+                msg = bb.bus.recv(timeout=timeout)
                 while msg is not None:  # drain what is queued: one lock round per burst
                     batch.append(msg)
                     msg = bb.bus.recv(timeout=0.0) if len(batch) < 256 else None
             except (can.CanError, OSError, ValueError) as exc:
                 self._event(f"bus {bb.name}: receive failed ({exc})")
                 if self._stop.wait(0.05):
-                    break
-            # one datagram per peer for what this burst makes the drives send, on a bus
-            # that batches (hrm_ipc); a no-op on the others
-            with self._lock, getattr(bb.bus, "batch", contextlib.nullcontext)():
-                now = self.clock()
-                if not bb.bus_off:
-                    for msg in batch:
-                        self._dispatch(bb, msg, now)
-                if now >= next_tick or bb.timers_dirty:
-                    for d in bb.drives:
-                        d.tick(now)
-                    # sleep until the earliest drive timer (heartbeat due, consumer timeout,
-                    # quick-stop motion), at most tick_s: no fixed-rate polling of 36 drives
-                    soonest = min((d.next_deadline() for d in bb.drives), default=math.inf)
-                    next_tick = min(max(soonest, now + 1e-4), now + self.tick_s)
-                    bb.timers_dirty = False
-                while bb.delayed and bb.delayed[0][0] <= now and not bb.bus_off:
-                    _t, _s, late = heapq.heappop(bb.delayed)
-                    try:
-                        bb.bus.send(late)
-                    except can.CanError:
-                        pass
-            t = time.thread_time()
-            bb.cpu_s += t - cpu0
-            cpu0 = t
+                    return
+        now = self.clock()
+        if (
+            not batch
+            and now < bb.next_tick
+            and not bb.timers_dirty
+            and not (bb.delayed and bb.delayed[0][0] <= now)
+        ):
+            return
+        # one datagram per peer for what this burst makes the drives send, on a bus
+        # that batches (hrm_ipc); a no-op on the others
+        with self._lock, getattr(bb.bus, "batch", contextlib.nullcontext)():
+            now = self.clock()
+            if not bb.bus_off:
+                for msg in batch:
+                    self._dispatch(bb, msg, now)
+            if now >= bb.next_tick or bb.timers_dirty:
+                for d in bb.drives:
+                    d.tick(now)
+                # sleep until the earliest drive timer (heartbeat due, consumer timeout,
+                # quick-stop motion), at most tick_s: no fixed-rate polling of 36 drives
+                soonest = min((d.next_deadline() for d in bb.drives), default=math.inf)
+                bb.next_tick = min(max(soonest, now + 1e-4), now + self.tick_s)
+                bb.timers_dirty = False
+            while bb.delayed and bb.delayed[0][0] <= now and not bb.bus_off:
+                _t, _s, late = heapq.heappop(bb.delayed)
+                try:
+                    bb.bus.send(late)
+                except can.CanError:
+                    pass
 
     def _dispatch(self, bb: _BoxBus, msg: can.Message, now: float) -> None:
         targets = bb.routes.get(msg.arbitration_id)

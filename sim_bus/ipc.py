@@ -12,7 +12,10 @@ end's socket.  Semantics of a CAN bus:
 * a received frame's ``timestamp`` is the sender's ``time.time()`` at the send, its
   ``channel`` the channel name;
 * :meth:`IpcBus.send_many` carries a batch (the frames of one control cycle) in ONE
-  datagram per peer: one system call per peer instead of one per frame and peer.
+  datagram per peer: one system call per peer instead of one per frame and peer;
+* :meth:`IpcBus.send_batch` and :meth:`IpcBus.recv_batch` carry a batch as one NumPy
+  record array (:data:`drivers.protocol.batch.FRAME_DTYPE`, the record below): the host's
+  control cycle sends and receives a datagram's frames without a Python object per frame.
 
 Why not ``udp_multicast``: it hands every frame back to its own sender, sends one
 datagram per frame (msgpack-encoded), and a stalled reader loses frames silently in the
@@ -67,11 +70,15 @@ from pathlib import Path
 from typing import Any
 
 import can
+import numpy as np
 from can.bus import BusState, CanProtocol
+
+from drivers.protocol.batch import FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE, FRAME_DTYPE, ID_MASK
 
 #: Datagram header: magic, version, kind, frame count, sequence number, sender id.
 HEADER = struct.Struct("<2sBBHIQ")
-#: One frame: timestamp (s, sender's time.time()), id | flags, dlc, data padded to 8.
+#: One frame: timestamp (s, sender's time.time()), id | flags, dlc, data padded to 8 (the
+#: record of drivers.protocol.batch.FRAME_DTYPE).
 RECORD = struct.Struct("<dIB8s")
 MAGIC = b"HC"
 VERSION = 1
@@ -84,10 +91,8 @@ class DatagramKind(enum.IntEnum):
 
 
 KIND_FRAMES = DatagramKind.FRAMES
-FLAG_EXTENDED = 0x80000000
-FLAG_REMOTE = 0x40000000
-FLAG_ERROR = 0x20000000
-ID_MASK = 0x1FFFFFFF
+#: Datagrams of up to this many frames are checked frame by frame, longer ones with NumPy.
+SMALL_DATAGRAM_FRAMES = 4
 #: Frames in one datagram (a longer send_many is split into datagrams of this many).
 MAX_FRAMES_PER_DATAGRAM = 256
 MAX_DATAGRAM_BYTES = HEADER.size + MAX_FRAMES_PER_DATAGRAM * RECORD.size
@@ -178,6 +183,34 @@ def _check_record(
         return None
     rtr = bool(raw & FLAG_REMOTE)
     return ts, ident, ext, rtr, bool(raw & FLAG_ERROR), dlc, b"" if rtr else data[:dlc]
+
+
+def _records_valid(records: np.ndarray) -> bool:
+    """Whether every record of a FRAME_DTYPE array is a classical CAN frame (dlc <= 8, an
+    11-bit id unless extended, a timestamp that is a number): :func:`_check_record` for
+    all of them (one by one for a few, with NumPy for more)."""
+    if len(records) <= SMALL_DATAGRAM_FRAMES:
+        return all(
+            dlc <= 8 and (raw & FLAG_EXTENDED or raw & ID_MASK <= 0x7FF) and ts == ts
+            for ts, raw, dlc, _data in records.tolist()
+        )
+    ids = records["id"]
+    std = (ids & FLAG_EXTENDED) == 0
+    return not bool(
+        (records["dlc"] > 8).any()
+        or (std & ((ids & ID_MASK) > 0x7FF)).any()
+        or np.isnan(records["timestamp"]).any()
+    )
+
+
+@dataclass
+class _Chunk:
+    """A received datagram's frames not yet taken: records ``pos`` .. ``count`` of ``data``."""
+
+    data: bytes
+    count: int
+    is_rx: bool
+    pos: int = 0
 
 
 @dataclass
@@ -317,9 +350,8 @@ class IpcBus(can.BusABC):
         self._epoll = select.epoll()
         self._epoll.register(self._listener.fileno(), select.EPOLLIN)
         self._conns: dict[int, _Conn] = {}
-        self._rx: collections.deque[tuple[float, int, bool, bool, bool, int, bytes, bool]] = (
-            collections.deque()
-        )
+        self._rx: collections.deque[_Chunk] = collections.deque()
+        self._rx_len = 0  # frames in the receive queue
         # readable while frames wait in the queue (once fileno() was asked for) or on shutdown
         self._event_fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         self._epoll.register(self._event_fd, select.EPOLLIN)
@@ -542,13 +574,34 @@ class IpcBus(can.BusABC):
         for k in range(0, len(records), MAX_FRAMES_PER_DATAGRAM):
             self._transmit(records[k : k + MAX_FRAMES_PER_DATAGRAM], timeout)
 
+    def send_batch(self, frames: np.ndarray, timeout: float | None = None) -> None:
+        """Send a :data:`~drivers.protocol.batch.FRAME_DTYPE` array as :meth:`send_many`
+        sends frames (stamped with ``time.time()`` now, in place), its bytes as they are;
+        a record classical CAN cannot carry refuses the whole batch."""
+        if frames.dtype != FRAME_DTYPE or frames.ndim != 1:
+            raise can.CanOperationError("hrm_ipc: send_batch takes a 1-D FRAME_DTYPE array")
+        frames["timestamp"] = time.time()
+        if not _records_valid(frames):
+            raise can.CanOperationError(
+                "hrm_ipc: a frame of the batch has more than 8 data bytes or an id out of range"
+            )
+        pending = getattr(self._local, "records", None)
+        if pending is not None:
+            body = frames.tobytes()
+            size = RECORD.size
+            pending.extend(body[k : k + size] for k in range(0, len(body), size))
+            return
+        for k in range(0, len(frames), MAX_FRAMES_PER_DATAGRAM):
+            part = frames[k : k + MAX_FRAMES_PER_DATAGRAM]
+            self._transmit_body(part.tobytes(), len(part), timeout)
+
     def _transmit(self, records: list[bytes], timeout: float | None) -> None:
+        if records:
+            self._transmit_body(b"".join(records), len(records), timeout)
+
+    def _transmit_body(self, body: bytes, n: int, timeout: float | None) -> None:
         if self._closed:
             raise can.CanOperationError("hrm_ipc: cannot send on a closed bus")
-        if not records:
-            return
-        body = b"".join(records)
-        n = len(records)
         budget = self._send_wait_s if timeout is None else min(self._send_wait_s, timeout)
         with self._tx_lock:
             if self._closed:
@@ -596,30 +649,73 @@ class IpcBus(can.BusABC):
     # --------------------------------------------------------------- receive
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         with self._rx_lock:
-            if self._rx:
-                return self._pop(), False
-            if self._closed:
-                raise can.CanOperationError("hrm_ipc: cannot receive on a closed bus")
-            deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
-            while True:
-                left = -1.0 if deadline is None else max(0.0, deadline - time.monotonic())
-                try:
-                    events = self._epoll.poll(left)
-                except (OSError, ValueError):
-                    if self._closed:
-                        raise can.CanOperationError("hrm_ipc: bus closed while receiving") from None
-                    raise
-                if self._closed:
-                    raise can.CanOperationError("hrm_ipc: bus closed while receiving")
-                for fd, _ev in events:
-                    if fd == self._listener.fileno():
-                        self._accept()
-                    elif fd in self._conns:
-                        self._read(fd)
-                if self._rx:
+            try:
+                if self._rx_len or self._wait_rx(timeout):
                     return self._pop(), False
-                if deadline is not None and time.monotonic() >= deadline:
-                    return None, False
+                return None, False
+            finally:
+                if not self._closed:
+                    self._sync_event()
+
+    def recv_batch(self, timeout: float | None = None) -> tuple[np.ndarray, bool] | None:
+        """The frames of the oldest datagram still queued (those :meth:`recv` has not taken
+        yet) as a read-only :data:`~drivers.protocol.batch.FRAME_DTYPE` array over the
+        datagram's bytes, with ``is_rx`` (False: our own, ``receive_own_messages``); None
+        when nothing came within ``timeout``.  The bus's filters are not applied (ask
+        :meth:`recv` on a filtered bus).
+
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     a, b = open_ends("doc-rb", 2, d)
+        ...     a.send_many([can.Message(arbitration_id=0x181 + k, data=[k], is_extended_id=False)
+        ...                  for k in range(3)])
+        ...     frames, is_rx = b.recv_batch(1.0)
+        ...     print([hex(i) for i in frames["id"]], frames["data"][:, 0].tolist(), is_rx,
+        ...           b.recv_batch(0.0))
+        ...     a.shutdown(); b.shutdown()
+        ['0x181', '0x182', '0x183'] [0, 1, 2] True None
+        """
+        with self._rx_lock:
+            try:
+                if not (self._rx_len or self._wait_rx(timeout)):
+                    return None
+                chunk = self._rx.popleft()
+                self._rx_len -= chunk.count - chunk.pos
+            finally:
+                if not self._closed:
+                    self._sync_event()
+            frames = np.frombuffer(
+                chunk.data,
+                dtype=FRAME_DTYPE,
+                count=chunk.count - chunk.pos,
+                offset=HEADER.size + chunk.pos * RECORD.size,
+            )
+            return frames, chunk.is_rx
+
+    def _wait_rx(self, timeout: float | None) -> bool:
+        """Wait (under the receive lock) until a frame is queued; False after ``timeout``."""
+        if self._closed:
+            raise can.CanOperationError("hrm_ipc: cannot receive on a closed bus")
+        deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
+        while True:
+            left = -1.0 if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                events = self._epoll.poll(left)
+            except (OSError, ValueError):
+                if self._closed:
+                    raise can.CanOperationError("hrm_ipc: bus closed while receiving") from None
+                raise
+            if self._closed:
+                raise can.CanOperationError("hrm_ipc: bus closed while receiving")
+            for fd, _ev in events:
+                if fd == self._listener.fileno():
+                    self._accept()
+                elif fd in self._conns:
+                    self._read(fd)
+            if self._rx_len:
+                return True
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
 
     def _accept(self) -> None:
         while True:
@@ -675,13 +771,9 @@ class IpcBus(can.BusABC):
         ):
             n.malformed_datagrams += 1
             return
-        frames = []
-        for ts, raw, dlc, payload in RECORD.iter_unpack(memoryview(data)[HEADER.size :]):
-            f = _check_record(ts, raw, dlc, payload)
-            if f is None:
-                n.malformed_datagrams += 1
-                return
-            frames.append(f)
+        if not _records_valid(np.frombuffer(data, FRAME_DTYPE, count, HEADER.size)):
+            n.malformed_datagrams += 1
+            return
         if conn.last_seq is not None:
             gap = (seq - conn.last_seq - 1) & 0xFFFFFFFF
             n.rx_sequence_gaps += gap
@@ -690,26 +782,53 @@ class IpcBus(can.BusABC):
         n.frames_received += count
         is_rx = sender != self._sender_id
         rx = self._rx
-        over = len(rx) + count - self._rx_max
-        if over > 0:
+        chunk = _Chunk(data, count, is_rx)
+        over = self._rx_len + count - self._rx_max
+        if over > 0:  # the oldest frames go
             n.rx_queue_dropped_frames += over
-            for _ in range(min(over, len(rx))):
-                rx.popleft()
-            if count > self._rx_max:
-                frames = frames[count - self._rx_max :]
-        rx.extend((*f, is_rx) for f in frames)
-        if self._fileno_used and not self._event_set and rx:
-            os.eventfd_write(self._event_fd, 1)
-            self._event_set = True
+            while over > 0 and rx:
+                head = rx[0]
+                k = min(over, head.count - head.pos)
+                head.pos += k
+                self._rx_len -= k
+                over -= k
+                if head.pos == head.count:
+                    rx.popleft()
+            chunk.pos = over  # the datagram alone is longer than the queue
+        rx.append(chunk)
+        self._rx_len += count - chunk.pos
 
-    def _pop(self) -> can.Message:
-        ts, ident, ext, rtr, err, dlc, data, is_rx = self._rx.popleft()
-        if self._event_set and not self._rx:
+    def _sync_event(self) -> None:
+        """At the end of a receive: the descriptor of :meth:`fileno` is readable while
+        frames stay queued (datagrams are only read inside a receive, so the queue
+        changes nowhere else; two system calls per datagram saved)."""
+        if not self._fileno_used:
+            return
+        if self._rx_len:
+            if not self._event_set:
+                os.eventfd_write(self._event_fd, 1)
+                self._event_set = True
+        elif self._event_set:
             try:
                 os.eventfd_read(self._event_fd)
             except BlockingIOError:
                 pass
             self._event_set = False
+
+    def _pop(self) -> can.Message:
+        head = self._rx[0]
+        raw_ts, raw, raw_dlc, payload = RECORD.unpack_from(
+            head.data, HEADER.size + head.pos * RECORD.size
+        )
+        head.pos += 1
+        if head.pos == head.count:
+            self._rx.popleft()
+        self._rx_len -= 1
+        is_rx = head.is_rx
+        checked = _check_record(raw_ts, raw, raw_dlc, payload)
+        if checked is None:  # checked when it came in
+            raise can.CanOperationError("hrm_ipc: a queued frame is malformed")
+        ts, ident, ext, rtr, err, dlc, data = checked
         return can.Message(
             timestamp=ts,
             arbitration_id=ident,
@@ -730,7 +849,7 @@ class IpcBus(can.BusABC):
                 raise can.CanOperationError("hrm_ipc: bus is closed")
             if not self._fileno_used:
                 self._fileno_used = True
-                if self._rx and not self._event_set:
+                if self._rx_len and not self._event_set:
                     os.eventfd_write(self._event_fd, 1)
                     self._event_set = True
             return self._epoll.fileno()
@@ -756,7 +875,7 @@ class IpcBus(can.BusABC):
             "stale_sockets_removed": n.stale_sockets_removed,
             "rescans": n.rescans,
             "send_buffer_bytes": self._sndbuf_effective,
-            "rx_queued": len(self._rx),
+            "rx_queued": self._rx_len,
         }
 
     def peer_names(self) -> list[str]:

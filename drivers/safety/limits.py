@@ -196,3 +196,191 @@ def acceleration_text(limits: Any, i: int, acc: float) -> str:
         f"motor {_motor_name(limits, i)}: accelerates {acc:.0f} counts/s^2, more than the "
         f"motor's {lim:.0f} counts/s^2"
     )
+
+
+# The per-cycle fast test works on counts up to this size (float64 holds every integer
+# up to 2**53 exactly, so the slow path's float arithmetic on them is exact as well).
+_FAST_EDGE = 2**52
+# Bounds of the fast test sit this much (relative) inside the limits: a setpoint whose
+# change lands on a limit up to float rounding is left to the slow path.
+_FAST_MARGIN = 1e-9
+_INT64 = np.dtype(np.int64)
+
+
+def _largest_step(
+    limit: np.ndarray, scale: float, refused: Callable[[np.ndarray], np.ndarray]
+) -> np.ndarray | None:
+    """Per motor the largest whole change ``c >= 0`` (``<=`` :data:`_FAST_EDGE`) the slow
+    path's own arithmetic ``refused(c)`` does not refuse, with the margin; None if a motor
+    has none (then the fast test is off).  ``refused`` is monotone in ``c``."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        c = limit * scale * (1.0 - _FAST_MARGIN)
+    c = np.nan_to_num(c, nan=_FAST_EDGE, posinf=_FAST_EDGE, neginf=-1.0)
+    step = np.clip(np.floor(c), -1, _FAST_EDGE).astype(np.int64)
+    for _ in range(4):
+        bad = (step >= 0) & refused(step)
+        if not bad.any():
+            return None if (step < 0).any() else step
+        step[bad] -= 1
+    return None
+
+
+class CycleLimits:
+    """The control loop's check of one setpoint: position, speed (from ``previous``) and
+    acceleration (the second difference with ``before``, one period earlier), built once
+    from a :class:`LimitChecker` and the control period.
+
+    :meth:`check` first runs a cheap test on precomputed whole-count bounds per motor
+    (:meth:`passes`: a handful of NumPy calls on int64 work buffers); only a setpoint it
+    does not clearly pass goes through :meth:`check_slow`, the rope layer's
+    ``check_counts`` and then the acceleration check, which raise what they always did.
+    The fast test is conservative: it passes a setpoint only if the slow path passes it
+    too (the bounds are checked with the slow path's own float arithmetic and sit a
+    little inside the limits, so a change exactly at a limit goes to the slow path).
+
+    It trusts the protocol: ``check_counts`` refuses a setpoint outside
+    ``counts_min``/``counts_max`` or moving faster than ``max_rate_counts_per_s``, and
+    nothing else for a single int64 setpoint.  A checker without those attributes, with
+    other shapes, or a period that is not a positive number, gets the slow path only; one
+    without acceleration limits (:func:`accel_limits`) skips that part, as the slow path
+    does.  Only targets, previous and before that are int64 arrays of one setpoint take
+    the fast test.  The work buffers make an instance thread-confined (the supervisor's
+    thread).
+
+    >>> class Lim:
+    ...     motor_ids = ("m0", "m1")
+    ...     counts_min = np.array([-100, -100]); counts_max = np.array([100, 100])
+    ...     max_rate_counts_per_s = np.array([1000.0, 1000.0])  # 10 counts a period
+    ...     max_accel_counts_per_s2 = np.array([5e4, 5e4])  # 5 counts a period^2
+    ...     def check_counts(self, counts, previous=None, dt_s=None):
+    ...         if np.any(np.abs(counts) > 100): raise SetpointError("outside [-100, 100]")
+    >>> cyc = CycleLimits(Lim(), 0.01)
+    >>> cyc.fast, cyc.step.tolist(), cyc.second.tolist()  # the limits exactly: slow path
+    (True, [9, 9], [4, 4])
+    >>> rest = np.array([0, 0])
+    >>> cyc.passes(np.array([4, -3]), rest, rest), cyc.check(np.array([4, -3]), rest, rest)
+    (True, None)
+    >>> cyc.passes(np.array([5, 0]), rest, rest), cyc.check(np.array([5, 0]), rest, rest)
+    (False, None)
+    >>> cyc.check(np.array([6, 0]), rest, rest)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    drivers.safety.limits.SetpointError: motor m0: accelerates 60000 counts/s^2, more ... 50000 ...
+    >>> cyc.check(np.array([101, 0]), np.array([99, 0]), np.array([97, 0]))
+    Traceback (most recent call last):
+    ...
+    drivers.safety.limits.SetpointError: outside [-100, 100]
+    """
+
+    def __init__(self, limits: LimitChecker, period_s: float) -> None:
+        self.limits = limits
+        self.period_s = float(period_s)
+        self.accel = accel_limits(limits, fallback=False)  # counts/s^2, or None
+        #: whether the fast test runs at all (else every setpoint takes the slow path)
+        self.fast = False
+        #: per motor: position bounds, the largest change per period and (with
+        #: acceleration limits) the largest second difference the fast test passes
+        self.lo = self.hi = self.step = np.zeros(0, dtype=np.int64)
+        self.second: np.ndarray | None = None
+        rows = 2 if self.accel is None else 3
+        self._shape: tuple[int, ...] = (0,)
+        self._x = np.zeros((rows, 0), dtype=np.int64)
+        self._bounds()
+        n = self.lo.shape[0]
+        self._shape = (n,)
+        # rows: target - lo, target - previous + step, target - 2 previous + before +
+        # second; each must lie in [0, span] (compared unsigned: one comparison a row)
+        self._x = np.zeros((rows, n), dtype=np.int64)
+        self._xu = self._x.view(np.uint64)
+        self._rows = tuple(self._x)  # row views, made once
+        self._tail = self._x[1:]
+        offsets = [self.step] if self.second is None else [self.step, self.second]
+        self._offset = np.array(offsets, dtype=np.int64).reshape(rows - 1, n)
+        spans = [self.hi - self.lo, *(2 * o for o in offsets)]
+        self._span = np.array(spans, dtype=np.int64).reshape(rows, n).view(np.uint64)
+        self._out = np.zeros((rows, n), dtype=bool)  # where a row leaves its range
+
+    def _bounds(self) -> None:
+        """Fill lo, hi, step, second and ``fast`` (left off when anything is amiss)."""
+        lim = self.limits
+        T = self.period_s
+        raw = [getattr(lim, a, None) for a in ("counts_min", "counts_max", "max_rate_counts_per_s")]
+        if any(r is None for r in raw) or not (math.isfinite(T) and T > 0):
+            return
+        cmin, cmax, rate = (np.asarray(r) for r in raw)
+        try:
+            cmin_f, cmax_f, rate_f = (np.asarray(r, dtype=np.float64) for r in raw)
+        except (TypeError, ValueError):
+            return
+        n = cmin_f.shape[0] if cmin_f.ndim == 1 else -1
+        shapes = [cmax_f.shape, rate_f.shape, (len(getattr(lim, "motor_ids", ())),)]
+        if self.accel is not None:
+            shapes.append(self.accel.shape)
+        if n < 1 or any(s != (n,) for s in shapes):
+            return
+        if np.isnan(cmin_f).any() or np.isnan(cmax_f).any():
+            return
+        lo = np.clip(np.ceil(cmin_f), -_FAST_EDGE, _FAST_EDGE + 1).astype(np.int64)
+        hi = np.clip(np.floor(cmax_f), -_FAST_EDGE - 1, _FAST_EDGE).astype(np.int64)
+        # the slow path's own comparisons (int64 setpoints against the raw limits)
+        if (lo > hi).any() or not ((lo >= cmin).all() and (hi <= cmax).all()):
+            return
+        dt = np.full(1, T)  # as check_counts: the change over dt_s, against the raw rate
+        step = _largest_step(rate_f, T, lambda c: np.abs(c.astype(np.float64)) / dt > rate)
+        if step is None:
+            return
+        second = None
+        if self.accel is not None:
+            a = self.accel  # as the supervisor: |second difference| / T**2 > the limit
+            second = _largest_step(a, T**2, lambda c: np.abs(c) / T**2 > a)
+            if second is None:
+                return
+        self.lo, self.hi, self.step, self.second = lo, hi, step, second
+        self.fast = True
+
+    def passes(self, target: Any, previous: Any, before: Any) -> bool:
+        """The fast test alone: True only if the setpoint clearly keeps every limit
+        (False: take the slow path, which decides)."""
+        if not self.fast:
+            return False
+        s, i64 = self._shape, _INT64
+        if not (
+            type(target) is np.ndarray
+            and type(previous) is np.ndarray
+            and target.dtype == i64
+            and previous.dtype == i64
+            and target.shape == s
+            and previous.shape == s
+        ):
+            return False
+        rows = self._rows
+        np.subtract(target, self.lo, out=rows[0])
+        np.subtract(target, previous, out=rows[1])
+        if self.second is not None:
+            if not (type(before) is np.ndarray and before.dtype == i64 and before.shape == s):
+                return False
+            np.subtract(rows[1], previous, out=rows[2])
+            np.add(rows[2], before, out=rows[2])
+        np.add(self._tail, self._offset, out=self._tail)
+        # int64 wraps around, but for a target within [lo, hi] no wrapped value of the
+        # other rows lands within [0, span]: only the true differences pass
+        np.greater(self._xu, self._span, out=self._out)
+        return not np.count_nonzero(self._out)  # (faster than .any() on small arrays)
+
+    def check(self, target: Any, previous: Any, before: Any) -> None:
+        """Raise (the rope layer's error or :class:`SetpointError`) if ``target`` breaks a
+        limit, exactly as :meth:`check_slow` does; cheaply when it clearly keeps them."""
+        if not self.passes(target, previous, before):
+            self.check_slow(target, previous, before)
+
+    def check_slow(self, target: Any, previous: Any, before: Any) -> None:
+        """The full check: the rope layer's ``check_counts`` (position and speed from
+        ``previous``), then the second difference against the acceleration limits."""
+        self.limits.check_counts(target, previous=previous, dt_s=self.period_s)
+        if self.accel is not None:
+            t = np.asarray(target, dtype=np.int64)
+            acc = np.abs(t - 2 * previous + before) / self.period_s**2
+            hard = acc > self.accel
+            if hard.any():
+                i = int(np.flatnonzero(hard)[0])
+                raise SetpointError(acceleration_text(self.limits, i, float(acc[i])))

@@ -17,12 +17,15 @@ from __future__ import annotations
 
 import collections
 import math
+import os
+import select
 import threading
 import time
 from collections.abc import Callable
 
 import numpy as np
 
+from drivers.protocol.batch import TPDO_VIEW
 from drivers.protocol.cia301 import (
     NMT_STATE_BOOTUP,
     NMT_STATE_NAMES,
@@ -49,6 +52,50 @@ _TPDO_SIZE = TPDO_FEEDBACK_SIZE
     (m, v) for m, v, st in STATE_PATTERNS if st is State402.OPERATION_ENABLED
 ]
 _TPDO_UNPACK = TPDO_FEEDBACK_LAYOUT.unpack
+
+
+class WakeEvent:
+    """A ``threading.Event`` that is also a descriptor (an eventfd, readable while set), so
+    the supervisor waits for it, its deadline and its buses' frames in one ``select``.
+
+    >>> ev = WakeEvent()
+    >>> ev.wait(0.0), ev.set(), ev.is_set(), ev.wait(1.0)
+    (False, None, True, True)
+    >>> ev.clear(); ev.is_set(), select.select([ev], [], [], 0.0)[0] == []
+    (False, True)
+    """
+
+    def __init__(self) -> None:
+        self._fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+        self._flag = False
+
+    def fileno(self) -> int:
+        return self._fd
+
+    def set(self) -> None:
+        self._flag = True
+        os.eventfd_write(self._fd, 1)
+
+    def clear(self) -> None:
+        self._flag = False
+        try:
+            os.eventfd_read(self._fd)
+        except BlockingIOError:
+            pass
+
+    def is_set(self) -> bool:
+        return self._flag
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Whether the event is set, waiting at most ``timeout`` s for it."""
+        if not self._flag:
+            select.select([self._fd], [], [], timeout)
+        return self._flag
+
+    def __del__(self) -> None:
+        fd, self._fd = getattr(self, "_fd", -1), -1
+        if fd >= 0:
+            os.close(fd)
 
 
 class NodeMonitor:
@@ -85,7 +132,7 @@ class NodeMonitor:
         # Kept across idle periods and streams, so a stream never restarts the timeout.
         self.hb_armed_at: float | None = None
         self.boot_event = threading.Event()
-        self.wake = threading.Event()
+        self.wake = WakeEvent()
         self._async_causes: collections.deque[StopCause] = collections.deque()
         self.emergencies: list[Emergency] = []
 
@@ -122,6 +169,36 @@ class NodeMonitor:
         self.n_tpdo[idx] += 1
         if sw & SW_FAULT and self.armed:
             self._async_cause(StopKind.FAULT, idx, f"statusword 0x{sw:04X} has the fault bit set")
+
+    def on_tpdo_batch(self, slots: np.ndarray, frames: np.ndarray) -> None:
+        """The TPDO1s of a batch (:data:`drivers.protocol.batch.FRAME_DTYPE` records of
+        6 data bytes, one per entry of ``slots``) at once: what :meth:`on_tpdo` does for
+        each, in a few NumPy calls.
+
+        >>> from drivers.protocol.batch import from_messages
+        >>> from drivers.protocol.cia402 import make_tpdo_feedback
+        >>> mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=1, heartbeat_timeout_s=0.3)
+        >>> mon.seq = 4
+        >>> frames = from_messages(
+        ...     [make_tpdo_feedback(2, 0x0237, -5), make_tpdo_feedback(1, 0x0237, 9)])
+        >>> mon.on_tpdo_batch(np.array([1, 0]), frames)
+        >>> mon.position.tolist(), mon.rx_seq.tolist(), mon.n_tpdo.tolist()
+        ([9, -5], [4, 4], [1, 1])
+        """
+        v = frames.view(TPDO_VIEW)
+        sw = v["statusword"]
+        self.statusword[slots] = sw
+        self.position[slots] = v["position"]
+        self.rx_seq[slots] = self.seq
+        self.n_tpdo[slots] += 1  # (a node twice in one batch counts once)
+        if self.armed:
+            bad = np.flatnonzero(sw & SW_FAULT)
+            for k in bad.tolist():
+                self._async_cause(
+                    StopKind.FAULT,
+                    int(slots[k]),
+                    f"statusword 0x{int(sw[k]):04X} has the fault bit set",
+                )
 
     def on_heartbeat(self, idx: int, data: bytes | bytearray) -> None:
         """Heartbeat or boot-up frame from the node in slot ``idx``."""

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import collections
 import math
+import select
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -63,14 +64,10 @@ from drivers.cycle import (
 )
 from drivers.interrupts import deferred_interrupts
 from drivers.protocol import cia301, cia402
+from drivers.protocol.batch import from_messages
 from drivers.realtime import NORMAL_PRIORITY, process_settings
 from drivers.safety.causes import StopCause, StopKind, unique_causes
-from drivers.safety.limits import (
-    LimitChecker,
-    SetpointError,
-    accel_limits,
-    acceleration_text,
-)
+from drivers.safety.limits import CycleLimits, LimitChecker, accel_limits
 from drivers.safety.monitor import NodeMonitor
 from drivers.sources import SetpointSource
 from hrm_ctrl.errors import DriverError, HrmError, SignalInterrupt
@@ -78,6 +75,7 @@ from hrm_ctrl.errors import DriverError, HrmError, SignalInterrupt
 RECENT_SYNCS = 4  # SYNC times kept to count those after a stop cause's detection
 PLAY_POLL_S = 0.25  # how often a caller waiting for a stream looks at the thread
 THREAD_JOIN_TIMEOUT_S = 5.0
+LOG_KICK_S = 0.05  # how often a stream cues the CAN logs' writers (< TrafficLog.FLUSH_S)
 
 
 class SupervisorModeError(DriverError):
@@ -186,6 +184,7 @@ class Supervisor:
         self._next_deadline = 0.0
         # the stop ramp: where it is, its speed and deceleration (counts per period)
         self._accel = accel_limits(limits, fallback=False)  # counts/s^2, or None
+        self._cycle_limits = CycleLimits(limits, self.period_s)  # the per-setpoint check
         self._stop_decel: np.ndarray | None = (
             None
             if self._accel is None
@@ -195,6 +194,14 @@ class Supervisor:
         self._ramp_vel: np.ndarray | None = None
         self._rpdos_sent_at = -math.inf  # clock() when the last RPDO burst was handed over
         self._recent_syncs: collections.deque[float] = collections.deque(maxlen=RECENT_SYNCS)
+        self._sync = from_messages([cia301.make_sync()])  # the SYNC as a one-frame batch
+        # the CAN logs of the buses, kicked every LOG_KICK_S while streaming
+        self._logs = [
+            lay.port.log
+            for lay in self.layouts
+            if getattr(lay.port, "log", None) is not None and hasattr(lay.port.log, "kick")
+        ]
+        self._log_kick_cycles = max(1, round(LOG_KICK_S / self.period_s))
 
     # ------------------------------------------------------------------ thread
     def start(self) -> None:
@@ -235,13 +242,37 @@ class Supervisor:
     def _loop(self) -> None:
         T = self.period_s
         mon = self.monitor
+        # buses read in this thread (drivers.receive.BusPoller): waited for beside the
+        # deadline and the wake event, in one select
+        pollers = {
+            lay.notifier.fileno(): lay.notifier
+            for lay in self.layouts
+            if lay.notifier is not None and hasattr(lay.notifier, "poll")
+        }
+        fds = [mon.wake.fileno(), *pollers]
+        select_ = select.select
         while not self._closing.is_set():
             remaining = self._next_deadline - self.clock()
-            if remaining > 0 and mon.wake.wait(remaining):
-                mon.wake.clear()
-                if self._closing.is_set():
-                    return
-                self._guarded(self.wake, self.clock())
+            if remaining > 0:
+                if pollers:
+                    try:
+                        ready = select_(fds, (), (), remaining)[0]
+                    except (OSError, ValueError):  # a bus closed under us: its poll says why
+                        ready = list(pollers)
+                    for fd in ready:
+                        poller = pollers.get(fd)
+                        if poller is not None:
+                            poller.poll()
+                    if not ready:
+                        continue
+                    woke = mon.wake.is_set()
+                else:
+                    woke = mon.wake.wait(remaining)
+                if woke:
+                    mon.wake.clear()
+                    if self._closing.is_set():
+                        return
+                    self._guarded(self.wake, self.clock())
                 continue
             now = self.clock()
             if now - self._next_deadline > T:  # fell more than a period behind: skip slots
@@ -520,14 +551,7 @@ class Supervisor:
         ``before``, applied one period earlier) against the motors' acceleration limits."""
         target = source.setpoint(k)
         if target is not None:
-            self.limits.check_counts(target, previous=previous, dt_s=self.period_s)
-            if self._accel is not None:
-                t = np.asarray(target, dtype=np.int64)
-                acc = np.abs(t - 2 * previous + before) / self.period_s**2
-                hard = acc > self._accel
-                if hard.any():
-                    i = int(np.flatnonzero(hard)[0])
-                    raise SetpointError(acceleration_text(self.limits, i, float(acc[i])))
+            self._cycle_limits.check(target, previous, before)
         return target
 
     def _limit_cause(self, exc: HrmError) -> StopCause:
@@ -537,7 +561,7 @@ class Supervisor:
         failed: list[StopCause] = []
         for layout in self.layouts:
             try:
-                layout.port.send_many(layout.rpdo_frames(controlword, targets))
+                layout.port.send_batch(layout.rpdo_batch(controlword, targets))
             except BusSendError as exc:
                 failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
         self._rpdos_sent_at = self.clock()
@@ -557,7 +581,7 @@ class Supervisor:
         failed: list[StopCause] = []
         for layout in self.layouts:
             try:
-                layout.port.send(cia301.make_sync())
+                layout.port.send_batch(self._sync)
             except BusSendError as exc:
                 failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
         return failed
@@ -606,6 +630,9 @@ class Supervisor:
             causes = self._send_rpdos(cia402.CW_ENABLE_OPERATION, stream.pending)
         elif not causes:
             stream.completed = True
+        if stream.g % self._log_kick_cycles == 0:
+            for log_ in self._logs:  # the CAN logs write in this cycle's slack
+                log_.kick()
         stream.stats.add(deadline, now, t_sync, time.thread_time() - th0)
         stream.k += 1
         stream.g += 1

@@ -119,9 +119,17 @@ def register(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="start the laser tracker (its pseudo-terminal in 'ready' as tracker_port)",
     )
+    parser.add_argument(
+        "--cpus",
+        default=None,
+        metavar="LIST",
+        help="run the box on these CPUs only (taskset's list: 1, 0,2, 2-3), off the CPUs "
+        "of the host's control loop, as the drives' own hardware would be",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
+    from drivers.realtime import parse_cpus, process_settings
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.faults import parse_fault
@@ -135,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
             f"--tension-rate must be in [{MIN_TENSION_RATE_HZ:g}, 10000] Hz, "
             f"got {args.tension_rate}"
         )
+    cpus = None if args.cpus is None else parse_cpus(args.cpus)
     faults = [parse_fault(f) for f in args.fault]
     if args.max_slack and args.perturb is None:
         raise SimError("--max-slack needs --perturb SEED (a truth file says its own slack)")
@@ -167,14 +176,15 @@ def run(args: argparse.Namespace) -> int:
                 raise SimError(f"--fault {f.kind}: no simulated drive for motor '{f.args[0]}'")
         if f.kind in ("drop", "delay", "bus-off", "bus-on") and f.args[0] not in buses:
             raise SimError(f"--fault {f.kind}: no bus '{f.args[0]}' (have {sorted(buses)})")
-    return run_box_process(
-        config,
-        actuation=actuation,
-        faults=faults,
-        duration_s=args.duration,
-        tension_rate_hz=args.tension_rate,
-        control=args.control,
-        truth=truth,
-        fixture=args.fixture,
-        tracker=args.tracker,
-    )
+    with process_settings(switch_interval_s=None, cpus=cpus):  # every box thread
+        return run_box_process(
+            config,
+            actuation=actuation,
+            faults=faults,
+            duration_s=args.duration,
+            tension_rate_hz=args.tension_rate,
+            control=args.control,
+            truth=truth,
+            fixture=args.fixture,
+            tracker=args.tracker,
+        )

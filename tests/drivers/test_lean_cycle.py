@@ -346,8 +346,12 @@ def test_each_cycle_sends_the_sync_then_the_next_rpdos_in_one_batch() -> None:
     ts.run_until(sup, clock, clock.t + 0.2, each=feedback)
     assert stream.done.is_set() and stream.result is not None and stream.result.completed
     # every setpoint's RPDOs in one batch (begin: setpoint 0), each SYNC followed by the
-    # RPDOs that the next SYNC applies; the last SYNC alone (no setpoint left)
-    assert [ids for _t, ids in batches] == [[0x201, 0x202]] * 6
+    # RPDOs that the next SYNC applies; the last SYNC alone (no setpoint left); the SYNC
+    # goes out on its own, never in the RPDOs' batch
+    assert [ids for _t, ids in batches] == (
+        [[0x201, 0x202]] + [[ts.SYNC], [0x201, 0x202]] * 5 + [[ts.SYNC]]
+    )
+    batches = [(t, ids) for t, ids in batches if ids != [ts.SYNC]]
     stream_ids = [
         m.arbitration_id for t, m in port.sent if t >= t_begin and m.arbitration_id < 0x700
     ]

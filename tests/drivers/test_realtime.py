@@ -10,6 +10,7 @@ from typing import Any
 import can
 import pytest
 
+from drivers.receive import BusPoller
 import drivers.realtime as rt
 from drivers.realtime import (
     SWITCH_INTERVAL_S,
@@ -172,8 +173,39 @@ def test_applied_settings_is_a_plain_record() -> None:
         "realtime_priority": 0,
         "realtime_granted": False,
         "realtime_refusal": None,
+        "cpus": None,
     }
     assert rt.NORMAL_PRIORITY == 0 and rt.REALTIME_PRIORITY_MAX == 99
+
+
+def test_cpus_keep_the_threads_started_inside_on_them_and_come_back() -> None:
+    import threading
+
+    cpus = rt.available_cpus()
+    one = frozenset({max(cpus)})
+    seen: list[set[int]] = []
+    with rt.process_settings(switch_interval_s=None, cpus=one) as applied:
+        t = threading.Thread(target=lambda: seen.append(os.sched_getaffinity(0)))
+        t.start()
+        t.join(5.0)
+        assert applied.cpus == one and os.sched_getaffinity(0) == one
+    assert seen == [set(one)] and os.sched_getaffinity(0) == set(cpus)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("x", "'x' is not a CPU list"),
+        ("3-1", "'3-1' is not a CPU list"),
+        ("-1", "'-1' is not a CPU list"),
+        ("4096", "'4096' is not a CPU list"),
+        ("4095", "CPU 4095 is not available to this process"),
+    ],
+)
+def test_a_bad_cpu_list_is_one_line_naming_it(text: str, message: str) -> None:
+    with pytest.raises(rt.ProcessSettingsError, match="^--cpus: .*") as err:
+        rt.parse_cpus(text)
+    assert message in str(err.value) and "\n" not in str(err.value)
 
 
 # ---- a drive session's threads ---------------------------------------------------------------
@@ -209,7 +241,13 @@ def test_every_thread_of_a_session_runs_at_its_realtime_priority(
     box = rig.open_box(log_dir=tmp_path, log_suffix=".asc", run_name="rt")
     assert box.realtime_granted
     seen = _policies(SESSION_THREADS)
-    assert all(any(n.startswith(p) for n in seen) for p in SESSION_THREADS), seen
+    # a bus with a descriptor is read by the supervisor's thread: no reader thread of its own
+    readers = [
+        p for p in box._networks if not isinstance(p.notifier, BusPoller)
+    ]  # fmt: skip
+    expected = SESSION_THREADS if readers else SESSION_THREADS[1:]
+    assert all(any(n.startswith(p) for n in seen) for p in expected), seen
+    assert len([n for n in seen if n.startswith("hrm-rx-")]) == len(readers), seen
     assert set(seen.values()) == {os.SCHED_FIFO}, seen
     assert os.sched_getscheduler(0) == before
     with box.thread_scheduling() as applied:  # a watch's thread started for the session

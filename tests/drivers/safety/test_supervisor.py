@@ -11,6 +11,7 @@ import pytest
 
 from drivers.cycle import BusLayout, EventLog
 from drivers.protocol import cia402
+from drivers.protocol.batch import to_messages
 from drivers.safety.causes import StopKind
 from drivers.safety.monitor import NodeMonitor
 from drivers.safety.supervisor import Mode, StopRecord, Supervisor, SupervisorModeError
@@ -37,6 +38,9 @@ class FakePort:
     def send_many(self, msgs: list[can.Message], timeout_s: float = 0.05) -> None:
         for m in msgs:
             self.send(m, timeout_s)
+
+    def send_batch(self, frames: np.ndarray, timeout_s: float = 0.05) -> None:
+        self.send_many(to_messages(frames, is_rx=False), timeout_s)
 
     def ids_since(self, t: float) -> list[int]:
         return [m.arbitration_id for ts, m in self.sent if ts >= t]
