@@ -55,7 +55,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine
 
 from drivers.config import BoxConfig, load_box_config
-from drivers.realtime import process_settings
+from drivers.realtime import cpu_list, parse_cpus, process_settings, split_cpus
 from drivers.session import DriveSession
 from drivers.sources import TableSource
 from hrm_ctrl.model import default_robot
@@ -195,14 +195,16 @@ class BoxProcess:
     """``hrm sim --control`` in its own process (context manager): started, waited for
     its ``ready`` line, told ``quit`` at the end (killed if it does not go)."""
 
-    def __init__(self, config_path: Path, rt_priority: int = 0) -> None:
+    def __init__(
+        self, config_path: Path, rt_priority: int = 0, cpus: frozenset[int] | None = None
+    ) -> None:
         # the whole box under SCHED_FIFO (every thread of it: what holds its interpreter
         # lock too) with ``chrt``, as a drive's firmware runs in real time; 0: normal
         chrt = ["chrt", "-f", str(rt_priority)] if rt_priority > 0 else []
-        chrt = os.environ.get("HRM_BOX_PREFIX", "").split() + chrt
+        on = [] if cpus is None else ["--cpus", cpu_list(cpus)]
         self.proc = subprocess.Popen(
             [*chrt, sys.executable, "-m", "hrm_ctrl.cli", "sim", "--config", str(config_path),
-             "--control"],
+             "--control", *on],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
@@ -265,14 +267,20 @@ def run(
     box_rt_priority: int = 0,
     rss_sample_s: float | None = None,
     work: Path | None = None,
+    cpus: tuple[frozenset[int], frozenset[int]] | str | None = "auto",
 ) -> dict[str, Any]:
-    """One benchmark run (what ``main`` prints; the soak test asserts on it)."""
+    """One benchmark run (what ``main`` prints; the soak test asserts on it).  ``cpus``:
+    (host, box) CPU sets for a box process (the host's session threads and the box kept
+    apart, as separate hardware is), ``"auto"`` :func:`drivers.realtime.split_cpus`, None
+    anywhere."""
+    split = (split_cpus() if cpus == "auto" else cpus) if box_process else None
+    host_cpus, box_cpus = (None, None) if not isinstance(split, tuple) else split
     act = load_actuation(default_robot())
     cfg = load_box_config(None)
     work = Path(tempfile.mkdtemp(prefix="bench_drivers_")) if work is None else work
     if box_process:
         kwargs = wire_config(work / f"box_{wire}.toml", cfg, wire)
-        box_ctx: Any = BoxProcess(work / f"box_{wire}.toml", box_rt_priority)
+        box_ctx: Any = BoxProcess(work / f"box_{wire}.toml", box_rt_priority, box_cpus)
     else:
         from sim_bus.box import SimBox
 
@@ -294,9 +302,10 @@ def run(
     with box_ctx as box:
         box_pid = box.pid if box_process else None
         for k in range(max(1, bringups)):
-            session = DriveSession(
-                cfg, act, log_dir=log_dir, run_name=f"bench{k}", allow_uncalibrated=True
-            )
+            with process_settings(switch_interval_s=None, cpus=host_cpus):  # its threads
+                session = DriveSession(
+                    cfg, act, log_dir=log_dir, run_name=f"bench{k}", allow_uncalibrated=True
+                )
             with session:
                 t = time.perf_counter()
                 session.bring_up()
@@ -388,6 +397,8 @@ def run(
             "heartbeat_timeout_ms": cfg.control.heartbeat_timeout_ms,
             "realtime_scheduling": s.get("realtime_scheduling"),
             "box_sched_fifo_priority": box_rt_priority if box_process else None,
+            "host_cpus": None if host_cpus is None else cpu_list(host_cpus),
+            "box_cpus": None if box_cpus is None else cpu_list(box_cpus),
         },
         "bringup_s": [round(b, 3) for b in bringup_s],
         "stream": {
@@ -668,6 +679,12 @@ def main() -> None:
         "--sim-process", action="store_true", help="= --box-process --wire udp_multicast"
     )
     ap.add_argument("--no-reference", action="store_true", help="skip the canopen reference cycle")
+    ap.add_argument(
+        "--cpus", default="auto", metavar="HOST/BOX",
+        help="with --box-process: CPU lists of the host's session threads and of the box, "
+        "e.g. 0/1; 'auto' (default): the box on the highest CPU, the host on the others; "
+        "'any': no affinity",
+    )  # fmt: skip
     ap.add_argument("--soak", action="store_true", help="a long run, RSS sampled every 10 s")
     ap.add_argument(
         "--costs", action="store_true", help="only the CPU of each piece of one cycle (us)"
@@ -717,7 +734,17 @@ def _run_from(args: argparse.Namespace, duration: float) -> dict[str, Any]:
         rt_priority=args.rt_priority,
         box_rt_priority=args.box_rt_priority,
         rss_sample_s=RSS_SAMPLE_S if args.soak else None,
+        cpus=_cpus_arg(args.cpus),
     )
+
+
+def _cpus_arg(text: str) -> tuple[frozenset[int], frozenset[int]] | str | None:
+    if text in ("auto", "any"):
+        return "auto" if text == "auto" else None
+    host, sep, box = text.partition("/")
+    if not sep:
+        raise SystemExit("bench_drivers: --cpus takes HOST/BOX CPU lists, 'auto' or 'any'")
+    return parse_cpus(host, "--cpus HOST"), parse_cpus(box, "--cpus BOX")
 
 
 if __name__ == "__main__":

@@ -83,6 +83,7 @@ def log_formats() -> tuple[str, ...]:
 
 LOG_SUFFIXES = tuple(f".{f}" for f in (*LOG_FORMATS_ALWAYS, "mf4"))
 WRITER_IDLE_S = 0.05
+MAX_JOINED_FRAMES = 4096  # batches the log writer packs at once (frames, at most)
 BLF_COMPRESSION_LEVEL = 1  # zlib level of the BLF containers this class writes
 
 # COB-ID ranges the host transmits (CiA 301 predefined connection set): NMT, SYNC,
@@ -238,8 +239,17 @@ class TrafficLog(can.Listener):
         durable = self._durable is not None
         while q:
             msg = q.popleft()
-            if type(msg) is tuple:  # a batch (log_batch)
-                frames, is_rx = msg
+            if type(msg) is tuple:  # a batch (log_batch), and the batches right behind it
+                entries = [msg]
+                n = len(msg[0])
+                while q and type(q[0]) is tuple and n < MAX_JOINED_FRAMES:
+                    entries.append(q.popleft())
+                    n += len(entries[-1][0])
+                if len(entries) == 1:
+                    frames, is_rx = msg
+                else:  # packed at once: the packing's fixed cost once per drain
+                    frames = np.concatenate([f for f, _rx in entries])
+                    is_rx = np.repeat([rx for _f, rx in entries], [len(f) for f, _rx in entries])
                 try:
                     done = write_batch is not None and write_batch(frames, is_rx)
                 except Exception as exc:
@@ -248,8 +258,9 @@ class TrafficLog(can.Listener):
                 if done:
                     self._unflushed += len(frames)
                     self._last_ts = float(frames["timestamp"][-1])
-                else:  # frame by frame, before everything queued after the batch
-                    q.extendleft(reversed(to_messages(frames, self._msg_channel, is_rx)))
+                else:  # frame by frame, before everything queued after the batches
+                    for f, rx in reversed(entries):
+                        q.extendleft(reversed(to_messages(f, self._msg_channel, rx)))
                 continue
             try:
                 write(msg)
@@ -306,10 +317,11 @@ class TrafficLog(can.Listener):
 
         return write
 
-    def _blf_batch(self, frames: np.ndarray, is_rx: bool) -> bool:
+    def _blf_batch(self, frames: np.ndarray, is_rx: bool | np.ndarray) -> bool:
         """:meth:`_blf_fast` for a whole batch: its BLF CAN_MESSAGE objects packed at once
         with NumPy (the same bytes); ``False``, nothing written, when it must go frame by
-        frame (an error frame in it, a timestamp a BLF object cannot hold)."""
+        frame (an error frame in it, a timestamp a BLF object cannot hold).  ``is_rx``: one
+        direction for all, or one per frame (batches joined)."""
         w = self._writer
         start = w.start_timestamp
         ident = frames["id"]
@@ -327,7 +339,10 @@ class TrafficLog(can.Listener):
         out["id"] = ident & _ID_AND_EXT  # the extended bit is BLF's CAN_MSG_EXT
         words = frames.view(_FRAME_WORDS)
         data = words["data"] & _DLC_DATA_MASK.take(words["dlc"])
-        direction = 0 if is_rx else _BLF_DIR
+        if isinstance(is_rx, np.ndarray):
+            direction: Any = np.where(is_rx, 0, _BLF_DIR).astype(np.uint16)
+        else:
+            direction = 0 if is_rx else _BLF_DIR
         if flags & FLAG_REMOTE:
             remote = (ident & FLAG_REMOTE) != 0
             out["flags"] = np.where(remote, _BLF_REMOTE_FLAG | direction, direction)

@@ -109,6 +109,31 @@ def parse_cpus(text: str, where: str = "--cpus") -> frozenset[int]:
     return frozenset(cpus)
 
 
+def split_cpus() -> tuple[frozenset[int], frozenset[int]] | None:
+    """The CPUs this thread may use in two parts, (host, box): a simulated box in a process
+    of its own on the highest one, the host's control loop on the others, as the drives'
+    own hardware would leave the control PC alone; None with a single CPU.
+
+    >>> parts = split_cpus()
+    >>> parts is None or (parts[0].isdisjoint(parts[1]) and len(parts[1]) == 1)
+    True
+    """
+    cpus = available_cpus()
+    if len(cpus) < 2:
+        return None
+    box = frozenset({max(cpus)})
+    return cpus - box, box
+
+
+def cpu_list(cpus: frozenset[int]) -> str:
+    """A CPU set as ``--cpus`` takes it.
+
+    >>> cpu_list(frozenset({3, 0, 1}))
+    '0,1,3'
+    """
+    return ",".join(str(c) for c in sorted(cpus))
+
+
 def available_cpus() -> frozenset[int]:
     """The CPUs this thread may run on (all of them where the platform cannot tell)."""
     if hasattr(os, "sched_getaffinity"):

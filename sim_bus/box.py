@@ -431,12 +431,18 @@ class SimBox:
         # that batches (hrm_ipc); a no-op on the others
         with self._lock, getattr(bb.bus, "batch", contextlib.nullcontext)():
             now = self.clock()
+            synced = False
             if not bb.bus_off:
                 for msg in batch:
                     self._dispatch(bb, msg, now)
-            if now >= bb.next_tick or bb.timers_dirty:
+                    synced = synced or msg.arbitration_id == cia301.COB_SYNC
+            if now >= bb.next_tick or bb.timers_dirty or synced:
+                # after a SYNC every heartbeat due before the next one goes out now, with
+                # the TPDOs: one datagram per bus and cycle (each drive's heartbeat at
+                # most one period early, on its own grid; CiA 301 asks no phase of it)
+                early = self.config.control.period_s if synced else 0.0
                 for d in bb.drives:
-                    d.tick(now)
+                    d.tick(now, early)
                 # sleep until the earliest drive timer (heartbeat due, consumer timeout,
                 # quick-stop motion), at most tick_s: no fixed-rate polling of 36 drives
                 soonest = min((d.next_deadline() for d in bb.drives), default=math.inf)

@@ -258,10 +258,21 @@ def arm_state(box: HilBox) -> ArmSnapshot:
 
 class BoxProcess:
     """``hrm sim --control`` as a child process; JSON lines in, JSON lines out
-    (``sim_bus.runner``)."""
+    (``sim_bus.runner``).  On a machine of two or more CPUs the box runs on the highest
+    one (``hrm sim --cpus``, :func:`drivers.realtime.split_cpus`) and a :class:`HilHost`
+    on it keeps its threads on the others: separate hardware, as the drives are
+    (``cpus=False``: anywhere)."""
 
-    def __init__(self, config_path: Path, *extra: str, cwd: Path | None = None) -> None:
+    def __init__(
+        self, config_path: Path, *extra: str, cwd: Path | None = None, cpus: bool = True
+    ) -> None:
+        from drivers.realtime import cpu_list, split_cpus
+
         self.config_path = config_path
+        split = split_cpus() if cpus else None
+        self.host_cpus = None if split is None else split[0]
+        if split is not None:
+            extra = ("--cpus", cpu_list(split[1]), *extra)
         # stderr to a file, not a pipe nobody drains: a chatty box must not block
         self._stderr = tempfile.TemporaryFile("w+")
         self._lock = threading.Lock()
@@ -449,13 +460,10 @@ class HilHost:
         tension_stale_s: float | None = None,
     ) -> None:
         from drivers.config import TensionConfig, load_box_config
-        from drivers.safety.causes import StopKind
+        from drivers.realtime import process_settings
         from drivers.safety.subset import ActuationSubset
-        from drivers.session import DriveSession
-        from drivers.tension_sensor import TensionSensorReader, TensionWatch
         from hrm_ctrl.model import default_robot
         from hrm_ctrl.ropes.actuation import load_actuation
-        from sim_bus.box import enlarge_receive_buffer
 
         self.box = box
         self.config = load_box_config(box.config_path)
@@ -471,6 +479,18 @@ class HilHost:
             self.tension = replace(self.tension, stale_s=float(tension_stale_s))
         self.record: dict[str, Any] | None = None
         self._stack = contextlib.ExitStack()
+        # every thread of the host (the session's, the tension reader and watch) on the
+        # CPUs the box process leaves free (BoxProcess); the caller's thread gets its own back
+        cpus = getattr(box, "host_cpus", None)
+        with process_settings(switch_interval_s=None, cpus=cpus):
+            self._open(log_dir, listen_s, bring_up)
+
+    def _open(self, log_dir: Path, listen_s: float, bring_up: bool) -> None:
+        from drivers.safety.causes import StopKind
+        from drivers.session import DriveSession
+        from drivers.tension_sensor import TensionSensorReader, TensionWatch
+        from sim_bus.box import enlarge_receive_buffer
+
         try:
             self.session = self._stack.enter_context(
                 DriveSession(

@@ -262,9 +262,10 @@ class DriveSim:
             nmt.on_heartbeat(heartbeat_of, data, now)
 
     # ================================================================ timers
-    def tick(self, now: float) -> None:
-        """Heartbeat production and consumption; motion when no SYNC comes."""
-        self.nmt.tick(now)
+    def tick(self, now: float, heartbeat_early_s: float = 0.0) -> None:
+        """Heartbeat production and consumption (a heartbeat due within
+        ``heartbeat_early_s`` goes out now); motion when no SYNC comes."""
+        self.nmt.tick(now, heartbeat_early_s)
         motion = self.motion
         if (
             self.state_machine.decelerating

@@ -114,10 +114,11 @@ class NmtSlave:
                     drive.emcy(cia301.EMCY_NO_ERROR)
 
     # ---------------------------------------------------------------- timers
-    def tick(self, now: float) -> None:
-        """Heartbeat production and consumption."""
+    def tick(self, now: float, heartbeat_early_s: float = 0.0) -> None:
+        """Heartbeat production and consumption; a heartbeat due within
+        ``heartbeat_early_s`` goes out now (the next stays on the producer's grid)."""
         drive = self._drive
-        if now >= self._hb_next and self.heartbeat_enabled:
+        if now + heartbeat_early_s >= self._hb_next and self.heartbeat_enabled:
             drive.transmit(cia301.make_heartbeat(drive.node_id, self.state))
             period_s = self._od.int_value(cia301.OD_PRODUCER_HEARTBEAT_TIME) / 1000.0
             self._hb_next = self._hb_next + period_s if period_s else math.inf
