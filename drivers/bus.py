@@ -845,8 +845,7 @@ class BusPort:
         if self._send_records is None:
             self.send_many(to_messages(frames, is_rx=False), timeout_s)
             return
-        frames["timestamp"] = time.time()
-        try:
+        try:  # the bus stamps the frames with the send time (what the log gets too)
             with self._lock:
                 self._send_records(frames, timeout=timeout_s)
                 self.n_sent += len(frames)

@@ -554,7 +554,7 @@ class BusPoller:
         self._recv = BusReader._recv(self)  # type: ignore[arg-type]
         # a bus that hands over whole datagrams (hrm_ipc), unfiltered, to a receiver that
         # takes batches: no Python object per frame
-        batch = getattr(bus, "recv_batch", None)
+        batch = getattr(bus, "recv_batches", None)
         self._recv_batch = (
             batch
             if callable(batch)
@@ -578,12 +578,8 @@ class BusPoller:
         handle = self.receiver.on_message_received
         n = 0
         try:
-            if self._recv_batch is not None:
-                while n < self.MAX_FRAMES_PER_POLL:
-                    got = self._recv_batch(0.0)
-                    if got is None:
-                        break
-                    frames, is_rx = got
+            if self._recv_batch is not None:  # what is queued, after one wait
+                for frames, is_rx in self._recv_batch(0.0, self.MAX_FRAMES_PER_POLL):
                     n += len(frames)
                     if is_rx:
                         self.receiver.on_batch(frames)

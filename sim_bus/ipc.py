@@ -185,22 +185,31 @@ def _check_record(
     return ts, ident, ext, rtr, bool(raw & FLAG_ERROR), dlc, b"" if rtr else data[:dlc]
 
 
-def _records_valid(records: np.ndarray) -> bool:
+def _records_valid(records: np.ndarray, stamped: bool = False) -> bool:
     """Whether every record of a FRAME_DTYPE array is a classical CAN frame (dlc <= 8, an
-    11-bit id unless extended, a timestamp that is a number): :func:`_check_record` for
-    all of them (one by one for a few, with NumPy for more)."""
+    11-bit id unless extended, a timestamp that is a number, unless ``stamped`` here):
+    :func:`_check_record` for all of them (one by one for a few, with NumPy for more).
+
+    >>> ok = np.zeros(5, FRAME_DTYPE); ok["id"] = [0x7FF, 0x181, FLAG_EXTENDED | ID_MASK, 0, 1]
+    >>> bad = ok.copy(); bad["id"][1] = 0x800
+    >>> _records_valid(ok), _records_valid(bad), _records_valid(bad[2:])
+    (True, False, True)
+    """
     if len(records) <= SMALL_DATAGRAM_FRAMES:
         return all(
             dlc <= 8 and (raw & FLAG_EXTENDED or raw & ID_MASK <= 0x7FF) and ts == ts
             for ts, raw, dlc, _data in records.tolist()
         )
-    ids = records["id"]
-    std = (ids & FLAG_EXTENDED) == 0
-    return not bool(
-        (records["dlc"] > 8).any()
-        or (std & ((ids & ID_MASK) > 0x7FF)).any()
-        or np.isnan(records["timestamp"]).any()
-    )
+    # an 11-bit frame has none of the id bits 11..28; x = id & (extended | those bits) is
+    # 0 for a good 11-bit frame and >= 2**31 for an extended one: bad iff 0 < x < 2**31
+    x = records["id"] & _STD_CHECK_MASK
+    x -= 1  # wraps 0 to 2**32 - 1
+    if int(x.min()) < FLAG_EXTENDED - 1 or int(records["dlc"].max()) > 8:
+        return False
+    return stamped or not np.isnan(records["timestamp"]).any()
+
+
+_STD_CHECK_MASK = np.uint32(FLAG_EXTENDED | (ID_MASK & ~0x7FF))
 
 
 @dataclass
@@ -581,7 +590,7 @@ class IpcBus(can.BusABC):
         if frames.dtype != FRAME_DTYPE or frames.ndim != 1:
             raise can.CanOperationError("hrm_ipc: send_batch takes a 1-D FRAME_DTYPE array")
         frames["timestamp"] = time.time()
-        if not _records_valid(frames):
+        if not _records_valid(frames, stamped=True):
             raise can.CanOperationError(
                 "hrm_ipc: a frame of the batch has more than 8 data bytes or an id out of range"
             )
@@ -691,6 +700,49 @@ class IpcBus(can.BusABC):
                 offset=HEADER.size + chunk.pos * RECORD.size,
             )
             return frames, chunk.is_rx
+
+    def recv_batches(
+        self, timeout: float | None = None, max_frames: int = RX_QUEUE_FRAMES
+    ) -> list[tuple[np.ndarray, bool]]:
+        """:meth:`recv_batch` for every datagram queued after one wait (at most about
+        ``max_frames`` frames: whole datagrams, the one that reaches it included); empty
+        when nothing came within ``timeout``.
+
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     a, b = open_ends("doc-rbs", 2, d)
+        ...     for k in range(3):
+        ...         a.send(can.Message(arbitration_id=0x701 + k, data=[5], is_extended_id=False))
+        ...     print([[hex(i) for i in f["id"]] for f, _rx in b.recv_batches(1.0)])
+        ...     a.shutdown(); b.shutdown()
+        [['0x701'], ['0x702'], ['0x703']]
+        """
+        out: list[tuple[np.ndarray, bool]] = []
+        with self._rx_lock:
+            try:
+                if not (self._rx_len or self._wait_rx(timeout)):
+                    return out
+                n = 0
+                while self._rx and n < max_frames:
+                    chunk = self._rx.popleft()
+                    k = chunk.count - chunk.pos
+                    self._rx_len -= k
+                    n += k
+                    out.append(
+                        (
+                            np.frombuffer(
+                                chunk.data,
+                                dtype=FRAME_DTYPE,
+                                count=k,
+                                offset=HEADER.size + chunk.pos * RECORD.size,
+                            ),
+                            chunk.is_rx,
+                        )
+                    )
+            finally:
+                if not self._closed:
+                    self._sync_event()
+        return out
 
     def _wait_rx(self, timeout: float | None) -> bool:
         """Wait (under the receive lock) until a frame is queued; False after ``timeout``."""

@@ -75,7 +75,7 @@ from hrm_ctrl.errors import DriverError, HrmError, SignalInterrupt
 RECENT_SYNCS = 4  # SYNC times kept to count those after a stop cause's detection
 PLAY_POLL_S = 0.25  # how often a caller waiting for a stream looks at the thread
 THREAD_JOIN_TIMEOUT_S = 5.0
-LOG_KICK_S = 0.05  # how often a stream cues the CAN logs' writers (< TrafficLog.FLUSH_S)
+LOG_KICK_S = 0.08  # how often a stream cues the CAN logs' writers (< TrafficLog.FLUSH_S)
 
 
 class SupervisorModeError(DriverError):

@@ -437,13 +437,14 @@ def test_rates_in_range_are_all_0x60C2_checked() -> None:
 
 
 def test_the_rigs_and_the_simulator_fit_the_ranges() -> None:
-    """The HIL rig's relaxed watchdogs, the --sim TPDO tolerance and the watch benchmark's
-    settings are all within the safe ranges (none needs a value this module refuses)."""
+    """The kill -9 log test's relaxed watchdogs, the --sim TPDO tolerance and the watch
+    benchmark's settings are all within the safe ranges (none needs a value this module
+    refuses)."""
     from hrm_ctrl.cli._simwire import SIM_MISSING_TPDO_CYCLES
-    from tests.hil.hil_rig import HIL_CONTROL
+    from tests.drivers.test_log_durability import KILL_TEST_CONTROL
 
     cfg = load_box_config(None)
-    assert cfg.with_control(**HIL_CONTROL).control.missing_tpdo_cycles == 25
+    assert cfg.with_control(**KILL_TEST_CONTROL).control.missing_tpdo_cycles == 25
     assert cfg.with_control(missing_tpdo_cycles=SIM_MISSING_TPDO_CYCLES)
     assert cfg.with_control(missing_tpdo_cycles=25, heartbeat_timeout_ms=1000)
 

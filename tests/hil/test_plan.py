@@ -1,6 +1,7 @@
 """HIL: the bent-pipe plan on the 36-motor box at production settings (``[control]`` of the
 drivers' ``box.toml``: TPDOs missing 3 cycles or a heartbeat older than 350 ms stop every
-axis; the tension watch at the ``[tension]`` defaults), host and box over ``--hrm-bus``."""
+axis; the tension watch at the ``[tension]`` defaults), host and box over ``--hrm-bus``, the
+box in its own process on a CPU of its own (``hrm_ctrl.hil.rig.BoxProcess``)."""
 
 from __future__ import annotations
 
@@ -37,7 +38,6 @@ def test_box_runs_the_production_watchdogs(hrm_box_config: Path, hrm_box_mode: B
     assert control.heartbeat_timeout_ms == prod["heartbeat_timeout_ms"]
 
 
-@pytest.mark.production_timing
 def test_bent_pipe_plan_true_joint_centres_within_1mm(
     hrm_box: HilBox,
     hrm_host: HilHost,

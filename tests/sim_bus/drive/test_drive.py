@@ -109,6 +109,30 @@ def test_heartbeat_producer_period_and_state() -> None:
     assert beats == [b"\x05"]
 
 
+def test_a_heartbeat_due_within_the_early_window_goes_out_now_and_the_next_stays_on_grid() -> None:
+    """What the box does after a SYNC (a heartbeat due before the next SYNC rides with the
+    TPDOs): sent up to ``heartbeat_early_s`` early, the producer's 100 ms grid unchanged."""
+    r = Rig()
+    r.write(cia301.OD_PRODUCER_HEARTBEAT_TIME, 0, struct.pack("<H", 100))  # at t = 0: due 0.1
+    hb = 0x700 + NODE
+    n = len(r.sent)  # after the boot-up frame
+    r.t = 0.085
+    r.d.tick(r.t, heartbeat_early_s=0.01)  # due in 15 ms: not yet
+    assert r.sent[n:] == []
+    r.t = 0.095
+    n = len(r.sent)
+    r.d.tick(r.t, heartbeat_early_s=0.01)  # due in 5 ms: now
+    assert [m.arbitration_id for m in r.sent[n:]] == [hb]
+    assert r.d.next_deadline() == pytest.approx(0.2)  # on the grid, not 0.195
+    r.t = 0.19
+    n = len(r.sent)
+    r.d.tick(r.t)  # without the window: not before it is due
+    assert r.sent[n:] == []
+    r.t = 0.2
+    r.d.tick(r.t)
+    assert [m.arbitration_id for m in r.sent[n:]] == [hb]
+
+
 def test_sdo_expedited_upload_of_every_readable_object() -> None:
     r = Rig()
     for (index, sub), var in object_table().items():
