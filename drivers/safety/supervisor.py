@@ -259,10 +259,16 @@ class Supervisor:
                         ready = select_(fds, (), (), remaining)[0]
                     except (OSError, ValueError):  # a bus closed under us: its poll says why
                         ready = list(pollers)
+                    dead = False
                     for fd in ready:
                         poller = pollers.get(fd)
                         if poller is not None:
                             poller.poll()
+                            if poller.exception is not None:  # a stop cause: not waited on
+                                del pollers[fd]
+                                dead = True
+                    if dead:
+                        fds = [mon.wake.fileno(), *pollers]
                     if not ready:
                         continue
                     woke = mon.wake.is_set()

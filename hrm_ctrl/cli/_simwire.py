@@ -24,6 +24,7 @@ from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.in_process import (
     IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
     IN_PROCESS_MISSING_TPDO_CYCLES,
+    IN_PROCESS_SDO_TIMEOUT_S,
     IN_PROCESS_SWITCH_INTERVAL_S,
     IN_PROCESS_TENSION_STALE_S,
 )
@@ -65,7 +66,8 @@ def start_in_process_sim(
     The simulated drives and tension board run in this interpreter and share its CPU,
     so their TPDOs get ``SIM_MISSING_TPDO_CYCLES`` cycles before the host calls them
     missing, their heartbeats ``SIM_HEARTBEAT_TIMEOUT_MS`` (seen 379-860 ms apart with
-    both cores busy) and the tension samples ``SIM_TENSION_STALE_S`` before they are stale (a line
+    both cores busy), each SDO transfer ``IN_PROCESS_SDO_TIMEOUT_S`` and the tension samples
+    ``SIM_TENSION_STALE_S`` before they are stale (a line
     on stderr says so, and the run record keeps the configuration used).
     """
     from sim_bus.box import SimBox
@@ -79,6 +81,9 @@ def start_in_process_sim(
     if config.control.heartbeat_timeout_ms < SIM_HEARTBEAT_TIMEOUT_MS:
         config = config.with_control(heartbeat_timeout_ms=SIM_HEARTBEAT_TIMEOUT_MS)
         raised.append(f"heartbeat timeout to {SIM_HEARTBEAT_TIMEOUT_MS} ms")
+    if config.control.sdo_timeout_s < IN_PROCESS_SDO_TIMEOUT_S:
+        config = config.with_control(sdo_timeout_s=IN_PROCESS_SDO_TIMEOUT_S)
+        raised.append(f"SDO timeout to {IN_PROCESS_SDO_TIMEOUT_S:g} s")
     tension: dict[str, Any] = {}
     if config.tension is None or config.tension.stale_s < SIM_TENSION_STALE_S:
         tension["stale_s"] = SIM_TENSION_STALE_S

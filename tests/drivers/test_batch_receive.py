@@ -121,7 +121,7 @@ def test_a_poller_reads_hrm_ipc_in_batches_into_the_monitor(tmp_path: Path) -> N
     every frame logged once, frames of our own end (``receive_own_messages``) taken as
     echoes, a closed bus a kept exception instead of a raise."""
     box, host = open_ends("batch-poll", 2, tmp_path)
-    _bus, log, port, mon, rx, _net, _reports = rig(tmp_path)
+    bus, log, port, mon, rx, _net, _reports = rig(tmp_path)
     assert pollable(host)
     poller = BusPoller(host, rx, "bus0")
     assert poller._recv_batch is not None  # hrm_ipc's recv_batches
@@ -139,6 +139,7 @@ def test_a_poller_reads_hrm_ipc_in_batches_into_the_monitor(tmp_path: Path) -> N
     host.shutdown()
     assert poller.poll() == 0 and poller.exception is not None and not poller.alive
     box.shutdown()
+    bus.shutdown()
     log.stop()
     assert len(list(can.LogReader(tmp_path / "rx.blf"))) == 3
     assert port.name == "bus0"
@@ -162,3 +163,54 @@ def test_hrm_ipc_refuses_a_batch_it_cannot_carry(tmp_path: Path) -> None:
     finally:
         a.shutdown()
         b.shutdown()
+
+
+def test_the_supervisor_reads_its_buses_and_a_dead_one_is_a_stop_cause_not_a_spin(
+    tmp_path: Path,
+) -> None:
+    """The supervisor's own thread waits on an hrm_ipc end (BusPoller): frames reach the
+    monitor between deadlines; a bus that dies under it is reported as a receive failure
+    at the next deadline, and the thread goes on waiting instead of spinning on it."""
+    import os
+    import threading
+
+    from drivers.bus import BusPort
+    from drivers.cycle import BusLayout, EventLog
+    from drivers.safety.supervisor import Supervisor
+    from tests.drivers.safety.test_supervisor import HB_PERIOD_S, HOST, Limits, T
+
+    box, host = open_ends("sup-poll", 2, tmp_path)
+    bus, log, _port, mon, rx, _net, _reports = rig(tmp_path)
+    poller = BusPoller(host, rx, "bus0")
+    layout = BusLayout(BusPort("bus0", host), np.array([0, 1]), np.array([1, 2]), poller)
+    sup = Supervisor([layout], mon, Limits(), T, HB_PERIOD_S, HOST, EventLog())
+    sup.start()
+    try:
+        box.send(cia301.make_heartbeat(2, cia301.NMT_STATE_OPERATIONAL))
+        deadline = time.monotonic() + 5.0
+        while mon.hb_state[1] != cia301.NMT_STATE_OPERATIONAL and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert mon.hb_state.tolist() == [-1, cia301.NMT_STATE_OPERATIONAL]
+        host.shutdown()  # the bus dies under the waiting thread
+        box.send(cia301.make_heartbeat(1, cia301.NMT_STATE_OPERATIONAL))
+        deadline = time.monotonic() + 5.0
+        while poller.exception is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert poller.exception is not None
+        causes = sup._watchdogs(time.monotonic(), -1, None)
+        assert [c.kind.value for c in causes] == ["receive"], causes
+        tid = next(t.native_id for t in threading.enumerate() if t.name == "hrm-supervisor")
+
+        def cpu_s() -> float:
+            with open(f"/proc/self/task/{tid}/stat", encoding="ascii") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+        c0 = cpu_s()
+        time.sleep(0.5)
+        assert cpu_s() - c0 < 0.05  # waiting on its deadline, not spinning on the dead bus
+    finally:
+        sup.close()
+        box.shutdown()
+        bus.shutdown()
+        log.stop()

@@ -198,6 +198,17 @@ def test_after_a_safety_stop_the_session_still_finishes(rig_factory: Callable[..
     box.__exit__(None, None, None)
     rig.box = None
     assert box.state is SessionState.CLOSED
+
+    def pre_op_seen() -> bool:  # the sniffers' threads may lag behind a loaded machine
+        return all(
+            any(
+                m.arbitration_id == cia301.COB_NMT and m.data[0] == cia301.NMT_ENTER_PRE_OPERATIONAL
+                for m in frames(rig, k)
+            )
+            for k in range(len(rig.sniffers))
+        )
+
+    wait_until(pre_op_seen, timeout_s=3.0)
     for k in range(len(rig.sniffers)):
         host = [
             m
