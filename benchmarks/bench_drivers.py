@@ -55,9 +55,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine
 
 from drivers.config import BoxConfig, load_box_config
-from drivers.realtime import cpu_list, parse_cpus, process_settings, split_cpus
+from drivers.cycle import LATE_THRESHOLD_S
+from drivers.realtime import (
+    REALTIME_PRIORITY_SAFE_MAX,
+    available_cpus,
+    cpu_list,
+    parse_cpus,
+    process_settings,
+    split_cpus,
+)
 from drivers.session import DriveSession
 from drivers.sources import TableSource
+from hrm_ctrl.hil.stalls import StallProbe, explained
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import load_actuation
 
@@ -268,6 +277,7 @@ def run(
     rss_sample_s: float | None = None,
     work: Path | None = None,
     cpus: tuple[frozenset[int], frozenset[int]] | str | None = "auto",
+    stall_probe: bool = False,
 ) -> dict[str, Any]:
     """One benchmark run (what ``main`` prints; the soak test asserts on it).  ``cpus``:
     (host, box) CPU sets for a box process (the host's session threads and the box kept
@@ -333,7 +343,9 @@ def run(
                 proc0 = time.process_time()
                 box_cpu0 = proc_cpu_s(box_pid) if box_pid is not None else box.cpu_s
                 wall0 = time.monotonic()
-                result = session.stream(SineSource(act, duration_s), raise_on_stop=False)
+                probe = StallProbe(sorted(available_cpus()) if stall_probe else [])
+                with probe:
+                    result = session.stream(SineSource(act, duration_s), raise_on_stop=False)
                 wall = time.monotonic() - wall0
                 box_cpu = (proc_cpu_s(box_pid) if box_pid is not None else box.cpu_s) - box_cpu0
                 proc_cpu = time.process_time() - proc0
@@ -439,6 +451,7 @@ def run(
             "samples": [(t, round(h, 1), None if b is None else round(b, 1)) for t, h, b in rss],
         },
         "can_log_frames": frames_logged,
+        "machine_stalls": machine_stalls(probe, s, cfg.control.rate_hz) if stall_probe else None,
         **out,
     }
     ref = out.get("canopen_reference")
@@ -449,6 +462,33 @@ def run(
         "jitter_p99_le_0_5ms": (s.get("jitter_p99_s") or 1.0) <= 0.0005,
         "box_le_0_3_core": out["box_core_fraction"] is not None and out["box_core_fraction"] <= 0.3,
     }
+    return out
+
+
+def machine_stalls(probe: StallProbe, stats: dict[str, Any], rate_hz: float) -> dict[str, Any]:
+    """What the stall probes saw during the stream, and which late or missing-feedback
+    cycles fell on a stall of the machine itself (``hrm_ctrl.hil.stalls``) and which did not."""
+    out: dict[str, Any] = probe.summary()
+    if not probe.available:
+        return out
+    notable = [tuple(e) for e in stats.get("notable_cycles", [])]
+    on_stall = set(explained(notable, probe.stalls, 1.0 / rate_hz))
+    late = [e for e in notable if e[1] > LATE_THRESHOLD_S]
+    missing = [e for e in notable if e[2]]
+    other = [e for e in notable if e not in on_stall]
+    t0 = notable[0][0] if notable else 0.0
+    out.update(
+        {
+            "late_cycles_on_machine_stalls": sum(1 for e in late if e in on_stall),
+            "late_cycles_otherwise": sum(1 for e in late if e not in on_stall),
+            "missing_node_cycles_on_machine_stalls": sum(e[2] for e in missing if e in on_stall),
+            "missing_node_cycles_otherwise": sum(e[2] for e in missing if e not in on_stall),
+            "notable_cycles_kept": len(notable),
+            "otherwise_first": [  # (s after the first notable cycle, lateness ms, missing)
+                (round(d - t0, 3), round(lt * 1000, 2), m) for d, lt, m in other[:20]
+            ],
+        }
+    )
     return out
 
 
@@ -687,6 +727,11 @@ def main() -> None:
     )  # fmt: skip
     ap.add_argument("--soak", action="store_true", help="a long run, RSS sampled every 10 s")
     ap.add_argument(
+        "--stall-probe", action="store_true",
+        help="a SCHED_FIFO prober on every CPU during the stream (hrm_ctrl.hil.stalls): which "
+        "late or missing-feedback cycles fell on a stall of the machine itself (on with --soak)",
+    )  # fmt: skip
+    ap.add_argument(
         "--costs", action="store_true", help="only the CPU of each piece of one cycle (us)"
     )
     args = ap.parse_args()
@@ -704,8 +749,11 @@ def main() -> None:
         ("--host-rt-priority", args.host_rt_priority),
         ("--box-rt-priority", args.box_rt_priority),
     ):
-        if not 0 <= prio <= 49:  # box.toml's safe range of realtime_priority
-            print(f"bench_drivers: {flag} must be in 0..49, got {prio}", file=sys.stderr)
+        if not 0 <= prio <= REALTIME_PRIORITY_SAFE_MAX:  # box.toml's safe range
+            print(
+                f"bench_drivers: {flag} must be in 0..{REALTIME_PRIORITY_SAFE_MAX}, got {prio}",
+                file=sys.stderr,
+            )
             raise SystemExit(2)
     if not (duration > 0 and np.isfinite(duration)):
         print(f"bench_drivers: --duration must be > 0 s, got {duration}", file=sys.stderr)
@@ -735,6 +783,7 @@ def _run_from(args: argparse.Namespace, duration: float) -> dict[str, Any]:
         box_rt_priority=args.box_rt_priority,
         rss_sample_s=RSS_SAMPLE_S if args.soak else None,
         cpus=_cpus_arg(args.cpus),
+        stall_probe=args.stall_probe or args.soak,
     )
 
 

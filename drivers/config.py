@@ -63,7 +63,7 @@ from drivers.protocol.cia402 import (
     QUICK_STOP_OPTIONS_THEN_DISABLED,
     interpolation_time_period,
 )
-from drivers.realtime import NORMAL_PRIORITY
+from drivers.realtime import NORMAL_PRIORITY, REALTIME_PRIORITY_SAFE_MAX
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.files import read_toml
 
@@ -561,7 +561,7 @@ CONTROL_RANGES: Mapping[str, ControlRange] = {
         "implements; it aborts any other write (0x06090030) after its NMT reset",
     ),
     "realtime_priority": ControlRange(
-        NORMAL_PRIORITY, 49, "",
+        NORMAL_PRIORITY, REALTIME_PRIORITY_SAFE_MAX, "",
         "SCHED_FIFO priority of the control thread (0: off); at 50 and above it would "
         "preempt the kernel's interrupt threads (PREEMPT_RT), the CAN controller's too",
     ),

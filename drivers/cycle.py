@@ -30,6 +30,7 @@ from hrm_ctrl.errors import HrmError
 
 _RPDO_PACK = cia402.RPDO_TARGET_LAYOUT.pack
 LATE_THRESHOLD_S = 0.002
+MAX_NOTABLE_CYCLES = 2000  # late or missing-feedback cycles kept with their times, per stream
 STOP_CONFIRM_CYCLES = 10
 SYNC_MARGIN_S = 0.0005
 
@@ -186,14 +187,18 @@ class CycleStats:
     supervisor's CPU time, SYNC-to-SYNC jitter) and two counters (late cycles, exactly;
     the first and last SYNC for the drift): a 10-minute soak holds as much as a 1 s jog
     (the lists of Python floats it kept before grew ~1 MB a minute).  Percentiles are
-    to one bin (10 us), maxima exact.
+    to one bin (10 us), maxima exact.  The notable cycles, late ones and those that found
+    TPDOs missing, are kept with their deadlines (the first :data:`MAX_NOTABLE_CYCLES`),
+    to be set beside what else happened then (``hrm_ctrl.hil.stalls``).
 
     >>> st = CycleStats(0.01)
     >>> for k, late in enumerate([0.0002, 0.0004, 0.003]):
-    ...     st.add(k * 0.01, k * 0.01, k * 0.01 + late, 0.001)
+    ...     st.add(k * 0.01, k * 0.01, k * 0.01 + late, 0.001, missing_total=2 * (k >= 1))
     >>> s = st.summary()
     >>> s["cycles"], s["late_cycles"], round(s["jitter_max_s"] * 1000, 1)
     (3, 1, 2.6)
+    >>> s["notable_cycles"]   # (deadline_s, lateness_s, TPDOs found missing)
+    [(0.01, 0.0004, 2), (0.02, 0.003, 0)]
     """
 
     def __init__(self, period_s: float, late_threshold_s: float = LATE_THRESHOLD_S) -> None:
@@ -210,14 +215,29 @@ class CycleStats:
         self.realtime = False
         self.missing_feedback = 0
         self.process_cpu_s = 0.0
+        self.notable: list[tuple[float, float, int]] = []
+        self._missing_seen: int | None = None
 
-    def add(self, deadline: float, woke: float, sync_sent: float, cpu_s: float) -> None:
+    def add(
+        self,
+        deadline: float,
+        woke: float,
+        sync_sent: float,
+        cpu_s: float,
+        missing_total: int = 0,
+    ) -> None:
+        """One cycle; ``missing_total``: the monitor's running count of TPDOs found
+        missing (its growth since the last cycle is this cycle's)."""
         late = sync_sent - deadline
         self.lateness.add(late)
         self.wake.add(woke - deadline)
         self.cpu.add(cpu_s)
+        missing = 0 if self._missing_seen is None else missing_total - self._missing_seen
+        self._missing_seen = missing_total
         if late > self.late_threshold_s:
             self.late_cycles += 1
+        if (late > self.late_threshold_s or missing) and len(self.notable) < MAX_NOTABLE_CYCLES:
+            self.notable.append((deadline, round(late, 6), missing))
         if self._first is None:
             self._first = (deadline, sync_sent)
         else:
@@ -254,6 +274,7 @@ class CycleStats:
                 "cpu_per_cycle_mean_s": self.cpu.mean,
                 "cpu_per_cycle_p99_s": self.cpu.quantile(99),
                 "process_cpu_per_cycle_s": self.process_cpu_s / n,
+                "notable_cycles": self.notable,
             }
         )
         if n >= 2 and self._first is not None:

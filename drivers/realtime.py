@@ -69,6 +69,11 @@ rest of the machine; it is opt-in (``[control] realtime_priority`` in ``box.toml
 REALTIME_PRIORITY_MAX = 99
 """Highest ``SCHED_FIFO`` priority Linux accepts (its FIFO priorities are 1..99)."""
 
+REALTIME_PRIORITY_SAFE_MAX = 49
+"""Highest priority the stack's threads take (``box.toml``'s safe range of
+``realtime_priority``): at 50 and above they would preempt the kernel's interrupt threads
+(PREEMPT_RT), the CAN controller's too."""
+
 
 class ProcessSettingsError(DriverError):
     """A process setting asked of :func:`process_settings` is out of range."""

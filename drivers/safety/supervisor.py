@@ -639,7 +639,9 @@ class Supervisor:
         if stream.g % self._log_kick_cycles == 0:
             for log_ in self._logs:  # the CAN logs write in this cycle's slack
                 log_.kick()
-        stream.stats.add(deadline, now, t_sync, time.thread_time() - th0)
+        stream.stats.add(
+            deadline, now, t_sync, time.thread_time() - th0, self.monitor.missing_total
+        )
         stream.k += 1
         stream.g += 1
         if causes:

@@ -126,10 +126,19 @@ def register(parser: argparse.ArgumentParser) -> None:
         help="run the box on these CPUs only (taskset's list: 1, 0,2, 2-3), off the CPUs "
         "of the host's control loop, as the drives' own hardware would be",
     )
+    parser.add_argument(
+        "--rt-priority",
+        type=int,
+        default=0,
+        metavar="PRIORITY",
+        help="run every box thread under SCHED_FIFO at PRIORITY (1..49, as box.toml's "
+        "realtime_priority; 0: normal scheduling, the default), as the drives' firmware "
+        "runs in real time; refused (exit 2) where the process may not",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.realtime import parse_cpus, process_settings
+    from drivers.realtime import REALTIME_PRIORITY_SAFE_MAX, parse_cpus, process_settings
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.faults import parse_fault
@@ -144,6 +153,10 @@ def run(args: argparse.Namespace) -> int:
             f"got {args.tension_rate}"
         )
     cpus = None if args.cpus is None else parse_cpus(args.cpus)
+    if not 0 <= args.rt_priority <= REALTIME_PRIORITY_SAFE_MAX:
+        raise SimError(
+            f"--rt-priority must be in 0..{REALTIME_PRIORITY_SAFE_MAX}, got {args.rt_priority}"
+        )
     faults = [parse_fault(f) for f in args.fault]
     if args.max_slack and args.perturb is None:
         raise SimError("--max-slack needs --perturb SEED (a truth file says its own slack)")
@@ -176,7 +189,12 @@ def run(args: argparse.Namespace) -> int:
                 raise SimError(f"--fault {f.kind}: no simulated drive for motor '{f.args[0]}'")
         if f.kind in ("drop", "delay", "bus-off", "bus-on") and f.args[0] not in buses:
             raise SimError(f"--fault {f.kind}: no bus '{f.args[0]}' (have {sorted(buses)})")
-    with process_settings(switch_interval_s=None, cpus=cpus):  # every box thread
+    # every box thread (threads inherit the policy of the thread that starts them)
+    with process_settings(
+        switch_interval_s=None, cpus=cpus, realtime_priority=args.rt_priority
+    ) as applied:
+        if args.rt_priority and not applied.realtime_granted:
+            raise SimError(f"--rt-priority: {applied.realtime_refusal}")
         return run_box_process(
             config,
             actuation=actuation,

@@ -12,11 +12,16 @@ Options (command line, or ``addopts`` in the ini file):
     ``socketcan`` vcan0/vcan1 (tests skip, naming the reason, where a bus is unavailable).
 ``--hrm-box {process,inprocess}``
     the box as its own process (``hrm sim --control``, default) or in the test process.
+``--hrm-rt-priority PRIORITY`` (0..49, default 0)
+    the host's drive-session threads (``[control] realtime_priority``) and a box process's
+    threads (``hrm sim --rt-priority``) under ``SCHED_FIFO`` at PRIORITY, as on a rig;
+    0 keeps normal scheduling.  Where the process may not, the session runs at normal
+    scheduling (its run record says so) and a box process refuses to start.
 
 Fixtures (``hrm_box*`` module-scoped: one box serves a test module; the rest per test):
 
-* ``hrm_bus_kind``, ``hrm_box_mode``: the options (:class:`~hrm_ctrl.hil.rig.BusKind`,
-  :class:`~hrm_ctrl.hil.rig.BoxMode`);
+* ``hrm_bus_kind``, ``hrm_box_mode``, ``hrm_rt_priority``: the options
+  (:class:`~hrm_ctrl.hil.rig.BusKind`, :class:`~hrm_ctrl.hil.rig.BoxMode`, an ``int``);
 * ``hrm_box_nodes``: the box's node map per bus (default the 36 motors of the drivers'
   ``box.toml``; override it in a test module for a smaller box);
 * ``hrm_control``: ``[control]`` keys overriding the production settings (default none;
@@ -67,6 +72,29 @@ def bus_list(text: str) -> tuple[str, ...]:
     return kinds
 
 
+def rt_priority(text: str) -> int:
+    """``--hrm-rt-priority``: an integer in 0..49 (box.toml's safe range)."""
+    import argparse
+
+    from drivers.realtime import REALTIME_PRIORITY_SAFE_MAX
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= REALTIME_PRIORITY_SAFE_MAX:
+        raise argparse.ArgumentTypeError(
+            f"must be an integer in 0..{REALTIME_PRIORITY_SAFE_MAX}, got {text!r}"
+        )
+    return value
+
+
+@pytest.fixture(scope="session")
+def hrm_rt_priority(request: pytest.FixtureRequest) -> int:
+    """``--hrm-rt-priority``: SCHED_FIFO priority of session and box threads (0: off)."""
+    return int(request.config.getoption("--hrm-rt-priority"))
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     group = parser.getgroup("hrm_hil", "hrm hardware-in-the-loop (simulated box)")
     group.addoption(
@@ -83,6 +111,14 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         choices=BOX_CHOICES,
         default="process",
         help="the simulated box as its own process (default) or in the test process",
+    )
+    group.addoption(
+        "--hrm-rt-priority",
+        type=rt_priority,
+        default=0,
+        metavar="PRIORITY",
+        help="SCHED_FIFO priority (1..49) of the host's session threads and of a box "
+        "process (0: normal scheduling, the default)",
     )
 
 
@@ -166,6 +202,7 @@ def hrm_box_config(
     hrm_box_mode: BoxMode,
     hrm_box_nodes: tuple[dict[str, int], ...],
     hrm_control: dict[str, Any],
+    hrm_rt_priority: int,
     tmp_path_factory: pytest.TempPathFactory,
 ) -> Path:
     """The bus configuration host and box share (production ``[control]``; a box in the
@@ -173,6 +210,8 @@ def hrm_box_config(
     from hrm_ctrl.hil.rig import INPROCESS_CONTROL, BoxMode, write_box_toml
 
     control = dict(hrm_control)
+    if hrm_rt_priority:  # scheduling, not a watchdog: still the production settings
+        control.setdefault("realtime_priority", hrm_rt_priority)
     if hrm_box_mode is BoxMode.INPROCESS:
         control = {**INPROCESS_CONTROL, **control}
         warnings.warn(
@@ -186,12 +225,12 @@ def hrm_box_config(
 
 @pytest.fixture(scope="module")
 def hrm_box(
-    hrm_box_config: Path, hrm_box_mode: BoxMode, hrm_process_settings: None
+    hrm_box_config: Path, hrm_box_mode: BoxMode, hrm_rt_priority: int, hrm_process_settings: None
 ) -> Iterator[HilBox]:
     """The simulated box, started (its drives booted, its tension board running)."""
     from hrm_ctrl.hil.rig import start_box
 
-    box = start_box(hrm_box_config, hrm_box_mode)
+    box = start_box(hrm_box_config, hrm_box_mode, hrm_rt_priority)
     try:
         yield box
     finally:

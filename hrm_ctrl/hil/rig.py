@@ -261,10 +261,17 @@ class BoxProcess:
     (``sim_bus.runner``).  On a machine of two or more CPUs the box runs on the highest
     one (``hrm sim --cpus``, :func:`drivers.realtime.split_cpus`) and a :class:`HilHost`
     on it keeps its threads on the others: separate hardware, as the drives are
-    (``cpus=False``: anywhere)."""
+    (``cpus=False``: anywhere).  ``rt_priority`` > 0: every box thread under
+    ``SCHED_FIFO`` at it (``hrm sim --rt-priority``; the box fails to start where the
+    process may not)."""
 
     def __init__(
-        self, config_path: Path, *extra: str, cwd: Path | None = None, cpus: bool = True
+        self,
+        config_path: Path,
+        *extra: str,
+        cwd: Path | None = None,
+        cpus: bool = True,
+        rt_priority: int = 0,
     ) -> None:
         from drivers.realtime import cpu_list, split_cpus
 
@@ -273,6 +280,8 @@ class BoxProcess:
         self.host_cpus = None if split is None else split[0]
         if split is not None:
             extra = ("--cpus", cpu_list(split[1]), *extra)
+        if rt_priority:
+            extra = ("--rt-priority", str(rt_priority), *extra)
         # stderr to a file, not a pipe nobody drains: a chatty box must not block
         self._stderr = tempfile.TemporaryFile("w+")
         self._lock = threading.Lock()
@@ -400,10 +409,12 @@ class InProcessBox:
         self.box.stop()
 
 
-def start_box(config_path: Path, mode: BoxMode) -> HilBox:
-    """The simulated box on ``config_path``'s buses, started and ready."""
+def start_box(config_path: Path, mode: BoxMode, rt_priority: int = 0) -> HilBox:
+    """The simulated box on ``config_path``'s buses, started and ready (``rt_priority``:
+    a box process's threads under ``SCHED_FIFO``; a box in this process runs as the
+    process does)."""
     if mode is BoxMode.PROCESS:
-        return BoxProcess(config_path)
+        return BoxProcess(config_path, rt_priority=rt_priority)
     return InProcessBox(config_path)
 
 

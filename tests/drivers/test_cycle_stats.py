@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import example, given
 from hypothesis import strategies as st
 
-from drivers.cycle import HIST_BIN_S, HIST_LO_S, CycleStats, TimeHistogram
+from drivers.cycle import HIST_BIN_S, HIST_LO_S, MAX_NOTABLE_CYCLES, CycleStats, TimeHistogram
 
 IN_RANGE = st.floats(min_value=HIST_LO_S, max_value=0.098, allow_nan=False)
 
@@ -65,3 +65,20 @@ def test_a_long_stream_holds_no_more_memory_than_a_short_one() -> None:
     short, long_ = grown(1000), grown(60_000)
     assert long_ < 4096, long_  # the lists it kept before: ~4 x 60 000 floats, > 5 MB
     assert long_ <= short + 1024
+
+
+def test_late_and_missing_feedback_cycles_are_kept_with_their_deadlines_up_to_a_bound() -> None:
+    T = 0.01
+    st_ = CycleStats(T, late_threshold_s=0.002)
+    missing_total = 5  # what the monitor counted before the stream: not this stream's
+    for k in range(3 * MAX_NOTABLE_CYCLES):
+        late = 0.003 if k % 2 else 0.0001
+        missing_total += 18 if k % 3 == 1 else 0
+        st_.add(k * T, k * T, k * T + late, 0.0003, missing_total)
+    notable = st_.summary()["notable_cycles"]
+    assert len(notable) == MAX_NOTABLE_CYCLES
+    # every cycle that was late (odd k) or found 18 TPDOs missing (k % 3 == 1), in order
+    want = [k for k in range(3 * MAX_NOTABLE_CYCLES) if k % 2 or k % 3 == 1]
+    assert [round(d / T) for d, _, _ in notable] == want[:MAX_NOTABLE_CYCLES]
+    assert all(m == (18 if round(d / T) % 3 == 1 else 0) for d, _, m in notable)
+    assert all((lt > 0.002) == (round(d / T) % 2 == 1) for d, lt, _ in notable)

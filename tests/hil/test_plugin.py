@@ -76,6 +76,36 @@ def test_an_unknown_bus_is_a_usage_error(tmp_path: Path) -> None:
     assert "Traceback" not in res.stderr
 
 
+@pytest.mark.parametrize("value", ["50", "-1", "high"])
+def test_a_realtime_priority_outside_the_safe_range_is_a_usage_error(
+    tmp_path: Path, value: str
+) -> None:
+    (tmp_path / "test_x.py").write_text("def test_nothing():\n    pass\n")
+    res = run_pytest(tmp_path, "--hrm-rt-priority", value)
+    assert res.returncode == 4, res.stdout + res.stderr
+    assert "--hrm-rt-priority" in res.stderr and "0..49" in res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def fifo_allowed() -> bool:
+    return subprocess.run(["chrt", "-f", "1", "true"], capture_output=True).returncode == 0
+
+
+@pytest.mark.skipif(not fifo_allowed(), reason="SCHED_FIFO refused to this user (chrt -f 1)")
+def test_rt_priority_puts_a_box_process_and_the_session_under_sched_fifo(tmp_path: Path) -> None:
+    (tmp_path / "test_x.py").write_text(
+        "import os\n"
+        "def test_rt(hrm_box, hrm_session, hrm_rt_priority):\n"
+        "    assert hrm_rt_priority == 7\n"
+        "    assert os.sched_getscheduler(hrm_box.proc.pid) == os.SCHED_FIFO\n"
+        "    assert os.sched_getparam(hrm_box.proc.pid).sched_priority == 7\n"
+        "    assert hrm_session.realtime_granted\n"
+        "    assert hrm_session.control.realtime_priority == 7\n"
+    )
+    res = run_pytest(tmp_path, "--hrm-rt-priority", "7")
+    assert res.returncode == 0 and "1 passed" in res.stdout, res.stdout + res.stderr
+
+
 @pytest.mark.slow  # 10-25 s: a pytest process of its own, a box, two bring-ups
 @pytest.mark.parametrize(
     "options",

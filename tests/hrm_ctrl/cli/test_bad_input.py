@@ -497,6 +497,13 @@ def test_a_tension_rate_whose_period_no_wait_takes_is_one_line(
     refused(capsys, tmp_path, ["sim", "--tension-rate", "1e-300"], "--tension-rate must be in [1,")
 
 
+@pytest.mark.parametrize("value", ["50", "-3"])
+def test_a_box_priority_outside_the_safe_range_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture, value: str
+) -> None:
+    refused(capsys, tmp_path, ["sim", "--rt-priority", value], "--rt-priority must be in 0..49")
+
+
 # ---- 14. a closed stdout -----------------------------------------------------------------
 
 

@@ -1,0 +1,190 @@
+"""Machine stalls: how late the machine itself wakes a thread that nothing else can delay.
+
+A control cycle can be late for two reasons: the host stack (its threads, the interpreter
+lock, a kernel thread at the same priority) or the machine (a virtual machine's vCPUs
+descheduled by the hypervisor, an SMI, a frequency change).  Only the first is ours to fix.
+A :class:`StallProbe` tells them apart: one small process per CPU, pinned to it, under
+``SCHED_FIFO`` at :data:`PROBE_PRIORITY` (above every priority a drive session may take,
+``realtime_priority`` 0..49), sleeps to a grid of :data:`PROBE_PERIOD_S` and records every
+wake-up more than :data:`STALL_THRESHOLD_S` late.  Nothing in the guest preempts it, so what
+it records is the machine's.  :func:`explained` then says which of a stream's late or
+missing-feedback cycles overlap a machine stall.
+
+Seen on the 2-core VM of ``BENCHMARKS.md``: a bare loop at normal priority was more than
+2 ms late 16 times in 10 minutes (up to 15 ms), and the probes on both CPUs see the same
+stalls at the same instants (the whole VM stops).
+
+The probe needs ``CAP_SYS_NICE`` for ``SCHED_FIFO``; without it :class:`StallProbe` reports
+itself unavailable (``available`` False, the reason in ``refusal``) rather than measure
+something a normal thread's scheduling would blur.
+
+>>> stalls = [Stall(cpu=0, at_s=10.000, late_s=0.006)]
+>>> events = [(9.998, 0.0075, 0), (20.0, 0.003, 0), (30.0, 0.0, 18)]
+>>> [e[0] for e in explained(events, stalls, period_s=0.01)]
+[9.998]
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import os
+import select
+import subprocess
+import sys
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+PROBE_PERIOD_S = 0.002  # a stall of more than ~2 ms is always caught in the act
+STALL_THRESHOLD_S = 0.001  # a wake-up later than this is a stall
+PROBE_PRIORITY = 60  # above a session's realtime_priority (0..49)
+MAX_STALLS = 100_000  # per probe: a 3-hour run stalling every 0.1 s
+MAX_PROBE_S = 3 * 3600.0  # a probe whose parent never says stop ends by itself
+STOP_TIMEOUT_S = 5.0
+MARGIN_S = 0.001  # a stall this close before a late interval still explains it
+
+
+@dataclass(frozen=True)
+class Stall:
+    """One late wake-up of a probe: due at ``at_s`` (``time.monotonic``), ``late_s`` late."""
+
+    cpu: int
+    at_s: float
+    late_s: float
+
+
+def explained(
+    events: Iterable[tuple[float, float, int]], stalls: Sequence[Stall], period_s: float
+) -> list[tuple[float, float, int]]:
+    """The cycle events (``(deadline_s, lateness_s, missing_nodes)``, as
+    :attr:`drivers.cycle.CycleStats.events` keeps them) that overlap a machine stall.
+
+    A late cycle covers ``[deadline, deadline + lateness]``; a cycle that found TPDOs
+    missing covers the whole period before it (the feedback of the previous SYNC was due
+    in it).  A stall covers ``[at, at + late]``; overlap within :data:`MARGIN_S` counts.
+    """
+    spans = sorted((s.at_s - MARGIN_S, s.at_s + s.late_s) for s in stalls)
+    starts = [a for a, _ in spans]
+    reach = []  # the latest end among the spans up to each one
+    for _, end in spans:
+        reach.append(max(end, reach[-1]) if reach else end)
+    out = []
+    for ev in events:
+        deadline, late, missing = ev
+        lo = deadline - period_s if missing else deadline
+        hi = deadline + max(late, 0.0)
+        # spans starting before hi; any of them ending after lo overlaps
+        k = bisect.bisect_right(starts, hi)
+        if k and reach[k - 1] >= lo:
+            out.append(ev)
+    return out
+
+
+class StallProbe:
+    """One probe process per CPU in ``cpus`` while the context lasts; :attr:`stalls` after.
+
+    >>> with StallProbe([0]) as probe:   # doctest: +SKIP
+    ...     run_the_stream()
+    >>> probe.stalls[:1]                 # doctest: +SKIP
+    [Stall(cpu=0, at_s=13485.5983, late_s=0.02066)]
+    """
+
+    def __init__(self, cpus: Iterable[int]) -> None:
+        self.cpus = sorted(set(cpus))
+        self.stalls: list[Stall] = []
+        self.available = False
+        self.refusal: str | None = None
+        self.duration_s = 0.0
+        self._procs: list[subprocess.Popen[str]] = []
+        self._t0 = 0.0
+
+    def __enter__(self) -> StallProbe:
+        for cpu in self.cpus:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "hrm_ctrl.hil.stalls", str(cpu)],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            self._procs.append(proc)
+        for proc in self._procs:  # each says "ready" or why not
+            if proc.stdout is None:
+                continue
+            ready, _, _ = select.select([proc.stdout], [], [], STOP_TIMEOUT_S)
+            line = proc.stdout.readline().strip() if ready else "no answer"
+            if line != "ready":
+                self.refusal = self.refusal or line or "probe exited"
+        self.available = self.refusal is None and bool(self._procs)
+        self._t0 = time.monotonic()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.duration_s = time.monotonic() - self._t0
+        for proc in self._procs:
+            try:
+                out, _ = proc.communicate("stop\n", timeout=STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.communicate()
+                self.available = False
+                self.refusal = self.refusal or "a probe did not stop"
+                continue
+            if not self.available:
+                continue
+            try:
+                rows = json.loads(out)
+            except ValueError:
+                self.available = False
+                self.refusal = "a probe's output was not JSON"
+                continue
+            self.stalls.extend(Stall(int(c), float(a), float(s)) for c, a, s in rows)
+        self.stalls.sort(key=lambda s: s.at_s)
+
+    def summary(self, over_s: float = 0.002) -> dict[str, object]:
+        """Counts for a report: stalls in all, those longer than ``over_s``, the longest."""
+        return {
+            "available": self.available,
+            "refusal": self.refusal,
+            "cpus": self.cpus,
+            "duration_s": round(self.duration_s, 1),
+            "stalls_over_1ms": len(self.stalls),
+            f"stalls_over_{over_s * 1000:g}ms": sum(1 for s in self.stalls if s.late_s > over_s),
+            "max_ms": round(max((s.late_s for s in self.stalls), default=0.0) * 1000, 2),
+        }
+
+
+def _probe(cpu: int) -> int:
+    """The probe process: pinned, SCHED_FIFO, until "stop" (or EOF) on stdin."""
+    try:
+        os.sched_setaffinity(0, {cpu})
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(PROBE_PRIORITY))
+    except OSError as exc:
+        print(f"stall probe on CPU {cpu}: {exc.strerror or exc}", flush=True)
+        return 2
+    print("ready", flush=True)
+    stdin = sys.stdin.fileno()
+    rows: list[tuple[int, float, float]] = []
+    t_end = time.monotonic() + MAX_PROBE_S
+    due = time.monotonic() + PROBE_PERIOD_S
+    while due < t_end:
+        wait = due - time.monotonic()
+        ready, _, _ = select.select([stdin], [], [], max(0.0, wait))
+        if ready:  # "stop" or EOF
+            break
+        now = time.monotonic()
+        if now - due > STALL_THRESHOLD_S and len(rows) < MAX_STALLS:
+            rows.append((cpu, round(due, 6), round(now - due, 6)))
+        due += PROBE_PERIOD_S
+        if due < now:  # after a stall: back on the grid from now
+            due = now + PROBE_PERIOD_S
+    print(json.dumps(rows), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 2 or not sys.argv[1].isdigit():
+        print("usage: python -m hrm_ctrl.hil.stalls CPU", file=sys.stderr)
+        raise SystemExit(2)
+    raise SystemExit(_probe(int(sys.argv[1])))
