@@ -45,6 +45,7 @@ import tempfile
 import threading
 import time
 import uuid
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -66,7 +67,7 @@ from drivers.realtime import (
 )
 from drivers.session import DriveSession
 from drivers.sources import TableSource
-from hrm_ctrl.hil.stalls import StallProbe, explained
+from hrm_ctrl.hil.stalls import StallProbe, explained, overlapping
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import load_actuation
 
@@ -451,7 +452,9 @@ def run(
             "samples": [(t, round(h, 1), None if b is None else round(b, 1)) for t, h, b in rss],
         },
         "can_log_frames": frames_logged,
-        "machine_stalls": machine_stalls(probe, s, cfg.control.rate_hz) if stall_probe else None,
+        "machine_stalls": (
+            machine_stalls(probe, s, cfg.control, result.causes) if stall_probe else None
+        ),
         **out,
     }
     ref = out.get("canopen_reference")
@@ -465,14 +468,26 @@ def run(
     return out
 
 
-def machine_stalls(probe: StallProbe, stats: dict[str, Any], rate_hz: float) -> dict[str, Any]:
+def machine_stalls(
+    probe: StallProbe, stats: dict[str, Any], control: Any, causes: Sequence[Any] = ()
+) -> dict[str, Any]:
     """What the stall probes saw during the stream, and which late or missing-feedback
-    cycles fell on a stall of the machine itself (``hrm_ctrl.hil.stalls``) and which did not."""
+    cycles fell on a stall of the machine itself (``hrm_ctrl.hil.stalls``) and which did not;
+    for a stream that stopped, the stalls in the watchdog's window before the stop (the
+    ``missing_tpdo_cycles`` + 1 periods a TPDO watchdog counts) by CPU."""
     out: dict[str, Any] = probe.summary()
     if not probe.available:
         return out
+    period_s = 1.0 / control.rate_hz
+    if causes:
+        t_stop = min(c.time_s for c in causes)
+        window = (control.missing_tpdo_cycles + 1) * period_s
+        out["stalls_before_stop"] = [  # (cpu, s before the stop, ms)
+            (st.cpu, round(t_stop - st.at_s, 4), round(st.late_s * 1000, 2))
+            for st in overlapping(probe.stalls, t_stop - window, t_stop)
+        ]
     notable = [tuple(e) for e in stats.get("notable_cycles", [])]
-    on_stall = set(explained(notable, probe.stalls, 1.0 / rate_hz))
+    on_stall = set(explained(notable, probe.stalls, period_s))
     late = [e for e in notable if e[1] > LATE_THRESHOLD_S]
     missing = [e for e in notable if e[2]]
     other = [e for e in notable if e not in on_stall]

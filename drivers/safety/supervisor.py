@@ -75,6 +75,8 @@ from hrm_ctrl.errors import DriverError, HrmError, SignalInterrupt
 RECENT_SYNCS = 4  # SYNC times kept to count those after a stop cause's detection
 PLAY_POLL_S = 0.25  # how often a caller waiting for a stream looks at the thread
 THREAD_JOIN_TIMEOUT_S = 5.0
+#: a deadline reached this late: the buses are read (without waiting) before the cycle
+DRAIN_LATE_S = 0.0005
 LOG_KICK_S = 0.08  # how often a stream cues the CAN logs' writers (< TrafficLog.FLUSH_S)
 
 
@@ -281,6 +283,11 @@ class Supervisor:
                     self._guarded(self.wake, self.clock())
                 continue
             now = self.clock()
+            if now - self._next_deadline > DRAIN_LATE_S:
+                # woken late (held off the CPU): what arrived meanwhile is read before the
+                # watchdogs judge the cycle; a TPDO waiting in the socket is not missing
+                for poller in pollers.values():
+                    poller.poll()
             if now - self._next_deadline > T:  # fell more than a period behind: skip slots
                 skip = int((now - self._next_deadline) // T)
                 self._next_deadline += skip * T

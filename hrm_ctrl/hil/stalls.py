@@ -81,6 +81,17 @@ def explained(
     return out
 
 
+def overlapping(stalls: Sequence[Stall], lo_s: float, hi_s: float) -> list[Stall]:
+    """The stalls that overlap ``[lo_s, hi_s]`` (within :data:`MARGIN_S`), e.g. the cycles
+    a watchdog counted before it stopped a stream.
+
+    >>> s = [Stall(0, 1.0, 0.003), Stall(1, 2.0, 0.02), Stall(1, 5.0, 0.002)]
+    >>> [x.at_s for x in overlapping(s, 2.015, 2.04)]
+    [2.0]
+    """
+    return [s for s in stalls if s.at_s - MARGIN_S <= hi_s and s.at_s + s.late_s >= lo_s]
+
+
 class StallProbe:
     """One probe process per CPU in ``cpus`` while the context lasts; :attr:`stalls` after.
 
@@ -152,6 +163,10 @@ class StallProbe:
             "stalls_over_1ms": len(self.stalls),
             f"stalls_over_{over_s * 1000:g}ms": sum(1 for s in self.stalls if s.late_s > over_s),
             "max_ms": round(max((s.late_s for s in self.stalls), default=0.0) * 1000, 2),
+            f"over_{over_s * 1000:g}ms_by_cpu": {
+                str(c): sum(1 for s in self.stalls if s.cpu == c and s.late_s > over_s)
+                for c in self.cpus
+            },
         }
 
 

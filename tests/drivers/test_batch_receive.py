@@ -214,3 +214,51 @@ def test_the_supervisor_reads_its_buses_and_a_dead_one_is_a_stop_cause_not_a_spi
         box.shutdown()
         bus.shutdown()
         log.stop()
+
+
+def test_a_supervisor_woken_late_reads_what_arrived_before_it_judges_the_cycle(
+    tmp_path: Path,
+) -> None:
+    """A supervisor held off the CPU past its deadline (here: a step that takes 3 periods)
+    reads the frames that arrived meanwhile before the next step: a TPDO waiting in the
+    socket is not a missing one (the watchdogs judge each cycle at its step)."""
+    import threading
+
+    from drivers.bus import BusPort
+    from drivers.cycle import BusLayout, EventLog
+    from drivers.safety.supervisor import Supervisor
+    from tests.drivers.safety.test_supervisor import HB_PERIOD_S, HOST, Limits, T
+
+    box, host = open_ends("sup-late", 2, tmp_path)
+    bus, log, _port, mon, rx, _net, _reports = rig(tmp_path)
+    poller = BusPoller(host, rx, "bus0")
+    layout = BusLayout(BusPort("bus0", host), np.array([0, 1]), np.array([1, 2]), poller)
+    stall = threading.Event()
+    at_steps: list[list[int]] = []  # node 1's position as each step began
+
+    class HeldOff(Supervisor):
+        def step(self, now: float, deadline: float | None = None) -> None:
+            at_steps.append(mon.position.tolist())
+            if stall.is_set():
+                stall.clear()
+                box.send(cia402.make_tpdo_feedback(1, 0x0237, 4242))  # arrives meanwhile
+                time.sleep(3 * T)  # held off the CPU past the next deadline
+                at_steps.append([])  # marks the stall's end
+            super().step(now, deadline)
+
+    sup = HeldOff([layout], mon, Limits(), T, HB_PERIOD_S, HOST, EventLog())
+    sup.start()
+    try:
+        deadline = time.monotonic() + 5.0
+        while len(at_steps) < 3 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        stall.set()
+        while [] not in at_steps[:-1] and time.monotonic() < deadline:
+            time.sleep(0.005)
+        after = at_steps[at_steps.index([]) + 1]  # the first step after the stall
+        assert after[0] == 4242, at_steps[-4:]
+    finally:
+        sup.close()
+        box.shutdown()
+        bus.shutdown()
+        log.stop()
