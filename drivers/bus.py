@@ -52,6 +52,7 @@ from drivers.protocol.cia301 import (
     COB_SYNC,
     HOST_HEARTBEAT_NODE_ID,
 )
+from drivers.realtime import step_below_starter
 from hrm_ctrl.errors import DriverError
 
 LOG_FORMATS_ALWAYS = ("blf", "asc", "log", "trc")
@@ -371,6 +372,7 @@ class TrafficLog(can.Listener):
         self._wake.set()
 
     def _run(self) -> None:
+        step_below_starter()  # under FIFO, the supervisor preempts the writer
         now = time.monotonic()
         next_flush = now + self.FLUSH_S
         last_kick = -math.inf

@@ -201,6 +201,32 @@ def check_realtime_priority(priority: int, where: str = "realtime_priority") -> 
     return priority
 
 
+def step_below_starter() -> int:
+    """Put the calling thread one ``SCHED_FIFO`` priority below the one it inherited (at
+    least 1), if it runs under FIFO; return its priority now (0: normal scheduling).
+
+    For a session's helper threads (the CAN log writers): under FIFO at the supervisor's
+    own priority, a writer packing a batch holds the CPU until it blocks, and the
+    supervisor, woken at its deadline on the same CPU, waits for it (threads of equal FIFO
+    priority do not preempt one another).  One step below, the supervisor preempts it and
+    gets the interpreter lock within the switch interval.  Lowering one's own priority
+    needs no privilege.
+
+    >>> step_below_starter()   # a thread under normal scheduling stays so
+    0
+    """
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_FIFO:
+            return NORMAL_PRIORITY
+        priority = os.sched_getparam(0).sched_priority
+        if priority > 1:
+            priority -= 1
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return priority
+    except (OSError, AttributeError):  # no FIFO on this platform: nothing to step down
+        return NORMAL_PRIORITY
+
+
 def _set_switch_interval(seconds: float) -> None:
     """Set the GIL switch interval to the nearest whole microsecond.
 

@@ -36,8 +36,12 @@ import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-PROBE_PERIOD_S = 0.002  # a stall of more than ~2 ms is always caught in the act
-STALL_THRESHOLD_S = 0.001  # a wake-up later than this is a stall
+#: a stall of PROBE_PERIOD_S + STALL_THRESHOLD_S (1.5 ms) or more always covers a due
+#: wake-up by more than the threshold: caught, wherever it falls on the probe's grid (with
+#: 2 ms and 1 ms, stalls up to 3 ms could pass unseen between two wake-ups, and a cycle
+#: they made 2 ms late was blamed on the stack)
+PROBE_PERIOD_S = 0.001
+STALL_THRESHOLD_S = 0.0005  # a wake-up later than this is a stall
 PROBE_PRIORITY = 60  # above a session's realtime_priority (0..49)
 MAX_STALLS = 100_000  # per probe: a 3-hour run stalling every 0.1 s
 MAX_PROBE_S = 3 * 3600.0  # a probe whose parent never says stop ends by itself
@@ -160,7 +164,8 @@ class StallProbe:
             "refusal": self.refusal,
             "cpus": self.cpus,
             "duration_s": round(self.duration_s, 1),
-            "stalls_over_1ms": len(self.stalls),
+            "threshold_ms": STALL_THRESHOLD_S * 1000,
+            "stalls": len(self.stalls),
             f"stalls_over_{over_s * 1000:g}ms": sum(1 for s in self.stalls if s.late_s > over_s),
             "max_ms": round(max((s.late_s for s in self.stalls), default=0.0) * 1000, 2),
             f"over_{over_s * 1000:g}ms_by_cpu": {

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 import uuid
 from typing import Any
 
@@ -256,6 +257,43 @@ def test_every_thread_of_a_session_runs_at_its_realtime_priority(
     assert any(
         e["kind"] == "realtime" and "SCHED_FIFO 1" in e["text"] for e in box.events.to_list()
     )
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="no SCHED_FIFO on this platform")
+def test_the_log_writers_run_one_priority_below_the_supervisor(
+    rig_factory: Any, tmp_path: Any
+) -> None:
+    """Under FIFO the CAN log writers step one priority below the session's, so that the
+    supervisor, woken at its deadline, preempts a writer packing a batch on its CPU."""
+    import threading
+
+    before = os.sched_getscheduler(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(3))
+        os.sched_setscheduler(0, before, os.sched_param(0))
+    except PermissionError:
+        pytest.skip("SCHED_FIFO needs CAP_SYS_NICE or an RLIMIT_RTPRIO this account lacks")
+    rig = rig_factory(realtime_priority=3)
+    box = rig.open_box(log_dir=tmp_path, log_suffix=".asc", run_name="rt3")
+    assert box.realtime_granted
+    deadline = time.monotonic() + 5.0
+    prio: dict[str, int] = {}
+    while time.monotonic() < deadline:  # a writer steps down as its thread starts
+        prio = {
+            t.name: os.sched_getparam(t.native_id).sched_priority
+            for t in threading.enumerate()
+            if t.name.startswith(SESSION_THREADS) and t.native_id is not None
+        }
+        if all(v == 2 for n, v in prio.items() if n.startswith("canlog-")):
+            break
+        time.sleep(0.01)
+    writers = {n: v for n, v in prio.items() if n.startswith("canlog-")}
+    others = {n: v for n, v in prio.items() if not n.startswith("canlog-")}
+    assert writers and set(writers.values()) == {2}, prio
+    assert others.get("hrm-supervisor") == 3 and set(others.values()) == {3}, prio
+    assert _policies(SESSION_THREADS) and set(_policies(SESSION_THREADS).values()) == {
+        os.SCHED_FIFO
+    }
 
 
 def test_a_refused_priority_is_asked_once_per_session_and_recorded(
