@@ -99,7 +99,8 @@ SLOPE_RANGE = (1.0 / 3.0, 3.0)  # fitted slope / model slope outside this: refus
 EA_RATIO_MAX = 1.5  # a rope may be this much stiffer than described (search step)
 SETTLE_S = 0.07  # after a move: the drives hold (HOLD_S) then frames count after this
 HOLD_S = 0.03  # the last setpoint held at the end of a move
-READ_TIMEOUT_S = 2.0  # longest wait for a reading's frames
+READ_TIMEOUT_S = 5.0  # longest wait for a reading's frames (10 of them take 0.1 s at
+# 100 Hz; a loaded test machine once delivered none in 2 s to an in-process simulated board)
 ACCEL_FRACTION = 0.5  # moves use at most this share of the motors' acceleration limit
 START_MARGIN_N = 5.0  # a rope above max_tension_N at the start may rise this much above it
 
