@@ -58,6 +58,7 @@ from _machine import machine
 from drivers.config import BoxConfig, load_box_config
 from drivers.cycle import LATE_THRESHOLD_S
 from drivers.realtime import (
+    CPU_LATENCY_NO_REQUEST_US,
     REALTIME_PRIORITY_SAFE_MAX,
     available_cpus,
     cpu_list,
@@ -279,6 +280,7 @@ def run(
     work: Path | None = None,
     cpus: tuple[frozenset[int], frozenset[int]] | str | None = "auto",
     stall_probe: bool = False,
+    cpu_latency_us: int | None = None,
 ) -> dict[str, Any]:
     """One benchmark run (what ``main`` prints; the soak test asserts on it).  ``cpus``:
     (host, box) CPU sets for a box process (the host's session threads and the box kept
@@ -303,6 +305,8 @@ def run(
         relaxed["missing_tpdo_cycles"] = missing_tpdo_cycles
     if heartbeat_timeout_ms is not None:
         relaxed["heartbeat_timeout_ms"] = heartbeat_timeout_ms
+    if cpu_latency_us is not None:  # not a watchdog: still the production settings
+        relaxed["cpu_wakeup_latency_us"] = cpu_latency_us
     cfg = cfg.with_bus_kwargs(kwargs).with_control(realtime_priority=rt_priority, **relaxed)
     if box_ctx is None:
         box_ctx = SimBox(cfg, actuation=act)
@@ -317,6 +321,7 @@ def run(
                 session = DriveSession(
                     cfg, act, log_dir=log_dir, run_name=f"bench{k}", allow_uncalibrated=True
                 )
+            cpu_latency_held = session.cpu_latency.max_us if session.cpu_latency.held else None
             with session:
                 t = time.perf_counter()
                 session.bring_up()
@@ -412,6 +417,7 @@ def run(
             "box_sched_fifo_priority": box_rt_priority if box_process else None,
             "host_cpus": None if host_cpus is None else cpu_list(host_cpus),
             "box_cpus": None if box_cpus is None else cpu_list(box_cpus),
+            "cpu_wakeup_latency_us": cpu_latency_held,
         },
         "bringup_s": [round(b, 3) for b in bringup_s],
         "stream": {
@@ -747,6 +753,11 @@ def main() -> None:
         "late or missing-feedback cycles fell on a stall of the machine itself (on with --soak)",
     )  # fmt: skip
     ap.add_argument(
+        "--cpu-latency-us", type=int, default=None, metavar="US",
+        help="box.toml's cpu_wakeup_latency_us: a PM QoS CPU wake-up latency the session "
+        "holds (0: idle CPUs poll instead of halting; default: none)",
+    )  # fmt: skip
+    ap.add_argument(
         "--costs", action="store_true", help="only the CPU of each piece of one cycle (us)"
     )
     args = ap.parse_args()
@@ -770,6 +781,15 @@ def main() -> None:
                 file=sys.stderr,
             )
             raise SystemExit(2)
+    if args.cpu_latency_us is not None and not (
+        0 <= args.cpu_latency_us <= CPU_LATENCY_NO_REQUEST_US
+    ):
+        print(
+            f"bench_drivers: --cpu-latency-us must be in 0..{CPU_LATENCY_NO_REQUEST_US}, "
+            f"got {args.cpu_latency_us}",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
     if not (duration > 0 and np.isfinite(duration)):
         print(f"bench_drivers: --duration must be > 0 s, got {duration}", file=sys.stderr)
         raise SystemExit(2)
@@ -799,6 +819,7 @@ def _run_from(args: argparse.Namespace, duration: float) -> dict[str, Any]:
         rss_sample_s=RSS_SAMPLE_S if args.soak else None,
         cpus=_cpus_arg(args.cpus),
         stall_probe=args.stall_probe or args.soak,
+        cpu_latency_us=args.cpu_latency_us,
     )
 
 

@@ -63,7 +63,11 @@ from drivers.protocol.cia402 import (
     QUICK_STOP_OPTIONS_THEN_DISABLED,
     interpolation_time_period,
 )
-from drivers.realtime import NORMAL_PRIORITY, REALTIME_PRIORITY_SAFE_MAX
+from drivers.realtime import (
+    CPU_LATENCY_NO_REQUEST_US,
+    NORMAL_PRIORITY,
+    REALTIME_PRIORITY_SAFE_MAX,
+)
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.files import read_toml
 
@@ -187,6 +191,9 @@ class ControlConfig:
     following_error_window_counts: int = 2000
     quick_stop_option_code: int = 2
     realtime_priority: int = NORMAL_PRIORITY  # SCHED_FIFO priority of the scheduler (0: off)
+    #: PM QoS CPU wake-up latency held while the session is open (drivers.realtime;
+    #: the default is the kernel's "no constraint": nothing held)
+    cpu_wakeup_latency_us: int = CPU_LATENCY_NO_REQUEST_US
 
     @property
     def period_s(self) -> float:
@@ -480,6 +487,7 @@ _CONTROL_TYPES: dict[str, type] = {
     "following_error_window_counts": int,
     "quick_stop_option_code": int,
     "realtime_priority": int,
+    "cpu_wakeup_latency_us": int,
 }
 
 
@@ -564,6 +572,11 @@ CONTROL_RANGES: Mapping[str, ControlRange] = {
         NORMAL_PRIORITY, REALTIME_PRIORITY_SAFE_MAX, "",
         "SCHED_FIFO priority of the control thread (0: off); at 50 and above it would "
         "preempt the kernel's interrupt threads (PREEMPT_RT), the CAN controller's too",
+    ),
+    "cpu_wakeup_latency_us": ControlRange(
+        0, CPU_LATENCY_NO_REQUEST_US, "us",
+        "a PM QoS request (/dev/cpu_dma_latency, a signed 32-bit value; 0: idle CPUs poll); "
+        f"{CPU_LATENCY_NO_REQUEST_US}, the kernel's 'no constraint', holds none",
     ),
 }  # fmt: skip
 """The safe range of every ``[control]`` value: (lo, hi, unit, why), both ends included."""

@@ -201,6 +201,73 @@ def check_realtime_priority(priority: int, where: str = "realtime_priority") -> 
     return priority
 
 
+CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
+"""Linux's PM QoS CPU latency interface: a 32-bit value written to it is the longest CPU
+wake-up latency (us) the system accepts while the file stays open."""
+
+CPU_LATENCY_NO_REQUEST_US = 2_000_000_000
+"""The kernel's own "no constraint" (``PM_QOS_CPU_LATENCY_DEFAULT_VALUE``, 2000 s): a
+``cpu_wakeup_latency_us`` this large opens nothing."""
+
+
+class CpuLatencyRequest:
+    """Hold a PM QoS CPU latency request of ``max_us`` microseconds until :meth:`close`
+    (the kernel drops it when the file closes, a killed process included).
+
+    At 0 an idle CPU polls instead of halting, so a thread woken by its timer or a frame
+    runs at once: no exit from a deep C-state on a PC, and on a virtual machine no halted
+    vCPU for the hypervisor to schedule back in, which on the 2-core VM of BENCHMARKS.md was
+    where most of the stalls came from (20 s runs of the stall probe: 34, 206 and 54 stalls
+    over 0.5 ms with the request, 770, 362 and 127 without).  The price is that idle CPUs
+    spin (power, heat, a hypervisor's CPU time): it is opt-in, ``[control]
+    cpu_wakeup_latency_us``, as cyclictest's ``--latency``.  Needs write access to
+    :data:`CPU_LATENCY_DEVICE` (root); refused, the request is not held and
+    :attr:`refusal` says why (one warning), as a refused ``SCHED_FIFO`` is.
+
+    >>> import tempfile
+    >>> with tempfile.NamedTemporaryFile() as f:
+    ...     r = CpuLatencyRequest(0, f.name)
+    ...     held, data = r.held, open(f.name, "rb").read()
+    ...     r.close()
+    >>> held, data == bytes(4), r.held   # 0 as a native 32-bit integer
+    (True, True, False)
+    >>> CpuLatencyRequest(CPU_LATENCY_NO_REQUEST_US).held   # no request: nothing opened
+    False
+    """
+
+    def __init__(self, max_us: int, path: str = CPU_LATENCY_DEVICE) -> None:
+        self.max_us = int(max_us)
+        self.path = path
+        self.refusal: str | None = None
+        self._fd: int | None = None
+        if not 0 <= self.max_us < CPU_LATENCY_NO_REQUEST_US:
+            return
+        fd: int | None = None
+        try:
+            fd = os.open(path, os.O_WRONLY)
+            os.write(fd, self.max_us.to_bytes(4, sys.byteorder, signed=True))
+        except OSError as exc:
+            if fd is not None:
+                os.close(fd)
+            self.refusal = (
+                f"CPU latency request {self.max_us} us refused ({path}: {exc.strerror or exc})"
+            )
+            log.warning("%s; CPUs may sleep", self.refusal)
+            return
+        self._fd = fd
+
+    @property
+    def held(self) -> bool:
+        """Whether the request is in force."""
+        return self._fd is not None
+
+    def close(self) -> None:
+        """Give the request back (idempotent)."""
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            os.close(fd)
+
+
 def step_below_starter() -> int:
     """Put the calling thread one ``SCHED_FIFO`` priority below the one it inherited (at
     least 1), if it runs under FIFO; return its priority now (0: normal scheduling).

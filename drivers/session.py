@@ -83,7 +83,12 @@ from drivers.config import BoxConfig
 from drivers.cycle import BusLayout, EventLog, StreamResult
 from drivers.interrupts import deferred_interrupts
 from drivers.protocol import cia301, cia402
-from drivers.realtime import NORMAL_PRIORITY, AppliedSettings, process_settings
+from drivers.realtime import (
+    NORMAL_PRIORITY,
+    AppliedSettings,
+    CpuLatencyRequest,
+    process_settings,
+)
 from drivers.receive import BusPoller, BusReader, BusReceiver, pollable, wait_quiet_listen
 from drivers.safety.causes import StopCause, StopKind
 from drivers.safety.limits import MAX_SOURCE_DURATION_S, LimitChecker
@@ -294,6 +299,15 @@ class DriveSession:
                 clock=clock,
             )
             self.supervisor.start()
+        # the CPUs' wake-up latency (PM QoS), held while the session is open
+        self.cpu_latency = CpuLatencyRequest(self.control.cpu_wakeup_latency_us)
+        if self.cpu_latency.held or self.cpu_latency.refusal:
+            self.events.add(
+                "cpu-latency",
+                f"CPU wake-up latency at most {self.cpu_latency.max_us} us held"
+                if self.cpu_latency.held
+                else f"{self.cpu_latency.refusal}; CPUs may sleep",
+            )
         self._state = SessionState.CONNECTED
         if applied.realtime_priority:
             self.events.add(
@@ -910,6 +924,9 @@ class DriveSession:
         }
 
     def _close_io(self) -> None:
+        latency = getattr(self, "cpu_latency", None)
+        if latency is not None:
+            latency.close()
         for net in self._networks:
             if net.notifier is not None:
                 net.notifier.stop(1.0)

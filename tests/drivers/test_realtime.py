@@ -13,8 +13,10 @@ import pytest
 
 import drivers.realtime as rt
 from drivers.realtime import (
+    CPU_LATENCY_DEVICE,
     SWITCH_INTERVAL_S,
     AppliedSettings,
+    CpuLatencyRequest,
     ProcessSettingsError,
     process_settings,
 )
@@ -313,3 +315,48 @@ def test_a_refused_priority_is_asked_once_per_session_and_recorded(
     assert caplog.text.count("SCHED_FIFO priority 5 refused") == 1
     texts = [e["text"] for e in box.events.to_list() if e["kind"] == "realtime"]
     assert texts == ["SCHED_FIFO priority 5 refused (Operation not permitted); normal scheduling"]
+
+
+def _cpu_latency_now() -> int | None:
+    try:
+        fd = os.open(CPU_LATENCY_DEVICE, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        return int.from_bytes(os.read(fd, 4), sys.byteorder, signed=True)
+    finally:
+        os.close(fd)
+
+
+def test_a_session_holds_its_cpu_latency_request_while_open(
+    rig_factory: Any, tmp_path: Any
+) -> None:
+    """``cpu_wakeup_latency_us = 0``: the kernel's CPU latency target is 0 while the session
+    is open and back where it was after; the run record's events say so.  Without access
+    to the device the session runs on, one event naming the refusal."""
+    before = _cpu_latency_now()
+    rig = rig_factory(cpu_wakeup_latency_us=0)
+    box = rig.open_box(log_dir=tmp_path, log_suffix=".asc", run_name="lat")
+    events = [e for e in box.events.to_list() if e["kind"] == "cpu-latency"]
+    assert len(events) == 1, events
+    if box.cpu_latency.held:
+        assert _cpu_latency_now() == 0
+        assert "at most 0 us held" in events[0]["text"]
+    else:
+        assert box.cpu_latency.refusal and "refused" in events[0]["text"]
+    box.close()
+    assert not box.cpu_latency.held
+    assert _cpu_latency_now() == before
+
+
+def test_no_cpu_latency_request_by_default(rig_factory: Any, tmp_path: Any) -> None:
+    box = rig_factory().open_box(log_dir=tmp_path, log_suffix=".asc", run_name="nolat")
+    assert not box.cpu_latency.held and box.cpu_latency.refusal is None
+    assert all(e["kind"] != "cpu-latency" for e in box.events.to_list())
+    box.close()
+
+
+def test_a_refused_cpu_latency_request_is_one_reason(tmp_path: Any) -> None:
+    r = CpuLatencyRequest(0, str(tmp_path / "no-such-device"))
+    assert not r.held and r.refusal is not None and "no-such-device" in r.refusal
+    r.close()
