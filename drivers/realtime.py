@@ -216,9 +216,9 @@ class CpuLatencyRequest:
 
     At 0 an idle CPU polls instead of halting, so a thread woken by its timer or a frame
     runs at once: no exit from a deep C-state on a PC, and on a virtual machine no halted
-    vCPU for the hypervisor to schedule back in, which on the 2-core VM of BENCHMARKS.md was
-    where most of the stalls came from (20 s runs of the stall probe: 34, 206 and 54 stalls
-    over 0.5 ms with the request, 770, 362 and 127 without).  The price is that idle CPUs
+    vCPU for the hypervisor to schedule back in (on the 2-core VM of BENCHMARKS.md, four
+    20 s runs of the stall probe each way: 21, 34, 206 and 54 stalls over 0.5 ms with the
+    request, 96, 770, 362 and 127 without).  The price is that idle CPUs
     spin (power, heat, a hypervisor's CPU time): it is opt-in, ``[control]
     cpu_wakeup_latency_us``, as cyclictest's ``--latency``.  Needs write access to
     :data:`CPU_LATENCY_DEVICE` (root); refused, the request is not held and

@@ -17,10 +17,13 @@ Options (command line, or ``addopts`` in the ini file):
     threads (``hrm sim --rt-priority``) under ``SCHED_FIFO`` at PRIORITY, as on a rig;
     0 keeps normal scheduling.  Where the process may not, the session runs at normal
     scheduling (its run record says so) and a box process refuses to start.
+``--hrm-cpu-latency-us US`` (0..2000000000, default none)
+    ``[control] cpu_wakeup_latency_us``: each drive session holds a PM QoS CPU wake-up
+    latency request (0: idle CPUs poll instead of halting; ``drivers.realtime``).
 
 Fixtures (``hrm_box*`` module-scoped: one box serves a test module; the rest per test):
 
-* ``hrm_bus_kind``, ``hrm_box_mode``, ``hrm_rt_priority``: the options
+* ``hrm_bus_kind``, ``hrm_box_mode``, ``hrm_rt_priority``, ``hrm_cpu_latency_us``: the options
   (:class:`~hrm_ctrl.hil.rig.BusKind`, :class:`~hrm_ctrl.hil.rig.BoxMode`, an ``int``);
 * ``hrm_box_nodes``: the box's node map per bus (default the 36 motors of the drivers'
   ``box.toml``; override it in a test module for a smaller box);
@@ -89,6 +92,30 @@ def rt_priority(text: str) -> int:
     return value
 
 
+def cpu_latency_us(text: str) -> int:
+    """``--hrm-cpu-latency-us``: an integer in box.toml's range of ``cpu_wakeup_latency_us``."""
+    import argparse
+
+    from drivers.realtime import CPU_LATENCY_NO_REQUEST_US
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= CPU_LATENCY_NO_REQUEST_US:
+        raise argparse.ArgumentTypeError(
+            f"must be an integer in 0..{CPU_LATENCY_NO_REQUEST_US} (us), got {text!r}"
+        )
+    return value
+
+
+@pytest.fixture(scope="session")
+def hrm_cpu_latency_us(request: pytest.FixtureRequest) -> int | None:
+    """``--hrm-cpu-latency-us``: the PM QoS CPU wake-up latency a session holds (None: none)."""
+    value = request.config.getoption("--hrm-cpu-latency-us")
+    return None if value is None else int(value)
+
+
 @pytest.fixture(scope="session")
 def hrm_rt_priority(request: pytest.FixtureRequest) -> int:
     """``--hrm-rt-priority``: SCHED_FIFO priority of session and box threads (0: off)."""
@@ -119,6 +146,14 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         metavar="PRIORITY",
         help="SCHED_FIFO priority (1..49) of the host's session threads and of a box "
         "process (0: normal scheduling, the default)",
+    )
+    group.addoption(
+        "--hrm-cpu-latency-us",
+        type=cpu_latency_us,
+        default=None,
+        metavar="US",
+        help="a PM QoS CPU wake-up latency each drive session holds (box.toml's "
+        "cpu_wakeup_latency_us; 0: idle CPUs poll; default: none)",
     )
 
 
@@ -203,6 +238,7 @@ def hrm_box_config(
     hrm_box_nodes: tuple[dict[str, int], ...],
     hrm_control: dict[str, Any],
     hrm_rt_priority: int,
+    hrm_cpu_latency_us: int | None,
     tmp_path_factory: pytest.TempPathFactory,
 ) -> Path:
     """The bus configuration host and box share (production ``[control]``; a box in the
@@ -212,6 +248,8 @@ def hrm_box_config(
     control = dict(hrm_control)
     if hrm_rt_priority:  # scheduling, not a watchdog: still the production settings
         control.setdefault("realtime_priority", hrm_rt_priority)
+    if hrm_cpu_latency_us is not None:  # the same
+        control.setdefault("cpu_wakeup_latency_us", hrm_cpu_latency_us)
     if hrm_box_mode is BoxMode.INPROCESS:
         control = {**INPROCESS_CONTROL, **control}
         warnings.warn(

@@ -87,6 +87,30 @@ def test_a_realtime_priority_outside_the_safe_range_is_a_usage_error(
     assert "Traceback" not in res.stderr
 
 
+@pytest.mark.parametrize("value", ["-1", "2000000001", "soon"])
+def test_a_cpu_latency_outside_its_range_is_a_usage_error(tmp_path: Path, value: str) -> None:
+    (tmp_path / "test_x.py").write_text("def test_nothing():\n    pass\n")
+    res = run_pytest(tmp_path, "--hrm-cpu-latency-us", value)
+    assert res.returncode == 4, res.stdout + res.stderr
+    assert "--hrm-cpu-latency-us" in res.stderr and "0..2000000000" in res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def test_cpu_latency_reaches_the_session_and_the_box_configuration(tmp_path: Path) -> None:
+    """The option is ``[control] cpu_wakeup_latency_us`` of the configuration host and box
+    share; the session holds it (or, without access to the device, says why)."""
+    (tmp_path / "test_x.py").write_text(
+        "def test_lat(hrm_session, hrm_cpu_latency_us, hrm_box_config):\n"
+        "    assert hrm_cpu_latency_us == 0\n"
+        "    assert 'cpu_wakeup_latency_us = 0' in hrm_box_config.read_text()\n"
+        "    assert hrm_session.control.cpu_wakeup_latency_us == 0\n"
+        "    lat = hrm_session.cpu_latency\n"
+        "    assert lat.held or lat.refusal\n"
+    )
+    res = run_pytest(tmp_path, "--hrm-cpu-latency-us", "0")
+    assert res.returncode == 0 and "1 passed" in res.stdout, res.stdout + res.stderr
+
+
 def fifo_allowed() -> bool:
     return subprocess.run(["chrt", "-f", "1", "true"], capture_output=True).returncode == 0
 
