@@ -9,7 +9,7 @@ runs at the ``[tension]`` defaults (stale after 0.1 s); the plugin overrides the
 a box in the test process (:data:`INPROCESS_CONTROL`).
 
 >>> sorted(production_control())[:3]
-['bootup_timeout_s', 'bus_load_limit', 'following_error_window_counts']
+['bootup_timeout_s', 'bus_load_limit', 'cpu_wakeup_latency_us']
 >>> production_control()["missing_tpdo_cycles"], production_control()["heartbeat_timeout_ms"]
 (3, 350)
 >>> [k.value for k in BusKind]

@@ -28,6 +28,11 @@ from drivers.protocol.batch import (
     to_messages,
 )
 
+#: frames are stamped this far ahead of now: after the log's opening (a BLF keeps times
+#: relative to its start) even when the loaded machine stalls the test in between (1 s was
+#: once not enough)
+AHEAD_S = 30.0
+
 # One frame: (identifier with flag bits, dlc, 8 data bytes, time after the first frame).
 Row = tuple[int, int, bytes, float]
 # A piece of traffic: frames, received or sent, handed over as one batch or frame by frame.
@@ -224,7 +229,7 @@ def test_every_format_reads_back_batches_in_order_with_single_frames(
 ) -> None:
     """Batches mixed with frames handed over one by one read back in order: ids, extended
     and remote flags, DLC, data, direction and times (to the format's microsecond)."""
-    t0 = time.time() + 1.0  # after the log opens (BLF keeps times relative to its start)
+    t0 = time.time() + AHEAD_S  # after the log opens (BLF keeps times relative to its start)
     want: list[tuple] = []
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"bus.{fmt}"
@@ -254,7 +259,7 @@ def test_n_frames_counts_every_frame_of_a_batch_with_an_error_and_an_extended_fr
     frame, between single frames and after an empty batch: every frame handed over is
     counted; the data frames read back in order, the error frame where the format keeps
     it (not in TRC)."""
-    t0 = time.time() + 1.0
+    t0 = time.time() + AHEAD_S
     mixed = batch(
         [
             (0x181, 2, b"\x01\x02" + bytes(6), 0.000),
@@ -332,7 +337,7 @@ def test_a_log_the_disk_refuses_counts_every_frame_of_its_batches_as_lost(
 def test_the_caller_may_reuse_its_array_at_once(tmp_path: Path, fmt: str) -> None:
     """``log_batch`` copies: what the caller writes into its array afterwards (the next
     cycle's frames) is not what is logged."""
-    t0 = time.time() + 1.0
+    t0 = time.time() + AHEAD_S
     frames = batch([(0x201 + k, 6, bytes([k] * 8), 0.0) for k in range(36)], t0)
     log = TrafficLog(tmp_path / f"bus.{fmt}")
     log.log_batch(frames, is_rx=False)

@@ -57,6 +57,7 @@ STALL_RERUN = pytest.mark.flaky(
         "heartbeat lost",
         "error code 0x8130",  # a drive lost the host's heartbeat
         "newest frame is",  # the tension board's frames late
+        " frames in ",  # a tension reading that got none of its frames in time
         # a rope slack on the simulated arm: one bus's drives behind the other's (their
         # thread starved), the ropes that cross both joints' sets no longer fit
         "below 5 N (slack or broken)",
