@@ -75,38 +75,31 @@ def bus_list(text: str) -> tuple[str, ...]:
     return kinds
 
 
-def rt_priority(text: str) -> int:
-    """``--hrm-rt-priority``: an integer in 0..49 (box.toml's safe range)."""
+def _int_in(text: str, hi: int, unit: str = "") -> int:
+    """An option's integer in 0..hi, else argparse's usage error naming the range."""
     import argparse
-
-    from drivers.realtime import REALTIME_PRIORITY_SAFE_MAX
 
     try:
         value = int(text)
     except ValueError:
         value = -1
-    if not 0 <= value <= REALTIME_PRIORITY_SAFE_MAX:
-        raise argparse.ArgumentTypeError(
-            f"must be an integer in 0..{REALTIME_PRIORITY_SAFE_MAX}, got {text!r}"
-        )
+    if not 0 <= value <= hi:
+        raise argparse.ArgumentTypeError(f"must be an integer in 0..{hi}{unit}, got {text!r}")
     return value
+
+
+def rt_priority(text: str) -> int:
+    """``--hrm-rt-priority``: an integer in 0..49 (box.toml's safe range)."""
+    from drivers.realtime import REALTIME_PRIORITY_SAFE_MAX
+
+    return _int_in(text, REALTIME_PRIORITY_SAFE_MAX)
 
 
 def cpu_latency_us(text: str) -> int:
     """``--hrm-cpu-latency-us``: an integer in box.toml's range of ``cpu_wakeup_latency_us``."""
-    import argparse
-
     from drivers.realtime import CPU_LATENCY_NO_REQUEST_US
 
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if not 0 <= value <= CPU_LATENCY_NO_REQUEST_US:
-        raise argparse.ArgumentTypeError(
-            f"must be an integer in 0..{CPU_LATENCY_NO_REQUEST_US} (us), got {text!r}"
-        )
-    return value
+    return _int_in(text, CPU_LATENCY_NO_REQUEST_US, " (us)")
 
 
 @pytest.fixture(scope="session")

@@ -227,6 +227,18 @@ def _policies(prefixes: tuple[str, ...]) -> dict[str, int]:
 SESSION_THREADS = ("hrm-rx-", "hrm-supervisor", "canlog-")
 
 
+def fifo_or_skip(priority: int) -> int:
+    """The calling thread's policy, after checking SCHED_FIFO at ``priority`` is allowed
+    (the test skips, saying why, where it is not)."""
+    before = os.sched_getscheduler(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        os.sched_setscheduler(0, before, os.sched_param(0))
+    except PermissionError:
+        pytest.skip("SCHED_FIFO needs CAP_SYS_NICE or an RLIMIT_RTPRIO this account lacks")
+    return before
+
+
 @pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="no SCHED_FIFO on this platform")
 def test_every_thread_of_a_session_runs_at_its_realtime_priority(
     rig_factory: Any, tmp_path: Any
@@ -234,12 +246,7 @@ def test_every_thread_of_a_session_runs_at_its_realtime_priority(
     """The readers, the log writers and the supervisor all start under SCHED_FIFO (one of
     them at normal priority holding the GIL would keep the others waiting); the thread
     that opened the session keeps its own policy.  Priority 1, the lowest FIFO one."""
-    before = os.sched_getscheduler(0)
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-        os.sched_setscheduler(0, before, os.sched_param(0))
-    except PermissionError:
-        pytest.skip("SCHED_FIFO needs CAP_SYS_NICE or an RLIMIT_RTPRIO this account lacks")
+    before = fifo_or_skip(1)
     rig = rig_factory(realtime_priority=1)
     box = rig.open_box(log_dir=tmp_path, log_suffix=".asc", run_name="rt")
     assert box.realtime_granted
@@ -269,12 +276,7 @@ def test_the_log_writers_run_one_priority_below_the_supervisor(
     supervisor, woken at its deadline, preempts a writer packing a batch on its CPU."""
     import threading
 
-    before = os.sched_getscheduler(0)
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(3))
-        os.sched_setscheduler(0, before, os.sched_param(0))
-    except PermissionError:
-        pytest.skip("SCHED_FIFO needs CAP_SYS_NICE or an RLIMIT_RTPRIO this account lacks")
+    fifo_or_skip(3)
     rig = rig_factory(realtime_priority=3)
     box = rig.open_box(log_dir=tmp_path, log_suffix=".asc", run_name="rt3")
     assert box.realtime_granted
