@@ -6,13 +6,13 @@ descheduled by the hypervisor, an SMI, a frequency change).  Only the first is o
 A :class:`StallProbe` tells them apart: one small process per CPU, pinned to it, under
 ``SCHED_FIFO`` at :data:`PROBE_PRIORITY` (above every priority a drive session may take,
 ``realtime_priority`` 0..49), sleeps to a grid of :data:`PROBE_PERIOD_S` and records every
-wake-up more than :data:`STALL_THRESHOLD_S` late.  Nothing in the guest preempts it, so what
-it records is the machine's.  :func:`explained` then says which of a stream's late or
+wake-up more than :data:`STALL_THRESHOLD_S` late.  Only interrupts and the kernel's own
+higher-priority threads preempt it in the guest, so what it records is the machine's.  :func:`explained` then says which of a stream's late or
 missing-feedback cycles overlap a machine stall.
 
 Seen on the 2-core VM of ``BENCHMARKS.md``: a bare loop at normal priority was more than
-2 ms late 16 times in 10 minutes (up to 15 ms), and the probes on both CPUs see the same
-stalls at the same instants (the whole VM stops).
+2 ms late 16 times in 10 minutes (up to 15 ms); the probes see stalls of one vCPU at a time
+in calm phases and of both, every millisecond or so, in noisy ones.
 
 The probe needs ``CAP_SYS_NICE`` for ``SCHED_FIFO``; without it :class:`StallProbe` reports
 itself unavailable (``available`` False, the reason in ``refusal``) rather than measure
