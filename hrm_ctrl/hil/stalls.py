@@ -7,8 +7,9 @@ A :class:`StallProbe` tells them apart: one small process per CPU, pinned to it,
 ``SCHED_FIFO`` at :data:`PROBE_PRIORITY` (above every priority a drive session may take,
 ``realtime_priority`` 0..49), sleeps to a grid of :data:`PROBE_PERIOD_S` and records every
 wake-up more than :data:`STALL_THRESHOLD_S` late.  Only interrupts and the kernel's own
-higher-priority threads preempt it in the guest, so what it records is the machine's.  :func:`explained` then says which of a stream's late or
-missing-feedback cycles overlap a machine stall.
+higher-priority threads preempt it in the guest, so what it records is the machine's.
+:func:`explained` then says which of a stream's late or missing-feedback cycles overlap a
+machine stall.
 
 Seen on the 2-core VM of ``BENCHMARKS.md``: a bare loop at normal priority was more than
 2 ms late 16 times in 10 minutes (up to 15 ms); the probes see stalls of one vCPU at a time
