@@ -50,16 +50,19 @@ def run_cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, s
 #: machine, at the commit before issue 13 as well): the stop is the safety behaviour
 #: working, and the run tested nothing of what its test asserts.  Such a test is re-run
 #: (at most twice, pytest-rerunfailures) only when it failed on one of these stop causes.
-STALL_RERUN = pytest.mark.flaky(
-    reruns=2,
-    only_rerun=[
-        "no TPDO for",
-        "heartbeat lost",
-        "error code 0x8130",  # a drive lost the host's heartbeat
-        "newest frame is",  # the tension board's frames late
-        " frames in ",  # a tension reading that got none of its frames in time
-        # a rope slack on the simulated arm: one bus's drives behind the other's (their
-        # thread starved), the ropes that cross both joints' sets no longer fit
-        "below 5 N (slack or broken)",
-    ],
+STALL_CAUSES = (
+    "no TPDO for",
+    "heartbeat lost",
+    "error code 0x8130",  # a drive lost the host's heartbeat
+    "newest frame is",  # the tension board's frames late
+    " frames in ",  # a tension reading that got none of its frames in time
+    # a rope slack on the simulated arm: one bus's drives behind the other's (their
+    # thread starved), the ropes that cross both joints' sets no longer fit
+    "below 5 N (slack or broken)",
 )
+STALL_RERUN = pytest.mark.flaky(reruns=2, only_rerun=list(STALL_CAUSES))
+#: The bent-pipe plan at the production watchdogs (3 cycles without a TPDO) across two
+#: processes: in a noisy phase of the VM (2026-12-03), with nothing else running, 6 of 18
+#: attempts in 12 runs of the test alone stopped on a stall, and 2 of 3 in a run of the
+#: whole suite; four re-runs at most.
+STALL_RERUN_PRODUCTION = pytest.mark.flaky(reruns=4, only_rerun=list(STALL_CAUSES))
