@@ -7,13 +7,18 @@ both buses and drains the TPDOs.  Two runs:
 
 * ``virtual``: the box on python-can virtual buses; ``box_cpu_fraction`` is the
   CPU time of the box's bus threads (``time.thread_time``) over wall time.
+* ``drives``: the 36 drive simulators alone, fed their frames directly (no bus, no
+  thread, one interpreter thread): CPU (``time.thread_time``) per 100 Hz cycle of 36
+  RPDOs, a SYNC, every drive's timers, and a host heartbeat every 10th cycle; the least of
+  :data:`DRIVE_REPEATS` runs of :data:`DRIVE_CYCLES` cycles (the box's cyclic work without
+  the bus threads' wake-ups; ``--drives-only`` runs just this).
 * ``hrm_sim``: the same on the simulated wire at 1 Mbit/s (the wire has no
   thread of its own: the box's and the host's threads run it as they send and
   receive, so its CPU is inside theirs); every delivered frame's lateness
   (delivery time minus the ideal end of its wire time) is recorded: p50 / p99 /
   max and how many were later than 0.5 ms.
 
-Run: ``python benchmarks/bench_sim.py [--seconds 10]``; prints JSON.
+Run: ``python benchmarks/bench_sim.py [--seconds 10] [--drives-only]``; prints JSON.
 """
 
 from __future__ import annotations
@@ -35,8 +40,12 @@ import drivers.protocol.cia402 as cia
 from drivers.config import load_box_config
 from drivers.realtime import process_settings
 from sim_bus.box import SimBox
+from sim_bus.drive import DriveSim
 
 RATE_HZ = 100.0
+DRIVE_CYCLES = 1000
+DRIVE_REPEATS = 5
+HOST_NODE = 127  # the heartbeat the drives watch (350 ms, as box.toml has it)
 
 
 def _sdo(bus: can.BusABC, node: int, msg: can.Message, timeout_s: float = 1.0) -> bytes:
@@ -141,10 +150,83 @@ def run(kind: str, seconds: float) -> dict[str, Any]:
             h.shutdown()
 
 
+def _enabled_drives(n: int, sent: list[can.Message]) -> list[DriveSim]:
+    """``n`` drives (node ids 1..18 per bus, as the box has them), configured by SDO as a
+    session configures them and in operation enabled."""
+    drives = []
+    for k in range(n):
+        node = k % 18 + 1
+        d = DriveSim(node, sent.append, now=0.0)
+
+        def sdo(index: int, sub: int, raw: bytes, d: DriveSim = d, node: int = node) -> None:
+            d.handle(cia301.make_sdo_download_expedited(node, index, sub, raw), 0.0)
+
+        d.handle(cia301.make_nmt(cia301.NMT_START_REMOTE_NODE, node), 0.0)
+        sdo(cia.OD_MODES_OF_OPERATION, 0, b"\x08")
+        sdo(cia301.OD_CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", (HOST_NODE << 16) | 350))
+        sdo(cia301.OD_PRODUCER_HEARTBEAT_TIME, 0, struct.pack("<H", 100))
+        for cw in (cia.CW_SHUTDOWN, cia.CW_SWITCH_ON, cia.CW_ENABLE_OPERATION):
+            sdo(cia.OD_CONTROLWORD, 0, struct.pack("<H", cw))
+        if d.state != cia.State402.OPERATION_ENABLED:
+            raise RuntimeError(f"drive {node} did not reach operation enabled ({d.state.name})")
+        drives.append(d)
+    return drives
+
+
+def drive_cycle_us(n: int = 36, cycles: int = DRIVE_CYCLES) -> float:
+    """CPU (us) of one 100 Hz cycle of ``n`` drive simulators fed their frames directly."""
+    sent: list[can.Message] = []
+    drives = _enabled_drives(n, sent)
+    sync = cia301.make_sync()
+    heartbeat = cia301.make_heartbeat(HOST_NODE, cia301.NMT_STATE_OPERATIONAL)
+    rpdos = [
+        can.Message(arbitration_id=0x200 + d.node_id, data=bytes(6), is_extended_id=False)
+        for d in drives
+    ]
+    t = 0.0
+    cpu0 = time.thread_time()
+    for k in range(cycles):
+        t += 1.0 / RATE_HZ
+        target = int(20000 * math.sin(2 * math.pi * 0.5 * t))
+        data = struct.pack("<Hi", cia.CW_ENABLE_OPERATION, target)
+        for d, rpdo in zip(drives, rpdos, strict=True):
+            rpdo.data = bytearray(data)
+            d.handle(rpdo, t)
+        for d in drives:
+            d.handle(sync, t)
+        if k % 10 == 0:
+            for d in drives:
+                d.handle(heartbeat, t)
+        for d in drives:
+            d.tick(t, 1.0 / RATE_HZ)
+            d.next_deadline()
+        sent.clear()
+    us = (time.thread_time() - cpu0) / cycles * 1e6
+    stuck = [d.node_id for d in drives if d.state != cia.State402.OPERATION_ENABLED]
+    if stuck:
+        raise RuntimeError(f"drives {stuck} left operation enabled during the run")
+    return us
+
+
+def drives_run() -> dict[str, Any]:
+    runs = [drive_cycle_us() for _ in range(DRIVE_REPEATS)]
+    return {
+        "drives_us_per_cycle_36": round(min(runs), 1),
+        "drives_us_per_cycle_runs": [round(r, 1) for r in runs],
+        "drive_cycles_per_run": DRIVE_CYCLES,
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--drives-only", action="store_true", help="only the drives' CPU per cycle")
     args = ap.parse_args()
+    drives = drives_run()
+    if args.drives_only:
+        load = round(os.getloadavg()[0], 2)
+        print(json.dumps({"benchmark": "bench_sim", **drives, "load_average_1min": load}, indent=2))
+        return
     results = [run("virtual", args.seconds), run("hrm_sim", args.seconds)]
     v, w = results
     summary = {
@@ -153,6 +235,7 @@ def main() -> None:
         "box_cpu_target": 0.30,
         "box_cpu_ok": v["box_cpu_fraction"] <= 0.30,
         "box_cpu_fraction_on_hrm_sim_wire": w["box_cpu_fraction"],
+        **drives,
         "wire_late_p50_ms": w["wire_late_p50_ms"],
         "wire_late_p99_ms": w["wire_late_p99_ms"],
         "wire_late_max_ms": w["wire_late_max_ms"],

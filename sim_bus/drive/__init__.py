@@ -224,7 +224,7 @@ class DriveSim:
 
     def monitored_heartbeats(self) -> dict[int, float]:
         """{node id: timeout s} of the 0x1016 consumer entries that are on."""
-        return self.nmt.monitored()
+        return dict(self.nmt.monitored())
 
     def cob_ids(self) -> set[int]:
         """COB-IDs this drive listens to (the box routes frames by them)."""

@@ -39,6 +39,8 @@ class CspMotion:
         self.limit_active = False
         self.following_error = False
         self.last_motion = 0.0
+        self._params = (DEFAULT_INTERPOLATION_PERIOD_S, FOLLOWING_ERROR_WINDOW_OFF, 0)
+        self._params_at = -1  # the OD generation _params was read at
 
     def reset(self) -> None:
         """Power-on: no limit or following error shown (the motor stays where it is)."""
@@ -47,7 +49,7 @@ class CspMotion:
 
     @property
     def mode(self) -> int:
-        return self._od.int_value(cia402.OD_MODES_OF_OPERATION)
+        return self._parameters()[2]
 
     @property
     def position_counts(self) -> int:
@@ -55,10 +57,23 @@ class CspMotion:
 
     @property
     def interpolation_period_s(self) -> float:
-        value = self._od.int_value(cia402.OD_INTERPOLATION_TIME_PERIOD, 1)
-        index = self._od.int_value(cia402.OD_INTERPOLATION_TIME_PERIOD, 2)
-        period = value * 10.0**index
-        return period if period > 0 else DEFAULT_INTERPOLATION_PERIOD_S
+        return self._parameters()[0]
+
+    def _parameters(self) -> tuple[float, int, int]:
+        """(interpolation period 0x60C2 in s, following error window 0x6065, mode of
+        operation 0x6060), read again only when the object dictionary changed."""
+        od = self._od
+        if self._params_at != od.generation:
+            value = od.int_value(cia402.OD_INTERPOLATION_TIME_PERIOD, 1)
+            index = od.int_value(cia402.OD_INTERPOLATION_TIME_PERIOD, 2)
+            period = value * 10.0**index
+            self._params = (
+                period if period > 0 else DEFAULT_INTERPOLATION_PERIOD_S,
+                od.int_value(cia402.OD_FOLLOWING_ERROR_WINDOW),
+                od.int_value(cia402.OD_MODES_OF_OPERATION),
+            )
+            self._params_at = od.generation
+        return self._params
 
     def _target_and_limits(self) -> tuple[int, int, int]:
         """(target position 0x607A, software position limits 0x607D min and max)."""
@@ -94,7 +109,7 @@ class CspMotion:
         else:
             self.velocity = 0.0  # brake engaged / disabled
         if sm.state == State.OPERATION_ENABLED:
-            window = self._od.int_value(cia402.OD_FOLLOWING_ERROR_WINDOW)
+            window = self._parameters()[1]
             err = abs(target - self.position)
             if window != FOLLOWING_ERROR_WINDOW_OFF and err > window:
                 self.following_error = True

@@ -33,6 +33,8 @@ class NmtSlave:
         self._hb_next = math.inf
         self._hb_seen: dict[int, float] = {}
         self._hb_lost: set[int] = set()
+        self._monitored: dict[int, float] = {}
+        self._monitored_at = -1  # the OD generation _monitored was read at
 
     @property
     def operational(self) -> bool:
@@ -61,7 +63,15 @@ class NmtSlave:
         self._hb_next = now + period_ms / 1000.0 if period_ms else math.inf
 
     def monitored(self) -> dict[int, float]:
-        """{node id: timeout s} of the 0x1016 consumer entries that are on."""
+        """{node id: timeout s} of the 0x1016 consumer entries that are on (read again only
+        when the object dictionary changed; the caller must not modify it)."""
+        od = self._od
+        if self._monitored_at != od.generation:
+            self._monitored = self._read_monitored()
+            self._monitored_at = od.generation
+        return self._monitored
+
+    def _read_monitored(self) -> dict[int, float]:
         out: dict[int, float] = {}
         values = self._od.values
         n = int(values.get((cia301.OD_CONSUMER_HEARTBEAT_TIME, 0), 0))  # type: ignore[arg-type]

@@ -79,19 +79,41 @@ def _default_value(var: ODVariable, node_id: int) -> Value:
     return var.default
 
 
+#: Objects a drive writes every cycle (an RPDO's controlword and target position): written
+#: without a new :attr:`ObjectDictionary.generation`, so no service may cache anything
+#: derived from them.
+CYCLIC_KEYS = frozenset({(0x6040, 0), (0x607A, 0)})
+
+
 class ObjectDictionary:
-    """Values of every EDS object of the drive at ``node_id`` (``$NODEID`` resolved)."""
+    """Values of every EDS object of the drive at ``node_id`` (``$NODEID`` resolved).
+
+    ``generation`` changes with every write but those of :data:`CYCLIC_KEYS` (and with
+    every reset): a service keeps what it derives from its parameters (PDO communication
+    and mapping, heartbeat consumers, the interpolation period) while the generation it
+    was derived at is current, instead of reading and decoding them again at every SYNC.
+    Writes go through :meth:`write` (or :meth:`write_cyclic` for :data:`CYCLIC_KEYS`).
+
+    >>> od = ObjectDictionary(5)
+    >>> g = od.generation
+    >>> od.write_cyclic((0x607A, 0), 100); od.generation == g
+    True
+    >>> od.write((0x1017, 0), 100); od.generation == g
+    False
+    """
 
     def __init__(self, node_id: int, eds: str | Path | None = None) -> None:
         self.node_id = node_id
         self.objects = object_table(eds)
         self._indices = frozenset(index for index, _sub in self.objects)
         self.values: dict[Key, Value] = {}
+        self.generation = 0
         self.reset()
 
     def reset(self) -> None:
         """Power-on / reset node: every object to its EDS default."""
         self.values = {key: _default_value(var, self.node_id) for key, var in self.objects.items()}
+        self.generation += 1
 
     def reset_communication(self) -> None:
         """Reset communication: the communication objects (0x1000..0x1FFF but the error
@@ -99,6 +121,19 @@ class ObjectDictionary:
         for key, var in self.objects.items():
             if 0x1000 <= key[0] < 0x2000 and key[0] != cia301.OD_ERROR_REGISTER:
                 self.values[key] = _default_value(var, self.node_id)
+        self.generation += 1
+
+    def write(self, key: Key, value: Value) -> None:
+        """Store a value (a new generation unless ``key`` is one of :data:`CYCLIC_KEYS`)."""
+        self.values[key] = value
+        if key not in CYCLIC_KEYS:
+            self.generation += 1
+
+    def write_cyclic(self, key: Key, value: Value) -> None:
+        """Store the value of one of :data:`CYCLIC_KEYS` (no new generation)."""
+        if key not in CYCLIC_KEYS:
+            raise KeyError(f"object 0x{key[0]:04X}.{key[1]} is not a cyclic object")
+        self.values[key] = value
 
     def int_value(self, index: int, sub: int = 0) -> int:
         """The value of an integer object."""

@@ -12,13 +12,13 @@ PDO is invalid (bit 31 of its COB-ID), sub-index 0 last.
 from __future__ import annotations
 
 import struct
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import can
 from canopen.objectdictionary import ODVariable
 
 from drivers.protocol import cia301, cia402
-from sim_bus.drive.objects import WRITABLE, Key, SdoAbort
+from sim_bus.drive.objects import CYCLIC_KEYS, WRITABLE, Key, SdoAbort
 
 if TYPE_CHECKING:
     from sim_bus.drive import DriveSim
@@ -26,6 +26,17 @@ if TYPE_CHECKING:
 #: A compiled mapping: struct of the whole PDO (None if an entry has no fixed struct),
 #: [(object, its description or None for a dummy entry, bytes)], total bytes.
 Compiled = tuple[struct.Struct | None, list[tuple[Key, ODVariable | None, int]], int]
+
+
+class _Comm(NamedTuple):
+    """PDO communication parameters as the SYNC path uses them."""
+
+    sync_cob: int
+    rpdo_cob: int | None  # None: RPDO1 invalid
+    rpdo_type: int
+    tpdo_cob: int  # the raw 0x1800.1 (bit 31: invalid)
+    tpdo_type: int
+
 
 MAX_PDO_BITS = 64
 MAX_MAPPED_OBJECTS = 8
@@ -41,12 +52,33 @@ class PdoService:
         self._cache: dict[int, Compiled] = {}
         self._rpdo_buffer: bytes | None = None
         self._sync_count = 0
+        self._comm_at = -1  # the OD generation _comm was read at
+        self._comm = _Comm(cia301.COB_SYNC, None, 0, cia301.PDO_COB_ID_INVALID, 0)
 
     def reset(self) -> None:
         """Reset communication: no compiled mapping, no buffered RPDO, SYNC count 0."""
         self._cache = {}
         self._rpdo_buffer = None
         self._sync_count = 0
+        self._comm_at = -1
+
+    def comm(self) -> _Comm:
+        """The communication parameters (SYNC COB-ID, RPDO1 and TPDO1 COB-ID and type),
+        read again only when the object dictionary changed (its ``generation``)."""
+        od = self._od
+        if self._comm_at != od.generation:
+            values = od.values
+            sync = int(values.get((cia301.OD_COB_ID_SYNC, 0), cia301.COB_SYNC)) & 0x7FF  # type: ignore[arg-type]
+            rcob = od.int_value(cia301.OD_RPDO1_COMMUNICATION, 1)
+            self._comm = _Comm(
+                sync,
+                None if rcob & cia301.PDO_COB_ID_INVALID else rcob & 0x7FF,
+                od.int_value(cia301.OD_RPDO1_COMMUNICATION, 2),
+                od.int_value(cia301.OD_TPDO1_COMMUNICATION, 1),
+                od.int_value(cia301.OD_TPDO1_COMMUNICATION, 2),
+            )
+            self._comm_at = od.generation
+        return self._comm
 
     def discard_buffered(self) -> None:
         """Forget an RPDO waiting for the next SYNC (operation was just enabled)."""
@@ -54,13 +86,11 @@ class PdoService:
 
     @property
     def sync_cob_id(self) -> int:
-        values = self._od.values
-        return int(values.get((cia301.OD_COB_ID_SYNC, 0), cia301.COB_SYNC)) & 0x7FF  # type: ignore[arg-type]
+        return self.comm().sync_cob
 
     @property
     def rpdo_cob_id(self) -> int | None:
-        v = self._od.int_value(cia301.OD_RPDO1_COMMUNICATION, 1)
-        return None if v & cia301.PDO_COB_ID_INVALID else v & 0x7FF
+        return self.comm().rpdo_cob
 
     # ---------------------------------------------------------------- mappings
     def _mapping(self, map_index: int) -> list[tuple[int, int, int]]:
@@ -98,8 +128,7 @@ class PdoService:
             self._drive.log(f"RPDO of {len(data)} bytes, mapping needs {need}: EMCY 0x8210")
             self._drive.emcy(cia301.EMCY_PDO_LENGTH)
             return
-        ttype = self._od.int_value(cia301.OD_RPDO1_COMMUNICATION, 2)
-        if ttype <= 240:
+        if self.comm().rpdo_type <= 240:
             self._rpdo_buffer = data
         else:
             self._apply_rpdo(data, now)
@@ -118,7 +147,10 @@ class PdoService:
         for (key, var, _n), value in zip(entries, decoded, strict=True):
             if var is None:
                 continue  # dummy entry
-            self._od.values[key] = value  # type: ignore[assignment]
+            if key in CYCLIC_KEYS:
+                self._od.write_cyclic(key, value)  # type: ignore[arg-type]
+            else:
+                self._od.write(key, value)  # type: ignore[arg-type]
             if key == (cia402.OD_CONTROLWORD, 0):
                 self._drive._on_controlword(int(value), now)  # type: ignore[call-overload]
 
@@ -129,8 +161,8 @@ class PdoService:
         dt = drive.motion.interpolation_period_s
         drive.motion.advance(dt, now)
         self._sync_count += 1
-        ttype = self._od.int_value(cia301.OD_TPDO1_COMMUNICATION, 2)
-        tcob = self._od.int_value(cia301.OD_TPDO1_COMMUNICATION, 1)
+        comm = self.comm()
+        ttype, tcob = comm.tpdo_type, comm.tpdo_cob
         if (
             not tcob & cia301.PDO_COB_ID_INVALID
             and 1 <= ttype <= 240

@@ -193,7 +193,7 @@ class SdoServer:
             if var.max is not None and value > var.max:
                 raise SdoAbort(cia301.SDO_ABORT_VALUE_TOO_HIGH)
             self._drive.check_write(index, sub, value)
-        self._od.values[(index, sub)] = value
+        self._od.write((index, sub), value)
         self._drive.after_write(index, sub, value, now)
 
 

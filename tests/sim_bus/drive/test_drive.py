@@ -473,3 +473,61 @@ def test_jammed_motor_faults_by_following_error_once_the_target_moves() -> None:
             break
     assert faulted_at is not None and 3 <= faulted_at <= 5  # 2000-count window, 500 per cycle
     assert r.d.position_counts == 0
+
+
+def test_parameters_written_while_streaming_take_effect_at_the_next_frame() -> None:
+    """The drive keeps what it derives from its parameters between writes (the object
+    dictionary's generation): every SDO write and reset must still act at once."""
+    r = Rig(vmax=1e6, amax=1e10)
+    r.operational()
+    r.enable()
+    target = 0
+    for _ in range(3):  # warm every cache: TPDO each SYNC, steps of one 10 ms period
+        target += 100
+        r.rx(cia402.make_rpdo_target(NODE, cia402.CW_ENABLE_OPERATION, target))
+        assert len([m for m in r.sync() if m.arbitration_id == 0x185]) == 1
+    # transmission type 2: a TPDO every second SYNC from now on
+    assert r.write(0x1800, 2, b"\x02")[0] == 0x60
+    assert [len([m for m in r.sync() if m.arbitration_id == 0x185]) for _ in range(4)] in (
+        [0, 1, 0, 1],
+        [1, 0, 1, 0],
+    )
+    assert r.write(0x1800, 2, b"\x01")[0] == 0x60
+    # a new SYNC COB-ID: the old one no longer triggers a TPDO, the new one does
+    assert r.write(cia301.OD_COB_ID_SYNC, 0, struct.pack("<I", 0x81))[0] == 0x60
+    assert [m for m in r.sync() if m.arbitration_id == 0x185] == []
+    sync_81 = can.Message(arbitration_id=0x81, data=b"", is_extended_id=False)
+    assert len([m for m in r.rx(sync_81, 0.01) if m.arbitration_id == 0x185]) == 1
+    assert 0x81 in r.d.cob_ids() and 0x80 not in r.d.cob_ids()
+    # a heartbeat consumer added now is watched from now on
+    assert 127 not in r.d.monitored_heartbeats()
+    r.write(cia301.OD_CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", 0x7F0064))
+    assert r.d.monitored_heartbeats() == {127: 0.1}
+    r.rx(cia301.make_heartbeat(0x7F, cia301.NMT_STATE_OPERATIONAL))
+    out: list[can.Message] = []
+    for _ in range(30):
+        out += r.tick(0.005)
+    assert any(bytes(m.data)[:2] == b"\x30\x81" for m in out if m.arbitration_id == 0x085)
+    # reset communication: the defaults again (SYNC 0x80, no consumer)
+    r.rx(cia301.make_nmt(cia301.NMT_RESET_COMMUNICATION, NODE))
+    assert 0x80 in r.d.cob_ids() and r.d.monitored_heartbeats() == {}
+
+
+def test_interpolation_period_and_following_window_written_while_streaming() -> None:
+    r = Rig(vmax=1e5, amax=1e10)
+    r.write(cia402.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 0xFFFFFFFF))
+    r.operational()
+    r.enable()
+    r.rx(cia402.make_rpdo_target(NODE, cia402.CW_ENABLE_OPERATION, 100_000))
+    r.sync()
+    p0 = cia402.parse_tpdo(next(m for m in r.sync() if m.arbitration_id == 0x185).data)[1]
+    p1 = cia402.parse_tpdo(next(m for m in r.sync() if m.arbitration_id == 0x185).data)[1]
+    assert p1 - p0 == 1000  # 1e5 counts/s for 10 ms
+    assert r.write(cia402.OD_INTERPOLATION_TIME_PERIOD, 1, b"\x05")[0] == 0x60  # 5 ms
+    p2 = cia402.parse_tpdo(next(m for m in r.sync() if m.arbitration_id == 0x185).data)[1]
+    assert p2 - p1 == 500
+    assert r.d.interpolation_period_s == pytest.approx(0.005)
+    # a following-error window tighter than the error already there: fault at the next SYNC
+    assert r.write(cia402.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 10))[0] == 0x60
+    out = r.sync()
+    assert [bytes(m.data)[:2] for m in out if m.arbitration_id == 0x085] == [b"\x11\x86"]
