@@ -92,11 +92,11 @@ class ObjectDictionary:
     every reset): a service keeps what it derives from its parameters (PDO communication
     and mapping, heartbeat consumers, the interpolation period) while the generation it
     was derived at is current, instead of reading and decoding them again at every SYNC.
-    Writes go through :meth:`write` (or :meth:`write_cyclic` for :data:`CYCLIC_KEYS`).
+    Writes go through :meth:`write`.
 
     >>> od = ObjectDictionary(5)
     >>> g = od.generation
-    >>> od.write_cyclic((0x607A, 0), 100); od.generation == g
+    >>> od.write((0x607A, 0), 100); od.generation == g
     True
     >>> od.write((0x1017, 0), 100); od.generation == g
     False
@@ -128,12 +128,6 @@ class ObjectDictionary:
         self.values[key] = value
         if key not in CYCLIC_KEYS:
             self.generation += 1
-
-    def write_cyclic(self, key: Key, value: Value) -> None:
-        """Store the value of one of :data:`CYCLIC_KEYS` (no new generation)."""
-        if key not in CYCLIC_KEYS:
-            raise KeyError(f"object 0x{key[0]:04X}.{key[1]} is not a cyclic object")
-        self.values[key] = value
 
     def int_value(self, index: int, sub: int = 0) -> int:
         """The value of an integer object."""

@@ -18,7 +18,7 @@ import can
 from canopen.objectdictionary import ODVariable
 
 from drivers.protocol import cia301, cia402
-from sim_bus.drive.objects import CYCLIC_KEYS, WRITABLE, Key, SdoAbort
+from sim_bus.drive.objects import WRITABLE, Key, SdoAbort
 
 if TYPE_CHECKING:
     from sim_bus.drive import DriveSim
@@ -147,10 +147,7 @@ class PdoService:
         for (key, var, _n), value in zip(entries, decoded, strict=True):
             if var is None:
                 continue  # dummy entry
-            if key in CYCLIC_KEYS:
-                self._od.write_cyclic(key, value)  # type: ignore[arg-type]
-            else:
-                self._od.write(key, value)  # type: ignore[arg-type]
+            self._od.write(key, value)  # type: ignore[arg-type]
             if key == (cia402.OD_CONTROLWORD, 0):
                 self._drive._on_controlword(int(value), now)  # type: ignore[call-overload]
 

@@ -108,7 +108,7 @@ class StateMachine402:
         until a new target arrives (an RPDO buffered before is dropped)."""
         motion = self._drive.motion
         self.state = State.OPERATION_ENABLED
-        self._od.write_cyclic((cia402.OD_TARGET_POSITION, 0), motion.position_counts)
+        self._od.write((cia402.OD_TARGET_POSITION, 0), motion.position_counts)
         motion.velocity = 0.0
         self._drive.pdo.discard_buffered()
 
