@@ -504,13 +504,27 @@ def machine_stalls(
             "late_cycles_otherwise": sum(1 for e in late if e not in on_stall),
             "missing_node_cycles_on_machine_stalls": sum(e[2] for e in missing if e in on_stall),
             "missing_node_cycles_otherwise": sum(e[2] for e in missing if e not in on_stall),
+            # of the late cycles no probe-seen stall explains: those whose supervisor woke
+            # more than the threshold late (it waited to be run: a stall the probe missed,
+            # or a thread at its priority or above on its CPU) and those that woke in time
+            # and were late by what ran after waking (the stack's own work)
+            "late_cycles_otherwise_woke_late": sum(
+                1 for e in late if e not in on_stall and e[3] > LATE_THRESHOLD_S
+            ),
             "notable_cycles_kept": len(notable),
-            "otherwise_first": [  # (s after the first notable cycle, lateness ms, missing)
-                (round(d - t0, 3), round(lt * 1000, 2), m) for d, lt, m in other[:20]
+            "first_notable_monotonic_s": t0,  # to lay beside a kernel trace (clock mono)
+            # (s after the first notable cycle, lateness ms, missing, woke ms, cpu ms)
+            "otherwise_first": [
+                (round(d - t0, 3), _ms(lt), m, _ms(woke), _ms(cpu))
+                for d, lt, m, woke, cpu in other[:20]
             ],
         }
     )
     return out
+
+
+def _ms(seconds: float) -> float:
+    return round(seconds * 1000, 2)
 
 
 def cycle_costs(reps: int = 2000) -> dict[str, Any]:

@@ -197,8 +197,8 @@ class CycleStats:
     >>> s = st.summary()
     >>> s["cycles"], s["late_cycles"], round(s["jitter_max_s"] * 1000, 1)
     (3, 1, 2.6)
-    >>> s["notable_cycles"]   # (deadline_s, lateness_s, TPDOs found missing)
-    [(0.01, 0.0004, 2), (0.02, 0.003, 0)]
+    >>> s["notable_cycles"]   # (deadline_s, lateness_s, TPDOs found missing, woke_s, cpu_s)
+    [(0.01, 0.0004, 2, 0.0, 0.001), (0.02, 0.003, 0, 0.0, 0.001)]
     """
 
     def __init__(self, period_s: float, late_threshold_s: float = LATE_THRESHOLD_S) -> None:
@@ -215,7 +215,10 @@ class CycleStats:
         self.realtime = False
         self.missing_feedback = 0
         self.process_cpu_s = 0.0
-        self.notable: list[tuple[float, float, int]] = []
+        # (deadline, SYNC lateness, TPDOs found missing, wake lateness, supervisor CPU):
+        # a late cycle whose wake lateness is most of it waited to be run; one that woke
+        # on time and then spent its lateness in the supervisor's CPU time did work
+        self.notable: list[tuple[float, float, int, float, float]] = []
         self._missing_seen: int | None = None
 
     def add(
@@ -237,7 +240,9 @@ class CycleStats:
         if late > self.late_threshold_s:
             self.late_cycles += 1
         if (late > self.late_threshold_s or missing) and len(self.notable) < MAX_NOTABLE_CYCLES:
-            self.notable.append((deadline, round(late, 6), missing))
+            self.notable.append(
+                (deadline, round(late, 6), missing, round(woke - deadline, 6), round(cpu_s, 6))
+            )
         if self._first is None:
             self._first = (deadline, sync_sent)
         else:

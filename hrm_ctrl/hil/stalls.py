@@ -36,6 +36,7 @@ import sys
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 #: a stall of PROBE_PERIOD_S + STALL_THRESHOLD_S (1.5 ms) or more always covers a due
 #: wake-up by more than the threshold: caught, wherever it falls on the probe's grid (with
@@ -50,6 +51,9 @@ STOP_TIMEOUT_S = 5.0
 MARGIN_S = 0.001  # a stall this close before a late interval still explains it
 
 
+E = TypeVar("E", bound=Sequence[float])  # a cycle event: (deadline_s, lateness_s, missing, ...)
+
+
 @dataclass(frozen=True)
 class Stall:
     """One late wake-up of a probe: due at ``at_s`` (``time.monotonic``), ``late_s`` late."""
@@ -59,11 +63,9 @@ class Stall:
     late_s: float
 
 
-def explained(
-    events: Iterable[tuple[float, float, int]], stalls: Sequence[Stall], period_s: float
-) -> list[tuple[float, float, int]]:
-    """The cycle events (``(deadline_s, lateness_s, missing_nodes)``, as
-    :attr:`drivers.cycle.CycleStats.events` keeps them) that overlap a machine stall.
+def explained(events: Iterable[E], stalls: Sequence[Stall], period_s: float) -> list[E]:
+    """The cycle events (``(deadline_s, lateness_s, missing_nodes, ...)``, as
+    :attr:`drivers.cycle.CycleStats.notable` keeps them) that overlap a machine stall.
 
     A late cycle covers ``[deadline, deadline + lateness]``; a cycle that found TPDOs
     missing covers the whole period before it (the feedback of the previous SYNC was due
@@ -76,7 +78,7 @@ def explained(
         reach.append(max(end, reach[-1]) if reach else end)
     out = []
     for ev in events:
-        deadline, late, missing = ev
+        deadline, late, missing = ev[0], ev[1], ev[2]
         lo = deadline - period_s if missing else deadline
         hi = deadline + max(late, 0.0)
         # spans starting before hi; any of them ending after lo overlaps

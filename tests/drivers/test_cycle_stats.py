@@ -74,11 +74,15 @@ def test_late_and_missing_feedback_cycles_are_kept_with_their_deadlines_up_to_a_
     for k in range(3 * MAX_NOTABLE_CYCLES):
         late = 0.003 if k % 2 else 0.0001
         missing_total += 18 if k % 3 == 1 else 0
-        st_.add(k * T, k * T, k * T + late, 0.0003, missing_total)
+        woke = k * T + (0.0025 if k % 4 == 3 else 0.0)  # some late cycles woke late
+        st_.add(k * T, woke, k * T + late, 0.0003 + k * 1e-6, missing_total)
     notable = st_.summary()["notable_cycles"]
     assert len(notable) == MAX_NOTABLE_CYCLES
     # every cycle that was late (odd k) or found 18 TPDOs missing (k % 3 == 1), in order
     want = [k for k in range(3 * MAX_NOTABLE_CYCLES) if k % 2 or k % 3 == 1]
-    assert [round(d / T) for d, _, _ in notable] == want[:MAX_NOTABLE_CYCLES]
-    assert all(m == (18 if round(d / T) % 3 == 1 else 0) for d, _, m in notable)
-    assert all((lt > 0.002) == (round(d / T) % 2 == 1) for d, lt, _ in notable)
+    assert [round(d / T) for d, *_ in notable] == want[:MAX_NOTABLE_CYCLES]
+    assert all(m == (18 if round(d / T) % 3 == 1 else 0) for d, _, m, *_ in notable)
+    assert all((lt > 0.002) == (round(d / T) % 2 == 1) for d, lt, *_ in notable)
+    # with each its wake lateness and the supervisor's CPU time, to tell waiting from work
+    assert all(w == (0.0025 if round(d / T) % 4 == 3 else 0.0) for d, _, _, w, _ in notable)
+    assert all(c == round(0.0003 + round(d / T) * 1e-6, 6) for d, _, _, _, c in notable)
