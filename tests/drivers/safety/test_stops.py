@@ -111,9 +111,10 @@ def test_missing_tpdo_stops_every_node(rig_factory: Callable[..., Rig]) -> None:
     missed_elsewhere: list[str] = []
     for _attempt in range(3):
         rig = rig_factory(missing_tpdo_cycles=2)
+        sim = rig.sim
         err = stream_with(
             rig,
-            lambda: rig.sim.drop_frames("bus0", lambda m: m.arbitration_id == 0x181, count=None),
+            lambda s=sim: s.drop_frames("bus0", lambda m: m.arbitration_id == 0x181, count=None),
         )
         assert {x.kind for x in err.causes} == {"tpdo_missing"}, err.causes
         if "j01r0" in err.causes[0].text:
