@@ -224,6 +224,9 @@ ENV = sample_environment()
     p=st.tuples(st.floats(-400, 1900), st.floats(-400, 400), st.floats(-400, 400)),
     near=st.sampled_from(["any", "pipe", "wall", "box"]),
 )
+# At the pipe's mouth the one-sided slopes differ by 2.5e-4 (a kink): the central
+# difference sits between them, 1.25e-4 off the gradient (a suite run found it).
+@example(p=(0.0, 0.0, 348.0), near="pipe")
 def test_gradient_matches_finite_differences(p, near):
     q = np.array(p)
     if near == "pipe":  # into the bent pipe's neighbourhood
@@ -237,7 +240,9 @@ def test_gradient_matches_finite_differences(p, near):
     f0 = ENV.free_distance(q)
     fwd = np.array([(ENV.free_distance(q + h * e) - f0) / h for e in np.eye(3)])
     bwd = np.array([(f0 - ENV.free_distance(q - h * e)) / h for e in np.eye(3)])
-    assume(np.abs(fwd - bwd).max() < 1e-3)  # smooth here (not on a kink of the distance)
+    # Smooth here, not on a kink of the distance: on a kink the central difference is the
+    # mean of the one-sided slopes, |fwd - bwd| / 2 off either, so the bound is the tolerance.
+    assume(np.abs(fwd - bwd).max() < 1e-4)
     fd = 0.5 * (fwd + bwd)
     assert np.abs(g - fd).max() < 1e-4
     assert np.linalg.norm(g) == pytest.approx(1.0, abs=1e-6)  # a distance: |grad| = 1
