@@ -559,14 +559,15 @@ class DriveSession:
             r.traffic.clear_evidence()
         self.supervisor.set_heartbeat(True, wait_s=HEARTBEAT_START_WAIT_S)
         self.monitor.reset_boot()
+        reset_at = self.monitor.clock()
         self.send_nmt(cia301.NMT_RESET_NODE)
         self._brought_up = True
         self.events.add("nmt", "NMT reset node sent on every bus")
         if not self.monitor.boot_event.wait(ctl.bootup_timeout_s):
-            missing = self.monitor.missing_boot()
+            missing = self.monitor.describe_missing_boot(reset_at)
             raise BootupError(
                 f"no boot-up within {ctl.bootup_timeout_s:g} s from {len(missing)} node(s): "
-                + ", ".join(missing)
+                + "; ".join(missing)
             )
         self.events.add("bootup", f"every node booted ({time.monotonic() - t_start:.3f} s)")
         self._parallel(

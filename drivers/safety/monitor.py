@@ -247,6 +247,34 @@ class NodeMonitor:
     def missing_boot(self) -> list[str]:
         return [lab for lab, ok in zip(self.labels, self.booted, strict=True) if not ok]
 
+    def describe_missing_boot(self, reset_at: float) -> list[str]:
+        """Each node without a boot-up since :meth:`reset_boot`, with what was last heard
+        of it relative to ``reset_at`` (the clock reading when the NMT reset went out):
+        a node never heard is unpowered or not on the bus; one heard after the reset
+        in another state booted without its boot-up frame reaching us.
+
+        >>> mon = NodeMonitor(["m0", "m1", "m2"], missing_tpdo_cycles=1,
+        ...                   heartbeat_timeout_s=0.3, clock=lambda: 10.0)
+        >>> mon.on_heartbeat(1, bytes([0x05]))
+        >>> mon.on_heartbeat(2, bytes([0x00]))
+        >>> mon.describe_missing_boot(reset_at=10.25)
+        ['m0: never heard', 'm1: last heard 0.250 s before the reset, OPERATIONAL']
+        """
+        out = []
+        for i in np.flatnonzero(~self.booted).tolist():
+            t, state = float(self.hb_time[i]), int(self.hb_state[i])
+            if not math.isfinite(t):
+                out.append(f"{self.labels[i]}: never heard")
+                continue
+            name = NMT_STATE_NAMES.get(state, f"0x{state:02X}")
+            when = (
+                f"{reset_at - t:.3f} s before the reset"
+                if t < reset_at
+                else f"{t - reset_at:.3f} s after the reset"
+            )
+            out.append(f"{self.labels[i]}: last heard {when}, {name}")
+        return out
+
     # ---------------------------------------------------------- per-cycle check
     def check(
         self, now: float, last_seq: int, heartbeats_armed_at: float | None

@@ -31,7 +31,7 @@ def test_missing_nodes_are_listed(rig_factory: Callable[..., Rig]) -> None:
         box.bring_up()
     assert time.monotonic() - t < 1.5
     msg = str(info.value)
-    assert "1 node(s): j07r1 (bus bus1 node 4)" in msg
+    assert msg.endswith("1 node(s): j07r1 (bus bus1 node 4): never heard")
     # Nothing but NMT and heartbeats went out: no SDO, no PDO.
     sent = {m.arbitration_id for sn in rig.sniffers for m in sn.snapshot()}
     assert not any(0x600 < cid <= 0x67F or 0x200 < cid <= 0x27F for cid in sent)
