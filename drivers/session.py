@@ -50,7 +50,6 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import datetime as dt
-import gc
 import json
 import logging
 import math
@@ -87,6 +86,7 @@ from drivers.realtime import (
     NORMAL_PRIORITY,
     AppliedSettings,
     CpuLatencyRequest,
+    GcHold,
     process_settings,
 )
 from drivers.receive import BusPoller, BusReader, BusReceiver, pollable, wait_quiet_listen
@@ -114,27 +114,6 @@ HEARTBEAT_START_WAIT_S = 0.5  # the first host heartbeat precedes the NMT reset
 STOP_RECORD_WAIT_S = 2.0  # longest wait for a stop being confirmed (10 periods at most)
 EMCY_WAIT_S = 0.25  # a drive seen in FAULT: its EMCY is on the wire, the stop follows
 log = logging.getLogger("drivers.session")
-
-
-@contextlib.contextmanager
-def quiet_gc() -> Any:
-    """While a stream plays: everything allocated so far (the OD, canopen's objects,
-    numpy tables) is frozen out of the garbage collector (``gc.freeze``), so a
-    collection during the stream walks only what the stream itself allocated (no
-    pause of tens of ms in the middle of the cycle); undone afterwards.  No
-    ``gc.collect()`` first: with the drives enabled a full collection holds every
-    thread for as long as it takes (57 ms with the drivers and the EDS loaded; in the loaded test
-    process the drives' heartbeats were then seen 490-560 ms apart: a heartbeat timeout).
-
-    >>> with quiet_gc():
-    ...     gc.get_freeze_count() > 0
-    True
-    """
-    gc.freeze()
-    try:
-        yield
-    finally:
-        gc.unfreeze()
 
 
 class SessionState(Enum):
@@ -246,6 +225,9 @@ class DriveSession:
         self.take_over = bool(take_over)
         self.listen_s = float(listen_s)
         self._brought_up = False  # this session has reset the drives (they are ours)
+        # the heap out of the cyclic collector from the first reset to the end of finish()
+        # (a full collection of a large heap pauses every thread: a heartbeat timeout)
+        self._gc_hold = GcHold()
 
         n = len(actuation.motor_ids)
         self._ports: list[BusPort] = []
@@ -540,6 +522,7 @@ class DriveSession:
         )
         t_start = time.monotonic()
         ctl = self.control
+        self._gc_hold.acquire()  # released by finish() and close()
         if self._state is SessionState.ENABLED:
             self.supervisor.disarm()
             try:
@@ -802,7 +785,7 @@ class DriveSession:
             self._unclaim_stream()  # nothing was sent
             raise
         try:
-            with quiet_gc():
+            with GcHold():  # frozen again: the stream's collections walk its own objects
                 result = self.supervisor.play(source, self._stream_timeout_s(source))
         except SupervisorModeError:  # stopped between the checks and the hand-over
             self._unclaim_stream()
@@ -883,6 +866,7 @@ class DriveSession:
             self.supervisor.set_heartbeat(False)
             self._brought_up = False  # another master may take the drives from here on
             self._set_state(SessionState.CONNECTED)
+            self._gc_hold.release()
         if self.stop_error is not None:
             failed.append(self.stop_error)
             self.stop_error = None
@@ -950,6 +934,7 @@ class DriveSession:
         record that cannot be written even so raises :class:`DriverError` (one line)."""
         self.supervisor.close()
         self._close_io()
+        self._gc_hold.release()
         self._set_state(SessionState.CLOSED)
         if self.log_dir is None:
             return None

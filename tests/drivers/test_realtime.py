@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 import time
@@ -17,10 +18,12 @@ from drivers.realtime import (
     SWITCH_INTERVAL_S,
     AppliedSettings,
     CpuLatencyRequest,
+    GcHold,
     ProcessSettingsError,
     process_settings,
 )
 from drivers.receive import BusPoller
+from drivers.sources import HoldSource
 from hrm_ctrl.errors import DriverError
 
 
@@ -362,3 +365,27 @@ def test_a_refused_cpu_latency_request_is_one_reason(tmp_path: Any) -> None:
     r = CpuLatencyRequest(0, str(tmp_path / "no-such-device"))
     assert not r.held and r.refusal is not None and "no-such-device" in r.refusal
     r.close()
+
+
+def test_a_session_keeps_the_heap_out_of_the_collector_while_drives_depend_on_it(
+    rig_factory: Any,
+) -> None:
+    """From the bring-up to the end of finish() the heap is frozen (a full collection
+    walks only what was allocated since: no pause of the whole heap while the heartbeat
+    watchdogs run); a stream's own hold inside it does not undo it; finish() does."""
+    rig = rig_factory()
+    box = rig.open_box()
+    holders = GcHold.holders()
+    ballast = [[i] for i in range(50_000)]  # tracked objects, allocated before the hold
+    box.bring_up()
+    assert GcHold.holders() == holders + 1
+    assert gc.get_freeze_count() >= len(ballast)
+    assert box.stream(HoldSource(n_cycles=3)).completed
+    assert GcHold.holders() == holders + 1  # the stream's release left the session's hold
+    assert gc.get_freeze_count() >= len(ballast)
+    box.finish()
+    assert GcHold.holders() == holders
+    if holders == 0:
+        assert gc.get_freeze_count() == 0
+    box.finish()  # a second finish releases nothing more
+    assert GcHold.holders() == holders

@@ -235,9 +235,12 @@ def test_full_box_36_drives_short_run(actuation: Actuation, tmp_path: Path) -> N
         ) as box:
             actual = box.bring_up()
             assert actual.shape == (36,)
-            assert {c.decode_state(sw) for sw in sim.statuswords().values()} == {
-                c.State402.OPERATION_ENABLED
-            }
+            states = {m: c.decode_state(sw) for m, sw in sim.statuswords().items()}
+            assert set(states.values()) == {c.State402.OPERATION_ENABLED}, (
+                states,
+                box.idle_causes,
+                sim.events[-10:],
+            )
             jog = JogSource(actuation, "j12r2", 20_000.0, 0.3, hold_s=0.2)
             result = box.stream(jog)
             assert result.completed and result.cycles == jog.n_cycles >= 50
