@@ -87,16 +87,16 @@ class GcHold:
 
     A full (generation 2) collection walks every tracked object while holding the
     interpreter lock: in the test process 120-240 ms (measured with ``gc.callbacks``
-    over ``tests/drivers``), with both cores busy twice that, during which no receive
+    over ``tests/drivers``), longer with both cores busy, during which no receive
     thread stamps a heartbeat and an in-process box sends none: the heartbeat watchdog
-    (350 ms) stops every axis.  :meth:`acquire` freezes what exists (``gc.freeze``, cheap:
+    (350 ms) stopped every axis of an idle box on a 363 ms gap.  :meth:`acquire` freezes what exists (``gc.freeze``, cheap:
     the generations are moved to the permanent one as whole lists), so the collections
     that follow walk only what was allocated since; the last :meth:`release` of the
     process unfreezes (``gc.unfreeze``).  Holds are counted across the process (two
-    sessions, a stream inside a bring-up's hold): one release never unfreezes another's
-    hold.  Each acquire freezes again, so a stream starts with young generations of its
-    own only.  Cyclic garbage that existed at an acquire is collected after the last
-    release.
+    sessions in one process): one release never unfreezes another's hold.  Only the
+    first hold freezes: what a long session allocates later (between streams too) is
+    collected as usual, and cyclic garbage that existed at the freeze waits for the
+    last release, so memory stays bounded however many streams a session plays.
 
     >>> a, b = GcHold(), GcHold()
     >>> a.acquire(); b.acquire(); frozen = gc.get_freeze_count() > 0
@@ -118,12 +118,14 @@ class GcHold:
         return cls._holders
 
     def acquire(self) -> None:
-        """Freeze the heap (again, if held already: what was allocated since joins it)."""
+        """Hold; the first hold of the process freezes the heap."""
         with GcHold._lock:
-            if not self.held:
-                self.held = True
-                GcHold._holders += 1
-            gc.freeze()
+            if self.held:
+                return
+            self.held = True
+            GcHold._holders += 1
+            if GcHold._holders == 1:
+                gc.freeze()
 
     def release(self) -> None:
         """Give up this hold; the last one in the process unfreezes the heap."""

@@ -785,8 +785,8 @@ class DriveSession:
             self._unclaim_stream()  # nothing was sent
             raise
         try:
-            with GcHold():  # frozen again: the stream's collections walk its own objects
-                result = self.supervisor.play(source, self._stream_timeout_s(source))
+            # (the heap is out of the collector since the bring-up: self._gc_hold)
+            result = self.supervisor.play(source, self._stream_timeout_s(source))
         except SupervisorModeError:  # stopped between the checks and the hand-over
             self._unclaim_stream()
             self._raise_if_stopped()

@@ -372,7 +372,7 @@ def test_a_session_keeps_the_heap_out_of_the_collector_while_drives_depend_on_it
 ) -> None:
     """From the bring-up to the end of finish() the heap is frozen (a full collection
     walks only what was allocated since: no pause of the whole heap while the heartbeat
-    watchdogs run); a stream's own hold inside it does not undo it; finish() does."""
+    watchdogs run), through a stream, until finish()."""
     rig = rig_factory()
     box = rig.open_box()
     holders = GcHold.holders()
@@ -381,7 +381,7 @@ def test_a_session_keeps_the_heap_out_of_the_collector_while_drives_depend_on_it
     assert GcHold.holders() == holders + 1
     assert gc.get_freeze_count() >= len(ballast)
     assert box.stream(HoldSource(n_cycles=3)).completed
-    assert GcHold.holders() == holders + 1  # the stream's release left the session's hold
+    assert GcHold.holders() == holders + 1
     assert gc.get_freeze_count() >= len(ballast)
     box.finish()
     assert GcHold.holders() == holders
