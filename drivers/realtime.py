@@ -23,7 +23,7 @@ it got (:class:`AppliedSettings`) and restores both on exit.
   process (from the first NMT reset of a bring-up to the end of ``finish``), everything
   allocated before is frozen out of the cyclic collector, so a full collection walks
   only what was allocated since, not the whole heap (a pause of 120-240 ms in the test
-  process, twice that with the cores busy: a heartbeat timeout).
+  process, longer with the cores busy: a heartbeat timeout).
 * **CPUs** (Linux CPU affinity, ``cpus``): the calling thread and the threads it starts
   afterwards run on those CPUs only.  ``hrm sim --cpus`` keeps a simulated box off the
   CPUs of the host's control loop, as the drives' own hardware would be (on a two-core
@@ -89,9 +89,11 @@ class GcHold:
     interpreter lock: in the test process 120-240 ms (measured with ``gc.callbacks``
     over ``tests/drivers``), longer with both cores busy, during which no receive
     thread stamps a heartbeat and an in-process box sends none: the heartbeat watchdog
-    (350 ms) stopped every axis of an idle box on a 363 ms gap.  :meth:`acquire` freezes what exists (``gc.freeze``, cheap:
-    the generations are moved to the permanent one as whole lists), so the collections
-    that follow walk only what was allocated since; the last :meth:`release` of the
+    (350 ms) stopped every axis of an idle box on a 363 ms gap.  :meth:`acquire`
+    freezes what exists (``gc.freeze``, cheap: the generations are moved to the
+    permanent one as whole lists), so the collections that follow walk only what was
+    allocated since; no ``gc.collect()`` first (at a second bring-up the drives are
+    enabled: that collection would be the very pause).  The last :meth:`release` of the
     process unfreezes (``gc.unfreeze``).  Holds are counted across the process (two
     sessions in one process): one release never unfreezes another's hold.  Only the
     first hold freezes: what a long session allocates later (between streams too) is
