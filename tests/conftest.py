@@ -9,6 +9,9 @@ the kernel has no vcan interface, as on the development machine).
 Note: a udp_multicast socket also receives the frames it sent itself; code
 under test must tolerate its own frames coming back.
 
+``quiet_heap`` (autouse) starts every test with the heap frozen out of the garbage
+collector and collects it between tests, every :data:`COLLECT_EVERY_TESTS` tests.
+
 ``process_wide_settings`` (autouse, once per session) runs every test under
 :func:`drivers.realtime.process_settings`, as ``hrm`` runs every command: buses,
 wires and sessions change no interpreter setting, so the tests that pace frames or
@@ -18,6 +21,7 @@ the switch interval from the process entry, here pytest.
 
 from __future__ import annotations
 
+import gc
 import itertools
 import os
 import socket
@@ -29,7 +33,7 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, settings
 
-from drivers.realtime import process_settings
+from drivers.realtime import GcHold, process_settings
 
 BACKENDS = ("virtual", "udp_multicast", "socketcan")
 _group_counter = itertools.count(1)
@@ -41,6 +45,25 @@ _group_counter = itertools.count(1)
 # @settings still sets everything else).
 settings.register_profile("hrm", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("hrm")
+
+
+# The test process's heap grows test by test, and a full collection walks all of it inside
+# whichever test triggers it: 120-240 ms unloaded, up to 844 ms with both cores busy
+# (gc.callbacks over tests/drivers, 2026-12-04), every thread held, long enough for an
+# in-process box's heartbeat or board watchdog to trip.  Each test starts with the heap
+# frozen (its collections walk what it allocated), and the heap is collected between tests.
+COLLECT_EVERY_TESTS = 100
+_tests_since_collect = itertools.count(1)
+
+
+@pytest.fixture(autouse=True)
+def quiet_heap() -> None:
+    """Freeze the heap before the test; every :data:`COLLECT_EVERY_TESTS` tests collect it
+    first (unless a drive session still holds it: :class:`drivers.realtime.GcHold`)."""
+    if next(_tests_since_collect) % COLLECT_EVERY_TESTS == 0 and GcHold.holders() == 0:
+        gc.unfreeze()
+        gc.collect()
+    gc.freeze()
 
 
 @pytest.fixture(scope="session", autouse=True)
