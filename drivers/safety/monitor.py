@@ -244,9 +244,6 @@ class NodeMonitor:
         self.booted[:] = False
         self.boot_event.clear()
 
-    def missing_boot(self) -> list[str]:
-        return [lab for lab, ok in zip(self.labels, self.booted, strict=True) if not ok]
-
     def describe_missing_boot(self, reset_at: float) -> list[str]:
         """Each node without a boot-up since :meth:`reset_boot`, with what was last heard
         of it relative to ``reset_at`` (the clock reading when the NMT reset went out):
