@@ -20,7 +20,7 @@ it got (:class:`AppliedSettings`) and restores both on exit.
   and to the threads it starts afterwards: entered by the supervisor thread only that
   thread runs under FIFO; entered at process start, every thread does.
 * **Garbage collector** (:class:`GcHold`, process-wide): while drives depend on the
-  process (from the first NMT reset of a bring-up to the end of ``finish``), everything
+  process (from the start of a bring-up to the end of ``finish``), everything
   allocated before is frozen out of the cyclic collector, so a full collection walks
   only what was allocated since, not the whole heap (a pause of 120-240 ms in the test
   process, longer with the cores busy: a heartbeat timeout).
@@ -138,13 +138,6 @@ class GcHold:
             GcHold._holders -= 1
             if GcHold._holders == 0:
                 gc.unfreeze()
-
-    def __enter__(self) -> GcHold:
-        self.acquire()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.release()
 
 
 class ProcessSettingsError(DriverError):

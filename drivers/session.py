@@ -225,7 +225,7 @@ class DriveSession:
         self.take_over = bool(take_over)
         self.listen_s = float(listen_s)
         self._brought_up = False  # this session has reset the drives (they are ours)
-        # the heap out of the cyclic collector from the first reset to the end of finish()
+        # the heap out of the cyclic collector from configure() to the end of finish()
         # (a full collection of a large heap pauses every thread: a heartbeat timeout)
         self._gc_hold = GcHold()
 
