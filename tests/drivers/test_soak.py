@@ -58,9 +58,7 @@ def test_a_long_stream_against_a_box_process_meets_the_production_targets(
     tmp_path: Path, hrm_process_settings: None
 ) -> None:
     # hrm_process_settings: the GIL switch interval every hrm process runs with, as
-    # bench_drivers.py's main sets it.  Without it (CPython's 5 ms) one soak had a cycle
-    # that woke in time, ran 0.22 ms and sent its SYNC 2.5 ms late with no machine stall
-    # seen: the wait of a thread for the interpreter lock looks like that.
+    # bench_drivers.py's main sets it (without it the test ran at CPython's 5 ms)
     rt = RT_PRIORITY if fifo_allowed() else 0
     out = bench().run(
         SOAK_S,
