@@ -366,6 +366,7 @@ def run(
                 rss.append((round(time.monotonic() - t_start, 1), rss_mb(),
                             None if box_pid is None else rss_mb(box_pid)))  # fmt: skip
             record = json.loads(session.record_path.read_text()) if session.record_path else None
+            sync_delay_s = session.supervisor.sync_delay_s if session.supervisor else 0.0
             sent = [p.n_sent for p in session._ports]  # after close: every frame of the session
             readers = [net.notifier for net in session._networks]
             echoes = [r.traffic.echoes_dropped for r in session._receivers]
@@ -467,7 +468,9 @@ def run(
         },
         "can_log_frames": frames_logged,
         "machine_stalls": (
-            machine_stalls(probe, s, cfg.control, result.causes) if stall_probe else None
+            machine_stalls(probe, s, cfg.control, result.causes, sync_delay_s)
+            if stall_probe
+            else None
         ),
         **out,
     }
@@ -483,10 +486,16 @@ def run(
 
 
 def machine_stalls(
-    probe: StallProbe, stats: dict[str, Any], control: Any, causes: Sequence[Any] = ()
+    probe: StallProbe,
+    stats: dict[str, Any],
+    control: Any,
+    causes: Sequence[Any] = (),
+    sync_delay_s: float = 0.0,
 ) -> dict[str, Any]:
     """What the stall probes saw during the stream, and which late or missing-feedback
-    cycles fell on a stall of the machine itself (``hrm_ctrl.hil.stalls``) and which did not;
+    cycles fell on a stall of the machine itself (``hrm_ctrl.hil.stalls``; with the
+    supervisor's ``sync_delay_s``, also the cycles a stall-late cycle's RPDOs held back)
+    and which did not;
     for a stream that stopped, the stalls in the watchdog's window before the stop (the
     ``missing_tpdo_cycles`` + 1 periods a TPDO watchdog counts) by CPU."""
     out: dict[str, Any] = probe.summary()
@@ -501,7 +510,7 @@ def machine_stalls(
             for st in overlapping(probe.stalls, t_stop - window, t_stop)
         ]
     notable = [tuple(e) for e in stats.get("notable_cycles", [])]
-    on_stall = set(explained(notable, probe.stalls, period_s))
+    on_stall = set(explained(notable, probe.stalls, period_s, sync_delay_s))
     late = [e for e in notable if e[1] > LATE_THRESHOLD_S]
     missing = [e for e in notable if e[2]]
     other = [e for e in notable if e not in on_stall]
@@ -520,6 +529,7 @@ def machine_stalls(
                 1 for e in late if e not in on_stall and e[3] > LATE_THRESHOLD_S
             ),
             "notable_cycles_kept": len(notable),
+            "sync_delay_ms": _ms(sync_delay_s),  # a SYNC's wait after the RPDOs before it
             "first_notable_monotonic_s": t0,  # to lay beside a kernel trace (clock mono)
             # (s after the first notable cycle, lateness ms, missing, woke ms, cpu ms)
             "otherwise_first": [

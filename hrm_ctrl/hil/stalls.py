@@ -63,29 +63,56 @@ class Stall:
     late_s: float
 
 
-def explained(events: Iterable[E], stalls: Sequence[Stall], period_s: float) -> list[E]:
+def explained(
+    events: Iterable[E], stalls: Sequence[Stall], period_s: float, sync_delay_s: float = 0.0
+) -> list[E]:
     """The cycle events (``(deadline_s, lateness_s, missing_nodes, ...)``, as
-    :attr:`drivers.cycle.CycleStats.notable` keeps them) that overlap a machine stall.
+    :attr:`drivers.cycle.CycleStats.notable` keeps them) that a machine stall explains.
 
     A late cycle covers ``[deadline, deadline + lateness]``; a cycle that found TPDOs
     missing covers the whole period before it (the feedback of the previous SYNC was due
     in it).  A stall covers ``[at, at + late]``; overlap within :data:`MARGIN_S` counts.
+
+    A stall also explains the cycle after a late cycle it explains, when that one is no
+    later than the previous cycle's wait makes it: a SYNC goes out at least
+    ``sync_delay_s`` (the supervisor's :attr:`~drivers.safety.supervisor.Supervisor.sync_delay_s`)
+    after the RPDOs before it, so a cycle whose SYNC and RPDOs went out ``lateness`` late
+    holds the next SYNC until ``lateness + sync_delay_s - period_s`` (+ :data:`MARGIN_S`
+    for the RPDOs' own build) after its deadline, however early that one woke.  With
+    ``sync_delay_s`` 0 (the default) no cycle is explained that way.
+
+    >>> stalls = [Stall(cpu=0, at_s=10.000, late_s=0.009)]
+    >>> events = [(10.0, 0.0087, 0), (10.01, 0.0036, 0), (10.02, 0.0036, 0)]
+    >>> [e[0] for e in explained(events, stalls, period_s=0.01, sync_delay_s=0.0047)]
+    [10.0, 10.01]
     """
+    events = list(events)
     spans = sorted((s.at_s - MARGIN_S, s.at_s + s.late_s) for s in stalls)
     starts = [a for a, _ in spans]
     reach = []  # the latest end among the spans up to each one
     for _, end in spans:
         reach.append(max(end, reach[-1]) if reach else end)
-    out = []
+    on_stall = []
     for ev in events:
         deadline, late, missing = ev[0], ev[1], ev[2]
         lo = deadline - period_s if missing else deadline
         hi = deadline + max(late, 0.0)
         # spans starting before hi; any of them ending after lo overlaps
         k = bisect.bisect_right(starts, hi)
-        if k and reach[k - 1] >= lo:
-            out.append(ev)
-    return out
+        on_stall.append(bool(k and reach[k - 1] >= lo))
+    if sync_delay_s > 0.0:  # the chain of held SYNCs, in deadline order
+        prev: int | None = None
+        for i in sorted(range(len(events)), key=lambda j: events[j][0]):
+            if not on_stall[i] and prev is not None:
+                deadline, late = events[i][0], events[i][1]
+                p_deadline, p_late = events[prev][0], events[prev][1]
+                on_stall[i] = (
+                    on_stall[prev]
+                    and abs(deadline - p_deadline - period_s) < period_s / 2
+                    and late <= p_late + sync_delay_s - period_s + MARGIN_S
+                )
+            prev = i
+    return [ev for ev, yes in zip(events, on_stall, strict=True) if yes]
 
 
 def overlapping(stalls: Sequence[Stall], lo_s: float, hi_s: float) -> list[Stall]:

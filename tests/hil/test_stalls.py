@@ -40,6 +40,46 @@ def test_explained_is_the_overlap_of_each_event_with_some_stall(
     assert explained(events, stalls, T) == [e for e in events if overlaps(e, stalls)]
 
 
+def test_the_cycle_a_stall_late_cycle_held_back_is_the_stalls_too() -> None:
+    """Seen in a soak's kernel trace (2026-12-04, clock mono): CPU 0 ran nothing for 9.1 ms,
+    its probe woke 8.1 ms late; the cycle due in it sent SYNC and RPDOs 8.7 ms late, and the
+    next one, awake in time, held its SYNC for the supervisor's sync_delay_s (4.7 ms) after
+    those RPDOs: 3.7 ms late.  The one after that was on time."""
+    stalls = [Stall(0, 31620.8875, 0.0081)]
+    events = [(31620.887234, 0.0087, 0), (31620.897234, 0.00367, 0)]
+    assert explained(events, stalls, T) == events[:1]  # no sync_delay_s: no chain
+    assert explained(events, stalls, T, sync_delay_s=0.0047) == events
+    # later than the held SYNC accounts for: the stack's own
+    later = [events[0], (31620.897234, 0.0047, 0)]
+    assert explained(later, stalls, T, sync_delay_s=0.0047) == later[:1]
+    # the chain needs the previous period's cycle: one two periods on is not held by it
+    gap = [events[0], (31620.907234, 0.00367, 0)]
+    assert explained(gap, stalls, T, sync_delay_s=0.0047) == gap[:1]
+
+
+@given(
+    st.lists(event, max_size=30, unique_by=lambda e: e[0]),  # a stream's deadlines differ
+    st.lists(stall, max_size=30),
+    st.floats(0.0, 0.02),
+)
+@example([(1.0, 0.0087, 0), (1.01, 0.0036, 0)], [Stall(0, 1.0, 0.009)], 0.0047)  # a chain
+def test_a_held_cycle_is_explained_only_through_the_cycle_before_it(
+    events: list[tuple[float, float, int]], stalls: list[Stall], sync_delay_s: float
+) -> None:
+    direct = explained(events, stalls, T)
+    chained = explained(events, stalls, T, sync_delay_s)
+    assert set(direct) <= set(chained)
+    assert [e for e in events if e in set(chained)] == chained  # the input's order
+    by_deadline = sorted(range(len(events)), key=lambda j: events[j][0])
+    for pos, i in enumerate(by_deadline):
+        ev = events[i]
+        if ev in set(chained) and ev not in set(direct):
+            prev = events[by_deadline[pos - 1]]
+            assert pos > 0 and prev in set(chained)
+            assert abs(ev[0] - prev[0] - T) < T / 2
+            assert ev[1] <= prev[1] + sync_delay_s - T + MARGIN_S
+
+
 def test_a_bad_cpu_argument_is_a_one_line_usage_error() -> None:
     res = subprocess.run(
         [sys.executable, "-m", "hrm_ctrl.hil.stalls", "zero"],
