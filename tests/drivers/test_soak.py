@@ -12,7 +12,9 @@ one is not: no stop at all (no spurious watchdog), SYNC jitter p99 <= 0.5 ms, ev
 the wire in the CAN logs (sent + received, none lost), host memory flat (RSS sampled every
 10 s), host CPU <= 1 ms per cycle; and no cycle more than 2 ms late, no missing-feedback
 node-cycle, except on a stall of the machine itself that the probe saw (a VM's vCPUs
-descheduled: no program in it can be on time then; without the probe, none at all)."""
+descheduled: no program in it can be on time then; without the probe, none at all), or in
+the cycle after one that such a stall made late, as late as that cycle's RPDOs hold its
+SYNC (``hrm_ctrl.hil.stalls.explained`` with the supervisor's ``sync_delay_s``)."""
 
 from __future__ import annotations
 
