@@ -366,7 +366,7 @@ def run(
                 rss.append((round(time.monotonic() - t_start, 1), rss_mb(),
                             None if box_pid is None else rss_mb(box_pid)))  # fmt: skip
             record = json.loads(session.record_path.read_text()) if session.record_path else None
-            sync_delay_s = session.supervisor.sync_delay_s if session.supervisor else 0.0
+            sync_delay_s = session.supervisor.sync_delay_s
             sent = [p.n_sent for p in session._ports]  # after close: every frame of the session
             readers = [net.notifier for net in session._networks]
             echoes = [r.traffic.echoes_dropped for r in session._receivers]
