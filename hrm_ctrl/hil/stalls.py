@@ -126,6 +126,39 @@ def overlapping(stalls: Sequence[Stall], lo_s: float, hi_s: float) -> list[Stall
     return [s for s in stalls if s.at_s - MARGIN_S <= hi_s and s.at_s + s.late_s >= lo_s]
 
 
+def shared(stalls: Sequence[Stall], over_s: float = 0.002) -> list[Stall]:
+    """The stalls longer than ``over_s`` that a stall of another CPU overlaps for more than
+    half their length: the machine paused those CPUs together (the whole VM descheduled),
+    so a thread standing by on another CPU would have been held too.
+
+    >>> s = [Stall(0, 1.000, 0.006), Stall(1, 1.001, 0.005), Stall(0, 2.0, 0.004)]
+    >>> [(x.cpu, x.at_s) for x in shared(s)]
+    [(0, 1.0), (1, 1.001)]
+    """
+    ordered = sorted(stalls, key=lambda s: s.at_s)
+    starts = [s.at_s for s in ordered]
+    longest = max((s.late_s for s in ordered), default=0.0)
+    out = []
+    for a in stalls:
+        if a.late_s <= over_s:
+            continue
+        end = a.at_s + a.late_s
+        # the stalls that may overlap a: starting before its end, not ending before it
+        lo = bisect.bisect_left(starts, a.at_s - longest)
+        hi = bisect.bisect_left(starts, end)
+        cover = max(
+            (
+                min(end, b.at_s + b.late_s) - max(a.at_s, b.at_s)
+                for b in ordered[lo:hi]
+                if b.cpu != a.cpu
+            ),
+            default=0.0,
+        )
+        if cover > a.late_s / 2:
+            out.append(a)
+    return out
+
+
 class StallProbe:
     """One probe process per CPU in ``cpus`` while the context lasts; :attr:`stalls` after.
 
@@ -188,7 +221,9 @@ class StallProbe:
         self.stalls.sort(key=lambda s: s.at_s)
 
     def summary(self, over_s: float = 0.002) -> dict[str, object]:
-        """Counts for a report: stalls in all, those longer than ``over_s``, the longest."""
+        """Counts for a report: stalls in all, those longer than ``over_s``, the longest,
+        and those of them another CPU stalled through too (:func:`shared`)."""
+        both = shared(self.stalls, over_s)
         return {
             "available": self.available,
             "refusal": self.refusal,
@@ -201,6 +236,10 @@ class StallProbe:
             f"over_{over_s * 1000:g}ms_by_cpu": {
                 str(c): sum(1 for s in self.stalls if s.cpu == c and s.late_s > over_s)
                 for c in self.cpus
+            },
+            # of those, the ones another CPU stalled through too (shared)
+            f"over_{over_s * 1000:g}ms_shared_by_cpu": {
+                str(c): sum(1 for s in both if s.cpu == c) for c in self.cpus
             },
         }
 

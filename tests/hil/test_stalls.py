@@ -12,7 +12,14 @@ import pytest
 from hypothesis import example, given
 from hypothesis import strategies as st
 
-from hrm_ctrl.hil.stalls import MARGIN_S, STALL_THRESHOLD_S, Stall, StallProbe, explained
+from hrm_ctrl.hil.stalls import (
+    MARGIN_S,
+    STALL_THRESHOLD_S,
+    Stall,
+    StallProbe,
+    explained,
+    shared,
+)
 
 T = 0.01
 
@@ -38,6 +45,33 @@ def test_explained_is_the_overlap_of_each_event_with_some_stall(
     events: list[tuple[float, float, int]], stalls: list[Stall]
 ) -> None:
     assert explained(events, stalls, T) == [e for e in events if overlaps(e, stalls)]
+
+
+def shared_by_definition(stalls: list[Stall], over_s: float) -> list[Stall]:
+    """``shared``'s definition, every pair compared."""
+    return [
+        a
+        for a in stalls
+        if a.late_s > over_s
+        and any(
+            min(a.at_s + a.late_s, b.at_s + b.late_s) - max(a.at_s, b.at_s) > a.late_s / 2
+            for b in stalls
+            if b.cpu != a.cpu
+        )
+    ]
+
+
+cpu_stall = st.builds(Stall, st.integers(0, 2), times, st.floats(0.0005, 0.05, allow_nan=False))
+
+
+@given(st.lists(cpu_stall, max_size=40))
+@example([Stall(0, 1.0, 0.006), Stall(1, 0.99, 0.0131)])  # the other began long before
+@example([Stall(0, 1.0, 0.006), Stall(0, 1.001, 0.006)])  # the same CPU: not shared
+@example([Stall(0, 1.0, 0.006), Stall(1, 1.003, 0.01)])  # exactly half: not shared
+def test_shared_stalls_are_those_another_cpu_stalled_through_for_over_half(
+    stalls: list[Stall],
+) -> None:
+    assert shared(stalls) == shared_by_definition(stalls, 0.002)
 
 
 def test_the_cycle_a_stall_late_cycle_held_back_is_the_stalls_too() -> None:
@@ -119,3 +153,5 @@ def test_probes_on_every_cpu_report_only_stalls_inside_their_run() -> None:
     ), [s for s in probe.stalls if not (t0 <= s.at_s <= t1 and s.late_s >= STALL_THRESHOLD_S)]
     summary = probe.summary()
     assert summary["cpus"] == cpus and summary["stalls"] == len(probe.stalls)
+    by_cpu, shared_by_cpu = summary["over_2ms_by_cpu"], summary["over_2ms_shared_by_cpu"]
+    assert all(0 <= shared_by_cpu[str(c)] <= by_cpu[str(c)] for c in cpus), summary
