@@ -553,6 +553,12 @@ class DriveSession:
                 + "; ".join(missing)
             )
         self.events.add("bootup", f"every node booted ({time.monotonic() - t_start:.3f} s)")
+        for before in self.monitor.drain():
+            # sent before the node's boot-up, so before its reset (e.g. the EMCYs of
+            # drives that lost the previous session's heartbeat): the reset cleared it
+            self.events.add(
+                "before_reset", before.text, cause=before.kind.value, motor=before.motor
+            )
         self._parallel(
             "configuration",
             lambda link: configure_drive(link, self._settings(link)),
@@ -607,7 +613,12 @@ class DriveSession:
         positions (counts).  A drive whose actual position is outside its limits, or
         that does not reach the state, fails the whole enable: every drive then gets a
         quick stop by SDO and NMT pre-operational (-> FAULT).  Refused, before anything is
-        sent, without a calibration unless ``allow_uncalibrated``."""
+        sent, without a calibration unless ``allow_uncalibrated``; refused (still READY,
+        nothing but statusword reads sent) when a stop cause came since the drives were
+        configured or a drive is in FAULT: a fault is reset only on purpose
+        (:meth:`reset_fault`).  A stop cause during the enable itself (an EMCY, a
+        watch's cause, :meth:`request_stop`) quick-stops every axis as soon as the
+        drives are enabled (-> STOPPED) and raises :class:`SafetyStopError`."""
         self._require_calibration("enable")
         self._require("enable", SessionState.READY)
         foreign = self._foreign_frames()
@@ -615,6 +626,8 @@ class DriveSession:
             text = f"enable refused: frames of another master since the reset: {foreign}"
             self.events.add("error", text)
             raise OtherMasterError(text)
+        self._refuse_enable_after_causes()
+        self.supervisor.clear_stop_request()  # a stop asked for from here on is honoured
         t_start = time.monotonic()
         ctl = self.control
         try:
@@ -640,13 +653,43 @@ class DriveSession:
         self.events.add(
             "enabled", f"every drive OPERATION_ENABLED in CSP ({self.bringup_s:.3f} s bring-up)"
         )
-        for stale in self.monitor.drain():
-            # Reported during bring-up (e.g. the EMCY of a fault that was reset); every
-            # drive has since shown OPERATION_ENABLED.
-            self.events.add("during_bringup", stale.text, cause=stale.kind.value, motor=stale.motor)
         self.supervisor.arm(actual)  # heartbeats supervised from here on, across streams
         self._set_state(SessionState.ENABLED)
+        # what was reported while the drives were being enabled is judged now, not at
+        # the next deadline: any cause quick-stops every axis at once
+        self.supervisor.wake(self.supervisor.clock())
+        self._raise_if_stopped()
         return actual
+
+    def _refuse_enable_after_causes(self) -> None:
+        """Before :meth:`enable` sends anything: refuse (still READY) when a stop cause
+        was reported since the drives were configured (an EMCY, a bad frame, a watch's
+        cause: :meth:`reset_fault` clears them) or a drive is in FAULT (read by SDO)."""
+        earlier = self.monitor.drain()
+        if earlier:
+            more = f" (+{len(earlier) - 1} more)" if len(earlier) > 1 else ""
+            text = (
+                f"enable refused: {earlier[0].text}{more}, reported since the drives were "
+                "configured (reset-fault clears it)"
+            )
+            for cause in earlier:
+                self.events.add("stop_cause", cause.text, cause=cause.kind.value, motor=cause.motor)
+            self.events.add("error", text)
+            raise SessionStateError(text)
+        faulty = (cia402.State402.FAULT, cia402.State402.FAULT_REACTION_ACTIVE)
+        states = self._parallel("state check", read_state, self._budget_s(1))
+        in_fault = [
+            f"{link.label} (statusword 0x{sw:04X})"
+            for link, (state, sw) in zip(self._links(), states, strict=True)
+            if state in faulty
+        ]
+        if in_fault:
+            text = (
+                f"enable refused: {', '.join(in_fault)} in FAULT (a fault is reset only on "
+                "purpose: reset-fault)"
+            )
+            self.events.add("error", text)
+            raise SessionStateError(text)
 
     def bring_up(self) -> np.ndarray:
         """:meth:`configure` then :meth:`enable`; return the actual positions (counts).

@@ -360,7 +360,7 @@ class Supervisor:
             self.targets = np.asarray(targets, dtype=np.int64).copy()
             if self.monitor.hb_armed_at is None:
                 self.monitor.hb_armed_at = self.clock()
-            self._stop_request.clear()
+            # a stop asked for since :meth:`clear_stop_request` (during the enable) stands
             self.monitor.armed = True
             self.mode = Mode.ARMED
 
@@ -374,6 +374,10 @@ class Supervisor:
             if self.mode is Mode.ARMED:
                 self.mode = Mode.HEARTBEAT
             self.monitor.armed = False
+
+    def clear_stop_request(self) -> None:
+        """Forget a stop asked for while no drive was enabled (before an enable)."""
+        self._stop_request.clear()
 
     def request_stop(
         self, kind: StopKind = StopKind.OPERATOR, text: str = "stop requested"

@@ -7,6 +7,7 @@ import json
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -183,3 +184,85 @@ def test_the_run_record_names_the_calibration(
     assert record["calibration"] == UNCALIBRATED == "uncalibrated (override)"
     with pytest.raises(TypeError, match="CalibrationRef"):
         rig.open_box(calibration={"version": 1})
+
+
+def operation_enabled(rig: Rig) -> list[str]:
+    """The simulated drives in OPERATION_ENABLED."""
+    return [
+        m
+        for m, sw in rig.sim.statuswords().items()
+        if cia402.decode_state(sw) is cia402.State402.OPERATION_ENABLED
+    ]
+
+
+def quick_stop_rpdos(rig: Rig) -> int:
+    """RPDOs on the wire with the quick-stop controlword."""
+    return sum(
+        1
+        for sn in rig.sniffers
+        for m in sn.snapshot()
+        if 0x200 < m.arbitration_id <= 0x27F
+        and int.from_bytes(bytes(m.data[:2]), "little") == cia402.CW_QUICK_STOP
+    )
+
+
+def test_a_fault_while_ready_refuses_enable_until_the_fault_is_reset(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """A drive that faults after the configuration (its EMCY queued, the drive in FAULT):
+    ``enable`` refuses, naming it, before a drive is enabled (no fault reset behind the
+    operator's back); ``reset_fault`` clears it and ``enable`` then works."""
+    rig = rig_factory()
+    box = rig.open_box()
+    box.configure()
+    rig.sim.fault_drive("j01r0")
+    assert wait_until(lambda: bool(box.monitor.emergencies))
+    with pytest.raises(SessionStateError, match=r"enable refused: .*j01r0.*EMCY"):
+        box.enable()
+    assert box.state is SessionState.READY and operation_enabled(rig) == []
+    # the EMCY taken, the drive itself is still in FAULT: refused on its statusword
+    with pytest.raises(SessionStateError, match=r"enable refused: .*j01r0.* in FAULT"):
+        box.enable()
+    assert box.state is SessionState.READY and operation_enabled(rig) == []
+    assert box.reset_fault() == [next(lb for lb in box.monitor.labels if "j01r0" in lb)]
+    box.enable()
+    assert box.state is SessionState.ENABLED and len(operation_enabled(rig)) == box.monitor.n
+    box.finish()
+
+
+@pytest.mark.parametrize("what", ["emcy", "operator"])
+def test_a_stop_cause_during_the_enable_stops_every_axis_once_enabled(
+    rig_factory: Callable[..., Rig], monkeypatch: pytest.MonkeyPatch, what: str
+) -> None:
+    """A drive that faults right after its own enable (its EMCY arriving while the others
+    are still being enabled), or an operator's stop asked for meanwhile: as soon as every
+    drive is enabled the supervisor quick-stops them all and ``enable`` raises naming the
+    cause (before, the EMCY was filed as a bring-up event and the stop request cleared)."""
+    import drivers.session as session_mod
+    from drivers.session import SafetyStopError
+
+    rig = rig_factory()
+    box = rig.open_box()
+    box.configure()
+    real = session_mod.enable_operation
+    first = rig.limits.motor_ids[0]
+
+    def enable_then_cause(link: Any, *args: Any, **kw: Any) -> int:
+        actual = real(link, *args, **kw)
+        if link.motor == first:
+            if what == "emcy":
+                rig.sim.fault_drive(first)
+            else:
+                box.request_stop()
+            time.sleep(0.2)  # the other drives are being enabled meanwhile
+        return actual
+
+    monkeypatch.setattr(session_mod, "enable_operation", enable_then_cause)
+    with pytest.raises(SafetyStopError, match="EMCY" if what == "emcy" else "stop requested"):
+        box.enable()
+    assert box.state is SessionState.STOPPED
+    assert quick_stop_rpdos(rig) >= box.monitor.n  # every node got the quick stop
+    assert wait_until(lambda: operation_enabled(rig) == [])
+    if what == "emcy":  # the faulted drive stays in FAULT until reset on purpose
+        box.reset_fault()
+    box.finish()
