@@ -373,6 +373,10 @@ class BusReceiver(can.Listener):
                 target = self.node_labels[data[1]]
         elif nid in self.node_labels:
             target = self.node_labels[nid]
+        elif nid == self.host_node_id:
+            # the heartbeat our drives watch (0x1016): another sender keeps them going
+            # when this host dies
+            target = f"every node (the host heartbeat, node {nid})"
         else:
             return  # another master talking to a node we do not drive
         self.report(

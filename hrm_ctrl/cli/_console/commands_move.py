@@ -67,6 +67,9 @@ def _jog(ctx: ConsoleContext, args: list[str]) -> None:
             speed_cap_counts_per_s=JOG_SPEED_FRACTION * v,
         )  # fmt: skip
         what = f"jog {joint} {jj.axis.value} {deg:+g} deg"
+        if len(rows) == 0:  # rounds to no count of any rope: nothing to move
+            ctx.out(f"{what}: nothing to move (less than one encoder count on every rope)")
+            return
         check_joint_limits(act, rows, what)
         body = np.vstack([held[None, :], rows])
         source = CountsSource(act, body, period_s, name="jog", hold_s=JOG_HOLD_S,

@@ -71,6 +71,23 @@ def test_a_second_master_streaming_to_our_node_stops_every_axis(
     assert any(t["foreign_frames"].get("0x201") for t in record["bus_traffic"])
 
 
+def test_another_sender_of_the_host_heartbeat_stops_every_axis(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """A heartbeat on the host's own COB-ID (0x77F) that this process did not send: the
+    drives' heartbeat consumer (0x1016) would take it for this host's, so it is another
+    master, a stop cause while the drives are enabled (before: counted only)."""
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    host_hb = cia301.make_heartbeat(box.control.host_node_id, cia301.NMT_STATE_OPERATIONAL)
+    send_from_outside(rig, 1, host_hb)
+    assert wait_until(lambda: box.state is SessionState.STOPPED)
+    assert [x.kind for x in box.idle_causes][:1] == [StopKind.FOREIGN]
+    assert "0x77F" in box.idle_causes[0].text and "host heartbeat" in box.idle_causes[0].text
+    box.finish()
+
+
 def test_a_second_host_does_not_reset_drives_another_master_operates(
     rig_factory: Callable[..., Rig],
 ) -> None:

@@ -278,3 +278,25 @@ def test_connect_refuses_a_box_another_master_operates(make_ctx, tmp_path) -> No
         close_session(other)
     assert ctx.session.state.name == "ENABLED", ctx.session.idle_causes  # not reset
     assert states(ctx) == {ENABLED}
+
+
+@pytest.mark.parametrize("line", ["jog 5 theta 1e-300", "jog 5 alpha -1e-7"])
+def test_a_jog_of_less_than_a_count_moves_nothing_and_says_so(make_ctx, line: str) -> None:
+    """A jog that rounds to no encoder count on any rope (before: a ValueError traceback
+    from the joint check of an empty table, ending the console)."""
+    ctx = make_ctx()
+    run(ctx, "connect", "enable")
+    held = ctx.session.supervisor.targets.copy()
+    run(ctx, line)
+    assert np.array_equal(ctx.session.supervisor.targets, held)
+    assert ctx.session.state.name == "ENABLED"
+    assert "nothing to move" in ctx.lines[-1], ctx.lines[-1]
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_a_jog_of_no_number_is_refused(make_ctx, value: str) -> None:
+    ctx = make_ctx()
+    run(ctx, "connect", "enable")
+    with pytest.raises(ConsoleError, match=r"^test:1: jog: "):
+        run(ctx, f"jog 5 theta {value}")
+    assert ctx.session.results == [] and ctx.session.state.name == "ENABLED"
