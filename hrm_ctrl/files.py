@@ -34,9 +34,11 @@ ValueError: p.json: line 1: integer 100000000000...(401 digits) is too large for
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
+import stat
 import sys
 import tempfile
 import tomllib
@@ -59,15 +61,24 @@ def read_text_file(
     *,
     max_bytes: int = MAX_TEXT_BYTES,
 ) -> str:
-    """The UTF-8 text of ``path`` (newlines as ``\\n``); a missing or unreadable file, or one
-    of more than ``max_bytes`` bytes (not read past the bound), raises ``error`` with one
-    line naming ``source`` (default: the path), e.g. ``p.csv: path file not found``."""
+    """The UTF-8 text of ``path`` (newlines as ``\\n``); a missing or unreadable file, one
+    that is not a regular file (a FIFO would block the reader until some writer came, a
+    device may never end) or one of more than ``max_bytes`` bytes (not read past the
+    bound) raises ``error`` with one line naming ``source`` (default: the path), e.g.
+    ``p.csv: path file not found``."""
     name = str(path) if source is None else source
     try:
-        with open(path, "rb") as f:
-            raw = f.read(max_bytes + 1)
+        # non-blocking: opening a FIFO for reading would wait for a writer
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
         raise error(f"{name}: {what} not found") from None
+    except OSError as exc:
+        raise error(f"{name}: cannot read {what} ({exc})") from None
+    try:
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise error(f"{name}: {what} is not a regular file")
+            raw = f.read(max_bytes + 1)
     except OSError as exc:
         raise error(f"{name}: cannot read {what} ({exc})") from None
     if len(raw) > max_bytes:
@@ -189,8 +200,17 @@ def write_atomic(path: str | Path, data: str | bytes, *, make_parents: bool = Tr
     """Write ``data`` to ``path`` through a temporary file in the same folder and
     ``os.replace``; flushed and fsynced, with the usual file mode (0666 less the
     umask).  The folder is created if missing unless ``make_parents`` is false.
-    Raises ``OSError`` (no partial file is left behind)."""
+    Raises ``OSError`` (no partial file is left behind), also when ``path`` exists and
+    is not a regular file (a device, a FIFO, a socket, a folder: never replaced)."""
     p = Path(path)
+    try:
+        mode = os.stat(p).st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError:
+        mode = None  # (a dangling link, a folder we cannot look into): the write says why
+    if mode is not None and not stat.S_ISREG(mode):
+        raise OSError(errno.EEXIST, "exists and is not a regular file", str(p))
     if make_parents:
         p.parent.mkdir(parents=True, exist_ok=True)
     raw = data.encode("utf-8") if isinstance(data, str) else data

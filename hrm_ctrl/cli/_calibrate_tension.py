@@ -161,7 +161,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     store = CalibrationStore(calibrations_folder(args.calibrations))
     active_file = store.path_of(store.active()) if store.active() is not None else None
     refuse_overwriting_inputs(  # before anything is read or written
-        [Output("--out", args.out), Output("--log-dir", args.log_dir)],
+        [Output("--out", args.out), Output("--log-dir", args.log_dir, folder=True)],
         [
             robot_input(args.robot),
             Input("active calibration", active_file),

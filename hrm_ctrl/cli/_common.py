@@ -45,10 +45,13 @@ def add_robot_argument(parser: argparse.ArgumentParser) -> None:
 
 
 class Input(NamedTuple):
-    """A file a command reads: what it is (``plan file``) and its path (None: not read)."""
+    """A file a command reads: what it is (``plan file``) and its path (None: not read);
+    with ``folder``, a folder whose every file is read (the calibration store): no
+    output may be written anywhere in it."""
 
     what: str
     path: Path | str | None
+    folder: bool = False
 
 
 class Output(NamedTuple):
@@ -58,6 +61,7 @@ class Output(NamedTuple):
     option: str
     path: Path | str | None
     members: Sequence[str] = ()
+    folder: bool = False  # the path is a folder (``--log-dir``; one with members is too)
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -72,15 +76,45 @@ def _same_file(a: Path, b: Path) -> bool:
         return os.path.abspath(a) == os.path.abspath(b)
 
 
+def _special(path: Path) -> bool:
+    """``path`` exists and is neither a regular file nor a folder (links followed)."""
+    return os.path.lexists(path) and not (os.path.isfile(path) or os.path.isdir(path))
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    """``path`` is ``folder`` or lies under it (links followed where they exist)."""
+    try:
+        p, f = path.resolve(), folder.resolve()
+    except (OSError, RuntimeError):  # a symbolic link loop
+        p, f = Path(os.path.abspath(path)), Path(os.path.abspath(folder))
+    return p == f or f in p.parents
+
+
 def refuse_overwriting_inputs(outputs: Iterable[Output], inputs: Iterable[Input]) -> None:
     """Raise :class:`OverwriteInputError` (one line naming both) when an output, or a file
-    a directory output is written with, is one of the ``inputs``; entries with no path
-    are skipped.  Reads nothing but the paths' metadata."""
-    read = [(i.what, Path(i.path)) for i in inputs if i.path is not None]
+    a directory output is written with, is one of the ``inputs`` or inside an input
+    folder, or exists and is not a regular file (a device or a FIFO would be replaced by
+    the atomic write); entries with no path are skipped.  Reads nothing but the paths'
+    metadata."""
+    read = [(i.what, Path(i.path)) for i in inputs if i.path is not None and not i.folder]
+    folders = [(i.what, Path(i.path)) for i in inputs if i.path is not None and i.folder]
     for out in outputs:
         if out.path is None:
             continue
         base = Path(out.path)
+        if out.members or out.folder:  # a member may be a folder, not a device or FIFO
+            odd = [t for t in (base / m for m in out.members) if _special(t)]
+        else:
+            odd = [base] if os.path.lexists(base) and not os.path.isfile(base) else []
+        for target in odd:
+            raise OverwriteInputError(
+                f"{out.option} {base}: {target} exists and is not a regular file"
+            )
+        for what, folder in folders:
+            if _inside(base, folder):
+                raise OverwriteInputError(
+                    f"{out.option} {base} is inside the {what} being read ({folder})"
+                )
         for target in (base, *(base / m for m in out.members)):
             for what, src in read:
                 if not _same_file(target, src):
@@ -206,6 +240,16 @@ def add_calibration_arguments(
     )
     if uncalibrated_help is not None:
         parser.add_argument("--uncalibrated", action="store_true", help=uncalibrated_help)
+
+
+def calibrations_input(args: argparse.Namespace) -> Input:
+    """The calibration store a command reads (``--calibrations``), as an input folder;
+    none with ``--uncalibrated``."""
+    if getattr(args, "uncalibrated", False):
+        return Input("calibration store", None, folder=True)
+    return Input(
+        "calibration store", calibrations_folder(getattr(args, "calibrations", None)), True
+    )
 
 
 def calibrations_folder(given: Path | str | None) -> Path:

@@ -407,7 +407,7 @@ def run_kinematic(args: argparse.Namespace) -> int:
     outputs = [Output("--out", args.out)]
     if args.collect is not None:
         inputs += [config_input(args.config), *shipped_inputs(eds=True)]
-        outputs.append(Output("--log-dir", args.log_dir))
+        outputs.append(Output("--log-dir", args.log_dir, folder=True))
     refuse_overwriting_inputs(outputs, inputs)  # before anything is read or written
     description = _description(args)
     base, active, note = starting_point(store, description)

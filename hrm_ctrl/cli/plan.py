@@ -16,6 +16,7 @@ from hrm_ctrl.cli._common import (
     Output,
     add_calibration_arguments,
     add_robot_argument,
+    calibrations_input,
     load_arm,
     refuse_overwriting_inputs,
     robot_input,
@@ -278,6 +279,7 @@ def refuse_outputs_over_inputs(args: argparse.Namespace) -> None:
             Input("scene file", args.scene),
             Input("point cloud", args.scan),
             robot_input(args.robot),
+            calibrations_input(args),
             *shipped_inputs(plan_schema=True),
         ],
     )

@@ -30,6 +30,7 @@ from hrm_ctrl.cli._common import (
     Output,
     add_calibration_arguments,
     add_robot_argument,
+    calibrations_input,
     config_input,
     load_arm,
     refuse_overwriting_inputs,
@@ -219,6 +220,7 @@ def run(args: argparse.Namespace) -> int:
             Input("plan file", args.plan),
             robot_input(args.robot),
             config_input(args.config),
+            calibrations_input(args),
             *shipped_inputs(plan_schema=True),
         ],
     )

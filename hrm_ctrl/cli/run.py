@@ -240,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.sim and (args.perturb is not None or args.truth is not None):
         raise DriverError("--perturb and --truth describe the simulated arm: they go with --sim")
     refuse_overwriting_inputs(  # before anything is read or written
-        [Output("--log-dir", args.log_dir)],
+        [Output("--log-dir", args.log_dir, folder=True)],
         [
             Input("plan file", args.plan),
             Input("truth file", args.truth),

@@ -150,7 +150,7 @@ def _live(args: argparse.Namespace) -> int:
     from hrm_ctrl.ropes.actuation import load_actuation
 
     refuse_overwriting_inputs(
-        [Output("--log-dir", args.log_dir)],
+        [Output("--log-dir", args.log_dir, folder=True)],
         [
             Input("plan file", args.plan),
             robot_input(args.robot),

@@ -485,10 +485,79 @@ def test_a_path_file_that_would_size_a_huge_plan_is_one_line(
     ],
     ids=["path", "robot", "box", "plan"],
 )
-def test_an_endless_input_is_read_up_to_its_bound(
+def test_an_endless_input_is_refused_unread(
     tmp_path: Path, capsys: pytest.CaptureFixture, argv: list[str]
 ) -> None:
-    refused(capsys, tmp_path, argv, "/dev/zero: ", "bytes it may have")
+    refused(capsys, tmp_path, argv, "/dev/zero: ", "is not a regular file")
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["plan", "--path", "FIFO"],
+        ["urdf", "--robot", "FIFO"],
+        ["busload", "--config", "FIFO"],
+        ["ropes", "FIFO"],
+        ["calibrate", "kinematic", "FIFO"],
+    ],
+    ids=["path", "robot", "box", "plan", "poses"],
+)
+def test_a_fifo_as_input_is_refused_without_waiting_for_a_writer(
+    tmp_path: Path, capsys: pytest.CaptureFixture, argv: list[str]
+) -> None:
+    """Opening a FIFO for reading waits for a writer: the command would hang (in the
+    console, with the drives enabled); it is refused as not a regular file instead."""
+    fifo = tmp_path / "in.fifo"
+    os.mkfifo(fifo)
+    argv = [str(fifo) if a == "FIFO" else a for a in argv]
+    refused(capsys, tmp_path, argv, f"{fifo}: ", "is not a regular file")
+
+
+@pytest.mark.parametrize("kind", ["fifo", "folder"])
+@pytest.mark.parametrize(
+    "argv",
+    [["plan", "--path", "PATH", "--out", "OUT"], ["urdf", "--out", "OUT"]],
+    ids=["plan", "urdf"],
+)
+def test_an_output_that_is_no_regular_file_is_never_replaced(
+    tmp_path: Path, capsys: pytest.CaptureFixture, argv: list[str], kind: str
+) -> None:
+    """``--out`` naming a FIFO or a device (``/dev/null``): the atomic write would replace
+    it by a regular file; refused before anything is read."""
+    out = tmp_path / "out"
+    if kind == "fifo":
+        os.mkfifo(out)
+    else:
+        out.mkdir()
+    (tmp_path / "path.csv").write_text(PATH_CSV)
+    subs = {"PATH": str(tmp_path / "path.csv"), "OUT": str(out)}
+    argv = [subs.get(a, a) for a in argv]
+    refused(capsys, tmp_path, argv, "exists and is not a regular file")
+
+
+@pytest.mark.skipif(not Path("/dev/null").is_char_device(), reason="no /dev/null")
+def test_dev_null_as_output_stays_a_device(capsys: pytest.CaptureFixture) -> None:
+    one_error(capsys, "urdf", main(["urdf", "--out", "/dev/null"]))
+    assert Path("/dev/null").is_char_device()
+
+
+def test_an_output_inside_the_calibration_store_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """The store's files are read by ``plan`` and ``ropes``: ``--out`` may not name one of
+    them (nor any other path in the store: only ``hrm calibrate`` writes there)."""
+    store = tmp_path / "cal"
+    store.mkdir()
+    (store / "active").write_text("v0001\n")
+    (tmp_path / "path.csv").write_text(PATH_CSV)
+    plan = tmp_path / "plan.json"
+    write_plan(plan, small_plan())
+    for argv in (
+        ["plan", "--path", str(tmp_path / "path.csv"), "--calibrations", str(store),
+         "--out", str(store / "active")],
+        ["ropes", str(plan), "--calibrations", str(store), "--out", str(store / "x.csv")],
+    ):  # fmt: skip
+        refused(capsys, tmp_path, argv, "inside the calibration store being read")
 
 
 def test_a_tension_rate_whose_period_no_wait_takes_is_one_line(

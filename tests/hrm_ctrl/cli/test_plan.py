@@ -194,7 +194,7 @@ def test_unwritable_out_is_one_line_and_leaves_no_figures(tmp_path: Path, capsys
         capsys,
     )
     err = "".join(x for x in err.splitlines(True) if "warning: " not in x)  # the collision's
-    assert rc == 2 and "cannot write plan file" in err and err.count("\n") == 1
+    assert rc == 2 and "exists and is not a regular file" in err and err.count("\n") == 1
     assert not list((tmp_path / "fig").glob("*.png"))
 
 
