@@ -38,6 +38,7 @@ from drivers.safety.limits import (
     check_joint_limits,
     first_too_hard,
     jerk_limits,
+    maps_joints,
 )
 from hrm_ctrl.errors import HrmError
 
@@ -605,6 +606,14 @@ class CountsSource(TableSource):
             raise SetpointError(
                 f"{self.name}: lead-in to {_row_name(self.label, 0)}: {exc}"
             ) from None
+        # the lead-in and the stop are straight in counts: between two poses within the
+        # joint limits such a line can leave them (ropes are not linear in the angles)
+        if maps_joints(self.limits):
+            last = _row_name(self.label, body.shape[0] - 1)
+            parts = ((lead, f"lead-in to {_row_name(self.label, 0)}"), (stop, f"stop after {last}"))
+            for part, what in parts:
+                if part.shape[0]:
+                    check_joint_limits(self.limits, part, f"{self.name}: {what}")
         end = stop[-1:] if stop.shape[0] else body[-1:]
         hold = np.repeat(end, max(0, round(self.hold_s / period_s)), axis=0)
         table = np.concatenate([lead, body, stop, hold], axis=0)

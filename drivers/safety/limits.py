@@ -40,6 +40,14 @@ def check_duration(what: str, duration_s: float, period_s: float) -> None:
         )
 
 
+def maps_joints(actuation: Any) -> bool:
+    """The rope layer (or the full one of a motor subset) maps counts to joint angles."""
+    full = getattr(actuation, "full", actuation)
+    return hasattr(actuation, "angles_from_counts") or (
+        hasattr(full, "angles_from_counts") and hasattr(actuation, "columns")
+    )
+
+
 def check_joint_limits(actuation: Any, counts: np.ndarray, what: str) -> None:
     """Map a (rows, motors) table of counts through the rope layer's
     ``angles_from_counts`` and refuse (:class:`SetpointError`, one line) when the joint

@@ -78,8 +78,10 @@ def test_counts_source_lead_in_from_elsewhere(actuation: Actuation) -> None:
     cycles accelerate within every motor's limit (the old linear ramp jumped to half the
     speed limit in one cycle, 2e7 counts/s^2)."""
     src = plan_source(actuation)
-    start = np.full(actuation.n_motors, 20_000, dtype=np.int64)
-    start[::3] = -60_000
+    n_j = actuation.robot.n_joints  # a pose 8 deg off on every angle (ropes can hold it)
+    start = np.asarray(
+        actuation.counts_from_angles(np.full(n_j, 0.14), np.full(n_j, -0.14)), dtype=np.int64
+    )
     src.start(start, 0.01)
     assert src.n_lead_in >= 5
     actuation.check_counts(src.table, previous=start, dt_s=0.01)
@@ -295,3 +297,28 @@ def test_sources_longer_than_an_hour_are_refused(actuation: Actuation) -> None:
     with pytest.raises(SetpointError, match=r"^hold: .*exceeds the longest run"):
         HoldSource(n_cycles=10**12).precheck(0.01)
     HoldSource(n_cycles=None).precheck(0.01)  # "until stopped" is one hour
+
+
+def test_a_lead_in_that_would_leave_the_joint_limits_is_refused(actuation: Actuation) -> None:
+    """Both ends within the joint limits (joint 6 at alpha = theta = +59 deg, then at -59
+    deg), the straight line in counts between them is not: the lead-in is refused naming
+    it, before anything is sent (before: its setpoints reached 60.4 deg on the wire)."""
+    import math
+
+    n_j = actuation.robot.n_joints
+    a, b = np.zeros(n_j), np.zeros(n_j)
+    a[5] = math.radians(59.0)
+    b[5] = math.radians(-59.0)
+    start = np.asarray(actuation.counts_from_angles(a, a), dtype=np.int64)
+    end = np.asarray(actuation.counts_from_angles(b, b), dtype=np.int64)
+    src = CountsSource(actuation, np.repeat(end[None, :], 10, axis=0), 0.01, name="plan")
+    with pytest.raises(SetpointError, match=r"^plan: lead-in to .*leaves the joint limits"):
+        src.start(start, 0.01)
+    # the same move within the limits is played
+    a[5] = b[5] = math.radians(20.0)
+    b[5] = math.radians(-20.0)
+    near = np.asarray(actuation.counts_from_angles(a, a), dtype=np.int64)
+    far = np.asarray(actuation.counts_from_angles(b, b), dtype=np.int64)
+    ok = CountsSource(actuation, np.repeat(far[None, :], 10, axis=0), 0.01, name="plan")
+    ok.start(near, 0.01)
+    assert ok.n_lead_in > 0
