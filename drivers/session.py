@@ -359,12 +359,17 @@ class DriveSession:
         """From the supervisor's thread: every axis was quick-stopped."""
         if not stop.while_streaming:
             self.idle_causes = list(stop.causes) + list(stop.failed)
-        if stop.failed:
-            self.stop_error = "quick stop{} failed: {}".format(
-                "" if stop.while_streaming else " while idle",
-                "; ".join(x.text for x in stop.failed),
+        problems = [x.text for x in stop.failed]
+        if stop.unconfirmed:  # still enabled for all we know: not a stop to recover from
+            problems.append(
+                f"not confirmed by {', '.join(stop.unconfirmed)} (sent NMT pre-operational; "
+                "bring the drives up again)"
             )
-        self._set_state(SessionState.FAULT if stop.failed else SessionState.STOPPED)
+        if problems:
+            self.stop_error = "quick stop{} failed: {}".format(
+                "" if stop.while_streaming else " while idle", "; ".join(problems)
+            )
+        self._set_state(SessionState.FAULT if problems else SessionState.STOPPED)
 
     # ------------------------------------------------------------------ I/O setup
     def _open(self, given: Sequence[can.BusABC] | None) -> None:

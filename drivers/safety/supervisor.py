@@ -109,6 +109,9 @@ class StopRecord:
     #: in cycles, it does not depend on how busy the machine is: a thread held off the CPU
     #: sends no SYNC either
     syncs_after_detection: int = 0
+    #: the nodes whose feedback never confirmed the quick stop (their labels); each was
+    #: sent NMT *enter pre-operational* when the supervisor gave up waiting
+    unconfirmed: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -767,13 +770,34 @@ class Supervisor:
             stop.failed += self.send_controlword(cia402.CW_QUICK_STOP, self._stop_targets())
             return
         stop.confirmed = confirmed
-        self.events.add(
-            "quick_stop_confirmed" if confirmed else "quick_stop_unconfirmed",
-            "every node left OPERATION_ENABLED"
-            if confirmed
-            else "some nodes did not confirm the quick stop by TPDO",
-        )
+        if confirmed:
+            self.events.add("quick_stop_confirmed", "every node left OPERATION_ENABLED")
+        else:
+            stuck = np.flatnonzero(~(fresh & (states != int(cia402.State402.OPERATION_ENABLED))))
+            stop.unconfirmed = [mon.labels[i] for i in stuck.tolist()]
+            self.events.add(
+                "quick_stop_unconfirmed",
+                f"{len(stuck)} node(s) did not confirm the quick stop by TPDO within "
+                f"{STOP_CONFIRM_CYCLES} periods: {', '.join(stop.unconfirmed)}; NMT enter "
+                "pre-operational sent to each (no PDO is processed there any more)",
+            )
+            stop.failed += self._pre_operational(set(stuck.tolist()))
         self._finish_stop(stop)
+
+    def _pre_operational(self, slots: set[int]) -> list[StopCause]:
+        """NMT *enter pre-operational* to the nodes in the global ``slots``: a drive that
+        did not confirm a quick stop leaves NMT operational (CiA 402: its 0x6007 reaction
+        to the lost connection); send failures are returned."""
+        failed: list[StopCause] = []
+        for layout in self.layouts:
+            for slot, node in zip(layout.index.tolist(), layout.node_ids.tolist(), strict=True):
+                if slot not in slots:
+                    continue
+                try:
+                    layout.port.send(cia301.make_nmt(cia301.NMT_ENTER_PRE_OPERATIONAL, node))
+                except BusSendError as exc:
+                    failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
+        return failed
 
     def _finish_stop(self, stop: StopRecord) -> None:
         """The stop is over: record it, end the stream with its result, tell the owner."""

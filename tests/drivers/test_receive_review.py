@@ -236,8 +236,9 @@ def test_own_echoes_are_dropped_and_another_masters_frames_stop_as_before() -> N
     for m in foreign:
         rx.on_message_received(m)
     texts = [t for _k, t in reports]
-    assert [k for k, _t in reports] == [StopKind.FOREIGN] * 3, texts
+    assert [k for k, _t in reports] == [StopKind.FOREIGN] * 4, texts
     assert "RPDO1 0x201" in texts[0] and "SYNC 0x080" in texts[1] and "m1 (node 2)" in texts[2]
+    assert "0x77F" in texts[3] and "host heartbeat" in texts[3]  # the one our drives watch
     host_hb = cia301.COB_NMT_ERROR_CONTROL + cia301.HOST_HEARTBEAT_NODE_ID
     assert rx.traffic.foreign == {0x201: 1, 0x080: 1, 0x000: 1, host_hb: 1}
     assert rx.traffic.other_master() is not None and mon.n_tpdo.tolist() == [0, 0]

@@ -266,3 +266,34 @@ def test_a_stop_cause_during_the_enable_stops_every_axis_once_enabled(
     if what == "emcy":  # the faulted drive stays in FAULT until reset on purpose
         box.reset_fault()
     box.finish()
+
+
+def test_a_quick_stop_a_drive_never_confirms_leaves_the_session_in_fault(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """One drive's RPDOs are lost: it never gets the quick stop, so its feedback never
+    confirms it.  After the supervisor gives up the session is FAULT (not STOPPED, as if
+    every drive had stopped), the error names the drive, and that drive was sent NMT
+    enter pre-operational (it no longer takes PDOs; CiA 402 drives react to leaving
+    operational)."""
+    from drivers.session import SafetyStopError
+
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    bus = rig.config.buses[0]
+    motor, node = next(iter(bus.nodes.items()))
+    rig.sim.drop_frames(bus.name, lambda m: m.arbitration_id == 0x200 + node, count=None)
+    try:
+        box.request_stop()
+        with pytest.raises(SafetyStopError):
+            box.stream(HoldSource(n_cycles=50))
+        assert wait_until(lambda: box.state is SessionState.FAULT)
+        assert box.stop_error is not None and motor in box.stop_error
+        assert "not confirmed" in box.stop_error
+        nmt = [
+            bytes(m.data) for m in rig.sniffers[0].snapshot() if m.arbitration_id == cia301.COB_NMT
+        ]
+        assert bytes([cia301.NMT_ENTER_PRE_OPERATIONAL, node]) in nmt
+    finally:
+        rig.sim.clear_frame_faults()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drivers.cycle import BusLayout, EventLog
-from drivers.protocol import cia402
+from drivers.protocol import cia301, cia402
 from drivers.protocol.batch import to_messages
 from drivers.safety.causes import StopKind
 from drivers.safety.monitor import NodeMonitor
@@ -261,6 +261,10 @@ def test_quick_stop_keeps_repeating_until_confirmed_then_gives_up() -> None:
     assert stops[0].causes[0].kind is StopKind.OPERATOR
     assert len(quick_stop_rpdos(port, 0.0)) == 2 * 10  # STOP_CONFIRM_CYCLES times, per node
     assert cia402.CW_QUICK_STOP == 0x0002
+    # then every node that did not confirm is sent NMT enter pre-operational, named
+    assert stops[0].unconfirmed == ["m0", "m1"]
+    nmt = [bytes(m.data) for _ts, m in port.sent if m.arbitration_id == cia301.COB_NMT]
+    assert nmt == [bytes([cia301.NMT_ENTER_PRE_OPERATIONAL, n]) for n in (1, 2)]
 
 
 def _stopped_stream(detect_late_by_periods: float | None) -> Any:
