@@ -23,7 +23,11 @@ speed of the last two applied targets each motor slows down by its acceleration 
 every period (``floor(a T**2)`` counts per period, at least one), beginning with the
 very first quick-stop RPDO, and holds once at rest (clipped to the position limits).
 The drives decelerate on their own in quick stop (0x605A, 0x6085); the targets they get
-meanwhile stay within every motor's speed and acceleration limit, as the CAN log shows.
+meanwhile stay within every motor's speed and acceleration limit per SYNC, as the CAN log
+shows.  A stop found between deadlines goes out at once, so its first SYNC may follow the
+stream's last by less than a period; its next SYNC waits until at least
+``STOP_SYNC_MIN_SPACING`` periods after it (a deadline sooner than that is skipped), so
+the ramp's steps also come a period apart on the wire.
 A rope layer without acceleration limits (a test double) gets the last targets held.
 
 Any stop cause, found at a deadline or reported between deadlines by a receive
@@ -78,6 +82,8 @@ THREAD_JOIN_TIMEOUT_S = 5.0
 #: a deadline reached this late: the buses are read (without waiting) before the cycle
 DRAIN_LATE_S = 0.0005
 LOG_KICK_S = 0.08  # how often a stream cues the CAN logs' writers (< TrafficLog.FLUSH_S)
+#: a quick stop's SYNCs come at least this many periods apart (its ramp steps a period each)
+STOP_SYNC_MIN_SPACING = 0.95
 
 
 class SupervisorModeError(DriverError):
@@ -198,6 +204,7 @@ class Supervisor:
         self._ramp_pos: np.ndarray | None = None
         self._ramp_vel: np.ndarray | None = None
         self._rpdos_sent_at = -math.inf  # clock() when the last RPDO burst was handed over
+        self._last_sync_at = -math.inf  # clock() when the last SYNC was handed over
         self._recent_syncs: collections.deque[float] = collections.deque(maxlen=RECENT_SYNCS)
         self._sync = from_messages([cia301.make_sync()])  # the SYNC as a one-frame batch
         # the CAN logs of the buses, kicked every LOG_KICK_S while streaming
@@ -604,6 +611,7 @@ class Supervisor:
                 layout.port.send_batch(self._sync)
             except BusSendError as exc:
                 failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
+        self._last_sync_at = self.clock()
         return failed
 
     def send_controlword(self, controlword: int, targets: np.ndarray) -> list[StopCause]:
@@ -765,6 +773,10 @@ class Supervisor:
         fresh = mon.rx_seq >= self.seq
         states = cia402.decode_states(mon.statusword)
         confirmed = bool(np.all(fresh & (states != int(cia402.State402.OPERATION_ENABLED))))
+        if not confirmed and now + self.sync_delay_s - self._last_sync_at < (
+            STOP_SYNC_MIN_SPACING * self.period_s
+        ):
+            return  # the stop's own SYNC (between deadlines) went out under a period ago
         self._confirm_cycles += 1
         if not confirmed and self._confirm_cycles < STOP_CONFIRM_CYCLES:
             stop.failed += self.send_controlword(cia402.CW_QUICK_STOP, self._stop_targets())

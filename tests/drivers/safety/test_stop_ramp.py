@@ -120,6 +120,58 @@ def test_a_stop_decelerates_from_the_first_cycle_within_the_limit(v: int) -> Non
     assert stop[k:].all() and len(stop) - k == 10  # repeated until it gives up
 
 
+def test_a_stop_between_deadlines_repeats_a_period_after_its_own_sync() -> None:
+    """A stop detected late in a period (8.7 ms after a deadline) sends RPDOs + SYNC at
+    once, ``sync_delay_s`` later (here the fake sleep advances the fake clock): the
+    deadline that comes 1.3 ms after that SYNC does not repeat the stop (a ramp step a
+    period long would reach the drives within a fraction of one, faster than any limit in
+    wall time); the next deadline does.  Every SYNC of the stop is at least
+    ``STOP_SYNC_MIN_SPACING`` periods after the one before it (the wire's timestamps)."""
+    from drivers.safety.supervisor import STOP_SYNC_MIN_SPACING
+
+    clock = FakeClock()
+    port = FakePort("bus0")
+    port.clock = clock
+    mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=3, heartbeat_timeout_s=HB_TIMEOUT_S,
+                      clock=clock)  # fmt: skip
+    layout = BusLayout(port, np.array([0, 1]), np.array([1, 2]), burst_s=0.004)  # type: ignore[arg-type]
+
+    def sleep(s: float) -> None:
+        clock.t += s
+
+    sup = Supervisor([layout], mon, AccelLimits(), T, HB_PERIOD_S, HOST, EventLog(),
+                     clock=clock, sleep=sleep)  # fmt: skip
+    sup.set_heartbeat(True)
+    heartbeat(mon, 0), heartbeat(mon, 1)
+    sup.arm(np.array([0, 0]))
+    src = Table(cruise(1500))
+    src.start(np.zeros(2, np.int64), T)
+    sup.begin(src)
+    t0 = clock.t
+    for k in range(1, 200):
+        deadline = t0 + k * T
+        if k == 40:  # cruising: the operator stops 8.7 ms into the period
+            clock.t = max(clock.t, deadline - T + 0.0087)
+            t_detect = clock.t
+            sup.request_stop(StopKind.OPERATOR, "stop")
+            sup.wake(clock.t)
+            assert sup.mode is Mode.STOPPING
+        if sup.mode is Mode.HEARTBEAT:
+            break
+        clock.t = max(clock.t, deadline)
+        if sup.mode is Mode.STREAMING:
+            feedback_ok(sup, mon)
+        sup.step(clock.t, deadline)
+    syncs = [ts for ts, m in port.sent if m.arbitration_id == SYNC]
+    stop_ts = [ts for ts, m in port.sent if 0x200 < m.arbitration_id <= 0x27F
+               and int.from_bytes(m.data[:2], "little") == cia402.CW_QUICK_STOP]  # fmt: skip
+    first = next(i for i, t in enumerate(syncs) if t >= stop_ts[0])
+    gaps = np.diff(syncs[first:])
+    assert STOP_SYNC_MIN_SPACING >= 0.9
+    assert len(gaps) >= 9 and gaps.min() >= 0.9 * T, gaps  # (4.5 ms before)
+    assert syncs[first] - t_detect <= T  # the first one at once (after the RPDOs' wire time)
+
+
 def test_an_idle_stop_holds_and_a_double_without_accel_limits_holds_too() -> None:
     clock = FakeClock()
     sup, _mon, port = armed_with(AccelLimits(), clock)
