@@ -29,6 +29,7 @@ True
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -43,6 +44,11 @@ MM_PER_M = 1000.0
 
 class UrdfWriteError(HrmError):
     """The URDF file cannot be written."""
+
+
+#: characters XML 1.0 does not allow in a document (control characters but tab and the
+#: line ends, lone surrogates, U+FFFE and U+FFFF)
+_NOT_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
 
 
 # Rot_y(-pi/2) Rot_x(pi) as URDF roll-pitch-yaw (R = Rz(yaw) Ry(pitch) Rx(roll)).
@@ -217,6 +223,13 @@ def robot_urdf(model: RobotModel, link_mass_kg_per_m: float = DEFAULT_LINK_MASS_
     """
     if not (math.isfinite(link_mass_kg_per_m) and link_mass_kg_per_m > 0.0):
         raise ValueError(f"link_mass_kg_per_m must be > 0, got {link_mass_kg_per_m!r}")
+    for what, text in (("robot name", model.name), ("description path", str(model.source))):
+        bad = _NOT_XML.search(text)
+        if bad is not None:
+            raise UrdfWriteError(
+                f"{model.source}: the {what} {text!r} holds a character XML cannot carry "
+                f"(U+{ord(bad.group()):04X})"
+            )
     n = model.n_joints
     links_m = np.asarray(model.links, dtype=float) / MM_PER_M
     radii_m = np.asarray(model.outer_diameter, dtype=float) / MM_PER_M / 2.0

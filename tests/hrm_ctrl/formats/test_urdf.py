@@ -177,6 +177,8 @@ def test_cli_uses_the_robot_file(tmp_path: Path) -> None:
         ('name = "x"\nlinks_mm = [1, 2, 3]\n', "links_mm"),
         (MOUNTED_TOML.format(yaw=0, pitch=0).replace("150,", "-150,"), "links_mm[0]"),
         (MOUNTED_TOML.format(yaw=0, pitch=0).replace("120.5", '"a"'), "position_mm[0]"),
+        # a name XML cannot carry (before: written, a file no XML parser reads)
+        (MOUNTED_TOML.format(yaw=0, pitch=0).replace('"mounted"', '"a\\u0000b"'), "U+0000"),
     ],
 )
 def test_cli_bad_robot_file(tmp_path: Path, capsys, content: str, needle: str) -> None:
