@@ -370,7 +370,10 @@ class TensionWatch:
     def _run(self) -> None:
         t_start = time.monotonic()
         while not self._stop.wait(self.period_s):
-            text = self.check(time.monotonic(), t_start)
+            try:
+                text = self.check(time.monotonic(), t_start)
+            except Exception as exc:  # a watch that cannot look any more stops every axis
+                text = f"tension watch failed: {exc!r}"
             if text is not None:
                 self.fault = text
                 self.on_fault(text)

@@ -174,7 +174,10 @@ class RopeWatch:
 
     def _run(self) -> None:
         while not self._stop.wait(self.period_s):
-            text = self.step()
+            try:
+                text = self.step()
+            except Exception as exc:  # a watch that cannot look any more stops every axis
+                text = f"rope watch failed: {exc!r}"
             if text is not None:
                 self.fault = text
                 self.monitor.report(StopKind.ROPE, text)

@@ -102,6 +102,26 @@ def test_the_rope_watch_thread_reports_once_through_the_monitor() -> None:
     assert group.summary()["rope_consistency"]["fault"] == "rope consistency: rope 2 off"
 
 
+def test_a_rope_watch_whose_reference_raises_reports_it_as_a_stop_cause() -> None:
+    """The reference (the path's counts) or the snapshot raising: the watch thread does not
+    die silently (it is the only one looking at the ropes): it stops every axis."""
+    mon = monitor()
+    mon.seq = 1
+    mon.rx_seq[:] = 1
+
+    def broken() -> np.ndarray:
+        raise ValueError("no reference")
+
+    w = RopeWatch(mon, Check(), broken, period_s=0.01).start()
+    try:
+        assert wait_until(lambda: w.fault is not None, 2.0)
+    finally:
+        w.stop()
+    causes = mon.drain()
+    assert [c.kind for c in causes] == [StopKind.ROPE]
+    assert "rope watch failed" in causes[0].text and "no reference" in causes[0].text
+
+
 # ------------------------------------------------------------ on the simulated drives
 def stream_with(
     rig: Rig, make_watch: Callable[[Any], Any], fault: Callable[[], None], n_cycles: int = 300
