@@ -847,7 +847,9 @@ class DriveSession:
             raise
         self.results.append(result)
         if not result.causes:
-            self._set_state(SessionState.ENABLED)
+            # (an idle stop right after the stream's end has set STOPPED: it stands)
+            if self._state is SessionState.STREAMING:
+                self._set_state(SessionState.ENABLED)
             return result
         if self._state is SessionState.STREAMING:  # the stop record is already in
             self._set_state(SessionState.STOPPED)
