@@ -58,7 +58,6 @@ from drivers.protocol.cia301 import (
     FrameError,
 )
 from drivers.protocol.cia402 import (
-    QUICK_STOP_OPTION_DISABLE_DRIVE,
     QUICK_STOP_OPTIONS_STAY,
     QUICK_STOP_OPTIONS_THEN_DISABLED,
     interpolation_time_period,
@@ -504,7 +503,9 @@ class ControlRange:
         return f"{self.lo:g}..{self.hi:g}{' ' + self.unit if self.unit else ''}"
 
 
-_QUICK_STOP_CODES = {QUICK_STOP_OPTION_DISABLE_DRIVE} | set(QUICK_STOP_OPTIONS_THEN_DISABLED)
+# 0 (QUICK_STOP_OPTION_DISABLE_DRIVE) is left out: the power stages would switch off at
+# once and every motor coast from its speed, the ropes under the arm's load
+_QUICK_STOP_CODES = set(QUICK_STOP_OPTIONS_THEN_DISABLED)
 _QUICK_STOP_CODES |= set(QUICK_STOP_OPTIONS_STAY)
 
 CONTROL_RANGES: Mapping[str, ControlRange] = {
@@ -565,8 +566,9 @@ CONTROL_RANGES: Mapping[str, ControlRange] = {
     ),
     "quick_stop_option_code": ControlRange(
         min(_QUICK_STOP_CODES), max(_QUICK_STOP_CODES), "",
-        "0x605A (INTEGER16 in hrm_drive.eds): the codes CiA 402 defines and the drive "
-        "implements; it aborts any other write (0x06090030) after its NMT reset",
+        "0x605A (INTEGER16 in hrm_drive.eds): the ramps CiA 402 defines and the drive "
+        "implements (it aborts any other write, 0x06090030, after its NMT reset); not 0, "
+        "'disable drive function': every motor would coast from speed, the ropes under load",
     ),
     "realtime_priority": ControlRange(
         NORMAL_PRIORITY, REALTIME_PRIORITY_SAFE_MAX, "",

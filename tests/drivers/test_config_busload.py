@@ -357,8 +357,9 @@ def test_each_bound_is_accepted_and_beyond_it_refused(tmp_path: Path, key: str) 
         ({"sdo_timeout_s": 3600.0}, "sdo_timeout_s = 3600.0 outside 0.05..2 s"),
         ({"state_timeout_s": 0.0}, "state_timeout_s = 0.0 outside 0.05..5 s"),
         ({"bootup_timeout_s": 1e9}, "bootup_timeout_s = 1000000000.0 outside 0.1..30 s"),
-        ({"quick_stop_option_code": 9}, "quick_stop_option_code = 9 outside 0..8; 0x605A"),
-        ({"quick_stop_option_code": -1}, "quick_stop_option_code = -1 outside 0..8"),
+        ({"quick_stop_option_code": 9}, "quick_stop_option_code = 9 outside 1..8; 0x605A"),
+        ({"quick_stop_option_code": -1}, "quick_stop_option_code = -1 outside 1..8"),
+        ({"quick_stop_option_code": 0}, "quick_stop_option_code = 0 outside 1..8; 0x605A"),
         (
             {"following_error_window_counts": 0xFFFFFFFF},
             "following_error_window_counts = 4294967295 outside 1..65536 counts; 0x6065",
@@ -412,7 +413,9 @@ def test_the_quick_stop_range_is_what_the_eds_and_the_drive_allow() -> None:
 
     od = canopen.import_od(str(eds_path()), 1)
     rng = CONTROL_RANGES["quick_stop_option_code"]
-    assert range(int(rng.lo), int(rng.hi) + 1) == QUICK_STOP_OPTION_RANGE  # the drive's codes
+    # the drive's codes but 0, which lets every motor coast
+    assert range(int(rng.lo), int(rng.hi) + 1) == range(1, QUICK_STOP_OPTION_RANGE.stop)
+    assert QUICK_STOP_OPTION_RANGE.start == 0
     qs = od[0x605A]
     assert qs.data_type == canopen.objectdictionary.INTEGER16
     lo = -(2**15) if qs.min is None else qs.min
