@@ -9,6 +9,12 @@ angles), ``tracking.png`` (tracking error and, with a tension side file, tension
 time) and ``lateness.png`` (cycle lateness) into ``--out`` (default: ``<run>_report/``
 beside the record) and prints where, with the figures' numbers (``--json``: as JSON).
 
+Bad input is one line and exit status 2, with nothing written: an ``--out`` naming one of
+the run's files (its record, CAN logs or tension file, the robot description, the
+calibration store) or a path that is not a folder is refused before the CAN logs are
+read (the record's own path and the tension file before anything is read), and a damaged
+record or log, or a figure that cannot be written, leaves no figure behind.
+
 >>> p = argparse.ArgumentParser(prog="hrm report")
 >>> register(p)
 >>> a = p.parse_args(["runs/run-1.json", "--stream", "0"])
@@ -22,7 +28,10 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from hrm_ctrl.cli._common import Input
 
 HELP = "write the figures of a run (planned vs measured angles, tracking, tensions, lateness)"
 
@@ -62,19 +71,52 @@ def find_record(run: Path, log_dir: Path) -> Path:
     raise RunLogError(f"{run}: no such run record (nor {cand})")
 
 
+def out_folder(record: Path, out: Path | None) -> Path:
+    """Where the figures go: ``out``, or ``<run>_report/`` beside the record."""
+    return out if out is not None else record.with_name(record.stem + "_report")
+
+
+def check_out(folder: Path, inputs: list[Input]) -> None:
+    """Refuse (one line) an output folder that names one of ``inputs`` (or holds one
+    where a figure would go), that exists and is not a folder, or whose nearest existing
+    parent is not a folder; looks at paths only."""
+    import os
+
+    from hrm_ctrl.cli._common import Output, refuse_overwriting_inputs
+    from hrm_ctrl.errors import HrmError
+    from hrm_ctrl.formats.runplots import FIGURE_NAMES
+
+    refuse_overwriting_inputs([Output("--out", folder, FIGURE_NAMES, folder=True)], inputs)
+    if os.path.lexists(folder) and not os.path.isdir(folder):
+        raise HrmError(f"--out {folder}: exists and is not a folder")
+    above = next((d for d in folder.parents if os.path.lexists(d)), None)
+    if above is not None and not os.path.isdir(above):  # a file where a folder would be made
+        raise HrmError(f"--out {folder}: {above} is not a folder")
+
+
 def report(
     record: Path, actuation: Any, out: Path | None, stream: int = -1
 ) -> tuple[dict[str, Any], list[Path]]:
-    """Read the run, write its figures; (summary, figure paths)."""
+    """Read the run, write its figures; (summary, figure paths).  A figure that cannot be
+    written is one line (:class:`~hrm_ctrl.errors.HrmError`) and leaves none behind."""
+    from hrm_ctrl.errors import HrmError
     from hrm_ctrl.formats.runlog import read_run
     from hrm_ctrl.formats.runplots import run_analysis, write_run_figures
 
     log = read_run(record)
     analysis = run_analysis(log, actuation, stream)
-    folder = out if out is not None else record.with_name(record.stem + "_report")
-    figures = write_run_figures(analysis, folder, title=str(log.record.get("run", "")))
+    folder = out_folder(record, out)
+    name = log.record.get("run")
+    name = name if isinstance(name, str) else record.stem
+    try:
+        figures = write_run_figures(analysis, folder, title=name)
+    except OSError as exc:
+        where = exc.filename if exc.filename is not None else folder
+        raise HrmError(
+            f"--out {folder}: cannot write the figures ({where}: {exc.strerror or exc})"
+        ) from None
     summary = {
-        "run": log.record.get("run"),
+        "run": name,
         "record": str(record),
         "stream": stream,
         "streams": len(log.streams),
@@ -85,26 +127,35 @@ def report(
 
 
 def run(args: argparse.Namespace) -> int:
-    from hrm_ctrl.cli._common import load_arm
+    from hrm_ctrl.cli._common import Input, calibrations_input, load_arm, robot_input
     from hrm_ctrl.cli._progress import ProgressBar, wanted
-    from hrm_ctrl.formats.runlog import read_record
+    from hrm_ctrl.formats.runlog import log_paths, read_record, tension_path
     from hrm_ctrl.model import load_robot
 
     record = find_record(args.run, args.log_dir)
+    folder = out_folder(record, args.out)
+    inputs = [
+        Input("run record", record),
+        Input("tension file", tension_path(record)),
+        robot_input(args.robot),
+        calibrations_input(args),
+    ]
+    check_out(folder, inputs)  # before anything is read
     doc = read_record(record)
+    check_out(folder, [Input("CAN log", p) for p in log_paths(record, doc)])  # it names them
     arm = load_arm(args, load_robot(args.robot), prog="hrm report")
+    with ProgressBar("report", enabled=wanted(args.json)) as bar:
+        summary, _figs = report(record, arm.actuation, folder, args.stream)
+        bar(1.0)
     ran = doc.get("calibration")
     used = None if arm.active is None else arm.calibration_ref()
     if isinstance(ran, dict) and (used is None or ran.get("sha256") != used.sha256):
-        print(
-            f"hrm report: note: the run used calibration version {ran.get('version')}, "
+        print(  # once the report is written: an error would be the only line
+            f"hrm report: note: the run used calibration version {ran.get('version')!s:.40}, "
             "the angles are mapped with "
             + ("the description's values" if used is None else f"version {used.version}"),
             file=sys.stderr,
         )
-    with ProgressBar("report", enabled=wanted(args.json)) as bar:
-        summary, _figs = report(record, arm.actuation, args.out, args.stream)
-        bar(1.0)
     if args.json:
         print(json.dumps(summary, indent=1))
         return 0

@@ -15,29 +15,45 @@ because this layer does not import the drivers.
 reads the run's tension side file (``<run>_tension.csv``, written by ``hrm run`` when a
 tension board is read) and :func:`write_tension_csv` writes it.
 
+Every reader is bounded whatever its input (a damaged or hostile record or log gives one
+line naming the file, :class:`RunLogError`): the record is read as the shared readers read
+JSON (:func:`hrm_ctrl.files.read_text_file`, :func:`hrm_ctrl.files.parse_json`: size and
+nesting bounded), its numbers are checked before anything divides by them or sizes an
+array with them (a control rate in :data:`MIN_RATE_HZ`..:data:`MAX_RATE_HZ`, at most
+:data:`MAX_MOTORS` motors, node ids 1..127), and a log is read up to
+:data:`MAX_LOG_FRAMES` frames and :data:`MAX_LOG_VALUES` values.
+
 >>> split_streams(np.array([0.0, 0.01, 0.02, 5.0, 5.01]), 0.5)
 [(0, 3), (3, 5)]
 """
 
 from __future__ import annotations
 
-import json
+import contextlib
+import logging
 import math
+import os
+import sqlite3
+import stat
 import struct
-from collections.abc import Sequence
-from dataclasses import dataclass
+import zlib
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from hrm_ctrl.errors import HrmError
-from hrm_ctrl.files import write_atomic
+from hrm_ctrl.files import parse_json, read_text_file, write_atomic
 
 RUN_RECORD_FORMAT = "hrm-run/1"
 MAX_RECORD_BYTES = 64 * 1024 * 1024  # a run record larger than this is refused
 MAX_LOG_FRAMES = 60_000_000  # frames read from one CAN log at most (a 1 h run: ~27 M)
 MAX_CYCLES = 400_000  # SYNCs kept at most (1 h at 100 Hz: 360 000)
+MAX_MOTORS = 1024  # motors of a run record at most (the arm has 36; CANopen: 127 a bus)
+MAX_LOG_VALUES = 64 * MAX_CYCLES  # counts kept per array (cycles x motors) at most
+MIN_RATE_HZ, MAX_RATE_HZ = 1.0, 10_000.0  # a control rate outside is not a run's
 MAX_TENSION_ROWS = 100_000
 STREAM_GAP_S = 0.5  # SYNCs further apart than this belong to different streams
 COB_SYNC = 0x080
@@ -107,22 +123,41 @@ def split_streams(t_s: np.ndarray, gap_s: float = STREAM_GAP_S) -> list[tuple[in
 def read_record(path: str | Path) -> dict[str, Any]:
     """The run record at ``path`` (``hrm-run/1``), checked for what this module uses."""
     p = Path(path)
-    try:
-        size = p.stat().st_size
-        if size > MAX_RECORD_BYTES:
-            raise RunLogError(f"{p}: run record of {size} bytes (at most {MAX_RECORD_BYTES})")
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise RunLogError(f"{p}: cannot read run record ({exc.strerror or exc})") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise RunLogError(f"{p}: not a run record (JSON: {exc})") from None
+    text = read_text_file(p, RunLogError, "run record", max_bytes=MAX_RECORD_BYTES)
+    doc = parse_json(text, RunLogError, str(p), "run record")
     if not isinstance(doc, dict) or doc.get("format") != RUN_RECORD_FORMAT:
         got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
-        raise RunLogError(f"{p}: not a run record (format {got!r}, expected {RUN_RECORD_FORMAT})")
+        shown = f"a {type(got).__name__}"
+        if got is None or isinstance(got, str | int | float):  # not a whole nested value
+            shown = repr(got[:40] if isinstance(got, str) else got)
+        raise RunLogError(f"{p}: not a run record (format {shown}, expected {RUN_RECORD_FORMAT})")
     for key, kind in (("motor_ids", list), ("config", dict), ("can_logs", list)):
         if not isinstance(doc.get(key), kind):
             raise RunLogError(f"{p}: run record without {key!r}")
+    motors = doc["motor_ids"]
+    if not 0 < len(motors) <= MAX_MOTORS:
+        raise RunLogError(f"{p}: run record with {len(motors)} motors (1..{MAX_MOTORS})")
+    if not all(isinstance(m, str) for m in motors) or len(set(motors)) != len(motors):
+        raise RunLogError(f"{p}: run record whose motor_ids are not distinct names")
     return doc
+
+
+def control_period_s(doc: dict[str, Any], where: Path) -> float:
+    """The control period (s) of a run record: 1 / ``config.control.rate_hz``, a number
+    in :data:`MIN_RATE_HZ`..:data:`MAX_RATE_HZ` (not NaN, infinite, zero or negative)."""
+    control = doc["config"].get("control")
+    rate = control.get("rate_hz") if isinstance(control, dict) else None
+    if (
+        isinstance(rate, bool)
+        or not isinstance(rate, int | float)
+        or not MIN_RATE_HZ <= rate <= MAX_RATE_HZ  # False for NaN
+    ):
+        got = repr(rate) if isinstance(rate, int | float) else f"a {type(rate).__name__}"
+        raise RunLogError(
+            f"{where}: run record without a control rate (rate_hz {got}; expected "
+            f"{MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} Hz)"
+        )
+    return 1.0 / float(rate)
 
 
 def _node_maps(doc: dict[str, Any], where: Path) -> list[dict[int, int]]:
@@ -136,12 +171,12 @@ def _node_maps(doc: dict[str, Any], where: Path) -> list[dict[int, int]]:
         nodes = bus.get("nodes") if isinstance(bus, dict) else None
         if not isinstance(nodes, dict):
             raise RunLogError(f"{where}: bus {name}: no nodes in the record's config")
-        try:
-            maps.append({int(nid): order[m] for m, nid in nodes.items()})
-        except (KeyError, TypeError, ValueError):
-            raise RunLogError(
-                f"{where}: bus {name}: nodes that are not the record's motors"
-            ) from None
+        if not all(m in order for m in nodes):
+            raise RunLogError(f"{where}: bus {name}: nodes that are not the record's motors")
+        bad = [n for n in nodes.values() if isinstance(n, bool) or n not in range(1, 128)]
+        if bad:
+            raise RunLogError(f"{where}: bus {name}: node id {bad[0]!r} (expected 1..127)")
+        maps.append({int(nid): order[m] for m, nid in nodes.items()})
     return maps
 
 
@@ -153,71 +188,75 @@ def _log_path(record_path: Path, logged: str) -> Path:
     return record_path.parent / p.name
 
 
+def log_paths(record_path: str | Path, doc: dict[str, Any]) -> list[Path]:
+    """The CAN logs a run record (``doc``, as :func:`read_record` returns it) names, where
+    :func:`read_run` reads them (looks at the paths only)."""
+    return [_log_path(Path(record_path), str(x)) for x in doc["can_logs"]]
+
+
+# What python-can's readers raise on a damaged log: an empty or cut BLF (struct.error), a
+# BLF of other bytes (BLFParseError), a damaged compressed container (zlib.error), bad
+# text (ValueError), a .db that is not a database (sqlite3.Error), an .mf4 without
+# asammdf (NotImplementedError); a CanError from any.
+_LOG_ERRORS: tuple[type[Exception], ...] = (
+    OSError,
+    EOFError,
+    ValueError,
+    struct.error,
+    zlib.error,
+    sqlite3.Error,
+    NotImplementedError,
+)
+_READER_LOGGER = "can.io"  # python-can's log readers' loggers (can.io.blf, ...)
+
+
+class _ReaderWarnings(logging.Handler):
+    """What python-can's readers log while a log is read (a damaged BLF container, a
+    line a reader skips), kept off stderr: a damaged log is one :class:`RunLogError`."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+@contextlib.contextmanager
+def _reader_warnings() -> Iterator[_ReaderWarnings]:
+    """Collect the readers' warnings (not propagated to the root logger) while open."""
+    logger = logging.getLogger(_READER_LOGGER)
+    handler, propagate = _ReaderWarnings(), logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        yield handler
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
+
+
 def read_run(path: str | Path, *, max_frames: int = MAX_LOG_FRAMES) -> RunLog:
     """The run record at ``path`` and its CAN logs as a :class:`RunLog`."""
-    import can
-
     rp = Path(path)
     doc = read_record(rp)
     maps = _node_maps(doc, rp)
-    logs = [str(x) for x in doc["can_logs"]]
+    logs = log_paths(rp, doc)
     if len(logs) != len(maps):
         raise RunLogError(f"{rp}: {len(logs)} CAN logs for {len(maps)} buses")
     n = len(doc["motor_ids"])
-    try:
-        period_s = 1.0 / float(doc["config"]["control"]["rate_hz"])
-    except (KeyError, TypeError, ValueError, ZeroDivisionError):
-        raise RunLogError(f"{rp}: run record without a control rate") from None
-    sync_t: list[float] = []
-    target_rows: list[np.ndarray] = []
-    actual_rows: list[np.ndarray] = []
-    frames: list[int] = []
-    for b, (logged, nodes) in enumerate(zip(logs, maps, strict=True)):
-        lp = _log_path(rp, logged)
-        held = np.full(n, np.nan)
-        k = -1  # SYNCs of this bus so far
-        count = 0
-        try:
-            reader = can.LogReader(str(lp))
-        except (OSError, ValueError, can.CanError) as exc:
-            raise RunLogError(f"{lp}: cannot open CAN log ({exc})") from None
-        try:
-            for msg in reader:
-                count += 1
-                if count > max_frames:
-                    raise RunLogError(f"{lp}: more than {max_frames} frames")
-                if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
-                    continue
-                cid = msg.arbitration_id
-                if cid == COB_SYNC and len(msg.data) == 0:
-                    k += 1
-                    if k >= MAX_CYCLES:
-                        raise RunLogError(f"{lp}: more than {MAX_CYCLES} SYNCs")
-                    if b == 0:
-                        sync_t.append(float(msg.timestamp))
-                        target_rows.append(held.copy())
-                        actual_rows.append(np.full(n, np.nan))
-                    elif k < len(target_rows):
-                        target_rows[k] = np.where(np.isnan(held), target_rows[k], held)
-                    continue
-                base, nid = cid & 0x780, cid & 0x07F
-                if len(msg.data) != _PDO.size or nid not in nodes:
-                    continue
-                if base == COB_RPDO1:
-                    held[nodes[nid]] = _PDO.unpack(bytes(msg.data))[1]
-                elif base == COB_TPDO1 and 0 <= k < len(actual_rows):
-                    actual_rows[k][nodes[nid]] = _PDO.unpack(bytes(msg.data))[1]
-        except RunLogError:
-            raise
-        except (OSError, ValueError, struct.error, can.CanError) as exc:
-            raise RunLogError(f"{lp}: cannot read CAN log ({exc})") from None
-        finally:
-            stop = getattr(reader, "stop", None)
-            if callable(stop):
-                stop()
-        frames.append(count)
-    t = np.asarray(sync_t, dtype=np.float64)
+    period_s = control_period_s(doc, rp)
+    rows = _Rows(n, min(MAX_CYCLES, MAX_LOG_VALUES // n))
+    frames = []
+    for b, (lp, nodes) in enumerate(zip(logs, maps, strict=True)):
+        with _reader_warnings() as warned:
+            frames.append(_read_log(lp, b, nodes, rows, max_frames))
+        if warned.messages:  # a reader that skipped what it could not parse
+            raise RunLogError(f"{lp}: cannot read CAN log ({_first_line(warned.messages[0])})")
+    t = np.asarray(rows.sync_t, dtype=np.float64)
     t0 = float(t[0]) if t.size else math.nan
+    if t.size and not np.isfinite(t - t0).all():
+        raise RunLogError(f"{logs[0]}: SYNC times out of range")
     return RunLog(
         record_path=rp,
         record=doc,
@@ -225,11 +264,107 @@ def read_run(path: str | Path, *, max_frames: int = MAX_LOG_FRAMES) -> RunLog:
         period_s=period_s,
         t0_unix=t0,
         t_s=t - t0 if t.size else t,
-        target=np.array(target_rows).reshape(-1, n),
-        actual=np.array(actual_rows).reshape(-1, n),
+        target=np.array(rows.target).reshape(-1, n),
+        actual=np.array(rows.actual).reshape(-1, n),
         streams=split_streams(t - t0 if t.size else t),
         frames=frames,
     )
+
+
+@dataclass
+class _Rows:
+    """What :func:`_read_log` collects per SYNC of the first bus (at most ``max_syncs``):
+    its time, the targets held and the positions reported, ``n`` motors each."""
+
+    n: int
+    max_syncs: int
+    sync_t: list[float] = field(default_factory=list)
+    target: list[np.ndarray] = field(default_factory=list)
+    actual: list[np.ndarray] = field(default_factory=list)
+
+
+def _read_log(lp: Path, b: int, nodes: dict[int, int], rows: _Rows, max_frames: int) -> int:
+    """Read CAN log ``lp`` of bus ``b`` (node id -> motor index ``nodes``) into ``rows``;
+    its frame count.  Whatever the log holds, a problem is one :class:`RunLogError`."""
+    import can
+
+    errors = (*_LOG_ERRORS, can.CanError, _blf_parse_error())
+    n = rows.n
+    held = np.full(n, np.nan)
+    k = -1  # SYNCs of this bus so far
+    count = 0
+    try:
+        mode = os.stat(lp).st_mode
+    except (OSError, ValueError) as exc:
+        raise RunLogError(f"{lp}: cannot open CAN log ({_why(exc)})") from None
+    if not stat.S_ISREG(mode):  # a FIFO would block, a device never end
+        raise RunLogError(f"{lp}: CAN log is not a regular file")
+    try:
+        reader = can.LogReader(str(lp))
+    except errors as exc:
+        raise RunLogError(f"{lp}: cannot open CAN log ({_why(exc)})") from None
+    try:
+        for msg in reader:
+            count += 1
+            if count > max_frames:
+                raise RunLogError(f"{lp}: more than {max_frames} frames")
+            if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
+                continue
+            cid = msg.arbitration_id
+            if cid == COB_SYNC and len(msg.data) == 0:
+                k += 1
+                if k >= rows.max_syncs:
+                    raise RunLogError(
+                        f"{lp}: more than {rows.max_syncs} SYNCs"
+                        + (f" for {n} motors" if rows.max_syncs < MAX_CYCLES else "")
+                    )
+                if b == 0:
+                    ts = float(msg.timestamp)
+                    if not math.isfinite(ts):
+                        raise RunLogError(f"{lp}: frame {count}: SYNC at time {ts}")
+                    rows.sync_t.append(ts)
+                    rows.target.append(held.copy())
+                    rows.actual.append(np.full(n, np.nan))
+                elif k < len(rows.target):
+                    rows.target[k] = np.where(np.isnan(held), rows.target[k], held)
+                continue
+            base, nid = cid & 0x780, cid & 0x07F
+            if len(msg.data) != _PDO.size or nid not in nodes:
+                continue
+            if base == COB_RPDO1:
+                held[nodes[nid]] = _PDO.unpack(bytes(msg.data))[1]
+            elif base == COB_TPDO1 and 0 <= k < len(rows.actual):
+                rows.actual[k][nodes[nid]] = _PDO.unpack(bytes(msg.data))[1]
+    except RunLogError:
+        raise
+    except errors as exc:
+        raise RunLogError(f"{lp}: cannot read CAN log ({_why(exc)})") from None
+    finally:
+        stop = getattr(reader, "stop", None)
+        if callable(stop):
+            stop()
+    return count
+
+
+def _blf_parse_error() -> type[Exception]:
+    """python-can's error for a damaged BLF (not a :class:`can.CanError`)."""
+    try:
+        from can.io.blf import BLFParseError
+    except ImportError:  # pragma: no cover - an older python-can
+        return struct.error
+    return BLFParseError
+
+
+def _why(exc: BaseException) -> str:
+    """One line on a reader's error: its message's first line, or its class."""
+    return _first_line(getattr(exc, "strerror", None) or str(exc)) or type(exc).__name__
+
+
+def _first_line(text: str, width: int = 200) -> str:
+    """The first line of ``text``, at most ``width`` characters."""
+    lines = text.strip().splitlines()
+    line = lines[0] if lines else ""
+    return line if len(line) <= width else line[: width - 3] + "..."
 
 
 def joint_angles(actuation: Any, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -271,23 +406,28 @@ def write_tension_csv(
 def tension_csv(path: str | Path, motor_ids: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """(t_unix (rows,), tensions_N (rows, motors)) of a tension side file."""
     p = Path(path)
-    try:
-        with p.open(encoding="utf-8") as fh:
-            header = fh.readline().strip().split(",")
-            want = ["t_unix_s", *(f"{m}_N" for m in motor_ids)]
-            if header != want:
-                raise RunLogError(f"{p}: not this run's tension file (header {header[:3]}...)")
-            rows = []
-            for i, line in enumerate(fh, start=2):
-                if i > MAX_TENSION_ROWS + 1:
-                    raise RunLogError(f"{p}: more than {MAX_TENSION_ROWS} rows")
-                cells = line.rstrip("\n").split(",")
-                if len(cells) != len(want):
-                    raise RunLogError(f"{p}:{i}: {len(cells)} fields, expected {len(want)}")
-                rows.append([float(c) if c else math.nan for c in cells])
-    except OSError as exc:
-        raise RunLogError(f"{p}: cannot read ({exc.strerror or exc})") from None
-    except ValueError as exc:
-        raise RunLogError(f"{p}: not a number ({exc})") from None
+    lines = read_text_file(p, RunLogError, "tension file").split("\n")
+    if lines and lines[-1] == "":
+        lines.pop()
+    header = lines[0].strip().split(",") if lines else []
+    want = ["t_unix_s", *(f"{m}_N" for m in motor_ids)]
+    if header != want:
+        raise RunLogError(f"{p}: not this run's tension file (header {header[:3]}...)")
+    if len(lines) > MAX_TENSION_ROWS + 1:
+        raise RunLogError(f"{p}: more than {MAX_TENSION_ROWS} rows")
+    rows = []
+    for i, line in enumerate(lines[1:], start=2):
+        cells = line.split(",")
+        if len(cells) != len(want):
+            raise RunLogError(f"{p}:{i}: {len(cells)} fields, expected {len(want)}")
+        try:
+            row = [float(c) if c or j == 0 else math.nan for j, c in enumerate(cells)]
+        except ValueError:
+            raise RunLogError(f"{p}:{i}: not a number") from None
+        if not all(math.isfinite(v) for v in row if v == v):  # NaN: an empty cell
+            raise RunLogError(f"{p}:{i}: a number that is not finite")
+        if not math.isfinite(row[0]):
+            raise RunLogError(f"{p}:{i}: no time")
+        rows.append(row)
     a = np.array(rows, dtype=np.float64).reshape(-1, len(motor_ids) + 1)
     return a[:, 0], a[:, 1:]

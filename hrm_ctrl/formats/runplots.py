@@ -10,13 +10,18 @@ each written atomically, from a :class:`~hrm_ctrl.formats.runlog.RunLog`.
   has a tension side file, every rope's tension (N);
 - ``lateness.png``: each SYNC's interval less the control period (ms) and its histogram.
 
+The three are drawn before any is written (a figure that cannot be drawn leaves no file),
+and a write that fails removes what this call wrote.
+
 :func:`run_analysis` returns the arrays and figures the plots show (and ``hrm report
 --json`` prints).
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,9 +31,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from hrm_ctrl.files import write_atomic
-from hrm_ctrl.formats.runlog import RunLog, joint_angles, tension_csv, tension_path
+from hrm_ctrl.formats.runlog import RunLog, RunLogError, joint_angles, tension_csv, tension_path
 
 FEEDBACK_LAG_CYCLES = 1  # the TPDO after SYNC k reports the target SYNC k-1 applied
+FIGURE_NAMES = ("angles.png", "tracking.png", "lateness.png")  # what write_run_figures writes
 
 
 @dataclass(frozen=True)
@@ -85,6 +91,12 @@ def run_analysis(
     the log's first row, N per motor) instead of the run's tension side file."""
     from hrm_ctrl.kinematics import end_point
 
+    ours = tuple(actuation.motor_ids)
+    if tuple(log.motor_ids) != ours:
+        raise RunLogError(
+            f"{log.record_path}: the run's {len(log.motor_ids)} motors are not the robot "
+            f"description's {len(ours)} ({', '.join(ours[:3])}, ...)"
+        )
     s = log.stream(stream)
     tgt, act = log.target[s], log.actual[s]
     planned = np.full_like(tgt, np.nan)
@@ -127,19 +139,40 @@ def run_analysis(
     )
 
 
-def _png(fig: Figure, path: Path) -> Path:
+def _png(fig: Figure) -> bytes:
     FigureCanvasAgg(fig)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
-    write_atomic(path, buf.getvalue())
-    return path
+    return buf.getvalue()
 
 
 def write_run_figures(a: RunAnalysis, out_dir: str | Path, title: str = "") -> list[Path]:
-    """Write ``angles.png``, ``tracking.png`` and ``lateness.png`` into ``out_dir``."""
+    """Write ``angles.png``, ``tracking.png`` and ``lateness.png`` (:data:`FIGURE_NAMES`)
+    into ``out_dir`` (created if missing), all drawn first.  A write that fails raises
+    ``OSError`` after removing the figures this call wrote (and ``out_dir`` if it made it)."""
+    pngs = render_run_figures(a, title)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    written = []
+    made = [d for d in (out, *out.parents) if not os.path.lexists(d)]
+    written: list[Path] = []
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for name, data in zip(FIGURE_NAMES, pngs, strict=True):
+            write_atomic(out / name, data, make_parents=False)
+            written.append(out / name)
+    except BaseException:
+        for f in written:
+            with contextlib.suppress(OSError):
+                f.unlink()
+        for d in made:  # deepest first
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        raise
+    return written
+
+
+def render_run_figures(a: RunAnalysis, title: str = "") -> list[bytes]:
+    """The PNGs of :data:`FIGURE_NAMES`, in that order."""
+    pngs = []
     t = a.t_s - (a.t_s[0] if a.t_s.size else 0.0)
     fig = Figure(figsize=(11.0, 7.0), layout="constrained")
     axes = fig.subplots(2, 1, sharex=True)
@@ -155,7 +188,7 @@ def write_run_figures(a: RunAnalysis, out_dir: str | Path, title: str = "") -> l
     axes[0].legend(ncol=6, fontsize=7, title="solid: measured, dashed: planned", title_fontsize=7)
     axes[1].set_xlabel("time (s)")
     fig.suptitle(f"{title} joint angles".strip())
-    written.append(_png(fig, out / "angles.png"))
+    pngs.append(_png(fig))
 
     rows = 3 if a.tension_N is not None else 2
     fig = Figure(figsize=(11.0, 2.6 * rows + 1.0), layout="constrained")
@@ -172,7 +205,7 @@ def write_run_figures(a: RunAnalysis, out_dir: str | Path, title: str = "") -> l
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time (s)")
     fig.suptitle(f"{title} tracking (measured against planned)".strip())
-    written.append(_png(fig, out / "tracking.png"))
+    pngs.append(_png(fig))
 
     fig = Figure(figsize=(11.0, 4.5), layout="constrained")
     ax1, ax2 = fig.subplots(1, 2, width_ratios=[3, 1])
@@ -186,5 +219,5 @@ def write_run_figures(a: RunAnalysis, out_dir: str | Path, title: str = "") -> l
     ax2.set_xlabel("ms")
     ax2.set_ylabel("cycles")
     fig.suptitle(f"{title} cycle lateness".strip())
-    written.append(_png(fig, out / "lateness.png"))
-    return written
+    pngs.append(_png(fig))
+    return pngs

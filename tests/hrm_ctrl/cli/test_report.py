@@ -171,3 +171,196 @@ def test_report_bad_input_one_line(tmp_path: Path, capsys: pytest.CaptureFixture
     assert not (tmp_path / "o").exists()
     rc, _, err = run_cli(["report", "no-such-run", "--log-dir", str(tmp_path)], capsys)
     assert rc == 2 and "no such run record" in err
+
+
+# -- bad input of ``hrm report`` on a small synthetic run of the default robot -------------
+
+PDO = (0x200, 0x080, 0x180)  # RPDO1 base, SYNC, TPDO1 base
+
+
+def _synthetic_run(folder: Path, cycles: int = 6) -> dict[str, Path]:
+    """A run of the default robot as ``hrm run`` leaves it, without running it: the record,
+    one BLF per bus (every motor commanded and reporting 0 counts, one SYNC every 10 ms)
+    and a tension file.  ``hrm report`` reads it in well under a second."""
+    import struct
+
+    from hrm_ctrl.formats.runlog import tension_path, write_tension_csv
+
+    motors = list(load_actuation(default_robot()).motor_ids)
+    buses = {"can0": motors[:18], "can1": motors[18:]}
+    folder.mkdir(parents=True, exist_ok=True)
+    t0 = 1.7e9
+    paths: dict[str, Path] = {}
+    for bus, ids in buses.items():
+        path = folder / f"run-s_{bus}.blf"
+        with can.BLFWriter(str(path)) as w:
+            for k in range(cycles):
+                t = t0 + 0.01 * k
+                frames = [(PDO[0] + n, struct.pack("<Hi", 15, 0)) for n in range(1, len(ids) + 1)]
+                frames.append((PDO[1], b""))
+                frames += [
+                    (PDO[2] + n, struct.pack("<Hi", 0x1237, 0)) for n in range(1, len(ids) + 1)
+                ]
+                for i, (cid, data) in enumerate(frames):
+                    w.on_message_received(
+                        can.Message(timestamp=t + 1e-5 * i, arbitration_id=cid,
+                                    is_extended_id=False, data=data)
+                    )  # fmt: skip
+        paths[bus] = path
+    record = {
+        "format": "hrm-run/1", "run": "run-s", "motor_ids": motors,
+        "config": {"control": {"rate_hz": 100.0},
+                   "buses": {b: {"nodes": {m: i + 1 for i, m in enumerate(ids)}}
+                             for b, ids in buses.items()}},
+        "can_logs": [str(paths[b]) for b in buses],
+    }  # fmt: skip
+    paths["record"] = folder / "run-s.json"
+    paths["record"].write_text(json.dumps(record))
+    paths["tension"] = write_tension_csv(
+        tension_path(paths["record"]), [t0, t0 + 0.01], np.full((2, len(motors)), 30.0), motors
+    )
+    return paths
+
+
+@pytest.fixture
+def synthetic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, Path]:
+    monkeypatch.setenv("HRM_CALIBRATIONS", str(tmp_path / "calibrations"))  # none
+    return _synthetic_run(tmp_path / "runs")
+
+
+def _files(folder: Path) -> dict[Path, bytes]:
+    return {p: p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _one_line_error(rc: int, out: str, err: str, name: str) -> None:
+    assert rc == 2 and out == ""
+    assert len(err.splitlines()) == 1 and err.startswith("hrm report: error: "), err
+    assert name in err and "Traceback" not in err
+
+
+def test_report_of_the_synthetic_run(
+    synthetic: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = synthetic["record"].parent / "figs"
+    rc, text, err = run_cli(["report", str(synthetic["record"]), "--out", str(out), "--json"],
+                            capsys)  # fmt: skip
+    assert rc == 0 and err == "", err
+    rep = json.loads(text)
+    assert rep["cycles"] == 6 and rep["max_counts_error"] == 0.0 and rep["tension_samples"] == 2
+    assert sorted(p.name for p in out.iterdir()) == ["angles.png", "lateness.png", "tracking.png"]
+
+
+@pytest.mark.parametrize(
+    "target", ["record", "can0", "can1", "tension", "link-to-record", "file", "under-a-file",
+               "sys"],
+)  # fmt: skip
+def test_report_out_refused_nothing_written(
+    synthetic: dict[str, Path],
+    target: str,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """An --out naming one of the run's files, an existing file or a path that cannot be
+    made: one line naming it, exit 2, no CAN log read, nothing written or replaced."""
+    import hrm_ctrl.formats.runlog as runlog
+
+    runs = synthetic["record"].parent
+    other = runs / "notes.txt"
+    other.write_text("mine")
+    (runs / "link.json").symlink_to(synthetic["record"])
+    out = {
+        "record": synthetic["record"], "can0": synthetic["can0"], "can1": synthetic["can1"],
+        "tension": synthetic["tension"], "link-to-record": runs / "link.json", "file": other,
+        "under-a-file": other / "figs", "sys": Path("/sys/hrm-report-test/figs"),
+    }[target]  # fmt: skip
+    before = _files(runs)
+
+    def no_log(*_a: Any, **_k: Any) -> None:
+        raise AssertionError("a CAN log was read")
+
+    if target != "sys":  # a path that cannot be made is found on writing, all else before
+        monkeypatch.setattr(runlog, "read_run", no_log)
+    if target not in ("can0", "can1", "sys"):  # refused before the record is read at all
+        monkeypatch.setattr(runlog, "read_record", no_log)
+    rc, text, err = run_cli(["report", str(synthetic["record"]), "--out", str(out)], capsys)
+    assert not Path("/sys/hrm-report-test").exists()
+    _one_line_error(rc, text, err, str(out))
+    assert _files(runs) == before  # inputs untouched, no figure anywhere
+    assert sorted(runs.iterdir()) == sorted({*before, runs / "link.json"})
+
+
+def _nested(p: dict[str, Path]) -> Path:
+    p["record"].write_text("[" * 100_000 + "]" * 100_000)
+    return p["record"]
+
+
+def _blf(bus: str, data: bytes | None) -> Any:
+    def damage(p: dict[str, Path]) -> Path:
+        raw = p[bus].read_bytes()
+        if data is None:  # a byte changed in each compressed container's data
+            b = bytearray(raw)
+            for i in range(len(b) // 2, len(b), 97):
+                b[i] ^= 0x5A
+            raw = bytes(b)
+        p[bus].write_bytes(raw if data is None else data)
+        return p[bus]
+
+    return damage
+
+
+def _rate(value: str) -> Any:
+    def damage(p: dict[str, Path]) -> Path:
+        text = p["record"].read_text().replace('"rate_hz": 100.0', f'"rate_hz": {value}')
+        assert value in text
+        p["record"].write_text(text)
+        return p["record"]
+
+    return damage
+
+
+def _motors(p: dict[str, Path]) -> Path:
+    rec = json.loads(p["record"].read_text())
+    rec["motor_ids"] += [f"x{i}" for i in range(2_000_000)]
+    p["record"].write_text(json.dumps(rec))
+    return p["record"]
+
+
+def _node(p: dict[str, Path]) -> Path:
+    rec = json.loads(p["record"].read_text())
+    rec["config"]["buses"]["can1"]["nodes"]["j12r2"] = 1e300
+    p["record"].write_text(json.dumps(rec))
+    return p["record"]
+
+
+def _tension(cell: str) -> Any:
+    def damage(p: dict[str, Path]) -> Path:
+        lines = p["tension"].read_text().splitlines()
+        lines[2] = cell + lines[2][lines[2].index(",") :]
+        p["tension"].write_text("\n".join(lines) + "\n")
+        return p["tension"]
+
+    return damage
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [_nested, _blf("can0", b""), _blf("can1", bytes(range(256)) * 16), _blf("can0", None),
+     _rate("NaN"), _rate("Infinity"), _rate("-Infinity"), _rate("-100"), _rate("0"),
+     _rate("1e300"), _rate("true"), _motors, _node, _tension("nan"), _tension("1e999")],
+    ids=["nested-record", "empty-blf", "random-blf", "damaged-blf", "rate-nan", "rate-inf",
+         "rate-minus-inf", "rate-negative", "rate-zero", "rate-huge", "rate-bool",
+         "two-million-motors", "node-id-huge", "tension-nan-time", "tension-inf-time"],
+)  # fmt: skip
+def test_report_damaged_input_one_line(
+    synthetic: dict[str, Path],
+    damage: Any,
+    capsys: pytest.CaptureFixture[str],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A damaged record, CAN log or tension file: one line naming it, exit 2, no figure."""
+    bad = damage(synthetic)
+    out = synthetic["record"].parent / "figs"
+    rc, text, err = run_cli(["report", str(synthetic["record"]), "--out", str(out)], capsys)
+    _one_line_error(rc, text, err, bad.name)
+    assert not out.exists()
+    assert not [r for r in caplog.records if r.name.startswith("can")]  # nothing logged either

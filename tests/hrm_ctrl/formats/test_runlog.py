@@ -4,8 +4,10 @@ written with python-can, so every value is known), and its bad input."""
 from __future__ import annotations
 
 import json
+import os
 import struct
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -84,7 +86,9 @@ def test_tension_file_round_trip_and_bounds(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("text", "message"),
     [
-        ("{", r"not a run record \(JSON"),
+        ("{", r"not JSON \(line 1"),
+        ("[" * 100_000 + "]" * 100_000, r"not a run record \(JSON nested too deeply\)"),
+        ("1" * 400, "too large for a number"),
         ('{"format": "hrm-plan/1"}', r"format 'hrm-plan/1', expected hrm-run/1"),
         ('{"format": "hrm-run/1", "motor_ids": [], "config": {}}', "without 'can_logs'"),
     ],
@@ -102,3 +106,103 @@ def test_missing_log_named(tmp_path: Path) -> None:
     (tmp_path / "run-x_b.blf").unlink()
     with pytest.raises(RunLogError, match=r"run-x_b\.blf: cannot open CAN log"):
         read_run(p)
+
+
+def _set_rate(p: Path, value: str) -> None:
+    text = p.read_text().replace('"rate_hz": 100.0', f'"rate_hz": {value}')
+    assert value in text
+    p.write_text(text)
+
+
+@pytest.mark.parametrize("rate", ["NaN", "Infinity", "-Infinity", "-100", "0", "1e300", '"100"'])
+def test_control_rate_out_of_range_refused(tmp_path: Path, rate: str) -> None:
+    p = _write_run(tmp_path, np.zeros((2, 2), int), np.zeros((2, 2)))
+    _set_rate(p, rate)
+    with pytest.raises(RunLogError, match="run record without a control rate") as exc:
+        read_run(p)
+    assert str(p) in str(exc.value) and "\n" not in str(exc.value)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda r: r.update(motor_ids=[f"m{i}" for i in range(2000)]), "2000 motors"),
+        (lambda r: r.update(motor_ids=["m0", "m0"]), "not distinct names"),
+        (lambda r: r["config"]["buses"]["a"]["nodes"].update(m0=1e300), "node id 1e"),
+        (lambda r: r["config"]["buses"]["b"]["nodes"].update(m1=0), "node id 0"),
+    ],
+)
+def test_motors_and_nodes_checked(tmp_path: Path, change: Any, message: str) -> None:
+    p = _write_run(tmp_path, np.zeros((2, 2), int), np.zeros((2, 2)))
+    rec = json.loads(p.read_text())
+    change(rec)
+    p.write_text(json.dumps(rec))
+    with pytest.raises(RunLogError, match=message) as exc:
+        read_run(p)
+    assert str(p) in str(exc.value) and "\n" not in str(exc.value)
+
+
+def _flip(raw: bytes) -> bytes:
+    b = bytearray(raw)
+    for i in range(len(b) // 2, len(b), 97):  # in the compressed container's data
+        b[i] ^= 0x5A
+    return bytes(b)
+
+
+@pytest.mark.parametrize(
+    ("name", "damage"),
+    [
+        ("run-x_a.blf", lambda raw: b""),
+        ("run-x_a.blf", lambda raw: raw[:40]),
+        ("run-x_b.blf", lambda raw: bytes(range(256)) * 16),
+        ("run-x_a.blf", _flip),
+        ("run-x_a.db", lambda raw: b"not a database" * 100),
+    ],
+    ids=["empty", "cut-header", "random", "damaged-container", "db-not-a-database"],
+)
+def test_damaged_log_one_line_nothing_logged(
+    tmp_path: Path, name: str, damage: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A damaged CAN log (whatever python-can's reader raises or logs): one line naming
+    it, and none of the reader's warnings on stderr."""
+    p = _write_run(tmp_path, np.zeros((40, 2), int), np.zeros((40, 2)))
+    bus = "a" if "_a." in name else "b"
+    raw = (tmp_path / f"run-x_{bus}.blf").read_bytes()
+    (tmp_path / name).write_bytes(damage(raw))
+    rec = json.loads(p.read_text())
+    rec["can_logs"][0 if bus == "a" else 1] = str(tmp_path / name)
+    p.write_text(json.dumps(rec))
+    with pytest.raises(RunLogError, match="CAN log") as exc:
+        read_run(p)
+    assert str(tmp_path / name) in str(exc.value) and "\n" not in str(exc.value)
+    assert not [r for r in caplog.records if r.name.startswith("can")]
+
+
+def test_log_not_a_regular_file_refused(tmp_path: Path) -> None:
+    p = _write_run(tmp_path, np.zeros((2, 2), int), np.zeros((2, 2)))
+    (tmp_path / "run-x_b.blf").unlink()
+    os.mkfifo(tmp_path / "run-x_b.blf")  # would block a reader
+    with pytest.raises(RunLogError, match=r"run-x_b\.blf: CAN log is not a regular file"):
+        read_run(p)
+
+
+@pytest.mark.parametrize(
+    ("row", "message"),
+    [
+        ("nan,1.0,2.0", "4: no time"),
+        ("1e999,1.0,2.0", "4: a number that is not finite"),
+        ("1.0,inf,2.0", "4: a number that is not finite"),
+        ("1.0,x,2.0", "4: not a number"),
+        ("1.0,2.0", "4: 2 fields, expected 3"),
+    ],
+)
+def test_tension_file_bad_rows(tmp_path: Path, row: str, message: str) -> None:
+    p = tmp_path / "run-y_tension.csv"
+    p.write_text(f"t_unix_s,m0_N,m1_N\n1.0,30.0,\n1.1,31.0,29.0\n{row}\n")
+    with pytest.raises(RunLogError, match=message) as exc:
+        tension_csv(p, ["m0", "m1"])
+    assert str(p) in str(exc.value) and "\n" not in str(exc.value)
+    fifo = tmp_path / "fifo_tension.csv"
+    os.mkfifo(fifo)
+    with pytest.raises(RunLogError, match="not a regular file"):
+        tension_csv(fifo, ["m0", "m1"])
