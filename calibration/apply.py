@@ -10,6 +10,18 @@ treated alike, the file's path, comments and layout do not count, and any value 
 changes makes another robot (whose calibrations are refused).  It is always taken of the
 description as loaded, never of a calibrated model (whose links differ).
 
+**How far from the description.**  The store keeps any finite value; :func:`check_belongs`
+(every command that applies a calibration, or makes one active, calls it) refuses a
+calibration whose values could not be this arm's, one line naming the file and the key
+(:func:`check_ranges`): a link length more than :data:`LINK_MAX_DEVIATION_MM` (20 mm) or
+:data:`LINK_MAX_DEVIATION_FRACTION` (10 %), whichever is more, from the description's; a
+joint zero offset beyond :data:`MAX_OFFSET_RAD` (10 deg) either way; a rope's EA outside
+:data:`EA_RATIO_RANGE` (0.25 .. 4) times the description's; a motor zero more than
+:data:`ZERO_MAX_ROPE_MM` (50 mm) of rope from the description's count 0.  The simulated
+arm's perturbations (links +-2 mm, offsets +-1 deg, EA +-20 %, zeros +-5000 counts: 2.3 mm
+of rope) and its truth files' limits (10 mm, 5 deg, 0.5 .. 2 times, 50 000 counts) are well
+inside, with room for the routines' errors; 1e300 is far outside.
+
 **Applying.**  :func:`calibrated_model` replaces the link lengths; :func:`calibrated_actuation`
 builds the rope layer from that model with the calibration's motor zero counts, per-rope
 axial rigidity and joint zero offsets (:func:`hrm_ctrl.ropes.actuation.load_actuation`:
@@ -37,6 +49,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from collections.abc import Mapping
 from datetime import UTC, datetime
 from typing import Any
@@ -47,12 +60,20 @@ from calibration.store import Calibration, CalibrationStore, Routine, checksum
 from hrm_ctrl.errors import CalibrationFileError
 from hrm_ctrl.model import RobotModel
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
+from hrm_ctrl.ropes.motor_map import motor_map_from_table
 from hrm_ctrl.ropes.routing import routing_from_model
 
 UPDATABLE = frozenset(
     {"links_mm", "alpha_offset_rad", "theta_offset_rad", "motor_zero_counts", "rope_EA_N"}
 )
 """The fields a routine may replace (:func:`updated`)."""
+
+# How far a calibration may be from its robot description (module docstring).
+LINK_MAX_DEVIATION_MM = 20.0
+LINK_MAX_DEVIATION_FRACTION = 0.10
+MAX_OFFSET_RAD = math.radians(10.0)
+EA_RATIO_RANGE = (0.25, 4.0)
+ZERO_MAX_ROPE_MM = 50.0
 
 
 def _plain(value: Any) -> Any:
@@ -140,6 +161,65 @@ def check_belongs(model: RobotModel, cal: Calibration, where: str = "calibration
             raise CalibrationFileError(
                 f"{where}: {what} does not name the description's ropes (unknown {extra}, "
                 f"missing {missing})"
+            )
+    check_ranges(model, cal, where)
+
+
+def check_ranges(model: RobotModel, cal: Calibration, where: str = "calibration") -> None:
+    """Refuse (:class:`CalibrationFileError`, one line naming ``where`` and the key) a
+    calibration of ``model``'s ropes with a value too far from the description's (module
+    docstring).
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> m = default_robot()
+    >>> cal = nominal_calibration(m)
+    >>> check_ranges(m, updated(cal, routine="manual", residuals={}, links_mm=m.links + 19.0))
+    >>> too_long = updated(cal, routine="manual", residuals={}, links_mm=m.links * 1.2)
+    >>> check_ranges(m, too_long)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.CalibrationFileError: calibration: links_mm[0] is 214.8 mm, more than 20 mm...
+    """
+    desc = np.asarray(model.links, dtype=float)
+    if cal.links_mm.shape != desc.shape:
+        raise CalibrationFileError(
+            f"{where}: links_mm has {cal.links_mm.shape[0]} values, the description {desc.shape[0]}"
+        )
+    allowed = np.maximum(LINK_MAX_DEVIATION_MM, LINK_MAX_DEVIATION_FRACTION * desc)
+    rows = zip(cal.links_mm.tolist(), desc.tolist(), allowed.tolist(), strict=True)
+    for j, (v, d, a) in enumerate(rows):
+        if not abs(v - d) <= a:
+            raise CalibrationFileError(
+                f"{where}: links_mm[{j}] is {v:.6g} mm, more than {a:.6g} mm from the "
+                f"description's {d:.6g} mm"
+            )
+    for key in ("alpha_offset_rad", "theta_offset_rad"):
+        for j, v in enumerate(getattr(cal, key).tolist()):
+            if not abs(v) <= MAX_OFFSET_RAD:
+                raise CalibrationFileError(
+                    f"{where}: {key}[{j}] is {v:.6g} rad ({math.degrees(v):.4g} deg), beyond "
+                    f"the {math.degrees(MAX_OFFSET_RAD):g} deg a joint zero offset may be"
+                )
+    routing = routing_from_model(model)
+    lo, hi = EA_RATIO_RANGE
+    for rope, ea0 in zip(routing.rope_ids, routing.stiffness_EA_N.tolist(), strict=True):
+        ea = cal.rope_EA_N[rope]
+        if not lo * ea0 <= ea <= hi * ea0:
+            raise CalibrationFileError(
+                f"{where}: rope_EA_N.{rope} is {ea:.6g} N, not within {lo:g} .. {hi:g} times "
+                f"the description's {ea0:.6g} N"
+            )
+    ids = routing.rope_ids
+    motors = motor_map_from_table(
+        model.tables.get("motors", {}), ids, np.zeros(len(ids)), None, model.source
+    )
+    for motor, cpm in zip(ids, motors.counts_per_mm.tolist(), strict=True):
+        z = cal.motor_zero_counts[motor]
+        if not abs(z) <= ZERO_MAX_ROPE_MM * cpm:
+            raise CalibrationFileError(
+                f"{where}: motor_zero_counts.{motor} is {z} counts, {abs(z) / cpm:.4g} mm of "
+                f"rope from the description's zero (at most {ZERO_MAX_ROPE_MM:g} mm, "
+                f"{math.floor(ZERO_MAX_ROPE_MM * cpm)} counts)"
             )
 
 

@@ -10,8 +10,10 @@ the end point; ``phase`` is ``in`` or ``return`` (on every step or on none: then
 ``from_dict()`` read.  The JSON Schema ``hrm-plan-1.schema.json`` next to this module is
 the format's definition; documents are validated against it (``jsonschema``, Draft
 2020-12) and, since JSON Schema cannot say so, every number read into an array must be
-finite.  Every problem is one :class:`~hrm_ctrl.errors.PlanFileError` line naming the
-file and the place, e.g. ``plan.json: steps[3].alpha_rad[2]: expected a finite number``.
+finite and in range: lengths, coordinates and travels within +-:data:`MAX_LENGTH_MM` (100 m),
+step angles within a half turn, the robot's joint limits within 180 deg.  Every problem is
+one :class:`~hrm_ctrl.errors.PlanFileError` line naming the file and the place, e.g.
+``plan.json: steps[3].alpha_rad[2]: expected a finite number``.
 A plan made in an environment keeps it as ``scenario.environment`` (the data of a scene
 file, :mod:`hrm_ctrl.formats.scene`, checked on reading: :attr:`PlanDoc.environment`) and its
 clearance in ``report.clearance_mm`` (``min``, ``step``, ``link``: :attr:`PlanDoc.clearance`);
@@ -37,6 +39,7 @@ hrm_ctrl.errors.PlanFileError: plan.json: steps[0].alpha_rad[2]: expected a fini
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -50,6 +53,7 @@ import numpy as np
 
 from hrm_ctrl.errors import PlanFileError
 from hrm_ctrl.files import parse_json, read_text_file, write_atomic
+from hrm_ctrl.model import MAX_LENGTH_MM
 
 if TYPE_CHECKING:
     from hrm_ctrl.model import RobotModel
@@ -59,6 +63,15 @@ PLAN_FORMAT = "hrm-plan/1"
 SCHEMA_FILE = "hrm-plan-1.schema.json"
 N_JOINTS = 12
 LINK_TOLERANCE_MM = 1e-6  # a plan fits a robot when every link length agrees this closely
+# Every length, coordinate and travel of a plan is within +-MAX_LENGTH_MM (100 m, the robot
+# description's bound: anything larger is a typo, not an arm), every angle within a half turn
+# (the joint limits are below 90 deg), the robot's joint limits in degrees within a half turn
+# too: an extreme number (1e300) would overflow the time parameterisation's sums and splines.
+MAX_ANGLE_RAD = math.pi
+# Two consecutive steps' travels differ by 0 or by at least this much (1 nm, a 500th of an
+# encoder count of the shipped motors): the playback's splines divide by the difference.
+MIN_TRAVEL_STEP_MM = 1e-6
+MAX_LIMIT_DEG = 180.0
 MAX_PLAN_BYTES = 256 * 2**20  # a plan file larger than this is refused unread
 
 _TOP_KEYS = ("format", "robot", "path_mm", "steps", "report")
@@ -212,34 +225,64 @@ def _floats(value: Any, place: str, where: str) -> np.ndarray:
         ) from None
 
 
-def _array(value: Any, place: str, where: str) -> np.ndarray:
-    """A schema-checked numeric list as a float array; non-finite numbers are refused."""
+_MM = (MAX_LENGTH_MM, "mm")
+_RAD = (MAX_ANGLE_RAD, "rad")
+_DEG = (MAX_LIMIT_DEG, "deg")
+
+
+def _refuse_bad(arr: np.ndarray, bound: tuple[float, str], where: str, name: Any) -> None:
+    """Refuse the first non-finite number of ``arr``, or the first beyond ``bound`` (the
+    largest size, its unit); ``name(index)`` is its place."""
+    limit, unit = bound
+    bad = ~(np.abs(arr) <= limit)  # nan included
+    if not bad.any():
+        return
+    idx = tuple(int(i) for i in np.argwhere(bad)[0])
+    got = float(arr[idx])
+    if not math.isfinite(got):
+        raise PlanFileError(f"{where}: {name(idx)}: expected a finite number, got {got!r}")
+    raise PlanFileError(
+        f"{where}: {name(idx)}: {got:.6g} is out of range (|value| <= {limit:.6g} {unit})"
+    )
+
+
+def _array(value: Any, place: str, where: str, bound: tuple[float, str] = _MM) -> np.ndarray:
+    """A schema-checked numeric list as a float array; non-finite numbers and numbers
+    beyond ``bound`` in size are refused."""
     arr = _floats(value, place, where)
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        idx = tuple(int(i) for i in np.argwhere(bad)[0])
-        sub = "".join(f"[{i}]" for i in idx)
-        raise PlanFileError(
-            f"{where}: {place}{sub}: expected a finite number, got {float(arr[idx])!r}"
-        )
+    _refuse_bad(arr, bound, where, lambda idx: place + "".join(f"[{i}]" for i in idx))
     arr.setflags(write=False)
     return arr
 
 
-def _step_array(steps: list[Any], key: str, where: str) -> np.ndarray:
-    """``key`` of every (schema-checked) step stacked, (S, ...); non-finite numbers are
-    refused naming the step."""
+def _step_array(
+    steps: list[Any], key: str, where: str, bound: tuple[float, str] = _MM
+) -> np.ndarray:
+    """``key`` of every (schema-checked) step stacked, (S, ...); non-finite numbers and
+    numbers beyond ``bound`` in size are refused naming the step."""
     arr = _floats([st[key] for st in steps], f"steps[].{key}", where)
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        i, *rest = (int(v) for v in np.argwhere(bad)[0])
-        sub = "".join(f"[{v}]" for v in rest)
-        got = float(arr[(i, *rest)])
-        raise PlanFileError(
-            f"{where}: steps[{i}].{key}{sub}: expected a finite number, got {got!r}"
-        )
+
+    def name(idx: tuple[int, ...]) -> str:
+        i, *rest = idx
+        return f"steps[{i}].{key}" + "".join(f"[{v}]" for v in rest)
+
+    _refuse_bad(arr, bound, where, name)
     arr.setflags(write=False)
     return arr
+
+
+def _check_travel_steps(travel: np.ndarray, where: str) -> None:
+    """Refuse two consecutive travels closer than :data:`MIN_TRAVEL_STEP_MM` but not equal
+    (equal ones are the time parameterisation's to judge, by phase)."""
+    step = np.abs(np.diff(travel))
+    tiny = (step > 0.0) & (step < MIN_TRAVEL_STEP_MM)
+    if tiny.any():
+        k = int(np.argmax(tiny)) + 1
+        raise PlanFileError(
+            f"{where}: steps[{k}].travel_mm: {float(travel[k])!r} is {float(step[k - 1]):.3g} mm "
+            f"from steps[{k - 1}]'s; travels of consecutive steps differ by 0 or by at least "
+            f"{MIN_TRAVEL_STEP_MM:g} mm"
+        )
 
 
 # ---- the document -------------------------------------------------------------------------
@@ -362,11 +405,12 @@ class PlanDoc:
         lim = robot.get("joint_limits_deg", {})
         for name in ("alpha", "theta"):
             if name in lim:
-                _array(lim[name], f"robot.joint_limits_deg.{name}", where)
+                _array(lim[name], f"robot.joint_limits_deg.{name}", where, _DEG)
         path = _array(doc["path_mm"], "path_mm", where)
         travel = _step_array(steps, "travel_mm", where)
-        alpha = _step_array(steps, "alpha_rad", where)
-        theta = _step_array(steps, "theta_rad", where)
+        _check_travel_steps(travel, where)
+        alpha = _step_array(steps, "alpha_rad", where, _RAD)
+        theta = _step_array(steps, "theta_rad", where, _RAD)
         joints = _step_array(steps, "joints_mm", where)
         backbones = {
             k: _array(st["backbone_mm"], f"steps[{k}].backbone_mm", where)
@@ -472,7 +516,10 @@ def write_plan(path: str | Path, plan: PlanDoc | Mapping[str, Any]) -> None:
 
 __all__ = [
     "LINK_TOLERANCE_MM",
+    "MAX_ANGLE_RAD",
+    "MAX_LIMIT_DEG",
     "MAX_PLAN_BYTES",
+    "MIN_TRAVEL_STEP_MM",
     "PLAN_FORMAT",
     "Phase",
     "PlanDoc",

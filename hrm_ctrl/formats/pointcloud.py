@@ -87,7 +87,8 @@ def read_point_cloud(path: str | Path) -> np.ndarray:
 
 def _check_points(pts: np.ndarray, p: Path, row: str, first_row: int = 1) -> np.ndarray:
     """(n, 3) float64, every value finite and within bounds; errors name ``row`` k."""
-    pts = np.ascontiguousarray(pts, dtype=np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):  # what the cast makes inf/nan is refused
+        pts = np.ascontiguousarray(pts, dtype=np.float64)
     if len(pts) == 0:
         raise PointCloudError(f"{p}: point cloud has no points")
     if len(pts) > MAX_POINT_CLOUD_POINTS:
@@ -330,7 +331,10 @@ def _read_ply(p: Path) -> np.ndarray:
         wrong = [c for c, k in kinds.items() if k not in "fiu"]
         if wrong:
             raise PointCloudError(f"{p}: PLY vertex property {wrong[0]} is not a number")
-        pts = np.column_stack([np.asarray(data[c], dtype=np.float64) for c in "xyz"])
+        # a NaN of another byte order or a long double beyond float64 warns when cast: those
+        # values are refused by _check_points, the one line
+        with np.errstate(invalid="ignore", over="ignore"):
+            pts = np.column_stack([np.asarray(data[c], dtype=np.float64) for c in "xyz"])
     except PointCloudError:
         raise
     except (

@@ -19,7 +19,8 @@ The ``[motors]`` table of the robot description (all optional, defaults below):
 0.2 s), ``max_jerk_rpm_per_s2`` (600 000: full acceleration in 0.05 s),
 ``travel_in_mm`` / ``travel_out_mm`` (200 / 200: rope the drum can wind in / pay out
 from the zero position) and ``direction`` (+1, -1, or a table ``{ j03r1 = -1, ... }``
-per motor).
+per motor).  Every number has a range (:data:`MOTOR_RANGES`: speeds, accelerations and
+jerks a motor can have, no 1e300); outside it the description is refused naming the key.
 
 Why 30 000 rpm/s: a small servo (a few hundred W, rotor inertia about 1e-5 kg m^2,
 peak torque about 1 N m) could spin its own rotor up far faster, but behind a 33:1
@@ -60,6 +61,26 @@ DEFAULT_MOTORS: dict[str, float] = {
     "max_jerk_rpm_per_s2": 600000.0,
     "travel_in_mm": 200.0,
     "travel_out_mm": 200.0,
+}
+
+
+# The range of every [motors] number: wide enough for any motor, gearbox and drum of a rope
+# box, far below the numbers only a typo makes (1e300 rpm overflows the time
+# parameterisation).  Speed 1 .. 100 000 rpm (the fastest small servos run at 20 000 -
+# 50 000); acceleration 1 .. 1e6 rpm/s (a small servo's own rotor at its peak torque, ten
+# times the steepest ramp drives ship with); jerk 1000 .. 1e9 rpm/s^2 (that acceleration in
+# 1 ms; below 1000 a jerk-limited lead-in of the drum travel would take hours); a drum of
+# up to 1000 mm radius, a gear ratio of 1e-3 .. 1e4, an encoder of 1 .. 2^32 counts per
+# turn; the drum travel up to the robot description's 100 m (and the drives' 32 bits).
+MOTOR_RANGES: dict[str, tuple[float, float]] = {
+    "drum_radius_mm": (0.0, 1000.0),  # a small radius: the drives' 32 bits decide
+    "gear_ratio": (1e-3, 1e4),
+    "counts_per_turn": (1.0, 2.0**32),
+    "max_speed_rpm": (1.0, 1e5),
+    "max_accel_rpm_per_s": (1.0, 1e6),
+    "max_jerk_rpm_per_s2": (1e3, 1e9),
+    "travel_in_mm": (0.0, 1e5),
+    "travel_out_mm": (0.0, 1e5),
 }
 
 
@@ -162,6 +183,12 @@ def _num(table: Mapping[str, Any], key: str, where: str, *, positive: bool = Tru
     x = float(value)
     if not math.isfinite(x) or (positive and x <= 0.0) or x < 0.0:
         raise MotorConfigError(f"{where}.{key}: must be a finite number > 0, got {value!r}")
+    low, high = MOTOR_RANGES[key]
+    if not low <= x <= high:
+        raise MotorConfigError(
+            f"{where}.{key}: {x:.6g} is out of range "
+            f"({low:g} {'<' if low == 0.0 else '<='} value <= {high:g})"
+        )
     return x
 
 

@@ -11,8 +11,11 @@ import pytest
 
 from hrm_ctrl.cli import main
 from hrm_ctrl.errors import HrmError, RobotDescriptionError
+from hrm_ctrl.formats.planfile import write_plan
 from hrm_ctrl.model import PLAIN_KEYS, TABLE_KEYS, default_robot, load_robot
 from hrm_ctrl.ropes.actuation import load_actuation
+from tests.hrm_ctrl.cli.cli_helpers import small_plan
+from tests.hrm_ctrl.cli.test_bad_input import refused
 
 SHIPPED = resources.files("hrm_ctrl.data").joinpath("robot.toml").read_text()
 
@@ -126,3 +129,71 @@ def _toml(doc: dict[str, Any]) -> str:
             lines.append(f"[{k}]")
             lines += [f"{s} = {value(x)}" for s, x in v.items()]
     return "\n".join(lines) + "\n"
+
+
+# ---- every [motors] number has a range (a red team's 1e300 rpm) ----------------------------
+
+MOTOR_LINES = {
+    "drum_radius_mm": "drum_radius_mm = 10.0",
+    "gear_ratio": "gear_ratio = 33.0",
+    "counts_per_turn": "counts_per_turn = 4096.0",
+    "max_speed_rpm": "max_speed_rpm = 6000.0",
+    "max_accel_rpm_per_s": "max_accel_rpm_per_s = 30000.0",
+    "max_jerk_rpm_per_s2": "max_jerk_rpm_per_s2 = 600000.0",
+    "travel_in_mm": "travel_in_mm = 200.0",
+    "travel_out_mm": "travel_out_mm = 200.0",
+}
+
+
+def _robot_with(tmp_path: Path, key: str, value: str) -> Path:
+    line = MOTOR_LINES[key]
+    assert line in SHIPPED
+    p = tmp_path / "robot.toml"
+    p.write_text(SHIPPED.replace(line, f"{key} = {value}", 1))
+    return p
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+@pytest.mark.parametrize("key", sorted(MOTOR_LINES))
+def test_an_absurd_motor_number_is_refused_naming_the_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str
+) -> None:
+    """``max_speed_rpm = 1e300`` used to give a setpoint table, and ``hrm run --sim``
+    enabled the drives before stopping with RuntimeWarnings."""
+    robot = _robot_with(tmp_path, key, "1e300")
+    plan = tmp_path / "plan.json"
+    write_plan(plan, small_plan())
+    refused(
+        capsys, tmp_path,
+        ["ropes", str(plan), "--robot", str(robot), "--out", str(tmp_path / "sp.csv")],
+        f"{robot}: [motors].{key}: 1e+300 is out of range",
+    )  # fmt: skip
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_run_sim_refuses_1e300_rpm_before_any_drive_is_enabled(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    robot = _robot_with(tmp_path, "max_speed_rpm", "1e300")
+    plan = tmp_path / "plan.json"
+    write_plan(plan, small_plan())
+    argv = ["run", str(plan), "--sim", "--robot", str(robot)]
+    argv += ["--calibrations", str(tmp_path / "cal")]
+    refused(capsys, tmp_path, argv, "[motors].max_speed_rpm: 1e+300 is out of range")
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("max_speed_rpm", "100000.0"),
+        ("max_accel_rpm_per_s", "1e6"),
+        ("max_jerk_rpm_per_s2", "1e9"),
+        ("max_jerk_rpm_per_s2", "1000.0"),
+        ("gear_ratio", "1e4"),
+        ("drum_radius_mm", "1000.0"),
+    ],
+)
+def test_motor_numbers_at_the_ends_of_their_ranges_load(tmp_path: Path, key: str, value: str):
+    act = load_actuation(load_robot(_robot_with(tmp_path, key, value)))
+    assert act.n_motors == 36
