@@ -118,7 +118,21 @@ def rope_id(joint: int, rope: int) -> str:
     return f"j{joint + 1:02d}r{rope}"
 
 
-def _num(value: Any, where: str, *, positive: bool = False, minimum: float | None = None) -> float:
+#: upper bounds of the [ropes] numbers: far beyond any arm of this kind, far below what
+#: would overflow the rope model (a typo, not a rope)
+MAX_GEOMETRY_MM = 1.0e4  # hole circle, hole, disk thickness, box length: 10 m
+MAX_EA_N = 1.0e9  # a 30 mm steel rod: 1.4e8 N
+MAX_PRETENSION_N = 1.0e5  # 10 t
+
+
+def _num(
+    value: Any,
+    where: str,
+    *,
+    positive: bool = False,
+    minimum: float | None = None,
+    maximum: float | None = None,
+) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise RoutingError(f"{where}: expected a number, got {value!r}")
     x = float(value)
@@ -128,15 +142,20 @@ def _num(value: Any, where: str, *, positive: bool = False, minimum: float | Non
         raise RoutingError(f"{where}: must be > 0, got {value!r}")
     if minimum is not None and x < minimum:
         raise RoutingError(f"{where}: must be >= {minimum}, got {value!r}")
+    if maximum is not None and x > maximum:
+        raise RoutingError(f"{where}: must be <= {maximum:g}, got {value!r}")
     return x
 
 
 def _per_joint(value: Any, n: int, where: str, *, positive: bool = True) -> np.ndarray:
+    top = MAX_GEOMETRY_MM
     if isinstance(value, list):
         if len(value) != n:
             raise RoutingError(f"{where}: list must have {n} values, got {len(value)}")
-        return np.array([_num(v, f"{where}[{i}]", positive=positive) for i, v in enumerate(value)])
-    return np.full(n, _num(value, where, positive=positive))
+        return np.array(
+            [_num(v, f"{where}[{i}]", positive=positive, maximum=top) for i, v in enumerate(value)]
+        )
+    return np.full(n, _num(value, where, positive=positive, maximum=top))
 
 
 def _counts(value: Any, n: int, where: str) -> list[int]:
@@ -210,22 +229,35 @@ def routing_from_table(
         table.get("hole_radius_mm", DEFAULT_HOLE_RADIUS_MM),
         f"{where}.hole_radius_mm",
         positive=True,
+        maximum=MAX_GEOMETRY_MM,
     )
     hole_d = _num(
         table.get("hole_diameter_mm", DEFAULT_HOLE_DIAMETER_MM),
         f"{where}.hole_diameter_mm",
         positive=True,
+        maximum=MAX_GEOMETRY_MM,
     )
     d_p = _per_joint(
         table.get("proximal_disk_mm", DEFAULT_DISK_MM), n_j, f"{where}.proximal_disk_mm"
     )
     d_d = _per_joint(table.get("distal_disk_mm", DEFAULT_DISK_MM), n_j, f"{where}.distal_disk_mm")
-    ea = _num(table.get("stiffness_EA_N", DEFAULT_EA_N), f"{where}.stiffness_EA_N", positive=True)
+    ea = _num(
+        table.get("stiffness_EA_N", DEFAULT_EA_N),
+        f"{where}.stiffness_EA_N",
+        positive=True,
+        maximum=MAX_EA_N,
+    )
     box = _num(
-        table.get("box_length_mm", DEFAULT_BOX_LENGTH_MM), f"{where}.box_length_mm", minimum=0.0
+        table.get("box_length_mm", DEFAULT_BOX_LENGTH_MM),
+        f"{where}.box_length_mm",
+        minimum=0.0,
+        maximum=MAX_GEOMETRY_MM,
     )
     pre = _num(
-        table.get("pretension_N", DEFAULT_PRETENSION_N), f"{where}.pretension_N", minimum=0.0
+        table.get("pretension_N", DEFAULT_PRETENSION_N),
+        f"{where}.pretension_N",
+        minimum=0.0,
+        maximum=MAX_PRETENSION_N,
     )
 
     if "angles_deg" in table:

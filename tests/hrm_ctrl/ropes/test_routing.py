@@ -80,6 +80,11 @@ def _explicit(angles: list[list[float]]) -> dict[str, Any]:
         ({"colour": "red"}, "unknown key 'colour'"),
         ({"proximal_disk_mm": 150.0}, r"link 10 \(130 mm\) is shorter than the disks"),
         ({"angles_deg": [[0.0, 120.0]] * 12}, r"angles_deg\[0\]"),
+        # absurd magnitudes: refused at load (before: 1e300 reached the rope model)
+        ({"stiffness_EA_N": 1e300}, r"stiffness_EA_N: must be <= 1e\+09"),
+        ({"pretension_N": 1e300}, r"pretension_N: must be <= 100000"),
+        ({"box_length_mm": 1e300}, r"box_length_mm: must be <= 10000"),
+        ({"proximal_disk_mm": 1e300}, r"proximal_disk_mm: must be <= 10000"),
     ],
 )
 def test_bad_routing_is_one_line_rope_error(ropes: dict[str, Any], match: str | None) -> None:
