@@ -106,9 +106,9 @@ def refuse_overwriting_inputs(outputs: Iterable[Output], inputs: Iterable[Input]
             odd = [t for t in (base / m for m in out.members) if _special(t)]
         else:
             odd = [base] if os.path.lexists(base) and not os.path.isfile(base) else []
-        for target in odd:
+        if odd:
             raise OverwriteInputError(
-                f"{out.option} {base}: {target} exists and is not a regular file"
+                f"{out.option} {base}: {odd[0]} exists and is not a regular file"
             )
         for what, folder in folders:
             if _inside(base, folder):
