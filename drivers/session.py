@@ -95,7 +95,7 @@ from drivers.safety.limits import MAX_SOURCE_DURATION_S, LimitChecker
 from drivers.safety.monitor import NodeMonitor
 from drivers.safety.supervisor import Mode, StopRecord, Supervisor, SupervisorModeError
 from drivers.sources import SetpointSource
-from hrm_ctrl.errors import DriverError, HrmError
+from hrm_ctrl.errors import DriverError, HrmError, interrupting_signal
 from hrm_ctrl.files import write_atomic
 
 RUN_RECORD_FORMAT = "hrm-run/1"
@@ -1001,7 +1001,12 @@ class DriveSession:
     def __enter__(self) -> DriveSession:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc_value: BaseException | None = None,
+        traceback: object = None,
+    ) -> None:
         """Finish (also after a safety stop: NMT pre-operational, host heartbeat last),
         then close.  A finish failure is raised when nothing else is in flight and the
         session was not already stopped (a stop was reported to the caller when it
@@ -1011,6 +1016,11 @@ class DriveSession:
                 self.supervisor.mode is not Mode.OFF
             ):
                 stopped = self._state in (SessionState.STOPPED, SessionState.FAULT)
+                signal_name = interrupting_signal(exc_value)
+                if signal_name is not None and self.supervisor.mode is Mode.ARMED:
+                    # drives enabled and holding: quick stop every axis first (the
+                    # finish's last idle check sends it at once), with its cause
+                    self.request_stop(StopKind.SIGNAL, f"{signal_name}: stop requested")
                 try:
                     self.finish()
                 except HrmError as err:

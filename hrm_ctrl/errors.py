@@ -154,3 +154,16 @@ class SignalInterrupt(BaseException):
         super().__init__(signal_name)
         self.signal_name = signal_name
         self.signal_number = signal_number
+
+
+def interrupting_signal(exc: BaseException | None) -> str | None:
+    """The name of the signal ``exc`` stands for (Ctrl-C is SIGINT), else ``None``.
+
+    >>> interrupting_signal(KeyboardInterrupt()), interrupting_signal(SignalInterrupt("SIGTERM"))
+    ('SIGINT', 'SIGTERM')
+    >>> interrupting_signal(RuntimeError("boom")) is None
+    True
+    """
+    if isinstance(exc, SignalInterrupt):
+        return exc.signal_name
+    return "SIGINT" if isinstance(exc, KeyboardInterrupt) else None

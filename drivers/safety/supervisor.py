@@ -74,7 +74,7 @@ from drivers.safety.causes import StopCause, StopKind, unique_causes
 from drivers.safety.limits import CycleLimits, LimitChecker, accel_limits
 from drivers.safety.monitor import NodeMonitor
 from drivers.sources import SetpointSource
-from hrm_ctrl.errors import DriverError, HrmError, SignalInterrupt
+from hrm_ctrl.errors import DriverError, HrmError, interrupting_signal
 
 RECENT_SYNCS = 4  # SYNC times kept to count those after a stop cause's detection
 PLAY_POLL_S = 0.25  # how often a caller waiting for a stream looks at the thread
@@ -434,8 +434,12 @@ class Supervisor:
             except BaseException as exc:  # an interrupt or a bug: no stream left running
                 stream.crashed = exc
                 if self.mode is Mode.STREAMING:
+                    name = interrupting_signal(exc)
                     cause = StopCause(
-                        StopKind.INTERNAL, f"stream start interrupted: {exc!r}", None, now
+                        StopKind.INTERNAL if name is None else StopKind.SIGNAL,
+                        f"stream start interrupted: {name or repr(exc)}",
+                        None,
+                        now,
                     )
                     self._begin_stop([cause], now)
                 raise
@@ -484,8 +488,8 @@ class Supervisor:
             if isinstance(exc, SupervisorModeError):
                 raise  # refused before anything was sent
             with deferred_interrupts():  # a second signal waits for this stop
-                if isinstance(exc, KeyboardInterrupt | SignalInterrupt):
-                    name = exc.signal_name if isinstance(exc, SignalInterrupt) else "SIGINT"
+                name = interrupting_signal(exc)
+                if name is not None:
                     self.request_stop(StopKind.SIGNAL, f"{name}: stop requested")
                 else:
                     self.request_stop(StopKind.INTERNAL, f"stream wait failed: {exc!r}")

@@ -32,7 +32,7 @@ from hrm_ctrl.cli._console.table import (
     run_words,
     split_line,
 )
-from hrm_ctrl.errors import HrmError
+from hrm_ctrl.errors import HrmError, interrupting_signal
 
 HISTORY_FILE = Path(".local", "state", "hrm", "console_history")  # under $HOME
 MAX_SCRIPT_LINES = 100_000  # a script longer than this is refused at that line
@@ -160,6 +160,17 @@ def finish_context(ctx: ConsoleContext) -> None:
                 ctx.sim = None
 
 
+def stop_on_signal(ctx: ConsoleContext, exc: BaseException) -> None:
+    """A signal (or Ctrl-C in a script) ends the console: with drives enabled and
+    holding, every axis is quick-stopped with the signal as its cause before the finish
+    (a stream's own interrupt handling has already stopped it)."""
+    from drivers.safety.causes import StopKind
+
+    name = interrupting_signal(exc)
+    if name is not None and ctx.session is not None:
+        ctx.session.request_stop(StopKind.SIGNAL, f"{name}: stop requested (console)")
+
+
 # ---------------------------------------------------------------------------- scripts
 def bounded_lines(stream: TextIO) -> Iterator[str]:
     """The lines of ``stream``, each read with a bound (a longer line is refused by
@@ -204,7 +215,8 @@ def run_script(ctx: ConsoleContext, lines: Iterable[str], where: str) -> None:
             run_words(ctx, words)
         except HrmError as exc:
             raise ConsoleError(f"{where}:{lineno}: {exc}") from None
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
+            stop_on_signal(ctx, exc)
             raise ConsoleError(f"{where}:{lineno}: interrupted (Ctrl-C)") from None
         if ctx.quit_requested:
             return
@@ -290,7 +302,8 @@ def run_console(ctx: ConsoleContext, script: TextIO | None) -> None:
             run_interactive(ctx)
         else:
             run_script(ctx, bounded_lines(script), script_name(script))
-    except BaseException:
+    except BaseException as exc:
+        stop_on_signal(ctx, exc)
         try:
             finish_context(ctx)
         except HrmError as exc:

@@ -15,7 +15,7 @@ import pytest
 from drivers.protocol import cia402 as c
 from drivers.session import DriveSession, SafetyStopError
 from drivers.sources import HoldSource, TableSource
-from hrm_ctrl.errors import DriverError
+from hrm_ctrl.errors import DriverError, SignalInterrupt
 from tests.drivers.driver_rig import RIG_LISTEN_S, Rig, first_time, wait_until
 
 PERIOD_S = 0.01
@@ -414,3 +414,54 @@ def test_bus_whose_interface_library_is_missing(
     iface = rig.config.buses[0].interface
     with pytest.raises(DriverError, match=rf"buses.bus0: cannot open {iface} .*NameError"):
         DriveSession(rig.config, rig.limits)
+
+
+class SignalledOnStart(HoldSource):
+    """Holds; SIGTERM arrives (as the console raises it) while setpoint 0 is computed,
+    after the supervisor entered STREAMING, before any RPDO."""
+
+    def setpoint(self, k: int) -> np.ndarray | None:
+        if k == 0:
+            raise SignalInterrupt("SIGTERM", 15)
+        return super().setpoint(k)
+
+
+def test_signal_at_stream_start_stops_every_node_with_its_cause(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    for sn in rig.sniffers:
+        sn.clear()
+    with pytest.raises(SignalInterrupt):
+        box.stream(SignalledOnStart(n_cycles=50))
+    causes = [e for e in box.events.to_list() if e["kind"] == "stop_cause"]
+    assert [(e["cause"], e["text"]) for e in causes] == [
+        ("signal", "stream start interrupted: SIGTERM")
+    ]
+    frames = [m for sn in rig.sniffers for m in sn.snapshot()]
+    rpdo_cws = {bytes(m.data[:2]) for m in frames if 0x200 < m.arbitration_id <= 0x27F}
+    assert rpdo_cws == {c.CW_QUICK_STOP.to_bytes(2, "little")}  # no setpoint went out
+    assert not np.isnan(quick_stop_sync_time(rig))
+    assert wait_until(lambda: all_left_operation_enabled(rig))
+
+
+@pytest.mark.parametrize("exc", [SignalInterrupt("SIGTERM", 15), KeyboardInterrupt()])
+def test_signal_while_enabled_and_idle_quick_stops_before_the_finish(
+    rig_factory: Callable[..., Rig], exc: BaseException
+) -> None:
+    """A signal leaving a ``with DriveSession`` block between streams (drives enabled,
+    holding) quick-stops every axis with the signal as its cause, then finishes."""
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    for sn in rig.sniffers:
+        sn.clear()
+    box.__exit__(type(exc), exc, None)
+    causes = [(e["cause"], e["text"]) for e in box.events.to_list() if e["kind"] == "stop_cause"]
+    name = "SIGTERM" if isinstance(exc, SignalInterrupt) else "SIGINT"
+    assert causes == [("signal", f"{name}: stop requested")]
+    assert not np.isnan(quick_stop_sync_time(rig))
+    assert any(e["kind"] == "disable" for e in box.events.to_list())
+    assert wait_until(lambda: all_left_operation_enabled(rig))

@@ -4,6 +4,7 @@ while streaming, reset-fault after an injected drive fault, quit."""
 
 from __future__ import annotations
 
+import io
 import math
 import threading
 import time
@@ -14,8 +15,9 @@ import pytest
 
 from drivers.protocol.cia402 import State402, decode_state
 from hrm_ctrl.cli._console.commands_session import close_session
-from hrm_ctrl.cli._console.shell import run_script
+from hrm_ctrl.cli._console.shell import run_console, run_script
 from hrm_ctrl.cli._console.table import ConsoleError
+from hrm_ctrl.errors import SignalInterrupt
 from tests.hrm_ctrl.cli.cli_helpers import STALL_RERUN
 
 ENABLED = State402.OPERATION_ENABLED
@@ -300,3 +302,32 @@ def test_a_jog_of_no_number_is_refused(make_ctx, value: str) -> None:
     with pytest.raises(ConsoleError, match=r"^test:1: jog: "):
         run(ctx, f"jog 5 theta {value}")
     assert ctx.session.results == [] and ctx.session.state.name == "ENABLED"
+
+
+class SignalledScript(io.StringIO):
+    """A script whose reading is cut by SIGTERM after its lines (the operator's shell
+    sends it while the console holds the enabled drives)."""
+
+    def readline(self, size: int | None = -1) -> str:
+        line = super().readline(size)
+        if not line:
+            raise SignalInterrupt("SIGTERM", 15)
+        return line
+
+
+def test_a_signal_while_enabled_quick_stops_with_its_cause_then_disables(make_ctx) -> None:
+    import json
+
+    ctx = make_ctx()
+    sim = ctx.sim  # the finish stops it
+    with pytest.raises(SignalInterrupt):
+        run_console(ctx, SignalledScript("connect\nenable\n"))
+    assert {State402(decode_state(sw)) for sw in sim.statuswords().values()} <= {
+        State402.READY_TO_SWITCH_ON,
+        State402.SWITCH_ON_DISABLED,
+    }
+    record = json.loads(Path(ctx.last_run).read_text())
+    causes = [(e["cause"], e["text"]) for e in record["events"] if e["kind"] == "stop_cause"]
+    assert causes == [("signal", "SIGTERM: stop requested (console)")]
+    kinds = [e["kind"] for e in record["events"]]
+    assert kinds.index("quick_stop") < kinds.index("disable")
