@@ -16,11 +16,13 @@ reads the run's tension side file (``<run>_tension.csv``, written by ``hrm run``
 tension board is read) and :func:`write_tension_csv` writes it.
 
 Every reader is bounded whatever its input (a damaged or hostile record or log gives one
-line naming the file, :class:`RunLogError`): the record is read as the shared readers read
-JSON (:func:`hrm_ctrl.files.read_text_file`, :func:`hrm_ctrl.files.parse_json`: size and
-nesting bounded), its numbers are checked before anything divides by them or sizes an
-array with them (a control rate in :data:`MIN_RATE_HZ`..:data:`MAX_RATE_HZ`, at most
-:data:`MAX_MOTORS` motors, node ids 1..127), and a log is read up to
+line naming the file, :class:`RunLogError`): a BLF log's objects are checked against
+their bounds before python-can reads it (:func:`check_blf_bounds`), the record is read
+as the shared readers read JSON (:func:`hrm_ctrl.files.read_text_file`,
+:func:`hrm_ctrl.files.parse_json`: size and nesting bounded), its numbers are checked
+before anything divides by them or sizes an array with them (a control rate in
+:data:`MIN_RATE_HZ`..:data:`MAX_RATE_HZ`, at most :data:`MAX_MOTORS` motors, node ids
+1..127), and a log is read up to
 :data:`MAX_LOG_FRAMES` frames and :data:`MAX_LOG_VALUES` values.
 
 >>> split_streams(np.array([0.0, 0.01, 0.02, 5.0, 5.01]), 0.5)
@@ -288,17 +290,12 @@ def _read_log(lp: Path, b: int, nodes: dict[int, int], rows: _Rows, max_frames: 
     its frame count.  Whatever the log holds, a problem is one :class:`RunLogError`."""
     import can
 
-    errors = (*_LOG_ERRORS, can.CanError, _blf_parse_error())
+    errors = log_errors()
     n = rows.n
     held = np.full(n, np.nan)
     k = -1  # SYNCs of this bus so far
     count = 0
-    try:
-        mode = os.stat(lp).st_mode
-    except (OSError, ValueError) as exc:
-        raise RunLogError(f"{lp}: cannot open CAN log ({_why(exc)})") from None
-    if not stat.S_ISREG(mode):  # a FIFO would block, a device never end
-        raise RunLogError(f"{lp}: CAN log is not a regular file")
+    check_can_log(lp)
     try:
         reader = can.LogReader(str(lp))
     except errors as exc:
@@ -344,6 +341,132 @@ def _read_log(lp: Path, b: int, nodes: dict[int, int], rows: _Rows, max_frames: 
         if callable(stop):
             stop()
     return count
+
+
+# BLF bounds (python-can and CANoe write containers of 128 KiB; a CAN FD frame is < 200 B)
+MAX_BLF_OBJECT_BYTES = 1 << 20  # one object of the file (a log container), at most
+MAX_BLF_CONTAINER_BYTES = 1 << 20  # one container, uncompressed, at most
+MAX_BLF_INNER_BYTES = 64 * 1024  # one object inside the containers (a frame), at most
+_BLF_FILE_HEADER = struct.Struct("<4sL")  # "LOGG", header size
+_BLF_OBJECT_HEADER = struct.Struct("<4sHHLL")  # "LOBJ", header size, version, size, type
+_BLF_CONTAINER = struct.Struct("<H6xL4x")  # compression method, uncompressed size
+_BLF_LOG_CONTAINER = 10
+_BLF_STORED, _BLF_ZLIB = 0, 2
+
+
+def check_can_log(lp: Path) -> None:
+    """Before a reader opens it: a CAN log is a regular file (a FIFO would block, a
+    device never end) and a BLF log within :func:`check_blf_bounds`."""
+    try:
+        mode = os.stat(lp).st_mode
+    except (OSError, ValueError) as exc:
+        raise RunLogError(f"{lp}: cannot open CAN log ({_why(exc)})") from None
+    if not stat.S_ISREG(mode):
+        raise RunLogError(f"{lp}: CAN log is not a regular file")
+    if lp.suffix.lower() == ".blf":
+        check_blf_bounds(lp)
+
+
+def check_blf_bounds(path: str | Path) -> None:
+    """Refuse a BLF file that python-can's reader would not read in bounded memory and
+    time: an object or container larger than :data:`MAX_BLF_OBJECT_BYTES` /
+    :data:`MAX_BLF_CONTAINER_BYTES` (once uncompressed: a zlib bomb), or a frame object
+    inside the containers shorter than its own header or longer than
+    :data:`MAX_BLF_INNER_BYTES` (an object of size 0 of an unknown header version makes
+    python-can 4.6 loop for ever).  Walks the objects as python-can does (an object may
+    continue in the next container; up to 8 bytes of padding between objects) and
+    decompresses each container at most to its bound.  Raises :class:`RunLogError`
+    naming the file and the byte offset of the object.
+
+    >>> import can, tempfile
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     path = Path(d) / "ok.blf"
+    ...     with can.BLFWriter(str(path)) as w:
+    ...         w.on_message_received(can.Message(arbitration_id=0x80, data=b""))
+    ...     check_blf_bounds(path)   # python-can's own log passes
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            head = f.read(_BLF_FILE_HEADER.size)
+            if len(head) < _BLF_FILE_HEADER.size or head[:4] != b"LOGG":
+                raise RunLogError(f"{p}: CAN log is not BLF (no LOGG header)")
+            header_size = _BLF_FILE_HEADER.unpack(head)[1]
+            if not _BLF_FILE_HEADER.size <= header_size <= MAX_BLF_INNER_BYTES:
+                raise RunLogError(f"{p}: CAN log: BLF file header of {header_size} bytes")
+            f.seek(header_size)
+            tail = b""
+            while True:
+                at = f.tell()
+                raw = f.read(_BLF_OBJECT_HEADER.size)
+                if not raw:
+                    break
+                if len(raw) < _BLF_OBJECT_HEADER.size:
+                    raise RunLogError(f"{p}: CAN log: BLF object at byte {at} cut short")
+                signature, _, _, obj_size, obj_type = _BLF_OBJECT_HEADER.unpack(raw)
+                if signature != b"LOBJ":
+                    raise RunLogError(f"{p}: CAN log: no BLF object at byte {at}")
+                if not _BLF_OBJECT_HEADER.size <= obj_size <= MAX_BLF_OBJECT_BYTES:
+                    raise RunLogError(f"{p}: CAN log: BLF object at byte {at} of {obj_size} bytes")
+                body = f.read(obj_size - _BLF_OBJECT_HEADER.size)
+                f.read(obj_size % 4)  # padding
+                if obj_type != _BLF_LOG_CONTAINER:
+                    continue
+                if len(body) < _BLF_CONTAINER.size:
+                    raise RunLogError(f"{p}: CAN log: BLF container at byte {at} cut short")
+                method = _BLF_CONTAINER.unpack_from(body)[0]
+                data = body[_BLF_CONTAINER.size :]
+                if method == _BLF_ZLIB:
+                    zobj = zlib.decompressobj()
+                    data = zobj.decompress(data, MAX_BLF_CONTAINER_BYTES)
+                    if zobj.unconsumed_tail:
+                        raise RunLogError(
+                            f"{p}: CAN log: BLF container at byte {at} holds more than "
+                            f"{MAX_BLF_CONTAINER_BYTES} bytes uncompressed"
+                        )
+                elif method != _BLF_STORED:
+                    continue  # python-can skips it (with a warning: refused by the reader)
+                elif len(data) > MAX_BLF_CONTAINER_BYTES:
+                    raise RunLogError(
+                        f"{p}: CAN log: BLF container at byte {at} of {len(data)} bytes"
+                    )
+                tail = _walk_blf_frames(p, at, tail + data)
+    except zlib.error as exc:
+        raise RunLogError(f"{p}: CAN log: damaged BLF container ({exc})") from None
+    except OSError as exc:
+        raise RunLogError(f"{p}: cannot read CAN log ({_why(exc)})") from None
+
+
+def _walk_blf_frames(p: Path, at: int, data: bytes) -> bytes:
+    """The frame objects of one container's data (after the last one's unread rest):
+    each checked against its bounds; returns what continues in the next container."""
+    pos, end = 0, len(data)
+    unpack = _BLF_OBJECT_HEADER.unpack_from
+    while True:
+        found = data.find(b"LOBJ", pos, pos + 8)
+        if found < 0:
+            if pos + 8 > end:
+                break  # the rest (a partial object, padding) continues in the next one
+            raise RunLogError(f"{p}: CAN log: BLF container at byte {at}: no object where one ends")
+        pos = found
+        if pos + _BLF_OBJECT_HEADER.size > end:
+            break
+        obj_size = unpack(data, pos)[3]
+        if not _BLF_OBJECT_HEADER.size < obj_size <= MAX_BLF_INNER_BYTES:
+            raise RunLogError(
+                f"{p}: CAN log: BLF container at byte {at}: a frame of {obj_size} bytes"
+            )
+        if pos + obj_size > end:
+            break
+        pos += obj_size
+    return data[pos:]
+
+
+def log_errors() -> tuple[type[Exception], ...]:
+    """What python-can's log readers raise on a damaged log (a CanError from any)."""
+    import can
+
+    return (*_LOG_ERRORS, can.CanError, _blf_parse_error())
 
 
 def _blf_parse_error() -> type[Exception]:

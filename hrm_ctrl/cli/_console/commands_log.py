@@ -192,12 +192,18 @@ def replay(
 
     import can
 
-    from hrm_ctrl.formats.runlog import _log_path
+    from hrm_ctrl.formats.runlog import RunLogError, _log_path, check_can_log, log_errors
 
     names = list((rec.get("config") or {}).get("buses") or {})
     logs = [str(x) for x in rec.get("can_logs") or []]
     if len(logs) != len(names):
         raise ConsoleError(f"{record_path}: {len(logs)} CAN logs for {len(names)} buses")
+    for x in logs:  # before any bus is opened
+        try:
+            check_can_log(_log_path(record_path, x))
+        except RunLogError as exc:
+            raise ConsoleError(str(exc)) from None
+    read_errors = log_errors()
     opened = []
     try:
         for name in names:
@@ -224,7 +230,7 @@ def replay(
                             continue
                         opened[i].send(msg)
                         sent[i] += 1
-            except (OSError, ValueError, can.CanError) as exc:
+            except read_errors as exc:  # a log damaged past its bounds check
                 errors.append(f"{lp}: replay failed after {sent[i]} frames ({exc})")
 
         threads = [threading.Thread(target=play, args=(i,), daemon=True) for i in range(len(names))]

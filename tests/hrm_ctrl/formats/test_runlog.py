@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import struct
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -206,3 +207,52 @@ def test_tension_file_bad_rows(tmp_path: Path, row: str, message: str) -> None:
     os.mkfifo(fifo)
     with pytest.raises(RunLogError, match="not a regular file"):
         tension_csv(fifo, ["m0", "m1"])
+
+
+def _with_container(raw: bytes, inner: bytes, *, stored_size: int | None = None) -> bytes:
+    """``raw`` (a BLF python-can wrote) with one more zlib log container, holding
+    ``inner``, before its own objects."""
+    header_size = struct.unpack_from("<4sL", raw)[1]
+    packed = zlib.compress(inner, 9)
+    body = struct.pack("<H6xL4x", 2, len(inner) if stored_size is None else stored_size) + packed
+    obj = struct.pack("<4sHHLL", b"LOBJ", 16, 1, 16 + len(body), 10) + body
+    obj += b"\0" * (len(obj) % 4)
+    return raw[:header_size] + obj + raw[header_size:]
+
+
+_CAN_MESSAGE_OBJECT = struct.pack("<4sHHLL", b"LOBJ", 32, 1, 48, 1)  # header of a CAN frame
+
+
+@pytest.mark.timeout(60)  # python-can 4.6 alone loops for ever on the first one
+@pytest.mark.parametrize(
+    ("inner", "message"),
+    [
+        (struct.pack("<4sHHLL", b"LOBJ", 16, 7, 0, 86) + bytes(64), "a frame of 0 bytes"),
+        (struct.pack("<4sHHLL", b"LOBJ", 32, 1, 0, 1) + bytes(64), "a frame of 0 bytes"),
+        (bytes(200 << 20), r"holds more than 1048576 bytes uncompressed"),  # 200 KB on disk
+        (struct.pack("<4sHHLL", b"LOBJ", 32, 1, 1 << 30, 1) + bytes(64), "a frame of 1073741824"),
+        (_CAN_MESSAGE_OBJECT + bytes(32) + b"garbage!" * 4, "no object where one ends"),
+    ],
+    ids=["size-0-unknown-version", "size-0-can-frame", "zlib-bomb", "huge-frame", "garbage"],
+)
+def test_hostile_blf_refused_before_python_can_reads_it(
+    tmp_path: Path, inner: bytes, message: str
+) -> None:
+    """A BLF that would make python-can's reader loop for ever, inflate a few hundred KB
+    into hundreds of MB, or keep a growing unread rest: one line, in bounded time and
+    memory, naming the log."""
+    p = _write_run(tmp_path, np.zeros((4, 2), int), np.zeros((4, 2)))
+    log = tmp_path / "run-x_a.blf"
+    log.write_bytes(_with_container(log.read_bytes(), inner))
+    with pytest.raises(RunLogError, match=message) as exc:
+        read_run(p)
+    assert str(log) in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_blf_bounds_pass_a_long_log_python_can_wrote(tmp_path: Path) -> None:
+    """Frames split over containers (python-can's 128 KiB) are walked across them."""
+    targets = np.arange(6000).reshape(3000, 2)
+    p = _write_run(tmp_path, targets, targets.astype(float))
+    assert (tmp_path / "run-x_a.blf").stat().st_size > 20_000  # several containers
+    log = read_run(p)
+    assert np.array_equal(log.target, targets.astype(float))

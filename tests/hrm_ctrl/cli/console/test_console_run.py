@@ -163,3 +163,21 @@ def test_plan_is_hrm_plan(make_ctx, tmp_path: Path) -> None:
     assert ctx.lines  # the plan's report
     with pytest.raises(ConsoleError, match=r"plan: .*--scenario"):
         run(ctx, "plan --scenario")
+
+
+def test_log_replay_refuses_a_hostile_log_before_opening_a_bus(make_ctx, tmp_path: Path) -> None:
+    """A BLF python-can would read for ever (an inner object of size 0): one line naming
+    it, before any bus is opened or frame sent."""
+    import struct
+
+    ctx = make_ctx("--config", str(_relaxed_box(tmp_path)))
+    run(ctx, "connect", "disconnect")
+    log = Path(json.loads(Path(ctx.last_run).read_text())["can_logs"][1])
+    raw = log.read_bytes()
+    header_size = struct.unpack_from("<4sL", raw)[1]
+    inner = struct.pack("<4sHHLL", b"LOBJ", 32, 1, 0, 1) + bytes(64)
+    body = struct.pack("<H6xL4x", 0, len(inner)) + inner  # stored, not compressed
+    obj = struct.pack("<4sHHLL", b"LOBJ", 16, 1, 16 + len(body), 10) + body
+    log.write_bytes(raw[:header_size] + obj + raw[header_size:])
+    with pytest.raises(ConsoleError, match=rf"{log.name}: CAN log: .* a frame of 0 bytes"):
+        run(ctx, "log replay 1 --bus can0=virtual:h7-hostile-0 --bus can1=virtual:h7-hostile-1")
