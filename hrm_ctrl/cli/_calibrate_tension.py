@@ -145,7 +145,7 @@ def _write_file(path: Path, text: str) -> None:
         raise CalibrationFileError(f"{path}: cannot write ({exc.strerror or exc})") from None
 
 
-def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any, Any, Any]:
+def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any, Any, Any, Any]:
     """Open the store and the box (``--sim``: the simulated one, its arm in the fixture),
     bring the drives up and run ``routine(session, reader, actuation)``; return
     ``(result, base calibration, store)``."""
@@ -235,18 +235,32 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     finally:
         if sim is not None:
             sim.stop()
-    return result, base, store
+    return result, base, store, description
 
 
-def save_calibration(args: argparse.Namespace, store: Any, new: Any) -> tuple[int, str]:
+def save_calibration(
+    args: argparse.Namespace, store: Any, new: Any, description: Any
+) -> tuple[int, str]:
     """Save ``new`` as the store's next version (active), or with ``--out FILE`` write that
-    one file (numbered as the store's next); returns the version and where it went."""
+    one file (numbered as the store's next); returns the version and where it went.
+
+    A result that ``hrm calibrate use`` and every drive session would refuse (a value out
+    of :func:`calibration.apply.check_ranges`) is still kept, the routine's work is not
+    lost, but not made active: the active version stays what it was, and stderr says why.
+    """
+    from calibration.apply import check_belongs
     from calibration.store import to_json
 
     if args.out is not None:
         version = max(store.versions(), default=0) + 1  # the number it would have in the store
         _write_file(args.out, to_json(new, version))
         return version, f"written to {args.out} (not in the store)"
+    try:
+        check_belongs(description, new, "the new calibration")
+    except CalibrationFileError as exc:
+        version = store.save(new, activate=False)
+        print(f"hrm calibrate: v{version:04d} not made active: {exc}", file=sys.stderr)
+        return version, f"saved as v{version:04d} in {store.folder} (NOT active: out of range)"
     version = store.save(new)
     return version, f"saved as v{version:04d} in {store.folder} (active)"
 
@@ -262,8 +276,10 @@ def _run_routine(args: argparse.Namespace, build: Any, report: Any) -> int:
     _check(args)
     routine = build(args)
     t0 = time.monotonic()
-    result, base, store = _session_run(args, f"hrm calibrate {args.calibrate}", routine)
-    report(args, result, base, store, t0, print)
+    result, base, store, description = _session_run(
+        args, f"hrm calibrate {args.calibrate}", routine
+    )
+    report(args, result, base, store, t0, print, description)
     return 0
 
 
@@ -300,7 +316,7 @@ def zero_routine(
 
 def report_zero(
     args: argparse.Namespace, result: Any, base: Any, store: Any, t0: float,
-    out: Callable[[str], None],
+    out: Callable[[str], None], description: Any,
 ) -> int:  # fmt: skip
     """Save the zero's calibration (:func:`save_calibration`) and print its summary
     (``out``: one line each; JSON with ``args.json``); returns the version."""
@@ -310,7 +326,7 @@ def report_zero(
     zeros = {m: int(v) for m, v in zip(result.motor_ids, result.zero_counts, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
     new = updated(base, routine=Routine.ZERO, residuals=residuals, motor_zero_counts=zeros)
-    version, where = save_calibration(args, store, new)
+    version, where = save_calibration(args, store, new, description)
     shift = result.zero_shift_counts
     worst = int(np.argmax(np.abs(shift)))
     err = np.abs(result.tension_error_N)
@@ -368,7 +384,7 @@ def stiffness_routine(
 
 def report_stiffness(
     args: argparse.Namespace, result: Any, base: Any, store: Any, t0: float,
-    out: Callable[[str], None],
+    out: Callable[[str], None], description: Any,
 ) -> int:  # fmt: skip
     """Save the stiffness's calibration and print its summary; returns the version."""
     from calibration.apply import updated
@@ -377,7 +393,7 @@ def report_stiffness(
     ea = {m: float(v) for m, v in zip(result.motor_ids, result.EA_N, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
     new = updated(base, routine=Routine.STIFFNESS, residuals=residuals, rope_EA_N=ea)
-    version, where = save_calibration(args, store, new)
+    version, where = save_calibration(args, store, new, description)
     rel = result.EA_sigma_N / result.EA_N
     change = result.EA_N / result.before_EA_N - 1.0
     worst = int(np.nanargmax(np.abs(change)))

@@ -5,8 +5,10 @@ Sub-commands:
 * ``show [--json]``: the active calibration for this robot description, every field and
   the routine's residuals;
 * ``history [--json]``: every version in the store (time, routine, robot, the active
-  mark; a damaged file is listed with its problem);
-* ``use VERSION``: make an older version active (it must load and belong to this robot);
+  mark; a damaged file, or a version of this robot whose ropes or values ``use`` would
+  refuse, is listed with its problem);
+* ``use VERSION``: make an older version active (it must load and belong to this robot,
+  its values within ``calibration.apply.check_ranges``);
 * ``kinematic DATA.csv [--estimate-frame]``: fit link lengths and joint zero offsets (and
   the instrument's frame) to a pose file (``calibration.kinematic``: header
   ``alpha_1_rad..alpha_12_rad,theta_1_rad..theta_12_rad,x_mm,y_mm,z_mm``, the commanded
@@ -223,13 +225,19 @@ def run_show(args: argparse.Namespace) -> int:
 
 
 def run_history(args: argparse.Namespace) -> int:
-    from calibration.apply import robot_sha256
+    from calibration.apply import check_belongs, robot_sha256
 
     store = _store(args)
-    mine = robot_sha256(_description(args))
+    description = _description(args)
+    mine = robot_sha256(description)
     rows = []
     for h in store.history():
-        cal = h.calibration
+        cal, problem = h.calibration, h.problem
+        if cal is not None and cal.robot_sha256 == mine:
+            try:  # what ``use`` and every drive session would refuse (ropes, ranges)
+                check_belongs(description, cal, str(h.path))
+            except CalibrationFileError as exc:
+                problem = str(exc)
         rows.append(
             {
                 "version": h.version,
@@ -239,7 +247,7 @@ def run_history(args: argparse.Namespace) -> int:
                 "routine": None if cal is None else cal.routine.value,
                 "robot_sha256": None if cal is None else cal.robot_sha256,
                 "this_robot": None if cal is None else cal.robot_sha256 == mine,
-                "problem": h.problem,
+                "problem": problem,
             }
         )
     if args.json:
@@ -433,7 +441,7 @@ def run_kinematic(args: argparse.Namespace) -> int:
     new = kinematic_calibration(base, fit)
     if note is not None:  # what the new version starts from, once there is one
         print(f"hrm calibrate kinematic: {note}", file=sys.stderr)
-    version, where = save_calibration(args, store, new)
+    version, where = save_calibration(args, store, new, description)
     if args.json:
         print(json.dumps({"fit": fit_report(fit), "version": version, "file": where}))
     else:

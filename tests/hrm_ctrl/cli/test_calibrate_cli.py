@@ -168,6 +168,47 @@ def test_show_refuses_a_damaged_or_foreign_calibration(store_dir, model, capsys)
     assert "v0002  refused: " in capsys.readouterr().out
 
 
+def test_history_marks_a_version_use_would_refuse(store_dir, model, capsys):
+    """A stored version of this robot with a value out of range (a link 20 % long) is
+    listed with the reason ``use`` refuses it, before anyone tries."""
+    store, (v1, _, _) = _save_three(store_dir, model)
+    bad = store.save(
+        updated(nominal_calibration(model), routine="manual", residuals={},
+                links_mm=model.links * 1.2), activate=False,
+    )  # fmt: skip
+    assert main(["calibrate", "history", "--json"]) == 0
+    rows = {r["version"]: r for r in json.loads(capsys.readouterr().out)["versions"]}
+    assert rows[v1]["problem"] is None
+    assert "links_mm[0]" in rows[bad]["problem"] and "more than 20 mm" in rows[bad]["problem"]
+    assert main(["calibrate", "history"]) == 0
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert line.startswith(f"  v{bad:04d}  refused: ") and "links_mm[0]" in line
+    assert main(["calibrate", "use", str(bad)]) == 2
+    assert "links_mm[0]" in capsys.readouterr().err and store.active() != bad
+
+
+def test_a_routine_result_out_of_range_is_kept_but_not_made_active(store_dir, model, capsys):
+    """What a routine measured is never lost, and never becomes the calibration every
+    session would refuse: saved, not active, said on stderr."""
+    import argparse
+
+    from hrm_ctrl.cli._calibrate_tension import save_calibration
+
+    store, (_, v2, _) = _save_three(store_dir, model)
+    base = store.load(v2)
+    zeros = {m: z + 10**9 for m, z in base.motor_zero_counts.items()}  # far past 50 mm
+    new = updated(base, routine=Routine.ZERO, residuals={}, motor_zero_counts=zeros)
+    args = argparse.Namespace(out=None)
+    version, where = save_calibration(args, store, new, model)
+    assert store.active() == v2 and "NOT active" in where
+    assert store.load(version).motor_zero_counts == zeros  # kept as measured
+    err = capsys.readouterr().err
+    assert f"v{version:04d} not made active: the new calibration: motor_zero_counts" in err
+    ok = updated(base, routine=Routine.ZERO, residuals={})
+    version, where = save_calibration(args, store, ok, model)
+    assert store.active() == version and where.endswith("(active)")
+
+
 # --- kinematic from a pose file ----------------------------------------------------------
 
 
