@@ -1017,17 +1017,18 @@ class DriveSession:
             ):
                 stopped = self._state in (SessionState.STOPPED, SessionState.FAULT)
                 signal_name = interrupting_signal(exc_value)
-                if signal_name is not None and self.supervisor.mode is Mode.ARMED:
-                    # drives enabled and holding: quick stop every axis first (the
-                    # finish's last idle check sends it at once), with its cause
-                    self.request_stop(StopKind.SIGNAL, f"{signal_name}: stop requested")
-                try:
-                    self.finish()
-                except HrmError as err:
-                    if exc_type is None and not stopped:
-                        raise
-                    after = exc_type.__name__ if exc_type is not None else "a stop"
-                    self.events.add("error", f"finish after {after}: {err}")
+                with deferred_interrupts():  # a second signal waits for the stop and finish
+                    if signal_name is not None and self.supervisor.mode is Mode.ARMED:
+                        # drives enabled and holding: quick stop every axis first (the
+                        # finish's last idle check sends it at once), with its cause
+                        self.request_stop(StopKind.SIGNAL, f"{signal_name}: stop requested")
+                    try:
+                        self.finish()
+                    except HrmError as err:
+                        if exc_type is None and not stopped:
+                            raise
+                        after = exc_type.__name__ if exc_type is not None else "a stop"
+                        self.events.add("error", f"finish after {after}: {err}")
         finally:
             self.close()
 

@@ -148,7 +148,7 @@ def _write_file(path: Path, text: str) -> None:
 def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any, Any, Any, Any]:
     """Open the store and the box (``--sim``: the simulated one, its arm in the fixture),
     bring the drives up and run ``routine(session, reader, actuation)``; return
-    ``(result, base calibration, store)``."""
+    ``(result, base calibration, store, robot description)``."""
     from calibration.apply import calibrated_actuation, starting_point
     from calibration.store import CalibrationStore
     from drivers.bus import ensure_log_dir
@@ -342,6 +342,7 @@ def report_zero(
         "total_s": time.monotonic() - t0,
         "version": version,
         "file": where,
+        "active": args.out is None and store.active() == version,
         "zero_counts": zeros,
     }
     if args.json:
@@ -408,6 +409,7 @@ def report_stiffness(
         "total_s": time.monotonic() - t0,
         "version": version,
         "file": where,
+        "active": args.out is None and store.active() == version,
         "rope_EA_N": ea,
     }
     if args.json:

@@ -443,7 +443,9 @@ def run_kinematic(args: argparse.Namespace) -> int:
         print(f"hrm calibrate kinematic: {note}", file=sys.stderr)
     version, where = save_calibration(args, store, new, description)
     if args.json:
-        print(json.dumps({"fit": fit_report(fit), "version": version, "file": where}))
+        active = args.out is None and store.active() == version
+        doc = {"fit": fit_report(fit), "version": version, "file": where, "active": active}
+        print(json.dumps(doc))
     else:
         print(format_fit(fit))
         print(f"calibration {where}")

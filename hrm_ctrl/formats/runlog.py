@@ -218,10 +218,13 @@ class _ReaderWarnings(logging.Handler):
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
-        self.messages: list[str] = []
+        self.messages: list[str] = []  # the first one only: a reader may warn per object
+        self.count = 0
 
     def emit(self, record: logging.LogRecord) -> None:
-        self.messages.append(record.getMessage())
+        self.count += 1
+        if not self.messages:
+            self.messages.append(record.getMessage())
 
 
 @contextlib.contextmanager
@@ -356,26 +359,31 @@ _BLF_STORED, _BLF_ZLIB = 0, 2
 
 def check_can_log(lp: Path) -> None:
     """Before a reader opens it: a CAN log is a regular file (a FIFO would block, a
-    device never end) and a BLF log within :func:`check_blf_bounds`."""
+    device never end), not compressed (python-can would inflate a ``.gz`` unbounded; hrm
+    never writes one) and a BLF log within :func:`check_blf_bounds`."""
     try:
         mode = os.stat(lp).st_mode
     except (OSError, ValueError) as exc:
         raise RunLogError(f"{lp}: cannot open CAN log ({_why(exc)})") from None
     if not stat.S_ISREG(mode):
         raise RunLogError(f"{lp}: CAN log is not a regular file")
+    if lp.suffix.lower() == ".gz":
+        raise RunLogError(f"{lp}: compressed CAN logs are not read (decompress it first)")
     if lp.suffix.lower() == ".blf":
         check_blf_bounds(lp)
 
 
-def check_blf_bounds(path: str | Path) -> None:
+def check_blf_bounds(path: str | Path, max_objects: int = MAX_LOG_FRAMES) -> None:
     """Refuse a BLF file that python-can's reader would not read in bounded memory and
     time: an object or container larger than :data:`MAX_BLF_OBJECT_BYTES` /
-    :data:`MAX_BLF_CONTAINER_BYTES` (once uncompressed: a zlib bomb), or a frame object
+    :data:`MAX_BLF_CONTAINER_BYTES` (once uncompressed: a zlib bomb), a frame object
     inside the containers shorter than its own header or longer than
-    :data:`MAX_BLF_INNER_BYTES` (an object of size 0 of an unknown header version makes
-    python-can 4.6 loop for ever).  Walks the objects as python-can does (an object may
-    continue in the next container; up to 8 bytes of padding between objects) and
-    decompresses each container at most to its bound.  Raises :class:`RunLogError`
+    :data:`MAX_BLF_INNER_BYTES` (an object of size 0 makes python-can 4.6 loop for ever),
+    of a header version other than 1 or 2 (python-can warns once per such object and
+    skips it), or more than ``max_objects`` of them (objects python-can skips silently
+    count too: 1 KB of zlib stands for 1 MiB of them).  Walks the objects as python-can
+    does (an object may continue in the next container; up to 8 bytes of padding between
+    objects) and decompresses each container at most to its bound.  Raises :class:`RunLogError`
     naming the file and the byte offset of the object.
 
     >>> import can, tempfile
@@ -395,7 +403,7 @@ def check_blf_bounds(path: str | Path) -> None:
             if not _BLF_FILE_HEADER.size <= header_size <= MAX_BLF_INNER_BYTES:
                 raise RunLogError(f"{p}: CAN log: BLF file header of {header_size} bytes")
             f.seek(header_size)
-            tail = b""
+            tail, count = b"", 0
             while True:
                 at = f.tell()
                 raw = f.read(_BLF_OBJECT_HEADER.size)
@@ -430,17 +438,21 @@ def check_blf_bounds(path: str | Path) -> None:
                     raise RunLogError(
                         f"{p}: CAN log: BLF container at byte {at} of {len(data)} bytes"
                     )
-                tail = _walk_blf_frames(p, at, tail + data)
+                tail, n = _walk_blf_frames(p, at, tail + data)
+                count += n
+                if count > max_objects:
+                    raise RunLogError(f"{p}: CAN log: more than {max_objects} BLF objects")
     except zlib.error as exc:
         raise RunLogError(f"{p}: CAN log: damaged BLF container ({exc})") from None
     except OSError as exc:
         raise RunLogError(f"{p}: cannot read CAN log ({_why(exc)})") from None
 
 
-def _walk_blf_frames(p: Path, at: int, data: bytes) -> bytes:
+def _walk_blf_frames(p: Path, at: int, data: bytes) -> tuple[bytes, int]:
     """The frame objects of one container's data (after the last one's unread rest):
-    each checked against its bounds; returns what continues in the next container."""
-    pos, end = 0, len(data)
+    each checked against its bounds; returns what continues in the next container and
+    how many objects ended in this one."""
+    pos, end, count = 0, len(data), 0
     unpack = _BLF_OBJECT_HEADER.unpack_from
     while True:
         found = data.find(b"LOBJ", pos, pos + 8)
@@ -451,15 +463,20 @@ def _walk_blf_frames(p: Path, at: int, data: bytes) -> bytes:
         pos = found
         if pos + _BLF_OBJECT_HEADER.size > end:
             break
-        obj_size = unpack(data, pos)[3]
+        _, _, version, obj_size, _ = unpack(data, pos)
         if not _BLF_OBJECT_HEADER.size < obj_size <= MAX_BLF_INNER_BYTES:
             raise RunLogError(
                 f"{p}: CAN log: BLF container at byte {at}: a frame of {obj_size} bytes"
             )
+        if version not in (1, 2):
+            raise RunLogError(
+                f"{p}: CAN log: BLF container at byte {at}: a frame of header version {version}"
+            )
         if pos + obj_size > end:
             break
         pos += obj_size
-    return data[pos:]
+        count += 1
+    return data[pos:], count
 
 
 def log_errors() -> tuple[type[Exception], ...]:

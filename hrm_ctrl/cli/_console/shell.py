@@ -145,14 +145,18 @@ def build_context(args: argparse.Namespace, prog: str) -> ConsoleContext:
     return ctx
 
 
-def finish_context(ctx: ConsoleContext) -> None:
+def finish_context(ctx: ConsoleContext, cause: BaseException | None = None) -> None:
     """Disable every drive, finish and close the session, stop the simulated box;
-    whatever fails, the rest is still done (the first error is raised at the end)."""
+    whatever fails, the rest is still done (the first error is raised at the end).  When
+    a signal ends the console (``cause``), every axis is quick-stopped first
+    (:func:`stop_on_signal`); a second signal waits for all of it."""
     from drivers.interrupts import deferred_interrupts
     from hrm_ctrl.cli._console.commands_session import close_session
 
     with deferred_interrupts():
         try:
+            if cause is not None:
+                stop_on_signal(ctx, cause)
             close_session(ctx)
         finally:
             if ctx.sim is not None:
@@ -165,10 +169,12 @@ def stop_on_signal(ctx: ConsoleContext, exc: BaseException) -> None:
     holding, every axis is quick-stopped with the signal as its cause before the finish
     (a stream's own interrupt handling has already stopped it)."""
     from drivers.safety.causes import StopKind
+    from drivers.safety.supervisor import Mode
 
     name = interrupting_signal(exc)
-    if name is not None and ctx.session is not None:
-        ctx.session.request_stop(StopKind.SIGNAL, f"{name}: stop requested (console)")
+    session = ctx.session
+    if name is not None and session is not None and session.supervisor.mode is Mode.ARMED:
+        session.request_stop(StopKind.SIGNAL, f"{name}: stop requested (console)")
 
 
 # ---------------------------------------------------------------------------- scripts
@@ -216,7 +222,10 @@ def run_script(ctx: ConsoleContext, lines: Iterable[str], where: str) -> None:
         except HrmError as exc:
             raise ConsoleError(f"{where}:{lineno}: {exc}") from None
         except KeyboardInterrupt as exc:
-            stop_on_signal(ctx, exc)
+            from drivers.interrupts import deferred_interrupts
+
+            with deferred_interrupts():
+                stop_on_signal(ctx, exc)
             raise ConsoleError(f"{where}:{lineno}: interrupted (Ctrl-C)") from None
         if ctx.quit_requested:
             return
@@ -303,9 +312,8 @@ def run_console(ctx: ConsoleContext, script: TextIO | None) -> None:
         else:
             run_script(ctx, bounded_lines(script), script_name(script))
     except BaseException as exc:
-        stop_on_signal(ctx, exc)
         try:
-            finish_context(ctx)
+            finish_context(ctx, exc)
         except HrmError as exc:
             ctx.err(f"{ctx.prog}: while finishing: {exc}")
         raise

@@ -452,7 +452,7 @@ def test_collect_on_the_simulated_box_recovers_the_truth(
     assert rc == 0, out.err[-2000:]
     report = json.loads(out.out.splitlines()[-1])
     fit = report["fit"]
-    assert report["version"] == 2 and store.active() == 2
+    assert report["version"] == 2 and store.active() == 2 and report["active"] is True
     cal = store.load(2)
     # the tracker's frame from the base plate's nests: every offset observable
     assert fit["n_poses"] == 30 and not fit["fixed"]

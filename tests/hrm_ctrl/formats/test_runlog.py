@@ -16,6 +16,7 @@ import pytest
 
 from hrm_ctrl.formats.runlog import (
     RunLogError,
+    check_blf_bounds,
     read_record,
     read_run,
     tension_csv,
@@ -232,8 +233,16 @@ _CAN_MESSAGE_OBJECT = struct.pack("<4sHHLL", b"LOBJ", 32, 1, 48, 1)  # header of
         (bytes(200 << 20), r"holds more than 1048576 bytes uncompressed"),  # 200 KB on disk
         (struct.pack("<4sHHLL", b"LOBJ", 32, 1, 1 << 30, 1) + bytes(64), "a frame of 1073741824"),
         (_CAN_MESSAGE_OBJECT + bytes(32) + b"garbage!" * 4, "no object where one ends"),
+        (struct.pack("<4sHHLL", b"LOBJ", 16, 7, 20, 86) + bytes(4), "header version 7"),
     ],
-    ids=["size-0-unknown-version", "size-0-can-frame", "zlib-bomb", "huge-frame", "garbage"],
+    ids=[
+        "size-0-unknown-version",
+        "size-0-can-frame",
+        "zlib-bomb",
+        "huge-frame",
+        "garbage",
+        "unknown-version",  # python-can warns once per object: 2000x the file in warnings
+    ],
 )
 def test_hostile_blf_refused_before_python_can_reads_it(
     tmp_path: Path, inner: bytes, message: str
@@ -256,3 +265,22 @@ def test_blf_bounds_pass_a_long_log_python_can_wrote(tmp_path: Path) -> None:
     assert (tmp_path / "run-x_a.blf").stat().st_size > 20_000  # several containers
     log = read_run(p)
     assert np.array_equal(log.target, targets.astype(float))
+
+
+def test_blf_objects_counted_and_compressed_logs_refused(tmp_path: Path) -> None:
+    """More objects than the bound (1 KB of zlib stands for 1 MiB of them): refused; a
+    ``.gz`` log (python-can would inflate it unbounded; hrm never writes one): refused."""
+    import gzip
+
+    p = _write_run(tmp_path, np.zeros((40, 2), int), np.zeros((40, 2)))
+    log = tmp_path / "run-x_a.blf"
+    check_blf_bounds(log, max_objects=40 * 3)  # 40 RPDOs, SYNCs and TPDOs on bus a
+    with pytest.raises(RunLogError, match="more than 119 BLF objects"):
+        check_blf_bounds(log, max_objects=119)
+    packed = tmp_path / "run-x_a.blf.gz"
+    packed.write_bytes(gzip.compress(log.read_bytes()))
+    rec = json.loads(p.read_text())
+    rec["can_logs"][0] = str(packed)
+    p.write_text(json.dumps(rec))
+    with pytest.raises(RunLogError, match=r"run-x_a\.blf\.gz: compressed CAN logs are not read"):
+        read_run(p)
