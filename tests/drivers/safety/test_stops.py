@@ -60,6 +60,16 @@ def stream_with(rig: Rig, action: Callable[[], Any], after_s: float = 0.1) -> Sa
     return info.value
 
 
+def assert_only_quick_stops_sent(rig: Rig) -> None:
+    """Since the sniffers were cleared: no setpoint went out, only quick-stop RPDOs and
+    their SYNC, and every drive left operation enabled."""
+    frames = [m for sn in rig.sniffers for m in sn.snapshot()]
+    rpdo_cws = {bytes(m.data[:2]) for m in frames if 0x200 < m.arbitration_id <= 0x27F}
+    assert rpdo_cws == {c.CW_QUICK_STOP.to_bytes(2, "little")}
+    assert not np.isnan(quick_stop_sync_time(rig))
+    assert wait_until(lambda: all_left_operation_enabled(rig))
+
+
 def all_left_operation_enabled(rig: Rig) -> bool:
     states = {c.decode_state(sw) for sw in rig.sim.statuswords().values()}
     return c.State402.OPERATION_ENABLED not in states
@@ -313,11 +323,7 @@ def test_emcy_at_stream_start_stops_every_node_and_streams_nothing(
         box.stream(FaultOnStart(rig, "j07r0"))
     assert "emcy" in {x.kind for x in info.value.causes}
     assert info.value.result.cycles == 0
-    frames = [m for sn in rig.sniffers for m in sn.snapshot()]
-    rpdo_cws = {bytes(m.data[:2]) for m in frames if 0x200 < m.arbitration_id <= 0x27F}
-    assert rpdo_cws == {c.CW_QUICK_STOP.to_bytes(2, "little")}  # no setpoint went out
-    assert not np.isnan(quick_stop_sync_time(rig))
-    assert wait_until(lambda: all_left_operation_enabled(rig))
+    assert_only_quick_stops_sent(rig)
     assert not any(e["kind"] == "before_stream" for e in box.events.to_list())
 
 
@@ -440,11 +446,7 @@ def test_signal_at_stream_start_stops_every_node_with_its_cause(
     assert [(e["cause"], e["text"]) for e in causes] == [
         ("signal", "stream start interrupted: SIGTERM")
     ]
-    frames = [m for sn in rig.sniffers for m in sn.snapshot()]
-    rpdo_cws = {bytes(m.data[:2]) for m in frames if 0x200 < m.arbitration_id <= 0x27F}
-    assert rpdo_cws == {c.CW_QUICK_STOP.to_bytes(2, "little")}  # no setpoint went out
-    assert not np.isnan(quick_stop_sync_time(rig))
-    assert wait_until(lambda: all_left_operation_enabled(rig))
+    assert_only_quick_stops_sent(rig)
 
 
 @pytest.mark.parametrize("exc", [SignalInterrupt("SIGTERM", 15), KeyboardInterrupt()])
