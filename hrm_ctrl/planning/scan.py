@@ -186,10 +186,16 @@ def _irls(
     q: np.ndarray, c: np.ndarray, r: float, w0: np.ndarray
 ) -> tuple[np.ndarray, float, np.ndarray, float]:
     """Geometric circle fit by Gauss-Newton with Tukey weights; returns the centre, the
-    radius, the final weights and the residual scale."""
+    radius, the final weights and the residual scale.  The start radius is the median
+    distance of the starting points from ``c``: a start radius off by more than a few
+    robust scales (an algebraic fit pulled by a stray point, on a noise-free wall) would
+    weigh every point out."""
     w = w0.astype(float)
+    rho0 = np.linalg.norm(q - c, axis=1)[w > 0]
+    if len(rho0):
+        r = float(np.median(rho0))
     floor = 1e-6 * r + 1e-9
-    s = max(_mad_scale((np.linalg.norm(q - c, axis=1) - r)[w > 0]), floor)
+    s = max(_mad_scale(rho0 - r), floor)
     for _ in range(IRLS_ITERATIONS):
         dq = q - c
         rho = np.linalg.norm(dq, axis=1)
