@@ -291,9 +291,15 @@ def test_a_quick_stop_a_drive_never_confirms_leaves_the_session_in_fault(
         assert wait_until(lambda: box.state is SessionState.FAULT)
         assert box.stop_error is not None and motor in box.stop_error
         assert "not confirmed" in box.stop_error
-        nmt = [
-            bytes(m.data) for m in rig.sniffers[0].snapshot() if m.arbitration_id == cia301.COB_NMT
-        ]
-        assert bytes([cia301.NMT_ENTER_PRE_OPERATIONAL, node]) in nmt
+
+        def pre_operational_sent() -> bool:  # the sniffer hears it on its own thread
+            nmt = [
+                bytes(m.data)
+                for m in rig.sniffers[0].snapshot()
+                if m.arbitration_id == cia301.COB_NMT
+            ]
+            return bytes([cia301.NMT_ENTER_PRE_OPERATIONAL, node]) in nmt
+
+        assert wait_until(pre_operational_sent)
     finally:
         rig.sim.clear_frame_faults()

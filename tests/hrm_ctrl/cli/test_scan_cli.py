@@ -58,7 +58,7 @@ def test_bad_input_exits_2_with_one_line_and_writes_nothing(tmp_path: Path, caps
     for argv, match in [
         (["scan", str(bad), "--out", str(out)], "bad.csv:3: y is not finite"),
         (["scan", str(tmp_path / "none.ply"), "--out", str(out)], "point cloud not found"),
-        (["scan", str(blob), "--out", str(out)], "a scan of a pipe's inner wall?"),
+        (["scan", str(blob), "--out", str(out)], "a scan of a pipe's inner wall"),
         (["scan", str(bad), "--out", str(bad)], "would overwrite the point cloud"),
     ]:
         rc, _, err = run(argv, capsys)
