@@ -73,6 +73,14 @@ class Rig:
         self.box = DriveSession(self.config, self.limits, log_dir=log_dir, **kw)
         return self.box
 
+    def brought_up_box(self) -> DriveSession:
+        """A box opened and brought up, the sniffers cleared: they hold what follows."""
+        box = self.open_box()
+        box.bring_up()
+        for sn in self.sniffers:
+            sn.clear()
+        return box
+
 
 def make_config(
     bus_kwargs: list[dict[str, Any]],

@@ -72,10 +72,7 @@ def test_each_node_receives_the_setpoints_in_order_one_per_sync(
     rig_factory: Callable[..., Rig],
 ) -> None:
     rig = rig_factory()
-    box = rig.open_box()
-    box.bring_up()
-    for sn in rig.sniffers:
-        sn.clear()
+    box = rig.brought_up_box()
     src = JogSource(rig.limits, "j01r1", velocity_counts_per_s=50_000.0, duration_s=0.15)
     result = box.stream(src)
     assert result.completed and result.cycles == src.n_cycles
@@ -156,10 +153,7 @@ def test_rpdos_reach_the_wire_before_their_sync_on_a_priority_arbitrated_bus(
 
 def test_finish_without_stream_disables_by_sdo(rig_factory: Callable[..., Rig]) -> None:
     rig = rig_factory()
-    box = rig.open_box()
-    box.bring_up()
-    for sn in rig.sniffers:
-        sn.clear()
+    box = rig.brought_up_box()
     box.finish()
     assert wait_until(
         lambda: (
@@ -178,10 +172,7 @@ def test_finish_without_stream_disables_by_sdo(rig_factory: Callable[..., Rig]) 
 @pytest.mark.flaky(reruns=2, only_rerun=["no boot-up within"])
 def test_second_bring_up_is_not_a_fault(rig_factory: Callable[..., Rig]) -> None:
     rig = rig_factory()
-    box = rig.open_box()
-    box.bring_up()
-    for sn in rig.sniffers:
-        sn.clear()
+    box = rig.brought_up_box()
     box.bring_up()  # the drives are enabled: disabled (confirmed) first, then reset
     assert box.idle_causes == []
     # Every node got *disable operation* by SDO before the NMT reset of its bus, and was

@@ -315,10 +315,7 @@ def test_emcy_at_stream_start_stops_every_node_and_streams_nothing(
     rig_factory: Callable[..., Rig],
 ) -> None:
     rig = rig_factory()
-    box = rig.open_box()
-    box.bring_up()
-    for sn in rig.sniffers:
-        sn.clear()
+    box = rig.brought_up_box()
     with pytest.raises(SafetyStopError, match="j07r0") as info:
         box.stream(FaultOnStart(rig, "j07r0"))
     assert "emcy" in {x.kind for x in info.value.causes}
@@ -436,10 +433,7 @@ def test_signal_at_stream_start_stops_every_node_with_its_cause(
     rig_factory: Callable[..., Rig],
 ) -> None:
     rig = rig_factory()
-    box = rig.open_box()
-    box.bring_up()
-    for sn in rig.sniffers:
-        sn.clear()
+    box = rig.brought_up_box()
     with pytest.raises(SignalInterrupt):
         box.stream(SignalledOnStart(n_cycles=50))
     causes = [e for e in box.events.to_list() if e["kind"] == "stop_cause"]
@@ -456,10 +450,7 @@ def test_signal_while_enabled_and_idle_quick_stops_before_the_finish(
     """A signal leaving a ``with DriveSession`` block between streams (drives enabled,
     holding) quick-stops every axis with the signal as its cause, then finishes."""
     rig = rig_factory()
-    box = rig.open_box()
-    box.bring_up()
-    for sn in rig.sniffers:
-        sn.clear()
+    box = rig.brought_up_box()
     box.__exit__(type(exc), exc, None)
     causes = [(e["cause"], e["text"]) for e in box.events.to_list() if e["kind"] == "stop_cause"]
     name = "SIGTERM" if isinstance(exc, SignalInterrupt) else "SIGINT"
