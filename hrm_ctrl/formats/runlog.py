@@ -291,59 +291,86 @@ class _Rows:
 def _read_log(lp: Path, b: int, nodes: dict[int, int], rows: _Rows, max_frames: int) -> int:
     """Read CAN log ``lp`` of bus ``b`` (node id -> motor index ``nodes``) into ``rows``;
     its frame count.  Whatever the log holds, a problem is one :class:`RunLogError`."""
-    import can
-
-    errors = log_errors()
     n = rows.n
     held = np.full(n, np.nan)
     k = -1  # SYNCs of this bus so far
     count = 0
+    for msg in iter_can_log(lp, max_frames):
+        count += 1
+        if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
+            continue
+        cid = msg.arbitration_id
+        if cid == COB_SYNC and len(msg.data) == 0:
+            k += 1
+            if k >= rows.max_syncs:
+                raise RunLogError(
+                    f"{lp}: more than {rows.max_syncs} SYNCs"
+                    + (f" for {n} motors" if rows.max_syncs < MAX_CYCLES else "")
+                )
+            if b == 0:
+                ts = float(msg.timestamp)
+                if not math.isfinite(ts):
+                    raise RunLogError(f"{lp}: frame {count}: SYNC at time {ts}")
+                rows.sync_t.append(ts)
+                rows.target.append(held.copy())
+                rows.actual.append(np.full(n, np.nan))
+            elif k < len(rows.target):
+                rows.target[k] = np.where(np.isnan(held), rows.target[k], held)
+            continue
+        base, nid = cid & 0x780, cid & 0x07F
+        if len(msg.data) != _PDO.size or nid not in nodes:
+            continue
+        if base == COB_RPDO1:
+            held[nodes[nid]] = _PDO.unpack(bytes(msg.data))[1]
+        elif base == COB_TPDO1 and 0 <= k < len(rows.actual):
+            rows.actual[k][nodes[nid]] = _PDO.unpack(bytes(msg.data))[1]
+    return count
+
+
+def iter_can_log(path: str | Path, max_frames: int = MAX_LOG_FRAMES) -> Iterator[Any]:
+    """The frames (:class:`can.Message`) of CAN log ``path``, read in bounded memory and
+    time: :func:`check_can_log` first, at most ``max_frames`` frames, and whatever the
+    reader raises on a damaged log as one :class:`RunLogError` naming the file.  The
+    reader is closed when the iteration ends, early or not.
+
+    >>> import tempfile, can
+    >>> p = Path(tempfile.mkdtemp()) / "bus.asc"
+    >>> with can.Logger(str(p)) as log:
+    ...     for i in range(3):
+    ...         log(can.Message(arbitration_id=0x80, timestamp=float(i), data=b""))
+    >>> [m.arbitration_id for m in iter_can_log(p)]
+    [128, 128, 128]
+    >>> list(iter_can_log(p, max_frames=2))  # doctest: +IGNORE_EXCEPTION_DETAIL
+    Traceback (most recent call last):
+    RunLogError: .../bus.asc: more than 2 frames
+    """
+    import can
+
+    lp = Path(path)
+    errors = log_errors()
     check_can_log(lp)
     try:
         reader = can.LogReader(str(lp))
     except errors as exc:
         raise RunLogError(f"{lp}: cannot open CAN log ({_why(exc)})") from None
+    count = 0
     try:
-        for msg in reader:
+        it = iter(reader)
+        while True:
+            try:
+                msg = next(it)
+            except StopIteration:
+                return
+            except errors as exc:
+                raise RunLogError(f"{lp}: cannot read CAN log ({_why(exc)})") from None
             count += 1
             if count > max_frames:
                 raise RunLogError(f"{lp}: more than {max_frames} frames")
-            if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
-                continue
-            cid = msg.arbitration_id
-            if cid == COB_SYNC and len(msg.data) == 0:
-                k += 1
-                if k >= rows.max_syncs:
-                    raise RunLogError(
-                        f"{lp}: more than {rows.max_syncs} SYNCs"
-                        + (f" for {n} motors" if rows.max_syncs < MAX_CYCLES else "")
-                    )
-                if b == 0:
-                    ts = float(msg.timestamp)
-                    if not math.isfinite(ts):
-                        raise RunLogError(f"{lp}: frame {count}: SYNC at time {ts}")
-                    rows.sync_t.append(ts)
-                    rows.target.append(held.copy())
-                    rows.actual.append(np.full(n, np.nan))
-                elif k < len(rows.target):
-                    rows.target[k] = np.where(np.isnan(held), rows.target[k], held)
-                continue
-            base, nid = cid & 0x780, cid & 0x07F
-            if len(msg.data) != _PDO.size or nid not in nodes:
-                continue
-            if base == COB_RPDO1:
-                held[nodes[nid]] = _PDO.unpack(bytes(msg.data))[1]
-            elif base == COB_TPDO1 and 0 <= k < len(rows.actual):
-                rows.actual[k][nodes[nid]] = _PDO.unpack(bytes(msg.data))[1]
-    except RunLogError:
-        raise
-    except errors as exc:
-        raise RunLogError(f"{lp}: cannot read CAN log ({_why(exc)})") from None
+            yield msg
     finally:
         stop = getattr(reader, "stop", None)
         if callable(stop):
             stop()
-    return count
 
 
 # BLF bounds (python-can and CANoe write containers of 128 KiB; a CAN FD frame is < 200 B)

@@ -33,9 +33,10 @@ RPDO1_BASE = 0x200
 TPDO1_BASE = 0x180
 EMCY_BASE = 0x080
 HEARTBEAT_BASE = 0x700
+MAX_WIRE_FRAMES = 2_000_000  # frames of one run read at most (~4 min of the 36-drive arm at 100 Hz)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class WireFrame:
     """One frame of a CAN log: wire time (s, the log's clock), bus, COB-ID, data, direction."""
 
@@ -69,18 +70,30 @@ class WireLog:
         )
 
     @classmethod
-    def read(cls, paths: Sequence[str | Path], bus_names: Sequence[str]) -> WireLog:
-        """Read a run's logs (``record["can_logs"]``, in the configuration's bus order)."""
-        import can
-
+    def read(
+        cls,
+        paths: Sequence[str | Path],
+        bus_names: Sequence[str],
+        max_frames: int = MAX_WIRE_FRAMES,
+    ) -> WireLog:
+        """Read a run's logs (``record["can_logs"]``, in the configuration's bus order),
+        at most ``max_frames`` frames in all; a log that cannot be read (damaged, not a
+        regular file, too long) is one :class:`~hrm_ctrl.formats.runlog.RunLogError`."""
         from hrm_ctrl.errors import SimError
+        from hrm_ctrl.formats.runlog import RunLogError, iter_can_log
 
         if len(paths) != len(bus_names):
             raise SimError(f"{len(paths)} CAN logs for {len(bus_names)} buses")
-        by_bus: dict[str, list[Any]] = {}
+        frames: list[WireFrame] = []
         for path, bus in zip(paths, bus_names, strict=True):
-            by_bus[bus] = list(can.LogReader(str(path)))
-        return cls.from_frames(by_bus)
+            left = max_frames - len(frames)
+            try:
+                frames.extend(cls.from_frames({bus: iter_can_log(path, left)}).frames)
+            except RunLogError as exc:
+                if left < max_frames and str(exc).endswith(f"more than {left} frames"):
+                    raise RunLogError(f"{path}: more than {max_frames} frames in all") from None
+                raise
+        return cls(frames)
 
     def quick_stop(self, after_s: float = float("-inf")) -> WireFrame | None:
         """The host's first quick-stop RPDO after ``after_s``."""

@@ -176,3 +176,42 @@ def test_the_wire_log_finds_onset_stop_and_confirmation() -> None:
     assert log.syncs_sent("can0", last.t_s, qs.t_s) == 3
     confirmed, silent = log.stop_confirmed({"can0": {"a": 1, "b": 2}}, qs.t_s)
     assert confirmed == 1.05 and silent == ["a"]
+
+
+def test_the_wire_log_reads_logs_bounded(tmp_path: Path) -> None:
+    """WireLog.read: the frames of each bus's log, in time order; a log past the frame
+    bound, damaged, or not a regular file is one RunLogError naming it."""
+    import os
+
+    import can
+
+    from hrm_ctrl.formats.runlog import RunLogError
+    from hrm_ctrl.hil.wirelog import WireLog
+
+    paths = [tmp_path / "run_a.blf", tmp_path / "run_b.blf"]
+    for b, p in enumerate(paths):
+        with can.Logger(str(p)) as log:
+            for k in range(5):
+                log(
+                    can.Message(
+                        timestamp=1.0 + 0.01 * k + 0.001 * b,
+                        arbitration_id=0x80,
+                        data=b"",
+                        is_rx=False,
+                    )
+                )
+    wire = WireLog.read(paths, ["a", "b"])
+    assert [f.bus for f in wire.frames] == ["a", "b"] * 5
+    assert wire.syncs_sent("b", 0.0, 2.0) == 5
+    with pytest.raises(RunLogError, match=r"run_b\.blf: more than 8 frames in all"):
+        WireLog.read(paths, ["a", "b"], max_frames=8)
+    with pytest.raises(RunLogError, match=r"run_a\.blf: more than 4 frames$"):
+        WireLog.read(paths, ["a", "b"], max_frames=4)
+    paths[1].write_bytes(b"LOGG" + b"\xff" * 200)
+    with pytest.raises(RunLogError, match=r"run_b\.blf: ") as exc:
+        WireLog.read(paths, ["a", "b"])
+    assert "\n" not in str(exc.value)
+    paths[1].unlink()
+    os.mkfifo(paths[1])  # would block a reader for ever
+    with pytest.raises(RunLogError, match=r"run_b\.blf: CAN log is not a regular file"):
+        WireLog.read(paths, ["a", "b"])
