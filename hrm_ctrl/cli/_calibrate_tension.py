@@ -43,7 +43,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -238,31 +238,52 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     return result, base, store, description
 
 
-def save_calibration(
-    args: argparse.Namespace, store: Any, new: Any, description: Any
-) -> tuple[int, str]:
+class Saved(NamedTuple):
+    """Where :func:`save_calibration` put a routine's result: its ``version``, ``where``
+    (one line for the user) and ``usable``: whether loading would accept it (False: a
+    value out of :func:`calibration.apply.check_ranges`, kept but not made active)."""
+
+    version: int
+    where: str
+    usable: bool
+
+
+EXIT_NOT_USABLE = 1  # a routine ran and kept its result, which loading would refuse
+
+
+def save_calibration(args: argparse.Namespace, store: Any, new: Any, description: Any) -> Saved:
     """Save ``new`` as the store's next version (active), or with ``--out FILE`` write that
-    one file (numbered as the store's next); returns the version and where it went.
+    one file (numbered as the store's next).
 
     A result that ``hrm calibrate use`` and every drive session would refuse (a value out
     of :func:`calibration.apply.check_ranges`) is still kept, the routine's work is not
-    lost, but not made active: the active version stays what it was, and stderr says why.
+    lost, but not made active: the active version stays what it was, stderr says why, and
+    the command exits :data:`EXIT_NOT_USABLE` (a script does not go on to drive with the
+    calibration it had as if the routine had succeeded).  ``--out`` writes such a result
+    with the same stderr line.
     """
     from calibration.apply import check_belongs
     from calibration.store import to_json
 
+    try:
+        check_belongs(description, new, "the new calibration")
+        problem = None
+    except CalibrationFileError as exc:
+        problem = str(exc)
     if args.out is not None:
         version = max(store.versions(), default=0) + 1  # the number it would have in the store
         _write_file(args.out, to_json(new, version))
-        return version, f"written to {args.out} (not in the store)"
-    try:
-        check_belongs(description, new, "the new calibration")
-    except CalibrationFileError as exc:
+        if problem is not None:
+            print(f"hrm calibrate: {args.out} would be refused: {problem}", file=sys.stderr)
+            return Saved(version, f"written to {args.out} (not in the store; out of range)", False)
+        return Saved(version, f"written to {args.out} (not in the store)", True)
+    if problem is not None:
         version = store.save(new, activate=False)
-        print(f"hrm calibrate: v{version:04d} not made active: {exc}", file=sys.stderr)
-        return version, f"saved as v{version:04d} in {store.folder} (NOT active: out of range)"
+        print(f"hrm calibrate: v{version:04d} not made active: {problem}", file=sys.stderr)
+        where = f"saved as v{version:04d} in {store.folder} (NOT active: out of range)"
+        return Saved(version, where, False)
     version = store.save(new)
-    return version, f"saved as v{version:04d} in {store.folder} (active)"
+    return Saved(version, f"saved as v{version:04d} in {store.folder} (active)", True)
 
 
 def _progress(args: argparse.Namespace) -> Any:
@@ -279,8 +300,8 @@ def _run_routine(args: argparse.Namespace, build: Any, report: Any) -> int:
     result, base, store, description = _session_run(
         args, f"hrm calibrate {args.calibrate}", routine
     )
-    report(args, result, base, store, t0, print, description)
-    return 0
+    saved = report(args, result, base, store, t0, print, description)
+    return 0 if saved.usable else EXIT_NOT_USABLE
 
 
 def run_zero(args: argparse.Namespace) -> int:
@@ -317,16 +338,17 @@ def zero_routine(
 def report_zero(
     args: argparse.Namespace, result: Any, base: Any, store: Any, t0: float,
     out: Callable[[str], None], description: Any,
-) -> int:  # fmt: skip
+) -> Saved:  # fmt: skip
     """Save the zero's calibration (:func:`save_calibration`) and print its summary
-    (``out``: one line each; JSON with ``args.json``); returns the version."""
+    (``out``: one line each; JSON with ``args.json``); returns where it went."""
     from calibration.apply import updated
     from calibration.store import Routine
 
     zeros = {m: int(v) for m, v in zip(result.motor_ids, result.zero_counts, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
     new = updated(base, routine=Routine.ZERO, residuals=residuals, motor_zero_counts=zeros)
-    version, where = save_calibration(args, store, new, description)
+    saved = save_calibration(args, store, new, description)
+    version, where = saved.version, saved.where
     shift = result.zero_shift_counts
     worst = int(np.argmax(np.abs(shift)))
     err = np.abs(result.tension_error_N)
@@ -343,6 +365,7 @@ def report_zero(
         "version": version,
         "file": where,
         "active": args.out is None and store.active() == version,
+        "in_range": saved.usable,
         "zero_counts": zeros,
     }
     if args.json:
@@ -355,7 +378,7 @@ def report_zero(
             f"{result.elapsed_s:.1f} s"
         )
         out(f"calibration {where}")
-    return version
+    return saved
 
 
 def run_stiffness(args: argparse.Namespace) -> int:
@@ -386,15 +409,16 @@ def stiffness_routine(
 def report_stiffness(
     args: argparse.Namespace, result: Any, base: Any, store: Any, t0: float,
     out: Callable[[str], None], description: Any,
-) -> int:  # fmt: skip
-    """Save the stiffness's calibration and print its summary; returns the version."""
+) -> Saved:  # fmt: skip
+    """Save the stiffness's calibration and print its summary; returns where it went."""
     from calibration.apply import updated
     from calibration.store import Routine
 
     ea = {m: float(v) for m, v in zip(result.motor_ids, result.EA_N, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
     new = updated(base, routine=Routine.STIFFNESS, residuals=residuals, rope_EA_N=ea)
-    version, where = save_calibration(args, store, new, description)
+    saved = save_calibration(args, store, new, description)
+    version, where = saved.version, saved.where
     rel = result.EA_sigma_N / result.EA_N
     change = result.EA_N / result.before_EA_N - 1.0
     worst = int(np.nanargmax(np.abs(change)))
@@ -410,6 +434,7 @@ def report_stiffness(
         "version": version,
         "file": where,
         "active": args.out is None and store.active() == version,
+        "in_range": saved.usable,
         "rope_EA_N": ea,
     }
     if args.json:
@@ -422,4 +447,4 @@ def report_stiffness(
             f"{result.moves} moves, {result.elapsed_s:.1f} s"
         )
         out(f"calibration {where}")
-    return version
+    return saved

@@ -51,8 +51,8 @@ from typing import Any
 
 import numpy as np
 
+from hrm_ctrl.cli._calibrate_tension import EXIT_NOT_USABLE, save_calibration
 from hrm_ctrl.cli._calibrate_tension import register as register_tension_routines
-from hrm_ctrl.cli._calibrate_tension import save_calibration
 from hrm_ctrl.cli._common import (
     Input,
     Output,
@@ -441,15 +441,21 @@ def run_kinematic(args: argparse.Namespace) -> int:
     new = kinematic_calibration(base, fit)
     if note is not None:  # what the new version starts from, once there is one
         print(f"hrm calibrate kinematic: {note}", file=sys.stderr)
-    version, where = save_calibration(args, store, new, description)
+    saved = save_calibration(args, store, new, description)
     if args.json:
-        active = args.out is None and store.active() == version
-        doc = {"fit": fit_report(fit), "version": version, "file": where, "active": active}
+        active = args.out is None and store.active() == saved.version
+        doc = {
+            "fit": fit_report(fit),
+            "version": saved.version,
+            "file": saved.where,
+            "active": active,
+            "in_range": saved.usable,
+        }
         print(json.dumps(doc))
     else:
         print(format_fit(fit))
-        print(f"calibration {where}")
-    return 0
+        print(f"calibration {saved.where}")
+    return 0 if saved.usable else EXIT_NOT_USABLE
 
 
 def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any) -> Any:

@@ -199,14 +199,45 @@ def test_a_routine_result_out_of_range_is_kept_but_not_made_active(store_dir, mo
     zeros = {m: z + 10**9 for m, z in base.motor_zero_counts.items()}  # far past 50 mm
     new = updated(base, routine=Routine.ZERO, residuals={}, motor_zero_counts=zeros)
     args = argparse.Namespace(out=None)
-    version, where = save_calibration(args, store, new, model)
-    assert store.active() == v2 and "NOT active" in where
+    version, where, usable = save_calibration(args, store, new, model)
+    assert store.active() == v2 and "NOT active" in where and not usable
     assert store.load(version).motor_zero_counts == zeros  # kept as measured
     err = capsys.readouterr().err
     assert f"v{version:04d} not made active: the new calibration: motor_zero_counts" in err
     ok = updated(base, routine=Routine.ZERO, residuals={})
-    version, where = save_calibration(args, store, ok, model)
-    assert store.active() == version and where.endswith("(active)")
+    version, where, usable = save_calibration(args, store, ok, model)
+    assert store.active() == version and where.endswith("(active)") and usable
+
+
+def test_kinematic_result_out_of_range_exits_1_kept_and_said(store_dir, model, tmp_path, capsys):
+    """A fit whose link is 30 mm off the description's (loading refuses more than 20 mm):
+    the version is saved, not made active, stderr says why, the JSON says so, and the
+    command exits 1 (a script does not go on as if the routine had succeeded); ``--out``
+    writes the file with the same line and exit status."""
+    store, (_, v2, _) = _save_three(store_dir, model)
+    assert store.active() == v2
+    data = tmp_path / "poses.csv"
+    rng = np.random.default_rng(5)
+    alpha, theta = spread_configurations(model, 300, rng)
+    links = model.links.copy()
+    links[3] += 30.0
+    links.setflags(write=False)
+    p = frames(dataclasses.replace(model, links=links), alpha, theta)[1][:, -1, :]
+    data.write_text(format_pose_csv(alpha, theta, p + rng.normal(0.0, SIGMA_MM, p.shape)))
+    assert main(["calibrate", "kinematic", str(data), "--json"]) == 1
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)
+    assert report["version"] == 4 and report["active"] is False and report["in_range"] is False
+    assert store.active() == v2 and store.versions() == [1, 2, 3, 4]
+    assert store.load(4).links_mm[3] == pytest.approx(links[3], abs=1.0)  # kept as measured
+    assert captured.err.count("\n") == 1 and "v0004 not made active: " in captured.err
+    out = tmp_path / "c.json"
+    assert main(["calibrate", "kinematic", str(data), "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert f"{out} would be refused: the new calibration: " in captured.err
+    assert "(not in the store; out of range)" in captured.out
+    assert from_json(out.read_text(), "c.json").links_mm[3] == pytest.approx(links[3], abs=1.0)
+    assert store.active() == v2 and store.versions() == [1, 2, 3, 4]
 
 
 # --- kinematic from a pose file ----------------------------------------------------------
