@@ -17,7 +17,9 @@ tension board is read) and :func:`write_tension_csv` writes it.
 
 Every reader is bounded whatever its input (a damaged or hostile record or log gives one
 line naming the file, :class:`RunLogError`): a BLF log's objects are checked against
-their bounds before python-can reads it (:func:`check_blf_bounds`), the record is read
+their bounds before python-can reads it (:func:`check_blf_bounds`), a text log's lines
+(:func:`check_text_log_lines`) and a SQLite log's frames (:func:`check_db_log`) too,
+the record is read
 as the shared readers read JSON (:func:`hrm_ctrl.files.read_text_file`,
 :func:`hrm_ctrl.files.parse_json`: size and nesting bounded), its numbers are checked
 before anything divides by them or sizes an array with them (a control rate in
@@ -57,6 +59,8 @@ MAX_MOTORS = 1024  # motors of a run record at most (the arm has 36; CANopen: 12
 MAX_LOG_VALUES = 64 * MAX_CYCLES  # counts kept per array (cycles x motors) at most
 MIN_RATE_HZ, MAX_RATE_HZ = 1.0, 10_000.0  # a control rate outside is not a run's
 MAX_TENSION_ROWS = 100_000
+MAX_TEXT_LOG_LINE_BYTES = 64 * 1024  # one line of a text CAN log at most (a frame: < 400 B)
+TEXT_LOG_SUFFIXES = frozenset({".asc", ".log", ".trc", ".csv"})
 STREAM_GAP_S = 0.5  # SYNCs further apart than this belong to different streams
 COB_SYNC = 0x080
 COB_TPDO1 = 0x180
@@ -396,8 +400,71 @@ def check_can_log(lp: Path) -> None:
         raise RunLogError(f"{lp}: CAN log is not a regular file")
     if lp.suffix.lower() == ".gz":
         raise RunLogError(f"{lp}: compressed CAN logs are not read (decompress it first)")
-    if lp.suffix.lower() == ".blf":
+    suffix = lp.suffix.lower()
+    if suffix == ".blf":
         check_blf_bounds(lp)
+    elif suffix in TEXT_LOG_SUFFIXES:
+        check_text_log_lines(lp)
+    elif suffix == ".db":
+        check_db_log(lp)
+
+
+def check_text_log_lines(
+    path: str | Path, max_line_bytes: int = MAX_TEXT_LOG_LINE_BYTES, chunk_bytes: int = 1 << 20
+) -> None:
+    """Refuse a text CAN log (``.asc``, ``.log``, ``.trc``, ``.csv``) with a line longer than
+    ``max_line_bytes``: python-can's readers read a line at a time, so one line of a
+    gigabyte (a file with no line breaks) would be a gigabyte in memory, twice.  Scans
+    the file in ``chunk_bytes`` chunks (2.1 GB/s from the page cache on the development
+    VM, some 90 times python-can's ASC reader: 23 MB/s, 254 000 frames/s).
+
+    >>> import tempfile
+    >>> p = Path(tempfile.mkdtemp()) / "bus.asc"
+    >>> _ = p.write_bytes(b"date Fri Dec 4\\n" + b"x" * 100 + b"\\n")
+    >>> check_text_log_lines(p)
+    >>> check_text_log_lines(p, max_line_bytes=64)  # doctest: +IGNORE_EXCEPTION_DETAIL
+    Traceback (most recent call last):
+    RunLogError: .../bus.asc: line 2 is longer than 64 bytes
+    """
+    lp = Path(path)
+    run = 0  # bytes since the last line break
+    line = 1  # the line ``run`` belongs to
+    try:
+        with open(lp, "rb") as f:
+            while chunk := f.read(chunk_bytes):
+                breaks = np.flatnonzero(np.frombuffer(chunk, dtype=np.uint8) == 0x0A)
+                if breaks.size:
+                    lengths = np.diff(breaks, prepend=-1) - 1  # the lines ending in this chunk
+                    lengths[0] += run
+                    over = np.flatnonzero(lengths > max_line_bytes)
+                    if over.size:
+                        at = line + int(over[0])
+                        raise RunLogError(f"{lp}: line {at} is longer than {max_line_bytes} bytes")
+                    line += breaks.size
+                    run = len(chunk) - 1 - int(breaks[-1])
+                else:
+                    run += len(chunk)
+                if run > max_line_bytes:
+                    raise RunLogError(f"{lp}: line {line} is longer than {max_line_bytes} bytes")
+    except OSError as exc:
+        raise RunLogError(f"{lp}: cannot open CAN log ({_why(exc)})") from None
+
+
+def check_db_log(path: str | Path, max_data_bytes: int = MAX_BLF_INNER_BYTES) -> None:
+    """Refuse a SQLite CAN log (``.db``, python-can's :class:`can.SqliteWriter` schema)
+    without a ``messages`` table or with a frame's data longer than ``max_data_bytes``
+    (python-can would copy whatever the column holds into the message).  Opened read-only:
+    reading a log never changes it."""
+    lp = Path(path)
+    try:
+        with contextlib.closing(
+            sqlite3.connect(f"{lp.resolve().as_uri()}?mode=ro", uri=True)
+        ) as db:
+            (longest,) = db.execute("SELECT max(length(data)) FROM messages").fetchone()
+    except sqlite3.Error as exc:
+        raise RunLogError(f"{lp}: cannot read CAN log ({_why(exc)})") from None
+    if longest is not None and longest > max_data_bytes:
+        raise RunLogError(f"{lp}: a frame's data is longer than {max_data_bytes} bytes")
 
 
 def check_blf_bounds(path: str | Path, max_objects: int = MAX_LOG_FRAMES) -> None:

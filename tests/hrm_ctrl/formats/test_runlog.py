@@ -13,10 +13,15 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from hypothesis import example, given
+from hypothesis import strategies as st
 
 from hrm_ctrl.formats.runlog import (
     RunLogError,
     check_blf_bounds,
+    check_can_log,
+    check_text_log_lines,
+    iter_can_log,
     read_record,
     read_run,
     tension_csv,
@@ -284,3 +289,67 @@ def test_blf_objects_counted_and_compressed_logs_refused(tmp_path: Path) -> None
     p.write_text(json.dumps(rec))
     with pytest.raises(RunLogError, match=r"run-x_a\.blf\.gz: compressed CAN logs are not read"):
         read_run(p)
+
+
+@given(
+    lines=st.lists(st.integers(0, 40), min_size=0, max_size=30),
+    tail=st.booleans(),
+    chunk=st.integers(1, 50),
+    limit=st.integers(0, 45),
+)
+@example(lines=[10, 25], tail=True, chunk=7, limit=24)  # the long line spans three chunks
+@example(lines=[3], tail=False, chunk=1, limit=2)  # the last line has no line break
+def test_text_log_line_bound_names_the_first_long_line(
+    tmp_path_factory: pytest.TempPathFactory, lines: list[int], tail: bool, chunk: int, limit: int
+) -> None:
+    """Whatever the chunking, the scan refuses exactly the files with a line longer than
+    the bound, naming the first such line (1-based), as splitting the whole file would."""
+    body = b"\n".join(b"x" * n for n in lines) + (b"\n" if tail and lines else b"")
+    p = tmp_path_factory.mktemp("t") / "bus.asc"
+    p.write_bytes(body)
+    long = [i + 1 for i, line in enumerate(body.split(b"\n")) if len(line) > limit]
+    if not long:
+        check_text_log_lines(p, max_line_bytes=limit, chunk_bytes=chunk)
+        return
+    with pytest.raises(
+        RunLogError, match=rf"bus\.asc: line {long[0]} is longer than {limit} bytes$"
+    ):
+        check_text_log_lines(p, max_line_bytes=limit, chunk_bytes=chunk)
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".log", ".trc", ".csv"])
+def test_text_log_without_line_breaks_refused_before_reading(tmp_path: Path, suffix: str) -> None:
+    """A text log of one 2 MiB line (python-can would hold it whole, twice) is refused by
+    the check every reader of a run's logs runs first."""
+    p = tmp_path / f"bus{suffix}"
+    p.write_bytes(b"base hex  timestamps absolute\n" + b"7" * (2 << 20))
+    with pytest.raises(RunLogError, match=r"line 2 is longer than 65536 bytes"):
+        check_can_log(p)
+    with pytest.raises(RunLogError, match=r"line 2 is longer than 65536 bytes"):
+        list(iter_can_log(p))
+
+
+def test_db_log_checked_read_only(tmp_path: Path) -> None:
+    """A SQLite log: python-can's own is read; one without its table, or with a frame of
+    1 MiB of data, is one line; the check changes nothing in the file."""
+    import sqlite3
+
+    good = tmp_path / "bus.db"
+    with can.SqliteWriter(str(good)) as w:
+        for k in range(3):
+            w.on_message_received(can.Message(timestamp=float(k), arbitration_id=0x80, data=b""))
+    assert [m.arbitration_id for m in iter_can_log(good)] == [0x80] * 3
+    bad = tmp_path / "big.db"
+    with sqlite3.connect(bad) as db:
+        db.execute("CREATE TABLE messages (ts REAL, id INT, ext INT, rtr INT, err INT, dlc INT, "
+                   "data BLOB)")  # fmt: skip
+        db.execute("INSERT INTO messages VALUES (0, 128, 0, 0, 0, 8, ?)", (b"x" * (1 << 20),))
+    db_bytes = bad.read_bytes()
+    with pytest.raises(RunLogError, match=r"big\.db: a frame's data is longer than 65536 bytes"):
+        check_can_log(bad)
+    assert bad.read_bytes() == db_bytes
+    other = tmp_path / "other.db"
+    with sqlite3.connect(other) as db:
+        db.execute("CREATE TABLE t (x INT)")
+    with pytest.raises(RunLogError, match=r"other\.db: cannot read CAN log \(no such table"):
+        check_can_log(other)
