@@ -201,7 +201,9 @@ def write_atomic(path: str | Path, data: str | bytes, *, make_parents: bool = Tr
     ``os.replace``; flushed and fsynced, with the usual file mode (0666 less the
     umask).  The folder is created if missing unless ``make_parents`` is false.
     Raises ``OSError`` (no partial file is left behind), also when ``path`` exists and
-    is not a regular file (a device, a FIFO, a socket, a folder: never replaced)."""
+    is not a regular file (a device, a FIFO, a socket, a folder: never replaced).  A
+    symbolic link is written through: its target is replaced, the link stays (so
+    ``/dev/stdout`` redirected to a file writes that file, and is never itself replaced)."""
     p = Path(path)
     try:
         mode = os.stat(p).st_mode
@@ -211,6 +213,8 @@ def write_atomic(path: str | Path, data: str | bytes, *, make_parents: bool = Tr
         mode = None  # (a dangling link, a folder we cannot look into): the write says why
     if mode is not None and not stat.S_ISREG(mode):
         raise OSError(errno.EEXIST, "exists and is not a regular file", str(p))
+    if p.is_symlink():
+        p = Path(os.path.realpath(p))
     if make_parents:
         p.parent.mkdir(parents=True, exist_ok=True)
     raw = data.encode("utf-8") if isinstance(data, str) else data

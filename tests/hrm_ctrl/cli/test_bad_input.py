@@ -535,6 +535,27 @@ def test_an_output_that_is_no_regular_file_is_never_replaced(
     refused(capsys, tmp_path, argv, "exists and is not a regular file")
 
 
+@pytest.mark.parametrize("argv", [["urdf", "--out", "OUT"], ["plan", "--path", "PATH", "--out",
+                                  "OUT"]], ids=["urdf", "plan"])  # fmt: skip
+def test_an_output_that_is_a_link_is_written_through(
+    tmp_path: Path, capsys: pytest.CaptureFixture, argv: list[str]
+) -> None:
+    """``--out`` naming a symbolic link (``/dev/stdout`` redirected to a file is one):
+    the link's target gets the output, the link stays a link (the atomic write once
+    replaced ``/dev/stdout`` itself by a regular file)."""
+    target = tmp_path / "real" / "target.out"
+    target.parent.mkdir()
+    target.write_text("old")
+    link = tmp_path / "link.out"
+    link.symlink_to(target)
+    (tmp_path / "path.csv").write_text(PATH_CSV)
+    subs = {"PATH": str(tmp_path / "path.csv"), "OUT": str(link)}
+    assert main([subs.get(a, a) for a in argv]) == 0, capsys.readouterr().err
+    assert link.is_symlink() and os.readlink(link) == str(target)
+    assert target.read_text() != "old" and target.stat().st_size > 100
+    assert sorted(x.name for x in target.parent.iterdir()) == ["target.out"]  # no temp left
+
+
 @pytest.mark.skipif(not Path("/dev/null").is_char_device(), reason="no /dev/null")
 def test_dev_null_as_output_stays_a_device(capsys: pytest.CaptureFixture) -> None:
     one_error(capsys, "urdf", main(["urdf", "--out", "/dev/null"]))
