@@ -145,7 +145,22 @@ def read_record(path: str | Path) -> dict[str, Any]:
         raise RunLogError(f"{p}: run record with {len(motors)} motors (1..{MAX_MOTORS})")
     if not all(isinstance(m, str) for m in motors) or len(set(motors)) != len(motors):
         raise RunLogError(f"{p}: run record whose motor_ids are not distinct names")
+    for i, name in enumerate(doc["can_logs"]):
+        if not _plausible_path(name):
+            raise RunLogError(f"{p}: can_logs[{i}] is not a file name")
     return doc
+
+
+def _plausible_path(name: object) -> bool:
+    """A string the file system could take as a path: no NUL, at most 4096 bytes, each
+    part at most 255 (else ``Path.exists`` raises instead of answering)."""
+    if not isinstance(name, str) or not name or "\0" in name:
+        return False
+    try:
+        raw = os.fsencode(name)
+    except UnicodeError:  # a lone surrogate
+        return False
+    return len(raw) <= 4096 and all(len(part) <= 255 for part in raw.split(b"/"))
 
 
 def control_period_s(doc: dict[str, Any], where: Path) -> float:

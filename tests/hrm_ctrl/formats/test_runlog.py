@@ -108,6 +108,20 @@ def test_bad_records_one_line(tmp_path: Path, text: str, message: str) -> None:
     assert str(p) in str(exc.value) and "\n" not in str(exc.value)
 
 
+@pytest.mark.parametrize(
+    "name", ["a" * 5000 + ".blf", "a\0b.blf", "d/" + "b" * 300 + ".blf", "", 7]
+)
+def test_a_log_name_no_file_system_takes_is_one_line(tmp_path: Path, name: object) -> None:
+    """A ``can_logs`` entry the file system would raise on (too long, a NUL, not a
+    string) is refused naming it, before any path is looked at (it was a traceback)."""
+    p = _write_run(tmp_path, np.zeros((2, 2), int), np.zeros((2, 2)))
+    rec = json.loads(p.read_text())
+    rec["can_logs"][1] = name
+    p.write_text(json.dumps(rec))
+    with pytest.raises(RunLogError, match=r"r.*\.json: can_logs\[1\] is not a file name$"):
+        read_run(p)
+
+
 def test_missing_log_named(tmp_path: Path) -> None:
     p = _write_run(tmp_path, np.zeros((2, 2), int), np.zeros((2, 2)))
     (tmp_path / "run-x_b.blf").unlink()
