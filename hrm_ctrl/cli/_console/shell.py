@@ -101,7 +101,7 @@ def build_context(args: argparse.Namespace, prog: str) -> ConsoleContext:
     from hrm_ctrl.ropes.actuation import load_actuation
 
     refuse_overwriting_inputs(
-        [Output("--log-dir", args.log_dir)],
+        [Output("--log-dir", args.log_dir, folder=True)],
         [robot_input(args.robot), config_input(args.config), *shipped_inputs(eds=True)],
     )
     config = load_box(args)  # --config with the --bus overrides

@@ -45,6 +45,7 @@ def disabled_at_the_end(record: dict) -> bool:
 def run_script(tmp_path: Path, isolated_home: Path, text: str) -> subprocess.CompletedProcess:
     script = tmp_path / "procedure.txt"
     script.write_text(text)
+    (tmp_path / "runs").mkdir(exist_ok=True)  # the log folder exists (it was refused once)
     with script.open() as stdin:
         return subprocess.run(
             [PYTHON, "-m", "hrm_ctrl.cli", "console", "--sim", "--log-dir", "runs"],
@@ -139,6 +140,7 @@ def test_interactive_shell_on_a_terminal(tmp_path, isolated_home) -> None:
 
 
 def test_status_one_shot(tmp_path, isolated_home, capsys) -> None:
+    (tmp_path / "runs").mkdir()  # a log folder that exists (as ./runs does after one run)
     rc, out, err = run_cli(["status", "--sim", "--log-dir", str(tmp_path / "runs")], capsys)
     assert rc == 0, err
     lines = out.splitlines()
