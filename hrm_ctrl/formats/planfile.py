@@ -11,7 +11,9 @@ the end point; ``phase`` is ``in`` or ``return`` (on every step or on none: then
 the format's definition; documents are validated against it (``jsonschema``, Draft
 2020-12) and, since JSON Schema cannot say so, every number read into an array must be
 finite and in range: lengths, coordinates and travels within +-:data:`MAX_LENGTH_MM` (100 m),
-step angles within a half turn, the robot's joint limits within 180 deg.  Every problem is
+step angles within a half turn, the robot's joint limits within 180 deg; at most
+:data:`MAX_PLAN_STEPS` steps and :data:`MAX_PATH_POINTS` path points (counted before the
+schema walks them: the 256 MiB a file may have hold a million steps).  Every problem is
 one :class:`~hrm_ctrl.errors.PlanFileError` line naming the file and the place, e.g.
 ``plan.json: steps[3].alpha_rad[2]: expected a finite number``.
 A plan made in an environment keeps it as ``scenario.environment`` (the data of a scene
@@ -54,6 +56,7 @@ import numpy as np
 from hrm_ctrl.errors import PlanFileError
 from hrm_ctrl.files import parse_json, read_text_file, write_atomic
 from hrm_ctrl.model import MAX_LENGTH_MM
+from hrm_ctrl.planning.known_path import MAX_PATH_POINTS
 
 if TYPE_CHECKING:
     from hrm_ctrl.model import RobotModel
@@ -73,6 +76,7 @@ MAX_ANGLE_RAD = math.pi
 MIN_TRAVEL_STEP_MM = 1e-6
 MAX_LIMIT_DEG = 180.0
 MAX_PLAN_BYTES = 256 * 2**20  # a plan file larger than this is refused unread
+MAX_PLAN_STEPS = 20_000  # steps of a plan (the planner makes no more; a file has no more)
 
 _TOP_KEYS = ("format", "robot", "path_mm", "steps", "report")
 _STEP_KEYS = ("travel_mm", "phase", "alpha_rad", "theta_rad", "joints_mm", "backbone_mm")
@@ -390,6 +394,11 @@ class PlanDoc:
         ...
         hrm_ctrl.errors.PlanFileError: p.json: missing key 'path_mm'
         """
+        if isinstance(doc, dict):  # before the schema walks them: sizes are bounded
+            for key, most in (("steps", MAX_PLAN_STEPS), ("path_mm", MAX_PATH_POINTS)):
+                items = doc.get(key)
+                if isinstance(items, list) and len(items) > most:
+                    raise PlanFileError(f"{where}: {key}: {len(items)} items, more than {most}")
         error = next(iter(_validator().iter_errors(doc)), None)
         if error is not None:
             raise PlanFileError(_message(error, where))
@@ -519,6 +528,7 @@ __all__ = [
     "MAX_ANGLE_RAD",
     "MAX_LIMIT_DEG",
     "MAX_PLAN_BYTES",
+    "MAX_PLAN_STEPS",
     "MIN_TRAVEL_STEP_MM",
     "PLAN_FORMAT",
     "Phase",

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from hrm_ctrl.errors import PlanningError, UnreachableError
-from hrm_ctrl.formats.planfile import PLAN_FORMAT
+from hrm_ctrl.formats.planfile import MAX_PLAN_STEPS, PLAN_FORMAT
 from hrm_ctrl.kinematics import joint_centres
 from hrm_ctrl.model import RobotModel
 from hrm_ctrl.planning.backbone import (
@@ -52,7 +52,7 @@ from hrm_ctrl.planning.scenarios import Scenario
 # 0.1 mm steps along the whole 2007 mm arm, a plan file of ~30 MB), and holds every step's
 # backbone samples (Q + 1 of the modal curve plus the path's points) at once, at most
 # MAX_PLAN_SAMPLES in all: ~170 bytes a sample at the peak, measured, so ~700 MB.
-MAX_PLAN_STEPS = 20_000
+# (MAX_PLAN_STEPS is the plan format's: a plan file is read with the same bound.)
 MAX_PLAN_SAMPLES = 4_000_000
 # The free-parameter search (issue 10) plans each candidate at a coarser step, at least
 # this (mm), and asks for at least this joint-limit margin before it calls a plan safe.

@@ -229,6 +229,25 @@ def test_too_large_a_file_is_refused_unread(
         read_plan(tmp_path / "none.json")
 
 
+def test_too_many_steps_or_path_points_refused_before_the_schema(tmp_path: Path) -> None:
+    """A plan within the file size but with more steps than a plan may have (400 000 small
+    steps took 79 s and 5.4 GB in ``hrm ropes``) or more path points than a path: one line,
+    counted before the schema or the arrays see them (the steps here are not even valid)."""
+    from hrm_ctrl.planning.known_path import MAX_PATH_POINTS
+
+    doc = hand_plan()
+    doc["steps"] = [0] * (planfile.MAX_PLAN_STEPS + 1)
+    p = tmp_path / "plan.json"
+    p.write_text(json.dumps(doc))
+    with pytest.raises(PlanFileError, match=r"plan\.json: steps: 20001 items, more than 20000$"):
+        read_plan(p)
+    doc = hand_plan()
+    doc["path_mm"] = [[0, 0, 0]] * (MAX_PATH_POINTS + 1)
+    p.write_text(json.dumps(doc))
+    with pytest.raises(PlanFileError, match=rf"path_mm: {MAX_PATH_POINTS + 1} items, more than"):
+        read_plan(p)
+
+
 def test_write_refuses_what_json_cannot_hold(tmp_path: Path) -> None:
     plan = hand_plan()
     plan["report"]["error"] = float("nan")
