@@ -94,8 +94,21 @@ def refuse_overwriting_inputs(outputs: Iterable[Output], inputs: Iterable[Input]
     """Raise :class:`OverwriteInputError` (one line naming both) when an output, or a file
     a directory output is written with, is one of the ``inputs`` or inside an input
     folder, or exists and is not a regular file (a device or a FIFO would be replaced by
-    the atomic write); entries with no path are skipped.  Reads nothing but the paths'
+    the atomic write), or when two outputs name the same file (``--plot DIR --out
+    DIR/angles.png``); entries with no path are skipped.  Reads nothing but the paths'
     metadata."""
+    outputs = [o for o in outputs if o.path is not None]
+    written = [
+        (o.option, t)
+        for o in outputs
+        for t in (Path(o.path), *(Path(o.path) / m for m in o.members))
+    ]
+    for k, (option, target) in enumerate(written):  # two outputs, one file: one would be lost
+        for other, there in written[k + 1 :]:
+            if other != option and _same_file(target, there):
+                raise OverwriteInputError(
+                    f"{option} {target} and {other} {there} are the same file"
+                )
     read = [(i.what, Path(i.path)) for i in inputs if i.path is not None and not i.folder]
     folders = [(i.what, Path(i.path)) for i in inputs if i.path is not None and i.folder]
     for out in outputs:

@@ -556,6 +556,20 @@ def test_an_output_that_is_a_link_is_written_through(
     assert sorted(x.name for x in target.parent.iterdir()) == ["target.out"]  # no temp left
 
 
+@pytest.mark.parametrize(
+    ("plot", "out"), [("figs", "figs/angles.png"), ("o.json", "o.json")], ids=["member", "same"]
+)
+def test_two_outputs_naming_one_file_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture, plot: str, out: str
+) -> None:
+    """``--plot DIR --out DIR/angles.png`` (the plan would replace a figure) and ``--out X
+    --plot X``: refused before anything is planned or made (the plot folder too)."""
+    (tmp_path / "path.csv").write_text(PATH_CSV)
+    argv = ["plan", "--path", str(tmp_path / "path.csv"), "--plot", str(tmp_path / plot)]
+    refused(capsys, tmp_path, [*argv, "--out", str(tmp_path / out)], "are the same file")
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["path.csv"]
+
+
 @pytest.mark.skipif(not Path("/dev/null").is_char_device(), reason="no /dev/null")
 def test_dev_null_as_output_stays_a_device(capsys: pytest.CaptureFixture) -> None:
     one_error(capsys, "urdf", main(["urdf", "--out", "/dev/null"]))
