@@ -38,7 +38,9 @@ A TOML file of three kinds of tables, each an array of tables (any number, in an
 
 Lengths in mm.  What the models mean (distances, what the end of a pipe is, what a wall's
 opening is) is in :mod:`hrm_ctrl.planning.environment`.  Every problem (an unknown table,
-key or shape, a missing key, a size <= 0, NaN or inf, a list of the wrong length) is one
+key or shape, a missing key, a size <= 0 or over :data:`MAX_SIZE_MM`, a coordinate over
+:data:`MAX_COORDINATE_MM`, an angle over :data:`MAX_ANGLE_DEG`, NaN or inf, a list of the
+wrong length) is one
 :class:`SceneFileError` line naming the file, the table and its index (0-based) and the
 key, e.g. ``scene.toml: wall[1].opening[0].diameter_mm: expected a number > 0, got -80``.
 A scene's pipes may have axes of at most :data:`MAX_PIPE_AXIS_MM` and 100,000 points in
@@ -90,6 +92,8 @@ from hrm_ctrl.planning.known_path import (
     KnownPath,
 )
 
+MAX_SIZE_MM = 2 * MAX_COORDINATE_MM  # a diameter, width, thickness or box edge
+MAX_ANGLE_DEG = 360.0  # a box's yaw, pitch or roll, either way
 MAX_OBSTACLES = 1000  # tables of a scene (every one costs each clearance query)
 MAX_OPENINGS = 100  # openings (and bounds) of one wall
 MAX_WALL_LIMITS = 1000  # openings and bounds of all walls (each costs every query, as a table)
@@ -142,7 +146,14 @@ class _Reader:
             raise self.fail(place, f"{len(value)} tables, more than the {limit} allowed")
         return value
 
-    def number(self, value: Any, place: str, low: float | None = None, strict=True) -> float:
+    def number(
+        self,
+        value: Any,
+        place: str,
+        low: float | None = None,
+        strict=True,
+        high: float | None = None,
+    ) -> float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise self.fail(place, f"expected a number, got {_short(value)}")
         x = float(value)
@@ -152,7 +163,16 @@ class _Reader:
             raise self.fail(
                 place, f"expected a number {'>' if strict else '>='} {low:g}, got {value!r}"
             )
+        if high is not None and abs(x) > high:
+            span = f"at most {high:g}" if low is not None else f"within -{high:g}..{high:g}"
+            raise self.fail(place, f"expected a number {span}, got {value!r}")
         return x
+
+    def size(self, value: Any, place: str, strict: bool = True) -> float:
+        """A size (a diameter, a width, a thickness): > 0 (>= 0 unless ``strict``), at
+        most :data:`MAX_SIZE_MM` (a scene's sizes and coordinates stay where a distance
+        squared is still a finite float)."""
+        return self.number(value, place, 0.0, strict, high=MAX_SIZE_MM)
 
     def vector(self, value: Any, place: str, n: int = 3, coordinate: bool = False) -> np.ndarray:
         if not isinstance(value, list) or len(value) != n:
@@ -190,7 +210,7 @@ class _Reader:
 def _pipe(r: _Reader, t: Any, place: str) -> Pipe:
     t = r.table(t, place, _PIPE, ("axis_mm", "inner_diameter_mm"))
     pts = r.points(t["axis_mm"], f"{place}.axis_mm")
-    D = r.number(t["inner_diameter_mm"], f"{place}.inner_diameter_mm", 0.0)
+    D = r.size(t["inner_diameter_mm"], f"{place}.inner_diameter_mm")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # repeated points: the same polyline
@@ -214,12 +234,12 @@ def _opening(r: _Reader, t: Any, place: str) -> RoundOpening | RectOpening:
     if t["shape"] == OpeningShape.ROUND:
         t = r.table(t, place, _ROUND, ("centre_mm", "diameter_mm"))
         c = r.vector(t["centre_mm"], f"{place}.centre_mm", coordinate=True)
-        D = r.number(t["diameter_mm"], f"{place}.diameter_mm", 0.0)
+        D = r.size(t["diameter_mm"], f"{place}.diameter_mm")
         return r.build(place, lambda: RoundOpening(c, D))
     t = r.table(t, place, _RECT, ("centre_mm", "width_mm", "height_mm", "u"))
     c = r.vector(t["centre_mm"], f"{place}.centre_mm", coordinate=True)
-    w = r.number(t["width_mm"], f"{place}.width_mm", 0.0)
-    h = r.number(t["height_mm"], f"{place}.height_mm", 0.0)
+    w = r.size(t["width_mm"], f"{place}.width_mm")
+    h = r.size(t["height_mm"], f"{place}.height_mm")
     u = r.direction(t["u"], f"{place}.u")
     return r.build(place, lambda: RectOpening(c, w, h, u))
 
@@ -228,7 +248,7 @@ def _wall(r: _Reader, t: Any, place: str) -> Wall:
     t = r.table(t, place, _WALL, ("point_mm", "normal"))
     p = r.vector(t["point_mm"], f"{place}.point_mm", coordinate=True)
     n = r.direction(t["normal"], f"{place}.normal")
-    T = r.number(t.get("thickness_mm", 0.0), f"{place}.thickness_mm", 0.0, strict=False)
+    T = r.size(t.get("thickness_mm", 0.0), f"{place}.thickness_mm", strict=False)
     ops = tuple(
         _opening(r, o, f"{place}.opening[{i}]")
         for i, o in enumerate(r.tables(t.get("opening", []), f"{place}.opening", MAX_OPENINGS))
@@ -276,8 +296,7 @@ def _box(r: _Reader, t: Any, place: str) -> Box:
     c = r.vector(t["centre_mm"], f"{place}.centre_mm", coordinate=True)
     size = r.vector(t["size_mm"], f"{place}.size_mm")
     for i, s in enumerate(size):
-        if s <= 0.0:
-            raise r.fail(f"{place}.size_mm[{i}]", f"expected a number > 0, got {s:g}")
+        r.size(float(s), f"{place}.size_mm[{i}]")
     angles = [k for k in ("yaw_deg", "pitch_deg", "roll_deg") if k in t]
     if "rotation" in t:
         if angles:
@@ -288,7 +307,8 @@ def _box(r: _Reader, t: Any, place: str) -> Box:
         R = np.array([r.vector(row, f"{place}.rotation[{i}]") for i, row in enumerate(rows)])
     else:
         ypr = [
-            r.number(t.get(k, 0.0), f"{place}.{k}") for k in ("yaw_deg", "pitch_deg", "roll_deg")
+            r.number(t.get(k, 0.0), f"{place}.{k}", high=MAX_ANGLE_DEG)
+            for k in ("yaw_deg", "pitch_deg", "roll_deg")
         ]
         R = rotation_zyx(*ypr)
     return r.build(place, lambda: Box(c, size, R))

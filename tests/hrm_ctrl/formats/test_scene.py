@@ -142,6 +142,14 @@ def test_empty_scene_is_free_space(tmp_path: Path) -> None:
         ("[[pipe]]\ninner_diameter_mm = 70\n", "pipe[0]", "missing key 'axis_mm'"),
         ("[[box]]\ncentre_mm = [0,0,0]\nsize_mm = [1,0,1]\n", "box[0].size_mm[1]", "> 0"),
         ("[[box]]\ncentre_mm = [0,0,0]\nsize_mm = [1,1,1,1]\n", "box[0].size_mm", "3 numbers"),
+        ("[[box]]\ncentre_mm = [0,0,0]\nsize_mm = [1e308,1,1]\n", "size_mm[0]", "at most 2e+06"),
+        ("[[pipe]]\naxis_mm = [[0,0,0],[1,0,0]]\ninner_diameter_mm = 1e308\n", "diameter", "most"),
+        ("[[box]]\ncentre_mm = [0,0,0]\nsize_mm = [1,1,1]\nyaw_deg = 1e300\n", "yaw_deg", "360"),
+        (
+            "[[wall]]\npoint_mm = [0,0,0]\nnormal = [1,0,0]\nthickness_mm = 3e6\n",
+            "thickness",
+            "most",
+        ),
         (
             "[[box]]\ncentre_mm = [0,0,0]\nsize_mm = [1,1,1]\nyaw_deg = 1\n"
             "rotation = [[1,0,0],[0,1,0],[0,0,1]]\n",
