@@ -107,7 +107,12 @@ def report(
     analysis = run_analysis(log, actuation, stream)
     folder = out_folder(record, out)
     name = log.record.get("run")
-    name = name if isinstance(name, str) else record.stem
+    # a record's text is shown as a name only when it prints as one line of a name
+    name = (
+        name
+        if isinstance(name, str) and name.isprintable() and 0 < len(name) <= 200
+        else record.stem
+    )
     try:
         figures = write_run_figures(analysis, folder, title=name)
     except OSError as exc:
@@ -124,6 +129,17 @@ def report(
         "figures": [str(p) for p in figures],
     }
     return summary, figures
+
+
+def _version(v: object) -> str:
+    """A record's calibration version as one short line (an int, else its repr, cut).
+
+    >>> _version(3), _version("\\n\\nx")
+    ('3', "'\\\\n\\\\nx'")
+    """
+    if isinstance(v, int) and not isinstance(v, bool):
+        return str(v)
+    return ascii(v)[:40]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -151,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
     used = None if arm.active is None else arm.calibration_ref()
     if isinstance(ran, dict) and (used is None or ran.get("sha256") != used.sha256):
         print(  # once the report is written: an error would be the only line
-            f"hrm report: note: the run used calibration version {ran.get('version')!s:.40}, "
+            f"hrm report: note: the run used calibration version {_version(ran.get('version'))}, "
             "the angles are mapped with "
             + ("the description's values" if used is None else f"version {used.version}"),
             file=sys.stderr,

@@ -250,6 +250,24 @@ def test_report_of_the_synthetic_run(
     assert sorted(p.name for p in out.iterdir()) == ["angles.png", "lateness.png", "tracking.png"]
 
 
+def test_a_records_text_is_not_printed_raw(
+    synthetic: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A record whose run name holds a newline and an escape sequence, and whose calibration
+    version is text of several lines: the report names the run by its file, the note on
+    the calibration is one line with the version escaped."""
+    rec = json.loads(synthetic["record"].read_text())
+    rec["run"] = "x\n\x1b[31mred"
+    rec["calibration"] = {"version": "\n\n\nxxx", "sha256": 5}
+    synthetic["record"].write_text(json.dumps(rec))
+    out = synthetic["record"].parent / "figs"
+    rc, text, err = run_cli(["report", str(synthetic["record"]), "--out", str(out)], capsys)
+    assert rc == 0, err
+    assert "\x1b" not in text + err and text.startswith("run run-s: 6 cycles")
+    (line,) = err.splitlines()
+    assert "the run used calibration version '\\n\\n\\nxxx'" in line
+
+
 @pytest.mark.parametrize(
     "target", ["record", "can0", "can1", "tension", "link-to-record", "file", "under-a-file",
                "sys"],
