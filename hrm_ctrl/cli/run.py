@@ -267,7 +267,6 @@ def run(args: argparse.Namespace) -> int:
     source.precheck(config.control.period_s)  # refuse bad setpoints before any bus opens
     ensure_log_dir(args.log_dir)  # a bad log directory: one line, before any bus opens
 
-    arm.say_note()  # --sim or --uncalibrated without a calibration: said once checks passed
     sim = None
     if args.sim:
         from hrm_ctrl.cli._simwire import calibration_counts, start_in_process_sim
@@ -281,6 +280,7 @@ def run(args: argparse.Namespace) -> int:
             truth = TrueArm.perturbed(physical, args.perturb)
         elif args.truth is not None:
             truth = read_truth(args.truth, physical)
+        arm.say_note()  # --sim without a calibration: said once every check passed
         config, sim = start_in_process_sim(
             config,
             physical,
@@ -291,6 +291,8 @@ def run(args: argparse.Namespace) -> int:
                 None if arm.active is None else arm.active.calibration, physical
             ),
         )
+    else:
+        arm.say_note()  # --uncalibrated without a calibration
     summary: dict[str, Any] = {}
     interrupted: str | None = None
     driver = None

@@ -19,6 +19,10 @@ def test_a_true_arm_needs_the_simulated_box(tmp_path: Path, capsys, monkeypatch)
     assert rc == 2 and "go with --sim" in err and err.count("\n") == 1
     rc, _, err = run(["run", str(plan), "--sim", "--perturb", "3", "--truth", "t.toml"], capsys)
     assert rc == 2 and "not allowed with" in err
+    # a bad seed or truth file: the one error line, not the no-calibration note before it
+    for bad in (["--perturb", "-1"], ["--truth", str(tmp_path / "none.toml")]):
+        rc, out, err = run(["run", str(plan), "--sim", *bad, "--log-dir", str(tmp_path)], capsys)
+        assert rc == 2 and err.count("\n") == 1 and "error" in err and out == "", err
 
 
 def test_an_uncalibrated_perturbed_arm_is_stopped_by_its_tensions(
