@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from hrm_ctrl.errors import PlanningError, UnreachableError
-from hrm_ctrl.formats.planfile import MAX_PLAN_STEPS, PLAN_FORMAT
+from hrm_ctrl.formats.planfile import MAX_PLAN_STEPS, MIN_TRAVEL_STEP_MM, PLAN_FORMAT
 from hrm_ctrl.kinematics import joint_centres
 from hrm_ctrl.model import RobotModel
 from hrm_ctrl.planning.backbone import (
@@ -54,6 +54,7 @@ from hrm_ctrl.planning.scenarios import Scenario
 # MAX_PLAN_SAMPLES in all: ~170 bytes a sample at the peak, measured, so ~700 MB.
 # (MAX_PLAN_STEPS is the plan format's: a plan file is read with the same bound.)
 MAX_PLAN_SAMPLES = 4_000_000
+MIN_PLAN_STEP_MM = 10 * MIN_TRAVEL_STEP_MM  # lambda at least (steps well apart in a plan file)
 # The free-parameter search (issue 10) plans each candidate at a coarser step, at least
 # this (mm), and asks for at least this joint-limit margin before it calls a plan safe.
 SEARCH_STEP_MM = 20.0
@@ -187,16 +188,27 @@ def travel_schedule(length: float, step: float) -> np.ndarray:
 
     >>> travel_schedule(12.0, 5.0).tolist()
     [0.0, 5.0, 10.0, 12.0]
-    >>> travel_schedule(2000.0, 1e-6)  # doctest: +ELLIPSIS
+    >>> travel_schedule(2000.0, 1e-4)  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    hrm_ctrl.errors.PlanningError: a 2000 mm path at steps of 1e-06 mm is 2e+09 steps, more ...
+    hrm_ctrl.errors.PlanningError: a 2000 mm path at steps of 0.0001 mm is 2e+07 steps, more ...
     """
     check_plan_size(length, step)
-    n = math.ceil(length / step - 1e-9)
+    n = _steps_in(length / step, step)
     d = np.minimum(np.arange(n + 1) * step, length)
     d[-1] = length
     return d
+
+
+def _steps_in(q: float, step: float) -> int:
+    """Steps after the first over a path of ``q`` steps' length: a remainder shorter than
+    twice :data:`MIN_TRAVEL_STEP_MM` (or 1e-9 of a step) joins the last step, as two plan
+    steps closer than that are not a plan file's (twice: the travels are rounded).
+
+    >>> _steps_in(10.0000001 / 5.0, 5.0), _steps_in(10.01 / 5.0, 5.0), _steps_in(1e-8, 5.0)
+    (2, 3, 0)
+    """
+    return max(0, math.ceil(q - max(1e-9, 2.0 * MIN_TRAVEL_STEP_MM / step)))
 
 
 def check_plan_size(
@@ -207,10 +219,12 @@ def check_plan_size(
     before anything is allocated."""
     if not (math.isfinite(step) and step > 0.0):
         raise PlanningError(f"step must be a finite number > 0 mm, got {step}")
+    if step < MIN_PLAN_STEP_MM:  # its steps would be as close as a plan file's may be
+        raise PlanningError(f"step must be at least {MIN_PLAN_STEP_MM:g} mm, got {step:g}")
     legs = 2 if return_to_start else 1
     q = length / step  # inf when the division overflows
     if q <= MAX_PLAN_STEPS:
-        n_in = math.ceil(q - 1e-9) + 1  # as travel_schedule counts them
+        n_in = _steps_in(q, step) + 1  # as travel_schedule counts them
         n, count = legs * n_in - legs + 1, str(legs * n_in - legs + 1)
     else:
         n_in, n, count = 0, math.inf, f"{legs * q:.3g}"

@@ -14,6 +14,8 @@ from typing import Any
 import jsonschema
 import numpy as np
 import pytest
+from hypothesis import example, given
+from hypothesis import strategies as st
 
 from hrm_ctrl.errors import PlanFileError
 from hrm_ctrl.formats import planfile
@@ -271,3 +273,27 @@ def test_check_robot_within_the_tolerance() -> None:
     msg = str(info.value)
     assert msg.startswith("p.json: plan was made for links [") and robot.source in msg
     assert "\n" not in msg
+
+
+@given(
+    length=st.floats(min_value=1e-9, max_value=2000.0),
+    step=st.floats(min_value=1e-5, max_value=50.0),
+)
+@example(length=10.0000001, step=5.0)  # a remainder of 1e-7 mm made an unwritable plan
+@example(length=9.7e-8, step=5.0)  # a path shorter than a plan's smallest step
+@example(length=1e-3, step=1e-5)
+@example(length=1.00000199, step=1e-5)  # a remainder of 1.99e-6 mm, rounded
+def test_every_travel_schedule_is_a_plan_files(length: float, step: float) -> None:
+    """The planner's travels start at 0 (or are the one end point), end at the path's end,
+    never go back, and two consecutive ones differ by 0 or by at least
+    MIN_TRAVEL_STEP_MM, as a plan file requires (checked by the file's own check)."""
+    from hrm_ctrl.errors import PlanningError
+    from hrm_ctrl.planning.planner import travel_schedule
+
+    try:
+        d = travel_schedule(length, step)
+    except PlanningError as exc:
+        assert "more than the" in str(exc)
+        return
+    assert d[-1] == length and (d[0] == 0.0 or len(d) == 1) and (np.diff(d) >= 0).all()
+    planfile._check_travel_steps(d, "plan")
