@@ -73,14 +73,20 @@ def read_text_file(
     except FileNotFoundError:
         raise error(f"{name}: {what} not found") from None
     except OSError as exc:
-        raise error(f"{name}: cannot read {what} ({exc})") from None
+        raise error(f"{name}: cannot read {what} ({exc.strerror or exc})") from None
+    try:
+        regular = stat.S_ISREG(os.fstat(fd).st_mode)  # a folder opens, but fdopen refuses it
+    except OSError as exc:
+        os.close(fd)
+        raise error(f"{name}: cannot read {what} ({exc.strerror or exc})") from None
+    if not regular:
+        os.close(fd)
+        raise error(f"{name}: {what} is not a regular file")
     try:
         with os.fdopen(fd, "rb") as f:
-            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-                raise error(f"{name}: {what} is not a regular file")
             raw = f.read(max_bytes + 1)
     except OSError as exc:
-        raise error(f"{name}: cannot read {what} ({exc})") from None
+        raise error(f"{name}: cannot read {what} ({exc.strerror or exc})") from None
     if len(raw) > max_bytes:
         raise error(f"{name}: {what} is larger than the {max_bytes} bytes it may have")
     try:

@@ -516,6 +516,10 @@ def test_a_fifo_as_input_is_refused_without_waiting_for_a_writer(
     os.mkfifo(fifo)
     argv = [str(fifo) if a == "FIFO" else a for a in argv]
     refused(capsys, tmp_path, argv, f"{fifo}: ", "is not a regular file")
+    folder = tmp_path / "in.d"  # a folder opens for reading; it is refused the same way
+    folder.mkdir()
+    argv = [str(folder) if a == str(fifo) else a for a in argv]
+    refused(capsys, tmp_path, argv, f"{folder}: ", "is not a regular file")
 
 
 @pytest.mark.parametrize("kind", ["fifo", "folder"])
