@@ -6,8 +6,8 @@ named by its file name with or without ``.json``, or by its number in the ``log`
 (1 the newest).  ``log replay`` reads each bus's log with python-can's
 :class:`can.LogReader` and sends it with :class:`can.MessageSync` (the log's own timing:
 python-can's ``can.player`` semantics) onto the bus named by ``--bus`` (default: a
-python-can virtual bus ``hrm-replay-<bus>``); a bus that this console's live session
-drives is refused, so a replay never commands a drive of this session.
+python-can virtual bus ``hrm-replay-<bus>``); a bus of this console's box (connected or
+not) is refused, so a replay never commands a drive of this console's box.
 """
 
 from __future__ import annotations
@@ -165,21 +165,27 @@ def _replay_targets(ctx: ConsoleContext, rec: dict[str, Any], args: list[str]) -
             )
         out[o.name] = (o.interface, o.channel, o.bitrate)
         i += 2
-    live = _live_buses(ctx)
+    own = _own_buses(ctx)
     for name, (iface, chan, _br) in out.items():
-        if (str(iface), str(chan)) in live:
+        if any(str(chan) == c and (i is None or str(iface) == i) for i, c in own):
             raise ConsoleError(
-                f"bus {name} -> {iface}:{chan}: this console's session drives that bus "
-                "(a replay would command its drives); disconnect first or pick another bus"
+                f"bus {name} -> {iface}:{chan}: a bus of this console's box (a replay would "
+                "command its drives, connected or not); pick another bus"
             )
     return out
 
 
-def _live_buses(ctx: ConsoleContext) -> set[tuple[str, str]]:
-    """(interface, channel) of every bus of the console's live session."""
-    if ctx.session is None or ctx.config is None:
+def _own_buses(ctx: ConsoleContext) -> set[tuple[str | None, str]]:
+    """(interface, channel) of every bus of the console's box configuration (the simulated
+    box's channels with ``--sim``), whether a session is connected or not: its drives
+    are there either way.  An interface None (python-can's configuration picks it)
+    matches any."""
+    if ctx.config is None:
         return set()
-    return {(str(b.interface), str(b.channel)) for b in ctx.config.buses}
+    return {
+        (None if b.interface is None else str(b.interface), str(b.channel))
+        for b in ctx.config.buses
+    }
 
 
 def replay(
