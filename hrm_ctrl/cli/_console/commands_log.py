@@ -42,20 +42,36 @@ def run_records(runs_dir: Path, limit: int = MAX_RUNS_LISTED) -> list[Path]:
 def outcome(record: dict[str, Any]) -> tuple[str, str]:
     """(outcome, cause) of a run record: completed / aborted / stopped / none, and the
     first stop cause (or abort reason, or '')."""
-    streams = record.get("streams") or []
+    streams = _list(record.get("streams"))
     sp = _setpoints(record)
     if not streams:
-        causes = record.get("idle_stop_causes") or []
+        causes = _list(record.get("idle_stop_causes"))
         cause = causes[0].get("text", "") if causes and isinstance(causes[0], dict) else ""
-        return ("stopped" if cause else "no stream"), cause
+        return ("stopped" if cause else "no stream"), str(cause)
     last = streams[-1] if isinstance(streams[-1], dict) else {}
-    causes = last.get("causes") or []
+    causes = _list(last.get("causes"))
     if causes:
         first = causes[0]
         return "stopped", str(first.get("text", first) if isinstance(first, dict) else first)
     if isinstance(sp, dict) and sp.get("play_state") == "aborted":
         return "aborted", str(sp.get("abort_reason") or "")
     return ("completed" if last.get("completed") else "ended"), ""
+
+
+def _list(x: object) -> list[Any]:
+    """``x`` if a record gave a list there, else empty (a damaged record is shown, not
+    raised on)."""
+    return x if isinstance(x, list) else []
+
+
+def _count(x: object) -> str:
+    """``x`` if a record gave a whole count there, else ``-``."""
+    return str(x) if isinstance(x, int) and not isinstance(x, bool) else "-"
+
+
+def _number(x: object) -> float | None:
+    """``x`` if a record gave a number there (not a bool), else None."""
+    return float(x) if isinstance(x, int | float) and not isinstance(x, bool) else None
 
 
 def _setpoints(record: dict[str, Any]) -> dict[str, Any]:
@@ -77,8 +93,11 @@ def find_run(ctx: ConsoleContext, name: str) -> Path:
             raise ConsoleError(f"run {k}: the log lists {len(runs)} run(s)")
         return runs[k - 1]
     for cand in (Path(name), ctx.runs_dir / name, ctx.runs_dir / f"{name}.json"):
-        if cand.is_file():
-            return cand
+        try:
+            if cand.is_file():
+                return cand
+        except (OSError, ValueError):  # a name too long, a NUL: no such run
+            continue
     raise ConsoleError(f"{name}: no such run in {ctx.runs_dir}")
 
 
@@ -112,11 +131,11 @@ def _log_list(ctx: ConsoleContext) -> None:
     for k, p in enumerate(runs, start=1):
         try:
             rec = _read(p)
+            what, cause = outcome(rec)
+            line = f"{k:>3}  {_when(rec, p):20}  {_plan(rec):24}  {what:9}  {cause}"
         except Exception as exc:  # a damaged record is listed as such, the rest still
-            ctx.out(f"{k:>3}  {'?':20}  {p.name:24}  {'unreadable':9}  {exc}")
-            continue
-        what, cause = outcome(rec)
-        ctx.out(f"{k:>3}  {_when(rec, p):20}  {_plan(rec):24}  {what:9}  {cause}")
+            line = f"{k:>3}  {'?':20}  {p.name:24}  {'unreadable':9}  {exc}"
+        ctx.out(line)
 
 
 def _log_show(ctx: ConsoleContext, name: str) -> None:
@@ -129,11 +148,14 @@ def _log_show(ctx: ConsoleContext, name: str) -> None:
         ctx.out(f"cause: {cause}")
     cal = rec.get("calibration")
     ctx.out(f"calibration: {cal.get('version') if isinstance(cal, dict) else cal}")
-    for i, s in enumerate(rec.get("streams") or []):
-        st = s.get("stats", {}) if isinstance(s, dict) else {}
+    for i, s in enumerate(_list(rec.get("streams"))):
+        s = s if isinstance(s, dict) else {}
+        st = s.get("stats") if isinstance(s.get("stats"), dict) else {}
+        p99 = _number(st.get("jitter_p99_s"))
         ctx.out(
-            f"stream {i}: {s.get('cycles')} cycles, completed {s.get('completed')}, late "
-            f"{st.get('late_cycles', 0)}, jitter p99 {1e3 * (st.get('jitter_p99_s') or 0):.3f} ms"
+            f"stream {i}: {_count(s.get('cycles'))} cycles, completed {s.get('completed')}, "
+            f"late {_count(st.get('late_cycles', 0))}, jitter p99 "
+            + ("-" if p99 is None else f"{1e3 * p99:.3f} ms")
         )
     sp = _setpoints(rec)
     if sp.get("pausable"):
@@ -141,7 +163,7 @@ def _log_show(ctx: ConsoleContext, name: str) -> None:
             f"play: {sp.get('play_state')}, paused {sp.get('paused_s')} s, stopped at row "
             f"{sp.get('stopped_at_row')} of {sp.get('rows')}"
         )
-    for log, n in zip(rec.get("can_logs") or [], rec.get("can_log_frames") or [], strict=False):
+    for log, n in zip(_list(rec.get("can_logs")), _list(rec.get("can_log_frames")), strict=False):
         ctx.out(f"CAN log: {log} ({n} frames)")
 
 

@@ -184,3 +184,32 @@ def test_log_replay_refuses_a_hostile_log_before_opening_a_bus(make_ctx, tmp_pat
     log.write_bytes(raw[:header_size] + obj + raw[header_size:])
     with pytest.raises(ConsoleError, match=rf"{log.name}: CAN log: .* a frame of 0 bytes"):
         run(ctx, "log replay 1 --bus can0=virtual:h7-hostile-0 --bus can1=virtual:h7-hostile-1")
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        {"streams": {"a": 1}},
+        {"streams": 5},
+        {"streams": [1, 2]},
+        {"streams": [{"stats": None, "cycles": "x"}]},
+        {"streams": [{"stats": {"jitter_p99_s": "x", "late_cycles": [1]}}]},
+        {"can_log_frames": 5, "idle_stop_causes": "x"},
+        {"streams": [{"causes": 7}], "console_runs": [{"pausable": True}], "written_utc": 3},
+    ],
+)
+def test_log_lists_and_shows_a_damaged_record_without_raising(
+    make_ctx, tmp_path: Path, damage: dict
+) -> None:
+    """A run record whose optional parts have the wrong types (the red team found six
+    tracebacks in ``log show`` and one in ``log``): both print, nothing raises."""
+    ctx = make_ctx()
+    ctx.runs_dir.mkdir(parents=True, exist_ok=True)
+    rec = {"format": "hrm-run/1", "run": "r", "motor_ids": ["m"], "config": {},
+           "can_logs": [], **damage}  # fmt: skip
+    (ctx.runs_dir / "r.json").write_text(json.dumps(rec))
+    run(ctx, "log", "log show 1", "log show r")
+    assert any(line.startswith("  1  ") for line in ctx.lines)
+    assert sum(line.startswith("run r  (") for line in ctx.lines) == 2
+    with pytest.raises(ConsoleError, match="no such run"):
+        run(ctx, "log show " + "x" * 3000)  # a file name too long for the file system
