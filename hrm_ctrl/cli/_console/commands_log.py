@@ -220,15 +220,33 @@ def replay(
 
     import can
 
-    from hrm_ctrl.formats.runlog import RunLogError, _log_path, check_can_log, log_errors
+    from hrm_ctrl.formats.runlog import (
+        RunLogError,
+        _log_path,
+        check_can_log,
+        iter_can_log,
+        log_errors,
+    )
 
     names = list((rec.get("config") or {}).get("buses") or {})
     logs = [str(x) for x in rec.get("can_logs") or []]
     if len(logs) != len(names):
         raise ConsoleError(f"{record_path}: {len(logs)} CAN logs for {len(names)} buses")
-    for x in logs:  # before any bus is opened
+    recorded = _list(rec.get("can_log_frames"))
+    for i, x in enumerate(logs):  # before any bus is opened
+        lp = _log_path(record_path, x)
         try:
-            check_can_log(_log_path(record_path, x))
+            check_can_log(lp)
+            expected = recorded[i] if len(recorded) == len(logs) else None
+            if isinstance(expected, int) and not isinstance(expected, bool):
+                # a whole read (bounded; the replay takes the run's own time anyway): a log
+                # cut short would otherwise replay its first part as if it were the run
+                found = sum(1 for _ in iter_can_log(lp, MAX_REPLAY_FRAMES))
+                if found != expected:
+                    raise ConsoleError(
+                        f"{lp}: {found} frames, the run record says {expected} (a cut or "
+                        "changed log): not replayed"
+                    )
         except RunLogError as exc:
             raise ConsoleError(str(exc)) from None
     read_errors = log_errors()
