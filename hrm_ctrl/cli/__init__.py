@@ -122,9 +122,25 @@ def _switch_interval_s(args: argparse.Namespace) -> float:
     return SWITCH_INTERVAL_S
 
 
+# Libraries whose own log records (canopen logs every aborted SDO transfer at ERROR) would
+# reach stderr through logging's last-resort handler: hrm reports what failed in its one
+# error line and in the run record, so theirs are not printed.
+QUIET_LIBRARY_LOGGERS = ("canopen",)
+
+
+def _quiet_library_logging() -> None:
+    import logging
+
+    for name in QUIET_LIBRARY_LOGGERS:
+        logger = logging.getLogger(name)
+        if not logger.handlers:
+            logger.addHandler(logging.NullHandler())
+
+
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    _quiet_library_logging()
     try:
         with process_settings(_switch_interval_s(args)), signals_as_interrupts():
             return int(args._run(args) or 0)

@@ -195,3 +195,23 @@ def test_the_switch_interval_is_the_longer_one_only_with_the_box_in_this_interpr
     args = build_parser().parse_args(argv)
     want = SIM_SWITCH_INTERVAL_S if in_process_box else SWITCH_INTERVAL_S
     assert _switch_interval_s(args) == want and SIM_SWITCH_INTERVAL_S > SWITCH_INTERVAL_S
+
+
+def test_a_librarys_log_records_do_not_reach_stderr() -> None:
+    """canopen logs every aborted SDO transfer at ERROR; without a handler, logging's
+    last resort printed 36 such lines beside the console's one error line when a bus went
+    off.  After a command has run, they are not printed (hrm's own line says what failed)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import logging\n"
+        "from hrm_ctrl.cli import main\n"
+        "rc = main(['busload'])\n"
+        "logging.getLogger('canopen.sdo.client').error('Transfer aborted by client')\n"
+        "logging.getLogger('hrm.other').error('still shown')\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "Transfer aborted" not in res.stderr and "still shown" in res.stderr
