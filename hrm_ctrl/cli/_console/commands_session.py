@@ -220,7 +220,9 @@ def _status(ctx: ConsoleContext, args: list[str]) -> None:
             if count is None or k < count:
                 time.sleep(period_s)
     except KeyboardInterrupt:
-        ctx.out("")
+        if not ctx.interactive:
+            raise  # in a script Ctrl-C ends the script (and stops every axis), as elsewhere
+        ctx.out("")  # at the prompt it ends the watch
 
 
 # ---------------------------------------------------------------------------- power

@@ -226,3 +226,24 @@ def test_log_replay_refuses_a_cut_log(make_ctx, tmp_path: Path) -> None:
     with pytest.raises(ConsoleError, match=rf"{log.name}: \d+ frames, the run record says \d+"):
         run(ctx, "log replay 1 --bus can0=virtual:h7-cut-0 --bus can1=virtual:h7-cut-1")
     assert not any(line.startswith("replayed ") for line in ctx.lines)
+
+
+def test_ctrl_c_during_status_watch_ends_a_script(make_ctx, monkeypatch) -> None:
+    """In a script, Ctrl-C during ``status watch`` ends the script like Ctrl-C anywhere
+    else (it was swallowed, and the script's next moves still ran); at the prompt it
+    only ends the watch."""
+    from hrm_ctrl.cli._console import commands_session
+
+    ctx = make_ctx()
+    run(ctx, "connect")
+
+    def interrupted(_s: float) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(commands_session.time, "sleep", interrupted)
+    with pytest.raises(ConsoleError, match=r"t:1: interrupted \(Ctrl-C\)"):
+        run_script(ctx, ["status watch 1 5", "help"], "t")
+    assert "> help" not in ctx.lines
+    ctx.interactive = True
+    run_script(ctx, ["status watch 1 5", "help"], "t")  # the prompt's way: the watch ends
+    assert "> help" in ctx.lines
