@@ -59,9 +59,13 @@ def _complete_run(ctx: ConsoleContext, words: list[str]) -> list[str]:
             "--no-figures"]  # fmt: skip
 
 
-def _play_pausable(ctx: ConsoleContext, source: Any, sp: Any, what: str, script: Any) -> Any:
+def _play_pausable(
+    ctx: ConsoleContext, source: Any, sp: Any, what: str, script: Any, note: Any = None
+) -> Any:
     """Play ``source`` with the keys, the script, the bar and the live line; return
-    (result, driver, display).  A stop names where it happened."""
+    (result, driver, display).  A stop names where it happened.  ``note(driver, where)``,
+    when given, is called however the play ends (a stop, a signal: the run record keeps
+    what was played and where it stopped)."""
     from hrm_ctrl.cli._console.streaming import play
     from hrm_ctrl.cli._progress import ProgressBar
     from hrm_ctrl.cli._runcontrol import RunDisplay, RunDriver
@@ -76,6 +80,8 @@ def _play_pausable(ctx: ConsoleContext, source: Any, sp: Any, what: str, script:
             raise ConsoleError(f"{exc} (at {display.where_text()})") from None
         finally:
             driver.stop()
+            if note is not None:
+                note(driver, display.where_text())
     return result, driver, display
 
 
@@ -155,13 +161,16 @@ def _run(ctx: ConsoleContext, args: list[str]) -> None:
     source = PausableSource(inner, ctx.actuation)
     n = int(ctx.extra.get("runs_played", 0)) + 1
     ctx.extra["runs_played"] = n
+
+    def note(driver: Any, where: str) -> None:
+        _note_run(ctx, source, str(a.plan), where, driver)
+
     try:
-        result, driver, display = _play_pausable(ctx, source, sp, "run", script)
+        result, driver, display = _play_pausable(ctx, source, sp, "run", script, note)
     finally:  # also after a stop: what was played is the way back
         ctx.extra[LAST_PLAYED] = {"plan": str(a.plan), "source": source}
     state = source.state.value
     where = display.where_text()
-    _note_run(ctx, source, str(a.plan), where, driver)
     if state == "aborted":
         ctx.out(f"run {a.plan}: {source.abort_reason}: stopped on the path at {where}; "
                 f"{result.cycles} cycles")  # fmt: skip

@@ -247,3 +247,20 @@ def test_ctrl_c_during_status_watch_ends_a_script(make_ctx, monkeypatch) -> None
     ctx.interactive = True
     run_script(ctx, ["status watch 1 5", "help"], "t")  # the prompt's way: the watch ends
     assert "> help" in ctx.lines
+
+
+def test_a_stopped_run_is_kept_in_the_run_record(make_ctx, plan: Path, tmp_path: Path) -> None:
+    """A console ``run`` that a stop ends (here the operator's, as a signal or a fault
+    would): the session's run record still keeps it in ``console_runs``, with where it
+    stopped (it was noted only after a normal end)."""
+    ctx = make_ctx("--config", str(_relaxed_box(tmp_path)))
+    run(ctx, "connect", "enable")
+    timer = threading.Timer(1.0, ctx.stop_requested.set)
+    timer.start()
+    try:
+        with pytest.raises(ConsoleError, match="stop requested"):
+            run(ctx, f"run {plan} --speed 10 --no-figures")
+    finally:
+        timer.cancel()
+    (noted,) = ctx.session.record_extra["console_runs"]
+    assert noted["plan"] == str(plan) and noted["where"]
