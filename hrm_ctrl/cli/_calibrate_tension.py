@@ -55,6 +55,7 @@ from hrm_ctrl.cli._common import (
     add_log_format_argument,
     add_robot_argument,
     calibrations_folder,
+    calibrations_input,
     config_input,
     load_box,
     refuse_overwriting_inputs,
@@ -165,6 +166,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
         [
             robot_input(args.robot),
             Input("active calibration", active_file),
+            calibrations_input(args),  # --out FILE into the store: only the store writes there
             config_input(args.config),
             *shipped_inputs(eds=True),
         ],

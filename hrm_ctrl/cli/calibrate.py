@@ -61,6 +61,7 @@ from hrm_ctrl.cli._common import (
     add_log_format_argument,
     add_robot_argument,
     calibrations_folder,
+    calibrations_input,
     config_input,
     load_box,
     refuse_overwriting_inputs,
@@ -411,6 +412,7 @@ def run_kinematic(args: argparse.Namespace) -> int:
         robot_input(args.robot),
         Input("calibration store's pointer", store.folder / "active"),
         *(Input(f"calibration v{v:04d}", store.path_of(v)) for v in store.versions()),
+        calibrations_input(args),  # --out FILE into the store: only the store writes there
     ]
     outputs = [Output("--out", args.out)]
     if args.collect is not None:

@@ -593,6 +593,8 @@ def test_an_output_inside_the_calibration_store_is_refused(
     store = tmp_path / "cal"
     store.mkdir()
     (store / "active").write_text("v0001\n")
+    empty = tmp_path / "cal-empty"  # (calibrate reads the store's pointer first)
+    empty.mkdir()
     (tmp_path / "path.csv").write_text(PATH_CSV)
     plan = tmp_path / "plan.json"
     write_plan(plan, small_plan())
@@ -600,6 +602,10 @@ def test_an_output_inside_the_calibration_store_is_refused(
         ["plan", "--path", str(tmp_path / "path.csv"), "--calibrations", str(store),
          "--out", str(store / "active")],
         ["ropes", str(plan), "--calibrations", str(store), "--out", str(store / "x.csv")],
+        ["calibrate", "kinematic", str(tmp_path / "poses.csv"), "--calibrations", str(empty),
+         "--out", str(empty / "v0005.json")],  # a version the store did not write
+        ["calibrate", "zero", "--sim", "--calibrations", str(empty),
+         "--out", str(empty / "v0005.json")],
     ):  # fmt: skip
         refused(capsys, tmp_path, argv, "inside the calibration store being read")
 
