@@ -26,10 +26,10 @@ HELP = "interactive operator console over one live drive session (scripts on std
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    from hrm_ctrl.cli._console.shell import add_context_arguments
+    from hrm_ctrl.cli._console.shell import add_context_arguments, script_path
 
     parser.add_argument(
-        "script", nargs="?", type=Path, default=None, metavar="SCRIPT",
+        "script", nargs="?", type=script_path, default=None, metavar="SCRIPT",
         help="run the commands of this file (default: stdin when it is not a terminal)",
     )  # fmt: skip
     add_context_arguments(parser)
@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
         script = sys.stdin
     try:
         ctx = build_context(args, "hrm console")
+        ctx.script_path = _script_file(script)
         try:
             run_console(ctx, script)
         except UnicodeDecodeError as exc:
@@ -57,3 +58,19 @@ def run(args: argparse.Namespace) -> int:
         if script is not None and script is not sys.stdin:
             script.close()
     return 0
+
+
+def _script_file(script: object) -> Path | None:
+    """The regular file a script is read from (named, or stdin redirected from one: its
+    descriptor's path), the console's commands never write over it; None for a pipe or a
+    terminal."""
+    import os
+    import stat
+
+    try:
+        fd = script.fileno()  # type: ignore[attr-defined]
+        if stat.S_ISREG(os.fstat(fd).st_mode):
+            return Path(os.readlink(f"/proc/self/fd/{fd}"))  # the file's own path
+    except (AttributeError, OSError, ValueError):
+        pass
+    return None

@@ -281,6 +281,7 @@ def refuse_outputs_over_inputs(args: argparse.Namespace) -> None:
             robot_input(args.robot),
             calibrations_input(args),
             *shipped_inputs(plan_schema=True),
+            *getattr(args, "extra_inputs", ()),  # the console's script, when run from one
         ],
     )
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from hrm_ctrl.cli._console.context import ConsoleContext
 from hrm_ctrl.cli._console.streaming import play
-from hrm_ctrl.cli._console.table import ConsoleError, Need, command
+from hrm_ctrl.cli._console.table import ConsoleError, Need, command, parse_float, parse_int
 
 # A jog moves at no more than this share of each motor's speed: a small move an operator
 # watches (at the shipped motors' 409600 counts/s, 20480 counts/s: 9.5 mm of rope a second).
@@ -38,7 +38,7 @@ def _complete_jog(ctx: ConsoleContext, words: list[str]) -> list[str]:
     n_j = ctx.actuation.robot.n_joints
     if len(words) <= 2:
         return [str(j) for j in range(1, n_j + 1)] + list(ctx.actuation.motor_ids)
-    if len(words) == 3 and words[1].isdigit():
+    if len(words) == 3 and words[1].isascii() and words[1].isdigit():
         return ["alpha", "theta"]
     return []
 
@@ -55,10 +55,8 @@ def _jog(ctx: ConsoleContext, args: list[str]) -> None:
     act = ctx.actuation
     period_s = ctx.config.control.period_s
     if len(args) == 3:
-        try:
-            joint, deg = int(args[0]), float(args[2])
-        except ValueError:
-            raise ConsoleError("usage: jog JOINT alpha|theta DEG (e.g. jog 5 theta +2)") from None
+        usage = "jog JOINT alpha|theta DEG (e.g. jog 5 theta +2)"
+        joint, deg = parse_int(args[0], "JOINT", usage), parse_float(args[2], "DEG", usage)
         held, actual = _held_and_actual(ctx)
         jj = joint_jog(act, held, actual, joint, args[1], deg)
         v = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
@@ -85,10 +83,7 @@ def _jog(ctx: ConsoleContext, args: list[str]) -> None:
         return
     if len(args) == 2:
         motor = args[0]
-        try:
-            counts = int(args[1])
-        except ValueError:
-            raise ConsoleError("usage: jog MOTOR COUNTS (e.g. jog j05r1 -800)") from None
+        counts = parse_int(args[1], "COUNTS", "jog MOTOR COUNTS (e.g. jog j05r1 -800)")
         held = ctx.session.supervisor.targets
         if held is None:
             raise ConsoleError("the drives hold no known position (enable first)")
@@ -112,10 +107,7 @@ def _home(ctx: ConsoleContext, args: list[str]) -> None:
 
     if len(args) > 1:
         raise ConsoleError("usage: home [SPEED_MM_S]")
-    try:
-        speed = float(args[0]) if args else HOME_SPEED_MM_S
-    except ValueError:
-        raise ConsoleError("usage: home [SPEED_MM_S] (a number)") from None
+    speed = parse_float(args[0], "SPEED_MM_S", "home [SPEED_MM_S]") if args else HOME_SPEED_MM_S
     if not (math.isfinite(speed) and speed > 0):
         raise ConsoleError(f"SPEED_MM_S must be > 0, got {args[0]}")
     _held, actual = _held_and_actual(ctx)

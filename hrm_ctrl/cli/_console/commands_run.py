@@ -322,6 +322,10 @@ def _plan(ctx: ConsoleContext, args: list[str]) -> None:
         parsed = p.parse_args(args)
     except ConsoleError as exc:
         raise ConsoleError(str(exc).replace(RUN_USAGE, "as hrm plan")) from None
+    if ctx.script_path is not None:  # --out or --plot over the script being run: refused
+        from hrm_ctrl.cli._common import Input
+
+        parsed.extra_inputs = [Input("console script", ctx.script_path)]
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         status = plan_cli.run(parsed)

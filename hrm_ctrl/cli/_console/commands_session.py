@@ -15,7 +15,15 @@ import time
 
 from hrm_ctrl.cli._console.context import ConsoleContext
 from hrm_ctrl.cli._console.streaming import start_watches, stop_watches, tension_sample
-from hrm_ctrl.cli._console.table import COMMANDS, ConsoleError, Need, command, find
+from hrm_ctrl.cli._console.table import (
+    COMMANDS,
+    ConsoleError,
+    Need,
+    command,
+    find,
+    parse_float,
+    parse_int,
+)
 
 MAX_WATCH_COUNT = 100_000  # refreshes of one `status watch` at most
 MIN_WATCH_PERIOD_S = 0.2  # every refresh reads every drive by SDO: not faster than this
@@ -194,11 +202,9 @@ def _status(ctx: ConsoleContext, args: list[str]) -> None:
         return
     if args[0] != "watch" or len(args) > 3:
         raise ConsoleError("usage: status [watch [PERIOD_S [COUNT]]]")
-    try:
-        period_s = float(args[1]) if len(args) > 1 else 1.0
-        count = int(args[2]) if len(args) > 2 else None
-    except ValueError:
-        raise ConsoleError("usage: status watch [PERIOD_S [COUNT]] (numbers)") from None
+    usage = "status watch [PERIOD_S [COUNT]]"
+    period_s = parse_float(args[1], "PERIOD_S", usage) if len(args) > 1 else 1.0
+    count = parse_int(args[2], "COUNT", usage) if len(args) > 2 else None
     if not (math.isfinite(period_s) and MIN_WATCH_PERIOD_S <= period_s <= 3600):
         raise ConsoleError(f"PERIOD_S must be in [{MIN_WATCH_PERIOD_S:g}, 3600] s")
     if count is None and not ctx.interactive:

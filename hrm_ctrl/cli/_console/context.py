@@ -63,6 +63,7 @@ class ConsoleContext:
     quit_requested: bool = False  # `quit` ran: the shell ends after this command
     watches: Any = None  # the feedback watches (tension, ropes) of the session, once enabled
     extra: dict[str, Any] = field(default_factory=dict)  # commands' own state, by key
+    script_path: Path | None = None  # the script file being run: no command writes over it
 
     @property
     def connected(self) -> bool:

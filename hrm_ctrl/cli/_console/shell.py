@@ -9,15 +9,23 @@ ending.  An error is one line; the shell goes on.
 
 Scripts (stdin not a terminal, or a file given): one command per line, ``#`` comments,
 blank lines skipped; the first error ends the script with ``FILE:LINE: command: ...``
-(exit status 2).  The end of the input is ``quit``.  Whichever way the console ends,
-every drive is disabled and the session finished and closed (run record written), and
-the simulated box (``--sim``) stopped.
+(exit status 2).  A script that is a regular file (named, or stdin redirected from one)
+is read and checked whole before its first command runs: a later line that is not UTF-8
+text, too long or badly quoted, or a line past the last allowed, is refused with nothing
+run.  A named ``SCRIPT`` that is not a regular file (a FIFO would block the console
+until a writer came, a device may never end) is refused without opening it.  The end
+of the input is ``quit``.  Whichever way the console ends, every drive is disabled and
+the session finished and closed (run record written), and the simulated box (``--sim``)
+stopped.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import os
+import re
+import stat
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -74,6 +82,23 @@ def add_context_arguments(parser: argparse.ArgumentParser) -> None:
         "--take-over", action="store_true",
         help="reset the drives even when another master is heard on the buses",
     )  # fmt: skip
+
+
+def script_path(text: str) -> Path:
+    """The ``SCRIPT`` argument: a path that is there but is not a regular file is refused
+    (one line, ``argparse.ArgumentTypeError``) without opening it, by ``os.stat``: a FIFO
+    would block the opening until some writer came, a device may never end.  A missing
+    or unreadable file is left to the opening (its own one line)."""
+    path = Path(text)
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return path
+    if not stat.S_ISREG(mode):
+        kinds = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"))
+        kind = next((k for test, k in kinds if test(mode)), "a device")
+        raise argparse.ArgumentTypeError(f"{text}: not a regular file ({kind})")
+    return path
 
 
 def _out(text: str) -> None:
@@ -178,14 +203,69 @@ def stop_on_signal(ctx: ConsoleContext, exc: BaseException) -> None:
 
 
 # ---------------------------------------------------------------------------- scripts
+# A byte that is not UTF-8, as a stream decoding with ``surrogateescape`` shows it.
+_UNDECODABLE = re.compile("[\udc80-\udcff]")
+
+
 def bounded_lines(stream: TextIO) -> Iterator[str]:
     """The lines of ``stream``, each read with a bound (a longer line is refused by
     :func:`split_line`: the rest of it is not read into memory)."""
     while True:
-        line = stream.readline(MAX_LINE_CHARS + 1)
+        line = stream.readline(MAX_LINE_CHARS + 2)  # with its end of line, "\r\n" too
         if not line:
             return
         yield line
+
+
+def script_lines(stream: TextIO, where: str) -> Iterator[str]:
+    """The lines of a script, each read with a bound, each checked to be UTF-8 text: a
+    byte that is not raises :class:`ConsoleError` ``WHERE:LINE: not UTF-8 text (...)``
+    at its line (strict decoding would fail a whole read-ahead chunk: before earlier
+    lines ran, or with no line named; stdin's own decoding lets such bytes through)."""
+    try:  # undecodable bytes as lone surrogates, found line by line below
+        stream.reconfigure(encoding="utf-8", errors="surrogateescape")  # type: ignore[attr-defined]
+    except (AttributeError, OSError, ValueError):  # not a TextIOWrapper, or already read from
+        pass
+    for lineno, line in enumerate(bounded_lines(stream), start=1):
+        bad = _UNDECODABLE.search(line)
+        if bad is not None:
+            byte = ord(bad.group()) - 0xDC00
+            raise ConsoleError(
+                f"{where}:{lineno}: not UTF-8 text (byte 0x{byte:02x} at column {bad.start() + 1})"
+            )
+        yield line
+
+
+def _is_regular_file(stream: TextIO) -> bool:
+    try:
+        return stat.S_ISREG(os.fstat(stream.fileno()).st_mode)
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
+        return False
+
+
+def checked_script(lines: Iterable[str], where: str) -> list[str]:
+    """Every line of a script read and checked before the first runs (UTF-8 text, at most
+    :data:`MAX_SCRIPT_LINES` lines of at most ``MAX_LINE_CHARS`` characters, quotes
+    closed): the first bad one raises :class:`ConsoleError` ``WHERE:LINE: ...`` with
+    nothing run.  Bounded: the lines are read as :func:`run_script` reads them."""
+    checked: list[str] = []
+    for lineno, line in enumerate(lines, start=1):
+        if lineno > MAX_SCRIPT_LINES:
+            raise ConsoleError(f"{where}:{lineno}: more than {MAX_SCRIPT_LINES} lines")
+        try:
+            split_line(line)
+        except ConsoleError as exc:
+            raise ConsoleError(f"{where}:{lineno}: {exc}") from None
+        checked.append(line)
+    return checked
+
+
+def script_of(stream: TextIO, where: str) -> Iterable[str]:
+    """The lines :func:`run_console` runs: a regular file's all read and checked first
+    (:func:`checked_script`: nothing runs when a later line is bad), a pipe's or a
+    terminal's as they come (a program may write them as it reads the console's output)."""
+    lines = script_lines(stream, where)
+    return checked_script(lines, where) if _is_regular_file(stream) else lines
 
 
 def script_name(stream: TextIO) -> str:
@@ -310,7 +390,8 @@ def run_console(ctx: ConsoleContext, script: TextIO | None) -> None:
         if script is None:
             run_interactive(ctx)
         else:
-            run_script(ctx, bounded_lines(script), script_name(script))
+            where = script_name(script)
+            run_script(ctx, script_of(script, where), where)
     except BaseException as exc:
         try:
             finish_context(ctx, exc)

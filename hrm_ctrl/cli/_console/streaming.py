@@ -60,7 +60,9 @@ def play(ctx: ConsoleContext, source: Any, what: str) -> Any:
             moving = session.supervisor.mode.name == "STREAMING"  # the first setpoint is out
             if not announced and moving and not done.is_set():
                 announced = True
-                n = getattr(source, "n_cycles", 0)
+                # a pausable source's n_cycles allows for its longest pause (the wait for
+                # its end): what it plays is its table, n_rows cycles at full rate
+                n = getattr(source, "n_rows", None) or getattr(source, "n_cycles", 0)
                 period_s = ctx.config.control.period_s
                 ctx.out(f"{what}: moving, {n} cycles ({n * period_s:.2f} s); Ctrl-C stops")
             if ctx.stop_requested.is_set():

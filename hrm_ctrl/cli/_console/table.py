@@ -25,6 +25,8 @@ True
 
 from __future__ import annotations
 
+import math
+import re
 import shlex
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -37,6 +39,12 @@ if TYPE_CHECKING:
     from hrm_ctrl.cli._console.context import ConsoleContext
 
 MAX_LINE_CHARS = 4096  # a console line longer than this is refused (bounded parsing)
+
+# The numbers a console argument may be: plain ASCII decimal, an optional sign (no ``_``
+# separators, no other scripts' digits, no ``inf``/``nan``, no spaces; Python's int() and
+# float() take all of those).
+_INT_RE = re.compile(r"[+-]?[0-9]+")
+_FLOAT_RE = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
 
 class ConsoleError(HrmError):
@@ -94,13 +102,61 @@ def command(
 
 def split_line(line: str) -> list[str]:
     """The words of one console line (shell quoting; ``#`` starts a comment); a line
-    too long or with an open quote is refused (:class:`ConsoleError`)."""
-    if len(line) > MAX_LINE_CHARS:
+    too long (its end of line not counted) or with an open quote is refused
+    (:class:`ConsoleError`)."""
+    if len(line.rstrip("\r\n")) > MAX_LINE_CHARS:
         raise ConsoleError(f"line longer than {MAX_LINE_CHARS} characters")
     try:
         return shlex.split(line, comments=True)
     except ValueError as exc:
         raise ConsoleError(f"cannot read the line: {exc}") from None
+
+
+def _shown(text: str) -> str:
+    return repr(text if len(text) <= 40 else text[:40] + "...")
+
+
+def _usage(usage: str) -> str:
+    return f"; usage: {usage}" if usage else ""
+
+
+def parse_int(text: str, name: str, usage: str = "") -> int:
+    """The console argument ``name`` as a whole number: ASCII decimal digits with an
+    optional sign, nothing else (:class:`ConsoleError` naming ``name``, and ``usage``
+    when given, otherwise).
+
+    >>> parse_int("-800", "COUNTS"), parse_int("+5", "JOINT")
+    (-800, 5)
+    >>> parse_int("1_000", "COUNTS")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    hrm_ctrl...ConsoleError: COUNTS: '1_000' is not a whole number (ASCII decimal digits)
+    """
+    if _INT_RE.fullmatch(text) is None:
+        raise ConsoleError(
+            f"{name}: {_shown(text)} is not a whole number (ASCII decimal digits){_usage(usage)}"
+        )
+    return int(text)  # at most MAX_LINE_CHARS digits: within int()'s 4300
+
+
+def parse_float(text: str, name: str, usage: str = "") -> float:
+    """The console argument ``name`` as a finite number: ASCII decimal (``+2``, ``-1.5``,
+    ``.5``, ``1e-3``), nothing else (:class:`ConsoleError` naming ``name``, and ``usage``
+    when given, otherwise).
+
+    >>> parse_float("+2", "DEG"), parse_float("-.5", "DEG"), parse_float("1e1", "DEG")
+    (2.0, -0.5, 10.0)
+    >>> parse_float("nan", "DEG")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    hrm_ctrl...ConsoleError: DEG: 'nan' is not a number (ASCII decimal, e.g. -1.5)
+    """
+    if _FLOAT_RE.fullmatch(text) is None:
+        raise ConsoleError(
+            f"{name}: {_shown(text)} is not a number (ASCII decimal, e.g. -1.5){_usage(usage)}"
+        )
+    value = float(text)
+    if not math.isfinite(value):
+        raise ConsoleError(f"{name}: {_shown(text)} is too large{_usage(usage)}")
+    return value
 
 
 def find(name: str) -> Command:

@@ -184,3 +184,23 @@ def test_missing_script_is_one_line_and_opens_no_bus(tmp_path, isolated_home, ca
     assert rc == 2 and out == ""
     assert err.strip() == f"hrm console: error: {missing}: cannot read (No such file or directory)"
     assert no_bus == [] and not (tmp_path / "r").exists()
+
+
+def test_a_script_is_never_written_over_by_its_own_commands(tmp_path, isolated_home) -> None:
+    """``plan --out SCRIPT`` from the script itself (named, or on stdin from the file):
+    refused with the script's line, the script unchanged (it was replaced by the plan)."""
+    text = "plan --scenario bent-pipe --out procedure.txt\n"
+    p = run_script(tmp_path, isolated_home, text)
+    assert p.returncode == 2
+    assert p.stderr.strip().splitlines()[-1] == (
+        "hrm console: error: procedure.txt:1: plan: --out procedure.txt would overwrite the "
+        f"console script being read ({tmp_path / 'procedure.txt'})"
+    )
+    assert (tmp_path / "procedure.txt").read_text() == text
+    named = subprocess.run(
+        [PYTHON, "-m", "hrm_ctrl.cli", "console", "--sim", "--log-dir", "runs", "procedure.txt"],
+        stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=WAIT_S * 2,
+        cwd=tmp_path, env=env_for(isolated_home, tmp_path),
+    )  # fmt: skip
+    assert named.returncode == 2 and "would overwrite the console script" in named.stderr
+    assert (tmp_path / "procedure.txt").read_text() == text
