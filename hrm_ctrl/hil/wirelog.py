@@ -23,7 +23,7 @@ EMCYs).  From them:
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -84,15 +84,19 @@ class WireLog:
 
         if len(paths) != len(bus_names):
             raise SimError(f"{len(paths)} CAN logs for {len(bus_names)} buses")
+        count = 0
+
+        def counted(path: str | Path) -> Iterator[Any]:
+            nonlocal count
+            for msg in iter_can_log(path, max_frames):
+                count += 1
+                if count > max_frames:
+                    raise RunLogError(f"{path}: more than {max_frames} frames in all")
+                yield msg
+
         frames: list[WireFrame] = []
         for path, bus in zip(paths, bus_names, strict=True):
-            left = max_frames - len(frames)
-            try:
-                frames.extend(cls.from_frames({bus: iter_can_log(path, left)}).frames)
-            except RunLogError as exc:
-                if left < max_frames and str(exc).endswith(f"more than {left} frames"):
-                    raise RunLogError(f"{path}: more than {max_frames} frames in all") from None
-                raise
+            frames.extend(cls.from_frames({bus: counted(path)}).frames)
         return cls(frames)
 
     def quick_stop(self, after_s: float = float("-inf")) -> WireFrame | None:
