@@ -202,6 +202,18 @@ def _read_umask() -> int:
 _UMASK = _read_umask()
 
 
+def _file_in(folder: Path) -> Path:
+    """The first part of ``folder`` that exists and is not a folder (else ``folder``).
+
+    >>> _file_in(Path("/dev/null/a/b"))
+    PosixPath('/dev/null')
+    """
+    for part in (*reversed(folder.parents), folder):
+        if part.exists() and not part.is_dir():
+            return part
+    return folder
+
+
 def write_atomic(path: str | Path, data: str | bytes, *, make_parents: bool = True) -> None:
     """Write ``data`` to ``path`` through a temporary file in the same folder and
     ``os.replace``; flushed and fsynced, with the usual file mode (0666 less the
@@ -222,7 +234,10 @@ def write_atomic(path: str | Path, data: str | bytes, *, make_parents: bool = Tr
     if p.is_symlink():
         p = Path(os.path.realpath(p))
     if make_parents:
-        p.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            p.parent.mkdir(parents=True, exist_ok=True)
+        except (FileExistsError, NotADirectoryError):  # a part of the folder is a file
+            raise OSError(errno.ENOTDIR, f"{_file_in(p.parent)} is not a folder") from None
     raw = data.encode("utf-8") if isinstance(data, str) else data
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
     try:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
@@ -302,6 +303,7 @@ def run(args: argparse.Namespace) -> int:
         check_limits(plan)  # raises: nothing written
     doc = PlanDoc.from_dict(plan.to_dict(), str(args.out or name))
     figures: list[Path] = []
+    made_plot_dir = bool(args.plot) and not args.plot.exists()
     if args.plot:  # the figures first: if they fail, no plan file is left either
         from hrm_ctrl.formats.plots import write_plan_figures
 
@@ -312,6 +314,9 @@ def run(args: argparse.Namespace) -> int:
         except HrmError:
             for f in figures:
                 f.unlink(missing_ok=True)
+            if made_plot_dir:  # the folder --plot made is gone again (if nothing else is in it)
+                with contextlib.suppress(OSError):
+                    args.plot.rmdir()
             raise
     for f in figures:
         print(f"figure written to {f}")

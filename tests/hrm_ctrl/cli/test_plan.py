@@ -264,3 +264,17 @@ def test_plot_steps_choose_the_steps_drawn(tmp_path: Path, capsys) -> None:
     assert doc.travel_mm[60] == pytest.approx(300.0)  # Fig. 11b of the paper
     rc, _, err = run(["plan", "--scenario", "bent-pipe", "--plot-steps", "0,999"], capsys)
     assert rc == 2 and "past the plan's last step 135" in err and err.count("\n") == 1
+
+
+def test_a_plan_that_cannot_be_written_leaves_no_figure_folder(tmp_path: Path, capsys) -> None:
+    """The figures are written first; when the plan then fails (a part of --out's folder is a
+    file) they go again, and so does the folder --plot made."""
+    (tmp_path / "afile").write_text("")
+    fig = tmp_path / "new" / "fig"
+    fig.parent.mkdir()
+    argv = ["plan", "--scenario", "cabins", "--allow-collision", "--plot", str(fig)]
+    rc, _, err = run([*argv, "--out", str(tmp_path / "afile" / "sub" / "plan.json")], capsys)
+    err = "".join(x for x in err.splitlines(True) if "warning: " not in x)  # the collision's
+    assert rc == 2 and err.count("\n") == 1
+    assert f"{tmp_path / 'afile'} is not a folder" in err
+    assert not fig.exists() and fig.parent.exists()
