@@ -126,7 +126,7 @@ def ensure_log_dir(path: str | Path) -> Path:
     hrm_ctrl.errors.DriverError: log directory ... exists and is not a directory
     """
     p = Path(path)
-    if p.exists() and not p.is_dir():
+    if os.path.exists(p) and not os.path.isdir(p):  # (os.path: False on a too-long name)
         raise DriverError(f"log directory {p}: exists and is not a directory")
     try:
         p.mkdir(parents=True, exist_ok=True)
@@ -839,13 +839,16 @@ class BusPort:
         if self.log is not None:
             self.log.log_sent(msg)
 
-    def send_batch(self, frames: np.ndarray, timeout_s: float = 0.05) -> None:
+    def send_batch(
+        self, frames: np.ndarray, timeout_s: float = 0.05, keep_going: bool = False
+    ) -> None:
         """Send a batch of frames (a :data:`drivers.protocol.batch.FRAME_DTYPE` array, its
         timestamps set here) in order: as one record array on a bus that takes batches
         (``hrm_ipc``: one datagram per peer, no Python object per frame), else as
-        ``can.Message`` objects through :meth:`send_many`.  Logged as sent."""
+        ``can.Message`` objects through :meth:`send_many`.  Logged as sent.
+        ``keep_going``: see :meth:`send_many`."""
         if self._send_records is None:
-            self.send_many(to_messages(frames, is_rx=False), timeout_s)
+            self.send_many(to_messages(frames, is_rx=False), timeout_s, keep_going)
             return
         try:  # the bus stamps the frames with the send time (what the log gets too)
             with self._lock:
@@ -856,10 +859,17 @@ class BusPort:
         except (can.CanError, OSError, ValueError) as exc:
             raise BusSendError(f"bus {self.name}: send failed ({exc})") from None
 
-    def send_many(self, msgs: list[can.Message], timeout_s: float = 0.05) -> None:
+    def send_many(
+        self, msgs: list[can.Message], timeout_s: float = 0.05, keep_going: bool = False
+    ) -> None:
         """Send frames in order under one lock acquisition; through the bus's own
         ``send_many`` when it has one (``hrm_ipc``: one datagram per peer), else frame
-        by frame."""
+        by frame.  ``keep_going`` (a quick stop's burst): frame by frame, a frame that
+        fails does not hold back the ones after it, and ``timeout_s`` bounds the whole
+        batch (not each frame); the failures are raised together after the last frame."""
+        if keep_going and self._send_batch is None:
+            self._send_each(msgs, timeout_s)
+            return
         now = time.time()
         echoes = self.echoes
         mono = time.monotonic()
@@ -905,3 +915,30 @@ class BusPort:
                         self.log.log_sent(msg)
         except (can.CanError, OSError, ValueError) as exc:
             raise BusSendError(f"bus {self.name}: send failed ({exc})") from None
+
+    def _send_each(self, msgs: list[can.Message], timeout_s: float) -> None:
+        """Every frame tried in order within ``timeout_s`` in all (see :meth:`send_many`)."""
+        now = time.time()
+        echoes = self.echoes
+        mono = time.monotonic()
+        deadline = mono + timeout_s
+        failed: list[str] = []
+        with self._lock:
+            for msg in msgs:
+                msg.timestamp = now
+                msg.is_rx = False
+                if echoes is not None:
+                    echoes.add(msg, mono)
+                try:
+                    self.bus.send(msg, timeout=max(0.0, deadline - time.monotonic()))
+                except (can.CanError, OSError, ValueError) as exc:
+                    if echoes is not None:
+                        echoes.discard(msg)
+                    failed.append(f"0x{msg.arbitration_id:03X} ({exc})")
+                    continue
+                self.n_sent += 1
+                if self.log is not None:
+                    self.log.log_sent(msg)
+        if failed:
+            more = f" (+{len(failed) - 1} more)" if len(failed) > 1 else ""
+            raise BusSendError(f"bus {self.name}: send of {failed[0]} failed{more}")

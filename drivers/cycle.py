@@ -96,6 +96,10 @@ class BusLayout:
         ]
 
 
+#: events a run keeps at most (another master flooding the bus cannot grow a run record)
+MAX_EVENTS = 100_000
+
+
 @dataclass
 class EventLog:
     """Timestamped events of a run (thread-safe append)."""
@@ -103,16 +107,27 @@ class EventLog:
     t0: float = field(default_factory=time.monotonic)
     events: list[dict[str, Any]] = field(default_factory=list)
     _lock: threading.Lock = field(default_factory=threading.Lock)
+    dropped: int = 0  # events past MAX_EVENTS (the first ones are kept)
 
     def add(self, kind: str, text: str, **extra: Any) -> None:
         with self._lock:
+            if len(self.events) >= MAX_EVENTS:
+                self.dropped += 1
+                return
             self.events.append(
                 {"t_s": round(time.monotonic() - self.t0, 6), "kind": kind, "text": text, **extra}
             )
 
     def to_list(self) -> list[dict[str, Any]]:
+        """The events, and one last ``events_dropped`` event when some were not kept."""
         with self._lock:
-            return list(self.events)
+            out = list(self.events)
+            if self.dropped:
+                out.append(
+                    {"t_s": round(time.monotonic() - self.t0, 6), "kind": "events_dropped",
+                     "text": f"{self.dropped} more events not kept (at most {MAX_EVENTS})"}
+                )  # fmt: skip
+            return out
 
 
 class TimeHistogram:

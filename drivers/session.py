@@ -411,7 +411,8 @@ class DriveSession:
                 log,
                 labels,
                 self.monitor.report,
-                lambda: self.monitor.armed,
+                # another master's frames are stop causes from the configuration on
+                lambda: self.monitor.armed or self.monitor.guarding,
                 self.control.host_node_id,
             )
             self._receivers.append(router)
@@ -538,6 +539,8 @@ class DriveSession:
                 raise
             self.events.add("disable", "every drive disabled (SWITCHED_ON) before the reset")
         self._set_state(SessionState.CONNECTED)
+        self._guard(False)  # the reset and configuration are this host's own traffic
+        self.supervisor.clear_stop_request()  # a stop asked for from here on stands
         self.idle_causes = []
         self.stop_error = None
         self.monitor.hb_armed_at = None
@@ -558,6 +561,7 @@ class DriveSession:
                 + "; ".join(missing)
             )
         self.events.add("bootup", f"every node booted ({time.monotonic() - t_start:.3f} s)")
+        self.monitor.configured()  # a boot-up from here on: that drive lost its configuration
         for before in self.monitor.drain():
             # sent before the node's boot-up, so before its reset (e.g. the EMCYs of
             # drives that lost the previous session's heartbeat): the reset cleared it
@@ -573,7 +577,15 @@ class DriveSession:
         self.send_nmt(cia301.NMT_START_REMOTE_NODE)
         self.events.add("nmt", "NMT start remote node sent on every bus")
         self.bringup_s = time.monotonic() - t_start
+        self._guard(True)
         self._set_state(SessionState.READY)
+
+    def _guard(self, on: bool) -> None:
+        """Drives configured (on) until the session ends or resets them (off): another
+        master's frames are stop causes even with no drive enabled; while idle (not
+        enabling, no drive supervised) the supervisor quick-stops every node on them."""
+        self.monitor.guarding = on
+        self.supervisor.guard_idle = on
 
     def _listen_for_other_masters(self) -> None:
         """Before resetting drives this session has not brought up: listen for another
@@ -626,13 +638,19 @@ class DriveSession:
         drives are enabled (-> STOPPED) and raises :class:`SafetyStopError`."""
         self._require_calibration("enable")
         self._require("enable", SessionState.READY)
-        foreign = self._foreign_frames()
-        if foreign is not None and not self.take_over:
-            text = f"enable refused: frames of another master since the reset: {foreign}"
-            self.events.add("error", text)
-            raise OtherMasterError(text)
-        self._refuse_enable_after_causes()
-        self.supervisor.clear_stop_request()  # a stop asked for from here on is honoured
+        # a cause from here on (another master's frame, a boot-up, an EMCY, a stop
+        # request) is judged once every drive is enabled: every axis quick-stopped
+        self.supervisor.guard_idle = False
+        try:
+            foreign = self._foreign_frames()
+            if foreign is not None and not self.take_over:
+                text = f"enable refused: frames of another master since the reset: {foreign}"
+                self.events.add("error", text)
+                raise OtherMasterError(text)
+            self._refuse_enable_after_causes()
+        except HrmError:
+            self.supervisor.guard_idle = True
+            raise
         t_start = time.monotonic()
         ctl = self.control
         try:
@@ -648,6 +666,7 @@ class DriveSession:
             )
         except HrmError:
             self._abort_enable()
+            self.supervisor.guard_idle = True
             self._set_state(SessionState.FAULT)
             raise
         order = {link.motor: k for k, link in enumerate(self._links())}
@@ -658,7 +677,14 @@ class DriveSession:
         self.events.add(
             "enabled", f"every drive OPERATION_ENABLED in CSP ({self.bringup_s:.3f} s bring-up)"
         )
+        for i in np.flatnonzero(self.monitor.rebooted).tolist():  # during the enable
+            self.monitor.report(
+                StopKind.BOOTUP,
+                f"{self.monitor.labels[i]}: node rebooted (boot-up frame) during the enable "
+                "(its configuration is lost)",
+            )
         self.supervisor.arm(actual)  # heartbeats supervised from here on, across streams
+        self.supervisor.guard_idle = True  # (armed, the idle watchdogs cover it all)
         self._set_state(SessionState.ENABLED)
         # what was reported while the drives were being enabled is judged now, not at
         # the next deadline: any cause quick-stops every axis at once
@@ -670,6 +696,21 @@ class DriveSession:
         """Before :meth:`enable` sends anything: refuse (still READY) when a stop cause
         was reported since the drives were configured (an EMCY, a bad frame, a watch's
         cause: :meth:`reset_fault` clears them) or a drive is in FAULT (read by SDO)."""
+        rebooted = [self.monitor.labels[i] for i in np.flatnonzero(self.monitor.rebooted)]
+        if rebooted:
+            more = f" (+{len(rebooted) - 1} more)" if len(rebooted) > 1 else ""
+            text = (
+                f"enable refused: {rebooted[0]}{more} rebooted since the drives were "
+                "configured (its configuration is lost): bring the drives up again"
+            )
+            self.events.add("error", text)
+            raise SessionStateError(text)
+        request = self.supervisor.take_stop_request()
+        if request is not None:
+            text = f"enable refused: {request[1]} before the enable"
+            self.events.add("stop_cause", request[1], cause=request[0].value)
+            self.events.add("error", text)
+            raise SessionStateError(text)
         earlier = self.monitor.drain()
         if earlier:
             more = f" (+{len(earlier) - 1} more)" if len(earlier) > 1 else ""
@@ -751,6 +792,7 @@ class DriveSession:
         self.supervisor.disarm()  # with a last check: a cause found now stops every axis
         if was_enabled:
             self._raise_if_stopped()
+        self.supervisor.clear_stop_request()  # (asked for while stopped: done by disabling)
         try:
             self._disable_drives("disable")
         except HrmError:
@@ -884,6 +926,7 @@ class DriveSession:
         NMT pre-operational)."""
         if self._state is SessionState.CLOSED:
             raise SessionStateError("finish: the session is closed")
+        self.supervisor.guard_idle = False  # the drives are disabled and left from here on
         failed: list[str] = []
         try:
             busy = (Mode.STREAMING, Mode.STOPPING)
@@ -951,6 +994,7 @@ class DriveSession:
             "idle_stop_causes": [x.to_dict() for x in self.idle_causes],
             "events": self.events.to_list(),
             "emergencies": [e.describe() for e in self.monitor.emergencies],
+            "emergencies_dropped": self.monitor.emergencies_dropped,
             "can_logs": [str(log.path) for log in self._logs],
             "can_log_frames": [log.n_frames for log in self._logs],
             "can_log_lost": [log.n_lost for log in self._logs],
@@ -1186,6 +1230,7 @@ class DriveSession:
             self.supervisor.disarm()
         except SupervisorModeError as exc:
             self.events.add("error", f"reset-fault: {exc}")
+        self.supervisor.clear_stop_request()  # (asked for while stopped: nothing enabled)
         timeout_s = self.control.state_timeout_s
         faulty = (cia402.State402.FAULT, cia402.State402.FAULT_REACTION_ACTIVE)
 
@@ -1208,7 +1253,11 @@ class DriveSession:
         )
         self.idle_causes = []
         self.stop_error = None
-        self.monitor.drain()  # causes of the stop that was just cleared
+        for cause in self.monitor.drain():  # causes of the stop that was just cleared
+            self.events.add(
+                "cause_cleared", f"{cause.text} (cleared by the fault reset)",
+                cause=cause.kind.value, motor=cause.motor,
+            )  # fmt: skip
         self._set_state(SessionState.READY)
         return reset
 

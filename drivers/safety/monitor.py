@@ -46,6 +46,11 @@ from drivers.protocol.cia402 import (
 )
 from drivers.safety.causes import StopCause, StopKind
 
+#: causes queued between checks at most (a node flooding EMCYs cannot grow the queue)
+MAX_QUEUED_CAUSES = 1024
+#: EMCYs kept for the run record at most (the rest counted in ``emergencies_dropped``)
+MAX_EMERGENCIES = 1000
+
 _TPDO_SIZE = TPDO_FEEDBACK_SIZE
 # the statusword pattern of OPERATION_ENABLED (the table's only one for that state)
 ((_OE_MASK, _OE_VALUE),) = [
@@ -122,35 +127,50 @@ class NodeMonitor:
         self.hb_time = np.full(n, -math.inf)
         self.hb_state = np.full(n, -1, dtype=np.int64)
         self.booted = np.zeros(n, dtype=bool)
+        # a boot-up since the drives were configured (:meth:`configured`): the node lost
+        # its SDO configuration (heartbeats, limits, PDO maps, CSP) and is not enabled
+        self.rebooted = np.zeros(n, dtype=bool)
         self.missing_run = np.zeros(n, dtype=np.int64)
         self.missing_total = 0
         self.seq = -1  # SYNC sequence number last sent (set by the supervisor)
         # Boot-ups, NMT states and fault bits are stop causes while armed; set only by
         # the supervisor (drives enabled, idle or streaming).
         self.armed = False
+        # Frames of another master are stop causes from the drives' configuration until
+        # the session ends (not only while armed): set by the session.
+        self.guarding = False
         # Monotonic time heartbeat supervision started (end of bring-up; None: not yet).
         # Kept across idle periods and streams, so a stream never restarts the timeout.
         self.hb_armed_at: float | None = None
         self.boot_event = threading.Event()
         self.wake = WakeEvent()
         self._async_causes: collections.deque[StopCause] = collections.deque()
-        self.emergencies: list[Emergency] = []
+        self._causes_lock = threading.Lock()  # _queue (receive threads) against take
+        self.causes_dropped = 0  # queued past MAX_QUEUED_CAUSES (the first ones are kept)
+        self.emergencies: list[Emergency] = []  # the first MAX_EMERGENCIES
+        self.emergencies_dropped = 0
 
     @property
     def n(self) -> int:
         return len(self.labels)
 
     # ---------------------------------------------------------- receive callbacks
-    def _async_cause(self, kind: StopKind, idx: int, text: str) -> None:
-        self._async_causes.append(
-            StopCause(kind, f"{self.labels[idx]}: {text}", self.labels[idx], self.clock())
-        )
+    def _queue(self, cause: StopCause) -> None:
+        """Queue a cause (at most ``MAX_QUEUED_CAUSES``: a node flooding the bus with
+        EMCYs cannot grow it; one queued cause is enough to stop) and wake the supervisor."""
+        with self._causes_lock:
+            if len(self._async_causes) < MAX_QUEUED_CAUSES:
+                self._async_causes.append(cause)
+            else:
+                self.causes_dropped += 1
         self.wake.set()
+
+    def _async_cause(self, kind: StopKind, idx: int, text: str) -> None:
+        self._queue(StopCause(kind, f"{self.labels[idx]}: {text}", self.labels[idx], self.clock()))
 
     def report(self, kind: StopKind, text: str) -> None:
         """A stop cause found outside the receive callbacks (e.g. a failed send)."""
-        self._async_causes.append(StopCause(kind, text, None, self.clock()))
-        self.wake.set()
+        self._queue(StopCause(kind, text, None, self.clock()))
 
     def on_tpdo(self, idx: int, data: bytes | bytearray, seq: int | None = None) -> None:
         """TPDO1 (statusword, position actual) from the node in slot ``idx`` (the
@@ -211,6 +231,7 @@ class NodeMonitor:
         self.hb_state[idx] = state
         if state == NMT_STATE_BOOTUP:
             self.booted[idx] = True
+            self.rebooted[idx] = True
             if self.booted.all():
                 self.boot_event.set()
             if self.armed:
@@ -228,7 +249,10 @@ class NodeMonitor:
         except FrameError as exc:
             self._async_cause(StopKind.BAD_FRAME, idx, str(exc))
             return
-        self.emergencies.append(emcy)
+        if len(self.emergencies) < MAX_EMERGENCIES:
+            self.emergencies.append(emcy)
+        else:
+            self.emergencies_dropped += 1
         if emcy.error_code != 0:
             self._async_cause(StopKind.EMCY, idx, emcy.describe())
 
@@ -239,6 +263,25 @@ class NodeMonitor:
             out.append(self._async_causes.popleft())
         self.wake.clear()
         return out
+
+    def take(self, kinds: frozenset[StopKind]) -> list[StopCause]:
+        """Take the queued causes of ``kinds``, leaving the others queued."""
+        with self._causes_lock:
+            taken = [c for c in self._async_causes if c.kind in kinds]
+            if taken:
+                kept = [c for c in self._async_causes if c.kind not in kinds]
+                self._async_causes.clear()
+                self._async_causes.extend(kept)
+        return taken
+
+    def queued(self) -> list[StopCause]:
+        """The causes queued now (left queued)."""
+        return list(self._async_causes)
+
+    def configured(self) -> None:
+        """Every drive was just configured: a boot-up from now on means a drive lost
+        its configuration (:attr:`rebooted`)."""
+        self.rebooted[:] = False
 
     def reset_boot(self) -> None:
         self.booted[:] = False

@@ -71,7 +71,7 @@ from drivers.protocol import cia301, cia402
 from drivers.protocol.batch import from_messages
 from drivers.realtime import NORMAL_PRIORITY, process_settings
 from drivers.safety.causes import StopCause, StopKind, unique_causes
-from drivers.safety.limits import CycleLimits, LimitChecker, accel_limits
+from drivers.safety.limits import CycleLimits, LimitChecker, SetpointError, accel_limits
 from drivers.safety.monitor import NodeMonitor
 from drivers.sources import SetpointSource
 from hrm_ctrl.errors import DriverError, HrmError, interrupting_signal
@@ -84,6 +84,11 @@ DRAIN_LATE_S = 0.0005
 LOG_KICK_S = 0.08  # how often a stream cues the CAN logs' writers (< TrafficLog.FLUSH_S)
 #: a quick stop's SYNCs come at least this many periods apart (its ramp steps a period each)
 STOP_SYNC_MIN_SPACING = 0.95
+#: how long a quick stop's burst may wait for room in one bus's transmit queue: a bus
+#: whose queue stays full cannot hold back the other buses' stop for more than this
+STOP_SEND_TIMEOUT_S = 0.002
+#: causes that quick-stop every node with no drive supervised (drives configured)
+_GUARDED_WHILE_IDLE = frozenset({StopKind.FOREIGN})
 
 
 class SupervisorModeError(DriverError):
@@ -185,6 +190,9 @@ class Supervisor:
         self._lock = threading.RLock()
         self._stream: _Stream | None = None
         self._stop_request = threading.Event()
+        # drives configured, none enabled or supervised (set by the session): another
+        # master's frames quick-stop every node even so (it may be enabling them)
+        self.guard_idle = False
         self._stop_reason: tuple[StopKind, str] = (StopKind.OPERATOR, "stop requested")
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
@@ -386,8 +394,15 @@ class Supervisor:
             self.monitor.armed = False
 
     def clear_stop_request(self) -> None:
-        """Forget a stop asked for while no drive was enabled (before an enable)."""
+        """Forget a stop asked for before the drives were configured."""
         self._stop_request.clear()
+
+    def take_stop_request(self) -> tuple[StopKind, str] | None:
+        """A stop asked for while no drive was enabled (kind, text), taken; or None."""
+        if not self._stop_request.is_set():
+            return None
+        self._stop_request.clear()
+        return self._stop_reason
 
     def request_stop(
         self, kind: StopKind = StopKind.OPERATOR, text: str = "stop requested"
@@ -523,6 +538,8 @@ class Supervisor:
                 self._stream_cycle(now, deadline)
             elif mode is Mode.STOPPING:
                 self._confirm_stop(now)
+            elif mode is Mode.HEARTBEAT and self.guard_idle:
+                self._guard_idle(now)
             self._heartbeat_if_due(now)
 
     def wake(self, now: float) -> None:
@@ -532,7 +549,17 @@ class Supervisor:
                 causes = self._watchdogs(now, -1, None)
                 if causes:
                     self._begin_stop(causes, now)
+            elif self.mode is Mode.HEARTBEAT and self.guard_idle:
+                self._guard_idle(now)
             self._heartbeat_if_due(now)
+
+    def _guard_idle(self, now: float) -> None:
+        """Drives configured, none supervised (ready, or after a stop): another master's
+        frame quick-stops every node of every bus at once (it may be enabling or moving
+        them), logged with its cause; other causes stay queued for the next enable."""
+        causes = self.monitor.take(_GUARDED_WHILE_IDLE)
+        if causes:
+            self._begin_stop(causes, now)
 
     def check_idle(self, now: float) -> None:
         """The idle watchdogs (mode ARMED): any cause stops every axis."""
@@ -582,17 +609,29 @@ class Supervisor:
         ``before``, applied one period earlier) against the motors' acceleration limits."""
         target = source.setpoint(k)
         if target is not None:
+            if target.dtype.kind not in "iu":  # sent as int32: a fraction would be cut off
+                raise SetpointError(
+                    f"setpoint {k} of {source.describe()} is not whole counts "
+                    f"(dtype {target.dtype}): not sent"
+                )
             self._cycle_limits.check(target, previous, before)
         return target
 
     def _limit_cause(self, exc: HrmError) -> StopCause:
         return StopCause(StopKind.LIMIT, f"setpoint refused: {exc}", None, self.clock())
 
-    def _send_rpdos(self, controlword: int, targets: np.ndarray) -> list[StopCause]:
+    def _send_rpdos(
+        self, controlword: int, targets: np.ndarray, stopping: bool = False
+    ) -> list[StopCause]:
         failed: list[StopCause] = []
         for layout in self.layouts:
             try:
-                layout.port.send_batch(layout.rpdo_batch(controlword, targets))
+                if stopping:  # a full queue holds no bus back long, a failed frame no node
+                    layout.port.send_batch(
+                        layout.rpdo_batch(controlword, targets), STOP_SEND_TIMEOUT_S, True
+                    )
+                else:
+                    layout.port.send_batch(layout.rpdo_batch(controlword, targets))
             except BusSendError as exc:
                 failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
         self._rpdos_sent_at = self.clock()
@@ -606,13 +645,16 @@ class Supervisor:
         if wait > 0.0:
             self.sleep(min(wait, self.sync_delay_s))
 
-    def _send_syncs(self) -> list[StopCause]:
+    def _send_syncs(self, stopping: bool = False) -> list[StopCause]:
         self.seq += 1
         self.monitor.seq = self.seq
         failed: list[StopCause] = []
         for layout in self.layouts:
             try:
-                layout.port.send_batch(self._sync)
+                if stopping:
+                    layout.port.send_batch(self._sync, STOP_SEND_TIMEOUT_S, True)
+                else:
+                    layout.port.send_batch(self._sync)
             except BusSendError as exc:
                 failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
         self._last_sync_at = self.clock()
@@ -620,10 +662,13 @@ class Supervisor:
 
     def send_controlword(self, controlword: int, targets: np.ndarray) -> list[StopCause]:
         """One RPDO per node (same controlword for all), then after :attr:`sync_delay_s`
-        one SYNC on every bus; send failures are returned (other buses still served)."""
-        failed = self._send_rpdos(controlword, targets)
+        one SYNC on every bus; send failures are returned (other buses still served).
+        A quick stop's burst waits at most ``STOP_SEND_TIMEOUT_S`` for each bus's queue,
+        and a frame that fails does not keep the nodes after it from theirs."""
+        stopping = controlword == cia402.CW_QUICK_STOP
+        failed = self._send_rpdos(controlword, targets, stopping)
         self.sleep(self.sync_delay_s)
-        return failed + self._send_syncs()
+        return failed + self._send_syncs(stopping)
 
     def _stream_cycle(self, now: float, deadline: float) -> None:
         stream = self._stream
@@ -819,6 +864,10 @@ class Supervisor:
         """The stop is over: record it, end the stream with its result, tell the owner."""
         self._stopping = None
         self.mode = Mode.HEARTBEAT
+        for cause in self.monitor.queued():  # reported while stopping (left queued)
+            self.events.add(
+                "cause_while_stopping", cause.text, cause=cause.kind.value, motor=cause.motor
+            )
         stream = self._stream
         self._stream = None
         if stream is not None:

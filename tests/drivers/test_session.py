@@ -303,3 +303,92 @@ def test_a_quick_stop_a_drive_never_confirms_leaves_the_session_in_fault(
         assert wait_until(pre_operational_sent)
     finally:
         rig.sim.clear_frame_faults()
+
+
+def test_a_drive_that_rebooted_since_its_configuration_is_not_enabled(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """A drive resets itself between configure and enable (a brown-out): it lost its SDO
+    configuration (heartbeats, limits, PDO maps, CSP).  Found by a red-team helper: it
+    was enabled anyway.  ``enable`` refuses naming it, nothing is enabled, and a new
+    bring-up configures it again."""
+    rig = rig_factory()
+    box = rig.open_box()
+    box.configure()
+    motor = rig.limits.motor_ids[1]
+    with rig.sim._lock:
+        rig.sim.drives[motor].reset_node(time.monotonic())  # its boot-up goes on the bus
+    assert wait_until(lambda: bool(box.monitor.rebooted.any()))
+    with pytest.raises(SessionStateError, match=rf"enable refused: {motor} .*rebooted since"):
+        box.enable()
+    assert box.state is SessionState.READY and operation_enabled(rig) == []
+    box.bring_up()  # configured again: enabled
+    assert box.state is SessionState.ENABLED
+    box.finish()
+
+
+def test_a_stop_asked_for_during_the_configuration_refuses_the_enable(
+    rig_factory: Callable[..., Rig], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An operator's stop while the drives are being configured (found by a red-team
+    helper: ``enable`` cleared it and enabled every drive): ``enable`` refuses naming it,
+    logged; the next ``enable`` works.  A stop asked for while already stopped is done
+    with by ``disable``."""
+    import drivers.session as session_mod
+
+    rig = rig_factory()
+    box = rig.open_box()
+    real = session_mod.configure_drive
+
+    def configure_then_stop(link: Any, *args: Any, **kw: Any) -> None:
+        real(link, *args, **kw)
+        box.request_stop(text="stop (operator)")
+
+    monkeypatch.setattr(session_mod, "configure_drive", configure_then_stop)
+    box.configure()
+    with pytest.raises(SessionStateError, match=r"enable refused: stop \(operator\) before"):
+        box.enable()
+    assert box.state is SessionState.READY and operation_enabled(rig) == []
+    assert any(e["kind"] == "stop_cause" and e["text"] == "stop (operator)"
+               for e in box.record()["events"])  # fmt: skip
+    box.enable()
+    box.request_stop()
+    assert wait_until(lambda: box.state is SessionState.STOPPED)
+    box.request_stop(text="again while stopped")
+    box.disable()
+    box.enable()
+    assert box.state is SessionState.ENABLED
+    box.finish()
+
+
+class FractionSource(TableSource):
+    """A user's source whose table is float counts (0.9 would be sent as 0)."""
+
+    name = "fractions"
+
+    def start(self, actual_counts: np.ndarray, period_s: float) -> None:
+        self.table = actual_counts[None, :] + np.array([0.9, 206.6, 412.0])[:, None]
+
+
+def test_a_setpoint_that_is_not_whole_counts_is_refused_and_never_sent(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """Setpoints go out as int32: a float table was checked as floats and sent truncated
+    (found by a red-team helper: a second difference of 206 counts against a limit of
+    204.8 reached the wire).  Refused as a limit stop before its RPDO."""
+    rig = rig_factory()
+    box = rig.open_box()
+    actual = box.bring_up()
+    for sn in rig.sniffers:
+        sn.clear()
+    result = box.stream(FractionSource(), raise_on_stop=False)
+    assert not result.completed
+    assert "is not whole counts (dtype float64)" in result.causes[0].text
+    targets = [
+        int.from_bytes(bytes(m.data[2:6]), "little", signed=True)
+        for sn in rig.sniffers
+        for m in sn.snapshot()
+        if 0x200 < m.arbitration_id <= 0x27F
+    ]
+    assert set(targets) <= {int(x) for x in actual}  # only the holds and the quick stop
+    box.finish()

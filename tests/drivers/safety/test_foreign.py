@@ -6,7 +6,9 @@ service are one-line stop causes, and after a safety stop the session still fini
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
+from typing import Any
 
 import can
 import pytest
@@ -248,3 +250,90 @@ def test_after_a_safety_stop_the_session_still_finishes(rig_factory: Callable[..
     n0 = len(frames(rig, 0))
     threading.Event().wait(0.3)
     assert not [m for m in frames(rig, 0)[n0:] if m.arbitration_id == 0x77F]  # heartbeat off
+
+
+def quick_stops_after(rig: Rig, bus: int, t: float) -> list[float]:
+    """Wire times of the quick-stop RPDOs on ``bus`` after ``t``."""
+    return [
+        m.timestamp
+        for m in frames(rig, bus)
+        if 0x200 < m.arbitration_id <= 0x27F
+        and bytes(m.data[:2]) == b"\x02\x00"
+        and m.timestamp >= t
+    ]
+
+
+def test_another_master_during_the_enable_stops_every_axis_once_enabled(
+    rig_factory: Callable[..., Rig], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Another master sends node 1 a target and SYNCs while the other drives are still
+    being enabled (found by a red-team helper: only counted, the session went ENABLED
+    holding where node 1 no longer was): the enable raises naming the foreign frame and
+    every axis is quick-stopped."""
+    import drivers.session as session_mod
+
+    rig = rig_factory()
+    box = rig.open_box()
+    box.configure()
+    real = session_mod.enable_operation
+    first = rig.limits.motor_ids[0]
+
+    def enable_then_foreign(link: Any, *args: Any, **kw: Any) -> int:
+        actual = real(link, *args, **kw)
+        if link.motor == first:
+            rpdo = cia402.RPDO_TARGET_LAYOUT.pack(cia402.CW_ENABLE_OPERATION, actual + 3000)
+            send_from_outside(rig, 0, can.Message(arbitration_id=0x200 + link.node_id,
+                                                  data=rpdo, is_extended_id=False))  # fmt: skip
+            send_from_outside(rig, 0, cia301.make_sync())
+            time.sleep(0.1)  # the other drives are being enabled meanwhile
+        return actual
+
+    monkeypatch.setattr(session_mod, "enable_operation", enable_then_foreign)
+    with pytest.raises(SafetyStopError, match=r"0x20\d .*another master"):
+        box.enable()
+    assert box.state is SessionState.STOPPED
+    assert wait_until(
+        lambda: all(
+            cia402.decode_state(sw) is not cia402.State402.OPERATION_ENABLED
+            for sw in rig.sim.statuswords().values()
+        )
+    )
+    box.finish()
+
+
+def test_another_master_after_a_stop_is_quick_stopped_again_and_logged(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """After a stop nothing is enabled by this host; another master walking a drive back
+    to OPERATION_ENABLED and moving it (found by a red-team helper: nothing logged, the
+    drive moved 2800 counts) gets a quick stop on every bus within a period of each of
+    its frames, each logged with its cause; the drive does not move."""
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    box.request_stop()
+    assert wait_until(lambda: box.state is SessionState.STOPPED)
+    node = rig.config.buses[0].nodes[rig.limits.motor_ids[0]]
+    motor = rig.limits.motor_ids[0]
+    drive = rig.sim.drives[motor]
+    before = drive.position_counts
+    t0 = time.time()
+    for k in range(5):
+        cw = cia402.CW_ENABLE_OPERATION if k else cia402.CW_SWITCH_ON
+        rpdo = cia402.RPDO_TARGET_LAYOUT.pack(cw, before + 100 * (k + 1))
+        send_from_outside(rig, 0, can.Message(arbitration_id=0x200 + node, data=rpdo,
+                                              is_extended_id=False))  # fmt: skip
+        send_from_outside(rig, 0, cia301.make_sync())
+        time.sleep(3 * T)
+    foreign = [m.timestamp for m in frames(rig, 0)
+               if m.arbitration_id == 0x200 + node and m.timestamp >= t0
+               and bytes(m.data[:2]) != b"\x02\x00"]  # fmt: skip
+    assert len(foreign) == 5
+    for k in range(len(rig.sniffers)):  # a quick stop after the first foreign frame
+        stops = quick_stops_after(rig, k, foreign[0])
+        assert stops and stops[0] - foreign[0] <= T + 0.005, f"bus{k}"
+    assert abs(drive.position_counts - before) <= 1
+    causes = [e for e in box.record()["events"]
+              if e["kind"] == "stop_cause" and e.get("cause") == "foreign"]  # fmt: skip
+    assert causes and "another master" in causes[0]["text"]
+    box.finish()

@@ -35,11 +35,15 @@ class FakePort:
     def send(self, msg: can.Message, timeout_s: float = 0.05) -> None:
         self.sent.append((self.clock() if self.clock else 0.0, msg))
 
-    def send_many(self, msgs: list[can.Message], timeout_s: float = 0.05) -> None:
+    def send_many(
+        self, msgs: list[can.Message], timeout_s: float = 0.05, keep_going: bool = False
+    ) -> None:
         for m in msgs:
             self.send(m, timeout_s)
 
-    def send_batch(self, frames: np.ndarray, timeout_s: float = 0.05) -> None:
+    def send_batch(
+        self, frames: np.ndarray, timeout_s: float = 0.05, keep_going: bool = False
+    ) -> None:
         self.send_many(to_messages(frames, is_rx=False), timeout_s)
 
     def ids_since(self, t: float) -> list[int]:
