@@ -520,7 +520,7 @@ class CalibrationStore:
         try:
             text = read_text_file(path, CalibrationFileError, "active pointer", max_bytes=64)
         except CalibrationFileError:
-            if not path.exists():
+            if not os.path.lexists(path):  # (False, not OSError, on a too-long name)
                 return None
             raise
         m = _VERSION_FILE.fullmatch(text.strip())

@@ -55,6 +55,11 @@ KINDS: dict[str, tuple[int, int]] = {
 }
 
 
+#: garbage bytes before each tension frame, or frames corrupted, at most (the board sends
+#: ~100 frames a second: more garbage than this per frame is not a different fault)
+MAX_SENSOR_FAULT_COUNT = 65_536
+
+
 class FaultSpecError(SimError):
     """A fault script entry is malformed."""
 
@@ -127,8 +132,9 @@ def _numbers(f: Fault, text: str) -> tuple[int | None, int | None, float]:
             cob = _int(f.args[2], "COB-ID", text)
         count = _count(f.args[3] if len(f.args) > 3 else None, text)
     elif f.kind in ("sensor-garbage", "sensor-corrupt") and f.args:
-        if _int(f.args[0], "count", text) < 0:
-            raise FaultSpecError(f"fault '{text}': count must be >= 0")
+        n = _int(f.args[0], "count", text)
+        if not 0 <= n <= MAX_SENSOR_FAULT_COUNT:
+            raise FaultSpecError(f"fault '{text}': count must be in 0..{MAX_SENSOR_FAULT_COUNT}")
     if cob is not None and not 0 <= cob <= 0x7FF:
         raise FaultSpecError(f"fault '{text}': COB-ID must be in 0..0x7FF")
     return cob, count, delay_s

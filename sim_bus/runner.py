@@ -30,7 +30,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any, TextIO
 
 from drivers.config import BoxConfig
@@ -131,8 +131,8 @@ def run_box_process(
         if control:
 
             def read_commands() -> None:
-                for line in inp:
-                    commands.put(line.strip())
+                for line in control_lines(inp):
+                    commands.put(line)
                 commands.put(None)
 
             threading.Thread(target=read_commands, name="sim-control", daemon=True).start()
@@ -151,7 +151,9 @@ def run_box_process(
             if cmd is None or cmd == "quit":
                 break
             try:
-                _command(cmd, box, board, out, now)
+                later = _command(cmd, box, board, out, now)
+                if later is not None:  # fault SPEC@T: applied T s after the start
+                    pending = sorted([*pending, later], key=lambda f: f.at_s or 0.0)
             except HrmError as exc:
                 _emit(out, {"event": "error", "error": str(exc)})
         _emit(out, {**stats_json(box, board), "event": "stopped"})
@@ -161,10 +163,47 @@ def run_box_process(
     return 0
 
 
-def _command(cmd: str, box: SimBox, board: TensionBoard, out: TextIO, now: float) -> None:
+#: a control line longer than this is refused (one error event), not read into memory
+MAX_CONTROL_LINE_CHARS = 4096
+_SHOWN_CHARS = 40  # of an unknown command word, in its error event
+
+
+def control_lines(inp: TextIO) -> Iterator[str]:
+    """The control channel's lines, stripped, each read with a bound: a longer line is
+    skipped in bounded pieces and given as :data:`TOO_LONG` instead.
+
+    >>> import io
+    >>> list(control_lines(io.StringIO("state\\n" + "x" * 5000 + "\\nquit\\n")))
+    ['state', '\\x00too-long', 'quit']
+    """
+    while True:
+        line = inp.readline(MAX_CONTROL_LINE_CHARS + 1)
+        if not line:
+            return
+        if len(line) > MAX_CONTROL_LINE_CHARS and not line.endswith("\n"):
+            while line and not line.endswith("\n"):  # the rest of it, piece by piece
+                line = inp.readline(MAX_CONTROL_LINE_CHARS + 1)
+            yield TOO_LONG
+            continue
+        yield line.strip()
+
+
+TOO_LONG = "\x00too-long"  # what control_lines gives for a line over the bound
+
+
+def _command(cmd: str, box: SimBox, board: TensionBoard, out: TextIO, now: float) -> Fault | None:
+    """Carry out one control command; a ``fault SPEC@T`` whose time is still to come is
+    returned (the caller applies it then)."""
+    if cmd == TOO_LONG:
+        too_long = f"control line longer than {MAX_CONTROL_LINE_CHARS} characters"
+        _emit(out, {"event": "error", "error": too_long})
+        return None
     word, _, rest = cmd.partition(" ")
     if word == "fault":
         f = parse_fault(rest)
+        if f.at_s is not None and f.at_s > now:
+            _emit(out, {"event": "fault_scheduled", "fault": rest, "at_s": f.at_s, "t_s": now})
+            return f
         _emit(out, {"event": "fault", "fault": apply_fault(f, box, board), "t_s": now})
     elif word == "state":
         _emit(out, arm_state_json(box))
@@ -189,4 +228,6 @@ def _command(cmd: str, box: SimBox, board: TensionBoard, out: TextIO, now: float
             times, counts = box.trace()
             _emit(out, {"event": "trace", "t_s": times.tolist(), "counts": counts.tolist()})
     elif word:
-        _emit(out, {"event": "error", "error": f"unknown command '{word}'"})
+        shown = word if len(word) <= _SHOWN_CHARS else word[:_SHOWN_CHARS] + "..."
+        _emit(out, {"event": "error", "error": f"unknown command '{shown}'"})
+    return None

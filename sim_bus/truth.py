@@ -52,6 +52,7 @@ True
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -557,7 +558,9 @@ def truth_to_toml(truth: TrueArm) -> str:
     """The truth file's text (floats written so that they read back bit for bit)."""
     doc = truth.to_dict()
     lines = [
-        f"# simulated arm truth ({truth.source}); the format is in docs/sim.md",
+        # the source escaped as in a JSON string: a newline in a path stays in the comment
+        f"# simulated arm truth ({json.dumps(truth.source, ensure_ascii=False)[1:-1]}); "
+        "the format is in docs/sim.md",
     ]
     tables = []
     for key, v in doc.items():

@@ -17,6 +17,7 @@ process's interpreter settings change.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import pkgutil
@@ -137,6 +138,18 @@ def _quiet_library_logging() -> None:
             logger.addHandler(logging.NullHandler())
 
 
+def one_line(text: str) -> str:
+    """An error message as one line: a line break or other control character in it (a
+    path given with one, say) is shown escaped.
+
+    >>> one_line("t\\nlinks_mm = 5.toml: truth file not found")
+    't\\\\nlinks_mm = 5.toml: truth file not found'
+    """
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -145,7 +158,16 @@ def _main(argv: Sequence[str] | None) -> int:
         with process_settings(_switch_interval_s(args)), signals_as_interrupts():
             return int(args._run(args) or 0)
     except HrmError as exc:
-        print(f"hrm {args.command}: error: {exc}", file=sys.stderr)
+        print(f"hrm {args.command}: error: {one_line(str(exc))}", file=sys.stderr)
+        return EXIT_ERROR
+    except OSError as exc:
+        if exc.errno != errno.ENAMETOOLONG:
+            raise
+        # a path argument too long for the file system, met where no check named it
+        # first: still one line naming it (its start), not a traceback
+        name = str(exc.filename) if exc.filename is not None else "a path"
+        shown = name if len(name) <= 60 else f"{name[:60]}... ({len(name)} characters)"
+        print(f"hrm {args.command}: error: {shown}: file name too long", file=sys.stderr)
         return EXIT_ERROR
     except KeyboardInterrupt:
         print(f"hrm {args.command}: interrupted", file=sys.stderr)

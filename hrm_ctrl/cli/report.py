@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -61,12 +62,13 @@ def find_record(run: Path, log_dir: Path) -> Path:
     """A run record: the path given, or ``<log_dir>/<run>.json`` for a run's name."""
     from hrm_ctrl.formats.runlog import RunLogError
 
-    if run.suffix == ".json" or run.exists():
-        if not run.is_file():
+    # os.path: False, not OSError, for a name too long for the file system
+    if run.suffix == ".json" or os.path.exists(run):
+        if not os.path.isfile(run):
             raise RunLogError(f"{run}: no such run record")
         return run
     cand = log_dir / f"{run.name}.json"
-    if cand.is_file():
+    if os.path.isfile(cand):
         return cand
     raise RunLogError(f"{run}: no such run record (nor {cand})")
 

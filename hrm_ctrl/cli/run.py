@@ -56,6 +56,7 @@ from hrm_ctrl.cli._common import (
     add_config_argument,
     add_log_format_argument,
     add_robot_argument,
+    calibrations_input,
     config_input,
     load_arm,
     load_box,
@@ -246,6 +247,7 @@ def run(args: argparse.Namespace) -> int:
             Input("truth file", args.truth),
             robot_input(args.robot),
             config_input(args.config),
+            calibrations_input(args),  # the logs into the store: only the store writes there
             *shipped_inputs(plan_schema=True, eds=True),
         ],
     )

@@ -37,6 +37,7 @@ from hrm_ctrl.cli._common import (
     Output,
     add_calibration_arguments,
     add_robot_argument,
+    calibrations_input,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
@@ -154,6 +155,7 @@ def _live(args: argparse.Namespace) -> int:
         [
             Input("plan file", args.plan),
             robot_input(args.robot),
+            calibrations_input(args),  # the logs into the store: only the store writes there
             *shipped_inputs(plan_schema=True, eds=True),
         ],
     )

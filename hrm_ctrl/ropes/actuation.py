@@ -40,7 +40,7 @@ from hrm_ctrl.ropes.inverse import newton_step, padded_index, solve_angles
 from hrm_ctrl.ropes.length import RopeGeometry, lengths_and_jacobian, rope_geometry
 from hrm_ctrl.ropes.length import rope_lengths as _rope_lengths
 from hrm_ctrl.ropes.motor_map import MotorMap, motor_map_from_table, unstretched_length_mm
-from hrm_ctrl.ropes.routing import RopeRouting, routing_from_model
+from hrm_ctrl.ropes.routing import MAX_EA_N, MIN_EA_N, RopeRouting, routing_from_model
 
 
 class RopeLimitError(RopeError):
@@ -388,11 +388,14 @@ def _per_rope(values: Any, ids: tuple[str, ...], where: str) -> np.ndarray:
     ea = np.array(values, dtype=float)
     if ea.shape != (len(ids),):
         raise RopeError(f"{where}: rope_EA_N must have {len(ids)} values, got shape {ea.shape}")
-    bad = np.flatnonzero(~(np.isfinite(ea) & (ea > 0.0)))
+    bad = np.flatnonzero(~(np.isfinite(ea) & (ea >= MIN_EA_N) & (ea <= MAX_EA_N)))
     if bad.size:
         i = int(bad[0])
         v = float(ea[i])
-        raise RopeError(f"{where}: rope_EA_N of rope {ids[i]} is {v!r}, not a number > 0")
+        raise RopeError(
+            f"{where}: rope_EA_N of rope {ids[i]} is {v!r}, not a number in "
+            f"{MIN_EA_N:g}..{MAX_EA_N:g} N"
+        )
     ea.setflags(write=False)
     return ea
 

@@ -122,6 +122,9 @@ def rope_id(joint: int, rope: int) -> str:
 #: would overflow the rope model (a typo, not a rope)
 MAX_GEOMETRY_MM = 1.0e4  # hole circle, hole, disk thickness, box length: 10 m
 MAX_EA_N = 1.0e9  # a 30 mm steel rod: 1.4e8 N
+#: the softest rope taken: 1 % stretch under 10 N (a 1 mm Dyneema or steel rope is
+#: 5e4-8e4 N; below this the rope model's stretch, not the geometry, sets the lengths)
+MIN_EA_N = 1.0e3
 MAX_PRETENSION_N = 1.0e5  # 10 t
 
 
@@ -244,7 +247,7 @@ def routing_from_table(
     ea = _num(
         table.get("stiffness_EA_N", DEFAULT_EA_N),
         f"{where}.stiffness_EA_N",
-        positive=True,
+        minimum=MIN_EA_N,
         maximum=MAX_EA_N,
     )
     box = _num(

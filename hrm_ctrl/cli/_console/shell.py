@@ -115,6 +115,7 @@ def build_context(args: argparse.Namespace, prog: str) -> ConsoleContext:
     input raises :class:`~hrm_ctrl.errors.HrmError` (one line) before anything starts."""
     from hrm_ctrl.cli._common import (
         Output,
+        calibrations_input,
         config_input,
         load_arm,
         load_box,
@@ -127,7 +128,12 @@ def build_context(args: argparse.Namespace, prog: str) -> ConsoleContext:
 
     refuse_overwriting_inputs(
         [Output("--log-dir", args.log_dir, folder=True)],
-        [robot_input(args.robot), config_input(args.config), *shipped_inputs(eds=True)],
+        [
+            robot_input(args.robot),
+            config_input(args.config),
+            calibrations_input(args),  # the logs into the store: only the store writes there
+            *shipped_inputs(eds=True),
+        ],
     )
     config = load_box(args)  # --config with the --bus overrides
     arm = load_arm(args, load_robot(args.robot), prog=prog, simulated=args.sim)

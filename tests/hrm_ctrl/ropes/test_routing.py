@@ -82,6 +82,10 @@ def _explicit(angles: list[list[float]]) -> dict[str, Any]:
         ({"angles_deg": [[0.0, 120.0]] * 12}, r"angles_deg\[0\]"),
         # absurd magnitudes: refused at load (before: 1e300 reached the rope model)
         ({"stiffness_EA_N": 1e300}, r"stiffness_EA_N: must be <= 1e\+09"),
+        # a rope softer than 1e3 N: all-zero setpoints and an overflow warning before
+        ({"stiffness_EA_N": 1e-300}, r"stiffness_EA_N: must be >= 1000"),
+        ({"stiffness_EA_N": 999.0}, r"stiffness_EA_N: must be >= 1000"),
+        ({"stiffness_EA_N": 1000.0}, None),
         ({"pretension_N": 1e300}, r"pretension_N: must be <= 100000"),
         ({"box_length_mm": 1e300}, r"box_length_mm: must be <= 10000"),
         ({"proximal_disk_mm": 1e300}, r"proximal_disk_mm: must be <= 10000"),
