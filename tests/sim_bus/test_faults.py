@@ -162,3 +162,46 @@ def test_hrm_sim_process_runs_and_stops_on_duration(tmp_path: Path) -> None:
     assert [e["event"] for e in lines] == ["ready", "fault", "stopped"]
     assert lines[1]["fault"] == "sensor-silent"
     assert time.monotonic() - t0 < 20
+
+
+class _SlowInput(io.StringIO):
+    """Control lines, then ``quit`` only after ``wait_s`` (a scheduled fault's time)."""
+
+    def __init__(self, text: str, wait_s: float) -> None:
+        super().__init__(text)
+        self.wait_s = wait_s
+        self.done = False
+
+    def readline(self, size: int | None = -1) -> str:  # type: ignore[override]
+        line = super().readline(size)
+        if line or self.done:
+            return line
+        self.done = True
+        time.sleep(self.wait_s)
+        return "quit\n"
+
+
+def test_control_channel_bounds_its_lines_and_schedules_a_fault_at_its_time() -> None:
+    """A control line over 4096 characters is one error event (a 200 MB line was read
+    whole and echoed back), and ``fault SPEC@T`` waits until T (it was applied at once);
+    a fault count over the bound is refused (a huge one killed the tension board)."""
+    tag = uuid.uuid4().hex[:8]
+    doc = {"buses": {"can0": {"interface": "hrm_sim", "channel": f"s-{tag}",
+                              "bitrate": 1_000_000, "nodes": {"j01r0": 1}}}}  # fmt: skip
+    cfg = box_config_from_dict(doc, "test")
+    inp = _SlowInput("x" * 10_000 + "\nfault rope-snap:j01r0@0.1\nfault sensor-garbage:70000\n",
+                     wait_s=1.0)  # fmt: skip
+    out = io.StringIO()
+    t = threading.Thread(
+        target=run_box_process, args=(cfg,), kwargs={"control": True, "out": out, "inp": inp}
+    )
+    t.start()
+    t.join(20.0)
+    assert not t.is_alive()
+    events = [json.loads(line) for line in out.getvalue().splitlines()]
+    assert [e["event"] for e in events[1:]] == [
+        "error", "fault_scheduled", "error", "fault", "stopped"
+    ]  # fmt: skip
+    assert events[1]["error"] == "control line longer than 4096 characters"
+    assert "count must be in 0..65536" in events[3]["error"]
+    assert events[4]["fault"].startswith("rope-snap") and events[4]["t_s"] >= 0.1

@@ -194,3 +194,17 @@ def test_host_zero_counts_are_the_truths_with_the_slack_taken_up() -> None:
     slack = t.replace(slack_mm=np.full(36, 0.5))
     d = slack.host_zero_counts(rope) - t.motor_zero_counts
     assert np.array_equal(d, np.rint(rope.motors.direction * rope.motors.counts_per_mm * 0.5))
+
+
+def test_a_truth_read_from_a_path_with_a_line_break_is_written_back_readable(
+    tmp_path: Path,
+) -> None:
+    """The source path goes into the file's first comment, escaped: a newline in it made
+    the written file's next line TOML (``links_mm = 5``: unreadable)."""
+    odd = tmp_path / "t\nlinks_mm = 5\n.toml"
+    write_truth(odd, TrueArm.perturbed(ACT, 1, max_slack_mm=2.0))
+    first = read_truth(odd, ACT)
+    again = tmp_path / "again.toml"
+    write_truth(again, first)
+    assert again.read_text().splitlines()[0].startswith("# simulated arm truth (")
+    assert read_truth(again, ACT).to_dict() == first.to_dict()

@@ -675,3 +675,49 @@ def test_a_broken_pipe_that_is_not_stdout_stays_an_error(
     monkeypatch.setattr(urdf, "run", broken)
     with pytest.raises(BrokenPipeError):
         main(["urdf"])
+
+
+# ---- paths the file system refuses, log folders in the calibration store -----------------
+
+TOO_LONG = "x" * 300  # over NAME_MAX (255): the file system raises ENAMETOOLONG
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["report", TOO_LONG, "--uncalibrated"],
+        ["report", TOO_LONG + ".json", "--uncalibrated"],
+        ["report", "somerun", "--log-dir", TOO_LONG, "--uncalibrated"],
+        ["calibrate", "show", "--calibrations", TOO_LONG],
+        ["run", "--sim", "--hold", "0.2", "--uncalibrated", "--log-dir", TOO_LONG],
+    ],
+    ids=["report-run", "report-json", "report-log-dir", "calibrate-store", "run-log-dir"],
+)
+def test_a_path_too_long_for_the_file_system_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch,
+    argv: list[str],
+) -> None:  # fmt: skip
+    """Found by a red-team helper: ``OSError: [Errno 36] File name too long`` tracebacks."""
+    monkeypatch.chdir(tmp_path)
+    line = refused(capsys, tmp_path, argv)
+    assert "xxxx" in line
+
+
+@pytest.mark.parametrize("command", ["run", "status"])
+def test_logs_are_never_written_into_the_calibration_store(
+    tmp_path: Path, capsys: pytest.CaptureFixture, command: str
+) -> None:
+    """Only the store writes in the store (``calibrate`` refused it; ``status`` wrote its
+    run record and CAN logs there)."""
+    store = tmp_path / "store"
+    store.mkdir()
+    argv = [command, "--sim", "--calibrations", str(store), "--log-dir", str(store / "runs")]
+    if command == "run":
+        argv += ["--hold", "0.2"]
+    refused(capsys, tmp_path, argv, "is inside the calibration store being read")
+
+
+def test_an_error_naming_a_path_with_a_line_break_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    refused(capsys, tmp_path, ["sim", "--truth", str(tmp_path / "t\nx.toml")], "t\\nx.toml")
