@@ -288,3 +288,15 @@ def test_the_openings_of_a_scene_are_bounded_in_all() -> None:
     assert len(scene_from_dict({"wall": [wall] * 10}).obstacles) == 10  # 1000: fine
     with pytest.raises(SceneFileError, match=r"s: wall\[10\]: 1100 wall openings and bounds"):
         scene_from_dict({"wall": [wall] * 11}, "s")
+
+
+def test_the_scene_example_of_the_planner_docs_loads(tmp_path: Path) -> None:
+    """docs/planner.md's scene file, as printed (its wall bound once lay across the wall:
+    refused as 'normal to the wall')."""
+    doc = (Path(__file__).resolve().parents[3] / "docs" / "planner.md").read_text()
+    start = doc.index("```toml\ndescription = ")
+    text = doc[start + len("```toml\n") : doc.index("```", start + 7)]
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    env = read_scene(path)
+    assert sorted(type(o).__name__ for o in env.obstacles) == ["Box", "Pipe", "Wall"]
