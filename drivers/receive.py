@@ -373,9 +373,9 @@ class BusReceiver(can.Listener):
                 target = self.node_labels[data[1]]
         elif nid in self.node_labels:
             target = self.node_labels[nid]
-        elif nid == self.host_node_id:
+        elif cid == cia301.COB_NMT_ERROR_CONTROL + self.host_node_id:
             # the heartbeat our drives watch (0x1016): another sender keeps them going
-            # when this host dies
+            # when this host dies (an RPDO or SDO to node 127 is no node of ours)
             target = f"every node (the host heartbeat, node {nid})"
         else:
             return  # another master talking to a node we do not drive

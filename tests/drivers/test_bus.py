@@ -234,6 +234,9 @@ def test_a_foreign_rpdo_for_our_node_is_a_stop_cause_naming_the_cob_id(tmp_path:
     rx.on_message_received(
         can.Message(arbitration_id=0x209, data=b"\x0f\x00", is_extended_id=False)
     )  # not our node
+    rx.on_message_received(
+        can.Message(arbitration_id=0x27F, data=b"\x0f\x00", is_extended_id=False)
+    )  # node 127 is not ours either (it was taken for the host heartbeat, 0x77F)
     log.stop()
     assert len(reports) == 1
     kind, text = reports[0]
