@@ -585,7 +585,7 @@ class DriveSession:
         master's frames are stop causes even with no drive enabled; while idle (not
         enabling, no drive supervised) the supervisor quick-stops every node on them."""
         self.monitor.guarding = on
-        self.supervisor.guard_idle = on
+        self.supervisor.set_guard_idle(on)
 
     def _listen_for_other_masters(self) -> None:
         """Before resetting drives this session has not brought up: listen for another
@@ -640,8 +640,9 @@ class DriveSession:
         self._require("enable", SessionState.READY)
         # a cause from here on (another master's frame, a boot-up, an EMCY, a stop
         # request) is judged once every drive is enabled: every axis quick-stopped
-        self.supervisor.guard_idle = False
         try:
+            if not self.supervisor.set_guard_idle(False):
+                raise SessionStateError("enable refused: a quick stop is in progress")
             foreign = self._foreign_frames()
             if foreign is not None and not self.take_over:
                 text = f"enable refused: frames of another master since the reset: {foreign}"
@@ -649,7 +650,7 @@ class DriveSession:
                 raise OtherMasterError(text)
             self._refuse_enable_after_causes()
         except HrmError:
-            self.supervisor.guard_idle = True
+            self.supervisor.set_guard_idle(True)
             raise
         t_start = time.monotonic()
         ctl = self.control
@@ -666,7 +667,7 @@ class DriveSession:
             )
         except HrmError:
             self._abort_enable()
-            self.supervisor.guard_idle = True
+            self.supervisor.set_guard_idle(True)
             self._set_state(SessionState.FAULT)
             raise
         order = {link.motor: k for k, link in enumerate(self._links())}
@@ -684,7 +685,7 @@ class DriveSession:
                 "(its configuration is lost)",
             )
         self.supervisor.arm(actual)  # heartbeats supervised from here on, across streams
-        self.supervisor.guard_idle = True  # (armed, the idle watchdogs cover it all)
+        self.supervisor.set_guard_idle(True)  # (armed, the idle watchdogs cover it all)
         self._set_state(SessionState.ENABLED)
         # what was reported while the drives were being enabled is judged now, not at
         # the next deadline: any cause quick-stops every axis at once
@@ -926,7 +927,7 @@ class DriveSession:
         NMT pre-operational)."""
         if self._state is SessionState.CLOSED:
             raise SessionStateError("finish: the session is closed")
-        self.supervisor.guard_idle = False  # the drives are disabled and left from here on
+        self.supervisor.set_guard_idle(False)  # the drives are disabled and left from here
         failed: list[str] = []
         try:
             busy = (Mode.STREAMING, Mode.STOPPING)

@@ -393,6 +393,13 @@ class Supervisor:
                 self.mode = Mode.HEARTBEAT
             self.monitor.armed = False
 
+    def set_guard_idle(self, on: bool) -> bool:
+        """Guard the configured drives while idle (see :attr:`guard_idle`), under the
+        loop's lock; returns False when a quick stop is in progress (mode STOPPING)."""
+        with self._lock:
+            self.guard_idle = on
+            return self.mode is not Mode.STOPPING
+
     def clear_stop_request(self) -> None:
         """Forget a stop asked for before the drives were configured."""
         self._stop_request.clear()
