@@ -277,6 +277,7 @@ def _ply_counts(p: Path) -> None:
     ascii_ = True
     need = 0  # the fewest bytes the elements the header states can take
     count, row = 0, 0
+    element = ""
     for line in [x.decode("ascii", errors="replace") for x in lines[:end]] + ["element"]:
         words = line.split()
         if words[:1] == ["format"] and len(words) > 1:
@@ -284,9 +285,15 @@ def _ply_counts(p: Path) -> None:
         if words[:1] == ["property"] and len(words) > 2:  # ascii: a value and a separator
             kind = words[2] if words[1] == "list" else words[1]
             row += 2 if ascii_ else _PLY_TYPE_BYTES.get(kind, 1)
+            if element == "vertex" and words[1] == "list" and words[-1] in ("x", "y", "z"):
+                # refused from the header: the body of a list is not parsed to find out
+                raise PointCloudError(
+                    f"{p}: PLY vertex property {words[-1]} is a list, not a number"
+                )
         if words[:1] == ["element"]:
             need += count * row
             count, row = 0, 0
+            element = words[1] if len(words) > 1 else ""
         if len(words) == 3 and words[0] == "element":
             try:
                 count = int(words[2])

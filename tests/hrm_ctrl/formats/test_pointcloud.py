@@ -268,3 +268,15 @@ def test_an_npy_header_stating_more_points_than_the_file_holds_is_refused_unread
         np.lib.format.write_array_header_1_0(f, header)
         f.write(b"\0" * 48)
     one_line_error(q, r"states 1000000 points \(24000000 bytes\), but the file has 48 bytes")
+
+
+def test_a_ply_whose_x_is_a_list_is_refused_from_its_header(tmp_path: Path) -> None:
+    """Found by a red-team helper: the whole body was parsed first (about 5 s a million
+    vertices) to find x was a list."""
+    p = tmp_path / "l.ply"
+    p.write_bytes(
+        b"ply\nformat ascii 1.0\nelement vertex 2\nproperty list uchar float x\n"
+        b"property float y\nproperty float z\nend_header\n1 1 2 3\n1 4 5 6\n"
+    )
+    with pytest.raises(PointCloudError, match=r"l\.ply: PLY vertex property x is a list"):
+        read_point_cloud(p)
