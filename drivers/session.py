@@ -55,7 +55,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -538,8 +538,11 @@ class DriveSession:
                 self._set_state(SessionState.FAULT)
                 raise
             self.events.add("disable", "every drive disabled (SWITCHED_ON) before the reset")
-        self._set_state(SessionState.CONNECTED)
         self._guard(False)  # the reset and configuration are this host's own traffic
+        deadline = time.monotonic() + STOP_RECORD_WAIT_S
+        while self.supervisor.mode is Mode.STOPPING and time.monotonic() < deadline:
+            time.sleep(ctl.period_s)  # a quick stop under way is confirmed before the reset
+        self._set_state(SessionState.CONNECTED)
         self.supervisor.clear_stop_request()  # a stop asked for from here on stands
         self.idle_causes = []
         self.stop_error = None
@@ -643,6 +646,8 @@ class DriveSession:
         try:
             if not self.supervisor.set_guard_idle(False):
                 raise SessionStateError("enable refused: a quick stop is in progress")
+            if self._state is not SessionState.READY:  # a guard stop just before: STOPPED
+                raise SessionStateError(f"enable: not allowed in state {self._state.name}")
             foreign = self._foreign_frames()
             if foreign is not None and not self.take_over:
                 text = f"enable refused: frames of another master since the reset: {foreign}"
@@ -678,13 +683,14 @@ class DriveSession:
         self.events.add(
             "enabled", f"every drive OPERATION_ENABLED in CSP ({self.bringup_s:.3f} s bring-up)"
         )
-        for i in np.flatnonzero(self.monitor.rebooted).tolist():  # during the enable
+        self.supervisor.arm(actual)  # heartbeats supervised from here on, across streams
+        # a boot-up during the enable (up to the arming: from there it is a cause itself)
+        for i in np.flatnonzero(self.monitor.rebooted).tolist():
             self.monitor.report(
                 StopKind.BOOTUP,
                 f"{self.monitor.labels[i]}: node rebooted (boot-up frame) during the enable "
                 "(its configuration is lost)",
             )
-        self.supervisor.arm(actual)  # heartbeats supervised from here on, across streams
         self.supervisor.set_guard_idle(True)  # (armed, the idle watchdogs cover it all)
         self._set_state(SessionState.ENABLED)
         # what was reported while the drives were being enabled is judged now, not at
@@ -794,13 +800,26 @@ class DriveSession:
         if was_enabled:
             self._raise_if_stopped()
         self.supervisor.clear_stop_request()  # (asked for while stopped: done by disabling)
+        with self._guard_suspended():
+            try:
+                self._disable_drives("disable")
+            except HrmError:
+                self._set_state(SessionState.FAULT)
+                raise
+            self.events.add("disable", "every drive disabled and shut down (READY_TO_SWITCH_ON)")
+            self._set_state(SessionState.READY)
+
+    @contextlib.contextmanager
+    def _guard_suspended(self) -> Iterator[None]:
+        """While this session walks the drives by SDO (disable, fault reset) and then
+        sets its state, the idle guard waits: another master's frame meanwhile stays
+        queued, and quick-stops every node at the next deadline after (-> STOPPED), not
+        in the middle where the new state would hide it."""
+        self.supervisor.set_guard_idle(False)
         try:
-            self._disable_drives("disable")
-        except HrmError:
-            self._set_state(SessionState.FAULT)
-            raise
-        self.events.add("disable", "every drive disabled and shut down (READY_TO_SWITCH_ON)")
-        self._set_state(SessionState.READY)
+            yield
+        finally:
+            self.supervisor.set_guard_idle(self.monitor.guarding)
 
     def _check_ready(self) -> None:
         """Before the first RPDO of a stream: every drive's statusword (SDO upload of
@@ -1232,6 +1251,11 @@ class DriveSession:
         except SupervisorModeError as exc:
             self.events.add("error", f"reset-fault: {exc}")
         self.supervisor.clear_stop_request()  # (asked for while stopped: nothing enabled)
+        for cause in self.monitor.drain():  # causes of the stop that is being cleared
+            self.events.add(
+                "cause_cleared", f"{cause.text} (cleared by the fault reset)",
+                cause=cause.kind.value, motor=cause.motor,
+            )  # fmt: skip
         timeout_s = self.control.state_timeout_s
         faulty = (cia402.State402.FAULT, cia402.State402.FAULT_REACTION_ACTIVE)
 
@@ -1240,26 +1264,22 @@ class DriveSession:
             drive_to(link, cia402.State402.READY_TO_SWITCH_ON, timeout_s)
             return link.label if state in faulty else None
 
-        try:
-            labels = self._parallel("fault reset", reset_one, self._budget_s(2, 4))
-        except HrmError:
-            self._set_state(SessionState.FAULT)
-            raise
-        reset = [x for x in labels if x is not None]
-        self.events.add(
-            "fault_reset",
-            f"fault reset of {len(reset)} drive(s)"
-            + (f" ({', '.join(reset)})" if reset else "")
-            + "; every drive disabled (READY_TO_SWITCH_ON)",
-        )
-        self.idle_causes = []
-        self.stop_error = None
-        for cause in self.monitor.drain():  # causes of the stop that was just cleared
+        with self._guard_suspended():
+            try:
+                labels = self._parallel("fault reset", reset_one, self._budget_s(2, 4))
+            except HrmError:
+                self._set_state(SessionState.FAULT)
+                raise
+            reset = [x for x in labels if x is not None]
             self.events.add(
-                "cause_cleared", f"{cause.text} (cleared by the fault reset)",
-                cause=cause.kind.value, motor=cause.motor,
-            )  # fmt: skip
-        self._set_state(SessionState.READY)
+                "fault_reset",
+                f"fault reset of {len(reset)} drive(s)"
+                + (f" ({', '.join(reset)})" if reset else "")
+                + "; every drive disabled (READY_TO_SWITCH_ON)",
+            )
+            self.idle_causes = []
+            self.stop_error = None
+            self._set_state(SessionState.READY)
         return reset
 
 

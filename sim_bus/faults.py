@@ -55,9 +55,11 @@ KINDS: dict[str, tuple[int, int]] = {
 }
 
 
-#: garbage bytes before each tension frame, or frames corrupted, at most (the board sends
-#: ~100 frames a second: more garbage than this per frame is not a different fault)
-MAX_SENSOR_FAULT_COUNT = 65_536
+#: garbage bytes before each tension frame at most (made for every frame: more than this
+#: per frame is not a different fault)
+MAX_GARBAGE_BYTES = 65_536
+#: frames with a wrong CRC at most (a counter: ~4 months of frames at 100 a second)
+MAX_CORRUPT_FRAMES = 10**9
 
 
 class FaultSpecError(SimError):
@@ -133,8 +135,9 @@ def _numbers(f: Fault, text: str) -> tuple[int | None, int | None, float]:
         count = _count(f.args[3] if len(f.args) > 3 else None, text)
     elif f.kind in ("sensor-garbage", "sensor-corrupt") and f.args:
         n = _int(f.args[0], "count", text)
-        if not 0 <= n <= MAX_SENSOR_FAULT_COUNT:
-            raise FaultSpecError(f"fault '{text}': count must be in 0..{MAX_SENSOR_FAULT_COUNT}")
+        top = MAX_GARBAGE_BYTES if f.kind == "sensor-garbage" else MAX_CORRUPT_FRAMES
+        if not 0 <= n <= top:
+            raise FaultSpecError(f"fault '{text}': count must be in 0..{top}")
     if cob is not None and not 0 <= cob <= 0x7FF:
         raise FaultSpecError(f"fault '{text}': COB-ID must be in 0..0x7FF")
     return cob, count, delay_s

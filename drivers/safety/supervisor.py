@@ -762,7 +762,7 @@ class Supervisor:
         """Quick stop every node of every bus now (RPDO + SYNC), then STOPPING."""
         causes = unique_causes(causes)
         detected = min((x.time_s for x in causes if x.time_s > 0), default=now)
-        hold = self.targets if self.targets is not None else np.zeros(self.monitor.n, np.int64)
+        hold = self.targets if self.targets is not None else self._fed_back_positions()
         before = hold
         stream = self._stream
         if stream is not None:
@@ -794,13 +794,20 @@ class Supervisor:
         self._confirm_cycles = 0
         self.mode = Mode.STOPPING
 
+    def _fed_back_positions(self) -> np.ndarray:
+        """Where the drives last said they were (0 for a node not heard from): the
+        targets of a quick stop before any drive was enabled (the idle guard's), so none
+        carries a target far from the drive."""
+        mon = self.monitor
+        return np.where(mon.n_tpdo > 0, mon.position, 0).astype(np.int64)
+
     def _stop_targets(self) -> np.ndarray:
         """The next targets of the stop ramp (module docstring): each motor's speed less
         its deceleration, at once; held where the rope layer has no acceleration limits.
         What the SYNC applies is what the drives hold from then on (``targets``)."""
         pos, vel = self._ramp_pos, self._ramp_vel
         if pos is None or vel is None:
-            pos = self.targets if self.targets is not None else np.zeros(self.monitor.n, np.int64)
+            pos = self.targets if self.targets is not None else self._fed_back_positions()
             return np.asarray(pos, dtype=np.int64)
         if self._stop_decel is not None:
             vel = np.sign(vel) * np.maximum(np.abs(vel) - self._stop_decel, 0)

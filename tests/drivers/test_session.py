@@ -392,3 +392,26 @@ def test_a_setpoint_that_is_not_whole_counts_is_refused_and_never_sent(
     ]
     assert set(targets) <= {int(x) for x in actual}  # only the holds and the quick stop
     box.finish()
+
+
+def test_a_boot_up_just_before_the_arming_stops_every_axis(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """Found by a review helper: a boot-up handled between the enable's reboot check and
+    the arming was judged by nobody (the session stayed ENABLED)."""
+    from drivers.session import SafetyStopError
+
+    rig = rig_factory()
+    box = rig.open_box()
+    box.configure()
+    real = box.supervisor.arm
+
+    def boot_then_arm(targets: np.ndarray) -> None:
+        box.monitor.on_heartbeat(0, b"\x00")  # the first node's boot-up, handled now
+        real(targets)
+
+    box.supervisor.arm = boot_then_arm  # type: ignore[method-assign]
+    with pytest.raises(SafetyStopError, match=r"rebooted .*during the enable"):
+        box.enable()
+    assert box.state is SessionState.STOPPED
+    box.finish()

@@ -337,3 +337,38 @@ def test_another_master_after_a_stop_is_quick_stopped_again_and_logged(
               if e["kind"] == "stop_cause" and e.get("cause") == "foreign"]  # fmt: skip
     assert causes and "another master" in causes[0]["text"]
     box.finish()
+
+
+@pytest.mark.parametrize("during", ["disable", "reset_fault"])
+def test_another_master_during_a_disable_or_fault_reset_is_not_hidden_by_ready(
+    rig_factory: Callable[..., Rig], during: str
+) -> None:
+    """Found by a review helper: the idle guard's quick stop in the middle of a disable
+    or a fault reset was overwritten by their READY (and the reset cleared its cause), so
+    with take-over the next enable went ahead.  The guard waits for the SDO walk and
+    stops every node right after it: STOPPED, the cause logged, the enable refused."""
+    from drivers.session import SessionStateError
+
+    rig = rig_factory()
+    box = rig.open_box(take_over=True)
+    box.bring_up()
+    if during == "reset_fault":
+        box.request_stop()
+        assert wait_until(lambda: box.state is SessionState.STOPPED)
+    real = box._parallel
+
+    def with_foreign(what: str, fn: Any, timeout_s: float) -> Any:
+        if what in ("disable", "fault reset"):
+            send_from_outside(rig, 0, cia301.make_sync())  # while our SDOs walk the drives
+            time.sleep(3 * T)
+        return real(what, fn, timeout_s)
+
+    box._parallel = with_foreign  # type: ignore[method-assign]
+    getattr(box, during)()
+    box._parallel = real  # type: ignore[method-assign]
+    assert wait_until(lambda: box.state is SessionState.STOPPED)
+    assert any(e["kind"] == "stop_cause" and e.get("cause") == "foreign"
+               for e in box.record()["events"])  # fmt: skip
+    with pytest.raises(SessionStateError, match="not allowed in state STOPPED"):
+        box.enable()
+    box.finish()
