@@ -946,7 +946,7 @@ class DriveSession:
         NMT pre-operational)."""
         if self._state is SessionState.CLOSED:
             raise SessionStateError("finish: the session is closed")
-        self.supervisor.set_guard_idle(False)  # the drives are disabled and left from here
+        self._guard(False)  # the drives are disabled and left from here on
         failed: list[str] = []
         try:
             busy = (Mode.STREAMING, Mode.STOPPING)

@@ -53,6 +53,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import Any
 
 import numpy as np
 
@@ -87,6 +88,8 @@ STOP_SYNC_MIN_SPACING = 0.95
 #: how long a quick stop's burst may wait for room in one bus's transmit queue: a bus
 #: whose queue stays full cannot hold back the other buses' stop for more than this
 STOP_SEND_TIMEOUT_S = 0.002
+_STOP_SEND: dict[str, Any] = {"timeout_s": STOP_SEND_TIMEOUT_S, "keep_going": True}
+_CYCLE_SEND: dict[str, Any] = {}  # BusPort's own timeout, the first failure ends the batch
 #: causes that quick-stop every node with no drive supervised (drives configured)
 _GUARDED_WHILE_IDLE = frozenset({StopKind.FOREIGN})
 
@@ -633,12 +636,9 @@ class Supervisor:
         failed: list[StopCause] = []
         for layout in self.layouts:
             try:
-                if stopping:  # a full queue holds no bus back long, a failed frame no node
-                    layout.port.send_batch(
-                        layout.rpdo_batch(controlword, targets), STOP_SEND_TIMEOUT_S, True
-                    )
-                else:
-                    layout.port.send_batch(layout.rpdo_batch(controlword, targets))
+                # a quick stop: a full queue holds no bus back long, a failed frame no node
+                kw = _STOP_SEND if stopping else _CYCLE_SEND
+                layout.port.send_batch(layout.rpdo_batch(controlword, targets), **kw)
             except BusSendError as exc:
                 failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
         self._rpdos_sent_at = self.clock()
@@ -658,10 +658,7 @@ class Supervisor:
         failed: list[StopCause] = []
         for layout in self.layouts:
             try:
-                if stopping:
-                    layout.port.send_batch(self._sync, STOP_SEND_TIMEOUT_S, True)
-                else:
-                    layout.port.send_batch(self._sync)
+                layout.port.send_batch(self._sync, **(_STOP_SEND if stopping else _CYCLE_SEND))
             except BusSendError as exc:
                 failed.append(StopCause(StopKind.SEND, str(exc), None, self.clock()))
         self._last_sync_at = self.clock()
