@@ -867,9 +867,6 @@ class BusPort:
         by frame.  ``keep_going`` (a quick stop's burst): frame by frame, a frame that
         fails does not hold back the ones after it, and ``timeout_s`` bounds the whole
         batch (not each frame); the failures are raised together after the last frame."""
-        if keep_going and self._send_batch is None:
-            self._send_each(msgs, timeout_s)
-            return
         now = time.time()
         echoes = self.echoes
         mono = time.monotonic()
@@ -897,27 +894,12 @@ class BusPort:
             except (can.CanError, OSError, ValueError) as exc:
                 raise BusSendError(f"bus {self.name}: send failed ({exc})") from None
             return
-        try:
-            with self._lock:
-                for msg in msgs:
-                    msg.timestamp = now
-                    msg.is_rx = False
-                    if echoes is not None:
-                        echoes.add(msg, mono)
-                    try:
-                        self.bus.send(msg, timeout=timeout_s)
-                    except BaseException:
-                        if echoes is not None:
-                            echoes.discard(msg)
-                        raise
-                    self.n_sent += 1
-                    if self.log is not None:
-                        self.log.log_sent(msg)
-        except (can.CanError, OSError, ValueError) as exc:
-            raise BusSendError(f"bus {self.name}: send failed ({exc})") from None
+        self._send_each(msgs, timeout_s, keep_going)
 
-    def _send_each(self, msgs: list[can.Message], timeout_s: float) -> None:
-        """Every frame tried in order within ``timeout_s`` in all (see :meth:`send_many`)."""
+    def _send_each(self, msgs: list[can.Message], timeout_s: float, keep_going: bool) -> None:
+        """Frame by frame (see :meth:`send_many`): each frame waits up to ``timeout_s``
+        and the first failure ends the batch; with ``keep_going`` every frame is tried,
+        all within ``timeout_s``, and the failures are raised together at the end."""
         now = time.time()
         echoes = self.echoes
         mono = time.monotonic()
@@ -929,11 +911,16 @@ class BusPort:
                 msg.is_rx = False
                 if echoes is not None:
                     echoes.add(msg, mono)
+                wait_s = max(0.0, deadline - time.monotonic()) if keep_going else timeout_s
                 try:
-                    self.bus.send(msg, timeout=max(0.0, deadline - time.monotonic()))
-                except (can.CanError, OSError, ValueError) as exc:
+                    self.bus.send(msg, timeout=wait_s)
+                except BaseException as exc:
                     if echoes is not None:
                         echoes.discard(msg)
+                    if not isinstance(exc, can.CanError | OSError | ValueError):
+                        raise
+                    if not keep_going:
+                        raise BusSendError(f"bus {self.name}: send failed ({exc})") from None
                     failed.append(f"0x{msg.arbitration_id:03X} ({exc})")
                     continue
                 self.n_sent += 1
