@@ -10,6 +10,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -85,28 +86,24 @@ def test_wire_faults_through_the_box_and_reset() -> None:
             h.shutdown()
 
 
-def test_runner_control_channel_in_process(tmp_path: Path) -> None:
-    tag = uuid.uuid4().hex[:8]
-    doc = {
-        "buses": {
-            "can0": {
-                "interface": "hrm_sim",
-                "channel": f"r-{tag}",
-                "bitrate": 1_000_000,
-                "nodes": {"j01r0": 1},
-            }
-        }
-    }
-    cfg = box_config_from_dict(doc, "test")
-    inp = io.StringIO("state\nfault rope-snap:j01r0\nfault bogus\nstats\nquit\n")
+def run_control(inp: io.StringIO) -> list[dict[str, Any]]:
+    """A one-drive box run in a thread on the control lines of ``inp``: its JSON events."""
+    doc = {"buses": {"can0": {"interface": "hrm_sim", "channel": f"r-{uuid.uuid4().hex[:8]}",
+                              "bitrate": 1_000_000, "nodes": {"j01r0": 1}}}}  # fmt: skip
     out = io.StringIO()
     t = threading.Thread(
-        target=run_box_process, args=(cfg,), kwargs={"control": True, "out": out, "inp": inp}
+        target=run_box_process,
+        args=(box_config_from_dict(doc, "test"),),
+        kwargs={"control": True, "out": out, "inp": inp},
     )
     t.start()
     t.join(20.0)
     assert not t.is_alive()
-    events = [json.loads(line) for line in out.getvalue().splitlines()]
+    return [json.loads(line) for line in out.getvalue().splitlines()]
+
+
+def test_runner_control_channel_in_process(tmp_path: Path) -> None:
+    events = run_control(io.StringIO("state\nfault rope-snap:j01r0\nfault bogus\nstats\nquit\n"))
     kinds = [e["event"] for e in events]
     assert kinds[0] == "ready" and Path(events[0]["tension_port"]).name.isdigit()
     assert kinds[1:] == ["state", "fault", "error", "stats", "stopped"]
@@ -185,20 +182,9 @@ def test_control_channel_bounds_its_lines_and_schedules_a_fault_at_its_time() ->
     """A control line over 4096 characters is one error event (a 200 MB line was read
     whole and echoed back), and ``fault SPEC@T`` waits until T (it was applied at once);
     a fault count over the bound is refused (a huge one killed the tension board)."""
-    tag = uuid.uuid4().hex[:8]
-    doc = {"buses": {"can0": {"interface": "hrm_sim", "channel": f"s-{tag}",
-                              "bitrate": 1_000_000, "nodes": {"j01r0": 1}}}}  # fmt: skip
-    cfg = box_config_from_dict(doc, "test")
     inp = _SlowInput("x" * 10_000 + "\nfault rope-snap:j01r0@0.1\nfault sensor-garbage:70000\n",
                      wait_s=1.0)  # fmt: skip
-    out = io.StringIO()
-    t = threading.Thread(
-        target=run_box_process, args=(cfg,), kwargs={"control": True, "out": out, "inp": inp}
-    )
-    t.start()
-    t.join(20.0)
-    assert not t.is_alive()
-    events = [json.loads(line) for line in out.getvalue().splitlines()]
+    events = run_control(inp)
     assert [e["event"] for e in events[1:]] == [
         "error", "fault_scheduled", "error", "fault", "stopped"
     ]  # fmt: skip
