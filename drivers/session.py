@@ -1048,6 +1048,8 @@ class DriveSession:
         record that cannot be written even so raises :class:`DriverError` (one line)."""
         self.supervisor.close()
         self._close_io()
+        if not self.supervisor.alive:  # its thread selects on the descriptor
+            self.monitor.wake.close()
         self._gc_hold.release()
         self._set_state(SessionState.CLOSED)
         if self.log_dir is None:

@@ -76,6 +76,8 @@ class Fault:
 def parse_fault(text: str) -> Fault:
     """Parse ``KIND[:ARG...][@T]`` (see the module docstring)."""
     spec = text.strip()
+    if any(c < " " or c == "\x7f" for c in spec):  # a newline would start another command
+        raise FaultSpecError(f"fault {spec!r}: control character in the spec")
     at: float | None = None
     if "@" in spec:
         spec, _, when = spec.rpartition("@")

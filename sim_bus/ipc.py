@@ -1003,6 +1003,66 @@ def open_ends(
     return ends
 
 
+_SOCKET_NAME = re.compile(r"([0-9]{1,10})-[0-9]{1,20}\.sock")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM (another user's: not ours to judge) and the like
+        return True
+    try:  # a zombie (killed, not yet reaped) is gone too
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rpartition(b")")[2].split()[:1] != [b"Z"]
+    except OSError:
+        return True
+
+
+def remove_stale_channels(
+    prefix: str, directory: str | os.PathLike[str] | None = None
+) -> list[Path]:
+    """Remove the folders of channels named ``prefix...`` whose ends are all gone: every
+    entry a ``<pid>-<n>.sock`` of a process that no longer exists (left by a process killed
+    before its :meth:`IpcBus.shutdown`).  A folder with a live process's socket, any other
+    entry (a socket being bound), or none at all is left alone.  The folders removed.
+
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     dead = Path(d, "hrm-ipc-x-dead"); dead.mkdir(); Path(dead, "999999999-0.sock").touch()
+    ...     live = Path(d, "hrm-ipc-x-live"); live.mkdir()
+    ...     Path(live, f"{os.getpid()}-0.sock").touch()
+    ...     [p.name for p in remove_stale_channels("x-", d)], live.exists()
+    (['hrm-ipc-x-dead'], True)
+    """
+    base = Path(directory) if directory is not None else default_directory()
+    removed: list[Path] = []
+    try:
+        folders = [e for e in os.scandir(base) if e.name.startswith("hrm-ipc-" + prefix)]
+    except OSError:
+        return removed
+    for entry in folders:
+        if not entry.is_dir(follow_symlinks=False):
+            continue
+        folder = Path(entry.path)
+        try:
+            names = os.listdir(folder)
+        except OSError:
+            continue
+        pids = [m and int(m.group(1)) for m in map(_SOCKET_NAME.fullmatch, names)]
+        if not names or None in pids or any(_pid_alive(int(p)) for p in pids):
+            continue
+        try:
+            for name in names:
+                os.unlink(folder / name)
+            folder.rmdir()
+        except OSError:
+            continue
+        removed.append(folder)
+    return removed
+
+
 __all__ = [
     "MAX_DATAGRAM_BYTES",
     "MAX_FRAMES_PER_DATAGRAM",
@@ -1011,4 +1071,5 @@ __all__ = [
     "default_directory",
     "encode_frame",
     "open_ends",
+    "remove_stale_channels",
 ]

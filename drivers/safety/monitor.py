@@ -73,29 +73,49 @@ class WakeEvent:
     def __init__(self) -> None:
         self._fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         self._flag = False
+        # set/clear (any thread) against close: never a write to a closed, reused fd
+        self._fd_lock = threading.Lock()
 
     def fileno(self) -> int:
         return self._fd
 
     def set(self) -> None:
         self._flag = True
-        os.eventfd_write(self._fd, 1)
+        with self._fd_lock:
+            if self._fd >= 0:
+                os.eventfd_write(self._fd, 1)
 
     def clear(self) -> None:
         self._flag = False
-        try:
-            os.eventfd_read(self._fd)
-        except BlockingIOError:
-            pass
+        with self._fd_lock:
+            if self._fd < 0:
+                return
+            try:
+                os.eventfd_read(self._fd)
+            except BlockingIOError:
+                pass
 
     def is_set(self) -> bool:
         return self._flag
 
     def wait(self, timeout: float | None = None) -> bool:
         """Whether the event is set, waiting at most ``timeout`` s for it."""
-        if not self._flag:
+        if not self._flag and self._fd >= 0:
             select.select([self._fd], [], [], timeout)
         return self._flag
+
+    def close(self) -> None:
+        """Release the descriptor (idempotent; afterwards ``set`` only sets the flag).
+        Its owner closes it when its waiter is gone: not left to the garbage collector,
+        one descriptor per session would pile up between collections.
+
+        >>> ev = WakeEvent(); ev.close(); ev.close(); ev.set(); ev.is_set(), ev.fileno()
+        (True, -1)
+        """
+        with self._fd_lock:
+            fd, self._fd = self._fd, -1
+            if fd >= 0:
+                os.close(fd)
 
     def __del__(self) -> None:
         fd, self._fd = getattr(self, "_fd", -1), -1

@@ -42,6 +42,7 @@ Fixtures (``hrm_box*`` module-scoped: one box serves a test module; the rest per
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import warnings
 from collections.abc import Iterator
@@ -62,6 +63,10 @@ def bus_list(text: str) -> tuple[str, ...]:
 
     >>> bus_list("ipc,udp_multicast")
     ('ipc', 'udp_multicast')
+    >>> bus_list("auto,ipc")
+    Traceback (most recent call last):
+    ...
+    argparse.ArgumentTypeError: 'auto' is 'ipc' or 'udp_multicast': not both 'auto' and 'ipc'
     """
     import argparse
 
@@ -72,6 +77,16 @@ def bus_list(text: str) -> tuple[str, ...]:
             f"unknown bus kind(s) {', '.join(bad) or repr(text)} "
             f"(choose from {', '.join(BUS_CHOICES)})"
         )
+    # each kind once: the same bus twice would run every test twice on it
+    twice = sorted({k for k in kinds if kinds.count(k) > 1})
+    if twice:
+        raise argparse.ArgumentTypeError(f"bus kind(s) given twice: {', '.join(twice)}")
+    if "auto" in kinds:
+        for k in ("ipc", "udp_multicast"):
+            if k in kinds:
+                raise argparse.ArgumentTypeError(
+                    f"'auto' is 'ipc' or 'udp_multicast': not both 'auto' and {k!r}"
+                )
     return kinds
 
 
@@ -79,10 +94,8 @@ def _int_in(text: str, hi: int, unit: str = "") -> int:
     """An option's integer in 0..hi, else argparse's usage error naming the range."""
     import argparse
 
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
+    # ASCII digits only (int() would also take ' 3', '1_0', '+3' and other scripts' digits)
+    value = int(text) if text.isascii() and text.isdigit() and len(text) <= 12 else -1
     if not 0 <= value <= hi:
         raise argparse.ArgumentTypeError(f"must be an integer in 0..{hi}{unit}, got {text!r}")
     return value
@@ -100,6 +113,19 @@ def cpu_latency_us(text: str) -> int:
     from drivers.realtime import CPU_LATENCY_NO_REQUEST_US
 
     return _int_in(text, CPU_LATENCY_NO_REQUEST_US, " (us)")
+
+
+@contextlib.contextmanager
+def _one_line(fixture: str) -> Iterator[None]:
+    """The stack's errors in a fixture's set-up or teardown (a bad ``hrm_box_nodes``, a box
+    that would not start or has gone) as one line naming the fixture, not a traceback
+    through the plugin's code."""
+    from hrm_ctrl.errors import HrmError
+
+    try:
+        yield
+    except HrmError as exc:
+        pytest.fail(f"{fixture}: {exc}", pytrace=False)
 
 
 @pytest.fixture(scope="session")
@@ -251,7 +277,9 @@ def hrm_box_config(
             stacklevel=1,
         )
     path = tmp_path_factory.mktemp("hrm-hil") / "box.toml"
-    return write_box_toml(path, hrm_bus_kind, hrm_box_nodes, control)
+    with _one_line("hrm_box_config"):
+        write_box_toml(path, hrm_bus_kind, hrm_box_nodes, control)
+    return path
 
 
 @pytest.fixture(scope="module")
@@ -261,11 +289,16 @@ def hrm_box(
     """The simulated box, started (its drives booted, its tension board running)."""
     from hrm_ctrl.hil.rig import start_box
 
-    box = start_box(hrm_box_config, hrm_box_mode, hrm_rt_priority)
+    with _one_line("hrm_box"):
+        box = start_box(hrm_box_config, hrm_box_mode, hrm_rt_priority)
     try:
         yield box
     finally:
         box.close()
+
+
+#: ``hrm_fault.after``'s longest delay (an hour: longer than any test should run)
+MAX_FAULT_DELAY_S = 3600.0
 
 
 class FaultInjector:
@@ -280,7 +313,9 @@ class FaultInjector:
     def __call__(self, spec: str) -> dict[str, Any]:
         """Apply ``spec`` now; the box's reply (``{"event": "fault", "fault": ...}``)."""
         from hrm_ctrl.hil.rig import fault
+        from sim_bus.faults import parse_fault
 
+        parse_fault(spec)  # a malformed spec: FaultSpecError here, whichever box it is
         reply = fault(self.box, spec)
         self.applied.append(reply)
         return reply
@@ -288,9 +323,17 @@ class FaultInjector:
     def after(self, delay_s: float, spec: str) -> threading.Timer:
         """Apply ``spec`` in ``delay_s`` seconds (a started timer); a failure to apply it
         is raised after the test."""
-        from sim_bus.faults import parse_fault
+        from sim_bus.faults import FaultSpecError, parse_fault
 
         parse_fault(spec)  # a bad spec fails here, not in the timer's thread
+        # so does a bad delay (a timer given inf or a string dies in its thread, a fault
+        # never applied; nan or a negative one applies at once)
+        ok = isinstance(delay_s, int | float) and not isinstance(delay_s, bool)
+        if not ok or not 0.0 <= delay_s <= MAX_FAULT_DELAY_S:
+            raise FaultSpecError(
+                f"hrm_fault.after: delay must be a number of seconds in "
+                f"0..{MAX_FAULT_DELAY_S:g}, got {delay_s!r}"
+            )
         timer = threading.Timer(delay_s, self._later, args=(spec,))
         timer.daemon = True
         self._timers.append(timer)
@@ -324,7 +367,8 @@ def hrm_fault(hrm_box: HilBox) -> Iterator[FaultInjector]:
     try:
         yield injector
     finally:
-        injector.undo()
+        with _one_line("hrm_fault"):
+            injector.undo()
 
 
 @pytest.fixture
@@ -346,7 +390,8 @@ def hrm_host(
     Its CAN logs and run record go to ``tmp_path``."""
     from hrm_ctrl.hil.rig import INPROCESS_TENSION_STALE_S, BoxMode, HilHost, fault
 
-    fault(hrm_box, "reset")
+    with _one_line("hrm_host"):
+        fault(hrm_box, "reset")
     stale = INPROCESS_TENSION_STALE_S if hrm_box_mode is BoxMode.INPROCESS else None
     host = HilHost(hrm_box, tmp_path, tension_stale_s=stale)
     try:

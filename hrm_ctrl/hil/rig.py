@@ -21,8 +21,10 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import math
 import os
 import queue
+import re
 import socket
 import subprocess
 import sys
@@ -58,6 +60,8 @@ class BoxMode(StrEnum):
 
 
 IPC_INTERFACE = "hrm_ipc"
+MAX_BUSES = 8  # node maps (buses) of one HIL box at most
+HIL_CHANNEL_PREFIX = "hrm-hil-"  # the channels of HIL boxes: hrm-hil-<tag>-<bus>
 READY_TIMEOUT_S = 20.0  # the box process: start-up to its "ready" line (36 drives booted)
 REPLY_TIMEOUT_S = 5.0  # one control command's reply
 #: the host's listen for another master before its first reset: the box takes over on
@@ -135,6 +139,65 @@ def unavailable(kind: BusKind, mode: BoxMode, n_buses: int = 2) -> str | None:
     return None
 
 
+_TOML_KEY = re.compile(r"[A-Za-z0-9_-]{1,64}")
+
+
+def check_nodes(nodes: object) -> tuple[dict[str, int], ...]:
+    """``hrm_box_nodes``: a sequence of node maps (rope motor -> node id), one per bus;
+    anything else a one-line :class:`SimError` naming the entry.
+
+    >>> check_nodes([{"j01r0": 1}])
+    ({'j01r0': 1},)
+    >>> check_nodes(("j01r0",))
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.SimError: hrm_box_nodes[0]: a node map (motor -> node id), got 'j01r0'
+    """
+    if isinstance(nodes, str | bytes | Mapping) or not isinstance(nodes, Sequence):
+        raise SimError(f"hrm_box_nodes: a sequence of node maps, one per bus, got {nodes!r:.80}")
+    if not 1 <= len(nodes) <= MAX_BUSES:
+        raise SimError(f"hrm_box_nodes: 1..{MAX_BUSES} buses, got {len(nodes)}")
+    out = []
+    for k, bus_nodes in enumerate(nodes):
+        if not isinstance(bus_nodes, Mapping):
+            raise SimError(
+                f"hrm_box_nodes[{k}]: a node map (motor -> node id), got {bus_nodes!r:.80}"
+            )
+        for motor, node in bus_nodes.items():
+            if not isinstance(motor, str) or not _TOML_KEY.fullmatch(motor):
+                raise SimError(f"hrm_box_nodes[{k}]: motor name {motor!r:.80} is not a name")
+            if isinstance(node, bool) or not isinstance(node, int):
+                raise SimError(f"hrm_box_nodes[{k}][{motor!r}]: node id must be an integer")
+        out.append(dict(bus_nodes))
+    return tuple(out)
+
+
+def check_control(control: object) -> dict[str, Any]:
+    """``hrm_control``: ``[control]`` keys to numbers, booleans or strings (checked
+    against their ranges when the configuration loads); anything else a one-line
+    :class:`SimError` naming the key.
+
+    >>> check_control({"missing_tpdo_cycles": 5})
+    {'missing_tpdo_cycles': 5}
+    >>> check_control({"heartbeat_timeout_ms": float("nan")})
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.SimError: hrm_control['heartbeat_timeout_ms']: nan is not a finite number
+    """
+    if not isinstance(control, Mapping):
+        raise SimError(f"hrm_control: a mapping of [control] keys, got {control!r:.80}")
+    for key, value in control.items():
+        if not isinstance(key, str) or not _TOML_KEY.fullmatch(key):
+            raise SimError(f"hrm_control: key {key!r:.80} is not a [control] key name")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise SimError(f"hrm_control[{key!r}]: {value!r} is not a finite number")
+        if isinstance(value, str) and any(c < " " or c == "\x7f" for c in value):
+            raise SimError(f"hrm_control[{key!r}]: control character in {value!r:.80}")
+        if not isinstance(value, bool | int | float | str):
+            raise SimError(f"hrm_control[{key!r}]: a number, boolean or string, got {value!r:.80}")
+    return dict(control)
+
+
 def box_toml(
     kind: BusKind,
     nodes: Sequence[Mapping[str, int]],
@@ -147,7 +210,8 @@ def box_toml(
     >>> "missing_tpdo_cycles = 3" in text, 'interface = "virtual"' in text
     (True, True)
     """
-    table = {**production_control(), **(control or {})}
+    nodes = check_nodes(nodes)
+    table = {**production_control(), **check_control(control or {})}
     lines = ["[control]"] + [f"{k} = {json.dumps(v)}" for k, v in table.items()]
     tag = uuid.uuid4().hex[:8]
     group = os.getpid() % 200 + 20
@@ -168,11 +232,11 @@ def box_toml(
         elif kind is BusKind.IPC:
             lines += [
                 f'interface = "{IPC_INTERFACE}"',
-                f'channel = "hrm-hil-{tag}-{name}"',
+                f'channel = "{HIL_CHANNEL_PREFIX}{tag}-{name}"',
                 "bitrate = 1000000",
             ]
         else:
-            lines += ['interface = "virtual"', f'channel = "hrm-hil-{tag}-{name}"']
+            lines += ['interface = "virtual"', f'channel = "{HIL_CHANNEL_PREFIX}{tag}-{name}"']
             lines += ["bitrate = 1000000"]
         lines.append(f"[buses.{name}.nodes]")
         lines += [f"{m} = {n}" for m, n in bus_nodes.items()]
@@ -188,7 +252,12 @@ def write_box_toml(
     """Write :func:`box_toml` to ``path`` and check it loads (``BusConfigError`` if not)."""
     from drivers.config import load_box_config
 
-    path.write_text(box_toml(kind, nodes, control))
+    text = box_toml(kind, nodes, control)
+    if kind is BusKind.IPC:  # the channel folders of earlier runs killed before their end
+        from sim_bus.ipc import remove_stale_channels
+
+        remove_stale_channels(HIL_CHANNEL_PREFIX)
+    path.write_text(text)
     load_box_config(path)
     return path
 
@@ -301,6 +370,9 @@ class BoxProcess:
             stderr=self._stderr,
             text=True,
             cwd=cwd,
+            # its own session: a terminal's Ctrl-C (SIGINT to the foreground process
+            # group) reaches the test run, which stops the box itself (``quit``)
+            start_new_session=True,
         )
         self.lines: queue.Queue[dict[str, Any]] = queue.Queue(maxsize=10_000)
         threading.Thread(target=self._read, name="hil-box-stdout", daemon=True).start()
@@ -336,17 +408,28 @@ class BoxProcess:
                 return obj
             if obj.get("event") == "error":
                 raise SimError(f"box process {self.config_path}: {obj['error']}")
-        err = ""
-        if self.proc.poll() is not None:  # the box died: say what it printed
+        if self.proc.poll() is not None:  # the box died: say so, and what it printed
+            raise SimError(self._gone())
+        raise SimError(f"box process {self.config_path}: no '{event}' within {timeout_s} s")
+
+    def _gone(self) -> str:
+        """The box process has exited: its status and the last lines it printed."""
+        try:
             self._stderr.seek(0)
-            err = ": " + " | ".join(self._stderr.read().strip().splitlines()[-3:])
-        raise SimError(f"box process {self.config_path}: no '{event}' within {timeout_s} s{err}")
+            err = " | ".join(self._stderr.read().strip().splitlines()[-3:])
+        except ValueError:  # closed: the box was closed
+            err = ""
+        return f"box process {self.config_path}: exited (status {self.proc.returncode})" + (
+            f": {err}" if err else ""
+        )
 
     def command(self, text: str, reply: str, timeout_s: float = REPLY_TIMEOUT_S) -> dict[str, Any]:
         """Send one control command; its reply (one command at a time)."""
+        if any(c < " " or c == "\x7f" for c in text):  # one command is one line
+            raise SimError(f"box process {self.config_path}: control character in {text!r}")
         with self._lock:
             if self.proc.stdin is None or self.proc.poll() is not None:
-                raise SimError(f"box process {self.config_path}: not running")
+                raise SimError(self._gone())
             self.proc.stdin.write(text + "\n")
             self.proc.stdin.flush()
             return self.wait(reply, timeout_s)
@@ -394,6 +477,8 @@ class InProcessBox:
         """Run one control command (``timeout_s``: unused, the call is direct)."""
         from sim_bus.runner import _command
 
+        if any(c < " " or c == "\x7f" for c in text):  # as a box process: one line
+            raise SimError(f"in-process box {self.config_path}: control character in {text!r}")
         out = io.StringIO()
         with self._lock:
             _command(text.strip(), self.box, self.board, out, time.monotonic() - self._t0)

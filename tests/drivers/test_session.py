@@ -415,3 +415,35 @@ def test_a_boot_up_just_before_the_arming_stops_every_axis(
         box.enable()
     assert box.state is SessionState.STOPPED
     box.finish()
+
+
+def _eventfds() -> int:
+    """This process's open eventfd descriptors."""
+    import os
+
+    names = []
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            names.append(os.readlink(f"/proc/self/fd/{fd}"))
+        except OSError:  # the listing's own descriptor, closed meanwhile
+            continue
+    return sum(1 for n in names if n == "anon_inode:[eventfd]")
+
+
+def test_a_closed_session_holds_no_descriptor_until_a_garbage_collection(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    import gc
+
+    rig = rig_factory()
+    gc.disable()  # the collector must not be what releases them
+    try:
+        before = _eventfds()
+        for _ in range(3):
+            box = rig.open_box()
+            assert _eventfds() == before + 1  # the supervisor's wake-up descriptor
+            box.close()
+            assert box.monitor.wake.fileno() == -1
+            assert _eventfds() == before
+    finally:
+        gc.enable()

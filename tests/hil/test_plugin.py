@@ -76,7 +76,17 @@ def test_an_unknown_bus_is_a_usage_error(tmp_path: Path) -> None:
     assert "Traceback" not in res.stderr
 
 
-@pytest.mark.parametrize("value", ["50", "-1", "high"])
+@pytest.mark.parametrize("value", ["ipc,ipc", "auto,ipc", "udp_multicast,auto"])
+def test_a_bus_given_twice_is_a_usage_error(tmp_path: Path, value: str) -> None:
+    """``auto`` is ``ipc`` or ``udp_multicast``: either beside it is the same bus twice
+    (every test would run twice on it)."""
+    (tmp_path / "test_x.py").write_text("def test_nothing():\n    pass\n")
+    res = run_pytest(tmp_path, "--hrm-bus", value)
+    assert res.returncode == 4, res.stdout + res.stderr
+    assert "--hrm-bus" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("value", ["50", "-1", "high", " 3", "1_0", "+3", "\u0663"])
 def test_a_realtime_priority_outside_the_safe_range_is_a_usage_error(
     tmp_path: Path, value: str
 ) -> None:
@@ -215,3 +225,69 @@ def test_the_wire_log_reads_logs_bounded(tmp_path: Path) -> None:
     os.mkfifo(paths[1])  # would block a reader for ever
     with pytest.raises(RunLogError, match=r"run_b\.blf: CAN log is not a regular file"):
         WireLog.read(paths, ["a", "b"])
+
+
+BAD_FIXTURES = {
+    "nodes-not-maps": ("hrm_box_nodes", "('j01r0',)", "hrm_box_nodes[0]: a node map"),
+    "nodes-bad-id": ("hrm_box_nodes", "({'j01r0': 1.5},)", "node id must be an integer"),
+    "control-nan": (
+        "hrm_control",
+        "{'heartbeat_timeout_ms': float('nan')}",
+        "hrm_control['heartbeat_timeout_ms']: nan is not a finite number",
+    ),
+    "control-out-of-range": ("hrm_control", "{'missing_tpdo_cycles': 0}", "missing_tpdo_cycles"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FIXTURES))
+def test_a_bad_fixture_value_is_one_line_naming_it(tmp_path: Path, case: str) -> None:
+    """A user's ``hrm_box_nodes``/``hrm_control`` override that is not a box: the test
+    errors with one line naming the fixture and entry, not a traceback through the plugin."""
+    name, value, words = BAD_FIXTURES[case]
+    (tmp_path / "test_x.py").write_text(
+        "import pytest\n"
+        f"@pytest.fixture(scope='module')\ndef {name}():\n    return {value}\n"
+        "def test_box(hrm_box):\n    pass\n"
+    )
+    res = run_pytest(tmp_path, "--hrm-bus", "virtual", "--hrm-box", "inprocess")
+    assert res.returncode == 1 and "1 error" in res.stdout, res.stdout + res.stderr
+    assert "hrm_box_config: " in res.stdout and words in res.stdout, res.stdout
+    assert "Traceback" not in res.stdout and "rig.py" not in res.stdout, res.stdout
+
+
+def test_a_box_process_that_exits_at_once_is_reported_with_its_status(tmp_path: Path) -> None:
+    """A motor the rope layer does not know: ``hrm sim`` refuses it and exits at once; the
+    error says so (not a 20 s wait for 'ready')."""
+    (tmp_path / "test_x.py").write_text(
+        "import pytest\n"
+        "@pytest.fixture(scope='module')\ndef hrm_box_nodes():\n    return ({'j99r9': 1},)\n"
+        "def test_box(hrm_box):\n    pass\n"
+    )
+    res = run_pytest(tmp_path, "--hrm-bus", "auto")
+    assert res.returncode == 1 and "1 error" in res.stdout, res.stdout + res.stderr
+    assert re.search(r"hrm_box: box process \S+: exited \(status 2\): .*j99r9", res.stdout)
+    assert "within" not in res.stdout and "Traceback" not in res.stdout, res.stdout
+
+
+def test_fault_injection_refuses_what_would_hide_or_smuggle_a_fault(tmp_path: Path) -> None:
+    """``hrm_fault.after`` refuses a delay that is not a number of seconds in range (a timer
+    would die in its thread and the fault never come, or come at once); a spec with a
+    newline (a second box command) is refused and the box keeps running; the box process
+    is in a session of its own (a terminal's Ctrl-C reaches only the test run)."""
+    (tmp_path / "test_x.py").write_text(
+        "import math, os, pytest\n"
+        "from sim_bus.faults import FaultSpecError\n"
+        "@pytest.fixture(scope='module')\ndef hrm_box_nodes():\n"
+        "    return ({'j01r0': 1, 'j01r1': 2},)\n"
+        "@pytest.mark.parametrize('delay', [math.inf, 1e300, math.nan, -1.0, '0.1', True])\n"
+        "def test_delay(hrm_fault, delay):\n"
+        "    with pytest.raises(FaultSpecError, match='delay must be a number of seconds'):\n"
+        "        hrm_fault.after(delay, 'heartbeat-stop:j01r1')\n"
+        "def test_newline(hrm_box, hrm_fault, hrm_arm_state):\n"
+        "    with pytest.raises(FaultSpecError, match='control character'):\n"
+        "        hrm_fault('heartbeat-stop:j01r1\\nquit')\n"
+        "    assert hrm_box.proc.poll() is None and hrm_arm_state().counts\n"
+        "    assert os.getsid(hrm_box.proc.pid) != os.getsid(0)\n"
+    )
+    res = run_pytest(tmp_path, "--hrm-bus", "auto")
+    assert res.returncode == 0 and "7 passed" in res.stdout, res.stdout + res.stderr

@@ -29,6 +29,7 @@ from sim_bus.ipc import (
     VERSION,
     IpcBus,
     open_ends,
+    remove_stale_channels,
 )
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -369,6 +370,27 @@ def test_a_dead_peer_is_dropped_and_its_stale_socket_unlinked(folder: str) -> No
         p.wait(30.0)
         a.shutdown()
         b.shutdown()
+
+
+def test_the_folder_of_a_channel_whose_ends_were_killed_is_removed(folder: str) -> None:
+    """A process killed before its shutdown leaves the channel folder with its socket;
+    a live end's folder is kept, and so is a folder of another prefix."""
+    p = _child(folder, "idle")
+    live = IpcBus("kid-live", directory=folder)
+    other = Path(folder, "hrm-ipc-other")
+    other.mkdir()
+    Path(other, "999999999-0.sock").touch()  # stale, but not ours to remove
+    try:
+        p.kill()
+        p.wait(30.0)
+        stale = Path(folder, "hrm-ipc-kid")
+        assert [f.name for f in stale.iterdir()] == [f"{p.pid}-0.sock"]  # left behind
+        assert remove_stale_channels("kid", folder) == [stale]
+        assert not stale.exists()
+        assert live.path.exists() and other.exists()
+        assert remove_stale_channels("kid", folder) == []
+    finally:
+        live.shutdown()
 
 
 def test_a_stale_socket_file_is_unlinked_at_scan(folder: str) -> None:
