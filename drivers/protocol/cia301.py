@@ -279,14 +279,24 @@ def make_heartbeat(node_id: int, nmt_state: int) -> can.Message:
 
 
 def parse_heartbeat(data: bytes | bytearray) -> int:
-    """NMT state carried by a heartbeat / boot-up frame (toggle bit ignored).
+    """NMT state carried by a heartbeat / boot-up frame (CiA 301 7.2.8.3.2.2).  A heartbeat
+    has no toggle bit (bit 7 is reserved, 0: a set bit 7 is a node-guarding reply, which
+    this stack never asks for) and names one of the four states; anything else is a
+    :class:`FrameError`, not a state guessed at.
 
-    >>> parse_heartbeat(b'\\x05'), parse_heartbeat(b'\\x85')
-    (5, 5)
+    >>> parse_heartbeat(b'\\x05'), parse_heartbeat(b'\\x7f'), parse_heartbeat(b'\\x00')
+    (5, 127, 0)
+    >>> parse_heartbeat(b'\\x85')
+    Traceback (most recent call last):
+    ...
+    drivers.protocol.cia301.FrameError: heartbeat byte 0x85 names no NMT state
     """
     if len(data) != 1:
         raise FrameError(f"heartbeat must carry 1 byte, got {len(data)}")
-    return int(data[0]) & 0x7F
+    state = int(data[0])
+    if state not in NMT_STATE_NAMES:
+        raise FrameError(f"heartbeat byte 0x{state:02X} names no NMT state")
+    return state
 
 
 @dataclass(frozen=True)

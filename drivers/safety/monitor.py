@@ -263,7 +263,8 @@ class NodeMonitor:
             self._async_cause(StopKind.HEARTBEAT, idx, f"heartbeat reports NMT state {name}")
 
     def on_emcy(self, idx: int, node_id: int, data: bytes | bytearray) -> None:
-        """EMCY frame; error code 0x0000 ('error reset / no error') is not a fault."""
+        """EMCY frame: a fault, except error code 0x0000 ('error reset / no error') with
+        an error register of 0 (a reset that leaves a register bit set leaves an error)."""
         try:
             emcy = parse_emcy(node_id, data)
         except FrameError as exc:
@@ -275,6 +276,8 @@ class NodeMonitor:
             self.emergencies_dropped += 1
         if emcy.error_code != 0:
             self._async_cause(StopKind.EMCY, idx, emcy.describe())
+        elif emcy.error_register != 0:
+            self._async_cause(StopKind.EMCY, idx, emcy.describe() + " (an error remains)")
 
     def drain(self) -> list[StopCause]:
         """Take the causes queued by the receive callbacks (e.g. before a stream starts)."""

@@ -121,6 +121,8 @@ class NmtSlave:
                 drive.warning = False
                 drive.error_register &= ~cia301.ERR_REG_COMMUNICATION
                 if drive.state_machine.state != State.FAULT:
+                    if drive.error_register == cia301.ERR_REG_GENERIC:  # no error left
+                        drive.error_register = 0
                     drive.emcy(cia301.EMCY_NO_ERROR)
 
     # ---------------------------------------------------------------- timers

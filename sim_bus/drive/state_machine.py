@@ -150,9 +150,11 @@ class StateMachine402:
         drive = self._drive
         self.state = State.SWITCH_ON_DISABLED
         drive.error_code = 0
-        drive.error_register = 0
-        drive.motion.following_error = False
         drive.warning = bool(drive.nmt.lost)
+        # a heartbeat still lost is an error still present (its register bits stay)
+        lost = cia301.ERR_REG_COMMUNICATION | cia301.ERR_REG_GENERIC
+        drive.error_register = lost if drive.warning else 0
+        drive.motion.following_error = False
         drive.emcy(cia301.EMCY_NO_ERROR)
 
     # ---------------------------------------------------------------- objects

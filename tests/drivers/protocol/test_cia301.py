@@ -88,6 +88,8 @@ def test_every_abort_code_has_canopens_text() -> None:
         lambda: c.parse_emcy(1, b"\x00" * 7),
         lambda: c.make_emcy(1, 0x1000, 0, b"\x00" * 6),
         lambda: c.parse_heartbeat(b""),
+        lambda: c.parse_heartbeat(b"\x85"),  # bit 7: a node-guarding reply, not a heartbeat
+        lambda: c.parse_heartbeat(b"\x01"),  # no NMT state
         lambda: c.make_sync(0),
         lambda: c.parse_sdo_abort(b"\x60" + b"\x00" * 7),
         lambda: c.make_sdo_download_expedited(1, 0x6040, 0, b""),

@@ -183,6 +183,36 @@ def test_a_cause_between_deadlines_stops_at_once() -> None:
     assert sup.mode is Mode.STOPPING
 
 
+@pytest.mark.parametrize(
+    ("payload", "stops"),
+    [
+        ("0000000000000000", False),  # error reset, no error left
+        ("0000010000000000", True),  # 'error reset' with the generic error bit still set
+        ("0000800000000000", True),  # ... a manufacturer-specific one
+    ],
+)
+def test_an_error_reset_emcy_stops_only_when_an_error_remains(payload: str, stops: bool) -> None:
+    clock = FakeClock()
+    sup, mon, port, _ = armed(clock)
+    sup.step(clock.t)
+    clock.t = round(clock.t + 0.003, 9)
+    mon.on_emcy(1, 2, bytes.fromhex(payload))
+    sup.wake(clock.t)
+    assert (len(quick_stop_rpdos(port, clock.t)) == 2) is stops
+    assert (sup.mode is Mode.STOPPING) is stops
+
+
+def test_a_heartbeat_that_names_no_state_is_a_bad_frame() -> None:
+    """Bit 7 set (a node-guarding toggle) or an unknown state: a bad frame, never read as
+    OPERATIONAL."""
+    clock = FakeClock()
+    sup, mon, _port, _ = armed(clock)
+    sup.step(clock.t)
+    mon.on_heartbeat(1, b"\x85")
+    assert [(c.kind, c.motor) for c in mon.queued()] == [(StopKind.BAD_FRAME, "m1")]
+    assert "0x85" in mon.queued()[0].text
+
+
 def test_streaming_missing_feedback_stops_within_one_period() -> None:
     clock = FakeClock()
     sup, mon, port, stops = armed(clock)
