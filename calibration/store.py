@@ -465,13 +465,22 @@ class CalibrationStore:
         """Version ``version``, checked (format, checksum, values); any robot."""
         path = self.path_of(version)
         text = read_text_file(
-            path, CalibrationFileError, "calibration file", max_bytes=MAX_FILE_BYTES
+            path,
+            CalibrationFileError,
+            "calibration file",
+            max_bytes=MAX_FILE_BYTES,
+            follow_symlinks=False,  # never written by the store: not a version of it
         )
         return from_json(text, str(path), version)
 
     def history(self) -> list[Version]:
-        """Every version, oldest first, each checked; a refused file has its ``problem``."""
-        active = self._active_or_none()
+        """Every version, oldest first, each checked; a refused file has its ``problem``.
+        A damaged active pointer marks no version active (:meth:`active_problem` says
+        what is wrong with it): the versions are still listed, so one can be chosen."""
+        try:
+            active = self._active_or_none()
+        except CalibrationFileError:
+            active = None
         out = []
         for v in self.versions():
             try:
@@ -487,6 +496,15 @@ class CalibrationStore:
         if robot_sha256 is not None:
             self._check_robot(cal, version, robot_sha256)
         self._point_at(version)
+
+    def active_problem(self) -> str | None:
+        """What is wrong with the active pointer (one line), or None when it is sound or
+        absent."""
+        try:
+            self._active_or_none()
+        except CalibrationFileError as exc:
+            return str(exc)
+        return None
 
     def active(self) -> int | None:
         """The active version, or None when no version was ever made active."""
@@ -518,7 +536,9 @@ class CalibrationStore:
     def _active_or_none(self) -> int | None:
         path = self.folder / ACTIVE
         try:
-            text = read_text_file(path, CalibrationFileError, "active pointer", max_bytes=64)
+            text = read_text_file(
+                path, CalibrationFileError, "active pointer", max_bytes=64, follow_symlinks=False
+            )
         except CalibrationFileError:
             if not os.path.lexists(path):  # (False, not OSError, on a too-long name)
                 return None
@@ -535,6 +555,10 @@ class CalibrationStore:
 
     def _point_at(self, version: int) -> None:
         path = self.folder / ACTIVE
+        if os.path.isdir(path) and not os.path.islink(path):  # replace() would fail
+            raise CalibrationFileError(
+                f"{path}: the active pointer is a folder; remove it, then run use again"
+            )
         try:
             _write_durable(path, self.path_of(version).name + "\n", replace=True)
         except OSError as exc:

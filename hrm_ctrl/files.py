@@ -60,19 +60,26 @@ def read_text_file(
     source: str | None = None,
     *,
     max_bytes: int = MAX_TEXT_BYTES,
+    follow_symlinks: bool = True,
 ) -> str:
     """The UTF-8 text of ``path`` (newlines as ``\\n``); a missing or unreadable file, one
     that is not a regular file (a FIFO would block the reader until some writer came, a
     device may never end) or one of more than ``max_bytes`` bytes (not read past the
     bound) raises ``error`` with one line naming ``source`` (default: the path), e.g.
-    ``p.csv: path file not found``."""
+    ``p.csv: path file not found``.  ``follow_symlinks=False``: a symbolic link is refused
+    too (a store's own files must be its own, not links to files elsewhere)."""
     name = str(path) if source is None else source
+    flags = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC
+    if not follow_symlinks:
+        flags |= os.O_NOFOLLOW
     try:
         # non-blocking: opening a FIFO for reading would wait for a writer
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        fd = os.open(path, flags)
     except FileNotFoundError:
         raise error(f"{name}: {what} not found") from None
     except OSError as exc:
+        if exc.errno == errno.ELOOP and not follow_symlinks:
+            raise error(f"{name}: {what} is a symbolic link, not a file of its own") from None
         raise error(f"{name}: cannot read {what} ({exc.strerror or exc})") from None
     try:
         regular = stat.S_ISREG(os.fstat(fd).st_mode)  # a folder opens, but fdopen refuses it

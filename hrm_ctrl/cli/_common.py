@@ -239,6 +239,22 @@ CALIBRATIONS_ENV = "HRM_CALIBRATIONS"
 DEFAULT_CALIBRATIONS = Path(".local", "share", "hrm", "calibrations")  # under the home folder
 
 
+def nonempty_path(text: str) -> Path:
+    """A path option's value; an empty one is refused (``Path("")`` is the current folder,
+    which an empty ``--calibrations ''``, say from an unset shell variable, never means).
+
+    >>> nonempty_path("store")
+    PosixPath('store')
+    >>> nonempty_path("")
+    Traceback (most recent call last):
+    ...
+    argparse.ArgumentTypeError: empty path
+    """
+    if not text:
+        raise argparse.ArgumentTypeError("empty path")
+    return Path(text)
+
+
 def add_calibration_arguments(
     parser: argparse.ArgumentParser, *, uncalibrated_help: str | None = None
 ) -> None:
@@ -246,7 +262,7 @@ def add_calibration_arguments(
     ``--uncalibrated`` (the description's values, not the store's)."""
     parser.add_argument(
         "--calibrations",
-        type=Path,
+        type=nonempty_path,
         default=None,
         metavar="DIR",
         help=f"calibration store (default: ${CALIBRATIONS_ENV}, else ~/{DEFAULT_CALIBRATIONS})",
@@ -271,7 +287,7 @@ def calibrations_folder(given: Path | str | None) -> Path:
     if given is not None:
         return Path(given)
     env = os.environ.get(CALIBRATIONS_ENV)
-    if env:
+    if env:  # set but empty: as if unset
         return Path(env)
     return Path.home() / DEFAULT_CALIBRATIONS
 

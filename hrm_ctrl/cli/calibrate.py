@@ -251,16 +251,22 @@ def run_history(args: argparse.Namespace) -> int:
                 "problem": problem,
             }
         )
+    from hrm_ctrl.cli import one_line
+
+    pointer = store.active_problem()
     if args.json:
-        print(json.dumps({"store": str(store.folder), "versions": rows}))
+        doc = {"store": str(store.folder), "versions": rows, "active_problem": pointer}
+        print(json.dumps(doc))
         return 0
+    if pointer is not None:  # listed all the same: ``use N`` repairs it
+        print(f"  active pointer refused: {one_line(pointer)} (hrm calibrate use N sets it)")
     if not rows:
         print(f"{store.folder}: no calibration yet")
         return 0
     for r in rows:
         mark = "*" if r["active"] else " "
         if r["problem"] is not None:
-            print(f"{mark} v{r['version']:04d}  refused: {r['problem']}")
+            print(f"{mark} v{r['version']:04d}  refused: {one_line(r['problem'])}")
             continue
         robot = r["robot_sha256"][:12] + "…" + ("" if r["this_robot"] else " (another robot)")
         print(

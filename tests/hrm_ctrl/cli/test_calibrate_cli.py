@@ -168,6 +168,78 @@ def test_show_refuses_a_damaged_or_foreign_calibration(store_dir, model, capsys)
     assert "v0002  refused: " in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("damage", ["missing", "garbage", "empty", "fifo", "folder"])
+def test_history_lists_the_versions_beside_a_damaged_active_pointer(
+    store_dir, model, capsys, damage
+):
+    """The pointer's problem is its own line; the versions are still listed (one is to be
+    chosen with ``use``), and ``use`` repairs the pointer (a folder in its place: one line
+    saying so, nothing removed)."""
+    import os
+
+    store, (v1, v2, v3) = _save_three(store_dir, model)
+    pointer = store_dir / "active"
+    pointer.unlink()
+    if damage == "missing":
+        pointer.write_text("v0009.json\n")
+    elif damage == "garbage":
+        pointer.write_text("\x1b[2Jnonsense\n")
+    elif damage == "empty":
+        pointer.write_text("")
+    elif damage == "fifo":
+        os.mkfifo(pointer)
+    else:
+        pointer.mkdir()
+    assert main(["calibrate", "history", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [r["version"] for r in doc["versions"]] == [v1, v2, v3]
+    assert not any(r["active"] for r in doc["versions"])
+    assert str(pointer) in doc["active_problem"]
+    assert main(["calibrate", "history"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("  active pointer refused: ") and str(pointer) in lines[0]
+    assert "\x1b" not in lines[0]
+    assert [ln[2:7] for ln in lines[1:]] == ["v0001", "v0002", "v0003"]
+    if damage == "folder":
+        assert main(["calibrate", "use", str(v1)]) == 2
+        err = capsys.readouterr().err
+        assert "active pointer is a folder" in err and err.count("\n") == 1
+        assert pointer.is_dir()
+    else:
+        assert main(["calibrate", "use", str(v1)]) == 0
+        assert store.active() == v1
+
+
+def test_a_version_that_is_a_symbolic_link_is_refused(store_dir, model, tmp_path, capsys):
+    """A version file must be the store's own: a link to a file elsewhere (which could
+    change under it) is refused by show, use and history alike, however sound its target."""
+    store, _ = _save_three(store_dir, model)
+    assert store.save(nominal_calibration(model), activate=False) == 4
+    assert store.load(4)  # a sound version 4 ...
+    elsewhere = tmp_path / "elsewhere.json"
+    target = store.path_of(4)
+    target.rename(elsewhere)
+    target.symlink_to(elsewhere)  # ... but as a link it is not one of the store's files
+    assert main(["calibrate", "use", "4"]) == 2
+    err = capsys.readouterr().err
+    assert "symbolic link" in err and "v0004.json" in err and err.count("\n") == 1
+    assert main(["calibrate", "history"]) == 0
+    assert "v0004  refused: " in capsys.readouterr().out.splitlines()[-1]
+    (store_dir / "active").write_text("v0004.json\n")  # pointed at it by hand
+    assert main(["calibrate", "show"]) == 2
+    assert "symbolic link" in capsys.readouterr().err
+
+
+def test_an_empty_calibrations_path_is_refused(store_dir, tmp_path, monkeypatch, capsys):
+    """``--calibrations ''`` (an unset shell variable) is not the current folder."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(["calibrate", "history", "--calibrations", ""])
+    assert exc.value.code == 2
+    assert "--calibrations: empty path" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
 def test_history_marks_a_version_use_would_refuse(store_dir, model, capsys):
     """A stored version of this robot with a value out of range (a link 20 % long) is
     listed with the reason ``use`` refuses it, before anyone tries."""
