@@ -75,9 +75,9 @@ class Fault:
 
 def parse_fault(text: str) -> Fault:
     """Parse ``KIND[:ARG...][@T]`` (see the module docstring)."""
+    if any(c < " " or c == "\x7f" for c in text):  # a newline would start another command
+        raise FaultSpecError(f"fault {text!r}: control character in the spec")
     spec = text.strip()
-    if any(c < " " or c == "\x7f" for c in spec):  # a newline would start another command
-        raise FaultSpecError(f"fault {spec!r}: control character in the spec")
     at: float | None = None
     if "@" in spec:
         spec, _, when = spec.rpartition("@")

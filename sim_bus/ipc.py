@@ -1009,7 +1009,7 @@ _SOCKET_NAME = re.compile(r"([0-9]{1,10})-[0-9]{1,20}\.sock")
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
+    except (ProcessLookupError, OverflowError):  # gone, or no pid at all
         return False
     except OSError:  # EPERM (another user's: not ours to judge) and the like
         return True
@@ -1020,20 +1020,40 @@ def _pid_alive(pid: int) -> bool:
         return True
 
 
+def _nobody_listens(path: Path) -> bool:
+    """Whether the socket file ``path`` is stale: a connection to it is refused (what
+    :meth:`IpcBus._connect` takes for a crashed end).  Anything else (accepted, a full
+    backlog, another error): not known to be stale."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_NONBLOCK)
+    try:
+        sock.connect(os.fspath(path))
+    except ConnectionRefusedError:
+        return True
+    except OSError:
+        return False
+    finally:
+        sock.close()
+    return False
+
+
 def remove_stale_channels(
     prefix: str, directory: str | os.PathLike[str] | None = None
 ) -> list[Path]:
-    """Remove the folders of channels named ``prefix...`` whose ends are all gone: every
-    entry a ``<pid>-<n>.sock`` of a process that no longer exists (left by a process killed
-    before its :meth:`IpcBus.shutdown`).  A folder with a live process's socket, any other
-    entry (a socket being bound), or none at all is left alone.  The folders removed.
+    """Remove the folders of channels named ``prefix...`` whose ends are all gone (left by
+    processes killed before their :meth:`IpcBus.shutdown`): this user's private folder,
+    every entry a ``<pid>-<n>.sock`` of no process here whose connection is refused.  The
+    pid alone does not decide (a process of another PID namespace sharing the folder has
+    a pid that means nothing here); a folder with any other entry (a socket being bound),
+    with none, or with a socket that accepts is left alone.  The folders removed.
 
     >>> import tempfile
     >>> with tempfile.TemporaryDirectory() as d:
-    ...     dead = Path(d, "hrm-ipc-x-dead"); dead.mkdir(); Path(dead, "999999999-0.sock").touch()
-    ...     live = Path(d, "hrm-ipc-x-live"); live.mkdir()
-    ...     Path(live, f"{os.getpid()}-0.sock").touch()
-    ...     [p.name for p in remove_stale_channels("x-", d)], live.exists()
+    ...     dead = Path(d, "hrm-ipc-x-dead"); dead.mkdir(mode=0o700)
+    ...     s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    ...     s.bind(str(dead / "999999999-0.sock")); s.close()   # bound, never listened
+    ...     live = open_ends("x-live", 1, d)[0]
+    ...     [p.name for p in remove_stale_channels("x-", d)], live.path.exists()
+    ...     live.shutdown()
     (['hrm-ipc-x-dead'], True)
     """
     base = Path(directory) if directory is not None else default_directory()
@@ -1043,15 +1063,25 @@ def remove_stale_channels(
     except OSError:
         return removed
     for entry in folders:
-        if not entry.is_dir(follow_symlinks=False):
-            continue
         folder = Path(entry.path)
         try:
+            st = os.lstat(folder)
             names = os.listdir(folder)
         except OSError:
             continue
-        pids = [m and int(m.group(1)) for m in map(_SOCKET_NAME.fullmatch, names)]
-        if not names or None in pids or any(_pid_alive(int(p)) for p in pids):
+        if (
+            not stat.S_ISDIR(st.st_mode)
+            or st.st_uid != os.geteuid()
+            or st.st_mode & 0o077  # not a folder IpcBus made: not ours to judge
+            or not names
+        ):
+            continue
+        matches = [_SOCKET_NAME.fullmatch(n) for n in names]
+        if any(m is None for m in matches):
+            continue
+        if any(m is not None and _pid_alive(int(m.group(1))) for m in matches):
+            continue
+        if not all(_nobody_listens(folder / n) for n in names):
             continue
         try:
             for name in names:

@@ -100,8 +100,12 @@ class WakeEvent:
 
     def wait(self, timeout: float | None = None) -> bool:
         """Whether the event is set, waiting at most ``timeout`` s for it."""
-        if not self._flag and self._fd >= 0:
-            select.select([self._fd], [], [], timeout)
+        fd = self._fd  # read once: close() may run meanwhile
+        if not self._flag and fd >= 0:
+            try:
+                select.select([fd], [], [], timeout)
+            except (OSError, ValueError):  # closed under the wait: the owner is closing
+                pass
         return self._flag
 
     def close(self) -> None:

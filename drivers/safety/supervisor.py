@@ -247,7 +247,8 @@ class Supervisor:
         thread = self._thread
         if thread is not None:
             thread.join(timeout=THREAD_JOIN_TIMEOUT_S)
-            self._thread = None
+            if not thread.is_alive():  # one that outlived its join stays known (alive)
+                self._thread = None
 
     @property
     def alive(self) -> bool:

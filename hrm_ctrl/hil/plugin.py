@@ -43,6 +43,7 @@ Fixtures (``hrm_box*`` module-scoped: one box serves a test module; the rest per
 from __future__ import annotations
 
 import contextlib
+import numbers
 import threading
 import warnings
 from collections.abc import Iterator
@@ -328,13 +329,13 @@ class FaultInjector:
         parse_fault(spec)  # a bad spec fails here, not in the timer's thread
         # so does a bad delay (a timer given inf or a string dies in its thread, a fault
         # never applied; nan or a negative one applies at once)
-        ok = isinstance(delay_s, int | float) and not isinstance(delay_s, bool)
+        ok = isinstance(delay_s, numbers.Real) and not isinstance(delay_s, bool)
         if not ok or not 0.0 <= delay_s <= MAX_FAULT_DELAY_S:
             raise FaultSpecError(
                 f"hrm_fault.after: delay must be a number of seconds in "
                 f"0..{MAX_FAULT_DELAY_S:g}, got {delay_s!r}"
             )
-        timer = threading.Timer(delay_s, self._later, args=(spec,))
+        timer = threading.Timer(float(delay_s), self._later, args=(spec,))
         timer.daemon = True
         self._timers.append(timer)
         timer.start()

@@ -120,7 +120,7 @@ class NmtSlave:
                 drive = self._drive
                 drive.warning = False
                 drive.error_register &= ~cia301.ERR_REG_COMMUNICATION
-                if drive.state_machine.state != State.FAULT:
+                if drive.state_machine.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                     if drive.error_register == cia301.ERR_REG_GENERIC:  # no error left
                         drive.error_register = 0
                     drive.emcy(cia301.EMCY_NO_ERROR)

@@ -53,6 +53,8 @@ def test_parse_fault(text: str, kind: str, args: tuple[str, ...], at: float | No
         ("bus-off:can0@-1", ">= 0"),
         ("heartbeat-stop:j01r1\nquit", "control character"),  # would be a second command
         ("rope-snap:j01r0\x1b[2J", "control character"),
+        ("drive-fault:j01r0\n", "control character"),  # at an end too (hrm_fault.after)
+        ("\treset", "control character"),
     ],
 )
 def test_bad_fault_specs_are_one_line_errors(text: str, match: str) -> None:

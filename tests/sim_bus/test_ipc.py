@@ -393,6 +393,33 @@ def test_the_folder_of_a_channel_whose_ends_were_killed_is_removed(folder: str) 
         live.shutdown()
 
 
+def test_a_listening_end_under_a_pid_unknown_here_is_kept(folder: str) -> None:
+    """An end of another PID namespace (its pid names no process here) still listens: its
+    channel stays.  A pid too large for a pid, a stale socket: removed, no error.  A
+    folder that is not private (not one IpcBus made): left alone."""
+    ns = Path(folder, "hrm-ipc-ns")
+    ns.mkdir(mode=0o700)
+    listening = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    listening.bind(str(ns / "999999999-0.sock"))
+    listening.listen(1)
+    huge = Path(folder, "hrm-ipc-ns-huge")
+    huge.mkdir(mode=0o700)
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    stale.bind(str(huge / "9999999999-0.sock"))
+    stale.close()
+    public = Path(folder, "hrm-ipc-ns-public")
+    public.mkdir(mode=0o755)
+    public.chmod(0o755)
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    stale.bind(str(public / "999999999-0.sock"))
+    stale.close()
+    try:
+        assert remove_stale_channels("ns", folder) == [huge]
+        assert (ns / "999999999-0.sock").exists() and public.exists()
+    finally:
+        listening.close()
+
+
 def test_a_stale_socket_file_is_unlinked_at_scan(folder: str) -> None:
     a = IpcBus("st", directory=folder)
     stale = Path(folder, "hrm-ipc-st", "999999-0.sock")

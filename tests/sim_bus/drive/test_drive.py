@@ -531,3 +531,22 @@ def test_interpolation_period_and_following_window_written_while_streaming() -> 
     assert r.write(cia402.OD_FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", 10))[0] == 0x60
     out = r.sync()
     assert [bytes(m.data)[:2] for m in out if m.arbitration_id == 0x085] == [b"\x11\x86"]
+
+
+def test_a_host_heartbeat_regained_during_a_fault_reaction_sends_no_error_reset() -> None:
+    """A drive still reacting to its fault keeps its error register and sends no 'error
+    reset' EMCY when the host's heartbeat comes back (the host would read it as clear)."""
+    sent: list[can.Message] = []
+    d = DriveSim(5, sent.append)
+    d.od.values[(cia301.OD_CONSUMER_HEARTBEAT_TIME, 1)] = (0x7F << 16) | 100
+    d.od.generation += 1
+    d.nmt.on_heartbeat(0x7F, b"\x05", 0.0)
+    d.state_machine.state = cia402.State402.OPERATION_ENABLED
+    d.motion.velocity = 1000.0
+    d.state_machine.fault(0x8611, 0.05, "following error")
+    assert d.state_machine.state is cia402.State402.FAULT_REACTION_ACTIVE
+    d.nmt.tick(0.2)  # the host's heartbeat lost during the reaction
+    d.nmt.on_heartbeat(0x7F, b"\x05", 0.25)  # and back, still decelerating
+    emcys = [cia301.parse_emcy(5, m.data) for m in sent if 0x80 < m.arbitration_id < 0x100]
+    assert [(e.error_code, e.error_register) for e in emcys] == [(0x8611, 0x01), (0x8130, 0x11)]
+    assert d.error_register == cia301.ERR_REG_GENERIC
