@@ -446,6 +446,8 @@ class CalibrationStore:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise CalibrationFileError(f"{self.folder}: cannot create the store ({exc})") from None
+        if activate:  # refused before the version is written: nothing left behind
+            self._refuse_folder_pointer()
         self._remove_stale_tmp()
         version = max(self.versions(), default=0) + 1
         while True:
@@ -549,16 +551,22 @@ class CalibrationStore:
         version = int(m.group(1))
         if not 1 <= version <= MAX_VERSION:
             raise _fail(str(path), f"names version {version}, not 1..{MAX_VERSION}")
-        if not self.path_of(version).exists():
+        if not os.path.lexists(self.path_of(version)):  # a link there: load() says so
             raise _fail(str(path), f"names {m.group(0)}, which is not in the store")
         return version
 
+    def _refuse_folder_pointer(self) -> None:
+        """A folder in the active pointer's place (``os.replace`` cannot put a file over
+        it) is refused with one line; it is the user's to remove, not the store's."""
+        path = self.folder / ACTIVE
+        if os.path.isdir(path) and not os.path.islink(path):
+            raise CalibrationFileError(
+                f"{path}: the active pointer is a folder; remove it, then try again"
+            )
+
     def _point_at(self, version: int) -> None:
         path = self.folder / ACTIVE
-        if os.path.isdir(path) and not os.path.islink(path):  # replace() would fail
-            raise CalibrationFileError(
-                f"{path}: the active pointer is a folder; remove it, then run use again"
-            )
+        self._refuse_folder_pointer()
         try:
             _write_durable(path, self.path_of(version).name + "\n", replace=True)
         except OSError as exc:

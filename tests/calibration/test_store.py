@@ -444,3 +444,102 @@ def test_arbitrary_floats_round_trip_exactly(links, alpha, theta, motors, counts
     assert list(back.motor_zero_counts.values()) == zeros
     assert np.float64(back.residuals["r"]).tobytes() == np.float64(residual).tobytes()
     assert back == cal and back.created_utc == cal.created_utc
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        ("v0009.json\n", "names v0009.json, which is not in the store"),
+        ("v0000.json\n", "names version 0, not 1..999999"),
+        ("garbage\n", "does not name a version file"),
+        ("", "does not name a version file"),
+        ("fifo", "not a regular file"),
+        ("folder", "not a regular file"),
+        ("link", "symbolic link"),
+    ],
+)
+def test_history_lists_the_versions_beside_a_damaged_pointer(tmp_path, damage, message):
+    """A damaged ``active`` marks no version active and is its own problem (one line naming
+    it); every version is still listed, and ``active()`` still refuses it."""
+    store = CalibrationStore(tmp_path)
+    assert [store.save(make_cal(i)) for i in range(2)] == [1, 2]
+    pointer = tmp_path / "active"
+    pointer.unlink()
+    if damage == "fifo":
+        os.mkfifo(pointer)
+    elif damage == "folder":
+        pointer.mkdir()
+    elif damage == "link":  # names a sound version, but is not the store's own file
+        (tmp_path.parent / "elsewhere").write_text("v0001.json\n")
+        pointer.symlink_to(tmp_path.parent / "elsewhere")
+    else:
+        pointer.write_text(damage)
+    assert [(h.version, h.active, h.problem) for h in store.history()] == [
+        (1, False, None),
+        (2, False, None),
+    ]
+    problem = store.active_problem() or ""
+    assert message in problem and str(pointer) in problem and "\n" not in problem
+    with pytest.raises(CalibrationFileError, match=message) as exc:
+        store.active()
+    _one_line_naming(exc, pointer)
+
+
+def test_a_sound_pointer_has_no_problem(tmp_path):
+    store = CalibrationStore(tmp_path)
+    assert store.active_problem() is None  # no store yet
+    store.save(make_cal())
+    assert store.active_problem() is None and store.active() == 1
+
+
+def test_a_folder_in_the_pointers_place_is_refused_before_anything_is_written(tmp_path):
+    store = CalibrationStore(tmp_path)
+    store.save(make_cal(0))
+    pointer = tmp_path / "active"
+    pointer.unlink()
+    pointer.mkdir()
+    (pointer / "keep").write_text("the user's")
+    for act in (lambda: store.save(make_cal(1)), lambda: store.use(1)):
+        with pytest.raises(CalibrationFileError, match="active pointer is a folder") as exc:
+            act()
+        _one_line_naming(exc, pointer)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["active", "v0001.json"]
+    assert (pointer / "keep").read_text() == "the user's"  # not removed
+    assert store.save(make_cal(1), activate=False) == 2  # not touching the pointer: allowed
+
+
+@pytest.mark.parametrize("kind", ["outside", "inside", "dangling", "folder"])
+def test_a_version_file_that_is_not_a_regular_file_is_refused(tmp_path, kind):
+    """A version must be the store's own regular file: a symbolic link (to a sound
+    calibration outside the store or to another version), a dangling one or a folder is
+    refused naming it, by load, use and history alike."""
+    store = CalibrationStore(tmp_path / "store")
+    assert [store.save(make_cal(i)) for i in range(2)] == [1, 2]
+    path = store.path_of(2)
+    if kind == "outside":
+        path.rename(tmp_path / "elsewhere.json")
+        path.symlink_to(tmp_path / "elsewhere.json")
+        assert from_json((tmp_path / "elsewhere.json").read_text(), "x", 2) == make_cal(1)
+    elif kind == "inside":
+        path.unlink()
+        path.symlink_to("v0001.json")
+    elif kind == "dangling":
+        path.unlink()
+        path.symlink_to(tmp_path / "gone.json")
+    else:
+        path.unlink()
+        path.mkdir()
+    message = "not a regular file" if kind == "folder" else "symbolic link"
+    with pytest.raises(CalibrationFileError, match=message) as exc:
+        store.load(2)
+    _one_line_naming(exc, path)
+    store.use(1)
+    with pytest.raises(CalibrationFileError, match=message):
+        store.use(2)
+    assert (tmp_path / "store" / "active").read_text() == "v0001.json\n"  # not moved
+    hist = store.history()
+    assert [h.version for h in hist] == [1, 2] and hist[0].problem is None
+    assert hist[1].calibration is None and message in (hist[1].problem or "")
+    (tmp_path / "store" / "active").write_text("v0002.json\n")
+    with pytest.raises(CalibrationFileError, match=message):
+        store.load_for(ROBOT)
