@@ -536,6 +536,8 @@ class CalibrationStore:
             )
 
     def _active_or_none(self) -> int | None:
+        if os.path.exists(self.folder) and not os.path.isdir(self.folder):  # not "none yet"
+            raise CalibrationFileError(f"{self.folder}: the calibration store is not a folder")
         path = self.folder / ACTIVE
         try:
             text = read_text_file(

@@ -543,3 +543,16 @@ def test_a_version_file_that_is_not_a_regular_file_is_refused(tmp_path, kind):
     (tmp_path / "store" / "active").write_text("v0002.json\n")
     with pytest.raises(CalibrationFileError, match=message):
         store.load_for(ROBOT)
+
+
+def test_a_store_that_is_a_file_is_refused_not_taken_for_an_empty_one(tmp_path):
+    """``--calibrations /etc/passwd``: not "no calibration yet" (which would run with the
+    description's values), but one line naming it."""
+    path = tmp_path / "store"
+    path.write_text("root:x:0:0\n")
+    store = CalibrationStore(path)
+    for act in (store.active, store.load_active, lambda: store.load_for(ROBOT)):
+        with pytest.raises(CalibrationFileError, match="calibration store is not a folder") as exc:
+            act()
+        _one_line_naming(exc, path)
+    assert CalibrationStore(tmp_path / "none-yet").active() is None  # missing: none yet
