@@ -73,9 +73,18 @@ class Fault:
     at_s: float | None
 
 
+def has_control_character(text: str) -> bool:
+    """Whether ``text`` holds a control character (a newline would end a command line).
+
+    >>> has_control_character("reset"), has_control_character("reset\\nquit")
+    (False, True)
+    """
+    return any(c < " " or c == "\x7f" for c in text)
+
+
 def parse_fault(text: str) -> Fault:
     """Parse ``KIND[:ARG...][@T]`` (see the module docstring)."""
-    if any(c < " " or c == "\x7f" for c in text):  # a newline would start another command
+    if has_control_character(text):  # a newline would start another command
         raise FaultSpecError(f"fault {text!r}: control character in the spec")
     spec = text.strip()
     at: float | None = None

@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from hrm_ctrl.errors import SimError
+from sim_bus.faults import has_control_character
 from sim_bus.in_process import IN_PROCESS_MISSING_TPDO_CYCLES, IN_PROCESS_TENSION_STALE_S
 
 
@@ -191,7 +192,7 @@ def check_control(control: object) -> dict[str, Any]:
             raise SimError(f"hrm_control: key {key!r:.80} is not a [control] key name")
         if isinstance(value, float) and not math.isfinite(value):
             raise SimError(f"hrm_control[{key!r}]: {value!r} is not a finite number")
-        if isinstance(value, str) and any(c < " " or c == "\x7f" for c in value):
+        if isinstance(value, str) and has_control_character(value):
             raise SimError(f"hrm_control[{key!r}]: control character in {value!r:.80}")
         if not isinstance(value, bool | int | float | str):
             raise SimError(f"hrm_control[{key!r}]: a number, boolean or string, got {value!r:.80}")
@@ -425,7 +426,7 @@ class BoxProcess:
 
     def command(self, text: str, reply: str, timeout_s: float = REPLY_TIMEOUT_S) -> dict[str, Any]:
         """Send one control command; its reply (one command at a time)."""
-        if any(c < " " or c == "\x7f" for c in text):  # one command is one line
+        if has_control_character(text):  # one command is one line
             raise SimError(f"box process {self.config_path}: control character in {text!r}")
         with self._lock:
             if self.proc.stdin is None or self.proc.poll() is not None:
@@ -477,7 +478,7 @@ class InProcessBox:
         """Run one control command (``timeout_s``: unused, the call is direct)."""
         from sim_bus.runner import _command
 
-        if any(c < " " or c == "\x7f" for c in text):  # as a box process: one line
+        if has_control_character(text):  # as a box process: one line
             raise SimError(f"in-process box {self.config_path}: control character in {text!r}")
         out = io.StringIO()
         with self._lock:
