@@ -457,7 +457,10 @@ class FixtureMover:
         if np.array_equal(held, target):
             return
         period = self.session.control.period_s
-        body = move_table(held, target, self.speed, self.accel, period)
+        # the body starts on the held counts, so the source adds no lead-in of its own (a
+        # lead-in goes by the pose the counts show, which the fixture does not let the arm
+        # take: the ropes' counts there are what this calibration is finding out)
+        body = np.vstack([held[None, :], move_table(held, target, self.speed, self.accel, period)])
         source = CountsSource(self.actuation, body, period, name=self.name, hold_s=HOLD_S)
         try:
             self.session.stream(source)

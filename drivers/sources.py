@@ -35,7 +35,7 @@ from drivers.safety.limits import (
     accel_limits,
     acceleration_text,
     check_duration,
-    check_joint_limits,
+    check_move,
     first_too_hard,
     jerk_limits,
     maps_joints,
@@ -235,6 +235,67 @@ def move_table(
     raise SetpointError("move: no sampled trajectory within the motors' limits")
 
 
+def path_table(
+    samples: np.ndarray,
+    period_s: float,
+    max_rate_counts_per_s: np.ndarray,
+    max_accel_counts_per_s2: np.ndarray,
+    max_jerk_counts_per_s3: np.ndarray,
+    speed_cap_counts_per_s: np.ndarray | None = None,
+    what: str = "move",
+) -> np.ndarray:
+    """A jerk-limited move along a path in counts, from rest at its first sample to rest
+    at its last: ``samples`` (K + 1, motors) at equal steps of the path parameter ``s``
+    in [0, 1], linear between samples (e.g. the rope layer's ``Actuation.joint_line_counts``).
+    ``s`` is timed by Ruckig within ``D_m ds/dt <= v_m``, ``D_m d2s/dt2 <= a_m`` and
+    ``D_m d3s/dt3 <= j_m`` for every motor (``D_m`` its largest ``|dc_m/ds|``); the
+    counts of every control period after the first sample are returned, the last one
+    the last sample, each sampled, rounded speed and second difference checked against
+    the motors' limits (a move that breaks one is timed again, slower).
+
+    >>> line = np.linspace(0.0, 1.0, 9)[:, None] * np.array([[1000.0, -400.0]])
+    >>> t = path_table(line, 0.01, np.full(2, 4e5), np.full(2, 2e6), np.full(2, 4e7))
+    >>> t[-1].tolist(), bool((np.abs(np.diff(t[:, 0], 2)) <= 200).all())
+    ([1000, -400], True)
+    """
+    from ruckig import InputParameter
+
+    pts = np.asarray(samples, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[0] < 2 or not np.isfinite(pts).all():
+        raise SetpointError(f"{what}: a path needs 2 or more finite samples, got {pts.shape}")
+    k_steps = pts.shape[0] - 1
+    start = np.rint(pts[0]).astype(np.int64)
+    end = np.rint(pts[-1]).astype(np.int64)
+    slope = np.abs(np.diff(pts, axis=0)).max(axis=0) * k_steps  # D_m, counts per unit s
+    moving = slope > 0.0
+    if not moving.any():
+        return np.zeros((0, pts.shape[1]), dtype=np.int64)
+    v_m = np.asarray(max_rate_counts_per_s, np.float64)
+    a_m = np.asarray(max_accel_counts_per_s2, np.float64)
+    v, a, j = _move_limits(v_m, a_m, max_jerk_counts_per_s3, period_s, speed_cap_counts_per_s)
+    v_s = float((v[moving] / slope[moving]).min())
+    a_s = float((a[moving] / slope[moving]).min())
+    j_s = float((j[moving] / slope[moving]).min())
+    for _ in range(MOVE_RETRIES + 1):
+        inp = InputParameter(1)
+        inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [0.0], [0.0]
+        inp.target_position, inp.target_velocity, inp.target_acceleration = [1.0], [0.0], [0.0]
+        inp.max_velocity, inp.max_acceleration, inp.max_jerk = [v_s], [a_s], [j_s]
+        traj = _calculate(inp, 1, what)
+        n_rows = max(1, math.ceil(float(traj.duration) / period_s - 1e-9))
+        if n_rows * period_s > MAX_SOURCE_DURATION_S:
+            raise SetpointError(f"{what}: {n_rows * period_s:.4g} s exceeds the longest run")
+        x = np.clip(_sample(traj, n_rows, period_s, 1)[:, 0], 0.0, 1.0) * k_steps
+        i = np.minimum(x.astype(np.int64), k_steps - 1)
+        w = (x - i)[:, None]
+        rows = np.rint(pts[i] + w * (pts[i + 1] - pts[i])).astype(np.int64)
+        rows[-1] = end
+        if _within(rows, start, period_s, v_m, a_m, at_rest_after=True):
+            return rows
+        v_s, a_s, j_s = v_s * MOVE_SLOWDOWN, a_s * MOVE_SLOWDOWN**2, j_s * MOVE_SLOWDOWN**3
+    raise SetpointError(f"{what}: no sampled trajectory within the motors' limits")
+
+
 def stop_table(
     previous: np.ndarray,
     last: np.ndarray,
@@ -378,7 +439,7 @@ class JogSource(TableSource):
         rows = np.unique(np.rint(np.linspace(0, len(moved) - 1, n)).astype(np.int64))
         table = np.repeat(actual[None, :], len(rows) + 1, axis=0)
         table[1:, self.index] = moved[rows]
-        check_joint_limits(
+        check_move(
             self.actuation, table, f"jog {self.motor} ({self.velocity:.0f} counts/s, {where})"
         )
 
@@ -582,16 +643,15 @@ class CountsSource(TableSource):
         v = np.asarray(self.limits.max_rate_counts_per_s, dtype=np.float64)
         a = np.asarray(accel_limits(self.limits), dtype=np.float64)
         j = jerk_limits(self.limits)
+        cap = LEAD_IN_SPEED_FRACTION * v
         try:
-            lead = move_table(
-                actual,
-                body[0],
-                period_s,
-                v,
-                a,
-                j,
-                speed_cap_counts_per_s=LEAD_IN_SPEED_FRACTION * v,
-            )
+            if np.array_equal(actual, body[0]):  # the drives hold the first row already
+                lead = np.zeros((0, actual.shape[0]), dtype=np.int64)
+            elif (line_of := getattr(self.limits, "joint_line_counts", None)) is not None:
+                # the whole rope layer: a line in joint space
+                lead = path_table(line_of(actual, body[0]), period_s, v, a, j, cap, "lead-in")
+            else:  # a motor subset: the other ropes are not moved, no pose to go by
+                lead = move_table(actual, body[0], period_s, v, a, j, speed_cap_counts_per_s=cap)
             # a body whose last change is more than holding it afterwards may take (one
             # cycle's acceleration) ends moving: it is stopped, jerk-limited
             moving = body.shape[0] > 1 and bool(
@@ -602,18 +662,21 @@ class CountsSource(TableSource):
                 if moving
                 else np.zeros((0, actual.shape[0]), dtype=np.int64)
             )
-        except SetpointError as exc:
+        except HrmError as exc:  # SetpointError, or the rope layer's RopeLimitError
             raise SetpointError(
                 f"{self.name}: lead-in to {_row_name(self.label, 0)}: {exc}"
             ) from None
-        # the lead-in and the stop are straight in counts: between two poses within the
-        # joint limits such a line can leave them (ropes are not linear in the angles)
+        # the arm on the way, by the rope model: the joint limits, and (the whole arm) the
+        # rope tensions, which a line in counts (a subset's lead-in, the stop) can strain
         if maps_joints(self.limits):
             last = _row_name(self.label, body.shape[0] - 1)
-            parts = ((lead, f"lead-in to {_row_name(self.label, 0)}"), (stop, f"stop after {last}"))
-            for part, what in parts:
+            parts = (
+                (actual, lead, f"lead-in to {_row_name(self.label, 0)}"),
+                (body[-1], stop, f"stop after {last}"),
+            )
+            for before, part, what in parts:
                 if part.shape[0]:
-                    check_joint_limits(self.limits, part, f"{self.name}: {what}")
+                    check_move(self.limits, np.vstack([before, part]), f"{self.name}: {what}")
         end = stop[-1:] if stop.shape[0] else body[-1:]
         hold = np.repeat(end, max(0, round(self.hold_s / period_s)), axis=0)
         table = np.concatenate([lead, body, stop, hold], axis=0)

@@ -48,10 +48,14 @@ def maps_joints(actuation: Any) -> bool:
     )
 
 
+MOVE_CHECK_MAX_ROWS = 400  # rows of a move mapped through the rope model, at most
+TENSION_SLACK_N = 0.5  # a move may take a rope this much further out than it starts
+
+
 def check_joint_limits(actuation: Any, counts: np.ndarray, what: str) -> None:
     """Map a (rows, motors) table of counts through the rope layer's
     ``angles_from_counts`` and refuse (:class:`SetpointError`, one line) when the joint
-    angles leave the joint limits or the counts correspond to no configuration.
+    angles leave the joint limits.
 
     ``actuation`` is the rope layer or an ``ActuationSubset`` (``full`` + ``columns``:
     the other motors are taken at 0 counts, clipped to their limits)."""
@@ -71,6 +75,66 @@ def check_joint_limits(actuation: Any, counts: np.ndarray, what: str) -> None:
         full.check_angles(alpha, theta)
     except HrmError as exc:
         raise SetpointError(f"{what}: leaves the joint limits ({exc})") from None
+
+
+def sampled_rows(n_rows: int, max_rows: int = MOVE_CHECK_MAX_ROWS) -> np.ndarray:
+    """At most ``max_rows`` evenly spread row indices of a table, first and last included.
+
+    >>> sampled_rows(5).tolist(), sampled_rows(1000, 4).tolist()
+    ([0, 1, 2, 3, 4], [0, 333, 666, 999])
+    """
+    n = min(n_rows, max_rows)
+    return np.unique(np.rint(np.linspace(0, n_rows - 1, max(n, 1))).astype(np.int64))
+
+
+def check_move(actuation: Any, counts: np.ndarray, what: str) -> None:
+    """The arm a move's counts give, by the rope layer's model: ``counts`` (rows, motors)
+    starts with where the drives are now (not judged) and goes on with the move's rows
+    (at most :data:`MOVE_CHECK_MAX_ROWS` of them, evenly spread, are mapped).  Refused
+    with one line (:class:`SetpointError`) when a row's joint angles leave the joint
+    limits or, with the whole rope layer (it has ``tensions_from_counts``), when a
+    rope's modelled tension leaves the rope layer's ``command_tension_N`` band further
+    than it starts (by more than :data:`TENSION_SLACK_N`): counts that no pose of the
+    arm takes up at its pretension strain or slacken ropes (a straight line in counts
+    between two bent poses, one rope moved alone).  A move back towards the band from
+    outside it is taken.  A motor subset (``ActuationSubset``) gets the joint limits only:
+    the other ropes are not commanded, so their tensions are unknown.
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> from hrm_ctrl.ropes.actuation import load_actuation
+    >>> act = load_actuation(default_robot())
+    >>> move = np.zeros((2, 36), dtype=np.int64); move[1, 0] = -5000   # pay out 2.3 mm
+    >>> check_move(act, move, "jog j01r0 -5000 counts")   # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    drivers.safety.limits.SetpointError: jog j01r0 -5000 counts: rope j01r0: ... 0.0 N, below ...
+    >>> check_move(act, move[::-1], "back")   # from slack towards the pretension: taken
+    """
+    table = np.atleast_2d(np.asarray(counts, dtype=np.int64))
+    if table.shape[0] < 2:
+        return
+    tensions = getattr(actuation, "tensions_from_counts", None)
+    if tensions is None:  # a motor subset
+        check_joint_limits(actuation, table[sampled_rows(table.shape[0])][1:], what)
+        return
+    rows = table[sampled_rows(table.shape[0])]
+    try:
+        alpha, theta, T = tensions(rows)
+        actuation.check_angles(alpha[1:], theta[1:])
+    except HrmError as exc:
+        raise SetpointError(f"{what}: leaves the joint limits ({exc})") from None
+    low, high = actuation.routing.command_tension_N
+    start = T[0]
+    below = (T < low) & (T < start - TENSION_SLACK_N)
+    above = (T > high) & (T > start + TENSION_SLACK_N)
+    bad = below | above
+    if bad.any():
+        r, m = (int(v) for v in np.argwhere(bad)[0])
+        side = f"below {low:g} N" if below[r, m] else f"above {high:g} N"
+        raise SetpointError(
+            f"{what}: rope {actuation.motor_ids[m]}: the rope model's tension {T[r, m]:.1f} N, "
+            f"{side} (command_tension_N of the robot description; {start[m]:.1f} N now)"
+        )
 
 
 class LimitChecker(Protocol):

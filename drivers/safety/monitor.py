@@ -127,6 +127,13 @@ class WakeEvent:
             os.close(fd)
 
 
+def _relative(t: float, reset_at: float) -> str:
+    """``0.250 s before the reset`` / ``... after the reset``."""
+    if t < reset_at:
+        return f"{reset_at - t:.3f} s before the reset"
+    return f"{t - reset_at:.3f} s after the reset"
+
+
 class NodeMonitor:
     """Per-node receive state and watchdogs (one slot per rope motor)."""
 
@@ -150,6 +157,8 @@ class NodeMonitor:
         # be newer than the ``now`` a concurrent check was given: see check())
         self.hb_time = np.full(n, -math.inf)
         self.hb_state = np.full(n, -1, dtype=np.int64)
+        # the last malformed heartbeat of each node: when, and what was wrong with it
+        self.hb_bad: list[tuple[float, str] | None] = [None] * n
         self.booted = np.zeros(n, dtype=bool)
         # a boot-up since the drives were configured (:meth:`configured`): the node lost
         # its SDO configuration (heartbeats, limits, PDO maps, CSP) and is not enabled
@@ -249,6 +258,7 @@ class NodeMonitor:
         try:
             state = parse_heartbeat(data)
         except FrameError as exc:
+            self.hb_bad[idx] = (self.clock(), str(exc))
             self._async_cause(StopKind.BAD_FRAME, idx, str(exc))
             return
         self.hb_time[idx] = self.clock()
@@ -326,20 +336,25 @@ class NodeMonitor:
         >>> mon.on_heartbeat(2, bytes([0x00]))
         >>> mon.describe_missing_boot(reset_at=10.25)
         ['m0: never heard', 'm1: last heard 0.250 s before the reset, OPERATIONAL']
+        >>> mon.on_heartbeat(0, bytes([0x85]))          # a state no node reports
+        >>> mon.describe_missing_boot(reset_at=10.25)[0]  # doctest: +ELLIPSIS
+        'm0: heard only a malformed heartbeat, 0.250 s before the reset (heartbeat ...)'
         """
         out = []
         for i in np.flatnonzero(~self.booted).tolist():
             t, state = float(self.hb_time[i]), int(self.hb_state[i])
             if not math.isfinite(t):
-                out.append(f"{self.labels[i]}: never heard")
+                bad = self.hb_bad[i]
+                if bad is None:
+                    out.append(f"{self.labels[i]}: never heard")
+                else:
+                    out.append(
+                        f"{self.labels[i]}: heard only a malformed heartbeat, "
+                        f"{_relative(bad[0], reset_at)} ({bad[1]})"
+                    )
                 continue
             name = NMT_STATE_NAMES.get(state, f"0x{state:02X}")
-            when = (
-                f"{reset_at - t:.3f} s before the reset"
-                if t < reset_at
-                else f"{t - reset_at:.3f} s after the reset"
-            )
-            out.append(f"{self.labels[i]}: last heard {when}, {name}")
+            out.append(f"{self.labels[i]}: last heard {_relative(t, reset_at)}, {name}")
         return out
 
     # ---------------------------------------------------------- per-cycle check

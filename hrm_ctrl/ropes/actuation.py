@@ -39,8 +39,21 @@ from hrm_ctrl.model import RobotModel
 from hrm_ctrl.ropes.inverse import newton_step, padded_index, solve_angles
 from hrm_ctrl.ropes.length import RopeGeometry, lengths_and_jacobian, rope_geometry
 from hrm_ctrl.ropes.length import rope_lengths as _rope_lengths
-from hrm_ctrl.ropes.motor_map import MotorMap, motor_map_from_table, unstretched_length_mm
+from hrm_ctrl.ropes.motor_map import (
+    MotorMap,
+    motor_map_from_table,
+    rope_tension_N,
+    unstretched_length_mm,
+)
 from hrm_ctrl.ropes.routing import MAX_EA_N, MIN_EA_N, RopeRouting, routing_from_model
+
+# Rows of counts whose angles are this close to a joint limit are mapped back from the
+# whole counts (rounding moves a joint by a few 1e-5 rad: 2.5e-5 rad measured at 60 deg).
+NEAR_LIMIT_RAD = 1.0e-3
+# A joint line is sampled this often (its counts linear between samples): on a line from
+# the straight arm to +-44 deg everywhere a chord then leaves the exact counts by < 1 count.
+JOINT_LINE_SAMPLES = 256
+MAX_JOINT_LINE_SAMPLES = 100_000
 
 
 class RopeLimitError(RopeError):
@@ -136,6 +149,92 @@ class Actuation:
                     f"{where}joint {int(idx[-1]) + 1}: {name} = {val:.6g} rad {what}"
                 )
 
+    def joint_line_counts(
+        self, from_counts: Any, to_counts: Any, *, n_samples: int = JOINT_LINE_SAMPLES
+    ) -> np.ndarray:
+        """``(n_samples + 1, n)`` float counts along the straight line in joint space from
+        the configuration ``from_counts`` shows to the one ``to_counts`` shows
+        (:meth:`angles_from_counts`), at equal steps of the line: each sample the
+        pretension counts of its configuration plus the ends' misfits (given minus
+        pretension counts) blended linearly along the line, so the first sample is
+        ``from_counts`` and the last ``to_counts`` exactly (a rope slack or strained where
+        the arm is now comes to the pretension on the way).  The path of a lead-in
+        (``drivers.sources.CountsSource``): rope lengths are not linear in the angles, so
+        the straight line in *counts* between two bent poses is a set of rope lengths no
+        pose takes up at its pretension (from the straight arm to +-44 deg on every joint:
+        ropes at 164 N, pretensioned to 30 N).  The joint box is convex: a line between
+        two configurations within the joint limits stays within them.  Raises
+        :class:`RopeLimitError` when an end is outside the joint limits.
+
+        >>> from hrm_ctrl.model import default_robot
+        >>> act = load_actuation(default_robot())
+        >>> a = np.full(12, math.radians(44.0))
+        >>> end = act.counts_from_angles(a, -a)
+        >>> line = act.joint_line_counts(np.zeros(36, dtype=np.int64), end)
+        >>> bool((line[0] == 0).all() and (line[-1] == end).all()), line.shape
+        (True, (257, 36))
+        >>> tension = act.tensions_from_counts(np.rint(line).astype(np.int64))[2]
+        >>> round(float(tension.max()), 1) <= 30.1
+        True
+        """
+        c0 = np.asarray(self._counts(from_counts), dtype=np.int64)
+        c1 = np.asarray(self._counts(to_counts), dtype=np.int64)
+        if c0.shape != (self.n_motors,) or c1.shape != (self.n_motors,):
+            raise RopeError(f"joint line: expected {self.n_motors} motor counts at each end")
+        if not (isinstance(n_samples, int) and 1 <= n_samples <= MAX_JOINT_LINE_SAMPLES):
+            raise RopeError(
+                f"joint line: samples must be 1..{MAX_JOINT_LINE_SAMPLES}, got {n_samples!r}"
+            )
+        ends = np.vstack([c0, c1])
+        alpha, theta, _res = self.angles_from_counts(ends)
+        for k, what in ((0, "where the arm is"), (1, "the target")):
+            try:
+                self.check_angles(alpha[k], theta[k])
+            except RopeLimitError as exc:
+                raise RopeLimitError(f"joint line: {what}: {exc}") from None
+        s = np.linspace(0.0, 1.0, n_samples + 1)[:, None]
+        a = alpha[0] + s * (alpha[1] - alpha[0])
+        t = theta[0] + s * (theta[1] - theta[0])
+        pre = self.pre_c0 - self.pre_k * self.rope_lengths(a, t)
+        misfit = ends - pre[[0, -1]]
+        line = pre + (1.0 - s) * misfit[0] + s * misfit[1]
+        line[0], line[-1] = c0, c1
+        return line
+
+    def rounded_outside(self, counts: Any, alpha: Any, theta: Any) -> tuple[int, str] | None:
+        """The first row of whole ``counts`` (rows, n), made from ``alpha`` / ``theta``
+        (rows, 12) within the (open) joint limits, whose rounding takes the arm outside
+        them, and why; ``None`` if no row does.  Rounding moves a rope by at most half a
+        count, a few 1e-5 rad of joint angle, so only rows within
+        :data:`NEAR_LIMIT_RAD` of a limit are mapped back (the inverse, warm-started).
+
+        >>> from hrm_ctrl.model import default_robot
+        >>> act = load_actuation(default_robot())
+        >>> a = np.zeros((1, 12)); a[0, 0] = math.radians(59.999999)
+        >>> c = act.counts_from_angles(a, np.zeros((1, 12)))
+        >>> act.rounded_outside(c, a, np.zeros((1, 12)))   # doctest: +ELLIPSIS
+        (0, 'joint 1: alpha = 1.0472... rad (60 deg) is outside the joint limit +-60 deg')
+        """
+        a, t = self._angles(alpha, theta)
+        a, t = a.reshape(-1, a.shape[-1]), t.reshape(-1, t.shape[-1])
+        c = np.asarray(counts, dtype=np.int64).reshape(a.shape[0], -1)
+        lim_a, lim_t = self.robot.limit_alpha, self.robot.limit_theta
+        margin_a, margin_t = lim_a - NEAR_LIMIT_RAD, lim_t - NEAR_LIMIT_RAD
+        near = ((np.abs(a) > margin_a) | (np.abs(t) > margin_t)).any(axis=1)
+        if not near.any():
+            return None
+        rows = np.flatnonzero(near)
+        a2, t2, _res = self.angles_from_counts(c[rows], None, a[rows], t[rows])
+        bad = ~((np.abs(a2) < lim_a) & (np.abs(t2) < lim_t)).all(axis=1)
+        if not bad.any():
+            return None
+        k = int(np.flatnonzero(bad)[0])
+        try:
+            self.check_angles(a2[k], t2[k])
+        except RopeLimitError as exc:
+            return int(rows[k]), str(exc)
+        return None  # pragma: no cover - check_angles refuses what bad found
+
     # ---- counts ---------------------------------------------------------------------------
 
     def _tension(self, tension_N: Any) -> Any:
@@ -220,6 +319,32 @@ class Actuation:
             self.geometry, self.joint_of_motor, L, alpha0, theta0, self.pad, robust=robust
         )
         return sol.alpha + self.alpha_offset_rad, sol.theta + self.theta_offset_rad, sol.residual
+
+    def tensions_from_counts(
+        self, counts: Any, *, robust: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rope layer's model of the free arm at motor ``counts``: ``(alpha, theta,
+        tension_N)``, the joints where their ropes' length misfit is least
+        (:meth:`angles_from_counts`) and each rope's tension there, ``T = EA (F - u) / u``
+        (``F`` the free length the pose needs, ``u`` the unstretched rope the drum has
+        paid out, :func:`~hrm_ctrl.ropes.motor_map.rope_tension_N`; 0 when slack).
+        Counts made from angles at the pretension give the pretension; moving one rope
+        alone changes its joint's tensions (the simulated box's arm is this model).
+
+        >>> from hrm_ctrl.model import default_robot
+        >>> act = load_actuation(default_robot())
+        >>> c = np.zeros(act.n_motors, dtype=np.int64)
+        >>> c[0] = -2000                      # pay out 0.93 mm of joint 1's rope 0
+        >>> np.round(act.tensions_from_counts(c)[2][:4], 1).tolist()  # j02r0 passes joint 1
+        [10.9, 12.2, 12.2, 29.4]
+        """
+        alpha, theta, _res = self.angles_from_counts(counts, robust=robust)
+        tension = rope_tension_N(
+            self.free_lengths(alpha, theta),
+            self.unstretched_from_counts(counts),
+            self.routing.stiffness_EA_N,
+        )
+        return alpha, theta, np.asarray(tension, dtype=np.float64)
 
     def _counts(self, counts: Any) -> np.ndarray:
         c = np.asarray(counts)

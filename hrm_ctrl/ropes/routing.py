@@ -25,6 +25,12 @@ The ``[ropes]`` table of the robot description (all optional, defaults below):
 * ``stiffness_EA_N``, ``box_length_mm``, ``pretension_N``: rope stiffness (axial
   rigidity EA), the free length of rope inside the box between drum and arm base,
   and the tension at which the zero (calibration) position is defined.
+* ``command_tension_N``: ``[low, high]``, the rope tension the rope layer's model
+  (:meth:`~hrm_ctrl.ropes.actuation.Actuation.tensions_from_counts`) may give a
+  commanded move that is not a plan (a lead-in, a jog, a stop); default a third and
+  four times the pretension (at least the pretension + 20 N): 10 and 120 N, inside the
+  tension board's watch of 5 and 150 N.  Safe range: ``0 <= low <= pretension <= high
+  <= 650`` N (the board saturates at 655 N).
 
 >>> from hrm_ctrl.model import default_robot
 >>> rt = routing_from_model(default_robot())
@@ -54,6 +60,7 @@ DEFAULT_EA_N = 30_000.0
 DEFAULT_BOX_LENGTH_MM = 500.0
 DEFAULT_PRETENSION_N = 30.0
 MAX_PER_JOINT = 8
+MAX_COMMAND_TENSION_N = 650.0  # the tension board reads up to 655.34 N
 
 
 class RoutingError(RopeError):
@@ -91,6 +98,8 @@ class RopeRouting:
     box_length: np.ndarray
     pretension_N: float
     in_link: np.ndarray  # (n,) rope length inside the links, between the joints' disks (mm)
+    # (low, high) N: the modelled tension a lead-in, jog or stop may give a rope
+    command_tension_N: tuple[float, float] = (10.0, 120.0)
 
     @property
     def n_ropes(self) -> int:
@@ -222,6 +231,7 @@ def routing_from_table(
         "stiffness_EA_N",
         "box_length_mm",
         "pretension_N",
+        "command_tension_N",
     }
     for key in table:
         if key not in known:
@@ -319,7 +329,38 @@ def routing_from_table(
     }
     for arr in arrays.values():
         arr.setflags(write=False)
-    return RopeRouting(rope_ids=tuple(ids), hole_diameter=hole_d, pretension_N=pre, **arrays)
+    band = _command_tension(table.get("command_tension_N"), pre, f"{where}.command_tension_N")
+    return RopeRouting(
+        rope_ids=tuple(ids), hole_diameter=hole_d, pretension_N=pre, command_tension_N=band,
+        **arrays,
+    )  # fmt: skip
+
+
+def default_command_tension(pretension_N: float) -> tuple[float, float]:
+    """The ``command_tension_N`` of a rope layer that does not give one: a third and four
+    times the pretension, the top at least 20 N above it.
+
+    >>> default_command_tension(30.0)
+    (10.0, 120.0)
+    """
+    return pretension_N / 3.0, min(max(4.0 * pretension_N, pretension_N + 20.0),
+                                   MAX_COMMAND_TENSION_N)  # fmt: skip
+
+
+def _command_tension(raw: Any, pretension_N: float, where: str) -> tuple[float, float]:
+    """``[low, high]`` (N) checked against its safe range (module docstring)."""
+    if raw is None:
+        low, high = default_command_tension(pretension_N)
+    else:
+        if not isinstance(raw, list) or len(raw) != 2:
+            raise RoutingError(f"{where}: must be [low, high] in N, got {raw!r}")
+        low = _num(raw[0], f"{where}[0]", minimum=0.0, maximum=MAX_COMMAND_TENSION_N)
+        high = _num(raw[1], f"{where}[1]", minimum=0.0, maximum=MAX_COMMAND_TENSION_N)
+    if not low <= pretension_N <= high:
+        raise RoutingError(
+            f"{where}: [{low:g}, {high:g}] N must hold the pretension of {pretension_N:g} N"
+        )
+    return float(low), float(high)
 
 
 def _check_holes(

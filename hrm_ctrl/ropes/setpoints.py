@@ -247,6 +247,11 @@ def plan_setpoints(
         k = int(np.flatnonzero(bad)[0])
         _raise_labelled(where, _step_label(travel, k), actuation.check_angles, alpha[k], theta[k])
     step_counts = actuation.counts_from_angles(alpha, theta, check=False)
+    out = actuation.rounded_outside(step_counts, alpha, theta)
+    if out is not None:
+        raise RopeLimitError(
+            _prefixed(where, f"{_step_label(travel, out[0])}: rounded to whole counts: {out[1]}")
+        )
     _check_positions(actuation, step_counts, lambda k: _step_label(travel, k), where)
 
     # the path through the steps, and its time law (the tip speed caps its duration from

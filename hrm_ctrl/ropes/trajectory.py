@@ -395,7 +395,15 @@ def _sample_leg(
                 raise RopeLimitError(
                     f"{path.step_label(k)}: on the way from plan step {max(k - 1, 0)}: {exc}"
                 ) from None
-        counts[lo : lo + _BLOCK_ROWS] = act.counts_from_angles(a, t, check=False)
+        block = act.counts_from_angles(a, t, check=False)
+        out = act.rounded_outside(block, a, t)
+        if out is not None:  # the whole counts sent would cross a limit the angles keep
+            k = int(path.step_approached(sigma[lo + out[0]]))
+            raise RopeLimitError(
+                f"{path.step_label(k)}: on the way from plan step {max(k - 1, 0)}: rounded "
+                f"to whole counts: {out[1]}"
+            )
+        counts[lo : lo + _BLOCK_ROWS] = block
     return local, counts, n_per
 
 

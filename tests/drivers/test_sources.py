@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from drivers.config import load_box_config
 from drivers.protocol import cia402 as c
-from drivers.safety.limits import MAX_SOURCE_DURATION_S, check_acceleration
+from drivers.safety.limits import MAX_SOURCE_DURATION_S, check_acceleration, check_move
 from drivers.session import DriveSession
 from drivers.sources import (
     CountsSource,
@@ -98,13 +98,17 @@ def test_counts_source_lead_in_from_elsewhere(actuation: Actuation) -> None:
 
 def test_counts_source_stops_a_body_that_ends_moving(actuation: Actuation) -> None:
     n = actuation.n_motors
-    step = np.minimum(100 * np.arange(40), 300)  # from rest up to 30000 counts/s, and on
-    body = np.repeat(np.cumsum(step)[:, None], n, axis=1).astype(np.int64)
+    # every joint bending from rest up to 0.6 rad/s and on (the ropes at the pretension)
+    rate = np.minimum(0.0002 * np.arange(40), 0.006)
+    a = np.cumsum(rate)[:, None] * np.ones((1, actuation.robot.n_joints))
+    body = actuation.counts_from_angles(a, np.zeros_like(a))
     src = CountsSource(actuation, body, 0.01, name="table", hold_s=0.05)
     src.start(np.zeros(n, dtype=np.int64), 0.01)
     assert src.n_stop >= 2 and src.describe()["stop_cycles"] == src.n_stop
     end = src.table[-1]
-    assert np.all(end > body[-1]) and np.array_equal(src.table[-5:], np.repeat(end[None], 5, 0))
+    moving = body[-1] != body[-2]  # each motor stops beyond where the body left it
+    assert np.all(np.sign(end - body[-1])[moving] == np.sign(body[-1] - body[-2])[moving])
+    assert np.array_equal(src.table[-5:], np.repeat(end[None], 5, 0))
     assert_within_limits(actuation, src.table, np.zeros(n, dtype=np.int64))
     assert src._row_name(src.n_lead_in + 40) == "stop after cycle 39"
     assert src._row_name(src.n_cycles - 1) == "final hold after cycle 39"
@@ -265,7 +269,7 @@ def test_jog_outside_the_joint_limits_is_refused(actuation: Actuation) -> None:
 
 def test_jog_checked_again_from_the_actual_positions(actuation: Actuation) -> None:
     """Fine from the straight arm, but the arm is already bent near the joint limit."""
-    jog = JogSource(actuation, "j01r0", 50_000.0, 0.2)
+    jog = JogSource(actuation, "j01r0", 40_000.0, 0.2)  # 8000 counts: 10000 slacken j02r0
     jog.precheck(0.01)
     a = np.zeros(12)
     a[0] = np.deg2rad(56.0)
@@ -299,11 +303,15 @@ def test_sources_longer_than_an_hour_are_refused(actuation: Actuation) -> None:
     HoldSource(n_cycles=None).precheck(0.01)  # "until stopped" is one hour
 
 
-def test_a_lead_in_that_would_leave_the_joint_limits_is_refused(actuation: Actuation) -> None:
+def test_a_lead_in_is_a_line_in_joint_space(actuation: Actuation) -> None:
     """Both ends within the joint limits (joint 6 at alpha = theta = +59 deg, then at -59
-    deg), the straight line in counts between them is not: the lead-in is refused naming
-    it, before anything is sent (before: its setpoints reached 60.4 deg on the wire)."""
+    deg): the straight line in counts between them leaves the joint limits (its setpoints
+    reached 60.4 deg on the wire once), a line in the joint angles does not, and the ropes
+    stay at their pretension on the way.  A motor subset (no pose to go by) still takes
+    the line in counts and is refused naming it, before anything is sent."""
     import math
+
+    from drivers.safety.subset import ActuationSubset
 
     n_j = actuation.robot.n_joints
     a, b = np.zeros(n_j), np.zeros(n_j)
@@ -311,14 +319,57 @@ def test_a_lead_in_that_would_leave_the_joint_limits_is_refused(actuation: Actua
     b[5] = math.radians(-59.0)
     start = np.asarray(actuation.counts_from_angles(a, a), dtype=np.int64)
     end = np.asarray(actuation.counts_from_angles(b, b), dtype=np.int64)
-    src = CountsSource(actuation, np.repeat(end[None, :], 10, axis=0), 0.01, name="plan")
+    body = np.repeat(end[None, :], 10, axis=0)
+    src = CountsSource(actuation, body, 0.01, name="plan")
+    src.start(start, 0.01)
+    lead = src.table[: src.n_lead_in]
+    assert src.n_lead_in > 10 and np.array_equal(lead[-1], end)
+    assert_within_limits(actuation, src.table, start)
+    alpha, theta, tension = actuation.tensions_from_counts(lead)
+    actuation.check_angles(alpha, theta)
+    assert np.abs(tension - 30.0).max() < 0.5, np.abs(tension - 30.0).max()
+    subset = ActuationSubset(actuation, actuation.motor_ids)
+    straight = CountsSource(subset, body, 0.01, name="plan")
     with pytest.raises(SetpointError, match=r"^plan: lead-in to .*leaves the joint limits"):
-        src.start(start, 0.01)
-    # the same move within the limits is played
-    a[5] = b[5] = math.radians(20.0)
-    b[5] = math.radians(-20.0)
-    near = np.asarray(actuation.counts_from_angles(a, a), dtype=np.int64)
-    far = np.asarray(actuation.counts_from_angles(b, b), dtype=np.int64)
-    ok = CountsSource(actuation, np.repeat(far[None, :], 10, axis=0), 0.01, name="plan")
-    ok.start(near, 0.01)
-    assert ok.n_lead_in > 0
+        straight.start(start, 0.01)
+
+
+def test_a_lead_in_from_a_strained_arm_brings_the_ropes_to_the_pretension(
+    actuation: Actuation,
+) -> None:
+    """The drives hold counts no pose takes up at the pretension (a rope jogged alone by
+    3000 counts, 52 N): the lead-in starts there and ends on the plan's first row, the
+    misfit fading out along the way (the modelled tensions go from where they are to the
+    pretension, never further out)."""
+    n_j = actuation.robot.n_joints
+    a = np.full(n_j, np.deg2rad(20.0))
+    end = np.asarray(actuation.counts_from_angles(a, -a), dtype=np.int64)
+    start = np.zeros(actuation.n_motors, dtype=np.int64)
+    start[0] += 3000
+    t_start = actuation.tensions_from_counts(start)[2]
+    src = CountsSource(actuation, np.repeat(end[None, :], 5, axis=0), 0.01, name="plan")
+    src.start(start, 0.01)
+    tension = actuation.tensions_from_counts(src.table[: src.n_lead_in])[2]
+    assert t_start[0] > 45.0 and abs(tension[-1, 0] - 30.0) < 0.5
+    assert (tension <= np.maximum(t_start, 30.0) + 0.5).all()
+    assert (tension >= np.minimum(t_start, 30.0) - 0.5).all()
+
+
+def test_a_line_in_counts_that_strains_the_ropes_is_refused(actuation: Actuation) -> None:
+    """The straight line in counts from the straight arm to +-40 deg on every joint keeps
+    the joint limits but strains ropes to 147 N by the rope model (a red-team run of such a
+    plan: 146.6 N on the simulated board; at 44 deg the tension watch stopped its lead-in
+    at 154 N): refused; a line in joint space is taken."""
+    n_j = actuation.robot.n_joints
+    a = np.full(n_j, np.deg2rad(40.0))
+    end = np.asarray(actuation.counts_from_angles(a, -a), dtype=np.int64)
+    start = np.zeros(actuation.n_motors, dtype=np.int64)
+    v = np.asarray(actuation.max_rate_counts_per_s, dtype=np.float64)
+    straight = move_table(start, end, 0.01, v, actuation.max_accel_counts_per_s2,
+                          actuation.max_jerk_counts_per_s3)  # fmt: skip
+    with pytest.raises(SetpointError, match=r"^lead-in: rope j\d\dr\d: .* above 120 N") as info:
+        check_move(actuation, np.vstack([start, straight]), "lead-in")
+    assert "\n" not in str(info.value)
+    src = CountsSource(actuation, np.repeat(end[None, :], 5, axis=0), 0.01, name="plan")
+    src.start(start, 0.01)
+    check_move(actuation, src.table, "played")

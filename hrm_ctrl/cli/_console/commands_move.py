@@ -48,7 +48,7 @@ def _complete_jog(ctx: ConsoleContext, words: list[str]) -> list[str]:
          "jog JOINT alpha|theta DEG | jog MOTOR COUNTS", needs=Need.ENABLED,
          complete=_complete_jog)  # fmt: skip
 def _jog(ctx: ConsoleContext, args: list[str]) -> None:
-    from drivers.safety.limits import accel_limits, check_joint_limits, jerk_limits
+    from drivers.safety.limits import accel_limits, check_move, jerk_limits
     from drivers.sources import CountsSource, JogSource, move_table
     from hrm_ctrl.ropes.jog import check_motor_jog, joint_jog
 
@@ -68,8 +68,8 @@ def _jog(ctx: ConsoleContext, args: list[str]) -> None:
         if len(rows) == 0:  # rounds to no count of any rope: nothing to move
             ctx.out(f"{what}: nothing to move (less than one encoder count on every rope)")
             return
-        check_joint_limits(act, rows, what)
         body = np.vstack([held[None, :], rows])
+        check_move(act, body, what)
         source = CountsSource(act, body, period_s, name="jog", hold_s=JOG_HOLD_S,
                               label=lambda r: f"{what}, cycle {r}",
                               info={"joint": joint, "axis": jj.axis.value, "deg": deg})  # fmt: skip
@@ -110,8 +110,13 @@ def _home(ctx: ConsoleContext, args: list[str]) -> None:
     speed = parse_float(args[0], "SPEED_MM_S", "home [SPEED_MM_S]") if args else HOME_SPEED_MM_S
     if not (math.isfinite(speed) and speed > 0):
         raise ConsoleError(f"SPEED_MM_S must be > 0, got {args[0]}")
-    _held, actual = _held_and_actual(ctx)
+    held, actual = _held_and_actual(ctx)
     period_s = ctx.config.control.period_s
+    n_j = ctx.actuation.robot.n_joints
+    zero = ctx.actuation.counts_from_angles(np.zeros(n_j), np.zeros(n_j), check=False)
+    if np.array_equal(held, zero):  # a script's home where the arm is: not an error
+        ctx.out("home: the arm is at its zero configuration already (nothing to move)")
+        return
     sp = home_setpoints(ctx.actuation, actual, period_s=period_s, speed_mm_per_s=speed)
     source = CountsSource(ctx.actuation, sp.counts, sp.period_s, name="home", label=sp.label,
                           info={"speed_mm_per_s": speed})  # fmt: skip

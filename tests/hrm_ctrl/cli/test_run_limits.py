@@ -90,3 +90,40 @@ def test_playback_within_speed_and_acceleration_in_every_cycle(
         assert np.abs(targets[lead]).max() > 1000  # the lead-in moved the motors there
         checked += len(cols)
     assert checked == act.n_motors
+
+
+def test_a_lead_in_far_from_the_straight_arm_keeps_the_ropes_at_their_pretension(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """A red-team plan: one step with every alpha at +44 deg and theta at -44 deg, from
+    the straight arm.  Its lead-in was a straight line in counts: the simulated tension
+    board read 154 N and the watch stopped it.  Now a line in joint space: the run
+    completes, the board's highest reading near the 30 N pretension, and every target
+    on the wire decodes (the host's own rope inverse) to a pose inside the joint limits."""
+    plan = small_plan()
+    a = float(np.deg2rad(44.0))
+    plan["steps"] = [{**plan["steps"][0], "alpha_rad": [a] * 12, "theta_rad": [-a] * 12}]
+    path = tmp_path / "p44.json"
+    write_plan(path, plan)
+    logs = tmp_path / "runs"
+    rc = main(["run", str(path), "--sim", "--log-dir", str(logs), "--json"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    summary = json.loads(out.out)
+    assert summary["completed"] is True
+    record = json.loads(Path(summary["run_record"]).read_text())
+    assert record["setpoints"]["lead_in_cycles"] > 50
+    highest = record["watches"]["tension"]["highest_N"]
+    assert 29.0 < highest < 35.0, highest
+    act = load_actuation(default_robot())
+    config = load_box_config(None)
+    full: list[np.ndarray] = []
+    for bus in config.buses:
+        (log,) = logs.glob(f"*_{bus.name}.blf")
+        full.append(targets_per_sync(log, bus.nodes)[0])
+    n = min(t.shape[0] for t in full)
+    order = [m for bus in config.buses for m in bus.nodes]
+    wire = np.hstack([t[:n] for t in full])[:, [order.index(m) for m in act.motor_ids]]
+    alpha, theta, _res = act.angles_from_counts(wire[:: max(1, n // 200)])
+    act.check_angles(alpha, theta)
+    assert np.degrees(np.abs(alpha)).max() == pytest.approx(44.0, abs=0.05)

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from hrm_ctrl.errors import RopeError
 from hrm_ctrl.ropes.actuation import Actuation, RopeLimitError, load_actuation
@@ -93,9 +97,9 @@ def test_drum_travel_limit_refuses_a_configuration() -> None:
     # the default drum fits the whole joint range
     big = load_actuation(robot_with())
     lim = np.deg2rad(59.99)
-    corners = np.array([[sa, st] for sa in (-lim, lim) for st in (-lim, lim)])
-    for sa, st in corners:
-        big.counts_from_angles(np.full(12, sa), np.full(12, st))
+    corners = np.array([[sa, tt] for sa in (-lim, lim) for tt in (-lim, lim)])
+    for sa, tt in corners:
+        big.counts_from_angles(np.full(12, sa), np.full(12, tt))
 
 
 def test_bad_tension(act: Actuation) -> None:
@@ -103,3 +107,49 @@ def test_bad_tension(act: Actuation) -> None:
         act.counts_from_angles(np.zeros(12), np.zeros(12), -1.0)
     with pytest.raises(RopeError, match="tension"):
         act.angles_from_counts(np.zeros(36, dtype=np.int64), np.nan)
+
+
+angles = st.lists(st.floats(-0.87, 0.87), min_size=24, max_size=24)  # within +-50 deg
+
+
+@settings(max_examples=25, deadline=None)
+@given(q=angles, motor=st.integers(0, 35), delta=st.integers(-6000, 6000))
+@example(q=[0.0] * 24, motor=0, delta=-2000)
+def test_modelled_tensions(act: Actuation, q: list[float], motor: int, delta: int) -> None:
+    """Counts made from angles carry the pretension on every rope; paying one rope out
+    lowers its tension (winding it in raises it), never below 0 N; the pose the model
+    finds is the one the counts were made from."""
+    a, t = np.array(q[:12]), np.array(q[12:])
+    c = act.counts_from_angles(a, t)
+    alpha, theta, tension = act.tensions_from_counts(c)
+    assert np.abs(tension - act.routing.pretension_N).max() < 0.1
+    assert np.abs(alpha - a).max() < 1e-4 and np.abs(theta - t).max() < 1e-4
+    moved = c.copy()
+    moved[motor] += delta
+    after = act.tensions_from_counts(moved)[2]
+    assert (after >= 0.0).all()
+    wound_in = delta * int(act.motors.direction[motor]) > 0
+    if delta != 0 and after[motor] > 0.0:
+        assert (after[motor] > tension[motor]) == wound_in, (after[motor], tension[motor])
+
+
+@settings(max_examples=30, deadline=None)
+@given(joint=st.integers(0, 11), theta=st.booleans(), eps_deg=st.floats(1e-7, 1e-2))
+@example(joint=0, theta=False, eps_deg=1e-6)  # the red-team's 59.999999 deg: 60.0014 sent
+def test_whole_counts_never_cross_a_joint_limit(
+    act: Actuation, joint: int, theta: bool, eps_deg: float
+) -> None:
+    """Angles just inside a joint limit: either their rounded counts map back inside the
+    limits, or ``rounded_outside`` names the row (a plan with it is refused)."""
+    q = np.zeros((2, 24))
+    q[1, 12 * theta + joint] = math.radians(60.0 - eps_deg)
+    a, t = q[:, :12], q[:, 12:]
+    c = act.counts_from_angles(a, t)
+    back_a, back_t, _res = act.angles_from_counts(c, None, a, t)
+    inside = bool((np.abs(back_a) < act.robot.limit_alpha).all()) and bool(
+        (np.abs(back_t) < act.robot.limit_theta).all()
+    )
+    out = act.rounded_outside(c, a, t)
+    assert (out is None) == inside, out
+    if out is not None:
+        assert out[0] == 1 and f"joint {joint + 1}: " in out[1]

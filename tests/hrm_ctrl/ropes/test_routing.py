@@ -89,6 +89,14 @@ def _explicit(angles: list[list[float]]) -> dict[str, Any]:
         ({"pretension_N": 1e300}, r"pretension_N: must be <= 100000"),
         ({"box_length_mm": 1e300}, r"box_length_mm: must be <= 10000"),
         ({"proximal_disk_mm": 1e300}, r"proximal_disk_mm: must be <= 10000"),
+        # the modelled tension a lead-in, jog or stop may give: holds the pretension
+        ({"command_tension_N": [10.0, 100.0]}, None),
+        ({"command_tension_N": [5.0, 20.0]}, r"\[5, 20\] N must hold the pretension of 30 N"),
+        ({"command_tension_N": 100.0}, r"command_tension_N: must be \[low, high\]"),
+        ({"command_tension_N": [10.0, 700.0]}, r"command_tension_N\[1\]: must be <= 650"),
+        ({"command_tension_N": [-1.0, 100.0]}, r"command_tension_N\[0\]: must be >= 0"),
+        ({"command_tension_N": [10.0, float("nan")]}, r"command_tension_N\[1\]: expected a fin"),
+        ({"pretension_N": 1000.0}, r"command_tension_N: \[333.3+, 650\] N must hold"),
     ],
 )
 def test_bad_routing_is_one_line_rope_error(ropes: dict[str, Any], match: str | None) -> None:
@@ -107,3 +115,10 @@ def test_thinner_link_rejects_holes_of_the_ropes_passing_it() -> None:
     doc["outer_diameter_mm"] = [30.0] * 11 + [24.0]
     with pytest.raises(RoutingError, match=r"j12r0.*24 mm disk"):
         load_actuation(robot_from_dict(doc, "<thin>"))
+
+
+def test_command_tension_defaults_follow_the_pretension() -> None:
+    assert routing_from_model(robot_with()).command_tension_N == (10.0, 120.0)
+    assert routing_from_model(robot_with({"pretension_N": 3.0})).command_tension_N == (1.0, 23.0)
+    band = routing_from_model(robot_with({"command_tension_N": [12, 90]})).command_tension_N
+    assert band == (12.0, 90.0) and all(isinstance(v, float) for v in band)

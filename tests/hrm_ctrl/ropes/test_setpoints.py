@@ -300,3 +300,23 @@ def _plan_arrays(path: Path) -> tuple[Any, ...]:
     alpha = np.array([st["alpha_rad"] for st in doc])
     theta = np.array([st["theta_rad"] for st in doc])
     return travel, alpha, theta, [st["phase"] for st in doc]
+
+
+def test_a_step_that_rounds_over_a_joint_limit_is_refused(act: Actuation) -> None:
+    """Every alpha at 59.999999 deg is inside the open limit, but its whole counts decode
+    to 60.0014 deg on joint 1 (a red-team plan: 22 such rows went to the drives): refused
+    naming the plan step; 59.99 deg plays, every row decoding inside the limits."""
+    import math
+
+    a = np.zeros((2, 12))
+    a[1] = math.radians(59.999999)
+    with pytest.raises(RopeLimitError, match=r"^plan step 1 \(travel 100.0 mm\): rounded to "
+                       r"whole counts: joint 1: alpha") as info:  # fmt: skip
+        plan_setpoints(act, [0.0, 100.0], a, np.zeros((2, 12)), period_s=0.01,
+                       speed_mm_per_s=50.0)  # fmt: skip
+    assert "\n" not in str(info.value)
+    a[1] = math.radians(59.99)
+    sp = plan_setpoints(act, [0.0, 100.0], a, np.zeros((2, 12)), period_s=0.01,
+                        speed_mm_per_s=50.0)  # fmt: skip
+    back_a, back_t = act.angles_from_counts(sp.counts[-20:])[:2]
+    act.check_angles(back_a, back_t)

@@ -66,6 +66,18 @@ def test_status_shows_every_drive_and_bus(make_ctx) -> None:
     assert all(n.heartbeat_age_s is not None and n.heartbeat_age_s < 1.0 for n in st.nodes)
 
 
+def test_home_where_the_arm_is_at_zero_moves_nothing_and_is_not_an_error(make_ctx) -> None:
+    """A script's ``home`` on the straight arm (red-team: it was an error, exit 2 ended the
+    script); after a jog it moves back."""
+    ctx = make_ctx()
+    run(ctx, "connect", "enable", "home")
+    assert "at its zero configuration already" in ctx.lines[-1]
+    assert ctx.session.results == []  # nothing streamed
+    run(ctx, "jog 2 alpha +3", "home 50")
+    assert ctx.lines[-1].startswith("home: done")
+    assert int(np.abs(ctx.session.supervisor.targets).max()) <= 2
+
+
 def test_joint_jog_within_the_limits_turns_the_joint(make_ctx) -> None:
     ctx = make_ctx()
     run(ctx, "connect", "enable")
@@ -102,6 +114,9 @@ def test_motor_jog_moves_one_motor_by_its_counts(make_ctx) -> None:
         ("jog 5 beta 1", r"axis 'beta': alpha or theta"),
         ("jog j05r1 9000", r"larger than a jog's 5000 counts"),
         ("jog j99r1 10", r"unknown rope motor"),
+        # one rope paid out 2.3 mm alone: slack by the rope model (the simulated board
+        # read 0.0 N and stopped the box when this was played)
+        ("jog j01r0 -5000", r"rope j01r0: the rope model's tension [0-9.]+ N, below 10 N"),
         ("jog 5 theta", r"usage: jog MOTOR COUNTS|usage: jog JOINT"),
     ],
 )
