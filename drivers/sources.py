@@ -258,6 +258,40 @@ def path_table(
     >>> t[-1].tolist(), bool((np.abs(np.diff(t[:, 0], 2)) <= 200).all())
     ([1000, -400], True)
     """
+    rows, _x = path_move(
+        samples, period_s, max_rate_counts_per_s, max_accel_counts_per_s2,
+        max_jerk_counts_per_s3, speed_cap_counts_per_s, what,
+    )  # fmt: skip
+    return rows
+
+
+def at_samples(x: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """``samples`` (K + 1, m) interpolated linearly at fractional sample indices ``x``.
+
+    >>> at_samples(np.array([0.0, 0.5, 2.0]), np.array([[0.0], [10.0], [30.0]])).ravel()
+    array([ 0.,  5., 30.])
+    """
+    pts = np.asarray(samples, dtype=np.float64)
+    k_steps = pts.shape[0] - 1
+    i = np.clip(np.asarray(x).astype(np.int64), 0, max(k_steps - 1, 0))
+    w = (np.asarray(x) - i)[:, None]
+    if k_steps == 0:
+        return np.repeat(pts, len(i), axis=0)
+    return pts[i] + w * (pts[i + 1] - pts[i])
+
+
+def path_move(
+    samples: np.ndarray,
+    period_s: float,
+    max_rate_counts_per_s: np.ndarray,
+    max_accel_counts_per_s2: np.ndarray,
+    max_jerk_counts_per_s3: np.ndarray,
+    speed_cap_counts_per_s: np.ndarray | None = None,
+    what: str = "move",
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`path_table`'s rows and where each row is along the path: its fractional
+    sample index (0 .. K), for what else was sampled along it (the poses of a joint
+    line: :func:`at_samples`)."""
     from ruckig import InputParameter
 
     pts = np.asarray(samples, dtype=np.float64)
@@ -269,7 +303,7 @@ def path_table(
     slope = np.abs(np.diff(pts, axis=0)).max(axis=0) * k_steps  # D_m, counts per unit s
     moving = slope > 0.0
     if not moving.any():
-        return np.zeros((0, pts.shape[1]), dtype=np.int64)
+        return np.zeros((0, pts.shape[1]), dtype=np.int64), np.zeros(0)
     v_m = np.asarray(max_rate_counts_per_s, np.float64)
     a_m = np.asarray(max_accel_counts_per_s2, np.float64)
     v, a, j = _move_limits(v_m, a_m, max_jerk_counts_per_s3, period_s, speed_cap_counts_per_s)
@@ -286,12 +320,11 @@ def path_table(
         if n_rows * period_s > MAX_SOURCE_DURATION_S:
             raise SetpointError(f"{what}: {n_rows * period_s:.4g} s exceeds the longest run")
         x = np.clip(_sample(traj, n_rows, period_s, 1)[:, 0], 0.0, 1.0) * k_steps
-        i = np.minimum(x.astype(np.int64), k_steps - 1)
-        w = (x - i)[:, None]
-        rows = np.rint(pts[i] + w * (pts[i + 1] - pts[i])).astype(np.int64)
+        x[-1] = k_steps
+        rows = np.rint(at_samples(x, pts)).astype(np.int64)
         rows[-1] = end
         if _within(rows, start, period_s, v_m, a_m, at_rest_after=True):
-            return rows
+            return rows, x
         v_s, a_s, j_s = v_s * MOVE_SLOWDOWN, a_s * MOVE_SLOWDOWN**2, j_s * MOVE_SLOWDOWN**3
     raise SetpointError(f"{what}: no sampled trajectory within the motors' limits")
 
@@ -356,8 +389,10 @@ class JogSource(TableSource):
         velocity_counts_per_s: float,
         duration_s: float,
         hold_s: float = 0.1,
+        label: str | None = None,
     ) -> None:
         super().__init__()
+        self.label = label  # names the jog in messages (default: motor and speed)
         if motor not in actuation.motor_ids:
             raise SetpointError(f"jog: unknown rope motor '{motor}'")
         if not math.isfinite(velocity_counts_per_s) or not duration_s > 0 or not hold_s >= 0:
@@ -439,9 +474,11 @@ class JogSource(TableSource):
         rows = np.unique(np.rint(np.linspace(0, len(moved) - 1, n)).astype(np.int64))
         table = np.repeat(actual[None, :], len(rows) + 1, axis=0)
         table[1:, self.index] = moved[rows]
-        check_move(
-            self.actuation, table, f"jog {self.motor} ({self.velocity:.0f} counts/s, {where})"
-        )
+        if self.label:
+            what = f"{self.label} ({where})"
+        else:
+            what = f"jog {self.motor} ({self.velocity:.0f} counts/s, {where})"
+        check_move(self.actuation, table, what)
 
     def start(self, actual_counts: np.ndarray, period_s: float) -> None:
         check_duration(f"jog {self.motor}", self.duration_s + self.hold_s, period_s)
@@ -544,12 +581,16 @@ def check_table(
 class CountsSource(TableSource):
     """Play a precomputed (cycles, motors) counts ``body`` made for the control period
     ``period_s``: a lead-in from the actual positions to the body's first row (jerk-limited,
-    from rest to rest, at no more than half of each motor's speed: :func:`move_table`),
-    the body, a jerk-limited stop if the body ends moving (:func:`stop_table`), then
-    ``hold_s`` of where it ended.
+    from rest to rest, at no more than half of each motor's speed; with the whole rope
+    layer a straight line in the joint angles, ``Actuation.joint_line`` timed by
+    :func:`path_move`, else in counts, :func:`move_table`), the body, a jerk-limited stop
+    if the body ends moving (:func:`stop_table`), then ``hold_s`` of where it ended.  The
+    lead-in and the stop are checked by the rope model (:func:`check_move`).
 
     ``label`` names body rows in messages (a function of the row or one string per
-    row, e.g. the plan step a row came from); ``info`` goes into :meth:`describe`.  The
+    row, e.g. the plan step a row came from); ``info`` goes into :meth:`describe`;
+    ``first_pose`` (alpha, theta), the configuration the first row was made from (a
+    plan's first step), is where the lead-in goes (else the rope inverse's of the row).  The
     body is checked against every limit in :meth:`precheck`, and the whole table again,
     from the actual positions, in :meth:`start`.
 
@@ -576,9 +617,11 @@ class CountsSource(TableSource):
         label: LabelOfRow | None = None,
         hold_s: float = 0.2,
         info: Mapping[str, Any] | None = None,
+        first_pose: tuple[Any, Any] | None = None,
     ) -> None:
         super().__init__()
         self.name = name
+        self.first_pose = first_pose
         if not (math.isfinite(hold_s) and hold_s >= 0):
             raise SetpointError(f"{name}: hold must be >= 0 s, got {hold_s}")
         if not (math.isfinite(period_s) and period_s > 0):
@@ -601,6 +644,17 @@ class CountsSource(TableSource):
         self.n_lead_in = 0
         self.n_stop = 0
         self._checked = False
+
+    @classmethod
+    def of_plan(
+        cls, limits: LimitChecker, setpoints: Any, *, name: str = "plan", **kw: Any
+    ) -> CountsSource:
+        """The source of a plan's counts (the rope layer's ``PlanSetpoints``: its counts,
+        control period, row labels, and its first step's configuration for the lead-in to
+        go to).  ``kw`` as for the constructor (``hold_s``, ``info``)."""
+        first = (setpoints.alpha_rad[0], setpoints.theta_rad[0])
+        return cls(limits, setpoints.counts, setpoints.period_s, name=name,
+                   label=setpoints.label, first_pose=first, **kw)  # fmt: skip
 
     def _row_name(self, row: int) -> str:
         """A row of the full table (lead-in, body, hold) as a message names it."""
@@ -644,12 +698,18 @@ class CountsSource(TableSource):
         a = np.asarray(accel_limits(self.limits), dtype=np.float64)
         j = jerk_limits(self.limits)
         cap = LEAD_IN_SPEED_FRACTION * v
+        lead_poses = None  # the configurations of the lead-in rows, where known
         try:
             if np.array_equal(actual, body[0]):  # the drives hold the first row already
                 lead = np.zeros((0, actual.shape[0]), dtype=np.int64)
-            elif (line_of := getattr(self.limits, "joint_line_counts", None)) is not None:
+            elif (line_of := getattr(self.limits, "joint_line", None)) is not None:
                 # the whole rope layer: a line in joint space
-                lead = path_table(line_of(actual, body[0]), period_s, v, a, j, cap, "lead-in")
+                line = line_of(actual, body[0], to_pose=self.first_pose)
+                lead, x = path_move(line.counts, period_s, v, a, j, cap, "lead-in")
+                lead_poses = (
+                    np.vstack([line.alpha[:1], at_samples(x, line.alpha)]),
+                    np.vstack([line.theta[:1], at_samples(x, line.theta)]),
+                )
             else:  # a motor subset: the other ropes are not moved, no pose to go by
                 lead = move_table(actual, body[0], period_s, v, a, j, speed_cap_counts_per_s=cap)
             # a body whose last change is more than holding it afterwards may take (one
@@ -671,12 +731,13 @@ class CountsSource(TableSource):
         if maps_joints(self.limits):
             last = _row_name(self.label, body.shape[0] - 1)
             parts = (
-                (actual, lead, f"lead-in to {_row_name(self.label, 0)}"),
-                (body[-1], stop, f"stop after {last}"),
+                (actual, lead, lead_poses, f"lead-in to {_row_name(self.label, 0)}"),
+                (body[-1], stop, None, f"stop after {last}"),
             )
-            for before, part, what in parts:
+            for before, part, poses, what in parts:
                 if part.shape[0]:
-                    check_move(self.limits, np.vstack([before, part]), f"{self.name}: {what}")
+                    table = np.vstack([before, part])
+                    check_move(self.limits, table, f"{self.name}: {what}", poses)
         end = stop[-1:] if stop.shape[0] else body[-1:]
         hold = np.repeat(end, max(0, round(self.hold_s / period_s)), axis=0)
         table = np.concatenate([lead, body, stop, hold], axis=0)

@@ -49,7 +49,12 @@ def maps_joints(actuation: Any) -> bool:
 
 
 MOVE_CHECK_MAX_ROWS = 400  # rows of a move mapped through the rope model, at most
-TENSION_SLACK_N = 0.5  # a move may take a rope this much further out than it starts
+# a rope outside the band where a move starts may go this much further out on the way
+# (the rope model's noise along a path: 1 count is 0.027 N on the shortest rope)
+TENSION_SLACK_N = 0.1
+# ... and end this much further out (a rope a move does not pull on changes by the rounding
+# of its counts only: half a count, 0.014 N on the shortest rope)
+END_SLACK_N = 0.03
 
 
 def check_joint_limits(actuation: Any, counts: np.ndarray, what: str) -> None:
@@ -87,18 +92,33 @@ def sampled_rows(n_rows: int, max_rows: int = MOVE_CHECK_MAX_ROWS) -> np.ndarray
     return np.unique(np.rint(np.linspace(0, n_rows - 1, max(n, 1))).astype(np.int64))
 
 
-def check_move(actuation: Any, counts: np.ndarray, what: str) -> None:
+def check_move(
+    actuation: Any,
+    counts: np.ndarray,
+    what: str,
+    poses: tuple[np.ndarray, np.ndarray] | None = None,
+) -> None:
     """The arm a move's counts give, by the rope layer's model: ``counts`` (rows, motors)
     starts with where the drives are now (not judged) and goes on with the move's rows
-    (at most :data:`MOVE_CHECK_MAX_ROWS` of them, evenly spread, are mapped).  Refused
-    with one line (:class:`SetpointError`) when a row's joint angles leave the joint
-    limits or, with the whole rope layer (it has ``tensions_from_counts``), when a
-    rope's modelled tension leaves the rope layer's ``command_tension_N`` band further
-    than it starts (by more than :data:`TENSION_SLACK_N`): counts that no pose of the
-    arm takes up at its pretension strain or slacken ropes (a straight line in counts
-    between two bent poses, one rope moved alone).  A move back towards the band from
-    outside it is taken.  A motor subset (``ActuationSubset``) gets the joint limits only:
-    the other ropes are not commanded, so their tensions are unknown.
+    (at most :data:`MOVE_CHECK_MAX_ROWS` of them, evenly spread, are mapped).  Without
+    ``poses`` the rows' joint angles are the rope inverse's of their counts; with them
+    (the configurations the rows were made from, (rows, 12) alpha and theta, e.g. a joint
+    line's) they are those, their whole counts judged as a plan's are
+    (``rounded_outside``), and the tensions are those with the arm held there
+    (``tensions_at``: the joints do not give way; near the joint-range corners the rope
+    inverse can settle degrees away).  Refused with one line
+    (:class:`SetpointError`, naming the cycle of the move) when a row's joint angles
+    leave the joint limits, no pose fits a row, or, with the whole rope layer (it has
+    ``tensions_from_counts``), a rope's modelled
+    tension leaves the rope layer's ``command_tension_N`` band: counts that no pose of
+    the arm takes up at its pretension strain or slacken ropes (a straight line in
+    counts between two bent poses, one rope moved alone).  A rope outside the band where
+    the move starts may stay outside it, but no row takes it more than
+    :data:`TENSION_SLACK_N` further out and the move does not end further out than it
+    started (by more than :data:`END_SLACK_N`: moves one after another cannot creep out
+    of the band).  A motor
+    subset (``ActuationSubset``) gets the joint limits only: the other ropes are not
+    commanded, so their tensions are unknown.
 
     >>> from hrm_ctrl.model import default_robot
     >>> from hrm_ctrl.ropes.actuation import load_actuation
@@ -107,33 +127,58 @@ def check_move(actuation: Any, counts: np.ndarray, what: str) -> None:
     >>> check_move(act, move, "jog j01r0 -5000 counts")   # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    drivers.safety.limits.SetpointError: jog j01r0 -5000 counts: rope j01r0: ... 0.0 N, below ...
+    drivers.safety.limits.SetpointError: jog j01r0 -5000 counts: cycle 1: rope j01r0: ... 0.0 N...
     >>> check_move(act, move[::-1], "back")   # from slack towards the pretension: taken
     """
     table = np.atleast_2d(np.asarray(counts, dtype=np.int64))
     if table.shape[0] < 2:
         return
+    rows = sampled_rows(table.shape[0])
     tensions = getattr(actuation, "tensions_from_counts", None)
     if tensions is None:  # a motor subset
-        check_joint_limits(actuation, table[sampled_rows(table.shape[0])][1:], what)
+        check_joint_limits(actuation, table[rows][1:], what)
         return
-    rows = table[sampled_rows(table.shape[0])]
-    try:
-        alpha, theta, T = tensions(rows)
-        actuation.check_angles(alpha[1:], theta[1:])
-    except HrmError as exc:
-        raise SetpointError(f"{what}: leaves the joint limits ({exc})") from None
+    n = table.shape[0] - 1
+    lim_a, lim_t = actuation.robot.limit_alpha, actuation.robot.limit_theta
+    if poses is None:  # the rows' poses are what the rope inverse makes of their counts
+        try:
+            alpha, theta, T = tensions(table[rows])
+        except HrmError as exc:
+            raise SetpointError(f"{what}: no pose of the arm fits its counts ({exc})") from None
+    else:  # the rows were made from these poses: judged as a plan's rows are
+        alpha, theta = poses[0][rows], poses[1][rows]
+        near = actuation.rounded_outside(table[rows][1:], alpha[1:], theta[1:])
+        if near is not None:
+            raise SetpointError(
+                f"{what}: cycle {int(rows[near[0] + 1])} of {n}: rounded to whole counts: {near[1]}"
+            )
+        T = actuation.tensions_at(table[rows], alpha, theta)  # the arm held at its poses
+    outside = ~((np.abs(alpha) < lim_a) & (np.abs(theta) < lim_t)).all(axis=1)
+    outside[0] = False  # where the arm is: not the move's to judge
+    if outside.any():
+        k = int(np.flatnonzero(outside)[0])
+        try:
+            actuation.check_angles(alpha[k], theta[k])
+        except HrmError as exc:
+            raise SetpointError(
+                f"{what}: cycle {int(rows[k])} of {n}: leaves the joint limits ({exc})"
+            ) from None
     low, high = actuation.routing.command_tension_N
     start = T[0]
-    below = (T < low) & (T < start - TENSION_SLACK_N)
-    above = (T > high) & (T > start + TENSION_SLACK_N)
+    floor = np.minimum(start, low)  # a rope may not go below the band, or below its start
+    ceiling = np.maximum(start, high)
+    below = T < floor - TENSION_SLACK_N
+    above = T > ceiling + TENSION_SLACK_N
+    below[-1] |= T[-1] < floor - END_SLACK_N  # and the move ends no further out than it began
+    above[-1] |= T[-1] > ceiling + END_SLACK_N
     bad = below | above
     if bad.any():
         r, m = (int(v) for v in np.argwhere(bad)[0])
         side = f"below {low:g} N" if below[r, m] else f"above {high:g} N"
         raise SetpointError(
-            f"{what}: rope {actuation.motor_ids[m]}: the rope model's tension {T[r, m]:.1f} N, "
-            f"{side} (command_tension_N of the robot description; {start[m]:.1f} N now)"
+            f"{what}: cycle {int(rows[r])}: rope {actuation.motor_ids[m]}: the rope model's "
+            f"tension {T[r, m]:.1f} N, {side} (command_tension_N of the robot description; "
+            f"{start[m]:.1f} N now)"
         )
 
 

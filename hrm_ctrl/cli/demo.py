@@ -391,9 +391,7 @@ def run(args: argparse.Namespace) -> int:
             doc, actuation, period_s=config.control.period_s, speed_mm_per_s=args.speed
         )
         info = {"plan": sc.name, "steps": sp.n_steps, "speed_mm_per_s": args.speed}
-        source = CountsSource(
-            actuation, sp.counts, sp.period_s, name="plan", label=sp.label, info=info
-        )
+        source = CountsSource.of_plan(actuation, sp, info=info)
         source.precheck(config.control.period_s)
         write_plan(out / PLAN_JSON, doc)
         figures = write_plan_figures(doc, out / FIGURES_DIR)

@@ -115,7 +115,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--jog", default=None, metavar="MOTOR:COUNTS_PER_S:S",
-        help="move one rope motor at a constant speed, e.g. j01r0:20000:0.5",
+        help="move one rope motor at a constant speed, e.g. j01r0:20000:0.2",
     )  # fmt: skip
     parser.add_argument(
         "--take-over", action="store_true",
@@ -219,7 +219,7 @@ def _source(
         "speed_mm_per_s": sp.speed_mm_per_s,
         "duration_s": sp.duration_s,
     }
-    source = CountsSource(actuation, sp.counts, sp.period_s, name="plan", label=sp.label, info=info)
+    source = CountsSource.of_plan(actuation, sp, info=info)
     source.plan_setpoints = sp  # type: ignore[attr-defined]  # the live line's travel
     return source, None, plan_record
 

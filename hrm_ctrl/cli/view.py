@@ -185,7 +185,7 @@ def _live(args: argparse.Namespace) -> int:
             speed_mm_per_s=args.speed,
             max_duration_s=MAX_SOURCE_DURATION_S,
         )
-        sources.append(CountsSource(actuation, sp.counts, sp.period_s, name="plan", label=sp.label))
+        sources.append(CountsSource.of_plan(actuation, sp))
     if args.hold is not None:
         sources.append(HoldSource(n_cycles=max(1, round(args.hold * config.control.rate_hz))))
     elif doc is None:

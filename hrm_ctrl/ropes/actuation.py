@@ -53,12 +53,28 @@ NEAR_LIMIT_RAD = 1.0e-3
 # A joint line is sampled this often (its counts linear between samples): on a line from
 # the straight arm to +-44 deg everywhere a chord then leaves the exact counts by < 1 count.
 JOINT_LINE_SAMPLES = 256
+# The ends of a joint line may decode this far outside the joint limits and are taken as
+# at the limit: in the corners of the range whole counts hardly tell the angles apart
+# (fits 6 deg apart within 1e-4 mm, hrm_ctrl.ropes.inverse).
+END_OUTSIDE_TOL_RAD = math.radians(10.0)
+POSE_CONTINUATION_STEPS = 8  # a cold inverse that fails is followed from the straight arm
 MAX_JOINT_LINE_SAMPLES = 100_000
 
 
 class RopeLimitError(RopeError):
     """A configuration or setpoint breaks a joint, drum-travel, motor-speed or
     motor-acceleration limit."""
+
+
+@dataclass(frozen=True, eq=False)
+class JointLine:
+    """A straight line in joint space (:meth:`Actuation.joint_line`), sampled at equal
+    steps: ``counts`` (K + 1, n) float, the configuration of every sample ``alpha`` /
+    ``theta`` (K + 1, 12) (true angles, rad)."""
+
+    counts: np.ndarray
+    alpha: np.ndarray
+    theta: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,16 +165,24 @@ class Actuation:
                     f"{where}joint {int(idx[-1]) + 1}: {name} = {val:.6g} rad {what}"
                 )
 
-    def joint_line_counts(
-        self, from_counts: Any, to_counts: Any, *, n_samples: int = JOINT_LINE_SAMPLES
-    ) -> np.ndarray:
-        """``(n_samples + 1, n)`` float counts along the straight line in joint space from
+    def joint_line(
+        self,
+        from_counts: Any,
+        to_counts: Any,
+        *,
+        to_pose: tuple[Any, Any] | None = None,
+        n_samples: int = JOINT_LINE_SAMPLES,
+    ) -> JointLine:
+        """The straight line in joint space, ``n_samples + 1`` samples: float counts from
         the configuration ``from_counts`` shows to the one ``to_counts`` shows
         (:meth:`angles_from_counts`), at equal steps of the line: each sample the
         pretension counts of its configuration plus the ends' misfits (given minus
         pretension counts) blended linearly along the line, so the first sample is
         ``from_counts`` and the last ``to_counts`` exactly (a rope slack or strained where
-        the arm is now comes to the pretension on the way).  The path of a lead-in
+        the arm is now comes to the pretension on the way).  ``to_pose`` (alpha, theta),
+        the configuration ``to_counts`` were made from where it is known, is taken for
+        the target instead of the rope inverse's (in the corners of the joint range the
+        counts hardly tell the angles apart).  The path of a lead-in
         (``drivers.sources.CountsSource``): rope lengths are not linear in the angles, so
         the straight line in *counts* between two bent poses is a set of rope lengths no
         pose takes up at its pretension (from the straight arm to +-44 deg on every joint:
@@ -170,10 +194,11 @@ class Actuation:
         >>> act = load_actuation(default_robot())
         >>> a = np.full(12, math.radians(44.0))
         >>> end = act.counts_from_angles(a, -a)
-        >>> line = act.joint_line_counts(np.zeros(36, dtype=np.int64), end)
-        >>> bool((line[0] == 0).all() and (line[-1] == end).all()), line.shape
-        (True, (257, 36))
-        >>> tension = act.tensions_from_counts(np.rint(line).astype(np.int64))[2]
+        >>> line = act.joint_line(np.zeros(36, dtype=np.int64), end)
+        >>> c = line.counts
+        >>> bool((c[0] == 0).all() and (c[-1] == end).all()), c.shape, line.alpha.shape
+        (True, (257, 36), (257, 12))
+        >>> tension = act.tensions_from_counts(np.rint(c).astype(np.int64))[2]
         >>> round(float(tension.max()), 1) <= 30.1
         True
         """
@@ -186,12 +211,16 @@ class Actuation:
                 f"joint line: samples must be 1..{MAX_JOINT_LINE_SAMPLES}, got {n_samples!r}"
             )
         ends = np.vstack([c0, c1])
-        alpha, theta, _res = self.angles_from_counts(ends)
-        for k, what in ((0, "where the arm is"), (1, "the target")):
+        a0, t0 = self.pose_of_counts(c0, "where the arm is")
+        if to_pose is None:
+            a1, t1 = self.pose_of_counts(c1, "the target")
+        else:  # the target's configuration is known (a plan's first step)
+            a1, t1 = self._angles(*to_pose)
             try:
-                self.check_angles(alpha[k], theta[k])
+                self.check_angles(a1, t1)
             except RopeLimitError as exc:
-                raise RopeLimitError(f"joint line: {what}: {exc}") from None
+                raise RopeLimitError(f"joint line: the target: {exc}") from None
+        alpha, theta = np.vstack([a0, a1]), np.vstack([t0, t1])
         s = np.linspace(0.0, 1.0, n_samples + 1)[:, None]
         a = alpha[0] + s * (alpha[1] - alpha[0])
         t = theta[0] + s * (theta[1] - theta[0])
@@ -199,7 +228,58 @@ class Actuation:
         misfit = ends - pre[[0, -1]]
         line = pre + (1.0 - s) * misfit[0] + s * misfit[1]
         line[0], line[-1] = c0, c1
-        return line
+        return JointLine(counts=line, alpha=a, theta=t)
+
+    def pose_of_counts(self, counts: Any, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """The pose ``counts`` (n,) show, for a move to start from (a joint line's end, a
+        jog, home): the rope inverse's, brought twice :data:`NEAR_LIMIT_RAD` inside the
+        joint limits.  In the corners of the range the lengths fold: whole counts do not
+        tell the angles apart better than a fraction of a degree there
+        (``hrm_ctrl.ropes.inverse``), and a cold start of the inverse can settle degrees
+        away, outside the limits, or not converge; the inverse is then followed from the
+        straight arm's counts to ``counts`` in :data:`POSE_CONTINUATION_STEPS` steps, each
+        warm-started from the last.  A pose more than :data:`END_OUTSIDE_TOL_RAD` outside
+        the limits, or none, raises :class:`RopeLimitError` (``what`` names the end).
+
+        >>> from hrm_ctrl.model import default_robot
+        >>> act = load_actuation(default_robot())
+        >>> q = math.radians(59.0) * np.array([1.0, -1.0] * 12)
+        >>> c = act.counts_from_angles(q[:12], q[12:])
+        >>> a, t = act.pose_of_counts(c, "here")
+        >>> bool(np.abs(np.concatenate([a, t]) - q).max() < math.radians(1.0))
+        True
+        """
+        c = np.asarray(self._counts(counts), dtype=np.float64)
+        lim_a, lim_t = self.robot.limit_alpha, self.robot.limit_theta
+
+        def inside(a: np.ndarray, t: np.ndarray) -> bool:
+            return bool((np.abs(a) < lim_a).all() and (np.abs(t) < lim_t).all())
+
+        try:
+            a, t, _res = self.angles_from_counts(c)
+            settled = inside(a, t)
+        except RopeError:
+            settled = False
+        if not settled:  # continuation from the straight arm
+            z = np.zeros(self.robot.n_joints)
+            c_zero = self.counts_from_angles(z, z, check=False).astype(np.float64)
+            a, t = z, z
+            try:
+                for k in range(1, POSE_CONTINUATION_STEPS + 1):
+                    c_k = c_zero + (c - c_zero) * (k / POSE_CONTINUATION_STEPS)
+                    a, t, _res = self.angles_from_counts(c_k, None, a, t)
+            except RopeError as exc:
+                raise RopeLimitError(f"{what}: {exc}") from None
+        too_far = (np.abs(a) > lim_a + END_OUTSIDE_TOL_RAD).any() or (
+            np.abs(t) > lim_t + END_OUTSIDE_TOL_RAD
+        ).any()
+        if too_far:
+            try:
+                self.check_angles(a, t)
+            except RopeLimitError as exc:
+                raise RopeLimitError(f"{what}: {exc}") from None
+        inner_a, inner_t = lim_a - 2 * NEAR_LIMIT_RAD, lim_t - 2 * NEAR_LIMIT_RAD
+        return np.clip(a, -inner_a, inner_a), np.clip(t, -inner_t, inner_t)
 
     def rounded_outside(self, counts: Any, alpha: Any, theta: Any) -> tuple[int, str] | None:
         """The first row of whole ``counts`` (rows, n), made from ``alpha`` / ``theta``
@@ -321,7 +401,7 @@ class Actuation:
         return sol.alpha + self.alpha_offset_rad, sol.theta + self.theta_offset_rad, sol.residual
 
     def tensions_from_counts(
-        self, counts: Any, *, robust: bool = True
+        self, counts: Any, alpha0: Any = None, theta0: Any = None, *, robust: bool = True
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The rope layer's model of the free arm at motor ``counts``: ``(alpha, theta,
         tension_N)``, the joints where their ropes' length misfit is least
@@ -330,6 +410,8 @@ class Actuation:
         paid out, :func:`~hrm_ctrl.ropes.motor_map.rope_tension_N`; 0 when slack).
         Counts made from angles at the pretension give the pretension; moving one rope
         alone changes its joint's tensions (the simulated box's arm is this model).
+        ``alpha0`` / ``theta0`` warm-start the inverse (near the joint-range corners a
+        cold start can settle in a spurious minimum outside the limits).
 
         >>> from hrm_ctrl.model import default_robot
         >>> act = load_actuation(default_robot())
@@ -338,13 +420,27 @@ class Actuation:
         >>> np.round(act.tensions_from_counts(c)[2][:4], 1).tolist()  # j02r0 passes joint 1
         [10.9, 12.2, 12.2, 29.4]
         """
-        alpha, theta, _res = self.angles_from_counts(counts, robust=robust)
+        alpha, theta, _res = self.angles_from_counts(counts, None, alpha0, theta0, robust=robust)
+        return alpha, theta, self.tensions_at(counts, alpha, theta)
+
+    def tensions_at(self, counts: Any, alpha: Any, theta: Any) -> np.ndarray:
+        """Each rope's tension (..., n) with the arm held at ``alpha`` / ``theta`` (true
+        angles) and the motors at ``counts``: ``T = EA (F - u) / u``, 0 when slack (as
+        :meth:`tensions_from_counts`, for a pose known already).
+
+        >>> from hrm_ctrl.model import default_robot
+        >>> act = load_actuation(default_robot())
+        >>> z = np.zeros(12)
+        >>> c = act.counts_from_angles(z, z); c[0] += 2151   # 1 mm of rope wound in
+        >>> round(float(act.tensions_at(c, z, z)[0]), 1)    # the arm held straight
+        87.5
+        """
         tension = rope_tension_N(
             self.free_lengths(alpha, theta),
             self.unstretched_from_counts(counts),
             self.routing.stiffness_EA_N,
         )
-        return alpha, theta, np.asarray(tension, dtype=np.float64)
+        return np.asarray(tension, dtype=np.float64)
 
     def _counts(self, counts: Any) -> np.ndarray:
         c = np.asarray(counts)

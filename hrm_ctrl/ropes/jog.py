@@ -123,7 +123,10 @@ def joint_jog(
     actual = np.asarray(actual_counts, dtype=np.int64)
     if held.shape != (act.n_motors,) or actual.shape != (act.n_motors,):
         raise JogError(f"{what}: expected {act.n_motors} motor counts")
-    alpha, theta, _res = act.angles_from_counts(actual)
+    try:
+        alpha, theta = act.pose_of_counts(actual, "where the arm is")
+    except RopeError as exc:
+        raise JogError(f"{what}: {exc}") from None
     a2, t2 = alpha.copy(), theta.copy()
     (a2 if axis is JogAxis.ALPHA else t2)[joint - 1] += math.radians(delta_deg)
     try:
@@ -190,7 +193,10 @@ def home_setpoints(
     limits at every control period).  A home from where the arm already is raises
     :class:`JogError`."""
     actual = np.asarray(actual_counts, dtype=np.int64)
-    alpha, theta, _res = act.angles_from_counts(actual)
+    try:
+        alpha, theta = act.pose_of_counts(actual, "where the arm is")
+    except RopeError as exc:
+        raise JogError(f"home: {exc}") from None
     zero = np.zeros_like(alpha)
     if np.array_equal(act.counts_from_angles(zero, zero, check=False), actual):
         raise JogError("home: the arm is at its zero configuration already")

@@ -90,7 +90,7 @@ def _jog(ctx: ConsoleContext, args: list[str]) -> None:
         i = check_motor_jog(act, motor, counts, held)
         speed = JOG_SPEED_FRACTION * float(act.max_rate_counts_per_s[i])
         source = JogSource(act, motor, math.copysign(speed, counts), abs(counts) / speed,
-                           hold_s=JOG_HOLD_S)  # fmt: skip
+                           hold_s=JOG_HOLD_S, label=f"jog {motor} {counts:+d} counts")  # fmt: skip
         result = play(ctx, source, "jog")
         ctx.out(f"jog {motor} {counts:+d} counts: done, {result.cycles} cycles "
                 f"({result.cycles * period_s:.2f} s)")  # fmt: skip
@@ -118,8 +118,7 @@ def _home(ctx: ConsoleContext, args: list[str]) -> None:
         ctx.out("home: the arm is at its zero configuration already (nothing to move)")
         return
     sp = home_setpoints(ctx.actuation, actual, period_s=period_s, speed_mm_per_s=speed)
-    source = CountsSource(ctx.actuation, sp.counts, sp.period_s, name="home", label=sp.label,
-                          info={"speed_mm_per_s": speed})  # fmt: skip
+    source = CountsSource.of_plan(ctx.actuation, sp, name="home", info={"speed_mm_per_s": speed})
     result = play(ctx, source, "home")
     ctx.out(f"home: done, {result.cycles} cycles ({result.cycles * period_s:.2f} s) at up to "
             f"{speed:g} mm/s")  # fmt: skip

@@ -156,8 +156,7 @@ def _run(ctx: ConsoleContext, args: list[str]) -> None:
         )  # fmt: skip
         bar(1.0)
     info = {"plan": str(a.plan), "steps": sp.n_steps, "speed_mm_per_s": sp.speed_mm_per_s}
-    inner = CountsSource(ctx.actuation, sp.counts, sp.period_s, name="plan", label=sp.label,
-                         info=info)  # fmt: skip
+    inner = CountsSource.of_plan(ctx.actuation, sp, info=info)
     source = PausableSource(inner, ctx.actuation)
     n = int(ctx.extra.get("runs_played", 0)) + 1
     ctx.extra["runs_played"] = n

@@ -49,6 +49,9 @@ def play(ctx: ConsoleContext, source: Any, what: str) -> Any:
 
     ctx.stop_requested.clear()
     thread = threading.Thread(target=worker, name=f"console-{what}", daemon=True)
+    # until the stream moves, the source may not know its length yet (a table source
+    # makes its table when the session starts it): the deadline then counts from the
+    # first setpoint, the source's whole length plus the margins
     limit_s = session._stream_timeout_s(source) + EXTRA_WAIT_S
     deadline = time.monotonic() + limit_s
     interrupted: BaseException | None = None
@@ -60,6 +63,8 @@ def play(ctx: ConsoleContext, source: Any, what: str) -> Any:
             moving = session.supervisor.mode.name == "STREAMING"  # the first setpoint is out
             if not announced and moving and not done.is_set():
                 announced = True
+                limit_s = session._stream_timeout_s(source) + EXTRA_WAIT_S
+                deadline = time.monotonic() + limit_s
                 # a pausable source's n_cycles allows for its longest pause (the wait for
                 # its end): what it plays is its table, n_rows cycles at full rate
                 n = getattr(source, "n_rows", None) or getattr(source, "n_cycles", 0)

@@ -346,3 +346,23 @@ def test_a_signal_while_enabled_quick_stops_with_its_cause_then_disables(make_ct
     assert causes == [("signal", "SIGTERM: stop requested (console)")]
     kinds = [e["kind"] for e in record["events"]]
     assert kinds.index("quick_stop") < kinds.index("disable")
+
+
+def test_a_move_longer_than_the_wait_before_it_starts_is_not_cut_short(
+    make_ctx, monkeypatch
+) -> None:
+    """The console's wait for a stream's end counted from a source's length before the
+    session had started it (0 cycles for a table source): every console move longer than
+    the margins (40 s: a 46 s ``home 5`` in the docs) was quick-stopped as 'no end'.  With
+    the margins cut to 0.5 s each, a home of about 1.5 s now plays to its end."""
+    import drivers.session
+    import hrm_ctrl.cli._console.streaming as streaming
+
+    ctx = make_ctx()
+    run(ctx, "connect", "enable", "jog 12 alpha +3")
+    monkeypatch.setattr(drivers.session, "STREAM_TIMEOUT_MARGIN_S", 0.5)
+    monkeypatch.setattr(streaming, "EXTRA_WAIT_S", 0.5)
+    run(ctx, "home 5")
+    assert ctx.lines[-1].startswith("home: done"), ctx.lines[-3:]
+    cycles = int(ctx.lines[-1].split(" cycles")[0].split()[-1])
+    assert cycles * ctx.config.control.period_s > 1.0  # longer than the old wait
