@@ -30,7 +30,7 @@ The ``[ropes]`` table of the robot description (all optional, defaults below):
   commanded move that is not a plan (a lead-in, a jog, a stop); default a third and
   four times the pretension (at least the pretension + 20 N): 10 and 120 N, inside the
   tension board's watch of 5 and 150 N.  Safe range: ``0 <= low <= pretension <= high
-  <= 650`` N (the board saturates at 655 N).
+  <= 650`` N (the board saturates at 655 N; a pretension above that is its own top).
 
 >>> from hrm_ctrl.model import default_robot
 >>> rt = routing_from_model(default_robot())
@@ -343,8 +343,8 @@ def default_command_tension(pretension_N: float) -> tuple[float, float]:
     >>> default_command_tension(30.0)
     (10.0, 120.0)
     """
-    return pretension_N / 3.0, min(max(4.0 * pretension_N, pretension_N + 20.0),
-                                   MAX_COMMAND_TENSION_N)  # fmt: skip
+    high = min(max(4.0 * pretension_N, pretension_N + 20.0), MAX_COMMAND_TENSION_N)
+    return pretension_N / 3.0, max(high, pretension_N)  # (a pretension above 650 N: itself)
 
 
 def _command_tension(raw: Any, pretension_N: float, where: str) -> tuple[float, float]:
@@ -354,8 +354,9 @@ def _command_tension(raw: Any, pretension_N: float, where: str) -> tuple[float, 
     else:
         if not isinstance(raw, list) or len(raw) != 2:
             raise RoutingError(f"{where}: must be [low, high] in N, got {raw!r}")
-        low = _num(raw[0], f"{where}[0]", minimum=0.0, maximum=MAX_COMMAND_TENSION_N)
-        high = _num(raw[1], f"{where}[1]", minimum=0.0, maximum=MAX_COMMAND_TENSION_N)
+        top = max(MAX_COMMAND_TENSION_N, pretension_N)
+        low = _num(raw[0], f"{where}[0]", minimum=0.0, maximum=top)
+        high = _num(raw[1], f"{where}[1]", minimum=0.0, maximum=top)
     if not low <= pretension_N <= high:
         raise RoutingError(
             f"{where}: [{low:g}, {high:g}] N must hold the pretension of {pretension_N:g} N"
