@@ -100,23 +100,22 @@ def check_move(
 ) -> None:
     """The arm a move's counts give, by the rope layer's model: ``counts`` (rows, motors)
     starts with where the drives are now (not judged) and goes on with the move's rows
-    (at most :data:`MOVE_CHECK_MAX_ROWS` of them, evenly spread, are mapped).  Without
-    ``poses`` the rows' joint angles are the rope inverse's of their counts; with them
-    (the configurations the rows were made from, (rows, 12) alpha and theta, e.g. a joint
-    line's) they are those, their whole counts judged as a plan's are
+    (at most :data:`MOVE_CHECK_MAX_ROWS` of them, evenly spread, are mapped).
+
+    Without ``poses`` the rows' joint angles are the rope inverse's of their counts; with
+    them (the configurations the rows were made from, (rows, 12) alpha and theta, e.g. a
+    joint line's) they are those, their whole counts judged as a plan's are
     (``rounded_outside``), and the tensions are those with the arm held there
-    (``tensions_at``: the joints do not give way; near the joint-range corners the rope
-    inverse can settle degrees away).  Refused with one line
-    (:class:`SetpointError`, naming the cycle of the move) when a row's joint angles
-    leave the joint limits, no pose fits a row, or, with the whole rope layer (it has
-    ``tensions_from_counts``), a rope's modelled
-    tension leaves the rope layer's ``command_tension_N`` band: counts that no pose of
-    the arm takes up at its pretension strain or slacken ropes (a straight line in
-    counts between two bent poses, one rope moved alone).  A rope outside the band where
-    the move starts may stay outside it, but no row takes it more than
-    :data:`TENSION_SLACK_N` further out and the move does not end further out than it
-    started (by more than :data:`END_SLACK_N`: moves one after another cannot creep out
-    of the band).  A motor
+    (``tensions_at``; near the joint-range corners the rope inverse can settle degrees
+    away).  Refused with one line (:class:`SetpointError`, naming the cycle of the move)
+    when a row's joint angles leave the joint limits, no pose fits a row, or, with the
+    whole rope layer (it has ``tensions_from_counts``), a rope's modelled tension leaves
+    the rope layer's ``command_tension_N`` band: counts that no pose of the arm takes up
+    at its pretension strain or slacken ropes (a straight line in counts between two
+    bent poses, one rope moved alone).  A rope outside the band where the move starts
+    may stay outside it, but no row takes it more than :data:`TENSION_SLACK_N` further
+    out and the move does not end further out than it started (by more than
+    :data:`END_SLACK_N`: moves one after another cannot creep out of the band).  A motor
     subset (``ActuationSubset``) gets the joint limits only: the other ropes are not
     commanded, so their tensions are unknown.
 

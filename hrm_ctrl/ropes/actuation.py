@@ -175,7 +175,7 @@ class Actuation:
     ) -> JointLine:
         """The straight line in joint space, ``n_samples + 1`` samples: float counts from
         the configuration ``from_counts`` shows to the one ``to_counts`` shows
-        (:meth:`angles_from_counts`), at equal steps of the line: each sample the
+        (:meth:`pose_of_counts`), at equal steps of the line: each sample the
         pretension counts of its configuration plus the ends' misfits (given minus
         pretension counts) blended linearly along the line, so the first sample is
         ``from_counts`` and the last ``to_counts`` exactly (a rope slack or strained where
@@ -188,7 +188,8 @@ class Actuation:
         pose takes up at its pretension (from the straight arm to +-44 deg on every joint:
         ropes at 164 N, pretensioned to 30 N).  The joint box is convex: a line between
         two configurations within the joint limits stays within them.  Raises
-        :class:`RopeLimitError` when an end is outside the joint limits.
+        :class:`RopeLimitError` when an end is outside the joint limits (by more than
+        :data:`END_OUTSIDE_TOL_RAD` for one the inverse finds) or no pose fits it.
 
         >>> from hrm_ctrl.model import default_robot
         >>> act = load_actuation(default_robot())
