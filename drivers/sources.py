@@ -478,7 +478,14 @@ class JogSource(TableSource):
             what = f"{self.label} ({where})"
         else:
             what = f"jog {self.motor} ({self.velocity:.0f} counts/s, {where})"
-        check_move(self.actuation, table, what)
+        pose_of = getattr(self.actuation, "pose_of_counts", None)
+        warm = None
+        if pose_of is not None:  # the inverse starts where the arm is (not cold: corners)
+            try:
+                warm = pose_of(actual, "where the arm is")
+            except HrmError as exc:
+                raise SetpointError(f"{what}: {exc}") from None
+        check_move(self.actuation, table, what, warm=warm)
 
     def start(self, actual_counts: np.ndarray, period_s: float) -> None:
         check_duration(f"jog {self.motor}", self.duration_s + self.hold_s, period_s)

@@ -52,9 +52,6 @@ MOVE_CHECK_MAX_ROWS = 400  # rows of a move mapped through the rope model, at mo
 # a rope outside the band where a move starts may go this much further out on the way
 # (the rope model's noise along a path: 1 count is 0.027 N on the shortest rope)
 TENSION_SLACK_N = 0.1
-# ... and end this much further out (a rope a move does not pull on changes by the rounding
-# of its counts only: half a count, 0.014 N on the shortest rope)
-END_SLACK_N = 0.03
 
 
 def check_joint_limits(actuation: Any, counts: np.ndarray, what: str) -> None:
@@ -97,25 +94,30 @@ def check_move(
     counts: np.ndarray,
     what: str,
     poses: tuple[np.ndarray, np.ndarray] | None = None,
+    *,
+    warm: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """The arm a move's counts give, by the rope layer's model: ``counts`` (rows, motors)
     starts with where the drives are now (not judged) and goes on with the move's rows
     (at most :data:`MOVE_CHECK_MAX_ROWS` of them, evenly spread, are mapped).
 
-    Without ``poses`` the rows' joint angles are the rope inverse's of their counts; with
-    them (the configurations the rows were made from, (rows, 12) alpha and theta, e.g. a
-    joint line's) they are those, their whole counts judged as a plan's are
-    (``rounded_outside``), and the tensions are those with the arm held there
-    (``tensions_at``; near the joint-range corners the rope inverse can settle degrees
-    away).  Refused with one line (:class:`SetpointError`, naming the cycle of the move)
-    when a row's joint angles leave the joint limits, no pose fits a row, or, with the
+    Without ``poses`` the rows' joint angles are the rope inverse's of their counts
+    (started from ``warm``, (12,) alpha and theta, e.g. where the arm is, else cold), and
+    an angle at or past its limit is refused only where the move takes it further out
+    than it starts (near the joint-range corners the counts hardly tell the angles apart:
+    an arm at 58 deg can decode at 60.7); with ``poses`` (the configurations the rows were
+    made from, (rows, 12) alpha and theta, e.g. a joint line's) they are those, their
+    whole counts judged as a plan's are (``rounded_outside``), and the tensions are
+    those with the arm held there (``tensions_at``).  Refused with one line
+    (:class:`SetpointError`, naming the cycle of the move) when a row's joint angles
+    leave the joint limits, no pose fits a row, or, with the
     whole rope layer (it has ``tensions_from_counts``), a rope's modelled tension leaves
     the rope layer's ``command_tension_N`` band: counts that no pose of the arm takes up
     at its pretension strain or slacken ropes (a straight line in counts between two
     bent poses, one rope moved alone).  A rope outside the band where the move starts
     may stay outside it, but no row takes it more than :data:`TENSION_SLACK_N` further
-    out and the move does not end further out than it started (by more than
-    :data:`END_SLACK_N`: moves one after another cannot creep out of the band).  A motor
+    out and the move does not end further out than it started (moves one after another
+    cannot creep out of the band).  A motor
     subset (``ActuationSubset``) gets the joint limits only: the other ropes are not
     commanded, so their tensions are unknown.
 
@@ -126,7 +128,7 @@ def check_move(
     >>> check_move(act, move, "jog j01r0 -5000 counts")   # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    drivers.safety.limits.SetpointError: jog j01r0 -5000 counts: cycle 1: rope j01r0: ... 0.0 N...
+    drivers.safety.limits.SetpointError: jog j01r0 -5000 counts: cycle 1: rope j01r0: ... 0.00 N...
     >>> check_move(act, move[::-1], "back")   # from slack towards the pretension: taken
     """
     table = np.atleast_2d(np.asarray(counts, dtype=np.int64))
@@ -141,7 +143,7 @@ def check_move(
     lim_a, lim_t = actuation.robot.limit_alpha, actuation.robot.limit_theta
     if poses is None:  # the rows' poses are what the rope inverse makes of their counts
         try:
-            alpha, theta, T = tensions(table[rows])
+            alpha, theta, T = tensions(table[rows], *(warm or (None, None)))
         except HrmError as exc:
             raise SetpointError(f"{what}: no pose of the arm fits its counts ({exc})") from None
     else:  # the rows were made from these poses: judged as a plan's rows are
@@ -152,7 +154,11 @@ def check_move(
                 f"{what}: cycle {int(rows[near[0] + 1])} of {n}: rounded to whole counts: {near[1]}"
             )
         T = actuation.tensions_at(table[rows], alpha, theta)  # the arm held at its poses
-    outside = ~((np.abs(alpha) < lim_a) & (np.abs(theta) < lim_t)).all(axis=1)
+    past_a, past_t = np.abs(alpha) >= lim_a, np.abs(theta) >= lim_t
+    if poses is None:  # a decoded angle past its limit counts where the move takes it out
+        past_a &= np.abs(alpha) > np.abs(alpha[0]) + 1e-9
+        past_t &= np.abs(theta) > np.abs(theta[0]) + 1e-9
+    outside = (past_a | past_t | ~np.isfinite(alpha) | ~np.isfinite(theta)).any(axis=1)
     outside[0] = False  # where the arm is: not the move's to judge
     if outside.any():
         k = int(np.flatnonzero(outside)[0])
@@ -168,16 +174,16 @@ def check_move(
     ceiling = np.maximum(start, high)
     below = T < floor - TENSION_SLACK_N
     above = T > ceiling + TENSION_SLACK_N
-    below[-1] |= T[-1] < floor - END_SLACK_N  # and the move ends no further out than it began
-    above[-1] |= T[-1] > ceiling + END_SLACK_N
+    below[-1] |= T[-1] < floor - 1e-9  # and the move ends no further out than it began
+    above[-1] |= T[-1] > ceiling + 1e-9
     bad = below | above
     if bad.any():
         r, m = (int(v) for v in np.argwhere(bad)[0])
         side = f"below {low:g} N" if below[r, m] else f"above {high:g} N"
         raise SetpointError(
             f"{what}: cycle {int(rows[r])}: rope {actuation.motor_ids[m]}: the rope model's "
-            f"tension {T[r, m]:.1f} N, {side} (command_tension_N of the robot description; "
-            f"{start[m]:.1f} N now)"
+            f"tension {T[r, m]:.2f} N, {side} (command_tension_N of the robot description; "
+            f"{start[m]:.2f} N now)"
         )
 
 

@@ -170,6 +170,7 @@ class Actuation:
         from_counts: Any,
         to_counts: Any,
         *,
+        from_pose: tuple[Any, Any] | None = None,
         to_pose: tuple[Any, Any] | None = None,
         n_samples: int = JOINT_LINE_SAMPLES,
     ) -> JointLine:
@@ -179,10 +180,10 @@ class Actuation:
         pretension counts of its configuration plus the ends' misfits (given minus
         pretension counts) blended linearly along the line, so the first sample is
         ``from_counts`` and the last ``to_counts`` exactly (a rope slack or strained where
-        the arm is now comes to the pretension on the way).  ``to_pose`` (alpha, theta),
-        the configuration ``to_counts`` were made from where it is known, is taken for
-        the target instead of the rope inverse's (in the corners of the joint range the
-        counts hardly tell the angles apart).  The path of a lead-in
+        the arm is now comes to the pretension on the way).  ``from_pose`` / ``to_pose``
+        (alpha, theta), an end's configuration where it is known (a plan's first step, a
+        jog's), is taken instead of the rope inverse's (in the corners of the joint range
+        the counts hardly tell the angles apart).  The path of a lead-in
         (``drivers.sources.CountsSource``): rope lengths are not linear in the angles, so
         the straight line in *counts* between two bent poses is a set of rope lengths no
         pose takes up at its pretension (from the straight arm to +-44 deg on every joint:
@@ -212,15 +213,8 @@ class Actuation:
                 f"joint line: samples must be 1..{MAX_JOINT_LINE_SAMPLES}, got {n_samples!r}"
             )
         ends = np.vstack([c0, c1])
-        a0, t0 = self.pose_of_counts(c0, "where the arm is")
-        if to_pose is None:
-            a1, t1 = self.pose_of_counts(c1, "the target")
-        else:  # the target's configuration is known (a plan's first step)
-            a1, t1 = self._angles(*to_pose)
-            try:
-                self.check_angles(a1, t1)
-            except RopeLimitError as exc:
-                raise RopeLimitError(f"joint line: the target: {exc}") from None
+        a0, t0 = self._end_pose(c0, from_pose, "where the arm is")
+        a1, t1 = self._end_pose(c1, to_pose, "the target")
         alpha, theta = np.vstack([a0, a1]), np.vstack([t0, t1])
         s = np.linspace(0.0, 1.0, n_samples + 1)[:, None]
         a = alpha[0] + s * (alpha[1] - alpha[0])
@@ -230,6 +224,19 @@ class Actuation:
         line = pre + (1.0 - s) * misfit[0] + s * misfit[1]
         line[0], line[-1] = c0, c1
         return JointLine(counts=line, alpha=a, theta=t)
+
+    def _end_pose(
+        self, counts: np.ndarray, pose: tuple[Any, Any] | None, what: str
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """A joint line's end: its known configuration (checked), else the counts'."""
+        if pose is None:
+            return self.pose_of_counts(counts, what)
+        a, t = self._angles(*pose)
+        try:
+            self.check_angles(a, t)
+        except RopeLimitError as exc:
+            raise RopeLimitError(f"{what}: {exc}") from None
+        return a, t
 
     def pose_of_counts(self, counts: Any, what: str) -> tuple[np.ndarray, np.ndarray]:
         """The pose ``counts`` (n,) show, for a move to start from (a joint line's end, a

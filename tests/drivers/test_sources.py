@@ -382,7 +382,7 @@ def test_a_line_in_counts_that_strains_the_ropes_is_refused(actuation: Actuation
 def test_moves_one_after_another_cannot_creep_out_of_the_tension_band(
     actuation: Actuation,
 ) -> None:
-    """A red-team sequence: j01r0 wound in 8800 counts puts j02r0 (its ropes pass joint 1)
+    """A red-team sequence: j01r0 wound in 8800 counts puts j02r0 (its rope passes joint 1)
     at 10.2 N by the rope model, just inside the band's 10 N; eleven more jogs of +80
     counts, each 0.4 N further out, were taken one after another (a 0.5 N allowance per
     move) until the board read 4.8 N and the box stopped.  A move may not end further out
@@ -400,11 +400,17 @@ def test_moves_one_after_another_cannot_creep_out_of_the_tension_band(
     assert actuation.tensions_from_counts(outside)[2][j02r0] < 10.0
     again = outside.copy()
     again[0] += 80
-    with pytest.raises(SetpointError, match=r"rope j02r0: the rope model's tension 9\.\d N"):
+    with pytest.raises(SetpointError, match=r"rope j02r0: the rope model's tension 9\.\d\d N"):
         check_move(actuation, np.vstack([outside, again]), "jog")
     back = outside.copy()
     back[0] -= 80
     check_move(actuation, np.vstack([outside, back]), "jog back")
+    # a second red-team: +4 counts take j02r0 0.02 N further out each; 233 of them, each
+    # within a 0.03 N allowance per move, ended in a slack-rope stop on the board
+    tiny = outside.copy()
+    tiny[0] += 4
+    with pytest.raises(SetpointError, match=r"rope j02r0: .* below 10 N"):
+        check_move(actuation, np.vstack([outside, tiny]), "jog")
 
 
 @settings(max_examples=16, deadline=None)

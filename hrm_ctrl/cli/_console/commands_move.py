@@ -49,7 +49,7 @@ def _complete_jog(ctx: ConsoleContext, words: list[str]) -> list[str]:
          complete=_complete_jog)  # fmt: skip
 def _jog(ctx: ConsoleContext, args: list[str]) -> None:
     from drivers.safety.limits import accel_limits, check_move, jerk_limits
-    from drivers.sources import CountsSource, JogSource, move_table
+    from drivers.sources import CountsSource, JogSource, at_samples, path_move
     from hrm_ctrl.ropes.jog import check_motor_jog, joint_jog
 
     act = ctx.actuation
@@ -60,16 +60,19 @@ def _jog(ctx: ConsoleContext, args: list[str]) -> None:
         held, actual = _held_and_actual(ctx)
         jj = joint_jog(act, held, actual, joint, args[1], deg)
         v = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
-        rows = move_table(
-            held, jj.target_counts, period_s, v, accel_limits(act), jerk_limits(act),
-            speed_cap_counts_per_s=JOG_SPEED_FRACTION * v,
-        )  # fmt: skip
         what = f"jog {joint} {jj.axis.value} {deg:+g} deg"
-        if len(rows) == 0:  # rounds to no count of any rope: nothing to move
+        if np.array_equal(jj.target_counts, held):  # rounds to no count of any rope
             ctx.out(f"{what}: nothing to move (less than one encoder count on every rope)")
             return
+        # a line in joint space from the jog's start to its end, judged at its poses
+        line = act.joint_line(held, jj.target_counts, from_pose=(jj.alpha_from, jj.theta_from),
+                              to_pose=(jj.alpha_to, jj.theta_to))  # fmt: skip
+        rows, x = path_move(line.counts, period_s, v, accel_limits(act), jerk_limits(act),
+                            JOG_SPEED_FRACTION * v, what)  # fmt: skip
         body = np.vstack([held[None, :], rows])
-        check_move(act, body, what)
+        poses = (np.vstack([line.alpha[:1], at_samples(x, line.alpha)]),
+                 np.vstack([line.theta[:1], at_samples(x, line.theta)]))  # fmt: skip
+        check_move(act, body, what, poses)
         source = CountsSource(act, body, period_s, name="jog", hold_s=JOG_HOLD_S,
                               label=lambda r: f"{what}, cycle {r}",
                               info={"joint": joint, "axis": jj.axis.value, "deg": deg})  # fmt: skip
