@@ -235,36 +235,6 @@ def move_table(
     raise SetpointError("move: no sampled trajectory within the motors' limits")
 
 
-def path_table(
-    samples: np.ndarray,
-    period_s: float,
-    max_rate_counts_per_s: np.ndarray,
-    max_accel_counts_per_s2: np.ndarray,
-    max_jerk_counts_per_s3: np.ndarray,
-    speed_cap_counts_per_s: np.ndarray | None = None,
-    what: str = "move",
-) -> np.ndarray:
-    """A jerk-limited move along a path in counts, from rest at its first sample to rest
-    at its last: ``samples`` (K + 1, motors) at equal steps of the path parameter ``s``
-    in [0, 1], linear between samples (e.g. the rope layer's ``Actuation.joint_line_counts``).
-    ``s`` is timed by Ruckig within ``D_m ds/dt <= v_m``, ``D_m d2s/dt2 <= a_m`` and
-    ``D_m d3s/dt3 <= j_m`` for every motor (``D_m`` its largest ``|dc_m/ds|``); the
-    counts of every control period after the first sample are returned, the last one
-    the last sample, each sampled, rounded speed and second difference checked against
-    the motors' limits (a move that breaks one is timed again, slower).
-
-    >>> line = np.linspace(0.0, 1.0, 9)[:, None] * np.array([[1000.0, -400.0]])
-    >>> t = path_table(line, 0.01, np.full(2, 4e5), np.full(2, 2e6), np.full(2, 4e7))
-    >>> t[-1].tolist(), bool((np.abs(np.diff(t[:, 0], 2)) <= 200).all())
-    ([1000, -400], True)
-    """
-    rows, _x = path_move(
-        samples, period_s, max_rate_counts_per_s, max_accel_counts_per_s2,
-        max_jerk_counts_per_s3, speed_cap_counts_per_s, what,
-    )  # fmt: skip
-    return rows
-
-
 def at_samples(x: np.ndarray, samples: np.ndarray) -> np.ndarray:
     """``samples`` (K + 1, m) interpolated linearly at fractional sample indices ``x``.
 
@@ -289,9 +259,22 @@ def path_move(
     speed_cap_counts_per_s: np.ndarray | None = None,
     what: str = "move",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`path_table`'s rows and where each row is along the path: its fractional
-    sample index (0 .. K), for what else was sampled along it (the poses of a joint
-    line: :func:`at_samples`)."""
+    """A jerk-limited move along a path in counts, from rest at its first sample to rest
+    at its last: ``samples`` (K + 1, motors) at equal steps of the path parameter ``s``
+    in [0, 1], linear between samples (e.g. the rope layer's ``Actuation.joint_line``).
+    ``s`` is timed by Ruckig within ``D_m ds/dt <= v_m``, ``D_m d2s/dt2 <= a_m`` and
+    ``D_m d3s/dt3 <= j_m`` for every motor (``D_m`` its largest ``|dc_m/ds|``).  Returns
+    the counts of every control period after the first sample, the last one the last
+    sample, and where each row is along the path (its fractional sample index, 0 .. K:
+    what else was sampled along it, e.g. a joint line's poses, :func:`at_samples`); each
+    sampled, rounded speed and second difference checked against the motors' limits (a
+    move that breaks one is timed again, slower).
+
+    >>> line = np.linspace(0.0, 1.0, 9)[:, None] * np.array([[1000.0, -400.0]])
+    >>> t, x = path_move(line, 0.01, np.full(2, 4e5), np.full(2, 2e6), np.full(2, 4e7))
+    >>> t[-1].tolist(), bool((np.abs(np.diff(t[:, 0], 2)) <= 200).all()), float(x[-1])
+    ([1000, -400], True, 8.0)
+    """
     from ruckig import InputParameter
 
     pts = np.asarray(samples, dtype=np.float64)
