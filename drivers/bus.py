@@ -85,6 +85,10 @@ def log_formats() -> tuple[str, ...]:
 LOG_SUFFIXES = tuple(f".{f}" for f in (*LOG_FORMATS_ALWAYS, "mf4"))
 WRITER_IDLE_S = 0.05
 MAX_JOINED_FRAMES = 4096  # batches the log writer packs at once (frames, at most)
+#: A frame whose timestamp lies outside [0, this) s is not written to a BLF log (counted as
+#: a write error): python-can's writer takes it and then cannot write the file's header
+#: (a date past the year 9999), and every frame after it would be lost.
+MAX_LOG_TIMESTAMP_S = 2.0**32
 BLF_COMPRESSION_LEVEL = 1  # zlib level of the BLF containers this class writes
 
 # COB-ID ranges the host transmits (CiA 301 predefined connection set): NMT, SYNC,
@@ -287,6 +291,9 @@ class TrafficLog(can.Listener):
 
         def write(msg: can.Message) -> None:
             nonlocal buf
+            ts = msg.timestamp
+            if not 0.0 <= ts < MAX_LOG_TIMESTAMP_S:  # NaN too
+                raise ValueError(f"timestamp {ts!r} outside 0..2**32 s")
             if msg.is_error_frame or msg.is_fd or start is None:
                 slow(msg)
                 buf = w._buffer  # python-can may have swapped it (a flush)
@@ -299,7 +306,6 @@ class TrafficLog(can.Listener):
             flags = (_BLF_REMOTE_FLAG if msg.is_remote_frame else 0) | (
                 0 if msg.is_rx else _BLF_DIR
             )
-            ts = msg.timestamp
             t_ns = int((ts - start) * 1e9)
             if w._buffer is not buf:
                 buf = w._buffer
@@ -330,9 +336,9 @@ class TrafficLog(can.Listener):
         if start is None or flags & FLAG_ERROR:
             return False
         ts = frames["timestamp"]
+        if not (float(ts.min()) >= 0.0 and float(ts.max()) < MAX_LOG_TIMESTAMP_S):  # NaN
+            return False  # frame by frame: the bad ones counted, the others written
         t_ns = (ts - start) * 1e9
-        if not np.maximum.reduce(np.abs(t_ns)) < 2.0**63:  # NaN, inf, or beyond an int64
-            return False
         out = np.frombuffer(bytearray(_BLF_OBJECT_TEMPLATE * len(frames)), _BLF_OBJECT)
         out["timestamp"] = np.maximum(t_ns, 0.0, out=t_ns)  # then truncated, as int() does
         out["channel"] = self.channel
@@ -530,6 +536,8 @@ class TrafficLog(can.Listener):
         except OSError as exc:
             self._break(exc)
             return
+        except (ValueError, OverflowError) as exc:  # a header python-can cannot write
+            self._failed(f"{self.path.name}: cannot write the BLF header ({exc})")
         self.n_frames += self._unflushed
         self._unflushed = 0
         self._logged_until = self._last_ts

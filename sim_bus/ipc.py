@@ -30,11 +30,18 @@ frame count, per-connection sequence number, sender id) and per frame a 21-byte 
 dlc, data padded to 8 bytes).  Bounds: :data:`MAX_FRAMES_PER_DATAGRAM` frames (a longer
 ``send_many`` is split), :data:`MAX_DATAGRAM_BYTES`, a receive queue of ``rx_queue_size``
 frames (default :data:`RX_QUEUE_FRAMES`; when full the oldest frames are dropped and
-counted).  A malformed datagram is counted and dropped.  A peer whose buffer is full is
-waited for at most ``send_wait_s`` (default :data:`SEND_WAIT_S`) once; while it stays
-full its frames are dropped and counted without waiting (a stalled reader never stalls
-the sender's control cycle).  A peer that is gone is dropped and its stale socket file
-unlinked.  Counters: :meth:`IpcBus.stats`.
+counted).  A malformed datagram (a header alone, a record with dlc > 8, an 11-bit id over
+0x7FF, a timestamp outside [0, :data:`MAX_TIMESTAMP_S`)) is counted and dropped.  A peer
+whose buffer is full is waited for at most ``send_wait_s`` (default :data:`SEND_WAIT_S`)
+once; from then on its frames are dropped and counted without waiting until it has read
+half its buffer (a stalled or slow reader never stalls the sender's control cycle again
+and again).  A peer that is gone is dropped and its stale socket file unlinked.  At most
+:data:`MAX_CONNECTIONS` ends send to one end at a time.  Counters: :meth:`IpcBus.stats`.
+
+Unlike a CAN wire, the transport does not make a frame reach every end: ``IpcBus`` sends
+each frame to all, but a program writing raw datagrams could address one end alone, and
+the others (the host) would not see it.  The folder is private to the user, so only the
+user's own programs can; a test of a foreign master sends through ``IpcBus``.
 
 >>> import tempfile
 >>> tmp = tempfile.TemporaryDirectory()
@@ -55,6 +62,7 @@ import collections
 import contextlib
 import enum
 import errno
+import fcntl
 import itertools
 import os
 import re
@@ -62,6 +70,7 @@ import select
 import socket
 import stat
 import struct
+import termios
 import threading
 import time
 from collections.abc import Iterator, Sequence
@@ -111,6 +120,16 @@ RESCAN_S = 1.0
 #: (directory timestamps are coarse: two changes within one tick share one mtime).
 MTIME_GRANULARITY_S = 0.05
 CHANNEL_RE = re.compile(r"[A-Za-z0-9._-]{1,64}")
+#: A frame's timestamp (the sender's ``time.time()``) must lie in [0, this): a NaN, an
+#: infinity or a date past 2106 is a malformed datagram (a BLF log cannot hold it).
+MAX_TIMESTAMP_S = 2.0**32
+#: Connections an end accepts at once (the ends that send to it); one more is closed at
+#: once and counted (``connections_refused``): a flood of connections cannot use up the
+#: process's descriptors.
+MAX_CONNECTIONS = 64
+#: When accept(2) fails for want of descriptors, the listener is left unpolled this long
+#: (s) instead of waking every receive at once (a busy loop).
+ACCEPT_PAUSE_S = 0.1
 LISTEN_BACKLOG = 128
 #: Options python-can's configuration may add that this interface accepts and ignores.
 _TOLERATED_OPTIONS = frozenset({"fd", "data_bitrate"})
@@ -179,7 +198,7 @@ def _check_record(
 ) -> tuple[float, int, bool, bool, bool, int, bytes] | None:
     ident = raw & ID_MASK
     ext = bool(raw & FLAG_EXTENDED)
-    if dlc > 8 or (not ext and ident > 0x7FF) or ts != ts:  # ts != ts: NaN
+    if dlc > 8 or (not ext and ident > 0x7FF) or not 0.0 <= ts < MAX_TIMESTAMP_S:  # NaN too
         return None
     rtr = bool(raw & FLAG_REMOTE)
     return ts, ident, ext, rtr, bool(raw & FLAG_ERROR), dlc, b"" if rtr else data[:dlc]
@@ -187,7 +206,8 @@ def _check_record(
 
 def _records_valid(records: np.ndarray, stamped: bool = False) -> bool:
     """Whether every record of a FRAME_DTYPE array is a classical CAN frame (dlc <= 8, an
-    11-bit id unless extended, a timestamp that is a number, unless ``stamped`` here):
+    11-bit id unless extended, a timestamp in [0, :data:`MAX_TIMESTAMP_S`), unless
+    ``stamped`` here):
     :func:`_check_record` for all of them (one by one for a few, with NumPy for more).
 
     >>> ok = np.zeros(5, FRAME_DTYPE); ok["id"] = [0x7FF, 0x181, FLAG_EXTENDED | ID_MASK, 0, 1]
@@ -197,7 +217,9 @@ def _records_valid(records: np.ndarray, stamped: bool = False) -> bool:
     """
     if len(records) <= SMALL_DATAGRAM_FRAMES:
         return all(
-            dlc <= 8 and (raw & FLAG_EXTENDED or raw & ID_MASK <= 0x7FF) and ts == ts
+            dlc <= 8
+            and (raw & FLAG_EXTENDED or raw & ID_MASK <= 0x7FF)
+            and 0.0 <= ts < MAX_TIMESTAMP_S
             for ts, raw, dlc, _data in records.tolist()
         )
     # an 11-bit frame has none of the id bits 11..28; x = id & (extended | those bits) is
@@ -206,7 +228,10 @@ def _records_valid(records: np.ndarray, stamped: bool = False) -> bool:
     x -= 1  # wraps 0 to 2**32 - 1
     if int(x.min()) < FLAG_EXTENDED - 1 or int(records["dlc"].max()) > 8:
         return False
-    return stamped or not np.isnan(records["timestamp"]).any()
+    if stamped:
+        return True
+    ts = records["timestamp"]  # NaN fails both comparisons
+    return bool(float(ts.min()) >= 0.0 and float(ts.max()) < MAX_TIMESTAMP_S)
 
 
 _STD_CHECK_MASK = np.uint32(FLAG_EXTENDED | (ID_MASK & ~0x7FF))
@@ -226,8 +251,9 @@ class _Chunk:
 class _Peer:
     name: str
     sock: socket.socket
+    sndbuf: int = 0  # the send buffer the kernel granted (bytes)
     seq: int = 0
-    congested: bool = False
+    congested: bool = False  # until its unread bytes fall to half the buffer
 
 
 @dataclass
@@ -250,6 +276,18 @@ class _Counters:
     peers_dropped: int = 0
     stale_sockets_removed: int = 0
     rescans: int = 0
+    connections_refused: int = 0
+    accept_failures: int = 0
+
+
+def _unread_bytes(sock: socket.socket) -> int:
+    """Bytes sent on ``sock`` that its reader has not taken yet (``SIOCOUTQ``); 0 when the
+    kernel does not say."""
+    try:
+        raw = fcntl.ioctl(sock.fileno(), termios.TIOCOUTQ, b"\0\0\0\0")
+    except OSError:
+        return 0
+    return int(struct.unpack("i", raw)[0])
 
 
 def _is_gone(exc: OSError) -> bool:
@@ -375,6 +413,7 @@ class IpcBus(can.BusABC):
         self._local = threading.local()  # .records: frames held by batch() in this thread
         self._rx_lock = threading.RLock()
         self._n = _Counters()
+        self._accept_paused_until: float | None = None  # listener out of epoll until then
         self._closed = False
         self.channel_info = f"hrm_ipc {name} ({self.path})"
         self._can_protocol = CanProtocol.CAN_20
@@ -471,8 +510,14 @@ class IpcBus(can.BusABC):
         """Connect to every socket in the folder not connected yet; forget vanished ones."""
         self._scan_t = time.time()
         self._n.rescans += 1
-        try:
-            names = {e.name for e in os.scandir(self.folder) if e.name.endswith(".sock")}
+        try:  # sockets named as an end names its own (d_type: no stat per entry)
+            names = {
+                e.name
+                for e in os.scandir(self.folder)
+                if _SOCKET_NAME.fullmatch(e.name)
+                and not (e.is_symlink() or e.is_dir(follow_symlinks=False))
+                and not e.is_file(follow_symlinks=False)
+            }
         except OSError:
             return
         if not self.receive_own_messages:
@@ -482,7 +527,7 @@ class IpcBus(can.BusABC):
         for new in names - set(self._peers):
             sock = self._connect(new)
             if sock is not None:
-                self._peers[new] = _Peer(new, sock)
+                self._peers[new] = _Peer(new, sock, self._sndbuf_effective)
 
     def _connect(self, name: str) -> socket.socket | None:
         path = self.folder / name
@@ -645,7 +690,9 @@ class IpcBus(can.BusABC):
                     raise can.CanOperationError(
                         f"hrm_ipc channel {self.channel_info}: send failed ({exc.strerror})"
                     ) from None
-                peer.congested = False
+                if peer.congested and _unread_bytes(peer.sock) <= peer.sndbuf // 2:
+                    peer.congested = False  # a reader that keeps its buffer full is not
+                    # waited for again on every send: only once it has caught up
                 self._n.datagrams_sent += 1
             self._n.frames_sent += n
 
@@ -750,7 +797,15 @@ class IpcBus(can.BusABC):
             raise can.CanOperationError("hrm_ipc: cannot receive on a closed bus")
         deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
         while True:
-            left = -1.0 if deadline is None else max(0.0, deadline - time.monotonic())
+            now = time.monotonic()
+            left = -1.0 if deadline is None else max(0.0, deadline - now)
+            paused = self._accept_paused_until
+            if paused is not None:  # accept(2) lacked descriptors: the listener waits
+                if now >= paused:
+                    self._accept_paused_until = None
+                    self._epoll.register(self._listener.fileno(), select.EPOLLIN)
+                else:
+                    left = paused - now if left < 0.0 else min(left, paused - now)
             try:
                 events = self._epoll.poll(left)
             except (OSError, ValueError):
@@ -775,8 +830,15 @@ class IpcBus(can.BusABC):
                 sock, _addr = self._listener.accept()
             except (BlockingIOError, InterruptedError):
                 return
-            except OSError:
+            except OSError:  # EMFILE, ENFILE, ENOBUFS: stop polling the listener a while
+                self._n.accept_failures += 1
+                self._epoll.unregister(self._listener.fileno())
+                self._accept_paused_until = time.monotonic() + ACCEPT_PAUSE_S
                 return
+            if len(self._conns) >= MAX_CONNECTIONS:
+                sock.close()
+                self._n.connections_refused += 1
+                continue
             sock.setblocking(False)
             fd = sock.fileno()
             self._conns[fd] = _Conn(sock)
@@ -819,6 +881,7 @@ class IpcBus(can.BusABC):
             magic != MAGIC
             or version != VERSION
             or kind != KIND_FRAMES
+            or count == 0  # a header alone carries nothing (and would stick in the queue)
             or size != HEADER.size + count * RECORD.size
         ):
             n.malformed_datagrams += 1
@@ -926,6 +989,9 @@ class IpcBus(can.BusABC):
             "peers_dropped": n.peers_dropped,
             "stale_sockets_removed": n.stale_sockets_removed,
             "rescans": n.rescans,
+            "connections": len(self._conns),
+            "connections_refused": n.connections_refused,
+            "accept_failures": n.accept_failures,
             "send_buffer_bytes": self._sndbuf_effective,
             "rx_queued": self._rx_len,
         }

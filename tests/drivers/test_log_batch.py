@@ -348,3 +348,29 @@ def test_the_caller_may_reuse_its_array_at_once(tmp_path: Path, fmt: str) -> Non
     assert [(m.arbitration_id, bytes(m.data)) for m in back] == [
         (0x201 + k, bytes([k] * 6)) for k in range(36)
     ]
+
+
+@pytest.mark.parametrize("as_batch", [True, False])
+@pytest.mark.parametrize("bad_ts", [1e12, float("inf"), float("nan"), -1.0])
+def test_a_frame_a_blf_log_cannot_date_is_counted_and_the_log_goes_on(
+    tmp_path: Path, as_batch: bool, bad_ts: float
+) -> None:
+    """An error frame stamped in the year 33658 (a red-team peer's) went to python-can's
+    BLF writer, which took its time as the file's end and then could not write the header:
+    the writer thread died, every later frame was lost and the session's close raised.
+    Such a frame is now a write error; the frames around it are logged."""
+    t0 = time.time()
+    path = tmp_path / "bus.blf"
+    log = TrafficLog(path)
+    log.on_message_received(can.Message(timestamp=t0, arbitration_id=0x181, data=[1]))
+    bad = can.Message(timestamp=bad_ts, arbitration_id=0x20000080, is_error_frame=True)
+    if as_batch:
+        log.log_batch(batch([(0x182, 1, bytes(8), bad_ts - t0)], t0), is_rx=True)
+    log.on_message_received(bad)
+    log.on_message_received(can.Message(timestamp=t0 + 0.01, arbitration_id=0x183, data=[3]))
+    log.stop()  # does not raise
+    assert log.write_errors == (2 if as_batch else 1)
+    assert "outside 0..2**32 s" in (log.first_error or "")
+    back = list(can.LogReader(path))
+    assert [m.arbitration_id for m in back] == [0x181, 0x183]
+    assert log.n_frames == 2

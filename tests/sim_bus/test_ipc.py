@@ -24,6 +24,7 @@ from sim_bus.ipc import (
     HEADER,
     KIND_FRAMES,
     MAGIC,
+    MAX_CONNECTIONS,
     MAX_FRAMES_PER_DATAGRAM,
     RECORD,
     VERSION,
@@ -456,6 +457,13 @@ def test_malformed_datagrams_are_counted_and_dropped(folder: str) -> None:
             hdr + RECORD.pack(1.0, 0x123, 9, bytes(8)),  # dlc 9
             hdr + RECORD.pack(1.0, 0x800, 1, bytes(8)),  # 11-bit id too big
             hdr + RECORD.pack(float("nan"), 0x123, 1, bytes(8)),  # timestamp
+            hdr + RECORD.pack(float("inf"), 0x123, 1, bytes(8)),  # a BLF log cannot hold
+            hdr + RECORD.pack(1e12, 0x20000123, 0, bytes(8)),  # an error frame in year 33658
+            hdr + RECORD.pack(-1.0, 0x123, 1, bytes(8)),  # before 1970
+            HEADER.pack(MAGIC, VERSION, KIND_FRAMES, 0, 1, 42),  # a header alone
+            HEADER.pack(MAGIC, VERSION, KIND_FRAMES, 5, 1, 42)  # NumPy's check: one bad ts
+            + good * 4
+            + RECORD.pack(float("inf"), 0x123, 1, bytes(8)),
             bytes(70_000),  # larger than any datagram
         ]
         for d in bad:
@@ -468,6 +476,60 @@ def test_malformed_datagrams_are_counted_and_dropped(folder: str) -> None:
         assert b.recv(timeout=0.05) is None
     finally:
         raw.close()
+        a.shutdown()
+        b.shutdown()
+
+
+def test_a_header_alone_does_not_wedge_the_receive_queue(folder: str) -> None:
+    """A datagram of no frames was queued as an empty chunk: every recv after it raised
+    (the simulated box's bus thread died of it), and such chunks escaped the queue's
+    bound.  Red-team finding."""
+    a, b = open_ends("empty", 2, folder)
+    raw = _raw(b.path)
+    try:
+        raw.settimeout(5.0)
+        for _ in range(20):  # 5 at a time: a few fit in b's socket queue unread
+            for _ in range(5):
+                raw.send(HEADER.pack(MAGIC, VERSION, KIND_FRAMES, 0, 1, 42))
+            assert b.recv(timeout=0.01) is None
+        a.send(frame(0x181, 2))
+        got = drain(b, 1)
+        assert [m.arbitration_id for m in got] == [0x181]
+        assert b.stats()["malformed_datagrams"] == 100
+        assert b.stats()["rx_queued"] == 0
+    finally:
+        raw.close()
+        a.shutdown()
+        b.shutdown()
+
+
+def test_connections_past_the_cap_are_closed_and_counted(folder: str) -> None:
+    """A flood of idle connections cannot use up the end's descriptors (past the cap
+    each is closed at once); frames from an accepted end still arrive."""
+    a, b = open_ends("flood", 2, folder)
+    extra = MAX_CONNECTIONS + 10
+    raws: list[socket.socket] = []
+    try:
+        a.send(frame(0x180, 1))  # a connects to b (and stays: one of the cap)
+        assert [m.arbitration_id for m in drain(b, 1)] == [0x180]
+        for _ in range(extra):
+            raws.append(_raw(b.path))
+        a.send(frame(0x181, 1))
+        assert [m.arbitration_id for m in drain(b, 1)] == [0x181]
+        s = b.stats()
+        assert s["connections"] == MAX_CONNECTIONS
+        assert s["connections_refused"] == extra + 1 - MAX_CONNECTIONS
+        closed = 0
+        for r in raws:  # those refused read end-of-file
+            r.setblocking(False)
+            try:
+                closed += r.recv(1) == b""
+            except BlockingIOError:
+                pass
+        assert closed == extra + 1 - MAX_CONNECTIONS
+    finally:
+        for r in raws:
+            r.close()
         a.shutdown()
         b.shutdown()
 
@@ -575,6 +637,46 @@ def test_a_full_peer_costs_one_short_wait_then_drops_counted(folder: str) -> Non
     finally:
         a.shutdown()
         b.shutdown()
+
+
+def test_a_reader_that_keeps_its_buffer_full_is_not_waited_for_again(folder: str) -> None:
+    """A slow reader taking one datagram now and then made every send wait ``send_wait_s``
+    again (a send that went through cleared the congestion): a red-team end reading one
+    datagram per cycle made the host's SYNC p99 4.6 ms late.  Congestion now lasts until
+    the peer has read half its buffer."""
+    a = IpcBus("slow", directory=folder, send_wait_s=0.002, send_buffer_bytes=65_536)
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)  # an end that reads
+    listener.bind(str(a.folder / f"{os.getpid()}-999999.sock"))  # one datagram at a time
+    listener.listen()
+    listener.settimeout(5.0)
+    try:
+        batch = [frame(k % 0x800, 8) for k in range(MAX_FRAMES_PER_DATAGRAM)]
+        a.send_many(batch)  # a connects to it
+        slow, _ = listener.accept()
+        slow.settimeout(5.0)
+        sends = 0
+        while a.stats()["tx_dropped_frames"] == 0 and sends < 100_000:
+            a.send_many(batch)
+            sends += 1
+        assert a.stats()["tx_waits"] == 1
+        for _ in range(5):  # it reads one datagram, the sender fills its place
+            assert len(slow.recv(1 << 16)) > 0
+            a.send_many(batch)
+            a.send_many(batch)
+        assert a.stats()["tx_waits"] == 1  # not 6
+        slow.setblocking(False)
+        try:  # it catches up: delivered again
+            while slow.recv(1 << 16):
+                pass
+        except BlockingIOError:
+            pass
+        dropped = a.stats()["tx_dropped_frames"]
+        a.send(frame(0x7FF))
+        assert a.stats()["tx_dropped_frames"] == dropped
+        slow.close()
+    finally:
+        listener.close()
+        a.shutdown()
 
 
 def test_fileno_readable_while_a_frame_waits(folder: str) -> None:
