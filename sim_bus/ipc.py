@@ -136,6 +136,7 @@ _TOLERATED_OPTIONS = frozenset({"fd", "data_bitrate"})
 #: Longest wait in shutdown() for a recv in another thread to let go (s).
 SHUTDOWN_WAIT_S = 1.0
 _MAX_BIND_TRIES = 1000
+_MAX_SUN_PATH = 107  # bytes of a socket path (sockaddr_un.sun_path, less its NUL)
 
 _counter = itertools.count()
 _counter_lock = threading.Lock()
@@ -375,6 +376,14 @@ class IpcBus(can.BusABC):
         self.bitrate = bitrate
         self.folder = Path(directory if directory is not None else default_directory())
         self.folder = self.folder / f"hrm-ipc-{name}"
+        # checked before the folder is made, so that a refused end leaves nothing behind:
+        # the name _bind will use, with room for a counter of 6 digits (_bind checks again)
+        longest = self.folder / f".{os.getpid()}-{10**6 - 1}.tmp"
+        if len(os.fsencode(longest)) > _MAX_SUN_PATH:
+            raise can.CanInitializationError(
+                f"hrm_ipc: socket paths under {self.folder} would be longer than "
+                f"{_MAX_SUN_PATH} bytes (pass a shorter directory=)"
+            )
         self._make_folder()
         self._sender_id = int.from_bytes(os.urandom(8), "little")
         self._listener, self.path = self._bind()
@@ -452,9 +461,9 @@ class IpcBus(can.BusABC):
                 n = next(_counter)
             path = self.folder / f"{pid}-{n}.sock"
             tmp = self.folder / f".{pid}-{n}.tmp"
-            if len(os.fsencode(tmp)) > 107:
+            if len(os.fsencode(tmp)) > _MAX_SUN_PATH:
                 raise can.CanInitializationError(
-                    f"hrm_ipc: socket path {tmp} is longer than 107 bytes "
+                    f"hrm_ipc: socket path {tmp} is longer than {_MAX_SUN_PATH} bytes "
                     "(pass a shorter directory=)"
                 )
             sock = socket.socket(

@@ -716,6 +716,7 @@ def test_unsafe_or_long_folder_is_refused(folder: str) -> None:
     deep = Path(folder, "d" * 90)
     with pytest.raises(can.CanInitializationError, match="107"):
         IpcBus("long", directory=deep)
+    assert not deep.exists()  # refused before any folder was made
     with pytest.raises(can.CanInitializationError, match="rx_queue_size"):
         IpcBus("q", directory=folder, rx_queue_size=0)
     with pytest.raises(can.CanInitializationError, match="unknown option diretory"):
