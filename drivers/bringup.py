@@ -40,7 +40,8 @@ class StateTimeoutError(DriverError):
 
 
 class BootupError(DriverError):
-    """Some nodes did not send their boot-up frame in time."""
+    """Some nodes did not send their boot-up frame in time, or more than one device
+    answers as the same node."""
 
 
 @dataclass(frozen=True)

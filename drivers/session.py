@@ -564,6 +564,7 @@ class DriveSession:
                 + "; ".join(missing)
             )
         self.events.add("bootup", f"every node booted ({time.monotonic() - t_start:.3f} s)")
+        self._refuse_duplicate_nodes()
         self.monitor.configured()  # a boot-up from here on: that drive lost its configuration
         for before in self.monitor.drain():
             # sent before the node's boot-up, so before its reset (e.g. the EMCYs of
@@ -571,17 +572,38 @@ class DriveSession:
             self.events.add(
                 "before_reset", before.text, cause=before.kind.value, motor=before.motor
             )
-        self._parallel(
-            "configuration",
-            lambda link: configure_drive(link, self._settings(link)),
-            self._budget_s(CONFIG_SDO_TRANSFERS),
-        )
+        try:
+            self._parallel(
+                "configuration",
+                lambda link: configure_drive(link, self._settings(link)),
+                self._budget_s(CONFIG_SDO_TRANSFERS),
+            )
+        except DriverError:
+            # a second device's boot-up may come after every node's first: two answers
+            # to each SDO request fail the configuration, and this is why
+            self._refuse_duplicate_nodes()
+            raise
         self.events.add("configured", "every drive configured by SDO (CSP, PDOs, limits)")
         self.send_nmt(cia301.NMT_START_REMOTE_NODE)
         self.events.add("nmt", "NMT start remote node sent on every bus")
         self.bringup_s = time.monotonic() - t_start
         self._guard(True)
         self._set_state(SessionState.READY)
+
+    def _refuse_duplicate_nodes(self) -> None:
+        """:class:`BootupError` if a node booted more than once after the one NMT reset:
+        two devices answer as that node (a second box, or a simulator, on the same bus; a
+        node-id clash), and each SDO request would get two answers."""
+        dup = self.monitor.describe_duplicate_boot()
+        if dup:
+            more = f" (+{len(dup) - 4} more)" if len(dup) > 4 else ""
+            text = (
+                f"more than one device answers as the same node ({len(dup)} node(s) booted "
+                "more than once after one NMT reset: a second box or a node-id clash on "
+                "the bus): " + "; ".join(dup[:4]) + more
+            )
+            self.events.add("error", text)
+            raise BootupError(text)
 
     def _guard(self, on: bool) -> None:
         """Drives configured (on) until the session ends or resets them (off): another

@@ -160,6 +160,9 @@ class NodeMonitor:
         # the last malformed heartbeat of each node: when, and what was wrong with it
         self.hb_bad: list[tuple[float, str] | None] = [None] * n
         self.booted = np.zeros(n, dtype=bool)
+        # boot-up frames per node since :meth:`reset_boot`: more than one after one reset
+        # is two devices answering as that node (a second box on the bus, a node-id clash)
+        self.bootups = np.zeros(n, dtype=np.int64)
         # a boot-up since the drives were configured (:meth:`configured`): the node lost
         # its SDO configuration (heartbeats, limits, PDO maps, CSP) and is not enabled
         self.rebooted = np.zeros(n, dtype=bool)
@@ -265,6 +268,7 @@ class NodeMonitor:
         self.hb_state[idx] = state
         if state == NMT_STATE_BOOTUP:
             self.booted[idx] = True
+            self.bootups[idx] += 1
             self.rebooted[idx] = True
             if self.booted.all():
                 self.boot_event.set()
@@ -322,7 +326,24 @@ class NodeMonitor:
 
     def reset_boot(self) -> None:
         self.booted[:] = False
+        self.bootups[:] = 0
         self.boot_event.clear()
+
+    def describe_duplicate_boot(self) -> list[str]:
+        """Each node that sent more than one boot-up since :meth:`reset_boot`: after one NMT
+        reset a node boots once, so two boot-ups are two devices with its node id.
+
+        >>> mon = NodeMonitor(["m0 (bus can0 node 1)", "m1 (bus can0 node 2)"], 3, 0.35)
+        >>> mon.reset_boot()
+        >>> for idx in (0, 1, 0):
+        ...     mon.on_heartbeat(idx, bytes([0x00]))
+        >>> mon.describe_duplicate_boot()
+        ['m0 (bus can0 node 1): 2 boot-ups']
+        """
+        return [
+            f"{self.labels[i]}: {int(self.bootups[i])} boot-ups"
+            for i in np.flatnonzero(self.bootups > 1).tolist()
+        ]
 
     def describe_missing_boot(self, reset_at: float) -> list[str]:
         """Each node without a boot-up since :meth:`reset_boot`, with what was last heard

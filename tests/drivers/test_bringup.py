@@ -16,6 +16,7 @@ from drivers.safety.subset import ActuationSubset
 from drivers.session import DriveSession
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.ropes.actuation import Actuation
+from sim_bus.box import SimBox
 from tests.drivers.driver_rig import Rig, make_config
 
 
@@ -117,3 +118,29 @@ def test_unopenable_second_bus_leaves_no_file(actuation: Actuation, tmp_path: Pa
     with pytest.raises(DriverError, match=r"buses\.bus1: cannot open"):
         DriveSession(cfg, ActuationSubset(actuation, ("j01r0", "j07r0")), log_dir=tmp_path)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_second_box_on_the_bus_is_named_before_any_drive_moves(
+    rig_factory: Callable[..., Rig], actuation: Actuation
+) -> None:
+    """Two boxes answer as the same nodes: every SDO request gets two answers.  The
+    bring-up names the duplicate nodes instead of an SDO protocol error, and no drive is
+    enabled."""
+    rig = rig_factory()
+    second = SimBox(rig.config, actuation=actuation)
+    second.start()
+    try:
+        box = rig.open_box()
+        with pytest.raises(BootupError) as info:
+            box.bring_up()
+        msg = str(info.value)
+        assert msg.startswith("more than one device answers as the same node")
+        assert "2 boot-ups" in msg and "\n" not in msg
+        for sim in (rig.sim, second):
+            assert c.State402.OPERATION_ENABLED not in {
+                c.decode_state(sw) for sw in sim.statuswords().values()
+            }
+        sent = {m.arbitration_id for sn in rig.sniffers for m in sn.snapshot()}
+        assert not any(0x200 < cid <= 0x27F for cid in sent)  # no RPDO
+    finally:
+        second.stop()
