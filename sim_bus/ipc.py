@@ -31,7 +31,8 @@ dlc, data padded to 8 bytes).  Bounds: :data:`MAX_FRAMES_PER_DATAGRAM` frames (a
 ``send_many`` is split), :data:`MAX_DATAGRAM_BYTES`, a receive queue of ``rx_queue_size``
 frames (default :data:`RX_QUEUE_FRAMES`; when full the oldest frames are dropped and
 counted).  A malformed datagram (a header alone, a record with dlc > 8, an 11-bit id over
-0x7FF, a timestamp outside [0, :data:`MAX_TIMESTAMP_S`)) is counted and dropped.  A peer
+0x7FF, a timestamp outside [0, :data:`MAX_TIMESTAMP_S`), this end's own sender id on a
+connection from another process) is counted and dropped.  A peer
 whose buffer is full is waited for at most ``send_wait_s`` (default :data:`SEND_WAIT_S`)
 once; from then on its frames are dropped and counted without waiting until it has read
 half its buffer (a stalled or slow reader never stalls the sender's control cycle again
@@ -261,6 +262,9 @@ class _Peer:
 class _Conn:
     sock: socket.socket
     last_seq: int | None = None
+    # the connecting end is a process with this one's pid (SO_PEERCRED at accept): only
+    # such a connection may carry this end's own frames (receive_own_messages)
+    same_process: bool = False
 
 
 @dataclass
@@ -289,6 +293,20 @@ def _unread_bytes(sock: socket.socket) -> int:
     except OSError:
         return 0
     return int(struct.unpack("i", raw)[0])
+
+
+_PEERCRED = struct.Struct("3i")  # struct ucred: pid, uid, gid
+
+
+def _peer_pid(sock: socket.socket) -> int:
+    """The pid of the process at the other end of a connected Unix socket (0: unknown)."""
+    try:
+        pid, _uid, _gid = _PEERCRED.unpack(
+            sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _PEERCRED.size)
+        )
+    except (OSError, struct.error):
+        return 0
+    return int(pid)
 
 
 def _is_gone(exc: OSError) -> bool:
@@ -850,7 +868,7 @@ class IpcBus(can.BusABC):
                 continue
             sock.setblocking(False)
             fd = sock.fileno()
-            self._conns[fd] = _Conn(sock)
+            self._conns[fd] = _Conn(sock, same_process=_peer_pid(sock) == os.getpid())
             self._epoll.register(fd, select.EPOLLIN)
             self._read(fd)  # the sender may have written before we accepted
 
@@ -905,6 +923,9 @@ class IpcBus(can.BusABC):
         n.datagrams_received += 1
         n.frames_received += count
         is_rx = sender != self._sender_id
+        if not is_rx and not conn.same_process:  # another process claims to be this end
+            n.malformed_datagrams += 1
+            return
         rx = self._rx
         chunk = _Chunk(data, count, is_rx)
         over = self._rx_len + count - self._rx_max

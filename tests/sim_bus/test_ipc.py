@@ -480,6 +480,42 @@ def test_malformed_datagrams_are_counted_and_dropped(folder: str) -> None:
         b.shutdown()
 
 
+_FORGER = textwrap.dedent(
+    """
+    import socket, sys
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    s.connect(sys.argv[1])
+    s.settimeout(5.0)
+    for x in sys.argv[2:]:
+        s.send(bytes.fromhex(x))
+    s.close()
+    """
+)
+
+
+def test_another_process_claiming_this_ends_sender_id_is_dropped(folder: str) -> None:
+    """Frames carrying an end's own sender id count as its own (``is_rx`` False, a Tx in
+    a CAN log) only on a connection from its own process; from another process they are
+    a forgery, counted malformed.  Red-team finding: a forged id showed as Tx."""
+    a, b = open_ends("forge", 2, folder)
+    try:
+        rec = RECORD.pack(1.0, 0x181, 1, b"\x01" + bytes(7))
+        forged = HEADER.pack(MAGIC, VERSION, KIND_FRAMES, 1, 1, b._sender_id) + rec
+        honest = HEADER.pack(MAGIC, VERSION, KIND_FRAMES, 1, 2, 7) + rec
+        subprocess.run(
+            [sys.executable, "-c", _FORGER, str(b.path), forged.hex(), honest.hex()],
+            check=True,
+            timeout=60,
+        )
+        got = drain(b, 1)
+        assert [(m.arbitration_id, m.is_rx) for m in got] == [(0x181, True)]
+        assert b.stats()["malformed_datagrams"] == 1
+        assert b.recv(timeout=0.05) is None
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
 def test_a_header_alone_does_not_wedge_the_receive_queue(folder: str) -> None:
     """A datagram of no frames was queued as an empty chunk: every recv after it raised
     (the simulated box's bus thread died of it), and such chunks escaped the queue's
