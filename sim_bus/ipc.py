@@ -441,6 +441,7 @@ class IpcBus(can.BusABC):
         self._rx_lock = threading.RLock()
         self._n = _Counters()
         self._accept_paused_until: float | None = None  # listener out of epoll until then
+        self._accept_lock = threading.Lock()  # the pause, against the re-arming timer
         self._closed = False
         self.channel_info = f"hrm_ipc {name} ({self.path})"
         self._can_protocol = CanProtocol.CAN_20
@@ -829,8 +830,7 @@ class IpcBus(can.BusABC):
             paused = self._accept_paused_until
             if paused is not None:  # accept(2) lacked descriptors: the listener waits
                 if now >= paused:
-                    self._accept_paused_until = None
-                    self._epoll.register(self._listener.fileno(), select.EPOLLIN)
+                    self._rearm_listener()
                 else:
                     left = paused - now if left < 0.0 else min(left, paused - now)
             try:
@@ -859,8 +859,14 @@ class IpcBus(can.BusABC):
                 return
             except OSError:  # EMFILE, ENFILE, ENOBUFS: stop polling the listener a while
                 self._n.accept_failures += 1
-                self._epoll.unregister(self._listener.fileno())
-                self._accept_paused_until = time.monotonic() + ACCEPT_PAUSE_S
+                with self._accept_lock:
+                    self._epoll.unregister(self._listener.fileno())
+                    self._accept_paused_until = time.monotonic() + ACCEPT_PAUSE_S
+                # re-armed by a receive that comes later, or by this timer: a user who
+                # waits on fileno() calls no receive until the descriptor is readable
+                timer = threading.Timer(ACCEPT_PAUSE_S, self._rearm_listener)
+                timer.daemon = True
+                timer.start()
                 return
             if len(self._conns) >= MAX_CONNECTIONS:
                 sock.close()
@@ -871,6 +877,17 @@ class IpcBus(can.BusABC):
             self._conns[fd] = _Conn(sock, same_process=_peer_pid(sock) == os.getpid())
             self._epoll.register(fd, select.EPOLLIN)
             self._read(fd)  # the sender may have written before we accepted
+
+    def _rearm_listener(self) -> None:
+        """Poll the listener again after :data:`ACCEPT_PAUSE_S` (receive or timer thread)."""
+        with self._accept_lock:
+            if self._closed or self._accept_paused_until is None:
+                return
+            self._accept_paused_until = None
+            try:
+                self._epoll.register(self._listener.fileno(), select.EPOLLIN)
+            except (OSError, ValueError):  # closed meanwhile
+                pass
 
     def _close_conn(self, fd: int) -> None:
         conn = self._conns.pop(fd, None)

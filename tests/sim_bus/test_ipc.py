@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import select
 import signal
@@ -726,6 +727,47 @@ def test_fileno_readable_while_a_frame_waits(folder: str) -> None:
         assert select.select([fd], [], [], 0.0)[0] == [fd]  # two still queued
         assert [b.recv(0.0).arbitration_id for _ in range(2)] == [2, 3]
         assert select.select([fd], [], [], 0.0)[0] == []
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+class _ListenerOutOfDescriptors:
+    """An end's listening socket whose first ``accept`` fails as with no descriptor left."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self._sock = sock
+        self.failures = 1
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def accept(self) -> tuple[socket.socket, object]:
+        if self.failures:
+            self.failures -= 1
+            raise OSError(errno.EMFILE, "Too many open files")
+        return self._sock.accept()
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+def test_a_listener_paused_by_a_failed_accept_wakes_a_fileno_waiter(folder: str) -> None:
+    """accept(2) without descriptors rests the listener 0.1 s; it was re-armed only inside
+    a receive, so a user waiting on ``fileno()`` for a connection pending meanwhile never
+    woke.  Red-team finding."""
+    (b,) = open_ends("pause", 1, folder)
+    b._listener = _ListenerOutOfDescriptors(b._listener)  # type: ignore[assignment]
+    (a,) = open_ends("pause", 1, folder)
+    try:
+        fd = b.fileno()
+        a.send(frame(0x181, 1))  # a connects to b: the listener is readable
+        assert select.select([fd], [], [], 5.0)[0] == [fd]
+        assert b.recv(timeout=0.0) is None  # the accept failed: the listener rests
+        assert b.stats()["accept_failures"] == 1
+        assert select.select([fd], [], [], 5.0)[0] == [fd]  # re-armed without a receive
+        got = b.recv(timeout=1.0)
+        assert got is not None and got.arbitration_id == 0x181
     finally:
         a.shutdown()
         b.shutdown()
