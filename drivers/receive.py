@@ -111,6 +111,11 @@ class BusTraffic:
             if key in table or len(table) < MAX_TRACKED_IDS:
                 table[key] = table.get(key, 0) + 1
 
+    def unconfigured_counts(self) -> dict[int, int]:
+        """A copy of the frames heard per COB-ID of nodes not in the configuration."""
+        with self._lock:
+            return dict(self.unconfigured)
+
     def clear_evidence(self) -> None:
         """Forget what was heard (before listening for another master)."""
         with self._lock:

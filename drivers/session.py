@@ -916,6 +916,7 @@ class DriveSession:
         except BaseException:
             self._unclaim_stream()  # nothing was sent
             raise
+        unconfigured_before = [r.traffic.unconfigured_counts() for r in self._receivers]
         try:
             # (the heap is out of the collector since the bring-up: self._gc_hold)
             result = self.supervisor.play(source, self._stream_timeout_s(source))
@@ -937,13 +938,36 @@ class DriveSession:
             return result
         if self._state is SessionState.STREAMING:  # the stop record is already in
             self._set_state(SessionState.STOPPED)
+        busy = self._unconfigured_traffic(unconfigured_before, result.cycles)
+        if busy is not None:
+            self.events.add("traffic", busy)
         if raise_on_stop:
             first = result.causes[0]
             more = f" (+{len(result.causes) - 1} more)" if len(result.causes) > 1 else ""
+            also = "" if busy is None else f" ({busy})"
             if result.error is not None and first.kind is StopKind.LIMIT:
-                raise SafetyStopError(f"stopped: {result.error}", result.causes, result)
-            raise SafetyStopError(f"stopped: {first.text}{more}", result.causes, result)
+                raise SafetyStopError(f"stopped: {result.error}{also}", result.causes, result)
+            raise SafetyStopError(f"stopped: {first.text}{more}{also}", result.causes, result)
         return result
+
+    def _unconfigured_traffic(self, before: list[dict[int, int]], cycles: int) -> str | None:
+        """What a stopped stream's buses carried from nodes not in the configuration, when
+        that was at least one frame per control cycle: a device that is not ours loading
+        the bus (a babbling node wins arbitration over the drives' heartbeats) is then
+        named beside the watchdog it tripped.  None: no such traffic."""
+        parts = []
+        for r, was in zip(self._receivers, before, strict=True):
+            now = r.traffic.unconfigured_counts()
+            grown = {cid: n - was.get(cid, 0) for cid, n in now.items() if n > was.get(cid, 0)}
+            total = sum(grown.values())
+            if total and total >= max(1, cycles):
+                top = sorted(grown.items(), key=lambda kv: -kv[1])[:3]
+                parts.append(
+                    f"bus {r.traffic.bus} carried {total} frame(s) of nodes not in the "
+                    "configuration during the stream: "
+                    + ", ".join(f"0x{cid:03X} x{n}" for cid, n in top)
+                )
+        return "; ".join(parts) if parts else None
 
     def request_stop(
         self, kind: StopKind = StopKind.OPERATOR, text: str = "stop requested"

@@ -59,6 +59,15 @@ from hrm_ctrl.errors import SimError
 FrameMatch = Callable[[can.Message], bool]
 
 
+#: Frames one node may have waiting for the wire, as a CAN controller's transmit queue (a
+#: SocketCAN device's ``txqueuelen`` is 10 to 1000): one more raises
+#: ``can.CanOperationError`` ("transmit queue full") instead of growing without bound.
+TX_QUEUE_FRAMES = 256
+#: Frames a node's receive queue holds; when full the oldest go (counted in
+#: ``SimWire.stats()["rx_dropped"]``), as a receive buffer overruns.
+RX_QUEUE_FRAMES = 65_536
+
+
 class WireConfigError(SimError):
     """Two nodes disagree about a wire (bitrate), or a wire parameter is invalid."""
 
@@ -139,6 +148,7 @@ class SimWire:
         self._wall_offset = time.time() - time.monotonic()
         self.frames_delivered = 0
         self.frames_dropped = 0
+        self.rx_dropped = 0  # frames a node's full receive queue lost
         self.bits_sent = 0
         self.max_delivery_late_s = 0.0
         self.max_queue_delay_s = 0.0
@@ -166,6 +176,8 @@ class SimWire:
                 self.frames_dropped += len(self._pending) + len(self._in_flight)
                 self._pending.clear()
                 self._in_flight.clear()
+                for node in self._nodes:
+                    node._tx_pending = 0
             self._cond.notify_all()
 
     def clear_faults(self) -> None:
@@ -210,6 +222,7 @@ class SimWire:
                 "stuffing": self.stuffing,
                 "frames_delivered": self.frames_delivered,
                 "frames_dropped": self.frames_dropped,
+                "rx_dropped": self.rx_dropped,
                 "bits_sent": self.bits_sent,
                 "max_delivery_late_s": self.max_delivery_late_s,
                 "max_queue_delay_s": self.max_queue_delay_s,
@@ -249,6 +262,12 @@ class SimWire:
                         self.frames_dropped += 1
                         return
                     t_ready += rule.delay_s
+            if sender._tx_pending >= TX_QUEUE_FRAMES:
+                raise can.CanOperationError(
+                    f"hrm_sim channel {self.channel!r}: transmit queue full "
+                    f"({TX_QUEUE_FRAMES} frames waiting for the wire)"
+                )
+            sender._tx_pending += 1
             self._seq += 1
             self._pending.append(
                 _Pending(t_ready, self._seq, arbitration_key(msg), msg, sender, now)
@@ -268,6 +287,8 @@ class SimWire:
                 (p for p in self._pending if p.t_ready <= slot), key=lambda p: (p.key, p.seq)
             )
             self._pending.remove(winner)
+            if winner.sender is not None:
+                winner.sender._tx_pending -= 1
             bits = frame_bits(winner.msg, self.stuffing)
             end = slot + bits / self.bitrate
             self._free_at = end
@@ -296,6 +317,8 @@ class SimWire:
                 own = node is p.sender
                 if own and not node.receive_own_messages:
                     continue
+                if len(node._rx) >= RX_QUEUE_FRAMES:  # the deque's maxlen drops the oldest
+                    self.rx_dropped += 1
                 node._rx.append(
                     can.Message(
                         timestamp=stamp,
@@ -387,7 +410,8 @@ class SimWireBus(can.BusABC):
                 )
             self.wire = wire
             self.receive_own_messages = bool(receive_own_messages)
-            self._rx: collections.deque[can.Message] = collections.deque()
+            self._rx: collections.deque[can.Message] = collections.deque(maxlen=RX_QUEUE_FRAMES)
+            self._tx_pending = 0  # frames of this node waiting for the wire (wire's lock)
             self._open = True
             wire._attach(self)
         self.channel_info = f"hrm_sim wire {name} @ {wire.bitrate} bit/s"

@@ -126,6 +126,45 @@ def test_overload_shows_up_as_late_frames_and_bus_load(
     assert 0.005 < a.wire.bus_load(window_s=1.0) < 0.05  # 13.5 ms busy in the last second
 
 
+def test_a_nodes_transmit_queue_is_bounded(
+    pair: tuple[can.BusABC, can.BusABC], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A node that offers frames faster than the wire carries them fills its transmit
+    queue, as a CAN controller's: the send past TX_QUEUE_FRAMES raises, the others' sends
+    and the frames already queued are untouched (the wire's pending list stayed bounded
+    under a flooding node)."""
+    a, b = pair
+    n = wire_module.TX_QUEUE_FRAMES + 1  # the first is on the wire at once, not queued
+    with one_instant(monkeypatch):
+        for _ in range(n):
+            a.send(frame(0x1A5))
+        with pytest.raises(can.CanOperationError, match="transmit queue full"):
+            a.send(frame(0x1A5))
+        b.send(frame(0x181))  # another node's queue is its own
+    got = drain(a, 1)
+    assert [m.arbitration_id for m in got] == [0x181]
+    assert len(drain(b, n, timeout_s=5.0)) == n
+    a.send(frame(0x1A5))  # carried: room again
+    assert [m.arbitration_id for m in drain(b, 1)] == [0x1A5]
+
+
+def test_a_nodes_receive_queue_is_bounded_drop_oldest(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(wire_module, "RX_QUEUE_FRAMES", 8)
+    ch = f"t-{uuid.uuid4().hex[:8]}"
+    a = can.Bus(interface="hrm_sim", channel=ch)
+    b = can.Bus(interface="hrm_sim", channel=ch)  # never reads until the end
+    try:
+        for i in range(20):
+            a.send(frame(0x100 + i))
+        time.sleep(20 * 135e-6 + 0.05)
+        assert a.wire.stats()["rx_dropped"] == 12
+        assert [m.arbitration_id for m in drain(b, 8)] == [0x100 + i for i in range(12, 20)]
+        assert b.recv(0.01) is None
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
 def test_no_echo_unless_asked() -> None:
     ch = f"t-{uuid.uuid4().hex[:8]}"
     a = can.Bus(interface="hrm_sim", channel=ch, receive_own_messages=True)

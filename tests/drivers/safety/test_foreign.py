@@ -372,3 +372,60 @@ def test_another_master_during_a_disable_or_fault_reset_is_not_hidden_by_ready(
     with pytest.raises(SessionStateError, match="not allowed in state STOPPED"):
         box.enable()
     box.finish()
+
+
+def test_a_babbling_unconfigured_node_is_named_beside_the_watchdog_it_trips(
+    rig_factory: Callable[..., Rig], request: pytest.FixtureRequest
+) -> None:
+    """A device not in the configuration floods bus 0 with 0x1A5: on a real wire it wins
+    arbitration over the drives' heartbeats (0x701..), so a watchdog stops every axis; the
+    stop names the flooding node beside it.  Only ``hrm_sim`` models arbitration and wire
+    time (on python-can's virtual bus or udp_multicast nothing is starved)."""
+    if request.node.callspec.params.get("bus_backend") != "hrm_sim":
+        pytest.skip("arbitration and wire time are modelled only by hrm_sim")
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    stop = threading.Event()
+
+    def babble() -> None:
+        other = can.Bus(**rig.config.buses[0].bus_kwargs())
+        msg = can.Message(arbitration_id=0x1A5, data=bytes(8), is_extended_id=False)
+        try:
+            time.sleep(0.1)
+            while not stop.is_set():
+                try:
+                    other.send(msg)
+                except can.CanOperationError:  # its transmit queue is full
+                    time.sleep(0.001)
+        finally:
+            other.shutdown()
+
+    flood = threading.Thread(target=babble, daemon=True)
+    flood.start()
+    try:
+        with pytest.raises(SafetyStopError) as info:
+            box.stream(HoldSource(n_cycles=500))  # 5 s
+    finally:
+        stop.set()
+        flood.join(10.0)
+    msg = str(info.value)
+    assert "bus bus0 carried" in msg and "nodes not in the configuration" in msg
+    assert "0x1A5 x" in msg and "\n" not in msg
+    assert info.value.causes[0].kind in (StopKind.HEARTBEAT, StopKind.TPDO_MISSING)
+    events = [e for e in box.record()["events"] if e["kind"] == "traffic"]
+    assert len(events) == 1 and "0x1A5" in events[0]["text"]
+
+
+def test_a_few_frames_of_an_unconfigured_node_are_no_stop_and_no_note(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    rig = rig_factory()
+    box = rig.open_box()
+    box.bring_up()
+    msg = can.Message(arbitration_id=0x1A5, data=bytes(8), is_extended_id=False)
+    threading.Timer(0.1, send_from_outside, args=(rig, 0, msg)).start()
+    result = box.stream(HoldSource(n_cycles=30))
+    assert result.completed
+    assert not [e for e in box.record()["events"] if e["kind"] == "traffic"]
+    assert any(t["unconfigured_node_frames"].get("0x1A5") for t in box.record()["bus_traffic"])
