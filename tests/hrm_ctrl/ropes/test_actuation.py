@@ -137,7 +137,7 @@ def test_modelled_tensions(act: Actuation, q: list[float], motor: int, delta: in
     """Counts made from angles carry the pretension on every rope; paying one rope out
     lowers its tension (winding it in raises it), never below 0 N, over small moves; over
     large ones the tension moves that way or stays (a rope singularity), and the model may
-    find no pose at all (RopeInverseError, never a wrong one silently); the pose the model
+    find no pose at all (RopeInverseError); the pose the model
     finds is the one the counts were made from."""
     a, t = np.array(q[:12]), np.array(q[12:])
     c = act.counts_from_angles(a, t)
