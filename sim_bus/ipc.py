@@ -467,7 +467,9 @@ class IpcBus(can.BusABC):
             raise can.CanInitializationError(f"hrm_ipc: {folder} is not a directory")
         if st.st_uid != os.geteuid() or st.st_mode & 0o077:
             raise can.CanInitializationError(
-                f"hrm_ipc: {folder} must be a private folder of this user (mode 0700)"
+                f"hrm_ipc: {folder} must be a private folder of this user (mode 0700; it is "
+                f"uid {st.st_uid}'s, mode {stat.S_IMODE(st.st_mode):04o}): remove it, or set "
+                "XDG_RUNTIME_DIR or pass directory= for a folder of your own"
             )
 
     def _bind(self) -> tuple[socket.socket, Path]:

@@ -786,7 +786,8 @@ def test_unsafe_or_long_folder_is_refused(folder: str) -> None:
     open_dir = Path(folder, "hrm-ipc-pub")
     open_dir.mkdir(mode=0o755)
     open_dir.chmod(0o755)
-    with pytest.raises(can.CanInitializationError, match="private"):
+    private = r"private folder of this user \(mode 0700; it is uid \d+'s, mode 0755\)"
+    with pytest.raises(can.CanInitializationError, match=private):
         IpcBus("pub", directory=folder)
     Path(folder, "hrm-ipc-file").write_text("")
     with pytest.raises(can.CanInitializationError, match="not a directory"):
