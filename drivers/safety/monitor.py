@@ -153,6 +153,14 @@ class NodeMonitor:
         self.position = np.zeros(n, dtype=np.int64)
         self.rx_seq = np.full(n, -1, dtype=np.int64)  # SYNC sequence of the last TPDO
         self.n_tpdo = np.zeros(n, dtype=np.int64)
+        # What every node had answered when SYNC ``sync_mark`` went out (:meth:`sync_sent`):
+        # its TPDO count, and whether every node's answer to the SYNC before was in.
+        self.n_at_sync = np.zeros(n, dtype=np.int64)
+        self.prev_complete = False
+        self.sync_mark = -1  # the SYNC these were noted for (-1: being noted, or none)
+        self._answers = np.zeros(n, dtype=np.int64)  # work buffers of sync_sent
+        self._answered = np.zeros(n, dtype=bool)
+        self._labelled = np.zeros(n, dtype=bool)
         # ``clock()`` when the receive thread handled the last heartbeat (so a stamp can
         # be newer than the ``now`` a concurrent check was given: see check())
         self.hb_time = np.full(n, -math.inf)
@@ -207,6 +215,39 @@ class NodeMonitor:
     def report(self, kind: StopKind, text: str) -> None:
         """A stop cause found outside the receive callbacks (e.g. a failed send)."""
         self._queue(StopCause(kind, text, None, self.clock()))
+
+    def sync_sent(self, seq: int) -> None:
+        """SYNC ``seq`` is about to go out (the supervisor): label what arrives from now on
+        with it, and note each node's TPDO count and whether the cycle before was clean:
+        every node answered SYNC ``seq - 1`` exactly once before this one went out.  A TPDO
+        is labelled with the SYNC last sent when it arrives, so a drive that answers a
+        SYNC late answers it under the next one's label: a watch that wants the feedback
+        of one SYNC (:func:`drivers.safety.watches.take_snapshot`) takes it only after a
+        clean cycle, once every node has answered exactly once since.
+
+        >>> mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=3, heartbeat_timeout_s=0.3)
+        >>> mon.sync_sent(0)
+        >>> for i in (0, 1):
+        ...     mon.on_tpdo(i, bytes.fromhex("370264000000"))
+        >>> mon.sync_sent(1)                      # SYNC 0 answered once by each: clean
+        >>> mon.prev_complete, mon.sync_mark, mon.n_at_sync.tolist()
+        (True, 1, [1, 1])
+        >>> mon.on_tpdo(0, bytes.fromhex("370264000000"))
+        >>> mon.sync_sent(2)                      # node 1 did not answer SYNC 1 in time
+        >>> mon.prev_complete
+        False
+        """
+        was = self.sync_mark
+        self.sync_mark = -1  # a reader in between sees the notes as not for any SYNC
+        np.subtract(self.n_tpdo, self.n_at_sync, out=self._answers)
+        np.equal(self._answers, 1, out=self._answered)
+        np.equal(self.rx_seq, seq - 1, out=self._labelled)
+        self.prev_complete = (
+            was == seq - 1 and bool(self._answered.all()) and bool(self._labelled.all())
+        )
+        np.copyto(self.n_at_sync, self.n_tpdo)
+        self.sync_mark = seq
+        self.seq = seq
 
     def on_tpdo(self, idx: int, data: bytes | bytearray, seq: int | None = None) -> None:
         """TPDO1 (statusword, position actual) from the node in slot ``idx`` (the

@@ -655,7 +655,7 @@ class Supervisor:
 
     def _send_syncs(self, stopping: bool = False) -> list[StopCause]:
         self.seq += 1
-        self.monitor.seq = self.seq
+        self.monitor.sync_sent(self.seq)
         failed: list[StopCause] = []
         for layout in self.layouts:
             try:

@@ -26,12 +26,24 @@ def monitor(n: int = 3) -> NodeMonitor:
     return NodeMonitor([f"m{i}" for i in range(n)], 3, 0.3)
 
 
+def tpdo(position: int) -> bytes:
+    """TPDO1 data: OPERATION_ENABLED at ``position``."""
+    return bytes.fromhex("3702") + position.to_bytes(4, "little", signed=True)
+
+
+def clean_sync(mon: NodeMonitor, seq: int) -> None:
+    """SYNC ``seq - 1`` answered once by every node, then SYNC ``seq`` sent."""
+    mon.sync_sent(seq - 1)
+    for i in range(mon.n):
+        mon.on_tpdo(i, TPDO)
+    mon.sync_sent(seq)
+
+
 def test_a_snapshot_is_of_one_sync_only() -> None:
     mon = monitor()
-    mon.seq = 7
+    clean_sync(mon, 7)
     mon.on_tpdo(0, TPDO)
-    mon.on_tpdo(1, TPDO)
-    mon.rx_seq[2] = 6  # node 2's TPDO of SYNC 7 not in yet
+    mon.on_tpdo(1, TPDO)  # node 2's TPDO of SYNC 7 not in yet
     assert take_snapshot(mon, lambda: None, tries=2, retry_s=0.0) is None
     mon.on_tpdo(2, bytes.fromhex("3702d0070000"))
     snap = take_snapshot(mon, lambda: np.array([1, 2, 3]))
@@ -39,6 +51,34 @@ def test_a_snapshot_is_of_one_sync_only() -> None:
     assert snap.counts.tolist() == [1000, 1000, 2000] and snap.reference.tolist() == [1, 2, 3]
     mon.position[0] = 5  # the snapshot is a copy
     assert snap.counts[0] == 1000
+
+
+def test_a_late_answer_and_half_the_next_burst_is_no_snapshot() -> None:
+    """A box that answers SYNC 8 only after SYNC 9 went out (its answers labelled 9), then
+    sends node 0's answer to SYNC 9 and stalls: every label is 9 and the positions hold
+    still, but they are of two SYNCs (1100 and 1200).  Seen on a loaded machine: a rope
+    consistency stop (figure 7.6) on such a mix.  Not taken until a clean cycle."""
+    mon = monitor()
+    clean_sync(mon, 8)  # SYNC 7 answered, SYNC 8 out
+    mon.sync_sent(9)  # SYNC 8 not answered yet
+    assert not mon.prev_complete
+    for i in range(3):
+        mon.on_tpdo(i, tpdo(1100))  # the late answers to SYNC 8, labelled 9
+    mon.on_tpdo(0, tpdo(1200))  # node 0's answer to SYNC 9; the box stalls
+    assert mon.rx_seq.tolist() == [9, 9, 9]
+    assert take_snapshot(mon, lambda: None, tries=2, retry_s=0.0) is None
+    mon.on_tpdo(1, tpdo(1200))
+    mon.on_tpdo(2, tpdo(1200))  # every node has answered SYNC 9 too: twice each
+    assert take_snapshot(mon, lambda: None, tries=2, retry_s=0.0) is None
+    mon.sync_sent(10)  # SYNC 9's cycle was not clean (two answers each)
+    for i in range(3):
+        mon.on_tpdo(i, tpdo(1300))
+    assert take_snapshot(mon, lambda: None, tries=2, retry_s=0.0) is None
+    mon.sync_sent(11)  # SYNC 10 answered once by each: clean
+    for i in range(3):
+        mon.on_tpdo(i, tpdo(1400))
+    snap = take_snapshot(mon, lambda: None)
+    assert snap is not None and snap.seq == 11 and snap.counts.tolist() == [1400] * 3
 
 
 class Check:
@@ -64,15 +104,16 @@ class Check:
 
 def test_the_rope_watch_checks_each_sync_once_and_reports_a_failing_check() -> None:
     mon = monitor()
-    mon.seq = 3
+    clean_sync(mon, 3)
     for i in range(3):
         mon.on_tpdo(i, TPDO)
     check = Check()
     w = RopeWatch(mon, check, lambda: np.full(3, 1000), period_s=0.05)
     assert w.step() is None and w.step() is None  # the second: same SYNC, not checked again
     assert (len(check.calls), w.evaluations, w.repeated) == (1, 1, 1)
-    mon.seq = 4
-    mon.rx_seq[:] = 4
+    mon.sync_sent(4)
+    for i in range(3):
+        mon.on_tpdo(i, TPDO)
     mon.position[1] = 1600
     assert w.step() == "rope consistency: rope 1 off"
     w2 = RopeWatch(mon, Check(raises=True), lambda: None, period_s=0.05)
@@ -86,8 +127,9 @@ def test_the_rope_watch_checks_each_sync_once_and_reports_a_failing_check() -> N
 
 def test_the_rope_watch_thread_reports_once_through_the_monitor() -> None:
     mon = monitor()
-    mon.seq = 1
-    mon.rx_seq[:] = 1
+    clean_sync(mon, 1)
+    for i in range(3):
+        mon.on_tpdo(i, TPDO)
     mon.position[:] = [0, 0, 900]
     w = RopeWatch(mon, Check(), lambda: np.zeros(3, np.int64), period_s=0.01)
     group = FeedbackWatches()
