@@ -101,6 +101,8 @@ def one_run(
         "supervisor_cpu_per_cycle_ms": ms(s.get("cpu_per_cycle_mean_s")),
         "thread_cpu_per_cycle_ms": threads,
         "rope_evaluations": rope.get("evaluations"),
+        # snapshots not taken: no clean cycle of one SYNC's feedback (watches.take_snapshot)
+        "rope_missed_snapshots": rope.get("missed_snapshots"),
         "rope_cpu_per_evaluation_ms": rope.get("cpu_per_evaluation_ms"),
         "rope_max_figure": rope.get("check", {}).get("max_figure"),
         "tension_oldest_sample_ms": summary.get("tension", {}).get("oldest_sample_ms"),
