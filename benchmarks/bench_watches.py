@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
 import time
@@ -40,7 +39,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import machine
-from bench_drivers import ms, start_sim_process, thread_cpu, write_udp_config
+from bench_drivers import BoxProcess, ms, thread_cpu, wire_config
 
 from drivers.config import load_box_config
 from drivers.realtime import process_settings
@@ -143,14 +142,13 @@ def main() -> None:
     cfg = load_box_config(None)
     sp = setpoints_of_plan(doc, act, period_s=cfg.control.period_s, speed_mm_per_s=SPEED_MM_S)
     work = Path(tempfile.mkdtemp(prefix="bench_watches_"))
-    proc = None
+    box: BoxProcess | None = None
     sim: SimBox | None = None
-    if args.sim_process:
-        kwargs = write_udp_config(work / "box_udp.toml", cfg)
-        proc, ready = start_sim_process(work / "box_udp.toml")
-        port = ready["tension_port"]
-        # the shared 2-core machine: as the HIL tests, tolerate the other process's stalls
-        control = {"missing_tpdo_cycles": 25, "heartbeat_timeout_ms": 1000}
+    if args.sim_process:  # on hrm_ipc, at the production watchdogs (as the HIL tests)
+        kwargs = wire_config(work / "box_ipc.toml", cfg, "ipc")
+        box = BoxProcess(work / "box_ipc.toml")
+        port = box.ready["tension_port"]
+        control: dict[str, Any] = {}
     else:
         tag = uuid.uuid4().hex[:8]
         kwargs = [{"interface": "virtual", "channel": f"bw-{tag}-{b.name}"} for b in cfg.buses]
@@ -172,13 +170,8 @@ def main() -> None:
     finally:
         if sim is not None:
             sim.stop()
-        if proc is not None and proc.stdin is not None:
-            proc.stdin.write("quit\n")
-            proc.stdin.flush()
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        if box is not None:
+            box.__exit__(None, None, None)
     source = CountsSource(act, sp.counts, cfg.control.period_s, name="plan")
     source.start(np.zeros(act.n_motors, dtype=np.int64), cfg.control.period_s)
     if feedback is None:  # the box ran elsewhere: its feedback is the table, one SYNC late
