@@ -17,8 +17,8 @@ from hrm_ctrl.cli._common import (
     Output,
     add_calibration_arguments,
     add_robot_argument,
+    arm_from_args,
     calibrations_input,
-    load_arm,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
@@ -97,7 +97,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
     """Load the inputs named by the arguments and plan (no output written)."""
     if not (math.isfinite(args.step) and args.step > 0.0):
         raise PlanningError(f"--step must be a finite number > 0 mm, got {args.step}")
-    arm = load_arm(args, load_robot(args.robot), prog="hrm plan")
+    arm = arm_from_args(args, load_robot(args.robot), prog="hrm plan")
     robot = arm.robot  # the calibrated link lengths
     env = read_scene(args.scene) if args.scene is not None else None
     sc: Scenario | None = None
