@@ -68,6 +68,8 @@ REPLY_TIMEOUT_S = 5.0  # one control command's reply
 #: the host's listen for another master before its first reset: the box takes over on
 #: purpose (``take_over=True``), so what it hears only names an event
 HOST_LISTEN_S = 0.2
+#: how long the host's tension watch waits for the board's first frame after it starts
+HOST_TENSION_GRACE_S = 0.5
 #: how long after a stream the drives get to leave OPERATION_ENABLED (quick-stop ramps;
 #: a drive cut off from the host stops on its heartbeat consumer, 350 ms)
 SETTLE_TIMEOUT_S = 2.5
@@ -476,13 +478,13 @@ class InProcessBox:
 
     def command(self, text: str, reply: str, timeout_s: float = REPLY_TIMEOUT_S) -> dict[str, Any]:
         """Run one control command (``timeout_s``: unused, the call is direct)."""
-        from sim_bus.runner import _command
+        from sim_bus.runner import control_command
 
         if has_control_character(text):  # as a box process: one line
             raise SimError(f"in-process box {self.config_path}: control character in {text!r}")
         out = io.StringIO()
         with self._lock:
-            _command(text.strip(), self.box, self.board, out, time.monotonic() - self._t0)
+            control_command(text.strip(), self.box, self.board, out, time.monotonic() - self._t0)
         for line in out.getvalue().splitlines():
             obj = json.loads(line)
             if obj.get("event") == "error":
@@ -583,40 +585,28 @@ class HilHost:
             self._open(log_dir, listen_s, bring_up)
 
     def _open(self, log_dir: Path, listen_s: float, bring_up: bool) -> None:
-        from drivers.safety.causes import StopKind
-        from drivers.session import DriveSession
-        from drivers.tension_sensor import TensionSensorReader, TensionWatch
+        from hrm_ctrl.runtime.box import SessionOptions, WatchOptions, open_box
         from sim_bus.box import enlarge_receive_buffer
 
+        options = SessionOptions(
+            log_dir=log_dir,
+            take_over=True,  # one box serves many tests: the next host takes over
+            allow_uncalibrated=True,  # the simulated arm is its description
+            listen_s=listen_s,
+        )
+        # the tension watch alone (no rope watch), on the whole arm's board
+        watches = WatchOptions(ropes=False, grace_s=HOST_TENSION_GRACE_S, actuation=self.actuation)
+        config = replace(self.config, tension=self.tension)
+        self.opened = self._stack.enter_context(
+            open_box(config, self.limits, options, watches=watches, bring_up=False)
+        )
         try:
-            self.session = self._stack.enter_context(
-                DriveSession(
-                    self.config,
-                    self.limits,
-                    log_dir=log_dir,
-                    take_over=True,  # one box serves many tests: the next host takes over
-                    allow_uncalibrated=True,  # the simulated arm is its description
-                    listen_s=listen_s,
-                )
-            )
+            self.session = self.opened.session
             for port in self.session._ports:  # see sim_bus.box.enlarge_receive_buffer
                 enlarge_receive_buffer(port.bus)
-            t = self.tension
-            self.reader = self._stack.enter_context(
-                TensionSensorReader(t.port, self.actuation.n_motors, stale_after_s=t.stale_s)
-            )
-            self.watch = TensionWatch(
-                self.reader,
-                self.actuation.motor_ids,
-                lambda text: self.session.monitor.report(StopKind.TENSION, text),
-                min_N=t.slack_N,
-                max_N=t.limit_N,
-                max_bad_per_s=t.garbage_per_s,
-            )
+            self.watch = self.opened.watches.watches["tension"]
             if bring_up:
-                self.session.bring_up()
-                self.watch.start()
-                self._stack.callback(self.watch.stop)
+                self.opened.bring_up()
         except BaseException:
             self._stack.close()
             raise
@@ -669,7 +659,8 @@ class HilHost:
         )
 
     def close(self) -> dict[str, Any]:
-        """Stop the watch, finish and close the session; its run record."""
+        """Stop the watch, finish and close the session (:func:`hrm_ctrl.runtime.box.open_box`
+        closes them in that order); its run record."""
         if self.record is None:
             self._stack.close()
             path = self.session.record_path
