@@ -26,7 +26,7 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -119,17 +119,14 @@ def stiffness_calibration(
     return updated(base, routine=Routine.STIFFNESS, residuals=kept, rope_EA_N=ea)
 
 
-@dataclass(frozen=True)
-class Saved:
+class Saved(NamedTuple):
     """Where :func:`save_calibration` put a routine's result: its ``version``, ``where``
     (one line for the user) and ``usable``: whether loading would accept it (False: a
-    value out of :func:`calibration.apply.check_ranges`, kept but not made active,
-    ``problem`` says why)."""
+    value out of :func:`calibration.apply.check_ranges`, kept but not made active)."""
 
     version: int
     where: str
     usable: bool
-    problem: str | None = None
 
 
 def save_calibration(
@@ -139,13 +136,14 @@ def save_calibration(
     *,
     out: Path | None = None,
     write: Callable[[Path, str], None] | None = None,
-) -> Saved:
+) -> tuple[Saved, str | None]:
     """Save ``new`` as the store's next version (active), or with ``out`` write that one
-    file (numbered as the store's next; ``write(path, text)``, default an atomic write).
+    file (numbered as the store's next; ``write(path, text)``, default an atomic write);
+    returns where it went and, for a result loading would refuse, why (else None).
 
     A result that loading would refuse (a value out of
     :func:`calibration.apply.check_ranges`) is still kept, the routine's work is not lost,
-    but not made active: the active version stays what it was and ``problem`` says why."""
+    but not made active: the active version stays what it was."""
     from calibration.apply import check_belongs
     from calibration.store import to_json
 
@@ -160,15 +158,16 @@ def save_calibration(
             from hrm_ctrl.files import write_atomic as write
         write(out, to_json(new, version))
         if problem is not None:
-            where = f"written to {out} (not in the store; out of range)"
-            return Saved(version, where, False, problem)
-        return Saved(version, f"written to {out} (not in the store)", True)
+            return Saved(
+                version, f"written to {out} (not in the store; out of range)", False
+            ), problem
+        return Saved(version, f"written to {out} (not in the store)", True), None
     if problem is not None:
         version = store.save(new, activate=False)
         where = f"saved as v{version:04d} in {store.folder} (NOT active: out of range)"
-        return Saved(version, where, False, problem)
+        return Saved(version, where, False), problem
     version = store.save(new)
-    return Saved(version, f"saved as v{version:04d} in {store.folder} (active)", True)
+    return Saved(version, f"saved as v{version:04d} in {store.folder} (active)", True), None
 
 
 def calibration_ref(store: CalibrationStore, version: int) -> CalibrationRef:
@@ -244,8 +243,8 @@ def zero_then_kinematic(
     description: RobotModel,
     store: CalibrationStore,
     open_session: OpenSession,
-    tension: Any,
-    tracker: Any,
+    tension: Callable[[], AbstractContextManager[Any]],
+    tracker: Callable[[], AbstractContextManager[Any]],
     *,
     leave_fixture: Callable[[], None],
     poses: int,
@@ -264,7 +263,9 @@ def zero_then_kinematic(
     ``open_session(actuation, name, calibration, watch)`` opens a brought-up drive session
     for the rope layer ``actuation`` (its run named ``name``; ``watch``: with the tension
     watch, the rope-consistency watch left out as ``hrm calibrate kinematic`` does);
-    ``tension`` and ``tracker`` are the open tension board and laser tracker readers;
+    ``tension()`` and ``tracker()`` open the tension board's and the laser tracker's
+    readers (each for its step: the kinematic session's tension watch opens the board's
+    port itself);
     ``collect`` goes to :func:`calibration.collect.collect_poses` (``settle_s``,
     ``rate_fraction``); ``say`` gets a line per step, ``on_zero(result, version, seconds)``
     the zero routine's outcome once it is saved."""
@@ -277,8 +278,8 @@ def zero_then_kinematic(
     act0 = calibrated_actuation(description, base)
     t0 = time.monotonic()
     say("calibration 1/2: pretension and zero, the arm in its zero fixture")
-    with open_session(act0, "zero", None, False) as session:
-        zr = pretension_and_zero(session, tension, act0)
+    with tension() as reader, open_session(act0, "zero", None, False) as session:
+        zr = pretension_and_zero(session, reader, act0)
     cal_zero = zero_calibration(base, zr)
     v_zero = store.save(cal_zero)
     t_zero = time.monotonic() - t0
@@ -292,11 +293,12 @@ def zero_then_kinematic(
     order = travel_order(alpha, theta)  # short moves: the same poses
     alpha, theta = alpha[order], theta[order]
     say(f"calibration 2/2: kinematic, {poses} poses read on the laser tracker")
-    with open_session(act1, "kinematic", calibration_ref(store, v_zero), True) as session:
+    ref = calibration_ref(store, v_zero)
+    with tracker() as points, open_session(act1, "kinematic", ref, True) as session:
         data, _frame = collect_in_base_frame(
             session,
             act1,
-            tracker,
+            points,
             description,
             alpha,
             theta,

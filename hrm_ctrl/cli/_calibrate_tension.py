@@ -235,11 +235,11 @@ def save_calibration(args: argparse.Namespace, store: Any, new: Any, description
     """
     from calibration.workflows import save_calibration as save
 
-    saved = save(store, new, description, out=args.out, write=_write_file)
-    if saved.problem is not None:
+    saved, problem = save(store, new, description, out=args.out, write=_write_file)
+    if problem is not None:
         what = args.out if args.out is not None else f"v{saved.version:04d}"
         how = "would be refused" if args.out is not None else "not made active"
-        print(f"hrm calibrate: {what} {how}: {saved.problem}", file=sys.stderr)
+        print(f"hrm calibrate: {what} {how}: {problem}", file=sys.stderr)
     return saved
 
 

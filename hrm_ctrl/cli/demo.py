@@ -171,28 +171,24 @@ def calibrate_on_box(
             f"simulated truth at most {err.max():.0f} counts; saved as v{v_zero:04d}"
         )
 
-    with (
-        TensionSensorReader(
+    done = zero_then_kinematic(
+        description,
+        store,
+        open_session,
+        lambda: TensionSensorReader(
             t.port, len(config.motor_ids), baudrate=t.baudrate, stale_after_s=t.stale_s
-        ) as reader,
-        TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate) as tracker,
-    ):
-        done = zero_then_kinematic(
-            description,
-            store,
-            open_session,
-            reader,
-            tracker,
-            leave_fixture=lambda: sim.set_straight_fixture(False),
-            poses=args.poses,
-            period_s=config.control.period_s,
-            samples=4,
-            sigma_mm=0.05,
-            say=_say,
-            on_zero=on_zero,
-            settle_s=COLLECT_SETTLE_S,
-            rate_fraction=COLLECT_RATE_FRACTION,
-        )
+        ),
+        lambda: TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate),
+        leave_fixture=lambda: sim.set_straight_fixture(False),
+        poses=args.poses,
+        period_s=config.control.period_s,
+        samples=4,
+        sigma_mm=0.05,
+        say=_say,
+        on_zero=on_zero,
+        settle_s=COLLECT_SETTLE_S,
+        rate_fraction=COLLECT_RATE_FRACTION,
+    )
     data, fit, cal = done.poses, done.fit, done.calibration
     write_atomic(out / POSES_CSV, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
     link_err = np.abs(np.asarray(cal.links_mm) - np.asarray(sim.truth.links_mm))

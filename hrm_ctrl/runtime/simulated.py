@@ -169,7 +169,7 @@ def simulated_arm(
     from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.truth import TrueArm, read_truth
 
-    physical = arm.actuation if arm.active is None else load_actuation(arm.description)
+    physical = load_actuation(arm.description)  # not arm.actuation: its model may be calibrated
     truth = None
     if perturb is not None:
         truth = TrueArm.perturbed(physical, perturb)
