@@ -22,6 +22,7 @@ from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from hrm_ctrl.runtime.arm import Arm
 from hrm_ctrl.runtime.box import OpenBox, SessionOptions, open_box
+from hrm_ctrl.runtime.process_box import BoxProcess
 from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
 
 CLOSING = ["watches stopped", "drives disabled", "run record written", "box stopped"]
@@ -76,7 +77,10 @@ class Observed:
         watches.stop = _after(events, "watches stopped", watches.stop, lambda: None)
         session.finish = _after(events, "drives disabled", session.finish, disabled)
         session.close = _after(events, "run record written", session.close, written)
-        sim.stop = _after(events, "box stopped", sim.stop, lambda: None)
+        if isinstance(sim, BoxProcess):  # a box in its own process: closed
+            sim.close = _after(events, "box stopped", sim.close, lambda: None)
+        else:
+            sim.stop = _after(events, "box stopped", sim.stop, lambda: None)
 
     def record(self) -> dict[str, Any]:
         return json.loads((self.log_dir / "box.json").read_text())
@@ -121,3 +125,33 @@ def test_sigterm_inside_stops_every_axis_and_closes_in_order(opened: Observed) -
     causes = [c["text"] for c in record["idle_stop_causes"]]
     assert any("SIGTERM" in c for c in causes), causes  # every axis quick-stopped first
     assert any(e["kind"] == "disable" for e in record["events"])
+
+
+def test_a_box_process_started_for_the_block_closes_last(
+    actuation: Actuation, tmp_path: Path
+) -> None:
+    """``sim=ProcessBox(...)``: ``hrm sim --control`` started for the block, the session on
+    its buses (here the cross-process ``hrm_ipc``), the box process gone after the record."""
+    from hrm_ctrl.hil.rig import BusKind, default_nodes, ipc_available, write_box_toml
+    from hrm_ctrl.runtime.box import WatchOptions
+    from hrm_ctrl.runtime.process_box import ProcessBox
+
+    if not ipc_available():
+        pytest.skip("python-can has no hrm_ipc interface here")
+    # watchdogs relaxed: this is about the closing order, not about a loaded machine
+    relaxed = {"missing_tpdo_cycles": 25, "heartbeat_timeout_ms": 1000}
+    path = write_box_toml(tmp_path / "box.toml", BusKind.IPC, default_nodes(), relaxed)
+    observed = Observed(actuation, tmp_path)
+    options = SessionOptions(log_dir=tmp_path, run_name="box", allow_uncalibrated=True)
+    watches = WatchOptions(ropes=False, grace_s=0.5)
+    box_config = load_box_config(path)
+    with open_box(
+        box_config, actuation, options, sim=ProcessBox(path, cpus=False), watches=watches
+    ) as box:
+        process = box.sim
+        assert process is not None and process.proc.poll() is None  # running
+        assert box.config.tension is not None  # the box's board
+        observed.observe(box)
+    assert observed.events == CLOSING
+    assert process.proc.poll() is not None  # the box process has exited
+    assert set(observed.record()["watches"]) == {"tension"}
