@@ -188,16 +188,19 @@ def refuse_unknown(
             raise error(f"{where}: {table}.{key}: unknown key")
 
 
-def unknown_key(key: str, known: Any) -> str:
-    """`` (did you mean ...?)`` for a near miss of ``key`` among ``known``, else the
-    known names (for an unknown-key message).
+def unknown_key(key: str, known: Any, tables: Any = ()) -> str:
+    """`` (did you mean ...?)`` for a near miss of ``key`` among ``known`` (a name in
+    ``tables`` shown as ``[name]``), else the known names (for an unknown-key message).
 
     >>> unknown_key("yaw", {"yaw_deg", "pitch_deg"})
     " (did you mean 'yaw_deg'?)"
+    >>> unknown_key("ropess", {"ropes", "name"}, {"ropes"}), unknown_key("zz", {"a", "b"})
+    (' (did you mean [ropes]?)', ' (known: a, b)')
     """
     import difflib
 
     close = difflib.get_close_matches(key, sorted(known), n=1)
     if not close:
         return f" (known: {', '.join(sorted(known))})"
-    return f" (did you mean {close[0]!r}?)"
+    match = close[0]
+    return f" (did you mean {f'[{match}]' if match in tables else repr(match)}?)"
