@@ -67,12 +67,17 @@ class Spec:
         """Whether ``value`` (a number, or an array: every element) lies in the range and,
         with ``above``, exceeds ``values[above]``.  Compares without converting, so an
         integer of any size is judged exactly (no overflow)."""
-        lo_ok = value > self.lo if self.lo_open else value >= self.lo
-        hi_ok = value < self.hi if self.hi_open else value <= self.hi
-        ok = lo_ok & hi_ok
+        ok = self.inside(value)
         if self.above is not None and values is not None:
             ok = ok & (value > values[self.above])
         return bool(ok) if isinstance(ok, bool) else bool(ok.all())
+
+    def inside(self, value: Any) -> Any:
+        """Whether ``value`` lies in ``lo..hi``: a bool, or for an array one per element
+        (NaN is outside)."""
+        lo_ok = value > self.lo if self.lo_open else value >= self.lo
+        hi_ok = value < self.hi if self.hi_open else value <= self.hi
+        return lo_ok & hi_ok
 
     def text(self) -> str:
         """``lo..hi unit`` (integers, and the ``[control]`` table's ranges)."""
