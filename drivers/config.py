@@ -70,7 +70,15 @@ from drivers.realtime import (
 )
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.files import read_toml
-from hrm_ctrl.validate import Spec, number_kinds, ranged, read_numbers, refuse_unknown, specs
+from hrm_ctrl.validate import (
+    Spec,
+    number_kinds,
+    ranged,
+    read_numbers,
+    refuse_unknown,
+    spec,
+    specs,
+)
 
 
 class BusConfigError(DriverError):
@@ -123,14 +131,22 @@ def _encodable(rate_hz: float) -> bool:
     return True
 
 
+BITRATE_MAX = 1_000_000
+"""Classical CAN's top bitrate (bit/s): every bus's ``bitrate`` lies in 1..1000000."""
+
+NODE_IDS = Spec(lo=NODE_ID_MIN, hi=NODE_ID_MAX, why="a CANopen node id")
+"""The range of a drive's node id (``[buses.NAME.nodes]``)."""
+
+
 @dataclass(frozen=True)
 class BusConfig:
-    """One CAN bus: how to open it and which rope motors (node ids) sit on it."""
+    """One CAN bus: how to open it and which rope motors (node ids, :data:`NODE_IDS`) sit
+    on it."""
 
     name: str
     interface: str
     channel: str | int
-    bitrate: int
+    bitrate: int = field(metadata=spec(lo=1, hi=BITRATE_MAX, why="classical CAN's bitrates"))
     options: Mapping[str, Any]
     nodes: Mapping[str, int]  # rope motor id -> node id, in file order
 
@@ -467,10 +483,6 @@ class BoxConfig:
         }
 
 
-BITRATE_MAX = 1_000_000
-"""Classical CAN's top bitrate (bit/s): every bus's ``bitrate`` lies in 1..1000000."""
-
-
 @dataclass(frozen=True)
 class BusOverride:
     """One bus replaced from the command line: ``NAME=INTERFACE:CHANNEL[@BITRATE]``."""
@@ -694,13 +706,10 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
         if isinstance(channel, bool) or not isinstance(channel, str | int):
             raise BusConfigError(f"{w}.channel: expected a string or integer, got {channel!r}")
         bitrate = b["bitrate"]
-        if (
-            isinstance(bitrate, bool)
-            or not isinstance(bitrate, int)
-            or not 0 < bitrate <= BITRATE_MAX
-        ):
+        rate = _BITRATE
+        if isinstance(bitrate, bool) or not isinstance(bitrate, int) or not rate.contains(bitrate):
             raise BusConfigError(
-                f"{w}.bitrate: expected an integer in 1..{BITRATE_MAX}, got {bitrate!r}"
+                f"{w}.bitrate: expected an integer in {rate.text()}, got {bitrate!r}"
             )
         options = b.get("options", {})
         if not isinstance(options, Mapping):
@@ -716,8 +725,8 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
             wn = f"{w}.nodes.{motor}"
             if isinstance(node, bool) or not isinstance(node, int):
                 raise BusConfigError(f"{wn}: node id must be an integer, got {node!r}")
-            if not NODE_ID_MIN <= node <= NODE_ID_MAX:
-                raise BusConfigError(f"{wn}: node id {node} outside {NODE_ID_MIN}..{NODE_ID_MAX}")
+            if not NODE_IDS.contains(node):
+                raise BusConfigError(f"{wn}: node id {node} outside {NODE_IDS.text()}")
             if node == control.host_node_id:
                 raise BusConfigError(
                     f"{wn}: node id {node} is the host's heartbeat id (control.host_node_id)"
@@ -751,6 +760,8 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
         tracker=tracker,
     )
 
+
+_BITRATE = specs(BusConfig)["bitrate"]
 
 PYTHON_CAN_CONFIG_WHERE = (
     "CAN_{KEY}_{name} or CAN_{KEY}, or {key} in [{name}] or [default] of ~/can.conf"
