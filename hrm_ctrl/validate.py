@@ -165,7 +165,8 @@ def read_numbers(
     """The numeric fields of dataclass ``cls`` that the TOML table ``doc`` gives, each a
     finite number of its field's kind (:func:`number_kinds`) within its :class:`Spec`
     (checked on the value as written, before any conversion, in field order, once every
-    value is known: ``above`` compares with the other field's value or default).  A key
+    value is known: ``above`` compares with the other field's value or default, whenever
+    either of the two is given).  A key
     that is no field is refused (``FILE: TABLE.KEY: unknown key``); keys in ``skip``
     (fields of other types) are left to the caller."""
     kinds = number_kinds(cls)
@@ -178,8 +179,9 @@ def read_numbers(
     defaults = {f.name: f.default for f in fields(cls)}
     values = {**defaults, **raw}
     for key, s in specs(cls).items():
-        if key in raw and not s.contains(raw[key], values):
-            raise error(f"{where}: {out_of_range(key, raw[key], s, values)}")
+        given = key in raw or s.above in raw  # a relation: checked when either side is given
+        if given and not s.contains(values[key], values):
+            raise error(f"{where}: {out_of_range(key, values[key], s, values)}")
     return {key: kinds[key](value) for key, value in raw.items()}
 
 
