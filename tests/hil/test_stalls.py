@@ -75,7 +75,7 @@ def test_shared_stalls_are_those_another_cpu_stalled_through_for_over_half(
 
 
 def test_the_cycle_a_stall_late_cycle_held_back_is_the_stalls_too() -> None:
-    """Seen in a soak's kernel trace (2026-12-04, clock mono): CPU 0 ran nothing for 9.1 ms,
+    """Seen in a soak's kernel trace (clock mono): CPU 0 ran nothing for 9.1 ms,
     its probe woke 8.1 ms late; the cycle due in it sent SYNC and RPDOs 8.7 ms late, and the
     next one, awake in time, held its SYNC for the supervisor's sync_delay_s (4.7 ms) after
     those RPDOs: 3.7 ms late.  The one after that was on time."""
