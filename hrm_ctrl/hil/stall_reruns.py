@@ -2,9 +2,10 @@
 the machine stalled through a watchdog window, never because of what failed.
 
 A test marked ``@pytest.mark.stall_tolerant(window_s=W, watchdog="what")`` runs with a
-:class:`~hrm_ctrl.hil.stalls.StallProbe` on every CPU of the process.  When its call fails,
-the probe's stalls are read: a stall of one CPU at least ``W`` long (its probe's late
-wake-ups joined, :func:`~hrm_ctrl.hil.stalls.covering`) during the failed call held that
+:class:`~hrm_ctrl.hil.stalls.StallProbe` on every CPU of the process.  When its setup (a
+fixture's bring-up) or its call fails, the probe's stalls are read: a stall of one CPU at
+least ``W`` long (its probe's late wake-ups joined, :func:`~hrm_ctrl.hil.stalls.covering`)
+during the failed phase held that
 CPU through a whole window of the watchdog ``what``, enough to trip it with nothing else
 wrong.  Then, and only then, the test runs again, at most ``reruns`` times (default 2);
 the evidence (which CPU, when, how long, which window) is printed at once, kept in the
@@ -72,21 +73,22 @@ def tolerance(item: pytest.Item) -> Tolerance | None:
 
 
 def evidence_line(stall: Stall, t0_s: float, tol: Tolerance) -> str:
-    """One stall as evidence: which CPU, when (seconds into the call and monotonic), how long.
+    """One stall as evidence: which CPU, when (seconds into the failed phase and monotonic),
+    how long.
 
     >>> tol = Tolerance(0.25, "25 missing TPDO cycles", 2)
     >>> print(evidence_line(Stall(1, 103.5, 0.4125), 100.0, tol))  # doctest: +NORMALIZE_WHITESPACE
-    CPU 1 stalled 412.5 ms from 3.500 s into the call (monotonic 103.500 s),
+    CPU 1 stalled 412.5 ms from 3.500 s into the failed phase (monotonic 103.500 s),
     covering the 250 ms window of 25 missing TPDO cycles
     """
     return (
         f"CPU {stall.cpu} stalled {stall.late_s * 1000:.1f} ms from {stall.at_s - t0_s:.3f} s "
-        f"into the call (monotonic {stall.at_s:.3f} s), covering {tol.window()}"
+        f"into the failed phase (monotonic {stall.at_s:.3f} s), covering {tol.window()}"
     )
 
 
 def _verdict(probe: StallProbe, tol: Tolerance, lo_s: float, hi_s: float) -> list[Stall] | str:
-    """The covering stalls of a failed call, or why there are none (one line)."""
+    """The covering stalls of a failed phase, or why there are none (one line)."""
     if not probe.available:
         return f"stall probe unavailable ({probe.refusal}): no evidence of a machine stall"
     found = covering(probe.stalls, tol.window_s, lo_s, hi_s)
@@ -95,7 +97,7 @@ def _verdict(probe: StallProbe, tol: Tolerance, lo_s: float, hi_s: float) -> lis
     during = [s for s in probe.stalls if lo_s <= s.at_s <= hi_s]
     longest = max((s.late_s for s in during), default=0.0)
     return (
-        f"no machine stall covered {tol.window()} during the call (probe on CPUs "
+        f"no machine stall covered {tol.window()} during the failed phase (probe on CPUs "
         f"{','.join(map(str, probe.cpus))}: {len(during)} stalls, longest {longest * 1000:.1f} ms)"
     )
 
@@ -136,24 +138,25 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
             item.stash[PROBE] = probe
             reports = runtestprotocol(item, nextitem=nextitem, log=False)
         del item.stash[PROBE]
-        call = next((r for r in reports if r.when == "call"), None)
+        # the failed phase: the setup (a fixture's bring-up) or the call
+        failed = next((r for r in reports if r.when in ("setup", "call") and r.failed), None)
         rerun = False
-        if call is not None and call.failed:
-            lo_s, hi_s = call.start + mono_minus_wall, call.stop + mono_minus_wall
+        if failed is not None:
+            lo_s, hi_s = failed.start + mono_minus_wall, failed.stop + mono_minus_wall
             verdict = _verdict(probe, tol, lo_s, hi_s)
             if isinstance(verdict, str):
-                call.sections.append(("stall probe", f"{verdict}: not rerun"))
+                failed.sections.append(("stall probe", f"{verdict}: not rerun"))
             elif attempt == tol.reruns:
                 lines = [evidence_line(s, lo_s, tol) for s in verdict]
-                call.sections.append(
+                failed.sections.append(
                     ("stall probe", "\n".join([*lines, f"reruns exhausted ({tol.reruns})"]))
                 )
             else:
                 rerun = True
                 lines = [evidence_line(s, lo_s, tol) for s in verdict]
                 text = f"attempt {attempt + 1} failed; " + "; ".join(lines) + ": rerun"
-                call.sections.append(("stall probe", text))
-                call.outcome = "rerun"  # type: ignore[assignment]
+                failed.sections.append(("stall probe", text))
+                failed.outcome = "rerun"  # type: ignore[assignment]
                 item.config.stash[RERUNS].append(f"{item.nodeid}: {text}")
                 reporter = item.config.pluginmanager.get_plugin("terminalreporter")
                 if reporter is not None:
@@ -164,8 +167,21 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
         if not rerun:
             break
         item._initrequest()  # type: ignore[attr-defined]  # fresh fixtures for the rerun
+        _forget_failed_fixtures(item)
     item.ihook.pytest_runtest_logfinish(nodeid=item.nodeid, location=item.location)
     return True
+
+
+def _forget_failed_fixtures(item: pytest.Item) -> None:
+    """Drop the cached exception of every fixture of the item that failed (a module-scoped
+    box that did not start), so that the rerun sets it up again instead of re-raising."""
+    if not isinstance(item, pytest.Function):
+        return
+    for defs in item._fixtureinfo.name2fixturedefs.values():
+        for fixturedef in defs:
+            cached = fixturedef.cached_result
+            if cached is not None and cached[2] is not None:
+                fixturedef.finish(item._request)  # its finalizers run, its cache cleared
 
 
 Status = tuple[str, str, tuple[str, dict[str, bool]]]
