@@ -6,7 +6,7 @@ outside the rope or joint limits before anything is sent, brings every drive
 up (NMT, SDO, CiA 402 to operation enabled in CSP), streams the setpoints at the
 control rate and disables the drives at the end.  While the drives are enabled the
 tension-sensor board (when the configuration has a ``[tension]`` table) and the rope
-layer's consistency check on the feedback watch the arm (``hrm_ctrl.cli._watches``):
+layer's consistency check on the feedback watch the arm (``hrm_ctrl.runtime.watches``):
 either stops every axis, naming the rope.  Every run writes each bus's
 traffic (``--log-format``: ``.blf``, ``.asc``, ``.log``, ``.trc``, ...) and a run
 record JSON into ``--log-dir``; ``--bus NAME=INTERFACE:CHANNEL[@BITRATE]`` opens one bus
