@@ -31,7 +31,6 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
-from hrm_ctrl.cli._signals import signals_as_interrupts
 from hrm_ctrl.errors import HrmError, SignalInterrupt
 
 EXIT_ERROR = 2
@@ -54,6 +53,21 @@ def _version() -> str:
         return version("hrm")
     except PackageNotFoundError:
         return "unknown (not installed)"
+
+
+class _VersionAction(argparse._VersionAction):
+    """``--version``: the version is looked up when asked for (``importlib.metadata`` is
+    not imported to build the parser)."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        self.version = f"hrm {_version()}"
+        super().__call__(parser, namespace, values, option_string)
 
 
 def _commands() -> list[str]:
@@ -106,7 +120,7 @@ def build_parser(*, every_command: bool = False) -> OneLineParser:
         prog="hrm", description="Rope-driven hyper-redundant manipulator console"
     )
     parser.add_argument(
-        "--version", action="version", version=f"hrm {_version()}",
+        "--version", action=_VersionAction,
         help="print hrm's version (the installed package's) and exit",
     )  # fmt: skip
     sub = parser.add_subparsers(
@@ -204,6 +218,7 @@ def _main(argv: Sequence[str] | None) -> int:
     args = parser.parse_args(argv)
     _quiet_library_logging()
     from drivers.realtime import process_settings
+    from hrm_ctrl.cli._signals import signals_as_interrupts
 
     try:
         with process_settings(_switch_interval_s(args)), signals_as_interrupts():

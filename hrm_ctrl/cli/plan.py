@@ -314,6 +314,8 @@ def run(args: argparse.Namespace) -> int:
         check_clearance(plan.report.get("clearance_mm"), name)  # raises: nothing written
     if not args.allow_violations:
         check_limits(plan)  # raises: nothing written
+    if not (args.out or args.plot):
+        return 0  # nothing to write: the plan file's document is not made
     doc = PlanDoc.from_dict(plan.to_dict(), str(args.out or name))
     figures: list[Path] = []
     made_plot_dir = bool(args.plot) and not args.plot.exists()
