@@ -99,6 +99,7 @@ class _Commands(argparse._SubParsersAction):  # type: ignore[type-arg]
             register(self._name_parser_map[name])
 
     def register_all(self) -> None:
+        """Add the arguments of every command not registered yet."""
         for name in list(self._unregistered):
             self.register(name)
 
