@@ -43,7 +43,7 @@ def _run_parser() -> argparse.ArgumentParser:
     from hrm_ctrl.cli._options import add_run_controls
 
     p = _Parser(prog="run", add_help=False)
-    p.add_argument("plan", type=Path, metavar="PLAN.json", help="plan to play")
+    p.add_argument("plan", type=Path, help="plan to play (PLAN.json)")
     add_run_controls(p)  # --speed, --pause-at, --resume-after, --abort-at, --allow-collision
     p.add_argument(
         "--no-figures", action="store_true",
