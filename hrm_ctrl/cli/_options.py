@@ -2,7 +2,7 @@
 metavar and help text.  A command's ``register()`` (and the console's parsers of its own
 commands) call these; what differs between commands is said by parameters: what ``--json``
 prints, what ``--out`` writes, and ``when`` an option applies (``with --sim``, ``with
---live``), which prefixes its help as the other options of the command say it.
+--live``: the start of its help text).
 
 Units in metavars: ``MM``, ``MM_S``, ``S``, ``HZ``, ``NEWTON``, ``COUNTS``; ``N`` counts
 things.  An adder imports what its choices or default need (the log formats, the simulated
