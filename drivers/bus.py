@@ -304,13 +304,12 @@ class BusPort:
                 try:
                     self.bus.send(msg, timeout=wait_s)
                 except BaseException as exc:
-                    stop = not keep_going or not isinstance(
-                        exc, can.CanError | OSError | ValueError
-                    )
+                    refused = isinstance(exc, can.CanError | OSError | ValueError)
+                    stop = not (keep_going and refused)  # the frames after it are not sent
                     if echoes is not None:
                         for m in msgs[k:] if stop else (msg,):
                             echoes.discard(m)
-                    if not isinstance(exc, can.CanError | OSError | ValueError):
+                    if not refused:
                         raise
                     if stop:
                         what = f"send of 0x{msg.arbitration_id:03X}" if len(msgs) == 1 else "send"

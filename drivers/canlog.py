@@ -138,12 +138,13 @@ class TrafficLog(can.Listener):
         self._last_ts: float | None = None  # timestamp of the last frame handed over
         self._logged_until: float | None = None  # ... and of the last one in the file
         self._broken = False
-        self._durable: str | None = None  # "blf", "asc" or "text": this class writes the file
+        self._durable = False  # this class writes the file (BLF, ASC, candump, TRC)
         self._blf: BlfFormatter | None = None  # BLF: our formatter (drivers.blf)
         self._writer: Any = None  # other formats: python-can's writer
         self._reserve = self._hold_reserve()
         if self.path.suffix.lower() == ".blf":
-            self._durable = self._open_blf()
+            self._open_blf()
+            self._durable = True
         else:
             try:
                 self._writer = can.Logger(str(self.path))
@@ -204,7 +205,7 @@ class TrafficLog(can.Listener):
         blf = self._blf
         write = blf.add if blf is not None else self._writer.on_message_received
         write_batch = blf.add_batch if blf is not None else None
-        durable = self._durable is not None
+        durable = self._durable
         while q:
             msg = q.popleft()
             if type(msg) is tuple:  # a batch (log_batch), and the batches right behind it
@@ -286,7 +287,7 @@ class TrafficLog(can.Listener):
             self._release_reserve()
             return
         self._drain()
-        if self._durable is not None:
+        if self._durable:
             self._close_durable()
         else:
             try:
@@ -339,7 +340,7 @@ class TrafficLog(can.Listener):
         except OSError:
             pass
 
-    def _open_blf(self) -> str:
+    def _open_blf(self) -> None:
         """Open a BLF file (:mod:`drivers.blf` formats it, this class writes it): its
         header, with the file's absolute start, written at once."""
         # The file's absolute start is now (in ms, as BLF keeps it), so the header has it
@@ -364,9 +365,8 @@ class TrafficLog(can.Listener):
             os.close(self._fd)
             raise DriverError(f"{self.path}: cannot open CAN log ({exc})") from None
         self._end = FILE_HEADER_BYTES  # bytes of the file that are whole
-        return "blf"
 
-    def _take_over_writes(self) -> str | None:
+    def _take_over_writes(self) -> bool:
         """Make python-can's ASC, candump or TRC writer format only; this class writes
         the file (see above).  Another writer (MF4) is left alone: it writes the file when
         it stops."""
@@ -389,7 +389,7 @@ class TrafficLog(can.Listener):
             self._fd = w.file.fileno()
             self._end = os.lseek(self._fd, 0, os.SEEK_END)
             w.file = io.StringIO()
-            return "asc"
+            return True
         if isinstance(w, can.CanutilsLogWriter | can.TRCWriter):
             # candump: no header; TRC: its header goes out with the first frame (with the
             # frame's time as the file's start), "\r\n" line ends as python-can's writer.
@@ -399,13 +399,13 @@ class TrafficLog(can.Listener):
             self._fd = w.file.fileno()
             self._end = os.lseek(self._fd, 0, os.SEEK_END)
             w.file = io.StringIO(newline="\r\n" if isinstance(w, can.TRCWriter) else None)
-            return "text"
-        return None
+            return True
+        return False
 
     def _flush(self) -> None:
         """Put every frame handed to the writer into the file (one write(2)); on an
         ``OSError`` the log ends at its last whole write (:meth:`_break`)."""
-        if self._durable is None or self._broken:
+        if not self._durable or self._broken:
             return
         blf = self._blf
         try:
