@@ -19,6 +19,7 @@ from pathlib import Path
 
 import can
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -209,6 +210,50 @@ def test_a_traffic_log_reads_back_frame_for_frame(
     assert log.write_errors == 0 and log.n_frames == len(sent) == len(back)
     for b, m in zip(back, sent, strict=True):
         same_frame(b, m, start, 2)
+
+
+@EXAMPLES
+@given(msgs=st.lists(messages(), min_size=1, max_size=20))
+def test_another_readers_objects_are_the_frames(msgs: list[can.Message]) -> None:
+    """A reader written apart from python-can (``vblf``, after Vector's object
+    definitions; skipped where it is not installed) finds each frame as the object Vector's
+    tools write for it, with its fields, and the header's counts and start."""
+    reader = pytest.importorskip("vblf.reader")
+    vcan = pytest.importorskip("vblf.can")
+    f = BlfFormatter(start_s=T0, channel=1, container_bytes=300)
+    for m in msgs:
+        f.add(m)
+    body = f.take_containers(FILE_HEADER_BYTES)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "x.blf"
+        path.write_bytes(f.header(FILE_HEADER_BYTES + len(body)) + body)
+        with reader.BlfReader(path) as r:
+            stats = r.file_statistics
+            objs = list(r)
+    assert (stats.object_count, stats.file_size) == (len(msgs), FILE_HEADER_BYTES + len(body))
+    start = stats.measurement_start_time
+    assert (start.year, start.hour, start.minute, start.second) == (2023, 22, 13, 20)
+    assert len(objs) == len(msgs)
+    for o, m in zip(objs, msgs, strict=True):
+        ident = m.arbitration_id | (0x80000000 if m.is_extended_id else 0)
+        assert o.frame_id == ident
+        assert o.channel == expected_channel(m.channel, 1) + 1
+        t_ns = o.header.object_time_stamp
+        assert abs(T0 + t_ns * 1e-9 - max(m.timestamp, T0)) < 2e-6
+        if m.is_error_frame:
+            assert isinstance(o, vcan.CanErrorFrameExt)
+            assert bytes(o.data[: m.dlc]) == bytes(m.data)
+        elif m.is_fd:
+            assert isinstance(o, vcan.CanFdMessage64)
+            assert bytes(o.data) == bytes(m.data) and o.valid_data_bytes == len(m.data)
+            assert bool(o.flags & 0x1000) and bool(o.flags & 0x2000) == m.bitrate_switch
+            assert o.dir == (0 if m.is_rx else 1)
+        else:
+            assert isinstance(o, vcan.CanMessage) and o.dlc == m.dlc
+            assert bool(o.flags & 0x80) == m.is_remote_frame
+            assert bool(o.flags & 0x01) == (not m.is_rx)
+            if not m.is_remote_frame:
+                assert bytes(o.data[: m.dlc]) == bytes(m.data)
 
 
 # ------------------------------------------------------------------ kill -9 mid-write
