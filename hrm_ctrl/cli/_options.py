@@ -1,8 +1,10 @@
-"""The options several commands share, each declared here once: name, type, default,
-metavar and help text.  A command's ``register()`` (and the console's parsers of its own
-commands) call these; what differs between commands is said by parameters: what ``--json``
-prints, what ``--out`` writes, and ``when`` an option applies (``with --sim``, ``with
---live``: the start of its help text).
+"""The options several commands share, each declared here once.
+
+Each adder declares its options' names, types, defaults, metavars and help texts.  A
+command's ``register()`` (and the console's parsers of its own commands) call these; what
+differs between commands is said by parameters: what ``--json`` prints, what ``--out``
+writes, and ``when`` an option applies (``with --sim``, ``with --live``: the start of its
+help text).
 
 Units in metavars: ``MM``, ``MM_S``, ``S``, ``HZ``, ``NEWTON``, ``COUNTS``; ``N`` counts
 things.  An adder imports what its choices or default need (the log formats, the simulated
