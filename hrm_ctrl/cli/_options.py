@@ -174,13 +174,13 @@ def add_log(
     formats: bool = True,
 ) -> None:
     """``--log-dir DIR`` (default ./runs; ``what`` goes there) and, with ``formats``,
-    ``--log-format FORMAT`` (any python-can writes here: :func:`drivers.bus.log_formats`)."""
+    ``--log-format FORMAT`` (any python-can writes here: :func:`drivers.canlog.log_formats`)."""
     parser.add_argument(
         "--log-dir", type=Path, default=RUNS_DIR, metavar="DIR",
         help=when_prefix(when, f"{what} (default ./{RUNS_DIR})"),
     )  # fmt: skip
     if formats:
-        from drivers.bus import log_formats
+        from drivers.canlog import log_formats
 
         parser.add_argument(
             "--log-format", choices=log_formats(), default="blf",
