@@ -45,7 +45,13 @@ from drivers.sources.pausable import (
     PausableSource,
     PlayState,
 )
-from drivers.sources.table import LabelOfRow, SetpointSource, TableSource, check_table
+from drivers.sources.table import (
+    LabelOfRow,
+    SetpointSource,
+    TabledSource,
+    TableSource,
+    check_table,
+)
 
 __all__ = [
     "JOG_ANGLE_CHECK_STEP_COUNTS",
@@ -66,6 +72,7 @@ __all__ = [
     "SetpointError",
     "SetpointSource",
     "TableSource",
+    "TabledSource",
     "at_samples",
     "check_table",
     "move_table",

@@ -11,7 +11,7 @@ import numpy as np
 
 from drivers.rope_model import MotorLimits
 from drivers.safety.limits import SetpointError, accel_limits
-from drivers.sources.table import TableSource
+from drivers.sources.table import TabledSource
 
 PAUSE_RAMP_S = 0.5  # a pause or a resume changes the playback rate by 1 in about this long
 MAX_PAUSE_S = 600.0  # a run paused longer in all than this is aborted (at rest: at once)
@@ -83,7 +83,7 @@ class PausableSource:
 
     def __init__(
         self,
-        inner: TableSource,
+        inner: TabledSource,
         limits: MotorLimits,
         *,
         ramp_s: float = PAUSE_RAMP_S,

@@ -37,6 +37,13 @@ class SetpointSource(Protocol):
     def describe(self) -> dict[str, Any]: ...
 
 
+class TabledSource(SetpointSource, Protocol):
+    """A source whose whole table is known once it is started (what a pausable playback
+    plays at its own rate: :class:`~drivers.sources.pausable.PausableSource`)."""
+
+    table: np.ndarray
+
+
 class TableSource:
     """Setpoints from a precomputed (cycles, motors) table, after ``start``."""
 

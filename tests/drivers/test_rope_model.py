@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import ast
 import inspect
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -187,3 +189,37 @@ def test_no_module_probes_what_it_is_given(path: str) -> None:
     assert not probes, probes
     twelve = [n.lineno for n in ast.walk(tree) if isinstance(n, ast.Constant) and n.value == 12]
     assert not twelve, f"a joint count of 12 on lines {twelve}"
+
+
+STATIC_CHECK = """
+from drivers.rope_model import ArmRopeModel, MotorLimits, RopeModel
+from drivers.safety.subset import ActuationSubset
+from drivers.sources import CountsSource, HoldSource, PausableSource, SetpointSource
+from drivers.sources import TabledSource
+from hrm_ctrl.model import default_robot
+from hrm_ctrl.ropes.actuation import load_actuation
+
+act = load_actuation(default_robot())
+whole: ArmRopeModel = act
+subset: RopeModel = ActuationSubset(act, ("j01r0",))
+limits: MotorLimits = subset
+table: TabledSource = CountsSource(act, act.counts_min[None, :], 0.01)
+played: SetpointSource = PausableSource(table, act)
+held: SetpointSource = HoldSource(3)
+"""
+
+
+def test_the_protocols_hold_statically(tmp_path: Path) -> None:
+    """mypy: the actuation is an ``ArmRopeModel``, a subset a ``RopeModel``, the sources
+    setpoint sources, and the drivers' rope-model modules use nothing of what they are
+    given beyond its Protocol (an attribute outside it is an error here)."""
+    snippet = tmp_path / "contract.py"
+    snippet.write_text(STATIC_CHECK)
+    cmd = [
+        sys.executable, "-m", "mypy", "--no-incremental", "--follow-imports=silent",
+        "--ignore-missing-imports", "--cache-dir", str(tmp_path / "cache"), str(snippet),
+        *(str(DRIVERS / p) for p in ROPE_MODULES),
+    ]  # fmt: skip
+    root = DRIVERS.parent
+    res = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300, check=False)
+    assert res.returncode == 0, res.stdout + res.stderr
