@@ -86,25 +86,24 @@ def check_move(
     starts with where the drives are now (not judged) and goes on with the move's rows
     (at most :data:`MOVE_CHECK_MAX_ROWS` of them, evenly spread, are mapped).
 
-    Without ``poses`` the rows' joint angles are the rope inverse's of their counts
-    (started from ``warm``, (12,) alpha and theta, e.g. where the arm is, else cold), and
-    an angle at or past its limit is refused only where the move takes it further out
-    than it starts (near the joint-range corners the counts hardly tell the angles apart:
-    an arm at 58 deg can decode at 60.7); with ``poses`` (the configurations the rows were
-    made from, (rows, 12) alpha and theta, e.g. a joint line's) they are those, their
-    whole counts judged as a plan's are (``rounded_outside``), and the tensions are
-    those with the arm held there (``tensions_at``).  Refused with one line
-    (:class:`SetpointError`, naming the cycle of the move) when a row's joint angles
-    leave the joint limits, no pose fits a row, or, with the whole rope layer (its
-    :attr:`~drivers.rope_model.RopeModel.whole_arm`), a rope's modelled tension leaves
-    the rope layer's ``command_tension_N`` band: counts that no pose of the arm takes up
-    at its pretension strain or slacken ropes (a straight line in counts between two
-    bent poses, one rope moved alone).  A rope outside the band where the move starts
-    may stay outside it, but no row takes it more than :data:`TENSION_SLACK_N` further
-    out and the move does not end further out than it started (moves one after another
-    cannot creep out of the band).  A motor
-    subset (``ActuationSubset``, no ``whole_arm``) gets the joint limits only: the other
-    ropes are not commanded, so their tensions are unknown.
+    Without ``poses`` the rows' joint angles are the rope inverse's of their counts (started
+    from ``warm``, (n_joints,) alpha and theta, e.g. where the arm is, else cold), and an
+    angle at or past its limit is refused only where the move takes it further out than it
+    starts (near the joint-range corners the counts hardly tell the angles apart: an arm at
+    58 deg can decode at 60.7); with ``poses`` (the configurations the rows were made from,
+    (rows, n_joints) alpha and theta, e.g. a joint line's) they are those, their whole
+    counts judged as a plan's are (``rounded_outside``), and the tensions are those with the
+    arm held there (``tensions_at``).  Refused with one line (:class:`SetpointError`, naming
+    the cycle of the move) when a row's joint angles leave the joint limits, no pose fits a
+    row, or, with the whole rope layer (its
+    :attr:`~drivers.rope_model.RopeModel.whole_arm`), a rope's modelled tension leaves the
+    rope layer's ``command_tension_N`` band: counts that no pose of the arm takes up at its
+    pretension strain or slacken ropes (a straight line in counts between two bent poses,
+    one rope moved alone).  A rope outside the band where the move starts may stay outside
+    it, but no row takes it more than :data:`TENSION_SLACK_N` further out and the move does
+    not end further out than it started (moves one after another cannot creep out of the
+    band).  A motor subset (``ActuationSubset``, no ``whole_arm``) gets the joint limits
+    only: the other ropes are not commanded, so their tensions are unknown.
 
     >>> from hrm_ctrl.model import default_robot
     >>> from hrm_ctrl.ropes.actuation import load_actuation
@@ -124,10 +123,10 @@ def check_move(
     if arm is None:  # a motor subset
         check_joint_limits(model, table[rows][1:], what)
         return
-    check_arm_move(arm, table, rows, what, poses, warm)
+    _check_arm_move(arm, table, rows, what, poses, warm)
 
 
-def check_arm_move(
+def _check_arm_move(
     arm: ArmRopeModel,
     table: np.ndarray,
     rows: np.ndarray,
