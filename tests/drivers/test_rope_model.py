@@ -22,17 +22,17 @@ from drivers.safety.subset import ActuationSubset
 from drivers.sources import JogSource
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import load_actuation
-from tests.drivers.safety import test_cycle_limits, test_stop_ramp, test_supervisor
+from tests.drivers.safety import test_limits, test_supervisor, test_supervisor_stop_ramp
 
 ACT = load_actuation(default_robot())
 SUB = ActuationSubset(ACT, ("j01r0", "j07r2", "j12r1"))
 PROTOCOLS = (MotorLimits, RopeModel, ArmRopeModel)
 DOUBLES = [
     test_supervisor.Limits(),
-    test_stop_ramp.AccelLimits(),
-    test_cycle_limits.Limits(),
-    test_cycle_limits.AccelLimits(),
-    test_cycle_limits.NoRate(),
+    test_supervisor_stop_ramp.AccelLimits(),
+    test_limits.Limits(),
+    test_limits.AccelLimits(),
+    test_limits.NoRate(),
 ]
 
 
