@@ -65,6 +65,11 @@ class Limits:
     counts_min = np.array([-(10**6)] * 2)
     counts_max = np.array([10**6] * 2)
     max_rate_counts_per_s = np.array([1e6] * 2)
+    max_accel_counts_per_s2: np.ndarray | None = None  # none: the stop ramp holds
+    max_jerk_counts_per_s3: np.ndarray | None = None
+
+    def motor_label(self, i: int) -> str:
+        return self.motor_ids[i]
 
     def check_counts(self, counts: object, previous: object = None, dt_s: object = None) -> None:
         from drivers.safety.limits import SetpointError
