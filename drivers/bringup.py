@@ -28,7 +28,7 @@ from typing import Any
 import canopen
 
 from drivers.protocol import cia301, cia402
-from hrm_ctrl.errors import DriverError
+from hrm_ctrl.errors import DriverError, HrmError
 
 
 class SdoError(DriverError):
@@ -258,7 +258,7 @@ def drive_to(link: DriveLink, goal: State402, timeout_s: float) -> int:
         raise StateTimeoutError(
             f"{link.label}: statusword 0x{sw:04X} ({state.name}) cannot be brought to "
             f"{goal.name}: {exc}"
-        ) from None
+        ) from exc
     for transition in steps:
         sw = step(link, transition, timeout_s)
     return sw
@@ -299,3 +299,42 @@ def disable(link: DriveLink, timeout_s: float) -> int:
     from OPERATION_ENABLED *disable operation* (5, confirmed SWITCHED_ON) then *shutdown*
     (6).  No target position is sent.  Returns the last statusword."""
     return drive_to(link, State402.READY_TO_SWITCH_ON, timeout_s)
+
+
+#: the states a drive leaves only by a fault reset (or is on its way into)
+FAULTY = frozenset({State402.FAULT, State402.FAULT_REACTION_ACTIVE})
+
+
+def disable_unless_faulty(link: DriveLink, timeout_s: float) -> int:
+    """:func:`disable`, except a drive in FAULT: left there, :class:`DriverError` naming
+    it (a fault is reset only on purpose: :func:`reset_to_ready`)."""
+    state, sw = read_state(link)
+    if state in FAULTY:
+        raise DriverError(
+            f"{link.label}: statusword 0x{sw:04X} ({state.name}): not disabled "
+            "(reset the fault first)"
+        )
+    return disable(link, timeout_s)
+
+
+def reset_to_ready(link: DriveLink, timeout_s: float) -> bool:
+    """The fault reset if the drive is in FAULT (CiA 402 transition 15, confirmed), then
+    READY_TO_SWITCH_ON (power stage off) along the table; nothing moves.  Returns whether
+    the drive was in FAULT."""
+    state, _sw = read_state(link)
+    drive_to(link, State402.READY_TO_SWITCH_ON, timeout_s)
+    return state in FAULTY
+
+
+def quick_stop(link: DriveLink) -> None:
+    """The quick-stop controlword by SDO (no target position is written)."""
+    sdo_write(link, cia402.OD_CONTROLWORD, 0, cia402.CW_QUICK_STOP)
+
+
+def read_status(link: DriveLink) -> tuple[int, int] | None:
+    """(statusword, actual position) by SDO; None when the drive does not answer."""
+    try:
+        sw = int(sdo_read(link, cia402.OD_STATUSWORD))
+        return sw, int(sdo_read(link, cia402.OD_POSITION_ACTUAL_VALUE))
+    except HrmError:
+        return None

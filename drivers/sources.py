@@ -61,6 +61,9 @@ class SetpointSource(Protocol):
 
     def describe(self) -> dict[str, Any]: ...
 
+    @property
+    def n_cycles(self) -> int: ...  # cycles at most (the session's wait for the end)
+
 
 class TableSource:
     """Setpoints from a precomputed (cycles, motors) table, after ``start``."""

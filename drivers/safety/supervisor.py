@@ -150,6 +150,34 @@ class _Stream:
     result: StreamResult | None = None
 
 
+def wait_while(
+    mode_of: Callable[[], Mode],
+    modes: frozenset[Mode],
+    timeout_s: float,
+    poll_s: float,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+) -> Mode:
+    """Poll ``mode_of()`` every ``poll_s`` until it is none of ``modes`` or ``timeout_s``
+    has passed on ``clock``; return the last mode read (one of ``modes``: timed out).
+    The one wait of the session on the supervisor (a stop being confirmed, a stream
+    ending, a stop beginning).
+
+    >>> t = [0.0]
+    >>> wait_while(lambda: Mode.STOPPING, frozenset({Mode.STOPPING}), 0.05, 0.01,
+    ...            clock=lambda: t[0], sleep=lambda s: t.__setitem__(0, t[0] + s)).name
+    'STOPPING'
+    >>> round(t[0], 3)
+    0.05
+    """
+    deadline = clock() + timeout_s
+    mode = mode_of()
+    while mode in modes and clock() < deadline:
+        sleep(poll_s)
+        mode = mode_of()
+    return mode
+
+
 class Supervisor:
     """The one owner of the control loop (see the module docstring).
 
@@ -407,6 +435,55 @@ class Supervisor:
     def clear_stop_request(self) -> None:
         """Forget a stop asked for before the drives were configured."""
         self._stop_request.clear()
+
+    # ------------------------------------------------------------------ the monitor's owner
+    # The session moves the monitor's state only through these (the receive callbacks feed
+    # it frames; the loop reads and arms it): one writer of what the watchdogs judge by.
+    def set_guard(self, on: bool) -> None:
+        """Drives configured (on) until the session ends or resets them (off): another
+        master's frames are stop causes even with no drive enabled, and while idle the
+        loop quick-stops every node on them (:meth:`set_guard_idle`)."""
+        with self._lock:
+            self.monitor.guarding = on
+            self.guard_idle = on
+
+    @property
+    def guarding(self) -> bool:
+        """Whether the configured drives are guarded (:meth:`set_guard`)."""
+        return self.monitor.guarding
+
+    def prepare_reset(self) -> float:
+        """Just before an NMT reset: heartbeat supervision counts from the next arming
+        again and every node's boot-up is awaited anew; returns the monitor's time of
+        the reset (for :meth:`NodeMonitor.describe_missing_boot`)."""
+        with self._lock:
+            self.monitor.hb_armed_at = None
+            self.monitor.reset_boot()
+            return self.monitor.clock()
+
+    def mark_configured(self) -> None:
+        """Every node booted and is being configured: a boot-up from now on is a node
+        that lost its configuration (a stop cause)."""
+        self.monitor.configured()
+
+    def drain_causes(self) -> list[StopCause]:
+        """The stop causes queued so far, taken (the session logs or refuses on them)."""
+        return self.monitor.drain()
+
+    def report(self, kind: StopKind, text: str) -> None:
+        """A stop cause found outside the loop (judged at the next deadline or wake)."""
+        self.monitor.report(kind, text)
+
+    def release_wake(self) -> None:
+        """After :meth:`close`: the monitor's wake-up descriptor closed, unless the
+        thread outlived its join (it still selects on it)."""
+        if not self.alive:
+            self.monitor.wake.close()
+
+    def wait_while(self, modes: frozenset[Mode], timeout_s: float) -> Mode:
+        """Wait (polling once a period) until the mode is none of ``modes`` or
+        ``timeout_s`` has passed; return the mode then (see :func:`wait_while`)."""
+        return wait_while(lambda: self.mode, modes, timeout_s, self.period_s)
 
     def take_stop_request(self) -> tuple[StopKind, str] | None:
         """A stop asked for while no drive was enabled (kind, text), taken; or None."""
