@@ -5,17 +5,8 @@ A :class:`DriveSession` opens the buses of a :class:`~drivers.config.BoxConfig`
 (or takes buses already opened: :class:`~drivers.wiring.BoxWiring`), logs each bus's
 traffic to a python-can log, and starts the :class:`~drivers.safety.supervisor.Supervisor`,
 the one thread that owns the control loop, every watchdog and the host heartbeat.  Its
-states and the calls that move between them are one table
-(:mod:`drivers.lifecycle`):
-
-.. code-block:: text
-
-    CLOSED --open--> CONNECTED --configure--> READY --enable--> ENABLED
-                        ^                        ^                | ^
-                        |                        |          stream| |completed
-                        |                        +--disable--+    v |
-                        +-------finish---------- STOPPED <-- STREAMING
-                                                 FAULT   (a stop that failed)
+states (CLOSED, CONNECTED, READY, ENABLED, STREAMING, STOPPED, FAULT) and the calls that
+move between them are one table (:mod:`drivers.lifecycle`, with the diagram):
 
 1. :meth:`configure`: refuse a bus over its load budget; host heartbeat on; NMT
    reset and every node's boot-up (the error lists the missing ones); SDO
@@ -112,6 +103,7 @@ from drivers.run_record import (
 from drivers.safety.causes import StopCause, StopKind
 from drivers.safety.limits import MAX_SOURCE_DURATION_S, LimitChecker
 from drivers.safety.monitor import NodeMonitor
+from drivers.safety.stops import SafetyStopError, stopped_refusal, stream_stop_error
 from drivers.safety.supervisor import Mode, StopRecord, Supervisor, SupervisorModeError
 from drivers.sources import SetpointSource
 from drivers.status import LastEmergencies, SessionStatus, bus_statuses, session_status
@@ -144,19 +136,6 @@ STOP_RECORD_WAIT_S = 2.0  # longest wait for a stop being confirmed (10 periods 
 EMCY_WAIT_S = 0.25  # a drive seen in FAULT: its EMCY is on the wire, the stop follows
 _STOPPING = frozenset({Mode.STOPPING})
 _T = TypeVar("_T")
-
-
-class SafetyStopError(DriverError):
-    """Streaming was stopped by a watchdog, a limit or a bus failure; every axis got a
-    quick stop.  ``causes`` lists why."""
-
-    def __init__(self, message: str, causes: list[StopCause], result: StreamResult) -> None:
-        super().__init__(message)
-        self.causes = causes
-        self.result = result
-
-
-_PortNetwork = PortNetwork  # the name it had here
 
 
 class DriveSession:
@@ -564,26 +543,9 @@ class DriveSession:
         """Before :meth:`enable` sends anything: refuse (still READY) when a stop cause
         was reported since the drives were configured (an EMCY, a bad frame, a watch's
         cause: :meth:`reset_fault` clears them) or a drive is in FAULT (read by SDO)."""
-        rebooted = [self.monitor.labels[i] for i in np.flatnonzero(self.monitor.rebooted)]
-        if rebooted:
-            more = f" (+{len(rebooted) - 1} more)" if len(rebooted) > 1 else ""
-            self._refuse_enable(
-                f"enable refused: {rebooted[0]}{more} rebooted since the drives were "
-                "configured (its configuration is lost): bring the drives up again"
-            )
-        request = self.supervisor.take_stop_request()
-        if request is not None:
-            self.events.add("stop_cause", request[1], cause=request[0].value)
-            self._refuse_enable(f"enable refused: {request[1]} before the enable")
-        earlier = self.supervisor.drain_causes()
-        if earlier:
-            more = f" (+{len(earlier) - 1} more)" if len(earlier) > 1 else ""
-            for cause in earlier:
-                self.events.add("stop_cause", cause.text, cause=cause.kind.value, motor=cause.motor)
-            self._refuse_enable(
-                f"enable refused: {earlier[0].text}{more}, reported since the drives were "
-                "configured (reset-fault clears it)"
-            )
+        why = self.supervisor.cause_since_configured()
+        if why is not None:
+            self._refuse_enable(f"enable refused: {why}")
         states = self._parallel("state check", read_state, self._budget_s(1))
         in_fault = [
             f"{link.label} (statusword 0x{sw:04X})"
@@ -688,15 +650,8 @@ class DriveSession:
     def _refuse_stopped(self) -> None:
         """A stream asked for after a stop (idle or not): name why the box stopped."""
         causes = self._last_causes()
-        if not causes:
-            return
-        failed = f" ({self.stop_error})" if self.stop_error is not None else ""
-        where = "while idle" if self.idle_causes else "earlier"
-        raise SafetyStopError(
-            f"stopped {where}: {causes[0].text}{failed}",
-            causes,
-            StreamResult(False, 0, causes, {}, np.zeros(self.monitor.n, np.int64)),
-        )
+        if causes:
+            raise stopped_refusal(causes, bool(self.idle_causes), self.stop_error, self.monitor.n)
 
     def _raise_if_stopped(self, expect_stop_s: float = 0.0) -> None:
         """While a stream is being prepared the supervisor may stop the box (an EMCY,
@@ -769,12 +724,7 @@ class DriveSession:
         if busy is not None:
             self.events.add("traffic", busy)
         if raise_on_stop:
-            first = result.causes[0]
-            more = f" (+{len(result.causes) - 1} more)" if len(result.causes) > 1 else ""
-            also = "" if busy is None else f" ({busy})"
-            if result.error is not None and first.kind is StopKind.LIMIT:
-                raise SafetyStopError(f"stopped: {result.error}{also}", result.causes, result)
-            raise SafetyStopError(f"stopped: {first.text}{more}{also}", result.causes, result)
+            raise stream_stop_error(result, busy)
         return result
 
     def request_stop(

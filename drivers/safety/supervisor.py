@@ -470,6 +470,33 @@ class Supervisor:
         """The stop causes queued so far, taken (the session logs or refuses on them)."""
         return self.monitor.drain()
 
+    def cause_since_configured(self) -> str | None:
+        """Why the drives may not be enabled now, or None: a node rebooted since the
+        configuration (its configuration is lost), a stop asked for, or stop causes
+        reported (an EMCY, a bad frame, a watch's cause: taken, each logged)."""
+        mon = self.monitor
+        rebooted = [mon.labels[i] for i in np.flatnonzero(mon.rebooted)]
+        if rebooted:
+            more = f" (+{len(rebooted) - 1} more)" if len(rebooted) > 1 else ""
+            return (
+                f"{rebooted[0]}{more} rebooted since the drives were configured (its "
+                "configuration is lost): bring the drives up again"
+            )
+        request = self.take_stop_request()
+        if request is not None:
+            self.events.add("stop_cause", request[1], cause=request[0].value)
+            return f"{request[1]} before the enable"
+        earlier = mon.drain()
+        if earlier:
+            more = f" (+{len(earlier) - 1} more)" if len(earlier) > 1 else ""
+            for cause in earlier:
+                self.events.add("stop_cause", cause.text, cause=cause.kind.value, motor=cause.motor)
+            return (
+                f"{earlier[0].text}{more}, reported since the drives were configured "
+                "(reset-fault clears it)"
+            )
+        return None
+
     def report(self, kind: StopKind, text: str) -> None:
         """A stop cause found outside the loop (judged at the next deadline or wake)."""
         self.monitor.report(kind, text)
