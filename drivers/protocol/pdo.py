@@ -49,6 +49,9 @@ TYPE_NAMES = {
 }  # fmt: skip
 
 
+_CANONICAL = str.maketrans({"l": "i", "L": "I"})
+
+
 @dataclass(frozen=True)
 class PdoEntry:
     """One mapped object: ``name`` (how a NumPy view calls it), index, sub-index and the
@@ -61,6 +64,10 @@ class PdoEntry:
     subindex: int
     code: str
     label: str = field(default="", compare=False)
+
+    def __post_init__(self) -> None:
+        # one code per type: "<l" and "<i" are both INTEGER32 (canopen uses the former)
+        object.__setattr__(self, "code", self.code.translate(_CANONICAL))
 
     @property
     def size(self) -> int:
