@@ -84,13 +84,7 @@ from drivers.other_master import (
 )
 from drivers.parallel import budget_s, run_parallel, sdo_transfer_s
 from drivers.protocol import cia301, cia402
-from drivers.realtime import (
-    NORMAL_PRIORITY,
-    AppliedSettings,
-    CpuLatencyRequest,
-    GcHold,
-    process_settings,
-)
+from drivers.realtime import AppliedSettings
 from drivers.receive import BusReceiver
 from drivers.run_record import (
     RUN_RECORD_FORMAT,
@@ -105,6 +99,7 @@ from drivers.safety.limits import MAX_SOURCE_DURATION_S, LimitChecker
 from drivers.safety.monitor import NodeMonitor
 from drivers.safety.stops import SafetyStopError, stopped_refusal, stream_stop_error
 from drivers.safety.supervisor import Mode, StopRecord, Supervisor, SupervisorModeError
+from drivers.scheduling import SessionScheduling
 from drivers.sources import SetpointSource
 from drivers.status import LastEmergencies, SessionStatus, bus_statuses, session_status
 from drivers.wiring import BoxWiring, MotorSlots, PortNetwork
@@ -182,9 +177,11 @@ class DriveSession:
         self.take_over = bool(take_over)
         self.listen_s = float(listen_s)
         self._brought_up = False  # this session has reset the drives (they are ours)
-        # the heap out of the cyclic collector from configure() to the end of finish()
-        # (a full collection of a large heap pauses every thread: a heartbeat timeout)
-        self._gc_hold = GcHold()
+        ctl = self.control
+        self.scheduling = SessionScheduling(
+            ctl.realtime_priority, ctl.cpu_wakeup_latency_us, self.events
+        )
+        self._gc_hold = self.scheduling.gc_hold  # held from configure() to finish()
         self.slots = MotorSlots.of(config, actuation.motor_ids)  # motor -> slot, once
         self.emergencies = LastEmergencies(self.slots.n)
         self.monitor = NodeMonitor(
@@ -194,18 +191,8 @@ class DriveSession:
             clock=clock,
         )
         mon = self.monitor
-        # Every thread the session starts (the buses' readers and log writers, the
-        # supervisor) inherits the scheduling of the thread that starts it: they start
-        # under SCHED_FIFO at realtime_priority, and the caller's thread gets its own
-        # policy back.  The threads share one GIL: one of them at normal priority holding
-        # it while the machine's other work preempts it keeps the FIFO ones waiting
-        # (measured: the supervisor alone under FIFO, 1430 node-cycles without feedback
-        # in 30 s; the whole host process, 54; BENCHMARKS.md, which also has the runs of
-        # the session's threads alone).
-        with process_settings(
-            switch_interval_s=None, realtime_priority=self.control.realtime_priority
-        ) as applied:
-            self.realtime_granted = applied.realtime_granted
+        log_dir = self.log_dir
+        with self.scheduling.starting_threads():  # (SCHED_FIFO if granted)
             with deferred_interrupts():  # the buses and logs open whole, or close again
                 self.wiring = BoxWiring(
                     config,
@@ -214,48 +201,35 @@ class DriveSession:
                     self.loads,
                     # another master's frames are stop causes from the configuration on
                     lambda: mon.armed or mon.guarding,
-                    None
-                    if self.log_dir is None
-                    else lambda bus: self.log_dir / f"{self.run_name}_{bus}{self.log_suffix}",  # type: ignore[operator]
+                    None if log_dir is None else lambda bus: log_dir / self._log_name(bus),
                     buses,
                 )
             self.supervisor = Supervisor(
                 self.wiring.layouts,
                 mon,
                 actuation,
-                self.control.period_s,
-                self.control.host_heartbeat_ms / 1000.0,
-                self.control.host_node_id,
+                ctl.period_s,
+                ctl.host_heartbeat_ms / 1000.0,
+                ctl.host_node_id,
                 self.events,
                 on_stop=self._on_stop,
-                # refused once: the session's threads run under normal scheduling (one
-                # warning said so), the supervisor does not ask again
-                realtime_priority=self._granted_priority(),
+                # refused once: the threads run under normal scheduling, not asked again
+                realtime_priority=self.scheduling.granted_priority,
                 clock=clock,
             )
             self.supervisor.start()
-        # the CPUs' wake-up latency (PM QoS), held while the session is open
-        self.cpu_latency = CpuLatencyRequest(self.control.cpu_wakeup_latency_us)
-        if self.cpu_latency.held or self.cpu_latency.refusal:
-            self.events.add(
-                "cpu-latency",
-                f"CPU wake-up latency at most {self.cpu_latency.max_us} us held"
-                if self.cpu_latency.held
-                else f"{self.cpu_latency.refusal}; CPUs may sleep",
-            )
+        self.realtime_granted = self.scheduling.realtime_granted
+        self.cpu_latency = self.scheduling.hold_cpu_latency()  # while the session is open
         self._state = SessionState.CONNECTED
-        if applied.realtime_priority:
-            self.events.add(
-                "realtime",
-                f"session threads under SCHED_FIFO {applied.realtime_priority}"
-                if applied.realtime_granted
-                else f"{applied.realtime_refusal}; normal scheduling",
-            )
         self.events.add(
             "open",
-            f"{len(config.buses)} bus(es), {self.slots.n} drives, {self.control.rate_hz:g} Hz",
+            f"{len(config.buses)} bus(es), {self.slots.n} drives, {ctl.rate_hz:g} Hz",
             bus_loads=[bl.to_dict() for bl in self.loads],
         )
+
+    def _log_name(self, bus: str) -> str:
+        """The file name of bus ``bus``'s CAN log."""
+        return f"{self.run_name}_{bus}{self.log_suffix}"
 
     # the wiring's parts under the names callers (benchmarks, the HIL rig) read
     @property
@@ -283,15 +257,12 @@ class DriveSession:
     def _layouts(self) -> list[BusLayout]:
         return self.wiring.layouts
 
-    def _granted_priority(self) -> int:
-        return self.control.realtime_priority if self.realtime_granted else NORMAL_PRIORITY
-
     def thread_scheduling(self) -> contextlib.AbstractContextManager[AppliedSettings]:
         """A context in which the caller starts a thread that works for this session (a
         feedback watch): it gets the session's threads' scheduling, SCHED_FIFO at
         ``realtime_priority`` when the session got it, and the caller's thread its own
         policy back on leaving."""
-        return process_settings(switch_interval_s=None, realtime_priority=self._granted_priority())
+        return self.scheduling.thread_scheduling()
 
     # ------------------------------------------------------------------ states
     @property
@@ -818,10 +789,9 @@ class DriveSession:
         up still takes it, and names the logs that it cut short (``can_log_errors``).  A
         record that cannot be written even so raises :class:`DriverError` (one line)."""
         self.supervisor.close()
-        self.cpu_latency.close()
+        self.scheduling.close()  # the CPU latency request and the heap hold
         self.wiring.close()
         self.supervisor.release_wake()  # (its thread selects on the descriptor)
-        self._gc_hold.release()
         self._set_state(SessionState.CLOSED)
         if self.log_dir is None:
             return None
