@@ -32,7 +32,8 @@ from hrm_ctrl.errors import DriverError, HrmError
 
 
 class SdoError(DriverError):
-    """An SDO transfer was aborted by the drive or got no answer in time."""
+    """An SDO transfer was aborted by the drive or got no answer in time (the error of
+    canopen or of the bus is chained as its cause)."""
 
 
 class StateTimeoutError(DriverError):
@@ -84,20 +85,20 @@ def sdo_write(link: DriveLink, index: int, subindex: int, value: Any) -> None:
         raise SdoError(
             f"{link.label}: SDO write 0x{index:04X}:{subindex:02X} = {value!r} aborted: "
             f"{cia301.describe_sdo_abort(exc.code)}"
-        ) from None
+        ) from exc
     except canopen.SdoCommunicationError as exc:
         raise SdoError(
             f"{link.label}: SDO write 0x{index:04X}:{subindex:02X}: {exc} "
             f"(timeout {link.node.sdo.RESPONSE_TIMEOUT:g} s)"
-        ) from None
+        ) from exc
     except (KeyError, ValueError, TypeError) as exc:
         raise SdoError(
             f"{link.label}: cannot write 0x{index:04X}:{subindex:02X} = {value!r} ({exc})"
-        ) from None
+        ) from exc
     except DriverError as exc:  # the request could not be sent (bus failure)
         raise SdoError(
             f"{link.label}: SDO write 0x{index:04X}:{subindex:02X} = {value!r}: {exc}"
-        ) from None
+        ) from exc
 
 
 def sdo_read(link: DriveLink, index: int, subindex: int = 0) -> Any:
@@ -109,22 +110,22 @@ def sdo_read(link: DriveLink, index: int, subindex: int = 0) -> Any:
         raise SdoError(
             f"{link.label}: SDO read 0x{index:04X}:{subindex:02X} aborted: "
             f"{cia301.describe_sdo_abort(exc.code)}"
-        ) from None
+        ) from exc
     except canopen.SdoCommunicationError as exc:
         raise SdoError(
             f"{link.label}: SDO read 0x{index:04X}:{subindex:02X}: {exc} "
             f"(timeout {link.node.sdo.RESPONSE_TIMEOUT:g} s)"
-        ) from None
+        ) from exc
     except (KeyError, ValueError, TypeError, IndexError) as exc:
-        raise SdoError(f"{link.label}: cannot read 0x{index:04X}:{subindex:02X} ({exc})") from None
+        raise SdoError(f"{link.label}: cannot read 0x{index:04X}:{subindex:02X} ({exc})") from exc
     except DriverError as exc:  # the request could not be sent (bus failure)
-        raise SdoError(f"{link.label}: SDO read 0x{index:04X}:{subindex:02X}: {exc}") from None
+        raise SdoError(f"{link.label}: SDO read 0x{index:04X}:{subindex:02X}: {exc}") from exc
 
 
 def _var(link: DriveLink, index: int) -> Any:
     entry = link.node.sdo[index]
     # A VAR object is itself the variable; records/arrays need a sub-index.
-    return entry if hasattr(entry, "raw") else entry[0]
+    return entry if isinstance(entry, canopen.sdo.SdoVariable) else entry[0]
 
 
 def _map_pdo(
@@ -141,9 +142,9 @@ def _map_pdo(
     except canopen.SdoAbortedError as exc:
         raise SdoError(
             f"{link.label}: mapping {name} aborted: {cia301.describe_sdo_abort(exc.code)}"
-        ) from None
+        ) from exc
     except canopen.SdoCommunicationError as exc:
-        raise SdoError(f"{link.label}: mapping {name}: {exc}") from None
+        raise SdoError(f"{link.label}: mapping {name}: {exc}") from exc
     # The supervisor reads the PDOs itself; canopen need not decode every frame.
     try:
         link.node.network.unsubscribe(cob_id, pdo_map.on_message)

@@ -25,6 +25,7 @@ import numpy as np
 
 from drivers.bus import BusPort
 from drivers.protocol import batch, cia301, cia402
+from drivers.receive import BusPoller, BusReader
 from drivers.safety.monitor import StopCause
 from hrm_ctrl.errors import HrmError
 
@@ -42,7 +43,7 @@ class BusLayout:
     port: BusPort
     index: np.ndarray  # global motor indices on this bus
     node_ids: np.ndarray
-    notifier: Any = None  # the bus's receive thread: has ``.exception`` (None: alive)
+    notifier: BusReader | BusPoller | None = None  # who reads the bus (.exception: None alive)
     burst_s: float = 0.0  # wire time of one cycle's worst-case traffic on this bus
 
     def __post_init__(self) -> None:

@@ -71,6 +71,7 @@ from drivers.interrupts import deferred_interrupts
 from drivers.protocol import cia301, cia402
 from drivers.protocol.batch import from_messages
 from drivers.realtime import NORMAL_PRIORITY, process_settings
+from drivers.receive import BusPoller
 from drivers.safety.causes import StopCause, StopKind, unique_causes
 from drivers.safety.limits import CycleLimits, LimitChecker, SetpointError, accel_limits
 from drivers.safety.monitor import NodeMonitor
@@ -247,11 +248,7 @@ class Supervisor:
         self._recent_syncs: collections.deque[float] = collections.deque(maxlen=RECENT_SYNCS)
         self._sync = from_messages([cia301.make_sync()])  # the SYNC as a one-frame batch
         # the CAN logs of the buses, kicked every LOG_KICK_S while streaming
-        self._logs = [
-            lay.port.log
-            for lay in self.layouts
-            if getattr(lay.port, "log", None) is not None and hasattr(lay.port.log, "kick")
-        ]
+        self._logs = [lay.port.log for lay in self.layouts if lay.port.log is not None]
         self._log_kick_cycles = max(1, round(LOG_KICK_S / self.period_s))
 
     # ------------------------------------------------------------------ thread
@@ -299,7 +296,7 @@ class Supervisor:
         pollers = {
             lay.notifier.fileno(): lay.notifier
             for lay in self.layouts
-            if lay.notifier is not None and hasattr(lay.notifier, "poll")
+            if isinstance(lay.notifier, BusPoller)
         }
         fds = [mon.wake.fileno(), *pollers]
         select_ = select.select

@@ -29,6 +29,7 @@ class FakePort:
 
     def __init__(self, name: str) -> None:
         self.name = name
+        self.log = None  # no CAN log
         self.sent: list[tuple[float, can.Message]] = []
         self.clock: FakeClock | None = None
 
