@@ -68,10 +68,10 @@ from drivers.bringup import (
     reset_to_ready,
     sdo_read,
 )
-from drivers.bus import BusPort, TrafficLog
+from drivers.bus import BusPort
 from drivers.busload import BusLoad, check_bus_load
 from drivers.config import BoxConfig
-from drivers.cycle import BusLayout, EventLog, StreamResult
+from drivers.cycle import EventLog, StreamResult
 from drivers.interrupts import deferred_interrupts
 from drivers.lifecycle import Call, SessionState, SessionStateError, after_stop, next_state
 from drivers.other_master import (
@@ -184,13 +184,12 @@ class DriveSession:
         self._gc_hold = self.scheduling.gc_hold  # held from configure() to finish()
         self.slots = MotorSlots.of(config, actuation.motor_ids)  # motor -> slot, once
         self.emergencies = LastEmergencies(self.slots.n)
-        self.monitor = NodeMonitor(
+        mon = self.monitor = NodeMonitor(
             list(self.slots.labels),
-            self.control.missing_tpdo_cycles,
-            self.control.heartbeat_timeout_ms / 1000.0,
+            ctl.missing_tpdo_cycles,
+            ctl.heartbeat_timeout_ms / 1000.0,
             clock=clock,
         )
-        mon = self.monitor
         log_dir = self.log_dir
         with self.scheduling.starting_threads():  # (SCHED_FIFO if granted)
             with deferred_interrupts():  # the buses and logs open whole, or close again
@@ -242,20 +241,12 @@ class DriveSession:
         return self.wiring.ports
 
     @property
-    def _logs(self) -> list[TrafficLog]:
-        return self.wiring.logs
-
-    @property
     def _networks(self) -> list[PortNetwork]:
         return self.wiring.networks
 
     @property
     def _receivers(self) -> list[BusReceiver]:
         return self.wiring.receivers
-
-    @property
-    def _layouts(self) -> list[BusLayout]:
-        return self.wiring.layouts
 
     def thread_scheduling(self) -> contextlib.AbstractContextManager[AppliedSettings]:
         """A context in which the caller starts a thread that works for this session (a
@@ -776,7 +767,7 @@ class DriveSession:
             idle_causes=self.idle_causes,
             events=self.events,
             monitor=self.monitor,
-            logs=self._logs,
+            logs=self.wiring.logs,
             extra=self.record_extra,
         )
 
