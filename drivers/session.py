@@ -327,9 +327,6 @@ class DriveSession:
             on_error=lambda text: self.events.add("error", text),
         )
 
-    def _links(self) -> list[DriveLink]:
-        return self.links
-
     # ------------------------------------------------------------------ sequence
     def _settings(self, link: DriveLink) -> DriveSettings:
         ctl = self.control

@@ -23,17 +23,21 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from typing import TYPE_CHECKING
+
 import can
 import numpy as np
 
-from drivers.bus import BusPort, TrafficLog
-from drivers.busload import BusLoad
-from drivers.config import BusConfig
 from drivers.protocol.cia301 import NMT_STATE_NAMES, FrameError, parse_emcy
 from drivers.protocol.cia402 import SW_FAULT, State402, decode_state
-from drivers.receive import BusReceiver
-from drivers.safety.monitor import NodeMonitor
-from drivers.wiring import MotorSlots
+
+if TYPE_CHECKING:  # (what the read-outs are read from; a formatter needs none of it)
+    from drivers.bus import BusPort, TrafficLog
+    from drivers.busload import BusLoad
+    from drivers.config import BusConfig
+    from drivers.receive import BusReceiver
+    from drivers.safety.monitor import NodeMonitor
+    from drivers.wiring import MotorSlots
 
 
 @dataclass(frozen=True)
