@@ -116,7 +116,7 @@ def ea_from_slope(slope_N_per_mm: float, free_length_mm: float, mean_tension_N: 
     """EA (N) of a rope whose tension rises ``slope_N_per_mm`` per mm wound in at the mean
     tension ``mean_tension_N``: the root of ``(EA + T)^2 = b EA L`` near ``b L``.
 
-    >>> round(ea_from_slope(30.06, 1000.0, 30.0), 1)       # (30000 + 30)^2 / 30000e3 = 30.06
+    >>> round(ea_from_slope(30.06, 1000.0, 30.0), 1)       # (30000 + 30)^2 / 3e7 = 30.06
     30000.0
     """
     bL = float(slope_N_per_mm) * float(free_length_mm)

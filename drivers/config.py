@@ -23,9 +23,10 @@ configuration: the host's drivers and the simulated box (``sim_bus``, ``hrm sim`
 both take it.  It describes the wire, not the host's logic; simulator settings are
 arguments of ``sim_bus.box.SimBox`` and of ``hrm sim``, never keys of the file.
 
-Every ``[control]`` value is checked against its safe range when the file loads
-(:data:`CONTROL_RANGES`, one row per key with the reason for its bounds, and
-:data:`CONTROL_RELATIONS` between keys), so ``hrm busload``, ``hrm run`` and the
+Every value is checked against its safe range when the file loads, by the one validator
+of the descriptions (:mod:`hrm_ctrl.validate`): the ranges are the metadata of the
+dataclasses' fields (:data:`CONTROL_RANGES`: one per ``[control]`` key with the reason
+for its bounds; :data:`CONTROL_RELATIONS` between keys), so ``hrm busload``, ``hrm run`` and the
 simulated box refuse the same files, before anything is sent: a watchdog cannot be
 configured away (``missing_tpdo_cycles = 1e8``) and no value a drive would abort
 (0x605A, 0x6065, 0x60C2) reaches a drive after its NMT reset.  The message is one
@@ -46,7 +47,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import can
 
@@ -69,6 +70,15 @@ from drivers.realtime import (
 )
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.files import read_toml
+from hrm_ctrl.validate import (
+    Spec,
+    number_kinds,
+    ranged,
+    read_numbers,
+    refuse_unknown,
+    spec,
+    specs,
+)
 
 
 class BusConfigError(DriverError):
@@ -121,14 +131,22 @@ def _encodable(rate_hz: float) -> bool:
     return True
 
 
+BITRATE_MAX = 1_000_000
+"""Classical CAN's top bitrate (bit/s): every bus's ``bitrate`` lies in 1..1000000."""
+
+NODE_IDS = Spec(lo=NODE_ID_MIN, hi=NODE_ID_MAX, why="a CANopen node id")
+"""The range of a drive's node id (``[buses.NAME.nodes]``)."""
+
+
 @dataclass(frozen=True)
 class BusConfig:
-    """One CAN bus: how to open it and which rope motors (node ids) sit on it."""
+    """One CAN bus: how to open it and which rope motors (node ids, :data:`NODE_IDS`) sit
+    on it."""
 
     name: str
     interface: str
     channel: str | int
-    bitrate: int
+    bitrate: int = field(metadata=spec(lo=1, hi=BITRATE_MAX, why="classical CAN's bitrates"))
     options: Mapping[str, Any]
     nodes: Mapping[str, int]  # rope motor id -> node id, in file order
 
@@ -173,31 +191,103 @@ class BusConfig:
         }
 
 
+# 0 (QUICK_STOP_OPTION_DISABLE_DRIVE) is left out: the power stages would switch off at
+# once and every motor coast from its speed, the ropes under the arm's load
+_QUICK_STOP_CODES = set(QUICK_STOP_OPTIONS_THEN_DISABLED)
+_QUICK_STOP_CODES |= set(QUICK_STOP_OPTIONS_STAY)
+
+
 @dataclass(frozen=True)
 class ControlConfig:
-    """Control-loop timing and safety settings (the ``[control]`` table)."""
+    """Control-loop timing and safety settings (the ``[control]`` table); each field's
+    safe range, both ends included, and the reason for it in its metadata
+    (:data:`CONTROL_RANGES`)."""
 
-    rate_hz: float = 100.0
-    host_node_id: int = HOST_HEARTBEAT_NODE_ID
-    host_heartbeat_ms: int = 100
-    node_heartbeat_ms: int = 100
-    heartbeat_timeout_ms: int = 350
-    missing_tpdo_cycles: int = 3
-    bus_load_limit: float = 0.70
-    bootup_timeout_s: float = 3.0
-    sdo_timeout_s: float = 0.5
-    state_timeout_s: float = 0.5
-    following_error_window_counts: int = 2000
-    quick_stop_option_code: int = 2
-    realtime_priority: int = NORMAL_PRIORITY  # SCHED_FIFO priority of the scheduler (0: off)
+    # fmt: off
+    rate_hz: float = ranged(
+        100.0, RATE_MIN_HZ, RATE_MAX_HZ, "Hz",
+        "below 10 Hz the drives interpolate over 100 ms between targets and every watchdog "
+        "counted in cycles slows with it; above 1 kHz the host's control loop (a Python "
+        "thread) cannot keep its period; the period must also fit 0x60C2",
+    )
+    host_node_id: int = ranged(
+        HOST_HEARTBEAT_NODE_ID, NODE_ID_MIN, NODE_ID_MAX, "",
+        "a CANopen node id (the host heartbeat's COB-ID is 0x700 + id), not a drive's",
+    )
+    host_heartbeat_ms: int = ranged(
+        100, 10, 500, "ms",
+        "sent on the control deadline nearest its due time (so one period at least); the "
+        "drives' timeout (heartbeat_timeout_ms, at most 2 s) must span 3 of them",
+    )
+    node_heartbeat_ms: int = ranged(
+        100, 10, 500, "ms",
+        "0x1017 of every drive: 10 ms puts 100 frames/s per drive on its bus; the host's "
+        "timeout (heartbeat_timeout_ms, at most 2 s) must span 3 of them",
+    )
+    heartbeat_timeout_ms: int = ranged(
+        350, 30, 2000, "ms",
+        "0x1016 on the drives and the host's own watch: a dead host or drive goes "
+        "unnoticed at most this long; 3 of the shortest heartbeat periods at least",
+    )
+    missing_tpdo_cycles: int = ranged(
+        3, 1, 25, "cycles",
+        "the arm moves without position feedback this many cycles before every axis stops "
+        "(25: the HIL rig's 250 ms at 100 Hz, over udp_multicast on a shared machine)",
+    )
+    bus_load_limit: float = ranged(
+        0.70, 0.05, 0.9, "",
+        "the worst-case load leaves no room for error frames and retransmissions above "
+        "0.9, and the heartbeats (lowest priority) need idle bus time to get through",
+    )
+    bootup_timeout_s: float = ranged(
+        3.0, 0.1, 30.0, "s",
+        "nothing moves during boot-up: a missing node is reported within 30 s; no drive "
+        "boots within 0.1 s of its NMT reset",
+    )
+    sdo_timeout_s: float = ranged(
+        0.5, 0.05, 2.0, "s",
+        "each SDO transfer (canopen retries once); disabling the drives after a stop is "
+        "SDO, so a longer timeout delays it; 50 ms covers a drive and a loaded host",
+    )
+    state_timeout_s: float = ranged(
+        0.5, 0.05, 5.0, "s",
+        "each CiA 402 transition, a quick stop ramp included; disabling the drives after "
+        "a stop waits this long per transition",
+    )
+    following_error_window_counts: int = ranged(
+        2000, 1, 65536, "counts",
+        "0x6065 (UNSIGNED32, 0xFFFFFFFF switches the drive's check off): 65536 counts are "
+        "16 encoder turns, 30 mm of rope with the shipped motor map; 0 faults at any lag",
+    )
+    quick_stop_option_code: int = ranged(
+        2, min(_QUICK_STOP_CODES), max(_QUICK_STOP_CODES), "",
+        "0x605A (INTEGER16 in hrm_drive.eds): the ramps CiA 402 defines and the drive "
+        "implements (it aborts any other write, 0x06090030, after its NMT reset); not 0, "
+        "'disable drive function': every motor would coast from speed, the ropes under load",
+    )
+    #: SCHED_FIFO priority of the scheduler (0: off)
+    realtime_priority: int = ranged(
+        NORMAL_PRIORITY, NORMAL_PRIORITY, REALTIME_PRIORITY_SAFE_MAX, "",
+        "SCHED_FIFO priority of the control thread (0: off); at 50 and above it would "
+        "preempt the kernel's interrupt threads (PREEMPT_RT), the CAN controller's too",
+    )
     #: PM QoS CPU wake-up latency held while the session is open (drivers.realtime;
     #: the default is the kernel's "no constraint": nothing held)
-    cpu_wakeup_latency_us: int = CPU_LATENCY_NO_REQUEST_US
+    cpu_wakeup_latency_us: int = ranged(
+        CPU_LATENCY_NO_REQUEST_US, 0, CPU_LATENCY_NO_REQUEST_US, "us",
+        "a PM QoS request (/dev/cpu_dma_latency, a signed 32-bit value; 0: idle CPUs poll); "
+        f"{CPU_LATENCY_NO_REQUEST_US}, the kernel's 'no constraint', holds none",
+    )
+    # fmt: on
 
     @property
     def period_s(self) -> float:
         return 1.0 / self.rate_hz
 
+
+CONTROL_RANGES: Mapping[str, Spec] = specs(ControlConfig)
+"""The safe range of every ``[control]`` value (:class:`hrm_ctrl.validate.Spec`: lo, hi,
+unit, why), both ends included: the metadata of :class:`ControlConfig`'s fields."""
 
 TENSION_BAUD_RANGE = (9_600, 4_000_000)
 TENSION_SLACK_RANGE_N = (0.5, 100.0)
@@ -209,21 +299,26 @@ TENSION_GARBAGE_MAX_PER_S = 50.0
 @dataclass(frozen=True)
 class TensionConfig:
     """The rope tension-sensor board (the optional ``[tension]`` table): its serial port
-    and the thresholds that stop every axis (``drivers.tension_sensor.TensionWatch``).
-
-    Safe ranges, checked on load: ``slack_N`` in [0.5, 100] N (above the board's noise, so
-    a broken rope reads below it) and below ``limit_N``; ``limit_N`` at most 650 N (the
-    board saturates at 655.34 N); ``stale_s`` in [0.02, 0.5] s (at least two frames at
-    100 Hz, at most half a second blind); ``garbage_per_s`` (CRC errors, resynchronisations
-    and wrong-size frames per second, over the last second) in (0, 50].
-    """
+    and the thresholds that stop every axis (``drivers.tension_sensor.TensionWatch``);
+    each threshold's safe range, checked on load, in its metadata."""
 
     port: str
-    baudrate: int = 921_600
-    slack_N: float = 5.0
-    limit_N: float = 150.0
-    stale_s: float = 0.1
-    garbage_per_s: float = 5.0
+    # fmt: off
+    baudrate: int = ranged(921_600, *TENSION_BAUD_RANGE)
+    slack_N: float = ranged(
+        5.0, *TENSION_SLACK_RANGE_N, "N", "above the board's noise, so a broken rope reads below it"
+    )
+    limit_N: float = ranged(
+        150.0, -math.inf, TENSION_LIMIT_MAX_N, "N", "the board saturates at 655.34 N",
+        above="slack_N",
+    )
+    stale_s: float = ranged(
+        0.1, *TENSION_STALE_RANGE_S, "s",
+        "two frames at 100 Hz at least, half a second blind at most",
+    )
+    #: CRC errors, resynchronisations and wrong-size frames per second, over the last second
+    garbage_per_s: float = ranged(5.0, 0.0, TENSION_GARBAGE_MAX_PER_S, "per s", lo_open=True)
+    # fmt: on
 
 
 TRACKER_TIMEOUT_RANGE_S = (0.01, 10.0)
@@ -233,16 +328,17 @@ TRACKER_BAUD_RANGE = TENSION_BAUD_RANGE
 @dataclass(frozen=True)
 class TrackerConfig:
     """The laser tracker (the optional ``[tracker]`` table): its serial port, baud rate and
-    the longest wait for each reply (``drivers.tracker.TrackerReader``).
-
-    Safe ranges, checked on load: ``timeout_s`` in [0.01, 10] s (a reading takes a few ms;
-    past 10 s a silent tracker holds a calibration up for nothing); ``baudrate`` as the
-    tension board's.
-    """
+    the longest wait for each reply (``drivers.tracker.TrackerReader``); safe ranges,
+    checked on load, in the metadata."""
 
     port: str
-    timeout_s: float = 1.0
-    baudrate: int = 115_200
+    # fmt: off
+    timeout_s: float = ranged(
+        1.0, *TRACKER_TIMEOUT_RANGE_S, "s",
+        "a reading takes a few ms; past 10 s a silent tracker holds a calibration up for nothing",
+    )
+    baudrate: int = ranged(115_200, *TRACKER_BAUD_RANGE)
+    # fmt: on
 
 
 @dataclass(frozen=True)
@@ -387,10 +483,6 @@ class BoxConfig:
         }
 
 
-BITRATE_MAX = 1_000_000
-"""Classical CAN's top bitrate (bit/s): every bus's ``bitrate`` lies in 1..1000000."""
-
-
 @dataclass(frozen=True)
 class BusOverride:
     """One bus replaced from the command line: ``NAME=INTERFACE:CHANNEL[@BITRATE]``."""
@@ -472,117 +564,6 @@ def _check_interface(name: Any, where: str) -> str:
     return name
 
 
-_CONTROL_TYPES: dict[str, type] = {
-    "rate_hz": float,
-    "host_node_id": int,
-    "host_heartbeat_ms": int,
-    "node_heartbeat_ms": int,
-    "heartbeat_timeout_ms": int,
-    "missing_tpdo_cycles": int,
-    "bus_load_limit": float,
-    "bootup_timeout_s": float,
-    "sdo_timeout_s": float,
-    "state_timeout_s": float,
-    "following_error_window_counts": int,
-    "quick_stop_option_code": int,
-    "realtime_priority": int,
-    "cpu_wakeup_latency_us": int,
-}
-
-
-@dataclass(frozen=True)
-class ControlRange:
-    """The safe range of one ``[control]`` value (inclusive) and why it ends there."""
-
-    lo: float
-    hi: float
-    unit: str
-    why: str
-
-    def text(self) -> str:
-        return f"{self.lo:g}..{self.hi:g}{' ' + self.unit if self.unit else ''}"
-
-
-# 0 (QUICK_STOP_OPTION_DISABLE_DRIVE) is left out: the power stages would switch off at
-# once and every motor coast from its speed, the ropes under the arm's load
-_QUICK_STOP_CODES = set(QUICK_STOP_OPTIONS_THEN_DISABLED)
-_QUICK_STOP_CODES |= set(QUICK_STOP_OPTIONS_STAY)
-
-CONTROL_RANGES: Mapping[str, ControlRange] = {
-    "rate_hz": ControlRange(
-        RATE_MIN_HZ, RATE_MAX_HZ, "Hz",
-        "below 10 Hz the drives interpolate over 100 ms between targets and every watchdog "
-        "counted in cycles slows with it; above 1 kHz the host's control loop (a Python "
-        "thread) cannot keep its period; the period must also fit 0x60C2",
-    ),
-    "host_node_id": ControlRange(
-        NODE_ID_MIN, NODE_ID_MAX, "",
-        "a CANopen node id (the host heartbeat's COB-ID is 0x700 + id), not a drive's",
-    ),
-    "host_heartbeat_ms": ControlRange(
-        10, 500, "ms",
-        "sent on the control deadline nearest its due time (so one period at least); the "
-        "drives' timeout (heartbeat_timeout_ms, at most 2 s) must span 3 of them",
-    ),
-    "node_heartbeat_ms": ControlRange(
-        10, 500, "ms",
-        "0x1017 of every drive: 10 ms puts 100 frames/s per drive on its bus; the host's "
-        "timeout (heartbeat_timeout_ms, at most 2 s) must span 3 of them",
-    ),
-    "heartbeat_timeout_ms": ControlRange(
-        30, 2000, "ms",
-        "0x1016 on the drives and the host's own watch: a dead host or drive goes "
-        "unnoticed at most this long; 3 of the shortest heartbeat periods at least",
-    ),
-    "missing_tpdo_cycles": ControlRange(
-        1, 25, "cycles",
-        "the arm moves without position feedback this many cycles before every axis stops "
-        "(25: the HIL rig's 250 ms at 100 Hz, over udp_multicast on a shared machine)",
-    ),
-    "bus_load_limit": ControlRange(
-        0.05, 0.9, "",
-        "the worst-case load leaves no room for error frames and retransmissions above "
-        "0.9, and the heartbeats (lowest priority) need idle bus time to get through",
-    ),
-    "bootup_timeout_s": ControlRange(
-        0.1, 30.0, "s",
-        "nothing moves during boot-up: a missing node is reported within 30 s; no drive "
-        "boots within 0.1 s of its NMT reset",
-    ),
-    "sdo_timeout_s": ControlRange(
-        0.05, 2.0, "s",
-        "each SDO transfer (canopen retries once); disabling the drives after a stop is "
-        "SDO, so a longer timeout delays it; 50 ms covers a drive and a loaded host",
-    ),
-    "state_timeout_s": ControlRange(
-        0.05, 5.0, "s",
-        "each CiA 402 transition, a quick stop ramp included; disabling the drives after "
-        "a stop waits this long per transition",
-    ),
-    "following_error_window_counts": ControlRange(
-        1, 65536, "counts",
-        "0x6065 (UNSIGNED32, 0xFFFFFFFF switches the drive's check off): 65536 counts are "
-        "16 encoder turns, 30 mm of rope with the shipped motor map; 0 faults at any lag",
-    ),
-    "quick_stop_option_code": ControlRange(
-        min(_QUICK_STOP_CODES), max(_QUICK_STOP_CODES), "",
-        "0x605A (INTEGER16 in hrm_drive.eds): the ramps CiA 402 defines and the drive "
-        "implements (it aborts any other write, 0x06090030, after its NMT reset); not 0, "
-        "'disable drive function': every motor would coast from speed, the ropes under load",
-    ),
-    "realtime_priority": ControlRange(
-        NORMAL_PRIORITY, REALTIME_PRIORITY_SAFE_MAX, "",
-        "SCHED_FIFO priority of the control thread (0: off); at 50 and above it would "
-        "preempt the kernel's interrupt threads (PREEMPT_RT), the CAN controller's too",
-    ),
-    "cpu_wakeup_latency_us": ControlRange(
-        0, CPU_LATENCY_NO_REQUEST_US, "us",
-        "a PM QoS request (/dev/cpu_dma_latency, a signed 32-bit value; 0: idle CPUs poll); "
-        f"{CPU_LATENCY_NO_REQUEST_US}, the kernel's 'no constraint', holds none",
-    ),
-}  # fmt: skip
-"""The safe range of every ``[control]`` value: (lo, hi, unit, why), both ends included."""
-
 FEEDBACK_BLIND_MAX_S = 0.5
 """Longest the arm may move without position feedback: ``missing_tpdo_cycles`` periods."""
 
@@ -637,23 +618,11 @@ def _relation_problem(c: ControlConfig) -> tuple[str, str] | None:
 def _control_from(doc: Mapping[str, Any], where: str) -> ControlConfig:
     if not isinstance(doc, Mapping):
         raise BusConfigError(f"{where}: [control] must be a table")
-    values: dict[str, Any] = {}
-    for key, value in doc.items():
-        w = f"{where}: control.{key}"
-        if key not in _CONTROL_TYPES:
-            raise BusConfigError(f"{w}: unknown key")
-        kind = _CONTROL_TYPES[key]
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise BusConfigError(f"{w}: expected a number, got {value!r}")
-        if isinstance(value, float) and not math.isfinite(value):
-            raise BusConfigError(f"{w}: expected a finite number, got {value!r}")
-        if kind is int and isinstance(value, float) and not value.is_integer():
-            raise BusConfigError(f"{w}: expected an integer, got {value!r}")
-        rng = CONTROL_RANGES[key]
-        if not rng.lo <= value <= rng.hi:  # before any conversion: no overflow
-            raise BusConfigError(f"{w} = {_shown(value)} outside {rng.text()}; {rng.why}")
-        values[key] = kind(value)
-    c = ControlConfig(**values)
+
+    def outside(key: str, value: Any, s: Spec, _: Mapping[str, Any]) -> str:
+        return f"control.{key} = {_shown(value)} outside {s.text()}; {s.why}"
+
+    c = ControlConfig(**read_numbers(ControlConfig, doc, where, BusConfigError, "control", outside))
     problem = rate_problem(c.rate_hz)
     if problem is not None:
         raise BusConfigError(f"{where}: control.rate_hz {problem}, got {c.rate_hz!r}")
@@ -664,89 +633,43 @@ def _control_from(doc: Mapping[str, Any], where: str) -> ControlConfig:
     return c
 
 
-def _tension_from(doc: Any, where: str) -> TensionConfig:
-    """The ``[tension]`` table, every value checked against its safe range."""
+def _device_from(cls: type[_Device], doc: Any, table: str, device: str, where: str) -> _Device:
+    """The ``[tension]`` or ``[tracker]`` table: a serial ``port`` and numbers, every one
+    checked against its safe range."""
     if not isinstance(doc, Mapping):
-        raise BusConfigError(f"{where}: [tension] must be a table")
-    fields = TensionConfig.__dataclass_fields__
-    for key in doc:
-        if key not in fields:
-            raise BusConfigError(f"{where}: tension.{key}: unknown key")
+        raise BusConfigError(f"{where}: [{table}] must be a table")
+    kinds = number_kinds(cls)
+
+    def outside(key: str, value: Any, s: Spec, values: Mapping[str, Any]) -> str:
+        shown = kinds[key](value) if abs(value) < 1e300 else value
+        if s.above is not None:
+            first = f"must exceed {s.above} ({values[s.above]:g} {s.unit})"
+            return f"{table}.{key} {first} and be <= {s.hi:g} {s.unit}, got {shown!r}"
+        rng = s.text() if kinds[key] is int else s.interval()
+        return f"{table}.{key} must be in {rng}, got {shown!r}"
+
+    refuse_unknown(doc, kinds.keys() | _PORT, where, BusConfigError, table)
     if "port" not in doc:
-        raise BusConfigError(f"{where}: tension.port: missing (the board's serial port)")
+        raise BusConfigError(f"{where}: {table}.port: missing ({device} serial port)")
     port = doc["port"]
     if not isinstance(port, str) or not port.strip():
-        raise BusConfigError(f"{where}: tension.port: expected a serial port path, got {port!r}")
-    values: dict[str, Any] = {"port": port}
-    for key, value in doc.items():
-        if key == "port":
-            continue
-        w = f"{where}: tension.{key}"
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise BusConfigError(f"{w}: expected a number, got {value!r}")
-        if not math.isfinite(float(value)):
-            raise BusConfigError(f"{w}: expected a finite number, got {value!r}")
-        if key == "baudrate":
-            if not isinstance(value, int):
-                raise BusConfigError(f"{w}: expected an integer, got {value!r}")
-            values[key] = int(value)
-        else:
-            values[key] = float(value)
-    t = TensionConfig(**values)
-    lo_b, hi_b = TENSION_BAUD_RANGE
-    lo_s, hi_s = TENSION_SLACK_RANGE_N
-    lo_t, hi_t = TENSION_STALE_RANGE_S
-    checks = [
-        ("baudrate", lo_b <= t.baudrate <= hi_b, f"must be in {lo_b}..{hi_b}"),
-        ("slack_N", lo_s <= t.slack_N <= hi_s, f"must be in [{lo_s:g}, {hi_s:g}] N"),
-        (
-            "limit_N",
-            t.slack_N < t.limit_N <= TENSION_LIMIT_MAX_N,
-            f"must exceed slack_N ({t.slack_N:g} N) and be <= {TENSION_LIMIT_MAX_N:g} N",
-        ),
-        ("stale_s", lo_t <= t.stale_s <= hi_t, f"must be in [{lo_t:g}, {hi_t:g}] s"),
-        (
-            "garbage_per_s",
-            0 < t.garbage_per_s <= TENSION_GARBAGE_MAX_PER_S,
-            f"must be in (0, {TENSION_GARBAGE_MAX_PER_S:g}] per s",
-        ),
-    ]
-    for key, ok, why in checks:
-        if not ok:
-            raise BusConfigError(f"{where}: tension.{key} {why}, got {getattr(t, key)!r}")
-    return t
+        raise BusConfigError(f"{where}: {table}.port: expected a serial port path, got {port!r}")
+    values = read_numbers(cls, doc, where, BusConfigError, table, outside, skip=_PORT)
+    return cls(port=port, **values)
+
+
+_PORT = frozenset({"port"})
+_Device = TypeVar("_Device", TensionConfig, TrackerConfig)
+
+
+def _tension_from(doc: Any, where: str) -> TensionConfig:
+    """The ``[tension]`` table, every value checked against its safe range."""
+    return _device_from(TensionConfig, doc, "tension", "the board's", where)
 
 
 def _tracker_from(doc: Any, where: str) -> TrackerConfig:
     """The ``[tracker]`` table, every value checked against its safe range."""
-    if not isinstance(doc, Mapping):
-        raise BusConfigError(f"{where}: [tracker] must be a table")
-    for key in doc:
-        if key not in TrackerConfig.__dataclass_fields__:
-            raise BusConfigError(f"{where}: tracker.{key}: unknown key")
-    if "port" not in doc:
-        raise BusConfigError(f"{where}: tracker.port: missing (the tracker's serial port)")
-    port = doc["port"]
-    if not isinstance(port, str) or not port.strip():
-        raise BusConfigError(f"{where}: tracker.port: expected a serial port path, got {port!r}")
-    values: dict[str, Any] = {"port": port}
-    lo_t, hi_t = TRACKER_TIMEOUT_RANGE_S
-    lo_b, hi_b = TRACKER_BAUD_RANGE
-    if "timeout_s" in doc:
-        v = doc["timeout_s"]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not lo_t <= v <= hi_t:
-            raise BusConfigError(
-                f"{where}: tracker.timeout_s must be a number in [{lo_t:g}, {hi_t:g}] s, got {v!r}"
-            )
-        values["timeout_s"] = float(v)
-    if "baudrate" in doc:
-        v = doc["baudrate"]
-        if isinstance(v, bool) or not isinstance(v, int) or not lo_b <= v <= hi_b:
-            raise BusConfigError(
-                f"{where}: tracker.baudrate must be an integer in {lo_b}..{hi_b}, got {v!r}"
-            )
-        values["baudrate"] = v
-    return TrackerConfig(**values)
+    return _device_from(TrackerConfig, doc, "tracker", "the tracker's", where)
 
 
 def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
@@ -783,13 +706,10 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
         if isinstance(channel, bool) or not isinstance(channel, str | int):
             raise BusConfigError(f"{w}.channel: expected a string or integer, got {channel!r}")
         bitrate = b["bitrate"]
-        if (
-            isinstance(bitrate, bool)
-            or not isinstance(bitrate, int)
-            or not 0 < bitrate <= BITRATE_MAX
-        ):
+        rate = _BITRATE
+        if isinstance(bitrate, bool) or not isinstance(bitrate, int) or not rate.contains(bitrate):
             raise BusConfigError(
-                f"{w}.bitrate: expected an integer in 1..{BITRATE_MAX}, got {bitrate!r}"
+                f"{w}.bitrate: expected an integer in {rate.text()}, got {bitrate!r}"
             )
         options = b.get("options", {})
         if not isinstance(options, Mapping):
@@ -805,8 +725,8 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
             wn = f"{w}.nodes.{motor}"
             if isinstance(node, bool) or not isinstance(node, int):
                 raise BusConfigError(f"{wn}: node id must be an integer, got {node!r}")
-            if not NODE_ID_MIN <= node <= NODE_ID_MAX:
-                raise BusConfigError(f"{wn}: node id {node} outside {NODE_ID_MIN}..{NODE_ID_MAX}")
+            if not NODE_IDS.contains(node):
+                raise BusConfigError(f"{wn}: node id {node} outside {NODE_IDS.text()}")
             if node == control.host_node_id:
                 raise BusConfigError(
                     f"{wn}: node id {node} is the host's heartbeat id (control.host_node_id)"
@@ -840,6 +760,8 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
         tracker=tracker,
     )
 
+
+_BITRATE = specs(BusConfig)["bitrate"]
 
 PYTHON_CAN_CONFIG_WHERE = (
     "CAN_{KEY}_{name} or CAN_{KEY}, or {key} in [{name}] or [default] of ~/can.conf"

@@ -167,11 +167,6 @@ class TimeHistogram:
         edge = HIST_LO_S + (i + 1) * HIST_BIN_S
         return float(min(max(edge, self.min), self.max))
 
-    def count_above(self, threshold: float) -> int:
-        """Values above ``threshold``, to within one bin (the bins wholly above it)."""
-        i = int((threshold - HIST_LO_S) * _HIST_PER_S) + 1
-        return int(self.counts[max(0, min(i, HIST_BINS)) :].sum())
-
     @property
     def mean(self) -> float:
         return self.total / self.n if self.n else math.nan

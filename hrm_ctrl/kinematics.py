@@ -97,15 +97,12 @@ def frames(
     batch = alpha.shape[:-1]
     R = np.empty((*batch, n, 3, 3))
     O = np.empty((*batch, n + 1, 3))
-    Rw = model.base_rotation @ R_BASE_PAPER
-    cur = np.broadcast_to(Rw, (*batch, 3, 3))
-    pos = np.broadcast_to(model.base_position, (*batch, 3)).copy()
-    for i in range(n):
-        cur = cur @ Rj[..., i, :, :]
-        R[..., i, :, :] = cur
-        O[..., i, :] = pos
-        pos = pos + cur[..., :, 2] * model.links[i]
-    O[..., n, :] = pos
+    prev = np.broadcast_to(model.base_rotation @ R_BASE_PAPER, (*batch, 3, 3))
+    O[..., 0, :] = model.base_position
+    for i in range(n):  # in place: no array allocated per joint
+        np.matmul(prev, Rj[..., i, :, :], out=R[..., i, :, :])
+        prev = R[..., i, :, :]
+        np.add(O[..., i, :], prev[..., :, 2] * model.links[i], out=O[..., i + 1, :])
     return R, O
 
 

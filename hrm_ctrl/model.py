@@ -31,6 +31,7 @@ import numpy as np
 
 from hrm_ctrl.errors import RobotDescriptionError
 from hrm_ctrl.files import read_toml
+from hrm_ctrl.validate import Spec, number, unknown_key
 
 N_JOINTS = 12
 MAX_FIDUCIALS = 16
@@ -121,20 +122,37 @@ class RobotModel:
 
 MAX_LENGTH_MM = 1.0e5  # 100 m: anything larger is a typo, not an arm
 
+_POSITIVE = Spec(lo=0.0, lo_open=True, hi=MAX_LENGTH_MM, unit="mm")
+_COORDINATE = Spec(lo=-MAX_LENGTH_MM, hi=MAX_LENGTH_MM)
+_LIMIT = Spec(lo=0.0, lo_open=True, hi=90.0, hi_open=True, unit="deg")
 
-def _number(value: Any, where: str, *, positive: bool = False, finite: bool = True) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise RobotDescriptionError(f"{where}: expected a number, got {value!r}")
-    x = float(value)
-    if finite and not math.isfinite(x):
-        raise RobotDescriptionError(f"{where}: expected a finite number, got {value!r}")
-    if positive and x <= 0.0:
-        raise RobotDescriptionError(f"{where}: must be > 0, got {value!r}")
+RANGES: Mapping[str, Spec] = {
+    "links_mm": _POSITIVE,
+    "outer_diameter_mm": _POSITIVE,
+    "joint_limits.alpha_deg": _LIMIT,
+    "joint_limits.theta_deg": _LIMIT,
+    "base.position_mm": _COORDINATE,
+    "base.yaw_deg": _COORDINATE,
+    "base.pitch_deg": _COORDINATE,
+    "base.fiducials_mm": _COORDINATE,
+}
+"""The range of every number of a robot description (each element of a list), by key
+(:class:`hrm_ctrl.validate.Spec`); no magnitude beyond :data:`MAX_LENGTH_MM`."""
+
+
+def _number(value: Any, where: str, key: str) -> float:
+    """``value`` of ``key`` (at ``where``: file and key) as a float within its range."""
+    x = float(number(value, where, RobotDescriptionError))
+    s = RANGES[key]
+    if s.contains(x):
+        return x
+    if x <= s.lo and s.lo_open:
+        raise RobotDescriptionError(f"{where}: must be > {s.lo:g}, got {value!r}")
     if abs(x) > MAX_LENGTH_MM:
         raise RobotDescriptionError(
             f"{where}: {x:.6g} is out of range (|value| <= {MAX_LENGTH_MM:g})"
         )
-    return x
+    raise RobotDescriptionError(f"{where} must be < {s.hi:g}, got {x}")
 
 
 def _table(doc: Mapping[str, Any], key: str, where: str) -> Mapping[str, Any]:
@@ -171,9 +189,8 @@ def _check_keys(doc: Mapping[str, Any], where: str) -> None:
             continue
         if key not in TABLE_KEYS:
             kind = f"table [{key}]" if isinstance(value, Mapping) else f"key {key!r}"
-            raise RobotDescriptionError(
-                f"{where}: unknown {kind}{_hint(key, PLAIN_KEYS | set(TABLE_KEYS), TABLE_KEYS)}"
-            )
+            hint = unknown_key(key, PLAIN_KEYS | set(TABLE_KEYS), TABLE_KEYS)
+            raise RobotDescriptionError(f"{where}: unknown {kind}{hint}")
         if not isinstance(value, Mapping):
             raise RobotDescriptionError(f"{where}: [{key}] must be a table")
         known = TABLE_KEYS[key]
@@ -182,19 +199,8 @@ def _check_keys(doc: Mapping[str, Any], where: str) -> None:
         for sub in value:
             if sub not in known:
                 raise RobotDescriptionError(
-                    f"{where}: [{key}]: unknown key {sub!r}{_hint(sub, known, {})}"
+                    f"{where}: [{key}]: unknown key {sub!r}{unknown_key(sub, known)}"
                 )
-
-
-def _hint(key: str, names: Any, tables: Mapping[str, Any]) -> str:
-    """`` (did you mean ...?)`` for a near miss, else the known names."""
-    import difflib
-
-    close = difflib.get_close_matches(key, sorted(names), n=1)
-    if not close:
-        return f" (known: {', '.join(sorted(names))})"
-    match = close[0]
-    return f" (did you mean {f'[{match}]' if match in tables else repr(match)}?)"
 
 
 def base_rotation_from(yaw: float, pitch: float) -> np.ndarray:
@@ -225,7 +231,7 @@ def robot_from_dict(doc: Mapping[str, Any], source: str) -> RobotModel:
             f"{where}: 'links_mm' must be a list of {N_JOINTS} lengths, got {links_raw!r}"
         )
     links = np.array(
-        [_number(v, f"{where}: links_mm[{i}]", positive=True) for i, v in enumerate(links_raw)]
+        [_number(v, f"{where}: links_mm[{i}]", "links_mm") for i, v in enumerate(links_raw)]
     )
 
     od_raw = _require(doc, "outer_diameter_mm", where)
@@ -236,31 +242,31 @@ def robot_from_dict(doc: Mapping[str, Any], source: str) -> RobotModel:
             )
         od = np.array(
             [
-                _number(v, f"{where}: outer_diameter_mm[{i}]", positive=True)
+                _number(v, f"{where}: outer_diameter_mm[{i}]", "outer_diameter_mm")
                 for i, v in enumerate(od_raw)
             ]
         )
     else:
-        od = np.full(N_JOINTS, _number(od_raw, f"{where}: outer_diameter_mm", positive=True))
+        od = np.full(N_JOINTS, _number(od_raw, f"{where}: outer_diameter_mm", "outer_diameter_mm"))
 
     lim = _table(doc, "joint_limits", where)
-    la = _number(
-        _require(lim, "alpha_deg", where), f"{where}: joint_limits.alpha_deg", positive=True
+    la, lt = (
+        _number(_require(lim, k, where), f"{where}: joint_limits.{k}", f"joint_limits.{k}")
+        for k in ("alpha_deg", "theta_deg")
     )
-    lt = _number(
-        _require(lim, "theta_deg", where), f"{where}: joint_limits.theta_deg", positive=True
-    )
-    for label, v in (("alpha_deg", la), ("theta_deg", lt)):
-        if v >= 90.0:
-            raise RobotDescriptionError(f"{where}: joint_limits.{label} must be < 90, got {v}")
 
     base = _table(doc, "base", where)
     pos_raw = _require(base, "position_mm", where)
     if not isinstance(pos_raw, list) or len(pos_raw) != 3:
         raise RobotDescriptionError(f"{where}: base.position_mm must be [x, y, z]")
-    pos = np.array([_number(v, f"{where}: base.position_mm[{i}]") for i, v in enumerate(pos_raw)])
-    yaw = _number(base.get("yaw_deg", 0.0), f"{where}: base.yaw_deg")
-    pitch = _number(base.get("pitch_deg", 0.0), f"{where}: base.pitch_deg")
+    pos = np.array(
+        [
+            _number(v, f"{where}: base.position_mm[{i}]", "base.position_mm")
+            for i, v in enumerate(pos_raw)
+        ]
+    )
+    yaw = _number(base.get("yaw_deg", 0.0), f"{where}: base.yaw_deg", "base.yaw_deg")
+    pitch = _number(base.get("pitch_deg", 0.0), f"{where}: base.pitch_deg", "base.pitch_deg")
     fid = DEFAULT_FIDUCIALS_MM.copy()
     if "fiducials_mm" in base:
         raw = base["fiducials_mm"]
@@ -273,7 +279,10 @@ def robot_from_dict(doc: Mapping[str, Any], source: str) -> RobotModel:
             if not isinstance(p, list) or len(p) != 3:
                 raise RobotDescriptionError(f"{where}: base.fiducials_mm[{k}] must be [x, y, z]")
             rows.append(
-                [_number(v, f"{where}: base.fiducials_mm[{k}][{i}]") for i, v in enumerate(p)]
+                [
+                    _number(v, f"{where}: base.fiducials_mm[{k}][{i}]", "base.fiducials_mm")
+                    for i, v in enumerate(p)
+                ]
             )
         fid = np.array(rows)
         centred = fid - fid.mean(axis=0)

@@ -137,7 +137,6 @@ class SimArm:
         self._box = np.broadcast_to(np.asarray(routing.box_length, dtype=float), (n,)).copy()
         self.offset_alpha = self.truth.alpha_offset_rad.copy()
         self.offset_theta = self.truth.theta_offset_rad.copy()
-        joint = rope.joint_of_motor
         # the rope geometry held straight (phi = 0): the zero fixture's pose
         zero = np.zeros_like(self.offset_alpha)
         self.straight_rope_mm = rope.rope_lengths(zero, zero)
@@ -152,7 +151,6 @@ class SimArm:
         self._rho = stretch / (1.0 + self.pretension_N / ea_desc)
         self._u_ref = np.asarray(rope.motors.u_ref, dtype=float)
         self._rope_zero = np.asarray(rope.motors.zero_offsets_counts, dtype=float)
-        self._joint_of_motor = joint
 
     # ---- faults and the fixture -----------------------------------------------------------
 

@@ -6,7 +6,7 @@ own interpreter (``hrm demo``, ``--sim``, the plugin's ``inprocess`` mode, the d
 tests' rigs) shares its GIL and its core with the host: its 36 drives, its tension board
 and the host's dozen threads use about 0.7 of a core on the 2-core development machine,
 and a busy moment puts the box's TPDOs behind by more than the production 3 cycles (one
-run in three stopped at 10 cycles; the CI run of ``03390e1`` stopped a 3-node driver test
+run in three stopped at 10 cycles; a CI run stopped a 3-node driver test
 at 3).  Whoever starts such a box raises the host's tolerances to these values, each
 within its safe range (``drivers.config.CONTROL_RANGES``), and says so; the process runs
 with a longer GIL switch interval (:data:`IN_PROCESS_SWITCH_INTERVAL_S`).

@@ -65,6 +65,7 @@ from hrm_ctrl.errors import SimError
 from hrm_ctrl.files import read_toml, write_atomic
 from hrm_ctrl.model import RobotModel
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
+from hrm_ctrl.validate import Spec, number, unknown_key
 
 TRUTH_FORMAT = "hrm-sim-truth/1"
 N_JOINTS = 12
@@ -85,6 +86,49 @@ TRUTH_SLACK_MAX_MM = 20.0
 TRUTH_TRACKER_MAX_DISTANCE_MM = 50_000.0  # |t|: the tracker within 50 m
 TRUTH_TRACKER_NOISE_MAX_MM = 1.0
 ROTATION_TOLERANCE = 1e-6  # |R^T R - I| and |det R - 1|
+
+_EA_LO, _EA_HI = TRUTH_EA_RATIO_RANGE
+_OFFSET_DEG = math.degrees(TRUTH_OFFSET_MAX_RAD)
+# fmt: off
+RANGES: Mapping[str, Spec] = {
+    # of the deviation from the description's link length (and the length > 0)
+    "links_mm": Spec(
+        -TRUTH_LINK_MAX_DEVIATION_MM, TRUTH_LINK_MAX_DEVIATION_MM, unit="mm",
+        why=f"mm is more than {TRUTH_LINK_MAX_DEVIATION_MM:g} mm from the description's link",
+    ),
+    "alpha_offset_rad": Spec(
+        -TRUTH_OFFSET_MAX_RAD, TRUTH_OFFSET_MAX_RAD, unit="rad",
+        why=f"rad is beyond +-{_OFFSET_DEG:g} deg",
+    ),
+    "theta_offset_rad": Spec(
+        -TRUTH_OFFSET_MAX_RAD, TRUTH_OFFSET_MAX_RAD, unit="rad",
+        why=f"rad is beyond +-{_OFFSET_DEG:g} deg",
+    ),
+    "motor_zero_counts": Spec(
+        -TRUTH_ZERO_MAX_COUNTS, TRUTH_ZERO_MAX_COUNTS, unit="counts",
+        why=f"is beyond +-{TRUTH_ZERO_MAX_COUNTS} counts",
+    ),
+    # of the ratio to the description's EA
+    "rope_EA_N": Spec(
+        _EA_LO, _EA_HI, why=f"N is outside {_EA_LO:g}..{_EA_HI:g} x the description's EA"
+    ),
+    "slack_mm": Spec(
+        0.0, TRUTH_SLACK_MAX_MM, unit="mm", why=f"mm is outside [0, {TRUTH_SLACK_MAX_MM:g}] mm"
+    ),
+    # of |t|
+    "tracker.translation_mm": Spec(
+        0.0, TRUTH_TRACKER_MAX_DISTANCE_MM, unit="mm",
+        why=f"mm is beyond {TRUTH_TRACKER_MAX_DISTANCE_MM:g} mm",
+    ),
+    "tracker.noise_mm": Spec(
+        0.0, TRUTH_TRACKER_NOISE_MAX_MM, unit="mm",
+        why=f"outside [0, {TRUTH_TRACKER_NOISE_MAX_MM:g}] mm",
+    ),
+}
+# fmt: on
+"""The range of every number of a truth file, by key (:class:`hrm_ctrl.validate.Spec`;
+for ``links_mm`` of the deviation from the description, for ``rope_EA_N`` of the ratio to
+it, for ``tracker.translation_mm`` of ``|t|``); ``why`` follows the value in a message."""
 
 TRACKER_NOISE_MM = 0.05
 # The default tracker placement: standing 2.5 m from the base, to the side of the arm's
@@ -352,23 +396,18 @@ def _fail(source: str, key: str, why: str) -> TruthFileError:
 
 
 def _number(v: Any, source: str, key: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise _fail(source, key, f"expected a number, got {v!r}")
-    x = float(v)
-    if not math.isfinite(x):
-        raise _fail(source, key, f"expected a finite number, got {v!r}")
-    return x
+    return number(v, f"{source}: {key}", TruthFileError)
 
 
 def _vector(v: Any, n: int, source: str, key: str) -> np.ndarray:
     if not isinstance(v, list) or len(v) != n:
         got = f"{len(v)} values" if isinstance(v, list) else repr(v)
         raise _fail(source, key, f"expected a list of {n} numbers, got {got}")
-    return np.array([_number(x, source, f"{key}[{i}]") for i, x in enumerate(v)])
+    return np.array([float(_number(x, source, f"{key}[{i}]")) for i, x in enumerate(v)])
 
 
 def _per_motor(
-    v: Any, ids: tuple[str, ...], default: np.ndarray, source: str, key: str, integer: bool
+    v: Any, ids: tuple[str, ...], default: np.ndarray, source: str, key: str
 ) -> np.ndarray:
     if not isinstance(v, Mapping):
         raise _fail(source, key, "expected a table of motor id = value")
@@ -377,20 +416,23 @@ def _per_motor(
         if m not in ids:
             raise _fail(source, f"{key}.{m}", f"unknown rope motor (have {ids[0]} .. {ids[-1]})")
         where = f"{key}.{m}"
-        if integer:
-            if isinstance(x, bool) or not isinstance(x, int):
-                raise _fail(source, where, f"expected an integer count, got {x!r}")
-            out[ids.index(m)] = x
-        else:
-            out[ids.index(m)] = _number(x, source, where)
+        if out.dtype.kind == "i" and (isinstance(x, bool) or not isinstance(x, int)):
+            raise _fail(source, where, f"expected an integer count, got {x!r}")
+        out[ids.index(m)] = _number(x, source, where)
     return out
 
 
-def _check_range(values: np.ndarray, ok: np.ndarray, source: str, key: str, names, why: str):
-    bad = np.flatnonzero(~ok)
+def _check_range(
+    key: str, values: np.ndarray, measure: np.ndarray, source: str, names: Any = None
+) -> None:
+    """Every ``measure`` (of ``values``: the values themselves, their deviation or ratio)
+    within ``RANGES[key]``; else the first value outside, named by motor or index."""
+    s = RANGES[key]
+    bad = np.flatnonzero(~s.inside(measure))
     if bad.size:
         i = int(bad[0])
-        raise _fail(source, f"{key}.{names[i]}" if names else f"{key}[{i}]", f"{values[i]!r} {why}")
+        where = f"{key}.{names[i]}" if names else f"{key}[{i}]"
+        raise _fail(source, where, f"{values[i]!r} {s.why}")
 
 
 def truth_from_dict(doc: Mapping[str, Any], actuation: Actuation, source: str) -> TrueArm:
@@ -401,7 +443,7 @@ def truth_from_dict(doc: Mapping[str, Any], actuation: Actuation, source: str) -
         raise TruthFileError(f"{source}: a truth file must be a TOML table")
     unknown = sorted(set(doc) - _TOP_KEYS)
     if unknown:
-        raise _fail(source, unknown[0], f"unknown key (known: {', '.join(sorted(_TOP_KEYS))})")
+        raise _fail(source, unknown[0], f"unknown key{unknown_key(unknown[0], _TOP_KEYS)}")
     if "format" in doc and doc["format"] != TRUTH_FORMAT:
         raise _fail(source, "format", f"expected {TRUTH_FORMAT!r}, got {doc['format']!r}")
     nom = TrueArm.nominal(actuation)
@@ -412,61 +454,21 @@ def truth_from_dict(doc: Mapping[str, Any], actuation: Actuation, source: str) -
         if "links_mm" in doc
         else (desc_links.copy())
     )
-    _check_range(
-        links,
-        (np.abs(links - desc_links) <= TRUTH_LINK_MAX_DEVIATION_MM) & (links > 0),
-        source,
-        "links_mm",
-        None,
-        f"mm is more than {TRUTH_LINK_MAX_DEVIATION_MM:g} mm from the description's link",
-    )
+    # a length must stay > 0 whatever its deviation: a length <= 0 measures as outside
+    _check_range("links_mm", links, np.where(links > 0, links - desc_links, np.nan), source)
     offsets = {}
     for key in ("alpha_offset_rad", "theta_offset_rad"):
         v = _vector(doc[key], N_JOINTS, source, key) if key in doc else np.zeros(N_JOINTS)
-        _check_range(
-            v,
-            np.abs(v) <= TRUTH_OFFSET_MAX_RAD,
-            source,
-            key,
-            None,
-            f"rad is beyond +-{math.degrees(TRUTH_OFFSET_MAX_RAD):g} deg",
-        )
+        _check_range(key, v, v, source)
         offsets[key] = v
-    zero = nom.motor_zero_counts.copy()
-    if "motor_zero_counts" in doc:
-        zero = _per_motor(doc["motor_zero_counts"], ids, zero, source, "motor_zero_counts", True)
-    _check_range(
-        zero,
-        np.abs(zero) <= TRUTH_ZERO_MAX_COUNTS,
-        source,
-        "motor_zero_counts",
-        ids,
-        f"is beyond +-{TRUTH_ZERO_MAX_COUNTS} counts",
-    )
-    ea_desc = nom.rope_EA_N
-    ea = ea_desc.copy()
-    if "rope_EA_N" in doc:
-        ea = _per_motor(doc["rope_EA_N"], ids, ea, source, "rope_EA_N", False)
-    lo, hi = TRUTH_EA_RATIO_RANGE
-    _check_range(
-        ea,
-        (ea >= lo * ea_desc) & (ea <= hi * ea_desc),
-        source,
-        "rope_EA_N",
-        ids,
-        f"N is outside {lo:g}..{hi:g} x the description's EA",
-    )
-    slack = nom.slack_mm.copy()
-    if "slack_mm" in doc:
-        slack = _per_motor(doc["slack_mm"], ids, slack, source, "slack_mm", False)
-    _check_range(
-        slack,
-        (slack >= 0) & (slack <= TRUTH_SLACK_MAX_MM),
-        source,
-        "slack_mm",
-        ids,
-        f"mm is outside [0, {TRUTH_SLACK_MAX_MM:g}] mm",
-    )
+    per_motor = {}
+    for key in ("motor_zero_counts", "rope_EA_N", "slack_mm"):
+        v = getattr(nom, key)
+        per_motor[key] = _per_motor(doc[key], ids, v, source, key) if key in doc else v.copy()
+    zero, ea, slack = per_motor["motor_zero_counts"], per_motor["rope_EA_N"], per_motor["slack_mm"]
+    _check_range("motor_zero_counts", zero, zero, source, ids)
+    _check_range("rope_EA_N", ea, ea / nom.rope_EA_N, source, ids)
+    _check_range("slack_mm", slack, slack, source, ids)
     R, t, noise = nom.tracker_rotation, nom.tracker_translation_mm, nom.tracker_noise_mm
     if "tracker" in doc:
         R, t, noise = _tracker_from(doc["tracker"], (R, t, noise), source)
@@ -490,19 +492,17 @@ def _tracker_from(doc: Any, default: tuple, source: str) -> tuple[np.ndarray, np
         raise _fail(source, "tracker", "expected a table")
     unknown = sorted(set(doc) - _TRACKER_KEYS)
     if unknown:
-        raise _fail(
-            source,
-            f"tracker.{unknown[0]}",
-            f"unknown key (known: {', '.join(sorted(_TRACKER_KEYS))})",
-        )
+        hint = unknown_key(unknown[0], _TRACKER_KEYS)
+        raise _fail(source, f"tracker.{unknown[0]}", f"unknown key{hint}")
     R, t, noise = default
     if "rotation" in doc:
         rows = doc["rotation"]
         if not isinstance(rows, list) or len(rows) != 3:
             raise _fail(source, "tracker.rotation", "expected 3 rows of 3 numbers")
         R = np.stack([_vector(r, 3, source, f"tracker.rotation[{i}]") for i, r in enumerate(rows)])
-        err = max(float(np.abs(R.T @ R - np.eye(3)).max()), abs(float(np.linalg.det(R)) - 1.0))
-        if err > ROTATION_TOLERANCE:
+        with np.errstate(all="ignore"):  # entries of 1e300: off by inf, no warning
+            err = max(float(np.abs(R.T @ R - np.eye(3)).max()), abs(float(np.linalg.det(R)) - 1))
+        if not err <= ROTATION_TOLERANCE:  # NaN too
             raise _fail(
                 source,
                 "tracker.rotation",
@@ -510,29 +510,24 @@ def _tracker_from(doc: Any, default: tuple, source: str) -> tuple[np.ndarray, np
                 f"(off by {err:.3g})",
             )
     if "translation_mm" in doc:
-        t = _vector(doc["translation_mm"], 3, source, "tracker.translation_mm")
-        if float(np.linalg.norm(t)) > TRUTH_TRACKER_MAX_DISTANCE_MM:
-            raise _fail(
-                source,
-                "tracker.translation_mm",
-                f"|t| = {float(np.linalg.norm(t)):.6g} mm is beyond "
-                f"{TRUTH_TRACKER_MAX_DISTANCE_MM:g} mm",
-            )
+        key = "tracker.translation_mm"
+        t = _vector(doc["translation_mm"], 3, source, key)
+        with np.errstate(over="ignore"):  # |t| of 1e300 entries: inf, refused below
+            distance = float(np.linalg.norm(t))
+        if not RANGES[key].inside(distance):
+            raise _fail(source, key, f"|t| = {distance:.6g} {RANGES[key].why}")
     if "noise_mm" in doc:
-        noise = _number(doc["noise_mm"], source, "tracker.noise_mm")
-        if not 0.0 <= noise <= TRUTH_TRACKER_NOISE_MAX_MM:
-            raise _fail(
-                source,
-                "tracker.noise_mm",
-                f"{noise!r} outside [0, {TRUTH_TRACKER_NOISE_MAX_MM:g}] mm",
-            )
+        key = "tracker.noise_mm"
+        noise = float(_number(doc["noise_mm"], source, key))
+        if not RANGES[key].inside(noise):
+            raise _fail(source, key, f"{noise!r} {RANGES[key].why}")
     return R, t, noise
 
 
 def read_truth(path: str | Path, actuation: Actuation) -> TrueArm:
     """Read a truth file (``hrm-sim-truth/1``, TOML; ``docs/sim.md``) for ``actuation``'s
     arm.  Unknown keys, wrong lengths, non-numbers, NaN and values outside the
-    ``TRUTH_*`` ranges raise :class:`TruthFileError` naming the file and the key."""
+    ranges (:data:`RANGES`) raise :class:`TruthFileError` naming the file and the key."""
     doc, source = read_toml(path, TruthFileError, "truth file")
     return truth_from_dict(doc, actuation, source)
 

@@ -43,7 +43,6 @@ True
 from __future__ import annotations
 
 import collections
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -229,10 +228,6 @@ class SimWire:
                 "bus_off": self._bus_off,
                 "nodes": len(self._nodes),
             }
-
-    def frame_time_s(self, msg: can.Message) -> float:
-        """Wire time of ``msg`` at this wire's bitrate and stuffing model."""
-        return frame_bits(msg, self.stuffing) / self.bitrate
 
     # ---------------------------------------------------------------- nodes
     def _attach(self, node: SimWireBus) -> None:
@@ -450,15 +445,3 @@ class SimWireBus(can.BusABC):
     def _detect_available_configs() -> list[dict[str, Any]]:
         with _wires_lock:
             return [{"interface": "hrm_sim", "channel": name} for name in _wires]
-
-
-def ideal_cycle_time_s(
-    msgs: list[can.Message], bitrate: int, stuffing: Stuffing | str = Stuffing.WORST
-) -> float:
-    """Wire time of a burst of frames sent back to back (s).
-
-    >>> sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
-    >>> round(ideal_cycle_time_s([sync] * 10, 1_000_000) * 1e6)
-    550
-    """
-    return math.fsum(frame_bits(m, stuffing) for m in msgs) / bitrate

@@ -49,7 +49,7 @@ settings.load_profile("hrm")
 
 # The test process's heap grows test by test, and a full collection walks all of it inside
 # whichever test triggers it: 120-240 ms unloaded, up to 844 ms with both cores busy
-# (gc.callbacks over tests/drivers, 2026-12-04), every thread held, long enough for an
+# (gc.callbacks over tests/drivers), every thread held, long enough for an
 # in-process box's heartbeat or board watchdog to trip.  Each test starts with the heap
 # frozen (its collections walk what it allocated), and the heap is collected between tests.
 COLLECT_EVERY_TESTS = 100

@@ -28,7 +28,7 @@ PACKAGES = ("hrm_ctrl", "drivers", "sim_bus", "calibration")
 TIMEOUT_S = 120.0
 
 # hrm_ctrl modules the drivers may import; every other one is in contract "drivers".
-DRIVERS_MAY_USE = {"errors", "files"}
+DRIVERS_MAY_USE = {"errors", "files", "validate"}
 # drivers modules the simulator may import; every other one is in contract "sim-bus".
 SIM_MAY_USE = {"protocol", "config", "data"}
 

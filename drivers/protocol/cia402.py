@@ -247,15 +247,6 @@ def decode_states(statuswords: np.ndarray) -> np.ndarray:
     return out
 
 
-def statusword_has_fault(statusword: int) -> bool:
-    """True when the statusword's fault bit (bit 3) is set.
-
-    >>> statusword_has_fault(0x0218), statusword_has_fault(0x0237)
-    (True, False)
-    """
-    return bool(statusword & SW_FAULT)
-
-
 # ---------------------------------------------------------------- the state machine
 class TransitionError(DriverError):
     """A controlword command has no CiA 402 transition from a state, or a state cannot be

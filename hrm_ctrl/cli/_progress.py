@@ -14,8 +14,6 @@ thread never calls into this module (a run's display is fed by its own thread,
 ...     bar.line("step 3")
 >>> bar.fraction
 0.5
->>> fraction_callback(None)(0.3) is None  # a callback that does nothing
-True
 """
 
 from __future__ import annotations
@@ -53,25 +51,6 @@ def wanted(json_output: bool = False, stream: Any = None) -> bool:
         return bool(out.isatty())
     except (AttributeError, ValueError):
         return False
-
-
-def fraction_callback(fn: ProgressFn | None) -> ProgressFn:
-    """``fn`` clamped to [0, 1] and made safe (a display error never stops the work), or
-    a no-op for None: what a library function calls as its ``progress``."""
-
-    def call(fraction: float) -> None:
-        if fn is None:
-            return None
-        f = float(fraction)
-        if not math.isfinite(f):
-            return None
-        try:
-            fn(min(1.0, max(0.0, f)))
-        except Exception:  # a display problem must not end a refinement
-            return None
-        return None
-
-    return call
 
 
 class ProgressBar:

@@ -159,6 +159,50 @@ def shared(stalls: Sequence[Stall], over_s: float = 0.002) -> list[Stall]:
     return out
 
 
+#: two stalls of one CPU this close are one: the probe cannot see a gap shorter than its own
+#: period (it sleeps a period after each late wake-up)
+JOIN_GAP_S = PROBE_PERIOD_S + STALL_THRESHOLD_S
+
+
+def merged(stalls: Sequence[Stall]) -> list[Stall]:
+    """Each CPU's stalls joined where the gap between two is shorter than the probe can see
+    (:data:`JOIN_GAP_S`): the spans in which that CPU ran nothing of ours, by start time.
+
+    >>> s = [Stall(0, 1.0, 0.010), Stall(0, 1.011, 0.010), Stall(1, 1.0, 0.003),
+    ...      Stall(0, 1.1, 0.002)]
+    >>> [(x.cpu, x.at_s, round(x.late_s, 4)) for x in merged(s)]
+    [(0, 1.0, 0.021), (1, 1.0, 0.003), (0, 1.1, 0.002)]
+    """
+    out: list[Stall] = []
+    for cpu in sorted({s.cpu for s in stalls}):
+        run: Stall | None = None
+        for s in sorted((s for s in stalls if s.cpu == cpu), key=lambda s: s.at_s):
+            if run is not None and s.at_s - (run.at_s + run.late_s) <= JOIN_GAP_S:
+                end = max(run.at_s + run.late_s, s.at_s + s.late_s)
+                run = Stall(cpu, run.at_s, end - run.at_s)
+                continue
+            if run is not None:
+                out.append(run)
+            run = s
+        if run is not None:
+            out.append(run)
+    return sorted(out, key=lambda s: (s.at_s, s.cpu))
+
+
+def covering(stalls: Sequence[Stall], window_s: float, lo_s: float, hi_s: float) -> list[Stall]:
+    """The stalls (:func:`merged` per CPU) at least ``window_s`` long that overlap
+    ``[lo_s, hi_s]``: each held a CPU through a whole watchdog window of ``window_s``
+    within that span, long enough to trip that watchdog with nothing else wrong.
+
+    >>> s = [Stall(0, 5.0, 0.020), Stall(0, 5.021, 0.015), Stall(1, 6.0, 0.025)]
+    >>> [(x.cpu, x.at_s, round(x.late_s, 4)) for x in covering(s, 0.030, 0.0, 10.0)]
+    [(0, 5.0, 0.036)]
+    >>> covering(s, 0.030, 5.5, 10.0)
+    []
+    """
+    return [s for s in merged(stalls) if s.late_s >= window_s and s in overlapping([s], lo_s, hi_s)]
+
+
 class StallProbe:
     """One probe process per CPU in ``cpus`` while the context lasts; :attr:`stalls` after.
 

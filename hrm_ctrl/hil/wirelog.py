@@ -126,13 +126,6 @@ class WireLog:
                 last = f
         return last
 
-    def first_received(self, bus: str, cob_id: int, after_s: float) -> WireFrame | None:
-        """The first frame ``cob_id`` received on ``bus`` after ``after_s``."""
-        for f in self.frames:
-            if f.t_s > after_s and not f.sent and f.bus == bus and f.cob_id == cob_id:
-                return f
-        return None
-
     def syncs_sent(self, bus: str, after_s: float, until_s: float) -> int:
         """SYNCs the host sent on ``bus`` in (``after_s``, ``until_s``)."""
         return sum(

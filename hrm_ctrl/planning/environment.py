@@ -171,7 +171,7 @@ class Pipe:
     @cached_property
     def _segments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per segment of the resampled axis: its start A (S, 3), A -> B (S, 3) and |AB|^2
-        (S,), 1 where 0 (the constants of :meth:`nearest_axis_point`)."""
+        (S,), 1 where 0 (the constants of :meth:`_nearest`)."""
         dense = self._dense[0]
         if len(dense) < 2:  # segs are clipped to -1 then: the one sample, a point
             return dense, np.zeros_like(dense), np.ones(len(dense))
@@ -205,10 +205,6 @@ class Pipe:
         best = np.argmin(dist, axis=1)
         i = np.arange(len(q))
         return C[i, best], rel[i, best], dist[i, best]
-
-    def nearest_axis_point(self, q: np.ndarray) -> np.ndarray:
-        """The point of the axis polyline nearest each point of ``q`` (P, 3)."""
-        return self._nearest(q, self._samples(q))[0]
 
     def _inside_distance_and_gradient(
         self, q: np.ndarray, v: np.ndarray

@@ -144,19 +144,6 @@ class KnownPath:
         t = self.points[j + 1] - self.points[j]
         return t / np.linalg.norm(t)
 
-    def polyline_until(self, d: float) -> np.ndarray:
-        """The path's points from the start to travelled distance d, ending at the
-        exact point of Eq. (12); shape (k, 3) with k >= 1."""
-        d = min(max(float(d), 0.0), self.length)
-        if d <= 0.0:
-            return self.points[:1].copy()
-        j = self._segment(d)
-        end = self.point_at(d)
-        head = self.points[: j + 1]
-        if np.linalg.norm(end - head[-1]) < 1e-9:
-            return head.copy()
-        return np.vstack((head, end))
-
     @cached_property
     def _dense(self) -> tuple[np.ndarray, cKDTree]:
         """The same polyline resampled every <= DENSE_SPACING mm, and a KD-tree of it."""

@@ -26,9 +26,10 @@ Without an environment the same problem is solved for the margin alone.
 >>> from hrm_ctrl.model import default_robot
 >>> m = default_robot()
 >>> q = np.zeros(24); q[12] = 0.1                     # theta_1 = 0.1 rad
->>> O, P, JP, Jtip = chain_and_jacobians(m, q, np.array([1.0]))
+>>> O, W, C = joint_axes(m, q)
+>>> Jtip = cross3(W, O[-1] - C).T                     # d tip / d q, (3, 24)
 >>> h = np.zeros(24); h[3] = 1e-6                     # d tip / d alpha_4, central
->>> Of, Ob = (chain_and_jacobians(m, q + s * h, np.array([1.0]))[0] for s in (1, -1))
+>>> Of, Ob = (joint_axes(m, q + s * h)[0] for s in (1, -1))
 >>> bool(np.allclose((Of[-1] - Ob[-1]) / 2e-6, Jtip[:, 3], atol=1e-5))
 True
 """
@@ -45,11 +46,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from hrm_ctrl.errors import PlanningError
-from hrm_ctrl.kinematics import R_BASE_PAPER, joint_rotation
+from hrm_ctrl.kinematics import R_BASE_PAPER, frames
 from hrm_ctrl.model import RobotModel
-
-E_X = np.array([1.0, 0.0, 0.0])
-E_Y = np.array([0.0, 1.0, 0.0])
 
 
 class FreeSpace(Protocol):
@@ -159,48 +157,21 @@ class Refinement:
     time_split_s: dict[str, float]
 
 
-def world_chain(model: RobotModel, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Joint centres (13, 3), and the world rotation axes (24, 3) of alpha_1..12
-    then theta_1..12, for one configuration ``q = (alpha, theta)`` (Eqs. 1-3).
+def joint_axes(model: RobotModel, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Joint centres (13, 3) (:func:`hrm_ctrl.kinematics.frames`), the world rotation axes
+    (24, 3) of alpha_1..12 then theta_1..12, and the centre each axis passes through
+    (24, 3), for one configuration ``q = (alpha, theta)``.
 
-    alpha_k turns about the y axis of the frame before joint k; theta_k about the
-    x axis after alpha_k: ``R_{k-1} Rot_y(alpha_k) e_x``.
+    alpha_k turns about the y axis of the frame before joint k; theta_k about the x axis
+    after alpha_k, which ``Rot_x(theta_k)`` keeps: frame k's x axis.
     """
     n = model.n_joints
-    alpha, theta = q[:n], q[n:]
-    Rj = joint_rotation(alpha, theta)
-    R = np.empty((n + 1, 3, 3))  # R[k]: the frame before joint k's rotations
-    R[0] = model.base_rotation @ R_BASE_PAPER
-    for k in range(n):
-        np.matmul(R[k], Rj[k], out=R[k + 1])
+    R, O = frames(model, q[:n], q[n:])
     W = np.empty((2 * n, 3))
-    W[:n] = R[:n, :, 1]
-    W[n:] = R[:n, :, 0] * np.cos(alpha)[:, None] - R[:n, :, 2] * np.sin(alpha)[:, None]
-    O = np.empty((n + 1, 3))
-    O[0] = model.base_position
-    np.cumsum(R[1:, :, 2] * model.links[:, None], axis=0, out=O[1:])
-    O[1:] += O[0]
+    W[0] = (model.base_rotation @ R_BASE_PAPER)[:, 1]
+    W[1:n] = R[:-1, :, 1]
+    W[n:] = R[:, :, 0]
     return O, W, O[np.r_[0:n, 0:n]]
-
-
-def chain_and_jacobians(
-    model: RobotModel, q: np.ndarray, t: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Joint centres O (13, 3); link sample points ``P = O_j + t (O_{j+1} - O_j)``
-    (12, S, 3) for fractions ``t`` (S,); their Jacobian (12, S, 3, 24); and the
-    tip's (3, 24).  Column k is ``w_k x (p - C_k) = [w_k]x p - w_k x C_k`` where
-    joint k precedes p, zero after it."""
-    n = model.n_joints
-    O, W, C = world_chain(model, q)
-    P = O[:-1, None, :] + t[None, :, None] * (O[1:] - O[:-1])[:, None, :]
-    Wx = np.zeros((2 * n, 3, 3))  # [w]x, so that [w]x p = w x p
-    Wx[:, 0, 1], Wx[:, 0, 2], Wx[:, 1, 2] = -W[:, 2], W[:, 1], -W[:, 0]
-    Wx[:, 1, 0], Wx[:, 2, 0], Wx[:, 2, 1] = W[:, 2], -W[:, 1], W[:, 0]
-    WC = np.cross(W, C)  # (24, 3)
-    J = np.einsum("kij,lsj->lsik", Wx, P) - WC.T[None, None, :, :]  # (12, S, 3, 24)
-    J *= _after_mask(n)[:, None, None, :]
-    Jtip = Wx @ O[-1] - WC  # (24, 3)
-    return O, P, J, Jtip.T
 
 
 def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -251,13 +222,13 @@ def project_tip(
     >>> m = default_robot()
     >>> X = np.array([2000.0, 20.0, 60.0])
     >>> q = project_tip(m, np.zeros(24), X, -np.ones(24), np.ones(24))
-    >>> float(np.linalg.norm(world_chain(m, q)[0][-1] - X)) < 1e-6
+    >>> float(np.linalg.norm(joint_axes(m, q)[0][-1] - X)) < 1e-6
     True
     """
     q = np.clip(q, lo, hi)
     free = np.ones(len(q), dtype=bool)
     for _ in range(iterations):
-        O, W, C = world_chain(model, q)
+        O, W, C = joint_axes(model, q)
         e = target - O[-1]
         if float(np.linalg.norm(e)) < tol:
             break
@@ -308,7 +279,7 @@ class _StepObjective:
         t0 = time.perf_counter()
         self.evaluations += 1
         n = self.model.n_joints
-        O, W, C = world_chain(self.model, q)
+        O, W, C = joint_axes(self.model, q)
         WC = cross3(W, C)
         Jtip = (cross3(W, O[-1]) - WC).T
         t1 = time.perf_counter()

@@ -32,7 +32,6 @@ from hrm_ctrl.ropes.routing import RopeRouting
 
 # Rotation entries (row, col) that p^T R q uses, in feature order.
 _ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2))
-N_FEATURES = len(_ENTRIES)
 
 
 def crossing_length(
@@ -181,16 +180,6 @@ def _trig(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return u
 
 
-def rotation_features(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """The eight used entries of ``Rot_y(alpha) Rot_x(theta)``, shape (..., 8).
-
-    >>> rotation_features(np.zeros(1), np.zeros(1)).tolist()
-    [[1.0, 0.0, 0.0, 1.0, -0.0, -0.0, 0.0, 1.0]]
-    """
-    u = _trig(alpha, theta)
-    return _SIGN * u[0][..., _IA] * u[1][..., _IT]
-
-
 def _features9(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Unsigned products ``A_f T_f`` and the constant 1, shape (..., 9)."""
     u = _trig(alpha, theta)
@@ -201,17 +190,6 @@ def _features27(alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """:func:`_features9`, its d/dalpha and d/dtheta side by side: shape (..., 27)."""
     u = _trig(alpha, theta)
     return u[0][..., _IA27] * u[1][..., _IT27]
-
-
-def segment_lengths(geom: RopeGeometry, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """Length of every rope across every joint, shape (..., 12, n); 0 where not crossed."""
-    alpha = np.asarray(alpha, dtype=float)
-    theta = np.asarray(theta, dtype=float)
-    batch = alpha.shape[:-1]
-    F = _features9(alpha, theta).reshape(-1, geom.n_joints, N9)
-    s2 = np.matmul(F.transpose(1, 0, 2), geom.W9)  # (12, B, n)
-    s = np.sqrt(np.maximum(s2, 0.0))
-    return s.transpose(1, 0, 2).reshape(*batch, geom.n_joints, geom.n_ropes)
 
 
 def rope_lengths(geom: RopeGeometry, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:

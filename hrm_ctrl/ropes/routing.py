@@ -105,18 +105,6 @@ class RopeRouting:
     def n_ropes(self) -> int:
         return len(self.rope_ids)
 
-    def index_of(self, rope_id: str) -> int:
-        """Index of a rope id; :class:`RopeError` if unknown.
-
-        >>> from hrm_ctrl.model import default_robot
-        >>> routing_from_model(default_robot()).index_of("j02r1")
-        4
-        """
-        try:
-            return self.rope_ids.index(rope_id)
-        except ValueError:
-            raise RopeError(f"unknown rope/motor id {rope_id!r}") from None
-
 
 def rope_id(joint: int, rope: int) -> str:
     """Id of rope ``rope`` (0-based) of joint ``joint`` (0-based).

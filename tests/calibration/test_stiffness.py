@@ -40,7 +40,7 @@ from hrm_ctrl.ropes.actuation import load_actuation
 from hrm_ctrl.ropes.motor_map import rope_tension_N
 from sim_bus.truth import TrueArm
 from tests.calibration.test_zero import Rig, assert_disabled_after_finish, fixture_rig
-from tests.hrm_ctrl.cli.cli_helpers import STALL_RERUN
+from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT
 
 SEED = 12
 EA_TOLERANCE = 0.05
@@ -89,7 +89,7 @@ def test_groups_put_back_at_their_zeros(swept: tuple[Rig, Any, np.ndarray, np.nd
     assert result.moves == len(SWEPT_JOINTS) * (DEFAULT_STEPS + 1)
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_a_rope_not_at_its_pretension_is_refused() -> None:
     with fixture_rig(SEED) as rig:
         zero = rig.truth.motor_zero_counts.copy()
@@ -150,7 +150,7 @@ def test_ea_from_slope_refuses_a_slope_that_fits_no_rope() -> None:
     assert np.isnan(ea_from_slope(0.05, 1000.0, 30.0))  # b L < 4 T: no real root
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_sweeps_start_at_the_fixture_count_of_the_zero() -> None:
     """A host rope layer with the true joint offsets (zeros in its convention, hundreds of
     counts from the fixture's counts once, now the same counts): the sweep starts at the

@@ -57,7 +57,7 @@ from sim_bus.in_process import (
     IN_PROCESS_TENSION_STALE_S,
 )
 from sim_bus.truth import TrueArm
-from tests.hrm_ctrl.cli.cli_helpers import STALL_RERUN
+from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT
 
 SEED = 11
 ZERO_TOLERANCE_COUNTS = 50
@@ -174,7 +174,7 @@ def expected_zeros(rig: Rig, slack_mm: np.ndarray) -> np.ndarray:
     return np.rint(rig.truth.motor_zero_counts + m.direction * m.counts_per_mm * slack_mm)
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_slack_within_the_travel_is_taken_up() -> None:
     """1.5 mm of slack on j08r0 (3200 counts): its zero is where the rope reaches the
     pretension, the truth's zero plus the slack wound in; other joints keep theirs."""
@@ -190,7 +190,7 @@ def test_slack_within_the_travel_is_taken_up() -> None:
         assert np.array_equal(result.zero_counts[others], result.before_counts[others])
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_ropes_half_and_twice_as_stiff_as_described() -> None:
     """The widest arm a truth file may describe (EA 0.5x .. 2x), zeros 5000 counts off
     either way, on the shortest and the longest ropes: still within 50 counts, in at most 8
@@ -208,7 +208,7 @@ def test_ropes_half_and_twice_as_stiff_as_described() -> None:
         assert result.iterations[g].max() <= 8, result.iterations[g]
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_zeros_do_not_depend_on_the_joint_offsets() -> None:
     """With the true links, joint offsets and EAs in the host's rope layer (as after the
     kinematic and stiffness calibrations), the fixture (rope geometry straight) gives the
@@ -247,7 +247,7 @@ def _refused(rig: Rig, joint: int, **kw: Any) -> str:
     return text
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_slack_rope_beyond_the_travel_limit_is_refused_naming_it() -> None:
     act = load_actuation(default_robot())
     slack = np.zeros(act.n_motors)
@@ -258,7 +258,7 @@ def test_slack_rope_beyond_the_travel_limit_is_refused_naming_it() -> None:
     assert "j04r1" in text and "slack or snapped" in text, text
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_snapped_rope_is_refused_naming_it() -> None:
     with fixture_rig() as rig:
         rig.sim.snap_rope("j06r2")
@@ -364,7 +364,7 @@ def test_move_table_stays_within_the_motor_limits(start: int, delta: int, speed:
 # ---- the console ---------------------------------------------------------------------------
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_console_refusal_is_one_line_and_saves_nothing(
     tmp_path: Any, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -82,6 +82,9 @@ class Rig:
         return box
 
 
+RIG_BOOTUP_TIMEOUT_S = 2.0  # every node's boot-up within this of its bus's NMT reset
+
+
 def make_config(
     bus_kwargs: list[dict[str, Any]],
     buses: tuple[dict[str, int], ...] = SMALL_BUSES,
@@ -92,7 +95,7 @@ def make_config(
     # 18-drive one under load)
     control.setdefault("missing_tpdo_cycles", IN_PROCESS_MISSING_TPDO_CYCLES)
     doc: dict[str, Any] = {
-        "control": {"bootup_timeout_s": 2.0, **control},
+        "control": {"bootup_timeout_s": RIG_BOOTUP_TIMEOUT_S, **control},
         "buses": {},
     }
     for k, (kw, nodes) in enumerate(zip(bus_kwargs, buses, strict=True)):

@@ -19,7 +19,7 @@ from hrm_ctrl.formats.planfile import PlanDoc
 from hrm_ctrl.hil.rig import INPROCESS_CONTROL, BoxMode, HilBox, HilHost, production_control
 from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.tracking import tracking_error
-from tests.hrm_ctrl.cli.cli_helpers import STALL_RERUN_PRODUCTION
+from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT_PRODUCTION
 
 PLAN_SPEED_MM_PER_S = 120.0
 FIGURES = os.environ.get("HRM_HIL_FIGURES")  # a file: append each run's ending and timing
@@ -39,7 +39,7 @@ def test_box_runs_the_production_watchdogs(hrm_box_config: Path, hrm_box_mode: B
     assert control.heartbeat_timeout_ms == prod["heartbeat_timeout_ms"]
 
 
-@STALL_RERUN_PRODUCTION
+@STALL_TOLERANT_PRODUCTION
 def test_bent_pipe_plan_true_joint_centres_within_1mm(
     hrm_box: HilBox,
     hrm_host: HilHost,

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT, STALL_TOLERANT_PRODUCTION
+
 REPO = Path(__file__).resolve().parents[2]
 EXAMPLE = REPO / "docs" / "examples" / "test_hil_example.py"
 DOC = REPO / "docs" / "hil.md"
@@ -143,21 +145,21 @@ def test_rt_priority_puts_a_box_process_and_the_session_under_sched_fifo(tmp_pat
 @pytest.mark.slow  # 10-25 s: a pytest process of its own, a box, two bring-ups
 @pytest.mark.parametrize(
     "options",
-    [(), ("--hrm-bus", "virtual", "--hrm-box", "inprocess")],
-    ids=["default", "virtual-inprocess"],
+    [
+        pytest.param((), marks=STALL_TOLERANT_PRODUCTION, id="default"),
+        pytest.param(
+            ("--hrm-bus", "virtual", "--hrm-box", "inprocess"),
+            marks=STALL_TOLERANT,
+            id="virtual-inprocess",
+        ),
+    ],
 )
 def test_the_docs_example_passes(tmp_path: Path, options: tuple[str, ...]) -> None:
-    """At production settings on the loaded 2-core machine a stall of the box can stop a
-    run on its own (docs/hil.md, "Known limits"): the example gets a second run then; the
-    message shows both."""
+    """At production settings on the loaded 2-core machine a stall of the machine can stop
+    a run on its own (docs/hil.md, "Known limits"): rerun only when the stall probe saw it."""
     (tmp_path / EXAMPLE.name).write_text(EXAMPLE.read_text())
-    outputs = []
-    for _attempt in range(2):
-        res = run_pytest(tmp_path, *options)
-        outputs.append(res.stdout[-3000:] + res.stderr[-1000:])
-        if res.returncode == 0:
-            break
-    assert res.returncode == 0, "\n----\n".join(outputs)
+    res = run_pytest(tmp_path, *options)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-1000:]
     assert "2 passed" in res.stdout, res.stdout
 
 

@@ -3,6 +3,7 @@ the machine, the probe processes and their refusals."""
 
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
@@ -13,11 +14,14 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 
 from hrm_ctrl.hil.stalls import (
+    JOIN_GAP_S,
     MARGIN_S,
     STALL_THRESHOLD_S,
     Stall,
     StallProbe,
+    covering,
     explained,
+    merged,
     shared,
 )
 
@@ -74,8 +78,37 @@ def test_shared_stalls_are_those_another_cpu_stalled_through_for_over_half(
     assert shared(stalls) == shared_by_definition(stalls, 0.002)
 
 
+@given(st.lists(cpu_stall, max_size=40))
+@example([Stall(0, 1.0, 0.010), Stall(0, 1.011, 0.010), Stall(1, 1.005, 0.002)])  # joined
+def test_merged_stalls_cover_each_cpus_stalls_and_are_further_apart_than_the_probe_sees(
+    stalls: list[Stall],
+) -> None:
+    out = merged(stalls)
+    assert out == sorted(out, key=lambda s: (s.at_s, s.cpu))
+    for cpu in {s.cpu for s in stalls}:
+        runs = [r for r in out if r.cpu == cpu]
+        assert all(b.at_s - (a.at_s + a.late_s) > JOIN_GAP_S for a, b in itertools.pairwise(runs))
+        for s in (s for s in stalls if s.cpu == cpu):  # each inside exactly one run
+            inside = [
+                r
+                for r in runs
+                if r.at_s <= s.at_s and s.at_s + s.late_s <= r.at_s + r.late_s + 1e-9
+            ]
+            assert len(inside) == 1, (s, runs)
+    # a run is made of stalls: it starts at one, and no longer than they reach
+    assert all(any(s.cpu == r.cpu and s.at_s == r.at_s for s in stalls) for r in out)
+
+
+def test_only_a_stall_as_long_as_the_window_within_the_span_covers_it() -> None:
+    s = [Stall(0, 5.0, 0.020), Stall(0, 5.021, 0.015), Stall(1, 6.0, 0.025), Stall(1, 7.0, 0.05)]
+    assert [(x.cpu, x.at_s) for x in covering(s, 0.030, 0.0, 10.0)] == [(0, 5.0), (1, 7.0)]
+    assert [x.at_s for x in covering(s, 0.030, 6.9, 10.0)] == [7.0]
+    assert covering(s, 0.030, 7.06, 10.0) == []  # ended before the span
+    assert covering(s, 0.060, 0.0, 10.0) == []  # none as long as the window
+
+
 def test_the_cycle_a_stall_late_cycle_held_back_is_the_stalls_too() -> None:
-    """Seen in a soak's kernel trace (2026-12-04, clock mono): CPU 0 ran nothing for 9.1 ms,
+    """Seen in a soak's kernel trace (clock mono): CPU 0 ran nothing for 9.1 ms,
     its probe woke 8.1 ms late; the cycle due in it sent SYNC and RPDOs 8.7 ms late, and the
     next one, awake in time, held its SYNC for the supervisor's sync_delay_s (4.7 ms) after
     those RPDOs: 3.7 ms late.  The one after that was on time."""

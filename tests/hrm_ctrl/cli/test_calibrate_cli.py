@@ -37,7 +37,7 @@ from hrm_ctrl.formats.planfile import write_plan
 from hrm_ctrl.kinematics import frames
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import load_actuation
-from tests.hrm_ctrl.cli.cli_helpers import STALL_RERUN, small_plan
+from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT, small_plan
 
 SIGMA_MM = 0.05
 LINK_TOL_MM = 0.1
@@ -515,7 +515,7 @@ def test_run_names_the_calibration_and_refuses_real_drives_without_one(
 
 
 @pytest.mark.slow
-@STALL_RERUN
+@STALL_TOLERANT
 def test_collect_on_the_simulated_box_recovers_the_truth(
     store_dir, model, tmp_path, capsys, monkeypatch
 ):

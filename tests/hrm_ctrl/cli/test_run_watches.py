@@ -17,7 +17,7 @@ from hrm_ctrl.formats.planfile import PlanDoc, write_plan
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.planning.planner import PlanOptions, plan_path
 from hrm_ctrl.planning.scenarios import scenario
-from tests.hrm_ctrl.cli.cli_helpers import STALL_RERUN
+from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT
 
 DEMO_SPEED = "50"  # mm/s, hrm demo's default
 PERIOD_S = 0.01
@@ -96,7 +96,7 @@ def assert_stopped(record: dict[str, Any], kind: str, text: str) -> dict[str, An
     return first
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_a_snapped_rope_stops_the_run_naming_the_rope(
     bent_pipe: Path, tmp_path: Path, capsys: pytest.CaptureFixture, inject: Any
 ) -> None:
@@ -112,7 +112,7 @@ def test_a_snapped_rope_stops_the_run_naming_the_rope(
     assert record["config"]["tension"]["port"].startswith("/dev/")
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_a_shifted_encoder_stops_the_run_naming_joint_and_rope(
     bent_pipe: Path, tmp_path: Path, capsys: pytest.CaptureFixture, inject: Any
 ) -> None:
@@ -128,7 +128,7 @@ def test_a_shifted_encoder_stops_the_run_naming_joint_and_rope(
     assert record["watches"]["tension"]["fault"] is None  # the arm itself did not move
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_sensor_garbage_past_the_rate_stops_the_run(
     tmp_path: Path, capsys: pytest.CaptureFixture, inject: Any
 ) -> None:
@@ -139,7 +139,7 @@ def test_sensor_garbage_past_the_rate_stops_the_run(
     assert_stopped(record, "tension", "tension sensor /dev/")
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_the_whole_bent_pipe_at_the_demo_speed_raises_nothing(
     bent_pipe: Path, tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:

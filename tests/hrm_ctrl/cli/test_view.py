@@ -31,7 +31,7 @@ from hrm_ctrl.model import default_robot
 from hrm_ctrl.planning.environment import link_clearance
 from hrm_ctrl.view import geometry as g
 from hrm_ctrl.view.server import M_PER_MM
-from tests.hrm_ctrl.cli.cli_helpers import STALL_RERUN, run_cli
+from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT, run_cli
 
 CHROMIUM = Path("/usr/bin/chromium")
 needs_browser = pytest.mark.skipif(
@@ -220,7 +220,7 @@ def _norms_of_step(doc: Any, k: int) -> np.ndarray:
 
 
 @needs_browser
-@STALL_RERUN
+@STALL_TOLERANT
 def test_live_view_shows_the_estimated_arm_moving_with_the_simulated_arm(
     plan_file: Path, browser: Any, tmp_path: Path
 ) -> None:

@@ -20,7 +20,6 @@ from hrm_ctrl.planning.refine import (
     RefineOptions,
     _StepObjective,
     angle_margin,
-    chain_and_jacobians,
     refine_angles,
 )
 from hrm_ctrl.planning.scenarios import rounded_corner_path, scenario
@@ -155,19 +154,20 @@ def test_report_says_when_no_plan_with_3_deg_margin_exists():
 
 
 def test_jacobians_match_finite_differences():
+    """The tip and its Jacobian that refinement uses (no environment), against the
+    kinematics and central differences; the clearances' Jacobian: the next test."""
     rng = np.random.default_rng(7)
     q = rng.uniform(-0.5, 0.5, 24)
-    t = np.linspace(0.0, 1.0, 5)
-    O, _, JP, Jtip = chain_and_jacobians(MODEL, q, t)
+    split = {"kinematics_and_jacobians": 0.0, "environment": 0.0}
+    f = _StepObjective(MODEL, None, RADIUS, np.linspace(0.0, 1.0, 5), RefineOptions(), split)
+    tip, Jtip, c, Jc = f.evaluate(q)
+    assert c is None and Jc is None
     h = 1e-6
     for k in range(24):
         dq = np.zeros(24)
         dq[k] = h
-        Pf = chain_and_jacobians(MODEL, q + dq, t)[1]
-        Pb = chain_and_jacobians(MODEL, q - dq, t)[1]
-        assert np.allclose((Pf - Pb) / (2 * h), JP[..., k], atol=1e-5)
-    assert np.allclose(O[-1], joint_centres(MODEL, q[:12], q[12:])[-1])
-    assert np.allclose(Jtip, JP[-1, -1])
+        assert np.allclose((f.evaluate(q + dq)[0] - f.evaluate(q - dq)[0]) / (2 * h), Jtip[:, k])
+    assert np.allclose(tip, joint_centres(MODEL, q[:12], q[12:])[-1])
 
 
 def test_clearance_jacobian_matches_finite_differences():

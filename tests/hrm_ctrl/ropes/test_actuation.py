@@ -119,7 +119,7 @@ SMALL_MOVE_COUNTS = 1000
 #: Over larger moves the least-misfit pose can swing through a joint whose other two ropes
 #: pull nearly opposite (a rope singularity of the 3-rope joint, e.g. joint 8 at alpha 29
 #: deg, theta -43 deg): there the rope's tension stays where it was, within this much (N;
-#: -0.21 N the worst of about 30 000 random moves of up to 6000 counts, 2026-12-05).
+#: -0.21 N the worst of about 30 000 random moves of up to 6000 counts).
 LARGE_MOVE_SLACK_N = 1.0
 
 _J8_NEAR_SINGULAR = [0.0] * 7 + [0.5] + [0.0] * 11 + [-0.75] + [0.0] * 4
@@ -128,8 +128,8 @@ _J8_NEAR_SINGULAR = [0.0] * 7 + [0.5] + [0.0] * 11 + [-0.75] + [0.0] * 4
 @settings(max_examples=25, deadline=None)
 @given(q=angles, motor=st.integers(0, 35), delta=st.integers(-6000, 6000))
 @example(q=[0.0] * 24, motor=0, delta=-2000)
-@example(q=_J8_NEAR_SINGULAR, motor=21, delta=3741)  # found 2026-12-05: tension unchanged
-@example(  # found 2026-12-05: the counts have no pose within the model (no convergence)
+@example(q=_J8_NEAR_SINGULAR, motor=21, delta=3741)  # found by Hypothesis: tension unchanged
+@example(  # found by Hypothesis: the counts have no pose within the model (no convergence)
     q=[0.0] * 7 + [0.703125] + [0.0] * 11 + [-0.75] + [0.0] * 4, motor=21, delta=5288
 )
 @example(q=_J8_NEAR_SINGULAR, motor=21, delta=SMALL_MOVE_COUNTS)

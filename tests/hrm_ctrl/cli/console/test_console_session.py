@@ -18,7 +18,7 @@ from hrm_ctrl.cli._console.commands_session import close_session
 from hrm_ctrl.cli._console.shell import run_console, run_script
 from hrm_ctrl.cli._console.table import ConsoleError
 from hrm_ctrl.errors import SignalInterrupt
-from tests.hrm_ctrl.cli.cli_helpers import STALL_RERUN
+from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT
 
 ENABLED = State402.OPERATION_ENABLED
 
@@ -184,7 +184,7 @@ def test_stop_while_streaming_quick_stops_and_the_console_goes_on(make_ctx) -> N
     assert ctx.session.results[-1].completed
 
 
-@STALL_RERUN
+@STALL_TOLERANT
 def test_reset_fault_after_an_injected_drive_fault(make_ctx) -> None:
     ctx = make_ctx()
     run(ctx, "connect", "enable", "sim fault drive-fault:j05r1")

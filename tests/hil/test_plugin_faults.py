@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -23,12 +22,14 @@ import pytest
 import drivers.protocol.cia402 as cia
 from drivers.safety.causes import StopKind
 from drivers.sources import HoldSource
-from hrm_ctrl.hil.rig import HilHost, HostRun, fault
+from hrm_ctrl.hil.rig import HilHost, HostRun
 from hrm_ctrl.hil.wirelog import EMCY_BASE, HEARTBEAT_BASE, TPDO1_BASE, WireLog
+from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT_PRODUCTION
 
 # over the cross-process bus and udp_multicast (both hold at production settings here),
 # SocketCAN where the kernel has vcan0/vcan1; --hrm-bus on the command line overrides
-pytestmark = pytest.mark.hrm_buses("ipc", "udp_multicast", "socketcan")
+# A run stopped on its own is rerun only on a machine stall through a production window.
+pytestmark = [pytest.mark.hrm_buses("ipc", "udp_multicast", "socketcan"), STALL_TOLERANT_PRODUCTION]
 
 #: The small box of the fault tests: few drives, light load, the motors the faults name.
 FAULT_NODES: tuple[dict[str, int], ...] = (
@@ -48,7 +49,6 @@ BOARD_PERIOD_S = 0.010
 #: The quick stop confirmed: every node still answering shows it left OPERATION_ENABLED
 #: (the supervisor repeats the quick stop each period up to 10 periods).
 CONFIRM_PERIODS = 10
-ATTEMPTS = 3
 FIGURES = os.environ.get("HRM_HIL_FIGURES")  # a file: append each fault's measured times
 
 
@@ -59,7 +59,7 @@ def hrm_box_nodes() -> tuple[dict[str, int], ...]:
 
 @dataclass
 class Measured:
-    host: HilHost  # the session that ran it (a retry's, after a stop of its own)
+    host: HilHost  # the session that ran it
     run: HostRun
     record: dict[str, Any]
     wire: WireLog
@@ -73,33 +73,28 @@ def play_with_fault(
     spec: str,
     kinds: tuple[str, ...],
     names: str,
-    tmp_path: Path,
     n_cycles: int = 400,
     silenced: tuple[str, list[int]] | None = None,
 ) -> Measured:
     """Hold with ``spec`` injected ``FAULT_AFTER_S`` into the stream.  A run the host
     stopped on its own -- before the fault was sent, or on causes none of which is the
-    fault's (``kinds`` naming ``names``): a watchdog tripping on a stall of the loaded
-    machine -- tested nothing of the fault: it is counted (``FIGURES``) and run again on a
-    fresh session, at most ``ATTEMPTS`` runs in all.  So is a run whose quick stop came
-    before the fault took effect on the wire: ``silenced`` (bus, node ids) are the nodes
-    the fault silences, and one of them still sending a TPDO after the quick stop means the
-    stop was not the fault's (CI saw a bus-off run stopped while can1 still answered)."""
-    for attempt in range(ATTEMPTS):
-        run = host.play(HoldSource(n_cycles=n_cycles), fault_spec=spec, fault_after_s=FAULT_AFTER_S)
-        record = host.close()
-        unrelated = run.error is not None and not any(
-            c.kind in kinds and names in c.text for c in run.error.causes
-        )
-        m = None if run.stopped_before_fault() or unrelated else _measure(host, run, record, spec)
-        if m is not None and not _answered_after_the_stop(m, silenced):
-            return m
-        why = run.describe() if m is None else f"{silenced} answered after the quick stop"
-        figure(spec, spurious_stop=why, attempt=attempt)
-        assert attempt + 1 < ATTEMPTS, f"{spec}: every run stopped on its own: {why}"
-        fault(host.box, "reset")
-        host = HilHost(host.box, tmp_path / f"attempt{attempt + 1}")
-    raise AssertionError("unreachable")  # pragma: no cover - the loop returns or asserts
+    fault's (``kinds`` naming ``names``) -- tested nothing of the fault: it is counted
+    (``FIGURES``) and fails; the module's ``stall_tolerant`` marker reruns it only when the
+    stall probe saw the machine stall through a production watchdog window.  So does a run
+    whose quick stop came before the fault took effect on the wire: ``silenced`` (bus, node
+    ids) are the nodes the fault silences, and one of them still sending a TPDO after the
+    quick stop means the stop was not the fault's."""
+    run = host.play(HoldSource(n_cycles=n_cycles), fault_spec=spec, fault_after_s=FAULT_AFTER_S)
+    record = host.close()
+    unrelated = run.error is not None and not any(
+        c.kind in kinds and names in c.text for c in run.error.causes
+    )
+    m = None if run.stopped_before_fault() or unrelated else _measure(host, run, record, spec)
+    if m is not None and not _answered_after_the_stop(m, silenced):
+        return m
+    why = run.describe() if m is None else f"{silenced} answered after the quick stop"
+    figure(spec, spurious_stop=why)
+    raise AssertionError(f"{spec}: the run stopped on its own: {why}")
 
 
 def _measure(host: HilHost, run: HostRun, record: dict[str, Any], spec: str) -> Measured:
@@ -167,11 +162,9 @@ def tpdo_gap(m: Measured, bus: str, nodes: list[int]) -> tuple[float, int]:
 # ------------------------------------------------------------------ CAN-side watchdogs
 
 
-def test_heartbeat_loss_detected_at_the_production_timeout(
-    hrm_host: HilHost, tmp_path: Path
-) -> None:
+def test_heartbeat_loss_detected_at_the_production_timeout(hrm_host: HilHost) -> None:
     spec = "heartbeat-stop:j05r1"  # can0 node 2
-    m = play_with_fault(hrm_host, spec, ("heartbeat",), "j05r1", tmp_path)
+    m = play_with_fault(hrm_host, spec, ("heartbeat",), "j05r1")
     assert_stopped_and_logged(m, ("heartbeat",), "j05r1")
     control = m.record["config"]["control"]
     timeout_s = control["heartbeat_timeout_ms"] / 1000.0
@@ -185,9 +178,9 @@ def test_heartbeat_loss_detected_at_the_production_timeout(
     assert timeout_s <= detect_s <= timeout_s + period + LATENCY_S + lag, (detect_s, lag)
 
 
-def test_drive_fault_emcy_stops_within_one_period(hrm_host: HilHost, tmp_path: Path) -> None:
+def test_drive_fault_emcy_stops_within_one_period(hrm_host: HilHost) -> None:
     spec = "drive-fault:j03r1"  # can0 node 3
-    m = play_with_fault(hrm_host, spec, ("emcy", "fault", "state"), "j03r1", tmp_path)
+    m = play_with_fault(hrm_host, spec, ("emcy", "fault", "state"), "j03r1")
     assert_stopped_and_logged(m, ("emcy", "fault", "state"), "j03r1")
     period = 1.0 / m.record["config"]["control"]["rate_hz"]
     # the EMCY that stopped it: the last one before the quick stop, a non-zero error code
@@ -210,12 +203,12 @@ TPDO_FAULTS = [
     ("spec", "bus", "nodes", "names"), TPDO_FAULTS, ids=[f[0] for f in TPDO_FAULTS]
 )
 def test_missing_tpdos_detected_after_the_production_cycles(
-    hrm_host: HilHost, tmp_path: Path, spec: str, bus: str, nodes: list[int], names: str
+    hrm_host: HilHost, spec: str, bus: str, nodes: list[int], names: str
 ) -> None:
     kinds = ("tpdo_missing", "heartbeat") if spec.startswith("bus-off") else ("tpdo_missing",)
     # the faults that silence their nodes (all but the delay): none answers after the stop
     silenced = None if spec.startswith("delay") else (bus, nodes)
-    m = play_with_fault(hrm_host, spec, kinds, names, tmp_path, silenced=silenced)
+    m = play_with_fault(hrm_host, spec, kinds, names, silenced=silenced)
     assert_stopped_and_logged(m, kinds, names)
     cycles = m.record["config"]["control"]["missing_tpdo_cycles"]
     last_t, syncs = tpdo_gap(m, bus, nodes)
@@ -241,12 +234,10 @@ TENSION_FAULTS = [
 
 
 @pytest.mark.parametrize(("spec", "names"), TENSION_FAULTS, ids=[f[0] for f in TENSION_FAULTS])
-def test_tension_faults_stop_every_axis(
-    hrm_host: HilHost, tmp_path: Path, spec: str, names: str
-) -> None:
+def test_tension_faults_stop_every_axis(hrm_host: HilHost, spec: str, names: str) -> None:
     """The tension board is a serial line, not on the CAN wire: detection is measured from
     the fault command to the stop cause (host monotonic clock), the stop on the wire."""
-    m = play_with_fault(hrm_host, spec, ("tension",), names, tmp_path)
+    m = play_with_fault(hrm_host, spec, ("tension",), names)
     assert_stopped_and_logged(m, ("tension",), names)
     cause = next(c for c in m.run.error.causes if c.kind is StopKind.TENSION)
     stale_s = m.host.tension.stale_s
@@ -269,9 +260,9 @@ def test_tension_faults_stop_every_axis(
     assert 0.0 < detect_s <= bound, (detect_s, command_s, lag)
 
 
-def test_sensor_garbage_past_its_rate_stops_the_host(hrm_host: HilHost, tmp_path: Path) -> None:
+def test_sensor_garbage_past_its_rate_stops_the_host(hrm_host: HilHost) -> None:
     """Garbage before every frame (100 runs/s, far past the 5/s a healthy board never
     reaches) stops every axis naming the sensor; the valid frames between still parse."""
-    m = play_with_fault(hrm_host, "sensor-garbage:300", ("tension",), "tension sensor", tmp_path)
+    m = play_with_fault(hrm_host, "sensor-garbage:300", ("tension",), "tension sensor")
     assert_stopped_and_logged(m, ("tension",), "tension sensor")
     assert m.run.tension_fault is not None and "garbage" in m.run.tension_fault
