@@ -192,34 +192,41 @@ class PdoLayout:
     def unpack_from(self, data: bytes | bytearray) -> tuple[int | float | bytes, ...]:
         """The values of the first :attr:`size` bytes of ``data`` (a drive takes an RPDO
         longer than its mapping; a shorter one is the caller's error to report)."""
-        return self.struct.unpack_from(bytes(data))
+        return self.struct.unpack_from(data)
 
-    def _entry(self, name: str) -> PdoEntry:
-        for e in self.values:
-            if e.name == name:
-                return e
-        raise KeyError(name)
+    @cached_property
+    def _by_name(self) -> dict[str, tuple[PdoEntry, int | None, tuple[int, int] | None]]:
+        """Per value's name: the entry, its mask (unsigned), its range (signed)."""
+        return {e.name: (e, _mask(e), _limits(e)) for e in self.values}
 
-    def check_many(self, name: str, values: np.ndarray) -> None:
+    @cached_property
+    def has_raw(self) -> bool:
+        """Whether a value is raw bytes (decoded by the object's own description)."""
+        return any(e.raw for e in self.values)
+
+    def check_many(self, name: str, values: np.ndarray | int) -> None:
         """:class:`FrameError` if any of ``values`` does not fit entry ``name``."""
-        e = self._entry(name)
-        limits = _limits(e)
-        v = np.asarray(values)
-        if limits is not None and v.size and (v.min() < limits[0] or v.max() > limits[1]):
+        e, _, limits = self._by_name[name]
+        if limits is None:
+            return
+        v = values if isinstance(values, np.ndarray) else np.asarray(values)
+        if v.size and (v.min() < limits[0] or v.max() > limits[1]):
             raise FrameError(f"{e.label or e.name} outside {e.type_name}")
 
     def fill(self, view: np.ndarray, **columns: int | np.ndarray) -> None:
         """Write ``columns`` (by entry name) into ``view`` (records of :attr:`dtype` or of
-        :meth:`view_in`), unsigned ones modulo their width, signed ones checked."""
+        :meth:`view_in`), unsigned ones modulo their width, signed ones checked (a
+        control cycle's path: no copy of an array that needs none)."""
+        by_name = self._by_name
         for name, value in columns.items():
-            mask = _mask(self._entry(name))
-            if mask is not None and isinstance(value, int):
-                view[name] = value & mask
-            elif mask is not None:
-                view[name] = np.asarray(value, dtype=np.int64) & mask
-            else:
-                self.check_many(name, np.asarray(value))
+            _, mask, _ = by_name[name]
+            if mask is None:
+                self.check_many(name, value)
                 view[name] = value
+            elif isinstance(value, int):
+                view[name] = value & mask
+            else:
+                view[name] = np.asarray(value, dtype=np.int64) & mask
 
     def pack_many(self, **columns: int | np.ndarray) -> bytes:
         """Payloads for many nodes at once (columns broadcast), concatenated.

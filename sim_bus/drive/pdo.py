@@ -140,9 +140,12 @@ class PdoService:
     def _apply_rpdo(self, data: bytes, now: float) -> None:
         layout, objects = self._compiled(cia301.OD_RPDO1_MAPPING)
         decoded = layout.unpack_from(data)
-        for e, (key, var), value in zip(layout.values, objects, decoded, strict=True):
-            if e.raw:
-                value = var.decode_raw(value)
+        if layout.has_raw:
+            decoded = tuple(
+                var.decode_raw(v) if e.raw else v  # type: ignore[arg-type]
+                for e, (_key, var), v in zip(layout.values, objects, decoded, strict=True)
+            )
+        for (key, _var), value in zip(objects, decoded, strict=True):
             self._od.write(key, value)  # type: ignore[arg-type]
             if key == (cia402.OD_CONTROLWORD, 0):
                 self._drive._on_controlword(int(value), now)  # type: ignore[call-overload]
@@ -171,12 +174,15 @@ class PdoService:
     def _send_tpdo(self, cob: int) -> None:
         layout, objects = self._compiled(cia301.OD_TPDO1_MAPPING)
         live = self._drive.live_value
-        payload = layout.pack(
-            *[
-                var.encode_raw(live(key)) if e.raw else live(key)
-                for e, (key, var) in zip(layout.values, objects, strict=True)
-            ]
-        )
+        if layout.has_raw:
+            payload = layout.pack(
+                *[
+                    var.encode_raw(live(key)) if e.raw else live(key)
+                    for e, (key, var) in zip(layout.values, objects, strict=True)
+                ]
+            )
+        else:  # the drive's own values, in range: the layout's encoder, unchecked
+            payload = layout.struct.pack(*[live(key) for key, _var in objects])
         self._drive.transmit(can.Message(arbitration_id=cob, data=payload, is_extended_id=False))
 
     # ---------------------------------------------------------------- objects
