@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.bus import TrafficLog
 from drivers.busload import BusLoad
+from drivers.canlog import TrafficLog
 from drivers.config import BoxConfig
 from drivers.cycle import EventLog, StreamResult
 from drivers.receive import BusReceiver

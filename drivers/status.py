@@ -31,8 +31,9 @@ from drivers.protocol.cia301 import NMT_STATE_NAMES, FrameError, parse_emcy
 from drivers.protocol.cia402 import SW_FAULT, State402, decode_state
 
 if TYPE_CHECKING:  # (what the read-outs are read from; a formatter needs none of it)
-    from drivers.bus import BusPort, TrafficLog
+    from drivers.bus import BusPort
     from drivers.busload import BusLoad
+    from drivers.canlog import TrafficLog
     from drivers.config import BusConfig
     from drivers.receive import BusReceiver
     from drivers.safety.monitor import NodeMonitor

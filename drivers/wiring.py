@@ -25,8 +25,9 @@ import numpy as np
 
 from drivers import eds_path
 from drivers.bringup import DriveLink
-from drivers.bus import ECHOING_INTERFACES, BusPort, TrafficLog
+from drivers.bus import ECHOING_INTERFACES, BusPort
 from drivers.busload import BusLoad
+from drivers.canlog import TrafficLog
 from drivers.config import BoxConfig, BusConfig
 from drivers.cycle import BusLayout
 from drivers.protocol import cia301
