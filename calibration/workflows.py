@@ -28,11 +28,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-import numpy as np
-
 from hrm_ctrl.errors import CalibrationFileError
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from calibration.kinematic import InstrumentFrame, KinematicFit, PoseData
     from calibration.stiffness import StiffnessResult
     from calibration.store import Calibration, CalibrationStore
@@ -72,6 +72,8 @@ def fit_residuals(fit: KinematicFit) -> dict[str, float]:
 def kinematic_calibration(base: Calibration, fit: KinematicFit) -> Calibration:
     """The next calibration from ``base`` with the fit's links and offsets; a parameter the
     fit held fixed (``alpha_offset_1`` with a free instrument frame) keeps ``base``'s."""
+    import numpy as np
+
     from calibration.apply import updated
     from calibration.kinematic import ALPHA_NAMES, THETA_NAMES
     from calibration.store import Routine
@@ -185,6 +187,8 @@ def tracker_frame(
     """The laser tracker's frame from ``readings`` averaged readings of each of the base
     plate's nests (``description.base_fiducials``; the tracker's ``measure(n,
     fiducial=k)``)."""
+    import numpy as np
+
     from calibration.kinematic import instrument_frame
 
     measured = [
@@ -269,6 +273,8 @@ def zero_then_kinematic(
     ``collect`` goes to :func:`calibration.collect.collect_poses` (``settle_s``,
     ``rate_fraction``); ``say`` gets a line per step, ``on_zero(result, version, seconds)``
     the zero routine's outcome once it is saved."""
+    import numpy as np
+
     from calibration.apply import calibrated_actuation, nominal_calibration
     from calibration.collect import travel_order
     from calibration.kinematic import fit_kinematics, spread_configurations

@@ -44,16 +44,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from calibration.workflows import Saved
 from hrm_ctrl.cli._common import (
     Input,
     Output,
-    add_calibration_arguments,
-    add_config_argument,
-    add_log_format_argument,
-    add_robot_argument,
     calibrations_folder,
     calibrations_input,
     config_input,
@@ -62,29 +56,30 @@ from hrm_ctrl.cli._common import (
     robot_input,
     shipped_inputs,
 )
+from hrm_ctrl.cli._options import (
+    SimArm,
+    Uncalibrated,
+    add_bus,
+    add_calibration,
+    add_json,
+    add_log,
+    add_out,
+    add_robot,
+    add_sim,
+    add_stiffness_options,
+    add_zero_options,
+)
 from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
-    add_robot_argument(p)
-    add_calibration_arguments(p)
-    p.add_argument("--sim", action="store_true", help="the in-process simulated box")
-    p.add_argument(
-        "--perturb", type=int, default=None, metavar="SEED",
-        help="with --sim: a simulated arm that differs from its description (seeded)",
-    )  # fmt: skip
-    add_config_argument(p)  # --config, --bus
-    p.add_argument("--out", type=Path, metavar="FILE", help="write this one calibration file")
-    p.add_argument(
-        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
-        help="the run record and CAN logs (default ./runs)",
-    )  # fmt: skip
-    add_log_format_argument(p)
-    p.add_argument(
-        "--uncalibrated", action="store_true",
-        help="on real drives without a calibration: enable them anyway (explicit override)",
-    )  # fmt: skip
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_robot(p)
+    add_calibration(p, Uncalibrated.DRIVES, when="on real drives")
+    add_sim(p, arm=SimArm.PERTURB)
+    add_bus(p)  # --config, --bus
+    add_out(p, metavar="FILE", what="write this one calibration file")
+    add_log(p)
+    add_json(p, "the summary")
 
 
 def register(subparsers: Any) -> None:
@@ -95,18 +90,7 @@ def register(subparsers: Any) -> None:
         description="pretension every rope in the zero fixture and record the motor zeros",
     )
     _arguments(p)
-    p.add_argument(
-        "--target-N", type=float, default=None, metavar="NEWTON",
-        help="target tension (default the routing's pretension)",
-    )  # fmt: skip
-    p.add_argument(
-        "--tol-N", type=float, default=None, metavar="NEWTON",
-        help="tension tolerance (default 0.2 N)",
-    )  # fmt: skip
-    p.add_argument(
-        "--max-travel-counts", type=int, default=None, metavar="COUNTS",
-        help="longest travel of a motor from where it starts (default 12000)",
-    )  # fmt: skip
+    add_zero_options(p)
     p.set_defaults(_run=run_zero)
 
     p = subparsers.add_parser(
@@ -115,13 +99,7 @@ def register(subparsers: Any) -> None:
         description="each rope's EA from tension sweeps in the zero fixture",
     )
     _arguments(p)
-    p.add_argument(
-        "--sweep-N", type=float, default=None, metavar="NEWTON",
-        help="tension each sweep spans above the pretension (default 10 N)",
-    )  # fmt: skip
-    p.add_argument(
-        "--steps", type=int, default=None, metavar="N", help="readings per sweep (default 5)"
-    )
+    add_stiffness_options(p)
     p.set_defaults(_run=run_stiffness)
 
 
@@ -298,6 +276,8 @@ def report_zero(
 ) -> Saved:  # fmt: skip
     """Save the zero's calibration (:func:`save_calibration`) and print its summary
     (``out``: one line each; JSON with ``args.json``); returns where it went."""
+    import numpy as np
+
     from calibration.workflows import zero_calibration
 
     zeros = {m: int(v) for m, v in zip(result.motor_ids, result.zero_counts, strict=True)}
@@ -367,6 +347,8 @@ def report_stiffness(
     out: Callable[[str], None], description: Any,
 ) -> Saved:  # fmt: skip
     """Save the stiffness's calibration and print its summary; returns where it went."""
+    import numpy as np
+
     from calibration.workflows import stiffness_calibration
 
     ea = {m: float(v) for m, v in zip(result.motor_ids, result.EA_N, strict=True)}

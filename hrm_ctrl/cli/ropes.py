@@ -20,15 +20,11 @@ import io
 import json
 import math
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from hrm_ctrl.cli._common import (
     Input,
     Output,
-    add_calibration_arguments,
-    add_robot_argument,
     arm_from_args,
     calibrations_input,
     config_input,
@@ -36,49 +32,49 @@ from hrm_ctrl.cli._common import (
     robot_input,
     shipped_inputs,
 )
+from hrm_ctrl.cli._options import (
+    Uncalibrated,
+    add_bus,
+    add_calibration,
+    add_json,
+    add_out,
+    add_robot,
+    add_speed,
+)
 from hrm_ctrl.errors import HrmError, RopeError
 from hrm_ctrl.files import write_atomic
-from hrm_ctrl.formats.planfile import read_plan
-from hrm_ctrl.model import load_robot
-from hrm_ctrl.ropes.actuation import Actuation
-from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S, PlanSetpoints
 
 # the plan -> setpoints path: the runtime layer's (re-exported under the names used here)
 from hrm_ctrl.runtime.playback import setpoint_summary as summary
 from hrm_ctrl.runtime.playback import setpoints_of_plan
+
+if TYPE_CHECKING:
+    from hrm_ctrl.ropes.actuation import Actuation
+    from hrm_ctrl.ropes.setpoints import PlanSetpoints
 
 HELP = "motor setpoints (encoder counts per rope motor) for every step of a plan"
 
 
 def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("plan", type=Path, metavar="PLAN.json", help="plan file (hrm-plan/1)")
-    add_robot_argument(p)
-    p.add_argument(
-        "--config", type=Path, default=None, metavar="BOX.toml",
-        help="bus configuration: its control rate is the playback's (default: the shipped one)",
-    )  # fmt: skip
-    p.add_argument("--out", type=Path, metavar="SETPOINTS.csv", help="write the setpoint table")
+    add_robot(p)
+    add_bus(p, overrides=False, config_use="its control rate is the playback's")
+    add_out(p, metavar="SETPOINTS.csv", what="write the setpoint table")
     p.add_argument(
         "--cycles", action="store_true",
         help="the table lists every control cycle of the playback, not every plan step",
     )  # fmt: skip
-    p.add_argument(
-        "--speed",
-        type=float,
-        default=DEFAULT_TIP_SPEED_MM_PER_S,
-        metavar="MM_S",
-        help=f"tip-speed cap of the playback (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s)",
-    )
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    add_calibration_arguments(
-        p, uncalibrated_help="the robot description's values, not the calibration store's"
-    )
+    add_speed(p)
+    add_json(p, "the summary")
+    add_calibration(p, Uncalibrated.MODEL)
 
 
 def format_csv(act: Actuation, sp: PlanSetpoints, *, cycles: bool = False) -> str:
     """The setpoint table: ``t_s,step,travel_mm,<motor ids...>``, then one row per plan
     step (the time the playback passes it) or, with ``cycles``, per control cycle (the
     plan step it came from, and its travel along the path)."""
+    import numpy as np
+
     buf = io.StringIO()
     buf.write(",".join(["t_s", "step", "travel_mm", *act.motor_ids]) + "\n")
     if cycles:
@@ -137,6 +133,8 @@ def format_summary(s: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from drivers.config import load_box_config
+    from hrm_ctrl.formats.planfile import read_plan
+    from hrm_ctrl.model import load_robot
 
     refuse_overwriting_inputs(  # before anything is read or written
         [Output("--out", args.out)],

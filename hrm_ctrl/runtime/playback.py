@@ -24,10 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from hrm_ctrl.errors import DriverError
-from hrm_ctrl.ropes.setpoints import MAX_PLAN_DURATION_S
 
 if TYPE_CHECKING:
     from drivers.sources import SetpointSource
@@ -43,13 +40,17 @@ def setpoints_of_plan(
     *,
     period_s: float,
     speed_mm_per_s: float,
-    max_duration_s: float = MAX_PLAN_DURATION_S,
+    max_duration_s: float | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> PlanSetpoints:
     """The plan's checked counts at the control rate for this arm: what ``hrm ropes``
-    reports and ``hrm run`` plays.  Refuses a plan made for other link lengths; every
-    message starts with the plan file."""
-    from hrm_ctrl.ropes.setpoints import plan_setpoints
+    reports and ``hrm run`` plays (``max_duration_s`` None:
+    :data:`hrm_ctrl.ropes.setpoints.MAX_PLAN_DURATION_S`).  Refuses a plan made for other
+    link lengths; every message starts with the plan file."""
+    from hrm_ctrl.ropes.setpoints import MAX_PLAN_DURATION_S, plan_setpoints
+
+    if max_duration_s is None:
+        max_duration_s = MAX_PLAN_DURATION_S
 
     doc.check_robot(act.robot)
     return plan_setpoints(
@@ -70,6 +71,8 @@ def setpoint_summary(act: Actuation, sp: PlanSetpoints) -> dict[str, Any]:
     """Largest travel and step-to-step change per motor (counts and mm of rope) over the
     plan's steps, and the playback at the control rate (duration, cycles, peak motor
     speed and acceleration: finite differences of the counts sent, from and to rest)."""
+    import numpy as np
+
     from hrm_ctrl.ropes.trajectory import finite_differences
 
     travel, counts = sp.travel_mm, sp.step_counts
