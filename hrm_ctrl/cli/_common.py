@@ -36,6 +36,12 @@ from hrm_ctrl.errors import OverwriteInputError
 
 # the arm and the calibration store's folder: hrm_ctrl.runtime.arm (re-exported here)
 from hrm_ctrl.runtime.arm import (
+    CALIBRATIONS_ENV as CALIBRATIONS_ENV,
+)
+from hrm_ctrl.runtime.arm import (
+    DEFAULT_CALIBRATIONS as DEFAULT_CALIBRATIONS,
+)
+from hrm_ctrl.runtime.arm import (
     Arm,
     calibrations_folder,
 )
