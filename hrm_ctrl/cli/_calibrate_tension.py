@@ -156,7 +156,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     actuation = calibrated_actuation(description, base)
     config.check_motors(actuation.motor_ids)
     ensure_log_dir(args.log_dir)
-    arm = Arm(description, calibrated_model(description, base), actuation, active)
+    arm = Arm(description, calibrated_model(description, base), active, rope_layer=actuation)
     ref = arm.calibration_ref()
     allow = args.sim or args.uncalibrated or args.calibrate == "zero"
     if ref is None and not allow:

@@ -436,7 +436,7 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
     alpha, theta = alpha[order], theta[order]
     actuation.check_angles(alpha, theta)
     ensure_log_dir(args.log_dir)
-    arm = Arm(description, calibrated_model(description, base), actuation, active)
+    arm = Arm(description, calibrated_model(description, base), active, rope_layer=actuation)
     ref = arm.calibration_ref()
     if ref is None and args.uncalibrated:
         print(f"{prog}: --uncalibrated: drives enabled without a calibration", file=sys.stderr)
