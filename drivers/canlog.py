@@ -431,18 +431,25 @@ class TrafficLog(can.Listener):
 
     def _asc_lines(self) -> bytes:
         """The whole lines the writer formatted (ASC, candump, TRC), each kept within one
-        page (a line that would straddle a page boundary is put after a blank line that
-        fills the page: the readers of all three skip blank lines)."""
+        page.  ASC and TRC: a line that would straddle a page boundary is put after a
+        blank line that fills the page (their readers skip blank lines).  candump: can-utils'
+        tools (``log2long``, ``canplayer``) stop at a line that is not a frame, so the page
+        is filled with spaces at the end of the line before it (every candump reader splits
+        a line at whitespace), and the last line of a write is padded so when less than
+        :data:`CANDUMP_LINE_BYTES` of its page are left (the next write's first line fits)."""
         text_io = self._writer.file
         text = text_io.getvalue()
         cut = text.rfind("\n") + 1
         text_io.seek(0)
         text_io.truncate()
         text_io.write(text[cut:])
+        lines = text[:cut].encode(self._encoding).splitlines(keepends=True)
+        if isinstance(self._writer, can.CanutilsLogWriter):
+            return candump_lines(lines, self._end, self.PAGE_BYTES)
         page = self.PAGE_BYTES
         pos = self._end
         out = bytearray()
-        for line in text[:cut].encode(self._encoding).splitlines(keepends=True):
+        for line in lines:
             room = page - pos % page
             if room < len(line) <= page:
                 out += b" " * (room - 1) + b"\n"
@@ -498,6 +505,35 @@ class TrafficLog(can.Listener):
             w.stop()
         except Exception as exc:  # flush/close failed (disk full, I/O error)
             self._failed(f"{self.path.name}: cannot close ({exc})")
+
+
+#: A candump line python-can writes for a classical frame is at most 55 bytes ("(%f)" of a
+#: Unix time, " can" + channel, a 29-bit id, 8 data bytes, " R", newline): a write leaves
+#: at least this much of its last page, or fills it.
+CANDUMP_LINE_BYTES = 64
+
+
+def candump_lines(lines: list[bytes], pos: int, page: int) -> bytes:
+    """candump ``lines`` to be written at file offset ``pos``, none straddling a ``page``
+    boundary: the page is filled with spaces at the end of the line before (a candump
+    reader splits at whitespace; no line that is not a frame, where can-utils' tools stop).
+
+    >>> out = candump_lines([b"(1.000000) can0 181#01 R\\n"] * 3, 4096 - 60, 4096)
+    >>> [len(x) for x in out.splitlines(keepends=True)], out.split(b"\\n")[0].rstrip()
+    ([25, 35, 25], b'(1.000000) can0 181#01 R')
+    """
+    out = bytearray()
+    for line in lines:
+        room = page - pos % page
+        if out and room < len(line) <= page:  # the line before fills the page
+            out[-1:-1] = b" " * room
+            pos += room
+        out += line
+        pos += len(line)
+    room = page - pos % page
+    if out and room < CANDUMP_LINE_BYTES and room != page:
+        out[-1:-1] = b" " * room
+    return bytes(out)
 
 
 def asc_date(when: dt.datetime) -> str:

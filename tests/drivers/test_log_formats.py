@@ -6,6 +6,9 @@ ASC file, ``can0`` in a candump ``.log``); the text formats stay crash-safe like
 from __future__ import annotations
 
 import importlib.util
+import re
+import shutil
+import subprocess
 import time
 from pathlib import Path
 
@@ -156,3 +159,50 @@ def test_mf4_without_asammdf_is_refused_naming_the_formats(tmp_path: Path) -> No
     with pytest.raises(Exception, match=r"must end in \.blf, \.asc, \.log, \.trc \(python-can"):
         TrafficLog(tmp_path / "x.mf4")
     assert not (tmp_path / "x.mf4").exists()
+
+
+CANDUMP_LINE = re.compile(
+    rb"\(\d+\.\d{6}\) can\d+ ([0-9A-F]{3}|[0-9A-F]{8})#([0-9A-F]*|R\d?) [RT] *\n"
+)
+
+
+def test_a_candump_log_is_read_in_full_by_can_utils(tmp_path: Path) -> None:
+    """Every line of a candump ``.log`` is a frame (can-utils' ``log2long`` and
+    ``canplayer`` stop at the first line that is not), none straddles a page boundary (a
+    kill -9 cuts between pages) and ``log2long`` (where can-utils is installed) reads every
+    frame."""
+    path = tmp_path / "bus.log"
+    log = TrafficLog(path)
+    t0 = time.time()
+    n = 0
+    for k in range(120):
+        for j in range(37):
+            log.on_message_received(
+                can.Message(
+                    arbitration_id=(0x18FF0000 + j) if j % 9 == 4 else 0x181 + j % 18,
+                    is_extended_id=j % 9 == 4,
+                    data=bytes(range((k + j) % 9)),
+                    timestamp=t0 + k * 0.01 + j * 1e-5,
+                )
+            )
+            n += 1
+        log.kick()  # a write per cycle, as the control loop asks
+        time.sleep(0.002)
+    log.stop()
+    assert log.write_errors == 0 and log.n_frames == n
+    data = path.read_bytes()
+    page = TrafficLog.PAGE_BYTES
+    assert len(data) > 8 * page
+    lines = data.splitlines(keepends=True)
+    assert len(lines) == n
+    bad = [line for line in lines if not CANDUMP_LINE.fullmatch(line)]
+    assert bad == []
+    assert all(data[b - 1 : b] == b"\n" for b in range(page, len(data), page))
+    assert any(line.endswith(b" \n") for line in lines)  # padded at least once
+    assert len(list(can.LogReader(path))) == n
+    log2long = shutil.which("log2long")
+    if log2long is not None:
+        with path.open("rb") as f:
+            r = subprocess.run([log2long], stdin=f, capture_output=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+        assert len(r.stdout.splitlines()) == n
