@@ -113,7 +113,11 @@ class TrafficLog(can.Listener):
     Every frame on the wire is logged once: what the host sends when it sends it, and
     everything received (drives, other masters, error and remote frames) as the bus's
     receiver (:class:`drivers.receive.BusReceiver`) hands it over, our own echoes
-    excepted."""
+    excepted.  Times in a file never go back: a frame is written with its own timestamp
+    (a sent frame: the host's send time; a received one: its receive time on the host's
+    clock as the interface gives it), or, when it reached the log after a frame stamped
+    later (a received frame the host picked up late; an interface that stamps with the
+    sender's time), with that later time: when the host had it at the latest."""
 
     def __init__(self, path: str | Path, channel: int = 1) -> None:
         self.path = Path(path)
@@ -136,6 +140,7 @@ class TrafficLog(can.Listener):
         self.n_lost = 0  # frames that never reached the file (it could not take more)
         self._unflushed = 0  # frames handed to the writer since the last flush
         self._last_ts: float | None = None  # timestamp of the last frame handed over
+        self._file_ts = -math.inf  # ... as written: a file's times never go back
         self._logged_until: float | None = None  # ... and of the last one in the file
         self._broken = False
         self._durable = False  # this class writes the file (BLF, ASC, candump, TRC)
@@ -219,6 +224,8 @@ class TrafficLog(can.Listener):
                 else:  # packed at once: the packing's fixed cost once per drain
                     frames = np.concatenate([f for f, _rx in entries])
                     is_rx = np.repeat([rx for _f, rx in entries], [len(f) for f, _rx in entries])
+                stamps = frames["timestamp"]  # our copy (log_batch): never earlier than the last
+                running = file_times(stamps, self._file_ts)
                 try:
                     done = write_batch is not None and write_batch(frames, is_rx)
                 except Exception as exc:
@@ -226,16 +233,23 @@ class TrafficLog(can.Listener):
                     continue
                 if done:
                     self._unflushed += len(frames)
-                    self._last_ts = float(frames["timestamp"][-1])
+                    self._last_ts = float(stamps[-1])
+                    self._file_ts = running
                 else:  # frame by frame, before everything queued after the batches
                     for f, rx in reversed(entries):
                         q.extendleft(reversed(to_messages(f, self._msg_channel, rx)))
                 continue
+            ts = msg.timestamp
+            datable = 0.0 <= ts < MAX_LOG_TIMESTAMP_S  # else left as it is (BLF refuses it)
+            if datable and ts < self._file_ts:  # reached the log after a later frame
+                msg.timestamp = self._file_ts
             try:
                 write(msg)
             except Exception as exc:  # one bad frame must not end the log
                 self._failed(f"{self.path.name}: cannot log {msg} ({exc})")
                 continue
+            if datable:
+                self._file_ts = msg.timestamp
             if durable:
                 self._unflushed += 1
                 self._last_ts = msg.timestamp
@@ -505,6 +519,21 @@ class TrafficLog(can.Listener):
             w.stop()
         except Exception as exc:  # flush/close failed (disk full, I/O error)
             self._failed(f"{self.path.name}: cannot close ({exc})")
+
+
+def file_times(stamps: np.ndarray, last_s: float) -> float:
+    """Raise each time of ``stamps`` (in place) to the latest before it and ``last_s``, so
+    they never go back; a time outside [0, :data:`MAX_LOG_TIMESTAMP_S`) is left as it is
+    and sets no floor.  Returns the floor after the last.
+
+    >>> t = np.array([5.0, 3.0, -1.0, 4.0, 7.0, 6.0])
+    >>> file_times(t, 4.5), t.tolist()
+    (7.0, [5.0, 5.0, -1.0, 5.0, 7.0, 7.0])
+    """
+    datable = (stamps >= 0.0) & (stamps < MAX_LOG_TIMESTAMP_S)
+    floor = np.maximum.accumulate(np.maximum(np.where(datable, stamps, -math.inf), last_s))
+    stamps[datable] = floor[datable]
+    return float(floor[-1]) if len(floor) else last_s
 
 
 #: A candump line python-can writes for a classical frame is at most 55 bytes ("(%f)" of a

@@ -16,6 +16,7 @@ import can
 import pytest
 
 from drivers.bus import LOG_FORMAT_DURABILITY, LOG_FORMATS_ALWAYS, TrafficLog, log_formats
+from drivers.protocol.batch import from_messages
 
 #: frames are stamped this far ahead of now: after the log's opening (a BLF keeps times
 #: relative to its start) even when the loaded machine stalls the test in between (1 s was
@@ -206,3 +207,39 @@ def test_a_candump_log_is_read_in_full_by_can_utils(tmp_path: Path) -> None:
             r = subprocess.run([log2long], stdin=f, capture_output=True, timeout=60)
         assert r.returncode == 0, r.stderr
         assert len(r.stdout.splitlines()) == n
+
+
+@pytest.mark.parametrize("fmt", LOG_FORMATS_ALWAYS)
+def test_times_in_a_log_never_go_back(tmp_path: Path, fmt: str) -> None:
+    """Frames reach the log in arrival order; one stamped earlier than a frame already in
+    the log (a received frame picked up late, or stamped with its sender's time, as
+    hrm_ipc does) is written with the later time, single frames and batches alike."""
+    t0 = time.time() + AHEAD_S
+    path = tmp_path / f"bus.{fmt}"
+    log = TrafficLog(path)
+    sent = can.Message(
+        arbitration_id=0x201, data=b"\x01", timestamp=t0 + 0.119, is_extended_id=False
+    )
+    log.log_sent(sent)
+    log.on_message_received(
+        can.Message(arbitration_id=0x181, data=b"\x02", timestamp=t0, is_extended_id=False)
+    )
+    late = [
+        can.Message(
+            arbitration_id=0x182 + k, data=b"\x03", timestamp=t0 + k * 0.05, is_extended_id=False
+        )
+        for k in range(4)
+    ]
+    log.log_batch(from_messages(late), is_rx=True)  # t0 .. t0 + 0.15: two early, two not
+    log.on_message_received(
+        can.Message(arbitration_id=0x190, data=b"\x04", timestamp=t0 + 0.2, is_extended_id=False)
+    )
+    log.stop()
+    assert log.write_errors == 0 and log.n_frames == 7
+    back = list(
+        can.LogReader(path, relative_timestamp=False) if fmt == "asc" else can.LogReader(path)
+    )
+    stamps = [m.timestamp - back[0].timestamp for m in back]
+    assert [m.arbitration_id for m in back] == [0x201, 0x181, 0x182, 0x183, 0x184, 0x185, 0x190]
+    assert stamps == sorted(stamps)
+    assert stamps == pytest.approx([0, 0, 0, 0, 0, 0.150 - 0.119, 0.2 - 0.119], abs=2e-6)
