@@ -4,10 +4,10 @@
 :meth:`TrafficLog.log_batch`) and frames it received (as a ``can.Listener``) and writes
 them in arrival order, so the control cycle never waits for the disk, in one of the
 formats python-can reads back with ``can.LogReader`` (:func:`log_formats`: ``blf``,
-``asc``, candump ``log``, ``trc``, and ``mf4`` where asammdf is installed).  BLF is
+``asc``, candump ``log``, ``trc``; not ``mf4``: :data:`REFUSED_LOG_FORMATS`).  BLF is
 formatted by :mod:`drivers.blf` (our own writer: why, there); the text formats by
 python-can's public writers, whose formatted lines this class writes to the file itself
-(durability below); MF4 by python-can's writer alone.  Channels follow python-can's
+(durability below).  Channels follow python-can's
 numbering: the first bus (``can0``) is channel 0 for python-can, ``1`` in an ASC, BLF or
 TRC file (the writers add one, python-can's readers take it off) and ``can0`` in a
 candump ``.log``.
@@ -51,22 +51,25 @@ LOG_FORMAT_DURABILITY = {
     "log": "crash-safe: at most FLUSH_S behind, whole lines after a kill -9",
     "trc": "crash-safe: at most FLUSH_S behind, whole lines after a kill -9; python-can's "
     "writer leaves out error and remote frames",
-    "mf4": "written when the log closes: a killed process leaves no readable file",
 }
 """What a process killed mid-run keeps of a log in each format (docs/drivers.md)."""
 
 
-def log_formats() -> tuple[str, ...]:
-    """The log formats this installation writes: :data:`LOG_FORMATS_ALWAYS`, plus ``mf4``
-    when asammdf (python-can's MF4 writer needs it) is installed.
+REFUSED_LOG_FORMATS = {
+    "mf4": "python-can's MF4 writer takes about 0.5 ms a frame, slower than a bus sends "
+    "them (a 36-drive cycle every 10 ms): the log would be incomplete; use blf",
+}
+"""Formats python-can writes that a CAN log of a run refuses, and why (``--log-format``)."""
 
-    >>> log_formats()[:4]
+
+def log_formats() -> tuple[str, ...]:
+    """The log formats a CAN log is written in (:data:`LOG_FORMATS_ALWAYS`; python-can's
+    ``mf4`` is refused: :data:`REFUSED_LOG_FORMATS`).
+
+    >>> log_formats()
     ('blf', 'asc', 'log', 'trc')
     """
-    import importlib.util
-
-    extra = ("mf4",) if importlib.util.find_spec("asammdf") is not None else ()
-    return LOG_FORMATS_ALWAYS + extra
+    return LOG_FORMATS_ALWAYS
 
 
 LOG_SUFFIXES = tuple(f".{f}" for f in (*LOG_FORMATS_ALWAYS, "mf4"))
@@ -130,7 +133,10 @@ class TrafficLog(can.Listener):
         self.write_errors = 0
         self.first_error: str | None = None
         formats = log_formats()
-        if self.path.suffix.lower().lstrip(".") not in formats:
+        suffix = self.path.suffix.lower().lstrip(".")
+        if suffix in REFUSED_LOG_FORMATS:
+            raise DriverError(f"{self.path}: .{suffix} refused: {REFUSED_LOG_FORMATS[suffix]}")
+        if suffix not in formats:
             raise DriverError(
                 f"{self.path}: CAN log must end in "
                 f"{', '.join('.' + f for f in formats)} (python-can's formats here)"
@@ -316,8 +322,7 @@ class TrafficLog(can.Listener):
     # writes of BLF (drivers.blf formats) and of the text formats (python-can's ASC,
     # candump .log and TRC writers format into a StringIO): every FLUSH_S the formatted
     # frames go out in one write(2) (BLF: zlib containers; text: whole lines), then the
-    # BLF header is rewritten in place.  MF4 (asammdf) is written when the log closes
-    # (LOG_FORMAT_DURABILITY).  A SIGKILL can cut a write(2) only between pages (the
+    # BLF header is rewritten in place.  A SIGKILL can cut a write(2) only between pages (the
     # kernel checks for it page by page), so no line and no container header is let
     # straddle a page boundary: a cut file still ends with whole lines, or with a
     # container whose headers are whole (its cut zlib stream yields every whole frame in
@@ -382,8 +387,7 @@ class TrafficLog(can.Listener):
 
     def _take_over_writes(self) -> bool:
         """Make python-can's ASC, candump or TRC writer format only; this class writes
-        the file (see above).  Another writer (MF4) is left alone: it writes the file when
-        it stops."""
+        the file (see above).  Another writer is left alone: it writes the file itself."""
         w = self._writer
         if isinstance(w, can.ASCWriter):
             # python-can (4.6) writes a date's milliseconds without leading zeros (".18"
