@@ -259,7 +259,7 @@ def format_report(plan: Plan, name: str) -> str:
     if "margin_statement" in r:
         rows.append(("margin", r["margin_statement"]))
     method = r.get("method")
-    if isinstance(method, dict) and not method.get("paper_family_follows", True):
+    if isinstance(method, dict):
         rows.append(("method", method["text"]))
     rows.append(("planning time", f"{r['plan_time_ms']:.1f} ms"))
     head = (

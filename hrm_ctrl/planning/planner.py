@@ -324,7 +324,7 @@ def plan_path(
                     f"(travel {fw.travel[k]:.1f} mm) the tip stays {off[bad[0]]:.1f} mm off "
                     "the path within the joint limits and the per-step change limit"
                 )
-    family = paper_family_report(model, fw, alpha, theta)
+    family = paper_family_report(model, fw, alpha, theta, choice)
     travel, iters, modal_a, seg = fw.travel, fw.iterations, fw.modal_a, fw.seg
     step_time = fw.step_time_s.copy()
     if refinement is not None:
@@ -507,12 +507,18 @@ def forward_configurations(
 
 
 def paper_family_report(
-    model: RobotModel, fw: _Forward, alpha: np.ndarray, theta: np.ndarray
+    model: RobotModel,
+    fw: _Forward,
+    alpha: np.ndarray,
+    theta: np.ndarray,
+    choice: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The report's ``method``: whether the paper's family (Sec. 3: the modal backbone,
-    joints on it) follows the path within the joint limits, and if not whether the plan
-    (``alpha, theta``, forward leg) goes beyond it: ``paper_family_follows``,
-    ``paper_family_failure`` (why not, or None), ``beyond_paper_family``, ``text``."""
+    joints on it, with the parameters planned with) follows the path within the joint
+    limits, and if not whether the plan (``alpha, theta``, forward leg) goes beyond it:
+    ``paper_family_follows``, ``paper_family_failure`` (why not, or None),
+    ``beyond_paper_family``, ``given_parameters_follow`` (with a search: whether the
+    given parameters' paper plan at the search's step kept the limits), ``text``."""
     reached = len(fw.travel) if fw.unreached is None else fw.unreached
     m = angle_margin(model, fw.alpha[:reached], fw.theta[:reached])
     failure: str | None = None
@@ -539,8 +545,24 @@ def paper_family_report(
         )
     within = bool(float(angle_margin(model, alpha, theta).min()) > 0.0)
     beyond = failure is not None and within
+    given_ok: bool | None = None
+    if choice is not None:
+        gm = choice.get("given_margin_deg")
+        given_ok = gm is not None and gm > 0.0
     if failure is None:
         text = "the paper's family (modal backbone, Sec. 3)"
+        if given_ok is False and choice is not None:
+            k, t = choice["start_angles_deg"]
+            text += (
+                f", with the searched parameters (start angles ({k:.1f}, {t:.1f}) deg, "
+                f"alpha_step {choice['alpha_step']:g}, joint-2 turn "
+                f"{choice['joint2_offset_deg']:.1f} deg): with the given ones it "
+                + (
+                    "cannot reach the path"
+                    if choice.get("given_margin_deg") is None
+                    else f"breaks the joint limits ({choice['given_margin_deg']:.1f} deg)"
+                )
+            )
     elif beyond:
         text = (
             f"beyond the paper's family: {failure}; all 24 angles fitted with the tip on "
@@ -552,6 +574,7 @@ def paper_family_report(
         "paper_family_follows": failure is None,
         "paper_family_failure": failure,
         "beyond_paper_family": beyond,
+        "given_parameters_follow": given_ok,
         "text": text,
     }
 
@@ -687,6 +710,9 @@ def choose_free_parameters(
         "alpha_step": chosen.alpha_step,
         "joint2_offset_deg": math.degrees(chosen.joint2_offset),
         "candidates": len(tried),
+        # the given parameters' paper plan at the search's step: its margin, None if the
+        # modal backbone could not follow the path
+        "given_margin_deg": tried[0].get("margin_deg"),
         "candidates_followed": len(ok),
         "score": best if math.isfinite(best) else None,
         "given_score": given if math.isfinite(given) else None,
