@@ -823,6 +823,11 @@ def margin_reason(plan: Plan, i: int, environment: Environment | None) -> str:
     target = plan.path.points_at(plan.travel[i : i + 1])[0]
     at = f"travel {plan.travel[i]:.1f} mm"
     free = math.degrees(best_margin_at(model, q, target, None, ro))
+    if free == -math.inf:
+        return (
+            f"the path forces it: a search finds no configuration within the joint limits "
+            f"with the tip on the path at {at}"
+        )
     if free < SAFE_MARGIN_DEG:
         return (
             f"the path forces it: with the tip on the path at {at} and every angle free "
