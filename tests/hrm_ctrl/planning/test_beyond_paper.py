@@ -53,7 +53,9 @@ def max_change_deg(plan) -> float:
 
 
 def tip_error(plan) -> float:
-    return float(np.linalg.norm(plan.joints[:, -1] - plan.path.points_at(plan.travel), axis=1).max())
+    return float(
+        np.linalg.norm(plan.joints[:, -1] - plan.path.points_at(plan.travel), axis=1).max()
+    )
 
 
 # pinned: the paper's fit breaks a joint for every alpha_step it suggests, and with the
@@ -100,7 +102,7 @@ def test_the_paper_alone_refuses_the_long_helix() -> None:
 
 def test_a_path_beyond_the_arm_is_refused_naming_where() -> None:
     """Beyond the arm's reach no fit helps: the tip cannot get there."""
-    path = KnownPath.from_points(np.array([A, A + [900.0, 0.0, 0.0]]))  # 2106 mm from O
+    path = KnownPath.from_points(np.array([A, A + np.array([900.0, 0.0, 0.0])]))  # 2106 mm from O
     with pytest.raises(UnreachableError, match="beyond the paper's family neither: from step"):
         plan_path(MODEL, path, PlanOptions(step=10.0, fit=FitMode.CLEARANCE))
 
@@ -124,7 +126,9 @@ def test_margin_by_default_on_generated_paths(kind, angle, side, pitch, radius) 
     if kind == "corner":
         a, s = math.radians(angle), math.radians(side)
         B = A + np.array([200.0, 0.0, 0.0])
-        C = B + 250.0 * np.array([math.cos(a), math.sin(a) * math.cos(s), math.sin(a) * math.sin(s)])
+        C = B + 250.0 * np.array(
+            [math.cos(a), math.sin(a) * math.cos(s), math.sin(a) * math.sin(s)]
+        )
         path = KnownPath.from_points(rounded_corner_path(A, B, C, 100.0)[0])
     else:
         path = helix(radius, pitch, 0.5)
@@ -134,7 +138,6 @@ def test_margin_by_default_on_generated_paths(kind, angle, side, pitch, radius) 
     if m >= SAFE_MARGIN_DEG:
         assert statement.startswith("joint-limit margin")
     else:  # names the joint and what binds it
-        assert statement.startswith("no plan with >= 3 deg") and "binds" in statement or (
-            "forces" in statement
-        )
+        assert statement.startswith("no plan with >= 3 deg")
+        assert "binds" in statement or "forces" in statement
     assert tip_error(plan) <= 0.01
