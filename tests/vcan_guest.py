@@ -248,6 +248,8 @@ def run_in_guest(item: pytest.Item) -> bool | None:
     else:
         for d in data:
             rep = item.config.hook.pytest_report_from_serializable(config=item.config, data=d)
+            if rep.skipped and isinstance(rep.longrepr, list):  # JSON made the tuple a list
+                rep.longrepr = tuple(rep.longrepr)
             _relay_stall_rerun(item.config, rep)
             ihook.pytest_runtest_logreport(report=rep)
     ihook.pytest_runtest_logfinish(nodeid=item.nodeid, location=item.location)
