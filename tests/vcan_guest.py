@@ -239,6 +239,9 @@ def run_in_guest(item: pytest.Item) -> bool | None:
         return None
     run = item.config.stash[GUEST]
     if run.proc is None:
+        # the fixtures the host's tests left set up (a box process of a module's other
+        # bus kind) would take the guest's CPU: the guest's items use none of them
+        item.session._setupstate.teardown_exact(None)
         run.start()
     ihook = item.ihook
     ihook.pytest_runtest_logstart(nodeid=item.nodeid, location=item.location)
