@@ -62,8 +62,15 @@ def _hrm(*args: str) -> list[str]:
 #: frames/s, 30-40 us per system call) the 36-motor box at 100 Hz (about 7,000 frames/s)
 #: does not fit and its bring-up's SDO answers came later than 0.5 s: over SocketCAN there
 #: the kill test runs the box at 10 Hz (about 1,100 frames/s with the heartbeats; TPDOs
-#: missing 5 cycles is the longest blind time a configuration may have) and 2 s SDO timeouts.
-GUEST_CONTROL = {"rate_hz": 10, "missing_tpdo_cycles": 5, "sdo_timeout_s": 2.0}
+#: missing 5 cycles is the longest blind time a configuration may have), with 2 s SDO
+#: timeouts and ``hrm run``'s threads under ``SCHED_FIFO`` 20 (at normal scheduling they
+#: waited long enough for the drives to miss the host's heartbeat).
+GUEST_CONTROL = {
+    "rate_hz": 10,
+    "missing_tpdo_cycles": 5,
+    "sdo_timeout_s": 2.0,
+    "realtime_priority": 20,
+}
 
 
 def _write_box_toml(path: Path, kind: str) -> Path:
