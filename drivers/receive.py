@@ -37,9 +37,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import can
 import canopen
@@ -57,6 +57,67 @@ MAX_TRACKED_IDS = 2048  # identifiers counted per kind (29-bit ids could be 2**2
 SMALL_BATCH_FRAMES = 2
 _TABLE_SIZE = 0x801  # 11-bit COB-IDs, and one entry for every flagged (29-bit, RTR, error) id
 log = logging.getLogger("drivers.receive")
+
+
+class FrameSink(Protocol):
+    """What a bus's receive path hands its frames to (a :class:`BusReceiver`)."""
+
+    def on_message_received(self, msg: can.Message) -> None: ...
+
+
+@runtime_checkable
+class BatchSink(FrameSink, Protocol):
+    """A :class:`FrameSink` that also takes a batch of received frames as it is (a
+    :data:`drivers.protocol.batch.FRAME_DTYPE` array: :meth:`BusReceiver.on_batch`)."""
+
+    def on_batch(self, frames: np.ndarray) -> None: ...
+
+
+@runtime_checkable
+class BatchReceivingBus(Protocol):
+    """A bus that hands over whole datagrams of frames as record arrays, with whether they
+    were received (``False``: our own, ``receive_own_messages``) (``hrm_ipc``)."""
+
+    def recv_batches(
+        self, timeout: float | None = None, max_frames: int = ...
+    ) -> Sequence[tuple[np.ndarray, bool]]: ...
+
+
+def receive_of(bus: can.BusABC) -> Callable[[float], can.Message | None]:
+    """The bus's receive: python-can's ``BusABC.recv`` wraps the interface's
+    ``_recv_internal`` with filtering and a log call per frame; a bus that
+    :func:`reads_internally` is read through ``_recv_internal`` directly (the same
+    frames, without that per-frame work)."""
+    if not reads_internally(bus):
+        return bus.recv
+    internal = bus._recv_internal
+
+    def recv(timeout_s: float) -> can.Message | None:
+        msg, _filtered = internal(timeout_s)
+        return msg
+
+    return recv
+
+
+def reads_internally(bus: can.BusABC) -> bool:
+    """Whether a bus may be read through its interface's ``_recv_internal`` (python-can's
+    hook for interfaces) in place of ``recv``: it implements the hook, does not override
+    ``recv``, and has no filters (``recv`` applies them).
+
+    >>> bus = can.Bus(interface="virtual", channel="doc-internal")
+    >>> reads_internally(bus)
+    True
+    >>> bus.set_filters([{"can_id": 0x181, "can_mask": 0x7FF}])
+    >>> reads_internally(bus)
+    False
+    >>> bus.shutdown()
+    """
+    kind = type(bus)
+    return (
+        kind.recv is can.BusABC.recv
+        and kind._recv_internal is not can.BusABC._recv_internal
+        and not bus.filters
+    )
 
 
 def service_of(cob_id: int) -> str:
@@ -434,7 +495,7 @@ class BusReader:
     """
 
     def __init__(
-        self, bus: can.BusABC, receiver: Any, name: str, timeout_s: float = RECV_TIMEOUT_S
+        self, bus: can.BusABC, receiver: FrameSink, name: str, timeout_s: float = RECV_TIMEOUT_S
     ) -> None:
         self.bus = bus
         self.receiver = receiver
@@ -446,24 +507,7 @@ class BusReader:
         self._thread.start()
 
     def _recv(self) -> Callable[[float], can.Message | None]:
-        """The bus's receive: python-can's ``BusABC.recv`` wraps the interface's
-        ``_recv_internal`` with filtering and a log call per frame; a bus without
-        filters that does not override ``recv`` is read through ``_recv_internal``
-        directly (the same frames, without that per-frame work)."""
-        bus = self.bus
-        internal = getattr(bus, "_recv_internal", None)
-        if (
-            type(bus).recv is not can.BusABC.recv
-            or getattr(bus, "_filters", None)
-            or not callable(internal)
-        ):
-            return bus.recv
-
-        def recv(timeout_s: float) -> can.Message | None:
-            msg, _filtered = internal(timeout_s)
-            return msg
-
-        return recv
+        return receive_of(self.bus)
 
     def _run(self) -> None:
         recv = self._recv()
@@ -555,22 +599,22 @@ class BusPoller:
     #: hold the control cycle)
     MAX_FRAMES_PER_POLL = 512
 
-    def __init__(self, bus: can.BusABC, receiver: Any, name: str) -> None:
+    def __init__(self, bus: can.BusABC, receiver: FrameSink, name: str) -> None:
         self.bus = bus
         self.receiver = receiver
         self.name = f"hrm-rx-{name}"
         self._fd = bus.fileno()
-        self._recv = BusReader._recv(self)  # type: ignore[arg-type]
+        self._recv = receive_of(bus)
         # a bus that hands over whole datagrams (hrm_ipc), unfiltered, to a receiver that
         # takes batches: no Python object per frame
-        batch = getattr(bus, "recv_batches", None)
-        self._recv_batch = (
-            batch
-            if callable(batch)
-            and not getattr(bus, "_filters", None)
-            and callable(getattr(receiver, "on_batch", None))
-            else None
-        )
+        self._recv_batch: Callable[[float, int], Sequence[tuple[np.ndarray, bool]]] | None = None
+        self._on_batch: Callable[[np.ndarray], None] | None = None
+        if (
+            isinstance(bus, BatchReceivingBus)
+            and not bus.filters
+            and isinstance(receiver, BatchSink)
+        ):
+            self._recv_batch, self._on_batch = bus.recv_batches, receiver.on_batch
         self._exception: BaseException | None = None
         self._stopped = False
         self.n_frames = 0
@@ -587,11 +631,12 @@ class BusPoller:
         handle = self.receiver.on_message_received
         n = 0
         try:
-            if self._recv_batch is not None:  # what is queued, after one wait
-                for frames, is_rx in self._recv_batch(0.0, self.MAX_FRAMES_PER_POLL):
+            recv_batch, on_batch = self._recv_batch, self._on_batch
+            if recv_batch is not None and on_batch is not None:  # what is queued, one wait
+                for frames, is_rx in recv_batch(0.0, self.MAX_FRAMES_PER_POLL):
                     n += len(frames)
                     if is_rx:
-                        self.receiver.on_batch(frames)
+                        on_batch(frames)
                     else:  # our own frames (receive_own_messages): the echo path
                         for msg in to_messages(frames, channel=self.bus.channel, is_rx=False):
                             handle(msg)

@@ -1,7 +1,8 @@
-"""Limit checks of what is sent to a motor: the rope layer's limits (the
-:class:`LimitChecker` protocol the rope layer's ``Actuation`` satisfies), the motors'
-acceleration (second differences of the counts), the joint limits of counts mapped back
-to angles, and the longest run a source may ask for.
+"""Limit checks of what is sent to a motor: the rope layer's limits (a
+:class:`~drivers.rope_model.MotorLimits`, e.g. the rope layer's ``Actuation``), the
+motors' acceleration (second differences of the counts), the joint limits of counts
+mapped back to angles and the rope tensions of a move (a
+:class:`~drivers.rope_model.RopeModel`), and the longest run a source may ask for.
 
 Nothing outside these limits is ever sent: the setpoint sources check their whole
 table before a stream starts, and the control loop checks every setpoint again
@@ -12,10 +13,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
+from drivers.rope_model import ArmRopeModel, MotorLimits, RopeModel
 from hrm_ctrl.errors import DriverError, HrmError
 
 
@@ -40,47 +42,27 @@ def check_duration(what: str, duration_s: float, period_s: float) -> None:
         )
 
 
-def maps_joints(actuation: Any) -> bool:
-    """The rope layer (or the full one of a motor subset) maps counts to joint angles."""
-    full = getattr(actuation, "full", actuation)
-    return hasattr(actuation, "angles_from_counts") or (
-        hasattr(full, "angles_from_counts") and hasattr(actuation, "columns")
-    )
-
-
 MOVE_CHECK_MAX_ROWS = 400  # rows of a move mapped through the rope model, at most
 # a rope outside the band where a move starts may go this much further out on the way
 # (the rope model's noise along a path: 1 count is 0.027 N on the shortest rope)
 TENSION_SLACK_N = 0.1
 
 
-def check_joint_limits(actuation: Any, counts: np.ndarray, what: str) -> None:
-    """Map a (rows, motors) table of counts through the rope layer's
+def check_joint_limits(model: RopeModel, counts: np.ndarray, what: str) -> None:
+    """Map a (rows, motors) table of counts through the rope model's
     ``angles_from_counts`` and refuse (:class:`SetpointError`, one line) when the joint
-    angles leave the joint limits.
-
-    ``actuation`` is the rope layer or an ``ActuationSubset`` (``full`` + ``columns``:
-    the other motors are taken at 0 counts, clipped to their limits)."""
-    full = actuation
+    angles leave the joint limits (a motor subset: its other motors held still)."""
     table = np.atleast_2d(np.asarray(counts, dtype=np.int64))
-    if not hasattr(full, "angles_from_counts"):
-        full = getattr(actuation, "full", None)
-        cols = getattr(actuation, "columns", None)
-        if full is None or cols is None or not hasattr(full, "angles_from_counts"):
-            raise SetpointError(f"{what}: the rope layer cannot map counts to joint angles")
-        fill = np.clip(0, full.counts_min, full.counts_max).astype(np.int64)
-        expanded = np.repeat(fill[None, :], table.shape[0], axis=0)
-        expanded[:, cols] = table
-        table = expanded
     try:
-        alpha, theta, _res = full.angles_from_counts(table)
-        full.check_angles(alpha, theta)
+        alpha, theta, _res = model.angles_from_counts(table)
+        model.check_angles(alpha, theta)
     except HrmError as exc:
         raise SetpointError(f"{what}: leaves the joint limits ({exc})") from None
 
 
 def sampled_rows(n_rows: int, max_rows: int = MOVE_CHECK_MAX_ROWS) -> np.ndarray:
-    """At most ``max_rows`` evenly spread row indices of a table, first and last included.
+    """At most ``max_rows`` evenly spread row indices of a table, first and last included
+    (the rows of a move the rope model judges: :func:`check_move`, a jog's angles).
 
     >>> sampled_rows(5).tolist(), sampled_rows(1000, 4).tolist()
     ([0, 1, 2, 3, 4], [0, 333, 666, 999])
@@ -90,7 +72,7 @@ def sampled_rows(n_rows: int, max_rows: int = MOVE_CHECK_MAX_ROWS) -> np.ndarray
 
 
 def check_move(
-    actuation: Any,
+    model: RopeModel,
     counts: np.ndarray,
     what: str,
     poses: tuple[np.ndarray, np.ndarray] | None = None,
@@ -101,25 +83,24 @@ def check_move(
     starts with where the drives are now (not judged) and goes on with the move's rows
     (at most :data:`MOVE_CHECK_MAX_ROWS` of them, evenly spread, are mapped).
 
-    Without ``poses`` the rows' joint angles are the rope inverse's of their counts
-    (started from ``warm``, (12,) alpha and theta, e.g. where the arm is, else cold), and
-    an angle at or past its limit is refused only where the move takes it further out
-    than it starts (near the joint-range corners the counts hardly tell the angles apart:
-    an arm at 58 deg can decode at 60.7); with ``poses`` (the configurations the rows were
-    made from, (rows, 12) alpha and theta, e.g. a joint line's) they are those, their
-    whole counts judged as a plan's are (``rounded_outside``), and the tensions are
-    those with the arm held there (``tensions_at``).  Refused with one line
-    (:class:`SetpointError`, naming the cycle of the move) when a row's joint angles
-    leave the joint limits, no pose fits a row, or, with the
-    whole rope layer (it has ``tensions_from_counts``), a rope's modelled tension leaves
-    the rope layer's ``command_tension_N`` band: counts that no pose of the arm takes up
-    at its pretension strain or slacken ropes (a straight line in counts between two
-    bent poses, one rope moved alone).  A rope outside the band where the move starts
-    may stay outside it, but no row takes it more than :data:`TENSION_SLACK_N` further
-    out and the move does not end further out than it started (moves one after another
-    cannot creep out of the band).  A motor
-    subset (``ActuationSubset``) gets the joint limits only: the other ropes are not
-    commanded, so their tensions are unknown.
+    Without ``poses`` the rows' joint angles are the rope inverse's of their counts (started
+    from ``warm``, (n_joints,) alpha and theta, e.g. where the arm is, else cold), and an
+    angle at or past its limit is refused only where the move takes it further out than it
+    starts (near the joint-range corners the counts hardly tell the angles apart: an arm at
+    58 deg can decode at 60.7); with ``poses`` (the configurations the rows were made from,
+    (rows, n_joints) alpha and theta, e.g. a joint line's) they are those, their whole
+    counts judged as a plan's are (``rounded_outside``), and the tensions are those with the
+    arm held there (``tensions_at``).  Refused with one line (:class:`SetpointError`, naming
+    the cycle of the move) when a row's joint angles leave the joint limits, no pose fits a
+    row, or, with the whole rope layer (its
+    :attr:`~drivers.rope_model.RopeModel.whole_arm`), a rope's modelled tension leaves the
+    rope layer's ``command_tension_N`` band: counts that no pose of the arm takes up at its
+    pretension strain or slacken ropes (a straight line in counts between two bent poses,
+    one rope moved alone).  A rope outside the band where the move starts may stay outside
+    it, but no row takes it more than :data:`TENSION_SLACK_N` further out and the move does
+    not end further out than it started (moves one after another cannot creep out of the
+    band).  A motor subset (``ActuationSubset``, no ``whole_arm``) gets the joint limits
+    only: the other ropes are not commanded, so their tensions are unknown.
 
     >>> from hrm_ctrl.model import default_robot
     >>> from hrm_ctrl.ropes.actuation import load_actuation
@@ -135,25 +116,37 @@ def check_move(
     if table.shape[0] < 2:
         return
     rows = sampled_rows(table.shape[0])
-    tensions = getattr(actuation, "tensions_from_counts", None)
-    if tensions is None:  # a motor subset
-        check_joint_limits(actuation, table[rows][1:], what)
+    arm = model.whole_arm
+    if arm is None:  # a motor subset
+        check_joint_limits(model, table[rows][1:], what)
         return
+    _check_arm_move(arm, table, rows, what, poses, warm)
+
+
+def _check_arm_move(
+    arm: ArmRopeModel,
+    table: np.ndarray,
+    rows: np.ndarray,
+    what: str,
+    poses: tuple[np.ndarray, np.ndarray] | None,
+    warm: tuple[np.ndarray, np.ndarray] | None,
+) -> None:
+    """:func:`check_move` with the whole arm's rope model, of the ``rows`` of ``table``."""
     n = table.shape[0] - 1
-    lim_a, lim_t = actuation.robot.limit_alpha, actuation.robot.limit_theta
+    lim_a, lim_t = arm.limit_alpha, arm.limit_theta
     if poses is None:  # the rows' poses are what the rope inverse makes of their counts
         try:
-            alpha, theta, T = tensions(table[rows], *(warm or (None, None)))
+            alpha, theta, T = arm.tensions_from_counts(table[rows], *(warm or (None, None)))
         except HrmError as exc:
             raise SetpointError(f"{what}: no pose of the arm fits its counts ({exc})") from None
     else:  # the rows were made from these poses: judged as a plan's rows are
         alpha, theta = poses[0][rows], poses[1][rows]
-        near = actuation.rounded_outside(table[rows][1:], alpha[1:], theta[1:])
+        near = arm.rounded_outside(table[rows][1:], alpha[1:], theta[1:])
         if near is not None:
             raise SetpointError(
                 f"{what}: cycle {int(rows[near[0] + 1])} of {n}: rounded to whole counts: {near[1]}"
             )
-        T = actuation.tensions_at(table[rows], alpha, theta)  # the arm held at its poses
+        T = arm.tensions_at(table[rows], alpha, theta)  # the arm held at its poses
     past_a, past_t = np.abs(alpha) >= lim_a, np.abs(theta) >= lim_t
     if poses is None:  # a decoded angle past its limit counts where the move takes it out
         past_a &= np.abs(alpha) > np.abs(alpha[0]) + 1e-9
@@ -163,12 +156,12 @@ def check_move(
     if outside.any():
         k = int(np.flatnonzero(outside)[0])
         try:
-            actuation.check_angles(alpha[k], theta[k])
+            arm.check_angles(alpha[k], theta[k])
         except HrmError as exc:
             raise SetpointError(
                 f"{what}: cycle {int(rows[k])} of {n}: leaves the joint limits ({exc})"
             ) from None
-    low, high = actuation.routing.command_tension_N
+    low, high = arm.command_tension_N
     start = T[0]
     floor = np.minimum(start, low)  # a rope may not go below the band, or below its start
     ceiling = np.maximum(start, high)
@@ -181,76 +174,46 @@ def check_move(
         r, m = (int(v) for v in np.argwhere(bad)[0])
         side = f"below {low:g} N" if below[r, m] else f"above {high:g} N"
         raise SetpointError(
-            f"{what}: cycle {int(rows[r])}: rope {actuation.motor_ids[m]}: the rope model's "
+            f"{what}: cycle {int(rows[r])}: rope {arm.motor_ids[m]}: the rope model's "
             f"tension {T[r, m]:.2f} N, {side} (command_tension_N of the robot description; "
             f"{start[m]:.2f} N now)"
         )
 
 
-class LimitChecker(Protocol):
-    """What the sources need from the rope layer's ``Actuation`` (its
-    ``max_accel_counts_per_s2`` and ``max_jerk_counts_per_s3`` too: read through
-    :func:`accel_limits` and :func:`jerk_limits`, which also take them from the full rope
-    layer of a motor subset)."""
-
-    counts_min: np.ndarray
-    counts_max: np.ndarray
-    max_rate_counts_per_s: np.ndarray
-    motor_ids: tuple[str, ...]
-
-    def check_counts(
-        self, counts: Any, previous: Any = None, dt_s: float | None = None
-    ) -> None: ...
-
-    def counts_from_angles(self, alpha: Any, theta: Any, tension_N: Any = None) -> np.ndarray: ...
-
-
-# A checker without acceleration limits (a test double, say) gets these: full speed in
+# Limits without acceleration limits (a test double, say) get these: full speed in
 # 0.2 s and full acceleration in 0.05 s, the rope layer's default ratios.
 FALLBACK_ACCEL_TIME_S = 0.2
 FALLBACK_JERK_TIME_S = 0.05
 
 
-def _limit_of(limits: Any, name: str) -> np.ndarray | None:
-    value = getattr(limits, name, None)
-    if value is None:  # a subset of the rope motors: the full rope layer's, sliced
-        full, cols = getattr(limits, "full", None), getattr(limits, "columns", None)
-        if full is not None and cols is not None and getattr(full, name, None) is not None:
-            value = np.asarray(getattr(full, name))[np.asarray(cols)]
-    return None if value is None else np.asarray(value, dtype=np.float64)
-
-
-def accel_limits(limits: Any, *, fallback: bool = True) -> np.ndarray | None:
-    """The motors' acceleration limits (counts/s^2) of a checker; without any, ``None``
+def accel_limits(limits: MotorLimits, *, fallback: bool = True) -> np.ndarray | None:
+    """The motors' acceleration limits (counts/s^2); without any (``None``), ``None``
     or (``fallback``) full speed in :data:`FALLBACK_ACCEL_TIME_S`.
 
     >>> class Lim:
-    ...     max_rate_counts_per_s = np.array([1000.0])
+    ...     max_rate_counts_per_s = np.array([1000.0]); max_accel_counts_per_s2 = None
     >>> accel_limits(Lim()).tolist(), accel_limits(Lim(), fallback=False)
     ([5000.0], None)
     """
-    a = _limit_of(limits, "max_accel_counts_per_s2")
-    if a is None and fallback:
-        a = np.asarray(limits.max_rate_counts_per_s, dtype=np.float64) / FALLBACK_ACCEL_TIME_S
-    return a
+    a = limits.max_accel_counts_per_s2
+    if a is not None:
+        return np.asarray(a, dtype=np.float64)
+    if not fallback:
+        return None
+    return np.asarray(limits.max_rate_counts_per_s, dtype=np.float64) / FALLBACK_ACCEL_TIME_S
 
 
-def jerk_limits(limits: Any) -> np.ndarray:
-    """The motors' jerk limits (counts/s^3) of a checker (fallback: full acceleration in
-    :data:`FALLBACK_JERK_TIME_S`)."""
-    j = _limit_of(limits, "max_jerk_counts_per_s3")
-    if j is None:
-        j = np.asarray(accel_limits(limits), dtype=np.float64) / FALLBACK_JERK_TIME_S
-    return j
-
-
-def _motor_name(limits: Any, i: int) -> str:
-    label = getattr(limits, "motor_label", None)
-    return str(label(i)) if callable(label) else str(limits.motor_ids[i])
+def jerk_limits(limits: MotorLimits) -> np.ndarray:
+    """The motors' jerk limits (counts/s^3); without any (``None``), full acceleration
+    (:func:`accel_limits`) in :data:`FALLBACK_JERK_TIME_S`."""
+    j = limits.max_jerk_counts_per_s3
+    if j is not None:
+        return np.asarray(j, dtype=np.float64)
+    return np.asarray(accel_limits(limits), dtype=np.float64) / FALLBACK_JERK_TIME_S
 
 
 def first_too_hard(
-    limits: Any, table: np.ndarray, period_s: float, previous: np.ndarray | None = None
+    limits: MotorLimits, table: np.ndarray, period_s: float, previous: np.ndarray | None = None
 ) -> tuple[int, int, float] | None:
     """The first (row, motor, counts/s^2) whose second difference exceeds the motor's
     acceleration limit (``|r[k] - 2 r[k-1] + r[k-2]| / T**2``), or None.  With
@@ -259,6 +222,7 @@ def first_too_hard(
 
     >>> class Lim:
     ...     max_accel_counts_per_s2 = np.array([4.0]); motor_ids = ("m0",)
+    ...     def motor_label(self, i): return self.motor_ids[i]
     >>> first_too_hard(Lim(), np.array([[0], [1], [4]]), 0.5, previous=np.array([0]))
     (2, 0, 8.0)
     >>> first_too_hard(Lim(), np.array([[0], [1], [2]]), 0.5, previous=np.array([0])) is None
@@ -283,7 +247,7 @@ def first_too_hard(
 
 
 def check_acceleration(
-    limits: Any,
+    limits: MotorLimits,
     table: np.ndarray,
     period_s: float,
     previous: np.ndarray | None = None,
@@ -296,6 +260,7 @@ def check_acceleration(
 
     >>> class Lim:
     ...     max_accel_counts_per_s2 = np.array([4.0]); motor_ids = ("m0",)
+    ...     def motor_label(self, i): return self.motor_ids[i]
     >>> check_acceleration(Lim(), np.array([[5]]), 0.5, previous=np.array([0]))
     ... # doctest: +ELLIPSIS
     Traceback (most recent call last):
@@ -310,12 +275,12 @@ def check_acceleration(
     raise SetpointError(f"{where}: {acceleration_text(limits, i, acc)}")
 
 
-def acceleration_text(limits: Any, i: int, acc: float) -> str:
+def acceleration_text(limits: MotorLimits, i: int, acc: float) -> str:
     """``motor m0: accelerates 500 counts/s^2, more than the motor's 100 counts/s^2``."""
     a = accel_limits(limits)
     lim = float(np.asarray(a)[i])
     return (
-        f"motor {_motor_name(limits, i)}: accelerates {acc:.0f} counts/s^2, more than the "
+        f"motor {limits.motor_label(i)}: accelerates {acc:.0f} counts/s^2, more than the "
         f"motor's {lim:.0f} counts/s^2"
     )
 
@@ -350,7 +315,7 @@ def _largest_step(
 class CycleLimits:
     """The control loop's check of one setpoint: position, speed (from ``previous``) and
     acceleration (the second difference with ``before``, one period earlier), built once
-    from a :class:`LimitChecker` and the control period.
+    from a :class:`~drivers.rope_model.MotorLimits` and the control period.
 
     :meth:`check` first runs a cheap test on precomputed whole-count bounds per motor
     (:meth:`passes`: a handful of NumPy calls on int64 work buffers); only a setpoint it
@@ -362,18 +327,20 @@ class CycleLimits:
 
     It trusts the protocol: ``check_counts`` refuses a setpoint outside
     ``counts_min``/``counts_max`` or moving faster than ``max_rate_counts_per_s``, and
-    nothing else for a single int64 setpoint.  A checker without those attributes, with
-    other shapes, or a period that is not a positive number, gets the slow path only; one
-    without acceleration limits (:func:`accel_limits`) skips that part, as the slow path
-    does.  Only targets, previous and before that are int64 arrays of one setpoint take
-    the fast test.  The work buffers make an instance thread-confined (the supervisor's
-    thread).
+    nothing else for a single int64 setpoint.  Limits of other shapes, not numbers (NaN:
+    a double without rate limits, say), or a period that is not a positive number, get
+    the slow path only; limits without acceleration limits (:func:`accel_limits`) skip
+    that part, as the slow path does.  Only targets, previous and before that are int64
+    arrays of one setpoint take the fast test.  The work buffers make an instance
+    thread-confined (the supervisor's thread).
 
     >>> class Lim:
     ...     motor_ids = ("m0", "m1")
     ...     counts_min = np.array([-100, -100]); counts_max = np.array([100, 100])
     ...     max_rate_counts_per_s = np.array([1000.0, 1000.0])  # 10 counts a period
     ...     max_accel_counts_per_s2 = np.array([5e4, 5e4])  # 5 counts a period^2
+    ...     max_jerk_counts_per_s3 = None
+    ...     def motor_label(self, i): return self.motor_ids[i]
     ...     def check_counts(self, counts, previous=None, dt_s=None):
     ...         if np.any(np.abs(counts) > 100): raise SetpointError("outside [-100, 100]")
     >>> cyc = CycleLimits(Lim(), 0.01)
@@ -394,7 +361,7 @@ class CycleLimits:
     drivers.safety.limits.SetpointError: outside [-100, 100]
     """
 
-    def __init__(self, limits: LimitChecker, period_s: float) -> None:
+    def __init__(self, limits: MotorLimits, period_s: float) -> None:
         self.limits = limits
         self.period_s = float(period_s)
         self.accel = accel_limits(limits, fallback=False)  # counts/s^2, or None
@@ -426,8 +393,8 @@ class CycleLimits:
         """Fill lo, hi, step, second and ``fast`` (left off when anything is amiss)."""
         lim = self.limits
         T = self.period_s
-        raw = [getattr(lim, a, None) for a in ("counts_min", "counts_max", "max_rate_counts_per_s")]
-        if any(r is None for r in raw) or not (math.isfinite(T) and T > 0):
+        raw = [lim.counts_min, lim.counts_max, lim.max_rate_counts_per_s]
+        if not (math.isfinite(T) and T > 0):
             return
         cmin, cmax, rate = (np.asarray(r) for r in raw)
         try:
@@ -435,12 +402,12 @@ class CycleLimits:
         except (TypeError, ValueError):
             return
         n = cmin_f.shape[0] if cmin_f.ndim == 1 else -1
-        shapes = [cmax_f.shape, rate_f.shape, (len(getattr(lim, "motor_ids", ())),)]
+        shapes = [cmax_f.shape, rate_f.shape, (len(lim.motor_ids),)]
         if self.accel is not None:
             shapes.append(self.accel.shape)
         if n < 1 or any(s != (n,) for s in shapes):
             return
-        if np.isnan(cmin_f).any() or np.isnan(cmax_f).any():
+        if np.isnan(cmin_f).any() or np.isnan(cmax_f).any() or np.isnan(rate_f).any():
             return
         lo = np.clip(np.ceil(cmin_f), -_FAST_EDGE, _FAST_EDGE + 1).astype(np.int64)
         hi = np.clip(np.floor(cmax_f), -_FAST_EDGE - 1, _FAST_EDGE).astype(np.int64)

@@ -62,10 +62,13 @@ class RopeCheck(Protocol):
 
     Called with the actual counts of one SYNC (n,) and the counts the drives were
     commanded to hold at it (n,) or None; returns a one-line fault naming the joint and
-    rope(s), or None.  ``hrm_ctrl.ropes.estimator.RopeConsistencyCheck`` is one.
+    rope(s), or None.  Its summary goes into the rope watch's (the run record).
+    ``hrm_ctrl.ropes.estimator.RopeConsistencyCheck`` is one.
     """
 
     def __call__(self, counts: np.ndarray, reference: np.ndarray | None) -> str | None: ...
+
+    def summary(self) -> dict[str, Any]: ...
 
 
 class Watch(Protocol):
@@ -220,10 +223,8 @@ class RopeWatch:
                 "max": round(float(cpu.max()), 3),
             },
             "fault": self.fault,
+            "check": self.check.summary(),
         }
-        more = getattr(self.check, "summary", None)
-        if callable(more):
-            out["check"] = more()
         return out
 
 

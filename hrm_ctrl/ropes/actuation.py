@@ -86,6 +86,9 @@ class Actuation:
     ``counts_max`` (int64 software position limits), ``max_rate_counts_per_s``,
     ``max_accel_counts_per_s2`` and ``max_jerk_counts_per_s3`` (per motor).
     Extra: ``routing``, ``geometry``, ``motors`` (conversion constants).
+
+    It is the drivers' whole rope model: it implements ``drivers.rope_model.ArmRopeModel``
+    (and so ``RopeModel`` and ``MotorLimits``) structurally, every member typed there.
     """
 
     robot: RobotModel
@@ -109,6 +112,33 @@ class Actuation:
     @property
     def n_motors(self) -> int:
         return len(self.motor_ids)
+
+    @property
+    def n_joints(self) -> int:
+        """Universal joints of the arm (the robot's)."""
+        return self.robot.n_joints
+
+    @property
+    def limit_alpha(self) -> float:
+        """|alpha| of every joint stays below this (rad, the robot's)."""
+        return self.robot.limit_alpha
+
+    @property
+    def limit_theta(self) -> float:
+        """|theta| of every joint stays below this (rad, the robot's)."""
+        return self.robot.limit_theta
+
+    @property
+    def command_tension_N(self) -> tuple[float, float]:
+        """``(low, high)``: the band a commanded move keeps the modelled tensions in (the
+        routing's ``command_tension_N``)."""
+        return self.routing.command_tension_N
+
+    @property
+    def whole_arm(self) -> Actuation:
+        """The rope model of the whole arm: this one (every rope is commanded; a motor
+        subset, ``drivers.safety.subset.ActuationSubset``, has none)."""
+        return self
 
     def motor_label(self, i: int) -> str:
         """``"j05r2 (joint 5, rope 2)"`` for motor index i."""

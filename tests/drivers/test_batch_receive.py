@@ -262,3 +262,36 @@ def test_a_supervisor_woken_late_reads_what_arrived_before_it_judges_the_cycle(
         box.shutdown()
         bus.shutdown()
         log.stop()
+
+
+def test_the_batch_paths_are_taken_by_what_the_bus_and_receiver_are(tmp_path: Path) -> None:
+    """The kinds of bus and receiver that move batches are Protocols (no probing):
+    ``hrm_ipc`` sends and receives batches, python-can's virtual bus does neither; the
+    port hands records to a bus that takes them unless it must tell echoes apart; the
+    poller takes the batch path only with a filterless batch bus and a batch receiver."""
+    from drivers.bus import BatchSendingBus, BusPort, RecordSendingBus
+    from drivers.receive import BatchReceivingBus, BatchSink, FrameSink
+
+    a, b = open_ends("batch-kinds", 2, tmp_path)
+    virtual = can.Bus(interface="virtual", channel="batch-kinds")
+    try:
+        assert isinstance(a, RecordSendingBus) and isinstance(a, BatchReceivingBus)
+        assert not isinstance(virtual, BatchSendingBus | BatchReceivingBus)
+        assert BusPort("p", a)._records is a and BusPort("p", a, echoes=True)._records is None
+        assert BusPort("p", a, echoes=True)._many is a and BusPort("p", virtual)._many is None
+        _bus, log, _port, _mon, rx, _net, _reports = rig(tmp_path)
+        assert isinstance(rx, BatchSink)
+
+        class Frames:
+            def on_message_received(self, msg: can.Message) -> None: ...
+
+        sink: FrameSink = Frames()
+        assert BusPoller(b, rx, "b")._recv_batch is not None
+        assert BusPoller(b, sink, "b")._recv_batch is None
+        b.set_filters([{"can_id": 0x181, "can_mask": 0x7FF}])
+        assert BusPoller(b, rx, "b")._recv_batch is None
+        _bus.shutdown()
+        log.stop()
+    finally:
+        for bus in (a, b, virtual):
+            bus.shutdown()

@@ -1,5 +1,5 @@
 """The lean control cycle (issue 13 item 1): the short receive path, the bus reader, the
-BLF fast path, batched sends, RPDO frames, the lean watchdog check.  Each is checked
+BLF log, batched sends, RPDO frames, the lean watchdog check.  Each is checked
 against the slower path it replaces: same bytes, same frames, same causes."""
 
 from __future__ import annotations
@@ -24,41 +24,6 @@ from drivers.safety.supervisor import Mode
 from drivers.sources import HoldSource
 
 WAIT_S = 5.0  # generous: only a bound on a wait that normally takes microseconds
-
-
-def frames_for_blf() -> list[can.Message]:
-    t0 = 1_700_000_000.25
-    return [
-        can.Message(timestamp=t0, arbitration_id=0x181, data=b"\x37\x02\x10\x27\x00\x00",
-                    is_extended_id=False, channel=0),
-        can.Message(timestamp=t0 + 0.001, arbitration_id=0x201, data=b"\x0f\x00\x01\x02\x03\x04",
-                    is_extended_id=False, is_rx=False, channel=0),
-        can.Message(timestamp=t0 + 0.002, arbitration_id=0x080, data=b"", is_extended_id=False,
-                    is_rx=False, channel=1),
-        can.Message(timestamp=t0 + 0.003, arbitration_id=0x701, is_remote_frame=True, dlc=1,
-                    is_extended_id=False, channel="can1"),
-        can.Message(timestamp=t0 + 0.004, arbitration_id=0x1ABCDE, data=bytes(range(8)),
-                    is_extended_id=True, channel=None),
-        can.Message(timestamp=t0 + 0.005, is_error_frame=True, channel=0),
-        can.Message(timestamp=t0 - 0.5, arbitration_id=0x7FF, data=b"\x05", is_extended_id=False,
-                    channel="virtual"),  # before the start: time 0, as python-can writes it
-    ]  # fmt: skip
-
-
-def test_blf_fast_path_writes_the_bytes_python_can_writes(tmp_path: Path) -> None:
-    written = []
-    for k, fast in enumerate((False, True)):
-        w = can.BLFWriter(str(tmp_path / f"w{k}.blf"))
-        w.start_timestamp = w.stop_timestamp = 1_700_000_000.0
-        w.max_container_size = 1 << 62
-        write = TrafficLog._blf_fast(SimpleNamespace(_writer=w)) if fast else w.on_message_received  # type: ignore[arg-type]
-        for m in frames_for_blf():
-            write(m)
-        written.append((b"".join(w._buffer), w._buffer_size, w.object_count, w.stop_timestamp))
-        w._buffer = []
-        w.stop()
-    assert written[0] == written[1]
-    assert written[0][2] == len(frames_for_blf())
 
 
 def test_a_blf_log_reads_back_every_frame_with_its_direction(tmp_path: Path) -> None:

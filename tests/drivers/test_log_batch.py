@@ -1,6 +1,6 @@
 """Batches in the CAN log (``TrafficLog.log_batch``): a batch is queued as one entry, in
 order with the single frames around it; a BLF log packs it with NumPy into the same bytes
-python-can (and the per-frame path) writes; every format reads it back; the counters count
+the per-frame path (and python-can) writes; every format reads it back; the counters count
 every frame of it."""
 
 from __future__ import annotations
@@ -117,8 +117,8 @@ def test_a_batch_packs_the_same_blf_objects_as_its_frames_one_by_one(
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         with drained_here(d / "frames.blf") as one, drained_here(d / "batches.blf") as many:
-            start = one._writer.start_timestamp
-            many._writer.start_timestamp = many._writer.stop_timestamp = start
+            start = one._blf.start_s
+            many._blf.start_s = many._blf.stop_s = start
             t0 = start - before_start
             for rs, is_rx, _ in traffic:
                 frames = batch(rs, t0)
@@ -126,10 +126,10 @@ def test_a_batch_packs_the_same_blf_objects_as_its_frames_one_by_one(
                 hand_over(many, frames, is_rx, as_batch=True)
             one._drain()
             many._drain()
-            w1, w2 = one._writer, many._writer
-            assert b"".join(w2._buffer) == b"".join(w1._buffer)
-            assert (w2._buffer_size, w2.object_count) == (w1._buffer_size, w1.object_count)
-            assert w2.stop_timestamp == w1.stop_timestamp
+            w1, w2 = one._blf, many._blf
+            assert w2.pending() == w1.pending()
+            assert (w2.pending_bytes, w2.object_count) == (w1.pending_bytes, w1.object_count)
+            assert w2.stop_s == w1.stop_s
             assert many._unflushed == one._unflushed == sum(len(rs) for rs, _, _ in traffic)
             assert many._last_ts == one._last_ts
         n = sum(len(rs) for rs, _, _ in traffic)
@@ -140,44 +140,43 @@ def test_a_batch_packs_the_same_blf_objects_as_its_frames_one_by_one(
 
 def test_a_batch_with_a_time_blf_cannot_hold_goes_frame_by_frame(tmp_path: Path) -> None:
     """A NaN or far-off timestamp: the batch is written frame by frame, as the same frames
-    one by one are (python-can refuses the frame, the rest is logged)."""
+    one by one are (the BLF formatter refuses the frame, the rest is logged)."""
     t = time.time()
     frames = batch([(0x181, 1, bytes(8), 0.0), (0x182, 1, bytes(8), 0.0)] * 2, t)
     frames["timestamp"][1] = np.nan
     frames["timestamp"][2] = t + 1e12
     with drained_here(tmp_path / "a.blf") as one, drained_here(tmp_path / "b.blf") as many:
-        many._writer.start_timestamp = one._writer.start_timestamp
+        many._blf.start_s = one._blf.start_s
         hand_over(one, frames, True, as_batch=False)
         hand_over(many, frames, True, as_batch=True)
         one._drain()
         many._drain()
-        assert b"".join(many._writer._buffer) == b"".join(one._writer._buffer)
+        assert many._blf.pending() == one._blf.pending()
     assert (many.n_frames, many.write_errors) == (one.n_frames, one.write_errors) == (2, 2)
 
 
 def test_a_batch_past_the_container_size_is_cut_as_frame_by_frame(tmp_path: Path) -> None:
-    """python-can's container size check (one container per ``_flush``) after a batch:
-    the same containers as frame by frame."""
+    """Containers of a few frames each (objects cut across them, as readers expect) after
+    a batch: the same containers, the same file, as frame by frame; every frame reads
+    back."""
     frames = batch([(0x181 + k, 8, bytes(range(k, k + 8)), k * 1e-3) for k in range(40)], 0.0)
     with drained_here(tmp_path / "a.blf") as one, drained_here(tmp_path / "b.blf") as many:
-        files = []
         for log in (one, many):
-            w = log._writer
-            w.start_timestamp = 0.0
-            w.max_container_size = 5 * 48 + 7  # 5 frames and a bit
-            files.append(w.file)
-            w.file = open(os.devnull, "wb")  # python-can writes its containers here
+            log._blf.start_s = 0.0
+            log._blf.container_bytes = 5 * 48 + 7  # 5 frames and a bit
         hand_over(one, frames, False, as_batch=False)
         hand_over(many, frames, False, as_batch=True)
         one._drain()
         many._drain()
-        assert many._writer._buffer_size == one._writer._buffer_size < 5 * 48 + 7
-        assert b"".join(many._writer._buffer) == b"".join(one._writer._buffer)
-        assert many._writer.uncompressed_size == one._writer.uncompressed_size > 7 * 5 * 48
-        for log, file in zip((one, many), files, strict=True):
-            log._writer.file.close()
-            log._writer.file = file
-            log._writer.max_container_size = 1 << 62
+        assert many._blf.pending() == one._blf.pending()
+        one._flush()
+        many._flush()
+        assert many._blf.uncompressed_size == one._blf.uncompressed_size > 7 * 5 * 48
+    assert (tmp_path / "a.blf").read_bytes() == (tmp_path / "b.blf").read_bytes()
+    back = list(can.LogReader(tmp_path / "b.blf"))
+    assert [(m.arbitration_id, bytes(m.data)) for m in back] == [
+        (0x181 + k, bytes(range(k, k + 8))) for k in range(40)
+    ]
 
 
 # ------------------------------------------------------------------ every format reads back
@@ -355,10 +354,9 @@ def test_the_caller_may_reuse_its_array_at_once(tmp_path: Path, fmt: str) -> Non
 def test_a_frame_a_blf_log_cannot_date_is_counted_and_the_log_goes_on(
     tmp_path: Path, as_batch: bool, bad_ts: float
 ) -> None:
-    """An error frame stamped in the year 33658 (a red-team peer's) went to python-can's
-    BLF writer, which took its time as the file's end and then could not write the header:
-    the writer thread died, every later frame was lost and the session's close raised.
-    Such a frame is now a write error; the frames around it are logged."""
+    """An error frame stamped in the year 33658 (a red-team peer's) must not reach the BLF
+    file: its header could not date the file's end, and every later frame would be lost.
+    Such a frame is a write error; the frames around it are logged."""
     t0 = time.time()
     path = tmp_path / "bus.blf"
     log = TrafficLog(path)

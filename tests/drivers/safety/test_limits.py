@@ -184,6 +184,11 @@ class Limits:
     counts_min = np.array([-100, -100])
     counts_max = np.array([100, 100])
     max_rate_counts_per_s = np.array([1000.0, 1000.0])
+    max_accel_counts_per_s2: np.ndarray | None = None
+    max_jerk_counts_per_s3: np.ndarray | None = None
+
+    def motor_label(self, i: int) -> str:
+        return self.motor_ids[i]
 
     def check_counts(self, counts: Any, previous: Any = None, dt_s: Any = None) -> None:
         c = np.asarray(counts)
@@ -198,9 +203,17 @@ class AccelLimits(Limits):
 
 
 class NoRate:
+    """A double without rate limits (not numbers: no speed is refused)."""
+
     motor_ids = ("m0", "m1")
     counts_min = np.array([-100, -100])
     counts_max = np.array([100, 100])
+    max_rate_counts_per_s = np.array([np.nan, np.nan])
+    max_accel_counts_per_s2 = None
+    max_jerk_counts_per_s3 = None
+
+    def motor_label(self, i: int) -> str:
+        return self.motor_ids[i]
 
     def check_counts(self, counts: Any, previous: Any = None, dt_s: Any = None) -> None:
         if np.any(np.abs(np.asarray(counts)) > 100):

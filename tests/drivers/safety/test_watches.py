@@ -195,14 +195,18 @@ def test_an_encoder_shift_stops_every_axis_naming_the_rope(rig_factory) -> None:
     rig = rig_factory()
     ids = list(rig.limits.motor_ids)
 
-    def make(box: Any) -> RopeWatch:
-        def check(counts: np.ndarray, reference: np.ndarray | None) -> str | None:
+    class ByName:
+        def __call__(self, counts: np.ndarray, reference: np.ndarray | None) -> str | None:
             if reference is None:
                 return None
             off = np.flatnonzero(np.abs(counts - reference) > 500)
             return f"rope consistency: {ids[int(off[0])]} off" if off.size else None
 
-        return RopeWatch(box.monitor, check, lambda: box.supervisor.targets, period_s=0.05)
+        def summary(self) -> dict[str, Any]:
+            return {}
+
+    def make(box: Any) -> RopeWatch:
+        return RopeWatch(box.monitor, ByName(), lambda: box.supervisor.targets, period_s=0.05)
 
     err, watch = stream_with(rig, make, lambda: rig.sim.shift_encoder("j01r1", 1075))
     assert_stopped_in_one_period(err, rig, StopKind.ROPE)

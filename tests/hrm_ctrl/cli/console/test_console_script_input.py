@@ -184,8 +184,12 @@ def test_a_pausable_source_is_announced_with_its_own_length() -> None:
         motor_ids = ("m0",)
         max_rate_counts_per_s = np.array([1e4])
         max_accel_counts_per_s2 = np.array([1e6])
+        max_jerk_counts_per_s3 = None
         counts_min = np.array([-(10**6)])
         counts_max = np.array([10**6])
+
+        def motor_label(self, i):
+            return self.motor_ids[i]
 
         def check_counts(self, counts, previous=None, dt_s=None):
             pass
