@@ -185,6 +185,9 @@ class TrafficLog(can.Listener):
         the echoes of our own frames, which were logged when sent)."""
         # Interfaces name channels freely (a virtual bus: any string); logs want a number.
         msg.channel = self._msg_channel
+        # received: python-can's socketcan marks a frame another socket of this machine
+        # sent (MSG_DONTROUTE: every frame on vcan, a local candump's) as not received
+        msg.is_rx = True
         self._queue.append(msg)
 
     def log_sent(self, msg: can.Message) -> None:

@@ -46,8 +46,10 @@ import contextlib
 import heapq
 import logging
 import math
+import platform
 import select
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -74,6 +76,17 @@ log = logging.getLogger("sim_bus.box")
 #: Receive buffer asked for on socket-based buses (udp_multicast, socketcan): a Python
 #: process that stalls for 50-100 ms on a loaded machine must not lose frames in the kernel.
 RECEIVE_BUFFER_BYTES = 8 * 1024 * 1024
+#: Linux's SO_RCVBUFFORCE (a buffer beyond ``net.core.rmem_max``, with CAP_NET_ADMIN): the
+#: socket module does not define it; 33 in the kernel's generic socket.h, which x86, arm and
+#: riscv use (alpha, mips, parisc and sparc number it differently: not used there)
+SO_RCVBUFFORCE: int | None = getattr(
+    socket,
+    "SO_RCVBUFFORCE",
+    33
+    if sys.platform.startswith("linux")
+    and platform.machine() in ("x86_64", "i686", "aarch64", "armv7l", "riscv64")
+    else None,
+)
 
 
 def enlarge_receive_buffer(bus: can.BusABC, size_bytes: int = RECEIVE_BUFFER_BYTES) -> int | None:
@@ -88,7 +101,7 @@ def enlarge_receive_buffer(bus: can.BusABC, size_bytes: int = RECEIVE_BUFFER_BYT
         sock = getattr(bus, "socket", None)
     if not isinstance(sock, socket.socket):
         return None
-    for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+    for opt in (SO_RCVBUFFORCE, socket.SO_RCVBUF):
         if opt is None:
             continue
         try:
