@@ -42,9 +42,8 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from calibration.workflows import Saved
 from hrm_ctrl.cli._common import (
     Input,
     Output,
@@ -70,6 +69,9 @@ from hrm_ctrl.cli._options import (
     add_zero_options,
 )
 from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
+
+if TYPE_CHECKING:  # the CLI starts without the calibration package
+    from calibration.workflows import Saved
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
