@@ -1,7 +1,7 @@
 """SocketCAN tests on a kernel without vcan: they run in a User-Mode-Linux guest.
 
 A test needs vcan when one of its parameters is ``"socketcan"`` (the ``can_backend``
-fixture, ``test_log_durability``'s ``wire_kind``, the HIL plugin's ``hrm_bus_kind``).
+fixture, ``test_canlog_durability``'s ``wire_kind``, the HIL plugin's ``hrm_bus_kind``).
 Where the kernel has ``vcan0`` and ``vcan1`` they run here like every other test.  Where
 it has not, with ``HRM_VCAN_GUEST=on`` and ``tools/vcan-guest/run-in-vcan-vm.sh`` able to
 boot its guest (Debian's ``user-mode-linux`` installed: ``/usr/bin/linux.uml``), the
