@@ -61,6 +61,7 @@ import numpy as np
 import drivers.protocol.cia301 as cia301
 from drivers.config import BoxConfig
 from drivers.protocol.cia402 import EMCY_FOLLOWING_ERROR, OD_POSITION_ACTUAL_VALUE
+from drivers.realtime import GcHold
 from hrm_ctrl.errors import SimError
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
@@ -237,6 +238,7 @@ class SimBox:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._gc_hold = GcHold()  # held while the threads run: see start()
         self.events: list[str] = []
         self._cpu_closed_s = 0.0
         self._tension_cache: tuple[float, np.ndarray, tuple[int, ...], bool] | None = None
@@ -289,6 +291,9 @@ class SimBox:
             groups = [self._buses]  # one thread waits on every bus
         else:
             groups = [[bb] for bb in self._buses]
+        # a full collection of the heap the imports left pauses every thread for tens of
+        # ms (measured: 40 ms in ``hrm sim``), past the host's feedback watchdog (3 cycles)
+        self._gc_hold.acquire()
         for group in groups:
             name = "simbox:" + "+".join(bb.name for bb in group)
             t = threading.Thread(target=self._run_buses, args=(group,), name=name)
@@ -352,6 +357,7 @@ class SimBox:
         for t in self._threads:
             t.join(timeout=2.0)
         self._threads.clear()
+        self._gc_hold.release()
         self._close_buses()
 
     @property
