@@ -153,7 +153,7 @@ class WayBack:
 
     def describe(self) -> str:
         """One line: where the way back joins the path and its clearance."""
-        text = f"joins the path at {self.step_label} ({self.join_mm:.1f} mm from the tip)"
+        text = f"joins the path at {self.step_label}, {self.join_mm:.1f} mm from where the tip is"
         if self.clearance_mm is None:
             return f"{text}; no environment known (clearance not checked)"
         return (

@@ -148,6 +148,12 @@ def _run(ctx: ConsoleContext, args: list[str]) -> None:
     if not (math.isfinite(a.speed) and a.speed > 0):
         raise ConsoleError(f"--speed must be > 0 mm/s, got {a.speed}")
     script = RunScript.from_args(a)
+    if script.pause_at is not None and script.resume_after_s is None and not ctx.interactive:
+        # a script's keys are its lines, read between commands: nothing would resume it
+        raise ConsoleError(
+            "--pause-at without --resume-after in a script: nothing could resume the run (it "
+            "would stand paused until it is aborted); give --resume-after"
+        )
     doc = read_plan(a.plan)
     refuse_collision(doc, a.allow_collision, ctx.actuation.robot)
     period_s = ctx.config.control.period_s

@@ -112,8 +112,8 @@ def test_return_after_an_abort_and_after_a_stopped_return(make_ctx, cabins: Path
     with pytest.raises(ConsoleError, match="stop requested"):
         run(ctx, "return")
     t.join()
-    assert any(x.startswith("return: joins the path at plan step") and "(0.0 mm from the tip)"
-               in x for x in ctx.lines)  # fmt: skip
+    joined = [x for x in ctx.lines if x.startswith("return: joins the path at plan step")]
+    assert joined and ", 0.0 mm from where the tip is" in joined[0]  # on the path: no join
     run(ctx, "reset-fault", "enable", "return")
     _back_at_start(ctx, start, cabins)
 
