@@ -162,18 +162,35 @@ class WayBack:
         )
 
 
-def nearest_row(counts: np.ndarray, held_counts: Any, last_row: int) -> int:
-    """The row of ``counts`` (rows, motors) up to ``last_row`` nearest to ``held_counts``
-    (least sum of squares of the count differences).
+def nearest_point(
+    counts: np.ndarray, sigma_mm: np.ndarray, held_counts: Any, last_row: int
+) -> tuple[int, float]:
+    """The point of the path ``counts`` (rows, motors; row ``i`` at ``sigma_mm[i]`` along
+    the steps) up to row ``last_row`` nearest to ``held_counts`` (least sum of squares of
+    the count differences): the nearest row, then the nearest point of the segments to its
+    neighbours (an abort stops between rows).  Returns the row and the point's sigma.
 
-    >>> nearest_row(np.array([[0, 0], [10, 0], [20, 0], [30, 0]]), [21, 2], 3)
-    2
-    >>> nearest_row(np.array([[0, 0], [10, 0], [20, 0], [30, 0]]), [35, 0], 1)
-    1
+    >>> c = np.array([[0, 0], [10, 0], [20, 0], [30, 0]]); s = np.array([0.0, 1, 2, 3])
+    >>> nearest_point(c, s, [24, 2], 3)
+    (2, 2.4)
+    >>> nearest_point(c, s, [35, 0], 1)
+    (1, 1.0)
     """
     rows = np.asarray(counts, dtype=np.int64)[: max(int(last_row), 0) + 1]
-    d = rows - np.asarray(held_counts, dtype=np.int64)[None, :]
-    return int(np.argmin(np.einsum("ij,ij->i", d, d.astype(np.float64))))
+    h = np.asarray(held_counts, dtype=np.int64)
+    d = (rows - h[None, :]).astype(np.float64)
+    i = int(np.argmin(np.einsum("ij,ij->i", d, d)))
+    best, sigma = math.inf, float(sigma_mm[i])
+    for j in (i - 1, i + 1):
+        if not 0 <= j < rows.shape[0]:
+            continue
+        seg = (rows[j] - rows[i]).astype(np.float64)
+        n2 = float(seg @ seg)
+        t = 0.0 if n2 == 0.0 else min(1.0, max(0.0, float((h - rows[i]) @ seg) / n2))
+        r = h - (rows[i] + t * seg)
+        if float(r @ r) < best:
+            best, sigma = float(r @ r), float(sigma_mm[i] + t * (sigma_mm[j] - sigma_mm[i]))
+    return i, sigma
 
 
 def _phases_of(travel: np.ndarray) -> tuple[str, ...]:
@@ -209,10 +226,9 @@ def way_back(
     held = np.asarray(held_counts, dtype=np.int64)
     margin = math.ceil(STOP_MARGIN_S / sp.period_s)
     last = min(sp.n_cycles - 1, math.ceil(played_row) + margin)
-    row = nearest_row(sp.counts, held, last)
+    row, sigma = nearest_point(sp.counts, sp.sigma_mm, held, last)
     path = sp.path
     d = path.distance_mm
-    sigma = float(sp.sigma_mm[row])
     k_near = int(np.argmin(np.abs(d - sigma)))
     if abs(float(d[k_near]) - sigma) <= SAME_POINT_MM:
         sigma = float(d[k_near])
