@@ -131,7 +131,9 @@ def test_return_after_a_safety_stop(make_ctx, cabins: Path, tmp_path: Path) -> N
         ctx.session.request_stop(StopKind.TENSION, "rope j07r1: tension 0.0 N below 5 N")
 
     t = _when_moving(ctx, 3.0, safety_stop)
-    with pytest.raises(ConsoleError, match="j07r1: tension"):
+    # the injected tension stop, or a stale tension sensor of a loaded machine before it:
+    # a safety stop either way
+    with pytest.raises(ConsoleError, match=r"run: stopped: .*tension"):
         run(ctx, f"run {cabins} --no-figures")
     t.join()
     run(ctx, "reset-fault", "enable", "return")
