@@ -42,22 +42,35 @@ def _positions(ctx: object) -> np.ndarray:
     return np.array([ctx.sim.drives[m].position_counts for m in ctx.actuation.motor_ids])
 
 
-def _when_moving(ctx: object, after_s: float, action) -> threading.Thread:
-    """Run ``action`` ``after_s`` after the run's first setpoint (the session STREAMING)."""
+class _WhenMoving:
+    """Run ``action`` ``after_s`` after a run's first setpoint (the session STREAMING), if
+    it is still streaming then; a context manager that cancels and joins it on leaving (an
+    interrupt must never reach a later test)."""
 
-    def wait() -> None:
+    def __init__(self, ctx: object, after_s: float, action) -> None:
+        self.ctx, self.after_s, self.action = ctx, after_s, action
+        self.cancel = threading.Event()
+        self.thread = threading.Thread(target=self._wait, daemon=True)
+
+    def _streaming(self) -> bool:
+        s = self.ctx.session
+        return s is not None and s.supervisor.mode.name == "STREAMING"
+
+    def _wait(self) -> None:
         deadline = time.monotonic() + 120.0
-        while time.monotonic() < deadline:
-            s = ctx.session
-            if s is not None and s.supervisor.mode.name == "STREAMING":
-                break
-            time.sleep(0.01)
-        time.sleep(after_s)
-        action()
+        while not self._streaming():
+            if self.cancel.wait(0.01) or time.monotonic() > deadline:
+                return
+        if not self.cancel.wait(self.after_s) and self._streaming():
+            self.action()
 
-    t = threading.Thread(target=wait, daemon=True)
-    t.start()
-    return t
+    def __enter__(self) -> _WhenMoving:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.cancel.set()
+        self.thread.join()
 
 
 def _back_at_start(ctx: object, start: np.ndarray, plan: Path) -> None:
@@ -85,10 +98,9 @@ def test_return_after_ctrl_c_in_the_cabins(make_ctx, cabins: Path, tmp_path: Pat
     ctx = make_ctx("--config", str(_relaxed_box(tmp_path)))
     run(ctx, "connect", "enable")
     start = _positions(ctx)
-    t = _when_moving(ctx, 4.0, _thread.interrupt_main)  # Ctrl-C, as the terminal sends it
-    with pytest.raises(ConsoleError, match="stopped by Ctrl-C"):
-        run(ctx, f"run {cabins} --no-figures")
-    t.join()
+    with _WhenMoving(ctx, 4.0, _thread.interrupt_main):  # Ctrl-C, as the terminal sends it
+        with pytest.raises(ConsoleError, match="stopped by Ctrl-C"):
+            run(ctx, f"run {cabins} --no-figures")
     ways = [x for x in ctx.lines if x.startswith("way back (once enabled): ")]
     assert ways and f"'return' backs out along the path of {cabins}" in ways[0]
     stopped = _positions(ctx)
@@ -108,10 +120,9 @@ def test_return_after_an_abort_and_after_a_stopped_return(make_ctx, cabins: Path
     start = _positions(ctx)
     run(ctx, f"run {cabins} --abort-at 60% --no-figures")
     assert any("way back (once enabled): 'return'" in x for x in ctx.lines)
-    t = _when_moving(ctx, 1.0, ctx.stop_requested.set)  # the return stopped half-way
-    with pytest.raises(ConsoleError, match="stop requested"):
-        run(ctx, "return")
-    t.join()
+    with _WhenMoving(ctx, 1.0, ctx.stop_requested.set):  # the return stopped half-way
+        with pytest.raises(ConsoleError, match="stop requested"):
+            run(ctx, "return")
     joined = [x for x in ctx.lines if x.startswith("return: joins the path at plan step")]
     assert joined and ", 0.0 mm from where the tip is" in joined[0]  # on the path: no join
     run(ctx, "reset-fault", "enable", "return")
@@ -130,12 +141,11 @@ def test_return_after_a_safety_stop(make_ctx, cabins: Path, tmp_path: Path) -> N
     def safety_stop() -> None:
         ctx.session.request_stop(StopKind.TENSION, "rope j07r1: tension 0.0 N below 5 N")
 
-    t = _when_moving(ctx, 3.0, safety_stop)
     # the injected tension stop, or a stale tension sensor of a loaded machine before it:
     # a safety stop either way
-    with pytest.raises(ConsoleError, match=r"run: stopped: .*tension"):
-        run(ctx, f"run {cabins} --no-figures")
-    t.join()
+    with _WhenMoving(ctx, 3.0, safety_stop):
+        with pytest.raises(ConsoleError, match=r"run: stopped: .*tension"):
+            run(ctx, f"run {cabins} --no-figures")
     run(ctx, "reset-fault", "enable", "return")
     _back_at_start(ctx, start, cabins)
 
