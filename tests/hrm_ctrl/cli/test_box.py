@@ -1,0 +1,80 @@
+"""``hrm box check`` offline, and ``hrm run`` refusing a box whose device files do not offer
+what hrm needs before any bus opens."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from drivers import default_box_path
+from tests.hrm_ctrl.cli.cli_helpers import run_cli
+
+VENDOR = Path(__file__).parents[2] / "drivers" / "vendor_eds"
+FAULHABER = VENDOR / "605.3150.68-B-EK-2-60.eds"
+EPOS4 = VENDOR / "epos4_50_15_can_ec90flat_gp52c_mile800_node1.dcf"
+
+
+def _box(tmp_path: Path, drives: str) -> Path:
+    """The shipped box on virtual buses with a ``[drives]`` table."""
+    box = tmp_path / "box.toml"
+    text = default_box_path().read_text().replace('"socketcan"', '"virtual"')
+    box.write_text(text + "\n" + drives)
+    return box
+
+
+def test_the_shipped_box_passes(capsys: pytest.CaptureFixture[str]) -> None:
+    rc, out, err = run_cli(["box", "check"], capsys)
+    assert rc == 0 and err == ""
+    lines = out.splitlines()
+    assert len(lines) == 36 and all(": hrm_drive.eds: ok: RPDO1 = " in line for line in lines)
+
+
+def test_refusals_one_line_each_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    box = _box(
+        tmp_path,
+        f'[drives]\ndevice_file = "{EPOS4}"\n[drives.j03r1]\ndevice_file = "{FAULHABER}"\n',
+    )
+    rc, out, err = run_cli(["box", "check", "--config", str(box)], capsys)
+    assert rc == 2 and err == ""
+    refused = [line for line in out.splitlines() if ": ok: " not in line]
+    assert refused[0] == (
+        "j03r1: 605.3150.68-B-EK-2-60.eds: no cyclic synchronous position mode "
+        "(0x6502 = 0x25: PP, PV, HM)"
+    )
+    assert {line.split(":")[0] for line in refused} == {"j03r1"} and len(refused) == 4
+    rc, out, _ = run_cli(["box", "check", "--config", str(box), "--json"], capsys)
+    doc = json.loads(out)
+    assert rc == 2 and doc["ok"] is False
+    by_motor = {n["motor"]: n for n in doc["nodes"]}
+    assert by_motor["j03r2"]["ok"] and by_motor["j03r2"]["pdos"][0]["entries"] == [
+        "0x60400010",
+        "0x607A0020",
+    ]
+    assert by_motor["j03r2"]["file"]["modes"] == "PP, PV, HM, CSP, CSV, CST"
+
+
+def test_a_bad_device_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "junk.eds").write_bytes(b"\x00\x01binary")
+    box = _box(tmp_path, '[drives]\ndevice_file = "junk.eds"\n')
+    rc, out, err = run_cli(["box", "check", "--config", str(box)], capsys)
+    assert rc == 2 and out == ""
+    junk = tmp_path / "junk.eds"
+    assert err == f"hrm box: error: {junk}: line 1: NUL byte (binary content, not a text file)\n"
+
+
+def test_run_refuses_before_any_bus_opens(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    box = _box(tmp_path, f'[drives.j03r1]\ndevice_file = "{FAULHABER}"\n')
+    logs = tmp_path / "logs"
+    rc, _out, err = run_cli(
+        ["run", "--hold", "0.1", "--config", str(box), "--log-dir", str(logs)], capsys
+    )
+    assert rc == 2, err
+    assert err == (
+        f"hrm run: error: {box}: j03r1: 605.3150.68-B-EK-2-60.eds: no cyclic synchronous "
+        "position mode (0x6502 = 0x25: PP, PV, HM) (and 3 more: hrm box check lists them)\n"
+    )
+    assert not logs.exists() or not any(logs.iterdir())  # no CAN log, no run record: nothing opened
