@@ -1,5 +1,8 @@
 """CANopen CiA 306 device files (EDS and DCF): the one reader, typed and bounded.
 
+The host's canopen nodes and the simulated drives take their object dictionaries from it
+(:func:`canopen_dictionary`), the box check (:mod:`drivers.device_check`) its typed entries.
+
 A device file is an INI text: ``[SECTION]`` lines, ``KEY=VALUE`` lines, ``;`` comments.
 Section names and keys are case-insensitive.  An object is a section ``[IIII]`` (index,
 4 hex digits) and, for an ARRAY or RECORD, one ``[IIIIsubS]`` section per sub-index (hex).
@@ -64,9 +67,13 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.files import read_text_file
+
+if TYPE_CHECKING:
+    import canopen
 
 MAX_FILE_BYTES = 4 * 2**20
 """Largest device file read (the largest real one hrm has met, a Nanotec C5-E, is 174 kB)."""
@@ -656,3 +663,47 @@ def read_device_file(path: str | Path, source: str | None = None) -> DeviceFile:
     name = str(path) if source is None else source
     text = read_text_file(path, DeviceFileError, "device file", name, max_bytes=MAX_FILE_BYTES)
     return parse_device_file(text, name)
+
+
+def canopen_dictionary(f: DeviceFile, node_id: int | None = None) -> canopen.ObjectDictionary:
+    """The device file as python-canopen's object dictionary, for a canopen node (host)
+    or the simulated drive: this reader's values (a DCF's ``ParameterValue`` as the
+    default, INTEGER8 ``0xFD`` as -3), ``$NODEID`` resolved for ``node_id`` when given
+    (``relative`` and ``default_raw`` keep it, as canopen's own reader does).
+
+    >>> from drivers import eds_path
+    >>> od = canopen_dictionary(read_device_file(eds_path()), 5)
+    >>> hex(od[0x1400][1].default), od[0x60C2][2].default, od[0x6041].access_type
+    ('0x205', -3, 'ro')
+    """
+    from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
+
+    od = ObjectDictionary()
+    od.node_id = node_id
+
+    def variable(e: ODEntry, name: str) -> ODVariable:
+        var = ODVariable(name or e.name, e.index, e.sub)
+        var.data_type = int(e.data_type)
+        var.access_type = e.access.value
+        var.pdo_mappable = e.pdo_mappable
+        var.min, var.max = e.low, e.high
+        value: Any = e.value
+        if e.node_relative and isinstance(value, int):
+            var.relative = True
+            var.default_raw = f"$NODEID+0x{value:X}"
+            value = value + (node_id or 0) if node_id is not None else value
+        var.default = value
+        var.value = value if e.parameter is not None else None
+        return var
+
+    for obj in f.objects.values():
+        if obj.object_type in (ObjectType.ARRAY, ObjectType.RECORD):
+            group = (ODArray if obj.object_type is ObjectType.ARRAY else ODRecord)(
+                obj.name, obj.index
+            )
+            for e in obj.entries.values():
+                group.add_member(variable(e, e.name))
+            od.add_object(group)
+        elif 0 in obj.entries:
+            od.add_object(variable(obj.entries[0], obj.name))
+    return od

@@ -78,3 +78,17 @@ def test_run_refuses_before_any_bus_opens(
         "position mode (0x6502 = 0x25: PP, PV, HM) (and 3 more: hrm box check lists them)\n"
     )
     assert not logs.exists() or not any(logs.iterdir())  # no CAN log, no run record: nothing opened
+
+
+def test_a_box_of_epos4s_brings_up_and_holds_on_the_simulator(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """36 simulated drives with the EPOS4's object dictionary (its DCF): the check passes,
+    the bring-up maps the PDOs and the hold streams."""
+    box = _box(tmp_path, f'[drives]\ndevice_file = "{EPOS4}"\n')
+    logs = tmp_path / "logs"
+    argv = ["run", "--sim", "--hold", "0.2", "--uncalibrated", "--config", str(box)]
+    rc, _out, err = run_cli([*argv, "--log-dir", str(logs), "--json"], capsys)
+    assert rc == 0, err
+    record = json.loads(next(logs.glob("*.json")).read_text())
+    assert record["config"]["drives"]["device_file"] == str(EPOS4)
