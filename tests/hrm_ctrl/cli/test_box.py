@@ -92,3 +92,20 @@ def test_a_box_of_epos4s_brings_up_and_holds_on_the_simulator(
     assert rc == 0, err
     record = json.loads(next(logs.glob("*.json")).read_text())
     assert record["config"]["drives"]["device_file"] == str(EPOS4)
+    # the remapping on the wire (node 1 of can0), in CiA 301's order: COB-ID invalid, number
+    # of entries 0, the entries, their number, COB-ID valid
+    import can
+
+    writes = [
+        (m.data[1] | m.data[2] << 8, m.data[3], int.from_bytes(m.data[4:8], "little"))
+        for m in can.BLFReader(str(next(logs.glob("*_can0.blf"))))
+        if m.arbitration_id == 0x601 and m.data[0] & 0xE0 == 0x20  # SDO download request
+    ]
+    pdo = [w for w in writes if w[0] in (0x1400, 0x1600, 0x1800, 0x1A00)]
+    assert pdo == [
+        (0x1400, 1, 0x80000201), (0x1400, 2, 1), (0x1600, 0, 0),
+        (0x1600, 1, 0x60400010), (0x1600, 2, 0x607A0020), (0x1600, 0, 2), (0x1400, 1, 0x201),
+        (0x1800, 1, 0x80000181), (0x1800, 2, 1), (0x1A00, 0, 0),
+        (0x1A00, 1, 0x60410010), (0x1A00, 2, 0x60640020), (0x1A00, 0, 2), (0x1800, 1, 0x181),
+    ]  # fmt: skip
+    assert (0x60C2, 1, 10) in writes and (0x60C2, 2, 0xFD) in writes  # 10 x 10^-3 s
