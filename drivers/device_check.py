@@ -383,6 +383,7 @@ def check_device(f: DeviceFile, period_s: float) -> DeviceVerdict:
     facts = {
         "device": f"{f.device.vendor_name} {f.device.product_name}".strip(),
         "dcf": f.is_dcf,
+        "dcf_node_id": f.node_id,  # a DCF's values are its node's (COB-IDs rewritten at bring-up)
         "modes": modes_text(modes) if isinstance(modes, int) else None,
         "rpdos": sum(1 for i in f.objects if 0x1400 <= i < 0x1600),
         "tpdos": sum(1 for i in f.objects if 0x1800 <= i < 0x1A00),
