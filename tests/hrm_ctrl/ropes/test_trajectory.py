@@ -19,6 +19,7 @@ from hrm_ctrl.ropes.setpoints import plan_setpoints
 from hrm_ctrl.ropes.trajectory import (
     StepPath,
     finite_differences,
+    finite_jerk,
     plan_limits,
     step_path,
     time_parameterise,
@@ -45,6 +46,11 @@ def assert_within(act: Actuation, counts: np.ndarray) -> None:
     d2 = np.diff(d1, axis=0)
     assert np.all(np.abs(d1) <= act.max_rate_counts_per_s * T), np.abs(d1).max()
     assert np.all(np.abs(d2) <= act.max_accel_counts_per_s2 * T**2), np.abs(d2).max()
+    # the jerk: third differences, the first and last rows held twice more
+    c3 = np.concatenate([counts[:1], counts[:1], counts[:1], counts, counts[-1:], counts[-1:],
+                         counts[-1:]]).astype(np.int64)  # fmt: skip
+    d3 = np.diff(c3, n=3, axis=0)
+    assert np.all(np.abs(d3) <= act.max_jerk_counts_per_s3 * T**3), np.abs(d3).max()
 
 
 @pytest.mark.parametrize("name", ["bent-pipe", "cabins"])
@@ -77,8 +83,10 @@ def test_scenario_with_return_within_every_limit(act: Actuation, name: str, spee
     if speed == 50.0:  # the cap binds: the duration is the path at the cap, plus the ramps
         at_cap = sp.path.length_mm / speed
         assert at_cap <= sp.duration_s <= at_cap + 0.2
-    else:  # the motors bind: one of them near its limit
-        ratio = max((v / act.max_rate_counts_per_s).max(), (a / act.max_accel_counts_per_s2).max())
+    else:  # the motors bind: one of them near its speed, acceleration or jerk limit
+        j = finite_jerk(sp.counts, T)
+        ratio = max((v / act.max_rate_counts_per_s).max(), (a / act.max_accel_counts_per_s2).max(),
+                    (j / act.max_jerk_counts_per_s3).max())  # fmt: skip
         assert 0.8 < ratio <= 1.0
 
 
