@@ -47,11 +47,12 @@ class CountsSource(TableSource):
     >>> from hrm_ctrl.ropes.actuation import load_actuation
     >>> from hrm_ctrl.model import default_robot
     >>> act = load_actuation(default_robot())
-    >>> body = np.repeat(np.array([[0], [100], [200], [200]]), act.n_motors, axis=1)
+    >>> body = np.repeat(np.array([[0], [10], [40], [80], [110], [120], [120]]),
+    ...                  act.n_motors, axis=1)
     >>> src = CountsSource(act, body, 0.01, name="plan", hold_s=0.02)
     >>> src.start(np.zeros(act.n_motors, dtype=np.int64), 0.01)
     >>> src.n_lead_in, src.n_stop, src.n_cycles, src.table[:, 0].tolist()
-    (0, 0, 6, [0, 100, 200, 200, 200, 200])
+    (0, 0, 9, [0, 10, 40, 80, 110, 120, 120, 120, 120])
     >>> src.start(np.full(act.n_motors, -500, dtype=np.int64), 0.01)  # from elsewhere
     >>> src.n_lead_in > 0, int(src.table[src.n_lead_in - 1, 0])
     (True, 0)
