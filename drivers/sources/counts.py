@@ -102,10 +102,17 @@ class CountsSource(TableSource):
     ) -> CountsSource:
         """The source of a plan's counts (the rope layer's ``PlanSetpoints``: its counts,
         control period, row labels, and its first step's configuration for the lead-in to
-        go to).  ``kw`` as for the constructor (``hold_s``, ``info``)."""
+        go to).  ``kw`` as for the constructor (``hold_s``, ``info``); the info gets what
+        the jerk bound costs the body (``jerk_bound_cost_s``, and the body's duration
+        without it, ``duration_without_jerk_bound_s``)."""
         first = (setpoints.alpha_rad[0], setpoints.theta_rad[0])
+        info = {
+            **dict(kw.pop("info", None) or {}),
+            "duration_without_jerk_bound_s": round(float(setpoints.law_duration_s), 6),
+            "jerk_bound_cost_s": round(float(setpoints.jerk_cost_s), 6),
+        }
         return cls(limits, setpoints.counts, setpoints.period_s, name=name,
-                   label=setpoints.label, first_pose=first, **kw)  # fmt: skip
+                   label=setpoints.label, first_pose=first, info=info, **kw)  # fmt: skip
 
     def _row_name(self, row: int) -> str:
         """A row of the full table (lead-in, body, hold) as a message names it."""
