@@ -507,9 +507,7 @@ def plan_limits(
     return v_plan, a_plan
 
 
-def plan_jerk_limits(
-    act: Actuation, period_s: float, margin: float = DEFAULT_MARGIN
-) -> np.ndarray:
+def plan_jerk_limits(act: Actuation, period_s: float, margin: float = DEFAULT_MARGIN) -> np.ndarray:
     """The jerk (counts/s^3) a trajectory is planned for, so that its rounded, sampled
     table keeps the motors' jerk limits: a third difference of rounded counts is off by at
     most four counts (``margin * (j - 4/T**3)``).
@@ -554,7 +552,7 @@ def jerk_window(leg: _Leg, j_plan: np.ndarray, period_s: float) -> float:
     times = np.concatenate([tg[:-1], tg[1:]])
     duration = float(tg[-1])
     width = max(period_s / 4.0, duration / JERK_BINS)
-    n_bins = int(math.ceil(duration / width)) + 3
+    n_bins = math.ceil(duration / width) + 3
     b = np.minimum((times / width).astype(np.int64) + 1, n_bins - 2)
     hi = np.zeros((n_bins, acc.shape[1]))  # bins 0 and last: at rest (acceleration 0)
     lo = np.zeros_like(hi)
@@ -571,7 +569,7 @@ def jerk_window(leg: _Leg, j_plan: np.ndarray, period_s: float) -> float:
 
     window = float(np.max((hi.max(axis=0) - lo.min(axis=0)) / j_plan))
     for _ in range(8):
-        size = min(int(math.ceil(window / width)) + 2, n_bins)
+        size = min(math.ceil(window / width) + 2, n_bins)
         span = maximum_filter1d(hi, size, axis=0) - minimum_filter1d(lo, size, axis=0)
         shorter = float(np.max(span / j_plan))
         if shorter >= 0.98 * window:

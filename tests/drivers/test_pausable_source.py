@@ -24,9 +24,9 @@ def act():
 
 def _bang_bang_body(act, cruise: int = 40, speed: float = 0.9) -> np.ndarray:
     """Every motor accelerating and braking at (the floor of) its limit up to about
-    ``speed`` (90 %) of its speed, each change of acceleration eased in at its jerk limit: the hardest
-    table for a pause, the second difference at the limit wherever it is not ramping (at
-    80 % of the jerk limit) or zero."""
+    ``speed`` (90 %) of its speed, each change of acceleration eased in (at 80 % of the
+    jerk limit): the hardest table for a pause, the second difference at the limit
+    wherever it is not ramping or zero."""
     a = np.floor(act.max_accel_counts_per_s2 * T**2).astype(np.int64)  # counts/cycle^2
     # counts/cycle^3: 80 % of the jerk limit (room for the rounding of a slowed playback)
     jerk = int(np.floor(0.8 * act.max_jerk_counts_per_s3.min() * T**3))
