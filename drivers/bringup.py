@@ -28,11 +28,12 @@ from typing import Any
 import canopen
 
 from drivers.protocol import cia301, cia402
-from hrm_ctrl.errors import DriverError
+from hrm_ctrl.errors import DriverError, HrmError
 
 
 class SdoError(DriverError):
-    """An SDO transfer was aborted by the drive or got no answer in time."""
+    """An SDO transfer was aborted by the drive or got no answer in time (the error of
+    canopen or of the bus is chained as its cause)."""
 
 
 class StateTimeoutError(DriverError):
@@ -84,20 +85,20 @@ def sdo_write(link: DriveLink, index: int, subindex: int, value: Any) -> None:
         raise SdoError(
             f"{link.label}: SDO write 0x{index:04X}:{subindex:02X} = {value!r} aborted: "
             f"{cia301.describe_sdo_abort(exc.code)}"
-        ) from None
+        ) from exc
     except canopen.SdoCommunicationError as exc:
         raise SdoError(
             f"{link.label}: SDO write 0x{index:04X}:{subindex:02X}: {exc} "
             f"(timeout {link.node.sdo.RESPONSE_TIMEOUT:g} s)"
-        ) from None
+        ) from exc
     except (KeyError, ValueError, TypeError) as exc:
         raise SdoError(
             f"{link.label}: cannot write 0x{index:04X}:{subindex:02X} = {value!r} ({exc})"
-        ) from None
+        ) from exc
     except DriverError as exc:  # the request could not be sent (bus failure)
         raise SdoError(
             f"{link.label}: SDO write 0x{index:04X}:{subindex:02X} = {value!r}: {exc}"
-        ) from None
+        ) from exc
 
 
 def sdo_read(link: DriveLink, index: int, subindex: int = 0) -> Any:
@@ -109,22 +110,22 @@ def sdo_read(link: DriveLink, index: int, subindex: int = 0) -> Any:
         raise SdoError(
             f"{link.label}: SDO read 0x{index:04X}:{subindex:02X} aborted: "
             f"{cia301.describe_sdo_abort(exc.code)}"
-        ) from None
+        ) from exc
     except canopen.SdoCommunicationError as exc:
         raise SdoError(
             f"{link.label}: SDO read 0x{index:04X}:{subindex:02X}: {exc} "
             f"(timeout {link.node.sdo.RESPONSE_TIMEOUT:g} s)"
-        ) from None
+        ) from exc
     except (KeyError, ValueError, TypeError, IndexError) as exc:
-        raise SdoError(f"{link.label}: cannot read 0x{index:04X}:{subindex:02X} ({exc})") from None
+        raise SdoError(f"{link.label}: cannot read 0x{index:04X}:{subindex:02X} ({exc})") from exc
     except DriverError as exc:  # the request could not be sent (bus failure)
-        raise SdoError(f"{link.label}: SDO read 0x{index:04X}:{subindex:02X}: {exc}") from None
+        raise SdoError(f"{link.label}: SDO read 0x{index:04X}:{subindex:02X}: {exc}") from exc
 
 
 def _var(link: DriveLink, index: int) -> Any:
     entry = link.node.sdo[index]
     # A VAR object is itself the variable; records/arrays need a sub-index.
-    return entry if hasattr(entry, "raw") else entry[0]
+    return entry if isinstance(entry, canopen.sdo.SdoVariable) else entry[0]
 
 
 def _map_pdo(
@@ -141,9 +142,9 @@ def _map_pdo(
     except canopen.SdoAbortedError as exc:
         raise SdoError(
             f"{link.label}: mapping {name} aborted: {cia301.describe_sdo_abort(exc.code)}"
-        ) from None
+        ) from exc
     except canopen.SdoCommunicationError as exc:
-        raise SdoError(f"{link.label}: mapping {name}: {exc}") from None
+        raise SdoError(f"{link.label}: mapping {name}: {exc}") from exc
     # The supervisor reads the PDOs itself; canopen need not decode every frame.
     try:
         link.node.network.unsubscribe(cob_id, pdo_map.on_message)
@@ -258,7 +259,7 @@ def drive_to(link: DriveLink, goal: State402, timeout_s: float) -> int:
         raise StateTimeoutError(
             f"{link.label}: statusword 0x{sw:04X} ({state.name}) cannot be brought to "
             f"{goal.name}: {exc}"
-        ) from None
+        ) from exc
     for transition in steps:
         sw = step(link, transition, timeout_s)
     return sw
@@ -299,3 +300,42 @@ def disable(link: DriveLink, timeout_s: float) -> int:
     from OPERATION_ENABLED *disable operation* (5, confirmed SWITCHED_ON) then *shutdown*
     (6).  No target position is sent.  Returns the last statusword."""
     return drive_to(link, State402.READY_TO_SWITCH_ON, timeout_s)
+
+
+#: the states a drive leaves only by a fault reset (or is on its way into)
+FAULTY = frozenset({State402.FAULT, State402.FAULT_REACTION_ACTIVE})
+
+
+def disable_unless_faulty(link: DriveLink, timeout_s: float) -> int:
+    """:func:`disable`, except a drive in FAULT: left there, :class:`DriverError` naming
+    it (a fault is reset only on purpose: :func:`reset_to_ready`)."""
+    state, sw = read_state(link)
+    if state in FAULTY:
+        raise DriverError(
+            f"{link.label}: statusword 0x{sw:04X} ({state.name}): not disabled "
+            "(reset the fault first)"
+        )
+    return disable(link, timeout_s)
+
+
+def reset_to_ready(link: DriveLink, timeout_s: float) -> bool:
+    """The fault reset if the drive is in FAULT (CiA 402 transition 15, confirmed), then
+    READY_TO_SWITCH_ON (power stage off) along the table; nothing moves.  Returns whether
+    the drive was in FAULT."""
+    state, _sw = read_state(link)
+    drive_to(link, State402.READY_TO_SWITCH_ON, timeout_s)
+    return state in FAULTY
+
+
+def quick_stop(link: DriveLink) -> None:
+    """The quick-stop controlword by SDO (no target position is written)."""
+    sdo_write(link, cia402.OD_CONTROLWORD, 0, cia402.CW_QUICK_STOP)
+
+
+def read_status(link: DriveLink) -> tuple[int, int] | None:
+    """(statusword, actual position) by SDO; None when the drive does not answer."""
+    try:
+        sw = int(sdo_read(link, cia402.OD_STATUSWORD))
+        return sw, int(sdo_read(link, cia402.OD_POSITION_ACTUAL_VALUE))
+    except HrmError:
+        return None

@@ -25,10 +25,11 @@ import numpy as np
 
 from drivers.bus import BusPort
 from drivers.protocol import batch, cia301, cia402
+from drivers.receive import BusPoller, BusReader
 from drivers.safety.monitor import StopCause
 from hrm_ctrl.errors import HrmError
 
-_RPDO_PACK = cia402.RPDO_TARGET_LAYOUT.pack
+_RPDO = cia402.RPDO_TARGET
 LATE_THRESHOLD_S = 0.002
 MAX_NOTABLE_CYCLES = 2000  # late or missing-feedback cycles kept with their times, per stream
 STOP_CONFIRM_CYCLES = 10
@@ -42,7 +43,7 @@ class BusLayout:
     port: BusPort
     index: np.ndarray  # global motor indices on this bus
     node_ids: np.ndarray
-    notifier: Any = None  # the bus's receive thread: has ``.exception`` (None: alive)
+    notifier: BusReader | BusPoller | None = None  # who reads the bus (.exception: None alive)
     burst_s: float = 0.0  # wire time of one cycle's worst-case traffic on this bus
 
     def __post_init__(self) -> None:
@@ -64,32 +65,22 @@ class BusLayout:
         [('0x205', '0f0007000000'), ('0x206', '0f00ffffffff')]
         """
         tg = np.asarray(targets)[self.index]
-        if len(tg) and (tg.min() < cia402.INT32_MIN or tg.max() > cia402.INT32_MAX):
-            raise cia402.FrameError("target position outside INTEGER32")
-        v = self._rpdo_view
-        v["controlword"] = int(controlword) & 0xFFFF
-        v["target"] = tg
+        _RPDO.fill(self._rpdo_view, controlword=int(controlword), target=tg)
         return self._rpdo
 
     def rpdo_frames(self, controlword: int | np.ndarray, targets: np.ndarray) -> list[can.Message]:
-        """RPDO frames of this bus for global target vector ``targets`` (one ``struct``
-        pack per node; a target outside INTEGER32 raises :class:`FrameError`).
+        """RPDO frames of this bus for global target vector ``targets`` (one payload
+        per node; a target outside INTEGER32 raises :class:`FrameError`).
 
         >>> from drivers.bus import BusPort
         >>> lay = BusLayout(BusPort("b", None), np.array([1, 0]), np.array([5, 6]))
         >>> [(hex(m.arbitration_id), m.data.hex()) for m in lay.rpdo_frames(15, np.array([-1, 7]))]
         [('0x205', '0f0007000000'), ('0x206', '0f00ffffffff')]
         """
-        tg = np.asarray(targets)[self.index].astype(np.int64, copy=False).tolist()
-        if tg and (min(tg) < cia402.INT32_MIN or max(tg) > cia402.INT32_MAX):
-            raise cia402.FrameError("target position outside INTEGER32")
-        pack = _RPDO_PACK
-        if np.ndim(controlword) == 0:
-            cw = int(controlword) & 0xFFFF
-            payloads = [pack(cw, t) for t in tg]
-        else:
-            cws = np.broadcast_to(np.asarray(controlword), (len(self.index),)).tolist()
-            payloads = [pack(c & 0xFFFF, t) for c, t in zip(cws, tg, strict=True)]
+        tg = np.asarray(targets)[self.index]
+        _RPDO.check_many("target", tg)
+        cws = np.broadcast_to(np.asarray(controlword), (len(self.index),))
+        payloads = [_RPDO.pack(c, t) for c, t in zip(cws.tolist(), tg.tolist(), strict=True)]
         return [
             can.Message(arbitration_id=cid, data=data, is_extended_id=False, check=False)
             for cid, data in zip(self.rpdo_ids, payloads, strict=True)

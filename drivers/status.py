@@ -22,11 +22,22 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
+import can
 import numpy as np
 
-from drivers.protocol.cia301 import NMT_STATE_NAMES
+from drivers.protocol.cia301 import NMT_STATE_NAMES, FrameError, parse_emcy
 from drivers.protocol.cia402 import SW_FAULT, State402, decode_state
+
+if TYPE_CHECKING:  # (what the read-outs are read from; a formatter needs none of it)
+    from drivers.bus import BusPort
+    from drivers.busload import BusLoad
+    from drivers.canlog import TrafficLog
+    from drivers.config import BusConfig
+    from drivers.receive import BusReceiver
+    from drivers.safety.monitor import NodeMonitor
+    from drivers.wiring import MotorSlots
 
 
 @dataclass(frozen=True)
@@ -165,3 +176,108 @@ def node_statuses(
             )
         )
     return tuple(out)
+
+
+class LastEmergencies:
+    """Each drive's last EMCY, described, by slot (None: none yet): what the read-outs
+    show.  :meth:`on_emcy` is subscribed to every drive's EMCY
+    (:meth:`drivers.wiring.BoxWiring.subscribe_emcy`) once ``tracking``.
+
+    >>> last = LastEmergencies(2)
+    >>> last.on_emcy(1, 3, bytes.fromhex("3081110000000000"))
+    >>> last.last
+    [None, 'EMCY node 3: error code 0x8130, error register 0x11']
+    """
+
+    def __init__(self, n: int) -> None:
+        self.last: list[str | None] = [None] * n
+        self.tracking = False
+
+    def on_emcy(self, slot: int, node_id: int, data: bytes) -> None:
+        try:
+            emcy = parse_emcy(node_id, data)
+        except FrameError:
+            return  # the monitor reports the bad frame
+        self.last[slot] = emcy.describe()
+
+
+def bus_statuses(
+    buses: Sequence[BusConfig],
+    loads: Sequence[BusLoad],
+    ports: Sequence[BusPort],
+    receivers: Sequence[BusReceiver],
+    logs: Sequence[TrafficLog],
+) -> tuple[BusStatus, ...]:
+    """One :class:`BusStatus` per configured bus (a bus without its port, receiver or
+    log yet shows zeros; python-can's bus state where the interface knows it)."""
+    out = []
+    for k, b in enumerate(buses):
+        port = ports[k] if k < len(ports) else None
+        state = None
+        if port is not None:
+            try:
+                state = port.bus.state.name
+            except (NotImplementedError, AttributeError, can.CanError):
+                state = None
+        traffic = receivers[k].traffic if k < len(receivers) else None
+        log_ = logs[k] if k < len(logs) else None
+        out.append(
+            BusStatus(
+                name=b.name,
+                bitrate=b.bitrate,
+                load=float(loads[k].load),
+                load_limit=float(loads[k].limit),
+                frames_sent=0 if port is None else int(port.n_sent),
+                error_frames=0 if traffic is None else int(traffic.error_frames),
+                foreign_frames=0 if traffic is None else int(sum(traffic.foreign.values())),
+                log_frames_lost=0 if log_ is None else int(log_.n_lost),
+                state=state,
+            )
+        )
+    return tuple(out)
+
+
+def session_status(
+    *,
+    state: str,
+    calibration: str,
+    stop_causes: Sequence[str],
+    slots: MotorSlots,
+    monitor: NodeMonitor,
+    sdo_values: Sequence[tuple[int, int] | None] | None,
+    targets: np.ndarray | None,
+    tension_N: np.ndarray | None,
+    last_emcy: Sequence[str | None],
+    buses: tuple[BusStatus, ...],
+) -> SessionStatus:
+    """The snapshot of a session: node values from ``sdo_values`` (per slot, (statusword,
+    actual position) read by SDO, None where a drive did not answer) or, without them,
+    from the monitor's feedback TPDOs (none before the first); heartbeats from the
+    monitor; ``targets``: what the host holds or commands (None: drives not enabled)."""
+    n = monitor.n
+    statusword: list[int | None] = [None] * n
+    position: list[int | None] = [None] * n
+    if sdo_values is not None:
+        for i, v in enumerate(sdo_values):
+            if v is not None:
+                statusword[i], position[i] = v
+    else:
+        for i in range(n):
+            if monitor.n_tpdo[i] > 0:
+                statusword[i], position[i] = int(monitor.statusword[i]), int(monitor.position[i])
+    nodes = node_statuses(
+        slots.motor_ids, slots.bus, slots.node_id,
+        hb_state=monitor.hb_state.copy(), hb_time_s=monitor.hb_time.copy(),
+        now_s=monitor.clock(), statusword=statusword, position=position,
+        targets=None if targets is None else np.asarray(targets).copy(),
+        tension_N=tension_N, last_emcy=list(last_emcy),
+    )  # fmt: skip
+    return SessionStatus(
+        state=state,
+        calibration=calibration,
+        stop_causes=tuple(stop_causes),
+        nodes=nodes,
+        buses=buses,
+        taken_s=monitor.clock(),
+        by_sdo=sdo_values is not None,
+    )

@@ -43,9 +43,9 @@ The whole tree, each class with the module that defines it::
      |    |    +-- BootupError              drivers.bringup
      |    |    +-- SetpointError            drivers.safety.limits
      |    |    +-- SupervisorModeError      drivers.safety.supervisor
-     |    |    +-- SessionStateError        drivers.session
-     |    |    +-- OtherMasterError         drivers.session
-     |    |    +-- SafetyStopError          drivers.session
+     |    |    +-- SessionStateError        drivers.lifecycle
+     |    |    +-- OtherMasterError         drivers.other_master
+     |    |    +-- SafetyStopError          drivers.safety.stops
      |    |    +-- ProcessSettingsError     drivers.realtime
      |    |    +-- TrackerLineError         drivers.protocol.tracker
      |    |    +-- TrackerError             drivers.tracker

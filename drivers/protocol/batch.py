@@ -30,6 +30,8 @@ from collections.abc import Sequence
 import can
 import numpy as np
 
+from drivers.protocol.cia402 import RPDO_TARGET, TPDO_FEEDBACK
+
 #: One frame (packed, 21 bytes): the ``hrm_ipc`` record ``<dIB8s``.
 FRAME_DTYPE = np.dtype([("timestamp", "<f8"), ("id", "<u4"), ("dlc", "u1"), ("data", "u1", (8,))])
 FLAG_EXTENDED = 0x80000000
@@ -39,40 +41,24 @@ FLAGS = FLAG_EXTENDED | FLAG_REMOTE | FLAG_ERROR
 ID_MASK = 0x1FFFFFFF
 STD_ID_MAX = 0x7FF
 
-_OFF_TS, _OFF_ID, _OFF_DLC, _OFF_DATA = 0, 8, 12, 13
 #: The feedback TPDO1's fields in a frame record (statusword UNSIGNED16, position INTEGER32).
-TPDO_VIEW = np.dtype(
-    {
-        "names": ["timestamp", "id", "dlc", "statusword", "position"],
-        "formats": ["<f8", "<u4", "u1", "<u2", "<i4"],
-        "offsets": [_OFF_TS, _OFF_ID, _OFF_DLC, _OFF_DATA, _OFF_DATA + 2],
-        "itemsize": FRAME_DTYPE.itemsize,
-    }
-)
+TPDO_VIEW = TPDO_FEEDBACK.view_in(FRAME_DTYPE)
 #: The setpoint RPDO1's fields in a frame record (controlword UNSIGNED16, target INTEGER32).
-RPDO_VIEW = np.dtype(
-    {
-        "names": ["timestamp", "id", "dlc", "controlword", "target"],
-        "formats": ["<f8", "<u4", "u1", "<u2", "<i4"],
-        "offsets": [_OFF_TS, _OFF_ID, _OFF_DLC, _OFF_DATA, _OFF_DATA + 2],
-        "itemsize": FRAME_DTYPE.itemsize,
-    }
-)
-RPDO_DLC = 6
+RPDO_VIEW = RPDO_TARGET.view_in(FRAME_DTYPE)
+RPDO_DLC = RPDO_TARGET.size
 
 
 def rpdo_batch(
     cob_ids: np.ndarray, controlword: int, targets: np.ndarray, timestamp: float = 0.0
 ) -> np.ndarray:
-    """RPDO1 frames (controlword, target) for ``cob_ids`` as a batch; ``targets`` must
-    already be within INTEGER32 (the caller checks)."""
+    """RPDO1 frames (controlword, target) for ``cob_ids`` as a batch (a target outside
+    INTEGER32 raises :class:`~drivers.protocol.cia301.FrameError`)."""
     out = np.zeros(len(cob_ids), dtype=FRAME_DTYPE)
     v = out.view(RPDO_VIEW)
     v["timestamp"] = timestamp
     v["id"] = cob_ids
     v["dlc"] = RPDO_DLC
-    v["controlword"] = controlword & 0xFFFF
-    v["target"] = targets
+    RPDO_TARGET.fill(v, controlword=controlword, target=targets)
     return out
 
 

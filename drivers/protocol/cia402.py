@@ -25,7 +25,6 @@ here too; the communication profile (COB-IDs, NMT, SDO, EMCY) is
 
 from __future__ import annotations
 
-import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import Enum, IntEnum
@@ -40,8 +39,8 @@ from drivers.protocol.cia301 import (
     FrameError,
     check_node_id,
     data_frame,
-    pdo_mapping_entry,
 )
+from drivers.protocol.pdo import PdoEntry, PdoLayout
 from hrm_ctrl.errors import DriverError
 
 # ---------------------------------------------------------------- objects (0x6000..0x6FFF)
@@ -425,20 +424,29 @@ def interpolation_time_period(period_s: float) -> tuple[int, int]:
 
 
 # ---------------------------------------------------------------- our PDO mapping
-RPDO_TARGET_LAYOUT = struct.Struct("<Hi")  # controlword (UNSIGNED16), target position (INTEGER32)
-TPDO_FEEDBACK_LAYOUT = struct.Struct("<Hi")  # statusword (UNSIGNED16), position actual (INTEGER32)
-RPDO_TARGET_DTYPE = np.dtype([("controlword", "<u2"), ("target", "<i4")])
-TPDO_FEEDBACK_DTYPE = np.dtype([("statusword", "<u2"), ("position", "<i4")])
-RPDO_TARGET_MAPPING = (
-    pdo_mapping_entry(OD_CONTROLWORD, 0, 16),
-    pdo_mapping_entry(OD_TARGET_POSITION, 0, 32),
+#: The setpoint RPDO1: controlword (UNSIGNED16), target position (INTEGER32).
+RPDO_TARGET = PdoLayout(
+    (
+        PdoEntry("controlword", OD_CONTROLWORD, 0, "H"),
+        PdoEntry("target", OD_TARGET_POSITION, 0, "i", "target position"),
+    )
 )
-TPDO_FEEDBACK_MAPPING = (
-    pdo_mapping_entry(OD_STATUSWORD, 0, 16),
-    pdo_mapping_entry(OD_POSITION_ACTUAL_VALUE, 0, 32),
+#: The feedback TPDO1: statusword (UNSIGNED16), position actual value (INTEGER32).
+TPDO_FEEDBACK = PdoLayout(
+    (
+        PdoEntry("statusword", OD_STATUSWORD, 0, "H"),
+        PdoEntry("position", OD_POSITION_ACTUAL_VALUE, 0, "i", "position actual value"),
+    )
 )
-RPDO_TARGET_SIZE = RPDO_TARGET_LAYOUT.size
-TPDO_FEEDBACK_SIZE = TPDO_FEEDBACK_LAYOUT.size
+# what each layout gives, under the names the drivers use
+RPDO_TARGET_LAYOUT = RPDO_TARGET.struct
+TPDO_FEEDBACK_LAYOUT = TPDO_FEEDBACK.struct
+RPDO_TARGET_DTYPE = RPDO_TARGET.dtype
+TPDO_FEEDBACK_DTYPE = TPDO_FEEDBACK.dtype
+RPDO_TARGET_MAPPING = RPDO_TARGET.mapping
+TPDO_FEEDBACK_MAPPING = TPDO_FEEDBACK.mapping
+RPDO_TARGET_SIZE = RPDO_TARGET.size
+TPDO_FEEDBACK_SIZE = TPDO_FEEDBACK.size
 
 
 def make_rpdo_target_payloads(controlwords: np.ndarray, targets: np.ndarray) -> bytes:
@@ -447,14 +455,7 @@ def make_rpdo_target_payloads(controlwords: np.ndarray, targets: np.ndarray) -> 
     >>> make_rpdo_target_payloads(np.array([15, 2]), np.array([1, -1])).hex()
     '0f00010000000200ffffffff'
     """
-    cw = np.asarray(controlwords)
-    tg = np.asarray(targets)
-    if np.any((tg < INT32_MIN) | (tg > INT32_MAX)):
-        raise FrameError("target position outside INTEGER32")
-    rec = np.empty(np.broadcast_shapes(cw.shape, tg.shape), dtype=RPDO_TARGET_DTYPE)
-    rec["controlword"] = cw
-    rec["target"] = tg
-    return rec.tobytes()
+    return RPDO_TARGET.pack_many(controlword=controlwords, target=targets)
 
 
 def make_rpdo_target(node_id: int, controlword: int, target_counts: int) -> can.Message:
@@ -465,11 +466,7 @@ def make_rpdo_target(node_id: int, controlword: int, target_counts: int) -> can.
     ('0x203', '020004030201')
     """
     check_node_id(node_id)
-    if not INT32_MIN <= int(target_counts) <= INT32_MAX:
-        raise FrameError(f"target position {target_counts} outside INTEGER32")
-    return data_frame(
-        COB_RPDO1 + node_id, RPDO_TARGET_LAYOUT.pack(controlword & 0xFFFF, int(target_counts))
-    )
+    return data_frame(COB_RPDO1 + node_id, RPDO_TARGET.pack(controlword, target_counts))
 
 
 def make_tpdo_feedback(node_id: int, statusword: int, position_counts: int) -> can.Message:
@@ -479,9 +476,7 @@ def make_tpdo_feedback(node_id: int, statusword: int, position_counts: int) -> c
     '3702fbffffff'
     """
     check_node_id(node_id)
-    return data_frame(
-        COB_TPDO1 + node_id, TPDO_FEEDBACK_LAYOUT.pack(statusword & 0xFFFF, int(position_counts))
-    )
+    return data_frame(COB_TPDO1 + node_id, TPDO_FEEDBACK.pack(statusword, position_counts))
 
 
 def parse_rpdo_target(data: bytes | bytearray) -> tuple[int, int]:
@@ -492,8 +487,8 @@ def parse_rpdo_target(data: bytes | bytearray) -> tuple[int, int]:
     """
     if len(data) != RPDO_TARGET_SIZE:
         raise FrameError(f"RPDO1 must carry {RPDO_TARGET_SIZE} bytes, got {len(data)}")
-    cw, target = RPDO_TARGET_LAYOUT.unpack(bytes(data))
-    return int(cw), int(target)
+    cw, target = RPDO_TARGET.unpack(data)
+    return int(cw), int(target)  # type: ignore[call-overload]
 
 
 def parse_tpdo(data: bytes | bytearray) -> tuple[int, int]:
@@ -504,5 +499,5 @@ def parse_tpdo(data: bytes | bytearray) -> tuple[int, int]:
     """
     if len(data) != TPDO_FEEDBACK_SIZE:
         raise FrameError(f"TPDO1 must carry {TPDO_FEEDBACK_SIZE} bytes, got {len(data)}")
-    sw, pos = TPDO_FEEDBACK_LAYOUT.unpack(bytes(data))
-    return int(sw), int(pos)
+    sw, pos = TPDO_FEEDBACK.unpack(data)
+    return int(sw), int(pos)  # type: ignore[call-overload]

@@ -20,9 +20,6 @@ import numpy as np
 from drivers.rope_model import ArmRopeModel, MotorLimits, RopeModel
 from hrm_ctrl.errors import DriverError, HrmError
 
-# the name the session and the supervisor type their limits with
-LimitChecker = MotorLimits
-
 
 class SetpointError(DriverError):
     """A setpoint source cannot be built or started."""

@@ -71,8 +71,10 @@ from drivers.interrupts import deferred_interrupts
 from drivers.protocol import cia301, cia402
 from drivers.protocol.batch import from_messages
 from drivers.realtime import NORMAL_PRIORITY, process_settings
+from drivers.receive import BusPoller
+from drivers.rope_model import MotorLimits
 from drivers.safety.causes import StopCause, StopKind, unique_causes
-from drivers.safety.limits import CycleLimits, LimitChecker, SetpointError, accel_limits
+from drivers.safety.limits import CycleLimits, SetpointError, accel_limits
 from drivers.safety.monitor import NodeMonitor
 from drivers.sources import SetpointSource
 from hrm_ctrl.errors import DriverError, HrmError, interrupting_signal
@@ -150,6 +152,34 @@ class _Stream:
     result: StreamResult | None = None
 
 
+def wait_while(
+    mode_of: Callable[[], Mode],
+    modes: frozenset[Mode],
+    timeout_s: float,
+    poll_s: float,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+) -> Mode:
+    """Poll ``mode_of()`` every ``poll_s`` until it is none of ``modes`` or ``timeout_s``
+    has passed on ``clock``; return the last mode read (one of ``modes``: timed out).
+    The one wait of the session on the supervisor (a stop being confirmed, a stream
+    ending, a stop beginning).
+
+    >>> t = [0.0]
+    >>> wait_while(lambda: Mode.STOPPING, frozenset({Mode.STOPPING}), 0.05, 0.01,
+    ...            clock=lambda: t[0], sleep=lambda s: t.__setitem__(0, t[0] + s)).name
+    'STOPPING'
+    >>> round(t[0], 3)
+    0.05
+    """
+    deadline = clock() + timeout_s
+    mode = mode_of()
+    while mode in modes and clock() < deadline:
+        sleep(poll_s)
+        mode = mode_of()
+    return mode
+
+
 class Supervisor:
     """The one owner of the control loop (see the module docstring).
 
@@ -162,7 +192,7 @@ class Supervisor:
         self,
         layouts: Sequence[BusLayout],
         monitor: NodeMonitor,
-        limits: LimitChecker,
+        limits: MotorLimits,
         period_s: float,
         heartbeat_period_s: float,
         host_node_id: int,
@@ -219,11 +249,7 @@ class Supervisor:
         self._recent_syncs: collections.deque[float] = collections.deque(maxlen=RECENT_SYNCS)
         self._sync = from_messages([cia301.make_sync()])  # the SYNC as a one-frame batch
         # the CAN logs of the buses, kicked every LOG_KICK_S while streaming
-        self._logs = [
-            lay.port.log
-            for lay in self.layouts
-            if getattr(lay.port, "log", None) is not None and hasattr(lay.port.log, "kick")
-        ]
+        self._logs = [lay.port.log for lay in self.layouts if lay.port.log is not None]
         self._log_kick_cycles = max(1, round(LOG_KICK_S / self.period_s))
 
     # ------------------------------------------------------------------ thread
@@ -271,7 +297,7 @@ class Supervisor:
         pollers = {
             lay.notifier.fileno(): lay.notifier
             for lay in self.layouts
-            if lay.notifier is not None and hasattr(lay.notifier, "poll")
+            if isinstance(lay.notifier, BusPoller)
         }
         fds = [mon.wake.fileno(), *pollers]
         select_ = select.select
@@ -407,6 +433,82 @@ class Supervisor:
     def clear_stop_request(self) -> None:
         """Forget a stop asked for before the drives were configured."""
         self._stop_request.clear()
+
+    # ------------------------------------------------------------------ the monitor's owner
+    # The session moves the monitor's state only through these (the receive callbacks feed
+    # it frames; the loop reads and arms it): one writer of what the watchdogs judge by.
+    def set_guard(self, on: bool) -> None:
+        """Drives configured (on) until the session ends or resets them (off): another
+        master's frames are stop causes even with no drive enabled, and while idle the
+        loop quick-stops every node on them (:meth:`set_guard_idle`)."""
+        with self._lock:
+            self.monitor.guarding = on
+            self.guard_idle = on
+
+    @property
+    def guarding(self) -> bool:
+        """Whether the configured drives are guarded (:meth:`set_guard`)."""
+        return self.monitor.guarding
+
+    def prepare_reset(self) -> float:
+        """Just before an NMT reset: heartbeat supervision counts from the next arming
+        again and every node's boot-up is awaited anew; returns the monitor's time of
+        the reset (for :meth:`NodeMonitor.describe_missing_boot`)."""
+        with self._lock:
+            self.monitor.hb_armed_at = None
+            self.monitor.reset_boot()
+            return self.monitor.clock()
+
+    def mark_configured(self) -> None:
+        """Every node booted and is being configured: a boot-up from now on is a node
+        that lost its configuration (a stop cause)."""
+        self.monitor.configured()
+
+    def drain_causes(self) -> list[StopCause]:
+        """The stop causes queued so far, taken (the session logs or refuses on them)."""
+        return self.monitor.drain()
+
+    def cause_since_configured(self) -> str | None:
+        """Why the drives may not be enabled now, or None: a node rebooted since the
+        configuration (its configuration is lost), a stop asked for, or stop causes
+        reported (an EMCY, a bad frame, a watch's cause: taken, each logged)."""
+        mon = self.monitor
+        rebooted = [mon.labels[i] for i in np.flatnonzero(mon.rebooted)]
+        if rebooted:
+            more = f" (+{len(rebooted) - 1} more)" if len(rebooted) > 1 else ""
+            return (
+                f"{rebooted[0]}{more} rebooted since the drives were configured (its "
+                "configuration is lost): bring the drives up again"
+            )
+        request = self.take_stop_request()
+        if request is not None:
+            self.events.add("stop_cause", request[1], cause=request[0].value)
+            return f"{request[1]} before the enable"
+        earlier = mon.drain()
+        if earlier:
+            more = f" (+{len(earlier) - 1} more)" if len(earlier) > 1 else ""
+            for cause in earlier:
+                self.events.add("stop_cause", cause.text, cause=cause.kind.value, motor=cause.motor)
+            return (
+                f"{earlier[0].text}{more}, reported since the drives were configured "
+                "(reset-fault clears it)"
+            )
+        return None
+
+    def report(self, kind: StopKind, text: str) -> None:
+        """A stop cause found outside the loop (judged at the next deadline or wake)."""
+        self.monitor.report(kind, text)
+
+    def release_wake(self) -> None:
+        """After :meth:`close`: the monitor's wake-up descriptor closed, unless the
+        thread outlived its join (it still selects on it)."""
+        if not self.alive:
+            self.monitor.wake.close()
+
+    def wait_while(self, modes: frozenset[Mode], timeout_s: float) -> Mode:
+        """Wait (polling once a period) until the mode is none of ``modes`` or
+        ``timeout_s`` has passed; return the mode then (see :func:`wait_while`)."""
+        return wait_while(lambda: self.mode, modes, timeout_s, self.period_s)
 
     def take_stop_request(self) -> tuple[StopKind, str] | None:
         """A stop asked for while no drive was enabled (kind, text), taken; or None."""

@@ -1,8 +1,13 @@
 """The operator console: ``hrm COMMAND ...``.
 
 Each command is one small module in this package exposing ``HELP`` (one line),
-``register(parser)`` (adds its arguments) and ``run(args) -> int``.  Commands are
-discovered, so adding a module adds a command.  Every :class:`HrmError` becomes a
+``register(parser)`` (adds its arguments, from the shared ones of
+:mod:`hrm_ctrl.cli._options` and its own) and ``run(args) -> int``.  Commands are
+discovered, so adding a module adds a command.  A command module imports at its top only
+what ``HELP`` and ``register`` need, nothing heavy (numpy, scipy, python-can, ...): those
+are imported where used.  ``hrm`` registers a command's arguments only when that command
+is parsed, so ``hrm --version`` and ``hrm --help`` import no command's libraries
+(``benchmarks/bench_startup.py``).  Every :class:`HrmError` becomes a
 one-line message on stderr and exit status 2: no traceback, no partial output.  A
 closed stdout (``hrm plan ... | head -1``) ends the command quietly with status 141
 (128 + SIGPIPE, as a shell reports for other tools a closed pipe ends).
@@ -23,11 +28,9 @@ import os
 import pkgutil
 import select
 import sys
-from collections.abc import Sequence
-from typing import NoReturn
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn
 
-from drivers.realtime import SWITCH_INTERVAL_S, process_settings
-from hrm_ctrl.cli._signals import signals_as_interrupts
 from hrm_ctrl.errors import HrmError, SignalInterrupt
 
 EXIT_ERROR = 2
@@ -52,26 +55,85 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
+class _VersionAction(argparse._VersionAction):
+    """``--version``: the version is looked up when asked for (``importlib.metadata`` is
+    not imported to build the parser)."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        self.version = f"hrm {_version()}"
+        super().__call__(parser, namespace, values, option_string)
+
+
 def _commands() -> list[str]:
     pkg = importlib.import_module("hrm_ctrl.cli")
     return sorted(m.name for m in pkgutil.iter_modules(pkg.__path__) if not m.name.startswith("_"))
 
 
-def build_parser() -> OneLineParser:
+class _Commands(argparse._SubParsersAction):  # type: ignore[type-arg]
+    """``hrm``'s sub-commands: a command's arguments are registered (its ``register()``
+    called) when the command is parsed, not before, so that ``hrm --help`` and ``hrm
+    --version`` import nothing a command's options need (its choices and defaults)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._unregistered: dict[str, Callable[[argparse.ArgumentParser], None]] = {}
+
+    def add_command(
+        self, name: str, help: str, register: Callable[[argparse.ArgumentParser], None]
+    ) -> argparse.ArgumentParser:
+        """Add the command ``name``; ``register`` adds its arguments when it is parsed."""
+        p = self.add_parser(name, help=help, description=help)
+        self._unregistered[name] = register
+        return p
+
+    def register(self, name: str) -> None:
+        """Add the arguments of command ``name`` now (once)."""
+        register = self._unregistered.pop(name, None)
+        if register is not None:
+            register(self._name_parser_map[name])
+
+    def register_all(self) -> None:
+        """Add the arguments of every command not registered yet."""
+        for name in list(self._unregistered):
+            self.register(name)
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        self.register(values[0])
+        super().__call__(parser, namespace, values, option_string)
+
+
+def build_parser(*, every_command: bool = False) -> OneLineParser:
+    """``hrm``'s parser.  A command's arguments are added when the command is parsed;
+    with ``every_command``, every command's are added at once (a parser to walk)."""
     parser = OneLineParser(
         prog="hrm", description="Rope-driven hyper-redundant manipulator console"
     )
     parser.add_argument(
-        "--version", action="version", version=f"hrm {_version()}",
+        "--version", action=_VersionAction,
         help="print hrm's version (the installed package's) and exit",
     )  # fmt: skip
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
+    sub = parser.add_subparsers(
+        dest="command", metavar="COMMAND", parser_class=OneLineParser, action=_Commands
+    )
     sub.required = True
     for name in _commands():
         mod = importlib.import_module(f"hrm_ctrl.cli.{name}")
-        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
-        mod.register(p)
+        p = sub.add_command(name, mod.HELP, mod.register)
         p.set_defaults(_run=mod.run)
+    if every_command:
+        sub.register_all()
     return parser
 
 
@@ -120,6 +182,8 @@ def _switch_interval_s(args: argparse.Namespace) -> float:
         from hrm_ctrl.cli._simwire import SIM_SWITCH_INTERVAL_S
 
         return SIM_SWITCH_INTERVAL_S
+    from drivers.realtime import SWITCH_INTERVAL_S
+
     return SWITCH_INTERVAL_S
 
 
@@ -154,6 +218,9 @@ def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _quiet_library_logging()
+    from drivers.realtime import process_settings
+    from hrm_ctrl.cli._signals import signals_as_interrupts
+
     try:
         with process_settings(_switch_interval_s(args)), signals_as_interrupts():
             return int(args._run(args) or 0)

@@ -45,15 +45,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import numpy as np
-
 from hrm_ctrl.cli._common import (
     Input,
     Output,
-    add_calibration_arguments,
-    add_config_argument,
-    add_log_format_argument,
-    add_robot_argument,
     calibrations_folder,
     calibrations_input,
     config_input,
@@ -62,30 +56,30 @@ from hrm_ctrl.cli._common import (
     robot_input,
     shipped_inputs,
 )
-from hrm_ctrl.cli._simwire import sim_listen
+from hrm_ctrl.cli._options import (
+    SimArm,
+    Uncalibrated,
+    add_bus,
+    add_calibration,
+    add_json,
+    add_log,
+    add_out,
+    add_robot,
+    add_sim,
+    add_stiffness_options,
+    add_zero_options,
+)
 from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
-    add_robot_argument(p)
-    add_calibration_arguments(p)
-    p.add_argument("--sim", action="store_true", help="the in-process simulated box")
-    p.add_argument(
-        "--perturb", type=int, default=None, metavar="SEED",
-        help="with --sim: a simulated arm that differs from its description (seeded)",
-    )  # fmt: skip
-    add_config_argument(p)  # --config, --bus
-    p.add_argument("--out", type=Path, metavar="FILE", help="write this one calibration file")
-    p.add_argument(
-        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
-        help="the run record and CAN logs (default ./runs)",
-    )  # fmt: skip
-    add_log_format_argument(p)
-    p.add_argument(
-        "--uncalibrated", action="store_true",
-        help="on real drives without a calibration: enable them anyway (explicit override)",
-    )  # fmt: skip
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_robot(p)
+    add_calibration(p, Uncalibrated.DRIVES, when="on real drives")
+    add_sim(p, arm=SimArm.PERTURB)
+    add_bus(p)  # --config, --bus
+    add_out(p, metavar="FILE", what="write this one calibration file")
+    add_log(p)
+    add_json(p, "the summary")
 
 
 def register(subparsers: Any) -> None:
@@ -96,18 +90,7 @@ def register(subparsers: Any) -> None:
         description="pretension every rope in the zero fixture and record the motor zeros",
     )
     _arguments(p)
-    p.add_argument(
-        "--target-N", type=float, default=None, metavar="NEWTON",
-        help="target tension (default the routing's pretension)",
-    )  # fmt: skip
-    p.add_argument(
-        "--tol-N", type=float, default=None, metavar="NEWTON",
-        help="tension tolerance (default 0.2 N)",
-    )  # fmt: skip
-    p.add_argument(
-        "--max-travel-counts", type=int, default=None, metavar="COUNTS",
-        help="longest travel of a motor from where it starts (default 12000)",
-    )  # fmt: skip
+    add_zero_options(p)
     p.set_defaults(_run=run_zero)
 
     p = subparsers.add_parser(
@@ -116,13 +99,7 @@ def register(subparsers: Any) -> None:
         description="each rope's EA from tension sweeps in the zero fixture",
     )
     _arguments(p)
-    p.add_argument(
-        "--sweep-N", type=float, default=None, metavar="NEWTON",
-        help="tension each sweep spans above the pretension (default 10 N)",
-    )  # fmt: skip
-    p.add_argument(
-        "--steps", type=int, default=None, metavar="N", help="readings per sweep (default 5)"
-    )
+    add_stiffness_options(p)
     p.set_defaults(_run=run_stiffness)
 
 
@@ -156,6 +133,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     from drivers.interrupts import deferred_interrupts
     from drivers.session import CalibrationRef, DriveSession
     from drivers.tension_sensor import TensionSensorReader
+    from hrm_ctrl.cli._simwire import sim_listen
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.ropes.actuation import load_actuation
 
@@ -343,6 +321,8 @@ def report_zero(
 ) -> Saved:  # fmt: skip
     """Save the zero's calibration (:func:`save_calibration`) and print its summary
     (``out``: one line each; JSON with ``args.json``); returns where it went."""
+    import numpy as np
+
     from calibration.apply import updated
     from calibration.store import Routine
 
@@ -413,6 +393,8 @@ def report_stiffness(
     out: Callable[[str], None], description: Any,
 ) -> Saved:  # fmt: skip
     """Save the stiffness's calibration and print its summary; returns where it went."""
+    import numpy as np
+
     from calibration.apply import updated
     from calibration.store import Routine
 

@@ -1,4 +1,6 @@
-"""Arguments several commands share, and the one check that an output is not an input.
+"""What several commands share: the bus configuration and the calibration store they
+read, and the one check that an output is not an input (their options:
+:mod:`hrm_ctrl.cli._options`).
 
 Every command that writes calls :func:`refuse_overwriting_inputs` first, before it
 reads or writes anything else: an output path (a file, or a directory and the files
@@ -31,17 +33,6 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from hrm_ctrl.errors import OverwriteInputError
-
-
-def add_robot_argument(parser: argparse.ArgumentParser) -> None:
-    """``--robot FILE``: the robot description replacing the one shipped with hrm."""
-    parser.add_argument(
-        "--robot",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="robot description TOML (default: the one shipped with hrm)",
-    )
 
 
 class Input(NamedTuple):
@@ -160,56 +151,6 @@ def config_input(config: Path | None) -> Input:
     return Input("bus configuration", default_box_path() if config is None else config)
 
 
-BUS_METAVAR = "NAME=INTERFACE:CHANNEL[@BITRATE]"
-
-
-def bus_override(text: str) -> Any:
-    """``--bus`` value: :func:`drivers.config.parse_bus_override`, its error as argparse's
-    (one line naming the option, exit 2).
-
-    >>> bus_override("can0=virtual:a@500000").bitrate
-    500000
-    >>> bus_override("can0")
-    Traceback (most recent call last):
-    ...
-    argparse.ArgumentTypeError: 'can0': expected NAME=INTERFACE:CHANNEL[@BITRATE]
-    """
-    from drivers.config import BusConfigError, parse_bus_override
-
-    try:
-        return parse_bus_override(text)
-    except BusConfigError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def add_bus_argument(parser: argparse.ArgumentParser) -> None:
-    """``--bus NAME=INTERFACE:CHANNEL[@BITRATE]`` (repeatable): one bus of the bus
-    configuration opened on another python-can interface and channel."""
-    parser.add_argument(
-        "--bus",
-        action="append",
-        type=bus_override,
-        default=[],
-        metavar=BUS_METAVAR,
-        help="open bus NAME of the bus configuration on this python-can interface and "
-        "channel (and bitrate) instead; repeatable, one per bus",
-    )
-
-
-def add_config_argument(parser: argparse.ArgumentParser, *, bus: bool = True) -> None:
-    """``--config BOX.toml`` (the bus configuration) and, with ``bus``, ``--bus``."""
-    parser.add_argument(
-        "--config",
-        type=Path,
-        default=None,
-        metavar="BOX.toml",
-        help="bus configuration (default: the one shipped with hrm; a bus without an "
-        "interface takes python-can's configuration: ~/can.conf, CAN_INTERFACE, ...)",
-    )
-    if bus:
-        add_bus_argument(parser)
-
-
 def load_box(args: argparse.Namespace) -> Any:
     """The bus configuration of ``--config`` with the ``--bus`` overrides applied
     (:class:`drivers.config.BoxConfig`; a bad file or override: one-line
@@ -220,55 +161,8 @@ def load_box(args: argparse.Namespace) -> Any:
     return config.with_bus_overrides(getattr(args, "bus", None) or [])
 
 
-def add_log_format_argument(parser: argparse.ArgumentParser, default: str = "blf") -> None:
-    """``--log-format FORMAT``: the CAN logs' format, any python-can writes here
-    (:func:`drivers.bus.log_formats`: blf, asc, log, trc, mf4 with asammdf)."""
-    from drivers.bus import log_formats
-
-    formats = log_formats()
-    parser.add_argument(
-        "--log-format",
-        choices=formats,
-        default=default,
-        help=f"format of the CAN logs, as python-can writes them (default {default}; "
-        "log: candump; mf4 needs asammdf)",
-    )
-
-
 CALIBRATIONS_ENV = "HRM_CALIBRATIONS"
 DEFAULT_CALIBRATIONS = Path(".local", "share", "hrm", "calibrations")  # under the home folder
-
-
-def nonempty_path(text: str) -> Path:
-    """A path option's value; an empty one is refused (``Path("")`` is the current folder,
-    which an empty ``--calibrations ''``, say from an unset shell variable, never means).
-
-    >>> nonempty_path("store")
-    PosixPath('store')
-    >>> nonempty_path("")
-    Traceback (most recent call last):
-    ...
-    argparse.ArgumentTypeError: empty path
-    """
-    if not text:
-        raise argparse.ArgumentTypeError("empty path")
-    return Path(text)
-
-
-def add_calibration_arguments(
-    parser: argparse.ArgumentParser, *, uncalibrated_help: str | None = None
-) -> None:
-    """``--calibrations DIR`` (the calibration store) and, with ``uncalibrated_help``,
-    ``--uncalibrated`` (the description's values, not the store's)."""
-    parser.add_argument(
-        "--calibrations",
-        type=nonempty_path,
-        default=None,
-        metavar="DIR",
-        help=f"calibration store (default: ${CALIBRATIONS_ENV}, else ~/{DEFAULT_CALIBRATIONS})",
-    )
-    if uncalibrated_help is not None:
-        parser.add_argument("--uncalibrated", action="store_true", help=uncalibrated_help)
 
 
 def calibrations_input(args: argparse.Namespace) -> Input:

@@ -23,7 +23,6 @@ hrm_ctrl.errors.DriverError: --pause-at '130%': a fraction of the run, 0..100 %
 
 from __future__ import annotations
 
-import argparse
 import math
 import select
 import sys
@@ -41,22 +40,6 @@ KEY_POLL_S = 0.1
 SAMPLE_PERIOD_S = 0.1  # the samples a run keeps for its figures and tension file
 MAX_SAMPLES = 36_000  # at most (an hour at 10 Hz)
 MAX_SCRIPT_WAIT_S = 3600.0
-
-
-def add_run_control_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--pause-at``, ``--resume-after``, ``--abort-at`` (a plan run's script)."""
-    parser.add_argument(
-        "--pause-at", default=None, metavar="FRACTION",
-        help="pause the plan (on its path) once this share of it is played, e.g. 30%%",
-    )  # fmt: skip
-    parser.add_argument(
-        "--resume-after", default=None, metavar="S",
-        help="with --pause-at: resume this long after the arm came to rest, e.g. 1s",
-    )  # fmt: skip
-    parser.add_argument(
-        "--abort-at", default=None, metavar="FRACTION",
-        help="abort the plan (stop on its path, end the run) at this share of it",
-    )  # fmt: skip
 
 
 def parse_fraction(text: str, what: str = "--pause-at") -> float:

@@ -12,19 +12,20 @@ from __future__ import annotations
 import argparse
 import json
 
-from hrm_ctrl.cli._common import add_config_argument, load_box
+from hrm_ctrl.cli._common import load_box
+from hrm_ctrl.cli._options import add_bus, add_json
 from hrm_ctrl.errors import DriverError
 
 HELP = "print every CAN bus's worst-case load (bit stuffing included) and the highest rate"
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    add_config_argument(parser)  # --config, --bus
+    add_bus(parser)  # --config, --bus
     parser.add_argument(
         "--rate", type=float, default=None, metavar="HZ",
         help="control rate to check (default: the configuration's)",
     )  # fmt: skip
-    parser.add_argument("--json", action="store_true", help="print JSON")
+    add_json(parser, "every bus's load")
 
 
 def run(args: argparse.Namespace) -> int:

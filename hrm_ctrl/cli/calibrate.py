@@ -49,17 +49,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from hrm_ctrl.cli._calibrate_tension import EXIT_NOT_USABLE, save_calibration
 from hrm_ctrl.cli._calibrate_tension import register as register_tension_routines
 from hrm_ctrl.cli._common import (
     Input,
     Output,
-    add_calibration_arguments,
-    add_config_argument,
-    add_log_format_argument,
-    add_robot_argument,
     calibrations_folder,
     calibrations_input,
     config_input,
@@ -68,7 +62,17 @@ from hrm_ctrl.cli._common import (
     robot_input,
     shipped_inputs,
 )
-from hrm_ctrl.cli._simwire import sim_listen
+from hrm_ctrl.cli._options import (
+    SimArm,
+    Uncalibrated,
+    add_bus,
+    add_calibration,
+    add_json,
+    add_log,
+    add_out,
+    add_robot,
+    add_sim,
+)
 from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
 
 # Readings averaged per base nest: the frame's error reaches the tip over the arm's 2 m, so
@@ -80,8 +84,8 @@ MAX_COLLECT = 1000
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    add_robot_argument(p)
-    add_calibration_arguments(p)
+    add_robot(p)
+    add_calibration(p)
 
 
 def register(parser: argparse.ArgumentParser) -> None:
@@ -90,12 +94,12 @@ def register(parser: argparse.ArgumentParser) -> None:
     )
     p = sub.add_parser("show", help="the active calibration for this robot (every field)")
     _common(p)
-    p.add_argument("--json", action="store_true", help="print it as JSON")
+    add_json(p, "it")
     p.set_defaults(_run=run_show)
 
     p = sub.add_parser("history", help="every version in the store")
     _common(p)
-    p.add_argument("--json", action="store_true", help="print it as JSON")
+    add_json(p, "it")
     p.set_defaults(_run=run_history)
 
     p = sub.add_parser("use", help="make VERSION the active calibration")
@@ -111,8 +115,9 @@ def register(parser: argparse.ArgumentParser) -> None:
         help="link lengths and joint zero offsets from measured end points (least squares)",
     )
     p.add_argument("data", nargs="?", type=Path, metavar="DATA.csv", help="pose file")
-    _common(p)
-    p.add_argument("--out", type=Path, metavar="FILE", help="write this one calibration file")
+    add_robot(p)
+    add_calibration(p, Uncalibrated.DRIVES, when="with --collect on real drives")
+    add_out(p, metavar="FILE", what="write this one calibration file")
     p.add_argument(
         "--estimate-frame", action="store_true",
         help="fit the instrument's pose too (its points are not in the base frame)",
@@ -126,12 +131,8 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--collect", type=int, default=None, metavar="N",
         help="drive the arm through N well-spread configurations and read the tracker",
     )  # fmt: skip
-    p.add_argument("--sim", action="store_true", help="with --collect: the simulated box")
-    p.add_argument(
-        "--perturb", type=int, default=None, metavar="SEED",
-        help="with --sim: a simulated arm that differs from its description (seeded)",
-    )  # fmt: skip
-    add_config_argument(p)  # --config, --bus
+    add_sim(p, arm=SimArm.PERTURB, when="with --collect")
+    add_bus(p)  # --config, --bus
     p.add_argument(
         "--samples", type=int, default=DEFAULT_SAMPLES, metavar="N",
         help=f"tracker readings averaged per pose (default {DEFAULT_SAMPLES})",
@@ -140,16 +141,8 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--seed", type=int, default=0, metavar="SEED",
         help="seed of the drawn configurations (default 0)",
     )  # fmt: skip
-    p.add_argument(
-        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
-        help="with --collect: the run record, CAN logs and pose file (default ./runs)",
-    )  # fmt: skip
-    add_log_format_argument(p)
-    p.add_argument(
-        "--uncalibrated", action="store_true",
-        help="with --collect on real drives: enable them without a calibration (override)",
-    )  # fmt: skip
-    p.add_argument("--json", action="store_true", help="print the fit as JSON")
+    add_log(p, what="where the run record, CAN logs and pose file go", when="with --collect")
+    add_json(p, "the fit")
     p.set_defaults(_run=run_kinematic)
 
     register_tension_routines(sub)  # zero, stiffness
@@ -363,6 +356,8 @@ def _residuals(fit: Any) -> dict[str, float]:
 def kinematic_calibration(base: Any, fit: Any) -> Any:
     """The next calibration from ``base`` with the fit's links and offsets; a parameter the
     fit held fixed (``alpha_offset_1`` with a free instrument frame) keeps ``base``'s."""
+    import numpy as np
+
     from calibration.apply import updated
     from calibration.kinematic import ALPHA_NAMES, THETA_NAMES
     from calibration.store import Routine
@@ -469,6 +464,8 @@ def run_kinematic(args: argparse.Namespace) -> int:
 def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any) -> Any:
     """Drive the arm through ``args.collect`` configurations and read the tracker; return
     the poses and the pose file written into the log folder."""
+    import numpy as np
+
     from calibration.apply import calibrated_actuation
     from calibration.collect import collect_poses, travel_order
     from calibration.kinematic import format_pose_csv, instrument_frame, spread_configurations
@@ -476,6 +473,7 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
     from drivers.interrupts import deferred_interrupts
     from drivers.session import CalibrationRef, DriveSession
     from drivers.tracker import TrackerReader
+    from hrm_ctrl.cli._simwire import sim_listen
     from hrm_ctrl.cli._watches import feedback_watches
     from hrm_ctrl.files import write_atomic
     from hrm_ctrl.ropes.actuation import load_actuation

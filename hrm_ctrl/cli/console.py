@@ -26,13 +26,14 @@ HELP = "interactive operator console over one live drive session (scripts on std
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    from hrm_ctrl.cli._console.shell import add_context_arguments, script_path
+    from hrm_ctrl.cli._console.shell import script_path
+    from hrm_ctrl.cli._options import add_console_box
 
     parser.add_argument(
         "script", nargs="?", type=script_path, default=None, metavar="SCRIPT",
         help="run the commands of this file (default: stdin when it is not a terminal)",
     )  # fmt: skip
-    add_context_arguments(parser)
+    add_console_box(parser)
 
 
 def run(args: argparse.Namespace) -> int:

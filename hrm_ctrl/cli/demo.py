@@ -41,26 +41,30 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from hrm_ctrl.cli._common import (
     Output,
-    add_config_argument,
-    add_robot_argument,
     config_input,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
 )
-from hrm_ctrl.cli._simwire import SIM_WIRES, sim_listen, start_in_process_sim
-from hrm_ctrl.cli._watches import feedback_watches
-from hrm_ctrl.cli.plan import format_report
+from hrm_ctrl.cli._options import (
+    SimArm,
+    add_bus,
+    add_out,
+    add_robot,
+    add_sim_arm,
+    add_speed,
+    add_step,
+    add_wire,
+)
 from hrm_ctrl.errors import CalibrationDataError, DriverError, PlanningError
 from hrm_ctrl.files import write_atomic
-from hrm_ctrl.planning.scenarios import SCENARIOS
-from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S
+
+if TYPE_CHECKING:
+    import numpy as np
 
 HELP = (
     "calibrate a perturbed simulated arm, plan a scenario with the calibrated model and play "
@@ -79,27 +83,21 @@ COLLECT_RATE_FRACTION = 0.9  # of the motor limits (hrm calibrate: 0.5)
 
 
 def register(p: argparse.ArgumentParser) -> None:
+    from hrm_ctrl.planning.scenarios import SCENARIOS
+
     p.add_argument(
         "--scenario", choices=sorted(SCENARIOS), default="bent-pipe",
         help="the reference scenario to plan and play (default bent-pipe)",
     )  # fmt: skip
-    add_robot_argument(p)
-    add_config_argument(p, bus=False)  # the demo's buses are the in-process box's
-    p.add_argument("--step", type=float, default=5.0, metavar="MM", help="lambda (default 5 mm)")
-    p.add_argument(
-        "--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S, metavar="MM_S",
-        help=f"tip-speed cap of the playback (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s, "
-        "as hrm run and hrm ropes)",
-    )  # fmt: skip
+    add_robot(p)
+    add_bus(p, overrides=False)  # the demo's buses are the in-process box's
+    add_step(p)
+    add_speed(p)
     p.add_argument(
         "--return", dest="ret", action=argparse.BooleanOptionalAction, default=True,
         help="back out to the start after reaching the end (default: yes)",
     )  # fmt: skip
-    p.add_argument(
-        "--perturb", type=int, default=DEFAULT_PERTURB_SEED, metavar="SEED",
-        help=f"the simulated arm's differences from its description (default seed "
-        f"{DEFAULT_PERTURB_SEED})",
-    )  # fmt: skip
+    add_sim_arm(p, SimArm.PERTURB, when=None, seed=DEFAULT_PERTURB_SEED)
     p.add_argument(
         "--poses", type=int, default=DEFAULT_POSES, metavar="N",
         help=f"configurations of the kinematic calibration (default {DEFAULT_POSES})",
@@ -108,10 +106,10 @@ def register(p: argparse.ArgumentParser) -> None:
         "--no-calibrate", dest="calibrate", action="store_false",
         help="an unperturbed arm, no calibration: plan and play with the description's values",
     )  # fmt: skip
-    p.add_argument("--wire", choices=SIM_WIRES, default="virtual", help="in-process bus kind")
-    p.add_argument(
-        "--out", type=Path, default=Path("out/demo"), metavar="DIR",
-        help="where everything is written (default out/demo)",
+    add_wire(p, when=None)
+    add_out(
+        p, metavar="DIR", what="where everything is written (default out/demo)",
+        default=Path("out/demo"),
     )  # fmt: skip
 
 
@@ -128,6 +126,8 @@ def _session(
     and closed on leaving."""
     from drivers.interrupts import deferred_interrupts
     from drivers.session import DriveSession
+    from hrm_ctrl.cli._simwire import sim_listen
+    from hrm_ctrl.cli._watches import feedback_watches
 
     with contextlib.ExitStack() as stack:
         with deferred_interrupts():  # the session is open and entered, or not at all
@@ -169,6 +169,8 @@ def calibrate_on_box(
 ) -> tuple[Any, int, dict[str, Any]]:
     """Pretension and zero in the fixture, then the kinematic calibration out of it; each
     saved as a version of ``store``.  Returns the calibration, its version and a summary."""
+    import numpy as np
+
     from calibration.apply import calibrated_actuation, nominal_calibration, updated
     from calibration.collect import collect_poses, travel_order
     from calibration.kinematic import (
@@ -285,6 +287,8 @@ def calibrate_on_box(
 def end_point_errors(sim: Any, counts: np.ndarray, path: Any) -> np.ndarray:
     """Distance (mm) from the simulated arm's true end point to ``path`` for each row of
     motor ``counts`` (the arm's physics of ``sim_bus.arm``, the box stopped)."""
+    import numpy as np
+
     tips = np.array([sim.arm.state(c, 0.0).centres[-1] for c in counts])
     return np.asarray(path.distance_to(tips), dtype=float)
 
@@ -315,11 +319,15 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from calibration.apply import calibrated_actuation, calibrated_model
     from calibration.store import CalibrationStore
     from drivers.config import load_box_config
     from drivers.session import SafetyStopError
     from drivers.sources import CountsSource
+    from hrm_ctrl.cli._simwire import start_in_process_sim
+    from hrm_ctrl.cli.plan import format_report
     from hrm_ctrl.cli.ropes import setpoints_of_plan
     from hrm_ctrl.formats.planfile import PlanDoc, write_plan
     from hrm_ctrl.formats.plots import (

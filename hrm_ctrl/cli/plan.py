@@ -10,34 +10,40 @@ import math
 import sys
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hrm_ctrl.cli._common import (
     Input,
     Output,
-    add_calibration_arguments,
-    add_robot_argument,
     calibrations_input,
     load_arm,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
 )
+from hrm_ctrl.cli._options import (
+    Uncalibrated,
+    add_allow_collision,
+    add_calibration,
+    add_json,
+    add_out,
+    add_robot,
+    add_step,
+)
 from hrm_ctrl.errors import HrmError, PlanningError
-from hrm_ctrl.formats.planfile import PlanDoc, write_plan
-from hrm_ctrl.formats.scene import read_scene
-from hrm_ctrl.model import load_robot
-from hrm_ctrl.planning.conditioning import check_path, round_corners
-from hrm_ctrl.planning.environment import Environment, Pipe
-from hrm_ctrl.planning.known_path import KnownPath, load_path_csv
-from hrm_ctrl.planning.planner import MAX_PLAN_STEPS, FitMode, Plan, PlanOptions, plan_path
-from hrm_ctrl.planning.report import check_clearance, check_limits
-from hrm_ctrl.planning.scenarios import SCENARIOS, Scenario, scenario
+
+if TYPE_CHECKING:
+    from hrm_ctrl.planning.known_path import KnownPath
+    from hrm_ctrl.planning.planner import Plan
+    from hrm_ctrl.planning.scenarios import Scenario
 
 HELP = "plan the arm along a scenario or a path file (Sec. 3 of the paper) and report on it"
 
 
 def register(p: argparse.ArgumentParser) -> None:
+    from hrm_ctrl.planning.planner import FitMode
+    from hrm_ctrl.planning.scenarios import SCENARIOS
+
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--scenario", choices=sorted(SCENARIOS), help="a reference scenario")
     src.add_argument("--path", type=Path, metavar="FILE", help="CSV path file (header x,y,z; mm)")
@@ -48,8 +54,8 @@ def register(p: argparse.ArgumentParser) -> None:
         help="point cloud of a pipe's inner wall (.ply/.csv/.npy): plan along its centre line, "
         "inside that pipe",
     )
-    add_robot_argument(p)
-    p.add_argument("--step", type=float, default=5.0, metavar="MM", help="lambda (default 5 mm)")
+    add_robot(p)
+    add_step(p)
     p.add_argument("--alpha-step", type=float, default=1.0, help="alpha_step of Eq. 11 (0, 1]")
     p.add_argument("--return", dest="ret", action="store_true", help="back out to the start")
     p.add_argument(
@@ -64,7 +70,7 @@ def register(p: argparse.ArgumentParser) -> None:
         metavar="MM",
         help="round every corner of a --path or --scan polyline to this radius",
     )
-    p.add_argument("--out", type=Path, metavar="PLAN.json", help="write the plan file")
+    add_out(p, metavar="PLAN.json", what="write the plan file")
     p.add_argument("--plot", type=Path, metavar="DIR", help="write figures (PNG) to DIR")
     p.add_argument(
         "--plot-steps",
@@ -82,19 +88,21 @@ def register(p: argparse.ArgumentParser) -> None:
         metavar="SCENE.toml",
         help="environment from a scene file (with --scenario: instead of the scenario's)",
     )
-    p.add_argument(
-        "--allow-collision",
-        action="store_true",
-        help="write the plan even if a link meets an obstacle (negative clearance)",
-    )
-    p.add_argument("--json", action="store_true", help="print the report as JSON")
-    add_calibration_arguments(  # the calibrated link lengths (issue 12)
-        p, uncalibrated_help="the robot description's link lengths, not the calibration store's"
-    )
+    add_allow_collision(p, "write the plan")
+    add_json(p, "the report")
+    add_calibration(p, Uncalibrated.MODEL)  # the calibrated link lengths (issue 12)
 
 
 def make_plan(args: argparse.Namespace) -> Plan:
     """Load the inputs named by the arguments and plan (no output written)."""
+    from hrm_ctrl.formats.scene import read_scene
+    from hrm_ctrl.model import load_robot
+    from hrm_ctrl.planning.conditioning import check_path, round_corners
+    from hrm_ctrl.planning.environment import Environment, Pipe
+    from hrm_ctrl.planning.known_path import load_path_csv
+    from hrm_ctrl.planning.planner import FitMode, PlanOptions, plan_path
+    from hrm_ctrl.planning.scenarios import Scenario, scenario
+
     if not (math.isfinite(args.step) and args.step > 0.0):
         raise PlanningError(f"--step must be a finite number > 0 mm, got {args.step}")
     arm = load_arm(args, load_robot(args.robot), prog="hrm plan")
@@ -176,6 +184,8 @@ def parse_plot_steps(text: str | None) -> tuple[int, ...] | None:
     """
     if text is None:
         return None
+    from hrm_ctrl.formats.planfile import MAX_PLAN_STEPS
+
     shown = repr(text) if len(text) <= 40 else f"{text[:30]!r}... ({len(text)} characters)"
     try:
         steps = sorted({int(t) for t in text.split(",") if t.strip()})
@@ -288,6 +298,9 @@ def refuse_outputs_over_inputs(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hrm_ctrl.formats.planfile import PlanDoc, write_plan
+    from hrm_ctrl.planning.report import check_clearance, check_limits
+
     refuse_outputs_over_inputs(args)  # before anything is read or written
     plan = make_plan(args)
     name = args.scenario or str(args.path or args.scan)
@@ -301,6 +314,8 @@ def run(args: argparse.Namespace) -> int:
         check_clearance(plan.report.get("clearance_mm"), name)  # raises: nothing written
     if not args.allow_violations:
         check_limits(plan)  # raises: nothing written
+    if not (args.out or args.plot):
+        return 0  # nothing to write: the plan file's document is not made
     doc = PlanDoc.from_dict(plan.to_dict(), str(args.out or name))
     figures: list[Path] = []
     made_plot_dir = bool(args.plot) and not args.plot.exists()

@@ -38,24 +38,27 @@ HELP = "write the figures of a run (planned vs measured angles, tracking, tensio
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    from hrm_ctrl.cli._common import add_calibration_arguments, add_robot_argument
+    from hrm_ctrl.cli._options import (
+        Uncalibrated,
+        add_calibration,
+        add_json,
+        add_log,
+        add_out,
+        add_robot,
+    )
 
     parser.add_argument("run", type=Path, metavar="RUN", help="run record, or a run's name")
-    parser.add_argument(
-        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
-        help="where runs are looked up by name (default ./runs)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--out", type=Path, default=None, metavar="DIR",
-        help="where the figures go (default <run>_report/ beside the record)",
-    )  # fmt: skip
+    add_log(parser, what="where runs are looked up by name", formats=False)
+    add_out(
+        parser, metavar="DIR", what="where the figures go (default <run>_report/ beside the record)"
+    )
     parser.add_argument(
         "--stream", type=int, default=-1, metavar="N",
         help="which stream of the session (0 first; default the last)",
     )  # fmt: skip
-    add_robot_argument(parser)
-    add_calibration_arguments(parser, uncalibrated_help="the robot description's values")
-    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_robot(parser)
+    add_calibration(parser, Uncalibrated.MODEL)
+    add_json(parser, "the summary")
 
 
 def find_record(run: Path, log_dir: Path) -> Path:

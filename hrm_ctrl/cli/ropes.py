@@ -22,15 +22,11 @@ import json
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from hrm_ctrl.cli._common import (
     Input,
     Output,
-    add_calibration_arguments,
-    add_robot_argument,
     calibrations_input,
     config_input,
     load_arm,
@@ -38,44 +34,38 @@ from hrm_ctrl.cli._common import (
     robot_input,
     shipped_inputs,
 )
+from hrm_ctrl.cli._options import (
+    Uncalibrated,
+    add_bus,
+    add_calibration,
+    add_json,
+    add_out,
+    add_robot,
+    add_speed,
+)
 from hrm_ctrl.errors import HrmError, RopeError
 from hrm_ctrl.files import write_atomic
-from hrm_ctrl.formats.planfile import PlanDoc, read_plan
-from hrm_ctrl.model import load_robot
-from hrm_ctrl.ropes.actuation import Actuation
-from hrm_ctrl.ropes.setpoints import (
-    DEFAULT_TIP_SPEED_MM_PER_S,
-    MAX_PLAN_DURATION_S,
-    PlanSetpoints,
-    plan_setpoints,
-)
+
+if TYPE_CHECKING:
+    from hrm_ctrl.formats.planfile import PlanDoc
+    from hrm_ctrl.ropes.actuation import Actuation
+    from hrm_ctrl.ropes.setpoints import PlanSetpoints
 
 HELP = "motor setpoints (encoder counts per rope motor) for every step of a plan"
 
 
 def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("plan", type=Path, metavar="PLAN.json", help="plan file (hrm-plan/1)")
-    add_robot_argument(p)
-    p.add_argument(
-        "--config", type=Path, default=None, metavar="BOX.toml",
-        help="bus configuration: its control rate is the playback's (default: the shipped one)",
-    )  # fmt: skip
-    p.add_argument("--out", type=Path, metavar="SETPOINTS.csv", help="write the setpoint table")
+    add_robot(p)
+    add_bus(p, overrides=False, config_use="its control rate is the playback's")
+    add_out(p, metavar="SETPOINTS.csv", what="write the setpoint table")
     p.add_argument(
         "--cycles", action="store_true",
         help="the table lists every control cycle of the playback, not every plan step",
     )  # fmt: skip
-    p.add_argument(
-        "--speed",
-        type=float,
-        default=DEFAULT_TIP_SPEED_MM_PER_S,
-        metavar="MM_S",
-        help=f"tip-speed cap of the playback (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s)",
-    )
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    add_calibration_arguments(
-        p, uncalibrated_help="the robot description's values, not the calibration store's"
-    )
+    add_speed(p)
+    add_json(p, "the summary")
+    add_calibration(p, Uncalibrated.MODEL)
 
 
 def setpoints_of_plan(
@@ -84,12 +74,17 @@ def setpoints_of_plan(
     *,
     period_s: float,
     speed_mm_per_s: float,
-    max_duration_s: float = MAX_PLAN_DURATION_S,
+    max_duration_s: float | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> PlanSetpoints:
     """The plan's checked counts at the control rate for this arm: what ``hrm ropes``
-    reports and ``hrm run`` plays.  Refuses a plan made for other link lengths; every
-    message starts with the plan file."""
+    reports and ``hrm run`` plays (``max_duration_s`` None:
+    :data:`hrm_ctrl.ropes.setpoints.MAX_PLAN_DURATION_S`).  Refuses a plan made for other
+    link lengths; every message starts with the plan file."""
+    from hrm_ctrl.ropes.setpoints import MAX_PLAN_DURATION_S, plan_setpoints
+
+    if max_duration_s is None:
+        max_duration_s = MAX_PLAN_DURATION_S
     doc.check_robot(act.robot)
     return plan_setpoints(
         act,
@@ -109,6 +104,8 @@ def summary(act: Actuation, sp: PlanSetpoints) -> dict[str, Any]:
     """Largest travel and step-to-step change per motor (counts and mm of rope) over the
     plan's steps, and the playback at the control rate (duration, cycles, peak motor
     speed and acceleration: finite differences of the counts sent, from and to rest)."""
+    import numpy as np
+
     from hrm_ctrl.ropes.trajectory import finite_differences, finite_jerk
 
     travel, counts = sp.travel_mm, sp.step_counts
@@ -163,6 +160,8 @@ def format_csv(act: Actuation, sp: PlanSetpoints, *, cycles: bool = False) -> st
     """The setpoint table: ``t_s,step,travel_mm,<motor ids...>``, then one row per plan
     step (the time the playback passes it) or, with ``cycles``, per control cycle (the
     plan step it came from, and its travel along the path)."""
+    import numpy as np
+
     buf = io.StringIO()
     buf.write(",".join(["t_s", "step", "travel_mm", *act.motor_ids]) + "\n")
     if cycles:
@@ -233,6 +232,8 @@ def format_summary(s: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from drivers.config import load_box_config
+    from hrm_ctrl.formats.planfile import read_plan
+    from hrm_ctrl.model import load_robot
 
     refuse_overwriting_inputs(  # before anything is read or written
         [Output("--out", args.out)],

@@ -47,15 +47,11 @@ import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hrm_ctrl.cli._common import (
     Input,
     Output,
-    add_calibration_arguments,
-    add_config_argument,
-    add_log_format_argument,
-    add_robot_argument,
     calibrations_input,
     config_input,
     load_arm,
@@ -64,52 +60,33 @@ from hrm_ctrl.cli._common import (
     robot_input,
     shipped_inputs,
 )
-from hrm_ctrl.cli._runcontrol import add_run_control_arguments
-from hrm_ctrl.cli._simwire import SIM_WIRES, sim_listen
+from hrm_ctrl.cli._options import (
+    SimArm,
+    Uncalibrated,
+    add_bus,
+    add_calibration,
+    add_json,
+    add_log,
+    add_robot,
+    add_run_controls,
+    add_sim,
+)
 from hrm_ctrl.errors import DriverError
-from hrm_ctrl.formats.planfile import PLAN_FORMAT, PlanDoc
-from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S
+
+if TYPE_CHECKING:
+    from hrm_ctrl.formats.planfile import PlanDoc
 
 HELP = "play a plan (or hold / jog) on the CiA 402 rope-motor drives over CAN"
 
 
 def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("plan", nargs="?", type=Path, metavar="PLAN.json", help="plan to play")
-    add_config_argument(parser)  # --config, --bus
-    add_robot_argument(parser)
-    parser.add_argument(
-        "--sim", action="store_true",
-        help="run against the in-process simulated box (without a stored calibration: with "
-        "the description's values, said on stderr)",
-    )  # fmt: skip
-    add_calibration_arguments(
-        parser,
-        uncalibrated_help="enable the drives without a calibration (explicit override: the "
-        "robot description's values)",
-    )
-    parser.add_argument(
-        "--wire", choices=SIM_WIRES, default="virtual",
-        help="with --sim: python-can virtual buses, or hrm_sim (simulated wire at the bitrate)",
-    )  # fmt: skip
-    truth = parser.add_mutually_exclusive_group()
-    truth.add_argument(
-        "--perturb", type=int, default=None, metavar="SEED",
-        help="with --sim: a simulated arm that differs from its description (seeded; its motors "
-        "start at the active calibration's zeros)",
-    )  # fmt: skip
-    truth.add_argument(
-        "--truth", type=Path, default=None, metavar="TRUTH.toml",
-        help="with --sim: the simulated arm's truth file (docs/sim.md)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
-        help="where the CAN logs and the run record go (default ./runs)",
-    )  # fmt: skip
-    add_log_format_argument(parser)
-    parser.add_argument(
-        "--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S, metavar="MM_S",
-        help=f"tip-speed cap of the playback (default {DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s)",
-    )  # fmt: skip
+    add_bus(parser, take_over=True)  # --config, --bus, --take-over
+    add_robot(parser)
+    add_sim(parser, wire=True, arm=SimArm.PERTURB_OR_TRUTH)  # --sim, --wire, --perturb | --truth
+    add_calibration(parser, Uncalibrated.DRIVES)
+    add_log(parser)  # --log-dir, --log-format
+    add_run_controls(parser)  # --speed, --pause-at, --resume-after, --abort-at, --allow-collision
     parser.add_argument(
         "--hold", type=float, default=None, metavar="S", help="hold the actual positions S s"
     )
@@ -117,20 +94,13 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--jog", default=None, metavar="MOTOR:COUNTS_PER_S:S",
         help="move one rope motor at a constant speed, e.g. j01r0:20000:0.2",
     )  # fmt: skip
-    parser.add_argument(
-        "--take-over", action="store_true",
-        help="reset the drives even when another master is heard on the buses",
-    )  # fmt: skip
-    parser.add_argument(
-        "--allow-collision", action="store_true",
-        help="play a plan even if a link meets an obstacle of its environment",
-    )  # fmt: skip
-    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
-    add_run_control_arguments(parser)  # --pause-at, --resume-after, --abort-at
+    add_json(parser, "the summary")
 
 
 def _plan_record(path: Path, plan: PlanDoc) -> dict[str, Any]:
     """What the run record keeps of the plan: file, sha256 of its bytes, format, steps."""
+    from hrm_ctrl.formats.planfile import PLAN_FORMAT
+
     try:
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError as exc:
@@ -232,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
     from hrm_ctrl.cli._progress import ProgressBar, bring_up_with_progress
     from hrm_ctrl.cli._progress import wanted as progress_wanted
     from hrm_ctrl.cli._runcontrol import RunDisplay, RunDriver, RunScript, write_run_tensions
+    from hrm_ctrl.cli._simwire import sim_listen
     from hrm_ctrl.cli._watches import feedback_watches
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.ropes.actuation import load_actuation

@@ -6,19 +6,16 @@ import argparse
 import json
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from hrm_ctrl.cli._common import (
-    Input,
-    Output,
-    add_robot_argument,
-    refuse_overwriting_inputs,
-    robot_input,
-)
+from hrm_ctrl.cli._common import Input, Output, refuse_overwriting_inputs, robot_input
+from hrm_ctrl.cli._options import add_json, add_out, add_robot
 from hrm_ctrl.errors import PathFileError
 from hrm_ctrl.files import write_atomic
-from hrm_ctrl.model import load_robot
-from hrm_ctrl.planning.known_path import KnownPath
-from hrm_ctrl.planning.scan import ScanFit, read_scan
+
+if TYPE_CHECKING:
+    from hrm_ctrl.planning.known_path import KnownPath
+    from hrm_ctrl.planning.scan import ScanFit
 
 HELP = (
     "fit a pipe's centre line and inner diameter to a scan of its inner wall "
@@ -28,20 +25,19 @@ HELP = (
 
 def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", type=Path, metavar="FILE", help="point cloud: .ply, .csv or .npy (mm)")
-    p.add_argument(
-        "--out",
-        type=Path,
-        metavar="PATH.csv",
-        help="write the centre line as a path file (x,y,z) for hrm plan --path",
-    )
-    add_robot_argument(p)  # the path starts at the end nearest the robot's base
-    p.add_argument("--json", action="store_true", help="print the fit as JSON")
+    add_out(
+        p, metavar="PATH.csv",
+        what="write the centre line as a path file (x,y,z) for hrm plan --path",
+    )  # fmt: skip
+    add_robot(p)  # the path starts at the end nearest the robot's base
+    add_json(p, "the fit")
 
 
 def path_csv(path: KnownPath) -> str:
     """A path file (``x,y,z`` header, one point a line, mm) that ``load_path_csv`` reads.
 
     >>> import numpy as np
+    >>> from hrm_ctrl.planning.known_path import KnownPath
     >>> print(path_csv(KnownPath.from_points(np.array([[0, 0, 0], [1.5, 0, 2]], float))), end="")
     x,y,z
     0,0,0
@@ -71,6 +67,9 @@ def format_fit(fit: ScanFit, name: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hrm_ctrl.model import load_robot
+    from hrm_ctrl.planning.scan import read_scan
+
     refuse_overwriting_inputs(
         [Output("--out", args.out)],
         [Input("point cloud", args.file), robot_input(args.robot)],

@@ -35,13 +35,12 @@ from pathlib import Path
 from hrm_ctrl.cli._common import (
     Input,
     Output,
-    add_config_argument,
-    add_robot_argument,
     config_input,
     load_box,
     refuse_overwriting_inputs,
     robot_input,
 )
+from hrm_ctrl.cli._options import SimArm, add_bus, add_robot, add_sim_arm
 from hrm_ctrl.errors import SimError
 
 HELP = "run the simulated manipulator box (CiA 402 drives, arm, tension board) on the buses"
@@ -52,8 +51,8 @@ MIN_TENSION_RATE_HZ = 1.0
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    add_config_argument(parser)  # --config, --bus
-    add_robot_argument(parser)
+    add_bus(parser)  # --config, --bus
+    add_robot(parser)
     parser.add_argument(
         "--fault",
         action="append",
@@ -79,22 +78,7 @@ def register(parser: argparse.ArgumentParser) -> None:
         help="read commands from stdin (fault SPEC, state, trace on|off, trace, stats, "
         "fixture on|off, tracker-lost on|off, truth, quit)",
     )
-    truth = parser.add_mutually_exclusive_group()
-    truth.add_argument(
-        "--truth",
-        type=Path,
-        default=None,
-        metavar="TRUTH.toml",
-        help="the simulated arm's truth file (TOML, hrm-sim-truth/1; docs/sim.md)",
-    )
-    truth.add_argument(
-        "--perturb",
-        type=int,
-        default=None,
-        metavar="SEED",
-        help="a true arm drawn from SEED: links +-2 mm, joint offsets +-1 deg, EA +-20%%, "
-        "motor zeros +-5000 counts",
-    )
+    add_sim_arm(parser, SimArm.PERTURB_OR_TRUTH, when=None)  # --perturb SEED | --truth FILE
     parser.add_argument(
         "--max-slack",
         type=float,

@@ -29,10 +29,10 @@ FRESH_HEARTBEAT_PERIODS = 2.5  # the longest wait for every drive's next heartbe
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    from hrm_ctrl.cli._console.shell import add_context_arguments
+    from hrm_ctrl.cli._options import add_console_box, add_json
 
-    add_context_arguments(parser)
-    parser.add_argument("--json", action="store_true", help="print the snapshot as JSON")
+    add_console_box(parser)
+    add_json(parser, "the snapshot")
 
 
 def run(args: argparse.Namespace) -> int:

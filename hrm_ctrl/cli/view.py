@@ -35,15 +35,21 @@ from typing import Any
 from hrm_ctrl.cli._common import (
     Input,
     Output,
-    add_calibration_arguments,
-    add_robot_argument,
     calibrations_input,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
 )
+from hrm_ctrl.cli._options import (
+    SimArm,
+    add_allow_collision,
+    add_calibration,
+    add_log,
+    add_robot,
+    add_sim,
+    add_speed,
+)
 from hrm_ctrl.errors import DriverError
-from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S
 
 HELP = "the plan or the live arm in 3D in the browser (served on 127.0.0.1)"
 SERVE_POLL_S = 0.2  # how often the plan view's main thread looks up from its wait
@@ -55,36 +61,20 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--port", type=int, default=0, help="port on 127.0.0.1 (default 0: a free one)"
     )
     parser.add_argument("--step", type=int, default=0, help="plan step shown first (0-based)")
-    add_robot_argument(parser)
-    add_calibration_arguments(parser)
+    add_robot(parser)
+    add_calibration(parser)
     parser.add_argument(
         "--live", action="store_true",
         help="show the arm as the host estimates it from drive feedback (with --sim)",
     )  # fmt: skip
-    parser.add_argument(
-        "--sim", action="store_true", help="with --live: on the in-process simulated box"
-    )
-    parser.add_argument(
-        "--perturb", type=int, default=None, metavar="SEED",
-        help="with --sim: a simulated arm that differs from its description (seeded)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S, metavar="MM_S",
-        help=f"with --live: tip-speed cap of the playback (default "
-        f"{DEFAULT_TIP_SPEED_MM_PER_S:g} mm/s)",
-    )  # fmt: skip
+    add_sim(parser, arm=SimArm.PERTURB, when="with --live")  # --sim, --perturb
+    add_speed(parser, when="with --live")
     parser.add_argument(
         "--hold", type=float, default=None, metavar="S",
         help="with --live: hold the arm S s after the plan (no plan: until Ctrl-C)",
     )  # fmt: skip
-    parser.add_argument(
-        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
-        help="with --live: where the CAN logs and the run record go (default ./runs)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--allow-collision", action="store_true",
-        help="with --live: play a plan even if a link meets an obstacle of its environment",
-    )  # fmt: skip
+    add_log(parser, when="with --live", formats=False)
+    add_allow_collision(parser, when="with --live")
 
 
 def _check_args(args: argparse.Namespace) -> None:

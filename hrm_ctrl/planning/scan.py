@@ -55,7 +55,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.signal import savgol_filter
 from scipy.spatial import cKDTree
 
 from hrm_ctrl.errors import PlanningError
@@ -571,6 +570,8 @@ def pipe_from_scan(
         )
     C = np.array(C2)
     if len(C) >= SMOOTH_WINDOW:
+        from scipy.signal import savgol_filter  # here: scipy.signal takes 0.7 s to import
+
         C = savgol_filter(C, SMOOTH_WINDOW, 2, axis=0, mode="interp")
     radii = np.array(R2)
     r_fit = float(np.median(radii))

@@ -6,7 +6,9 @@ the next SYNC (synchronous types 0..240; 254/255 at once); the TPDO
 every SYNC).  An RPDO shorter than its mapping raises EMCY 0x8210 and is not
 applied.  Each SYNC first moves the motor one interpolation period
 (:mod:`sim_bus.drive.motion`).  Mapping parameters can only change while the
-PDO is invalid (bit 31 of its COB-ID), sub-index 0 last.
+PDO is invalid (bit 31 of its COB-ID), sub-index 0 last.  A mapping is compiled into a
+:class:`~drivers.protocol.pdo.PdoLayout`, the layout the host encodes and parses its PDOs
+with: both ends of the wire use the same encoder.
 """
 
 from __future__ import annotations
@@ -18,14 +20,15 @@ import can
 from canopen.objectdictionary import ODVariable
 
 from drivers.protocol import cia301, cia402
+from drivers.protocol.pdo import PdoLayout
 from sim_bus.drive.objects import WRITABLE, Key, SdoAbort
 
 if TYPE_CHECKING:
     from sim_bus.drive import DriveSim
 
-#: A compiled mapping: struct of the whole PDO (None if an entry has no fixed struct),
-#: [(object, its description or None for a dummy entry, bytes)], total bytes.
-Compiled = tuple[struct.Struct | None, list[tuple[Key, ODVariable | None, int]], int]
+#: A compiled mapping: its layout and, per value the layout carries, the mapped object
+#: and its description.
+Compiled = tuple[PdoLayout, list[tuple[Key, ODVariable]]]
 
 
 class _Comm(NamedTuple):
@@ -93,37 +96,38 @@ class PdoService:
         return self.comm().rpdo_cob
 
     # ---------------------------------------------------------------- mappings
-    def _mapping(self, map_index: int) -> list[tuple[int, int, int]]:
-        n = self._od.int_value(map_index)
-        return [
-            cia301.parse_pdo_mapping_entry(self._od.int_value(map_index, k))
-            for k in range(1, n + 1)
-        ]
+    def _code_of(self, index: int, sub: int, bits: int) -> str | None:
+        """The ``struct`` code of a mapped object (an unknown object: a dummy entry;
+        None: raw bytes, decoded by the object's own description)."""
+        var = self._od.objects.get((index, sub))
+        if var is None:
+            return f"{bits // 8}x"
+        st = var.STRUCT_TYPES.get(var.data_type)
+        if isinstance(st, struct.Struct) and st.size * 8 == bits:
+            return st.format.lstrip("<")
+        return None
 
     def _compiled(self, map_index: int) -> Compiled:
         """The compiled mapping of ``map_index``, cached until a PDO parameter is written."""
         cached = self._cache.get(map_index)
         if cached is not None:
             return cached
-        entries: list[tuple[Key, ODVariable | None, int]] = []
-        fmt = "<"
-        for index, sub, bits in self._mapping(map_index):
-            var = self._od.objects.get((index, sub))
-            st = var.STRUCT_TYPES.get(var.data_type) if var is not None else None
-            if isinstance(st, struct.Struct) and st.size * 8 == bits:
-                fmt += st.format.lstrip("<")
-            else:
-                fmt = ""
-            entries.append(((index, sub), var, bits // 8))
-        total = sum(n for _k, _v, n in entries)
-        packer = struct.Struct(fmt) if fmt and fmt != "<" else None
-        out: Compiled = (packer, entries, total)
+        n = self._od.int_value(map_index)
+        mapping = [self._od.int_value(map_index, k) for k in range(1, n + 1)]
+        layout = PdoLayout.of_mapping(mapping, self._code_of)
+        objects = [((e.index, e.subindex), self._od.objects[(e.index, e.subindex)])
+                   for e in layout.values]  # fmt: skip
+        out: Compiled = (layout, objects)
         self._cache[map_index] = out
         return out
 
+    def layout(self, map_index: int) -> PdoLayout:
+        """The layout of RPDO1 (``cia301.OD_RPDO1_MAPPING``) or TPDO1 as mapped now."""
+        return self._compiled(map_index)[0]
+
     # ---------------------------------------------------------------- frames in
     def on_rpdo(self, data: bytes, now: float) -> None:
-        need = self._compiled(cia301.OD_RPDO1_MAPPING)[2]
+        need = self._compiled(cia301.OD_RPDO1_MAPPING)[0].size
         if len(data) < need:
             self._drive.log(f"RPDO of {len(data)} bytes, mapping needs {need}: EMCY 0x8210")
             self._drive.emcy(cia301.EMCY_PDO_LENGTH)
@@ -134,19 +138,14 @@ class PdoService:
             self._apply_rpdo(data, now)
 
     def _apply_rpdo(self, data: bytes, now: float) -> None:
-        packer, entries, _total = self._compiled(cia301.OD_RPDO1_MAPPING)
-        decoded: list[object] | tuple[object, ...]
-        if packer is not None:
-            decoded = packer.unpack_from(data)
-        else:
-            decoded, offset = [], 0
-            for _key, var, n in entries:
-                chunk = data[offset : offset + n]
-                offset += n
-                decoded.append(var.decode_raw(chunk) if var is not None else None)
-        for (key, var, _n), value in zip(entries, decoded, strict=True):
-            if var is None:
-                continue  # dummy entry
+        layout, objects = self._compiled(cia301.OD_RPDO1_MAPPING)
+        decoded = layout.unpack_from(data)
+        if layout.has_raw:
+            decoded = tuple(
+                var.decode_raw(v) if e.raw else v  # type: ignore[arg-type]
+                for e, (_key, var), v in zip(layout.values, objects, decoded, strict=True)
+            )
+        for (key, _var), value in zip(objects, decoded, strict=True):
             self._od.write(key, value)  # type: ignore[arg-type]
             if key == (cia402.OD_CONTROLWORD, 0):
                 self._drive._on_controlword(int(value), now)  # type: ignore[call-overload]
@@ -173,16 +172,17 @@ class PdoService:
             self._apply_rpdo(data, now)
 
     def _send_tpdo(self, cob: int) -> None:
-        packer, entries, _total = self._compiled(cia301.OD_TPDO1_MAPPING)
+        layout, objects = self._compiled(cia301.OD_TPDO1_MAPPING)
         live = self._drive.live_value
-        if packer is not None:
-            payload = packer.pack(*[live(key) for key, _v, _n in entries])
-        else:
-            parts = [
-                var.encode_raw(live(key)) if var is not None else bytes(n)
-                for key, var, n in entries
-            ]
-            payload = b"".join(parts)
+        if layout.has_raw:
+            payload = layout.pack(
+                *[
+                    var.encode_raw(live(key)) if e.raw else live(key)
+                    for e, (key, var) in zip(layout.values, objects, strict=True)
+                ]
+            )
+        else:  # the drive's own values, in range: the layout's encoder, unchecked
+            payload = layout.struct.pack(*[live(key) for key, _var in objects])
         self._drive.transmit(can.Message(arbitration_id=cob, data=payload, is_extended_id=False))
 
     # ---------------------------------------------------------------- objects

@@ -40,10 +40,6 @@ USAGE = (
     "[--max-travel-counts C] [--fixture] [--json] | calibrate stiffness [--sweep-N N] "
     "[--steps N] [--fixture] [--json]"
 )
-OPTIONS = {
-    "zero": ["--target-N", "--tol-N", "--max-travel-counts", "--fixture", "--json"],
-    "stiffness": ["--sweep-N", "--steps", "--fixture", "--json"],
-}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -52,17 +48,27 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _parser(routine: str) -> _Parser:
+    """The options of ``calibrate zero`` / ``stiffness``: the routine's settings as ``hrm
+    calibrate`` has them, ``--fixture`` and ``--json``."""
+    from hrm_ctrl.cli._options import add_json, add_stiffness_options, add_zero_options
+
     p = _Parser(prog=f"calibrate {routine}", add_help=False)
     if routine == "zero":
-        p.add_argument("--target-N", type=float, default=None)
-        p.add_argument("--tol-N", type=float, default=None)
-        p.add_argument("--max-travel-counts", type=int, default=None)
+        add_zero_options(p)
     else:
-        p.add_argument("--sweep-N", type=float, default=None)
-        p.add_argument("--steps", type=int, default=None)
-    p.add_argument("--fixture", action="store_true")
-    p.add_argument("--json", action="store_true")
+        add_stiffness_options(p)
+    p.add_argument(
+        "--fixture", action="store_true",
+        help="the real arm lies in its zero fixture (refused without; with --sim the console "
+        "lays the simulated arm in it)",
+    )  # fmt: skip
+    add_json(p, "the summary")
     return p
+
+
+def routine_options(routine: str) -> list[str]:
+    """The options of a routine, as completion proposes them."""
+    return [o for a in _parser(routine)._actions for o in a.option_strings]
 
 
 def _routine_args(routine: str, words: list[str]) -> argparse.Namespace:
@@ -89,7 +95,7 @@ def zero_args(words: list[str]) -> argparse.Namespace:
 def _complete(ctx: ConsoleContext, words: list[str]) -> list[str]:
     if len(words) <= 2:
         return list(SUBCOMMANDS)
-    return OPTIONS.get(words[1], ["--json"])
+    return routine_options(words[1]) if words[1] in ROUTINES else ["--json"]
 
 
 @command("calibrate", "the calibration store (show, history) and, on the enabled drives "

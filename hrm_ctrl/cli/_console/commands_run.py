@@ -39,24 +39,23 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _run_parser() -> argparse.ArgumentParser:
-    from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S
+    """The options of ``run PLAN``: the run controls of ``hrm run``, and ``--no-figures``."""
+    from hrm_ctrl.cli._options import add_run_controls
 
     p = _Parser(prog="run", add_help=False)
-    p.add_argument("plan", type=Path)
-    p.add_argument("--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S)
-    p.add_argument("--pause-at", default=None)
-    p.add_argument("--resume-after", default=None)
-    p.add_argument("--abort-at", default=None)
-    p.add_argument("--allow-collision", action="store_true")
-    p.add_argument("--no-figures", action="store_true")
+    p.add_argument("plan", type=Path, help="plan to play (PLAN.json)")
+    add_run_controls(p)  # --speed, --pause-at, --resume-after, --abort-at, --allow-collision
+    p.add_argument(
+        "--no-figures", action="store_true",
+        help="write no figures of the run at its end",
+    )  # fmt: skip
     return p
 
 
 def _complete_run(ctx: ConsoleContext, words: list[str]) -> list[str]:
     if len(words) == 2:
         return complete_paths(words[-1])
-    return ["--speed", "--pause-at", "--resume-after", "--abort-at", "--allow-collision",
-            "--no-figures"]  # fmt: skip
+    return [o for a in _run_parser()._actions for o in a.option_strings]
 
 
 def _play_pausable(

@@ -46,44 +46,6 @@ HISTORY_FILE = Path(".local", "state", "hrm", "console_history")  # under $HOME
 MAX_SCRIPT_LINES = 100_000  # a script longer than this is refused at that line
 
 
-def add_context_arguments(parser: argparse.ArgumentParser) -> None:
-    """The arguments of a console over one box: ``--sim`` / ``--config``, ``--robot``,
-    the calibration store, where the runs go, ``--take-over``."""
-    from hrm_ctrl.cli._common import (
-        add_calibration_arguments,
-        add_config_argument,
-        add_log_format_argument,
-        add_robot_argument,
-    )
-    from hrm_ctrl.cli._simwire import SIM_WIRES
-
-    add_config_argument(parser)  # --config BOX.toml, --bus NAME=INTERFACE:CHANNEL[@BITRATE]
-    parser.add_argument(
-        "--sim", action="store_true",
-        help="the in-process simulated box (without a stored calibration: the description's "
-        "values, said on stderr)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--wire", choices=SIM_WIRES, default="virtual",
-        help="with --sim: python-can virtual buses, or hrm_sim (simulated wire at the bitrate)",
-    )  # fmt: skip
-    add_robot_argument(parser)
-    add_calibration_arguments(
-        parser,
-        uncalibrated_help="enable the drives without a calibration (explicit override: the "
-        "robot description's values)",
-    )
-    parser.add_argument(
-        "--log-dir", type=Path, default=Path("runs"), metavar="DIR",
-        help="where each session's CAN logs and run record go (default ./runs)",
-    )  # fmt: skip
-    add_log_format_argument(parser)
-    parser.add_argument(
-        "--take-over", action="store_true",
-        help="reset the drives even when another master is heard on the buses",
-    )  # fmt: skip
-
-
 def script_path(text: str) -> Path:
     """The ``SCRIPT`` argument: a path that is there but is not a regular file is refused
     (one line, ``argparse.ArgumentTypeError``) without opening it, by ``os.stat``: a FIFO

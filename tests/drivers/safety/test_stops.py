@@ -388,15 +388,6 @@ def test_finish_reports_drives_it_could_not_disable(rig_factory: Callable[..., R
         assert c.decode_state(sw["j01r1"]) == c.State402.READY_TO_SWITCH_ON
 
 
-def test_parallel_sdo_work_is_bounded_in_time(rig_factory: Callable[..., Rig]) -> None:
-    rig = rig_factory()
-    box = rig.open_box()
-    t0 = time.monotonic()
-    with pytest.raises(DriverError, match=r"probe: no answer within 0.2 s from 3 drive\(s\)"):
-        box._parallel("probe", lambda link: time.sleep(1.5), 0.2)
-    assert time.monotonic() - t0 < 1.0
-
-
 def test_bus_whose_interface_library_is_missing(
     rig_factory: Callable[..., Rig], monkeypatch: pytest.MonkeyPatch
 ) -> None:

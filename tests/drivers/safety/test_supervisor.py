@@ -29,6 +29,7 @@ class FakePort:
 
     def __init__(self, name: str) -> None:
         self.name = name
+        self.log = None  # no CAN log
         self.sent: list[tuple[float, can.Message]] = []
         self.clock: FakeClock | None = None
 
@@ -356,3 +357,53 @@ def test_a_cause_found_at_the_deadline_stops_before_that_cycles_sync() -> None:
     assert any(c.kind is StopKind.TPDO_MISSING for c in result.causes)
     assert result.stop_syncs_after_detection == 0
     assert result.to_dict()["stop_syncs_after_detection"] == 0
+
+
+class SteppedTime:
+    """A clock that moves only when slept on (the wait's polls, counted)."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+        self.sleeps = 0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def sleep(self, s: float) -> None:
+        self.sleeps += 1
+        self.t += s
+
+
+def test_the_wait_for_the_supervisor_gives_up_at_its_timeout() -> None:
+    from drivers.safety.supervisor import wait_while
+
+    t = SteppedTime()
+    mode = wait_while(lambda: Mode.STOPPING, frozenset({Mode.STOPPING}), 0.5, T, t, t.sleep)
+    assert mode is Mode.STOPPING  # still stopping: timed out
+    assert t.t == pytest.approx(0.5, abs=T) and t.t >= 0.5
+    assert t.sleeps == pytest.approx(0.5 / T, abs=1)
+
+
+def test_the_wait_for_the_supervisor_ends_when_the_mode_changes() -> None:
+    from drivers.safety.supervisor import wait_while
+
+    t = SteppedTime()
+    modes = iter([Mode.STREAMING, Mode.STOPPING, Mode.STOPPING, Mode.HEARTBEAT])
+    busy = frozenset({Mode.STREAMING, Mode.STOPPING})
+    assert wait_while(lambda: next(modes), busy, 2.0, T, t, t.sleep) is Mode.HEARTBEAT
+    assert t.sleeps == 3
+    assert wait_while(lambda: Mode.ARMED, busy, 2.0, T, t, t.sleep) is Mode.ARMED
+    assert t.sleeps == 3  # not busy: no wait at all
+
+
+def test_the_session_writes_the_monitor_only_through_the_supervisor() -> None:
+    clock = FakeClock()
+    sup, mon, _port, _stops = make(clock)
+    sup.set_guard(True)
+    assert mon.guarding and sup.guard_idle and sup.guarding
+    mon.hb_armed_at = 1.0
+    assert sup.prepare_reset() == clock.t and mon.hb_armed_at is None
+    sup.report(StopKind.OPERATOR, "one")
+    assert [c.text for c in sup.drain_causes()] == ["one"] and sup.drain_causes() == []
+    sup.set_guard(False)
+    assert not mon.guarding and not sup.guard_idle
