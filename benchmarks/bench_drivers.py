@@ -66,11 +66,11 @@ from drivers.realtime import (
     process_settings,
     split_cpus,
 )
-from drivers.session import DriveSession
 from drivers.sources import TableSource
 from hrm_ctrl.hil.stalls import StallProbe, explained, overlapping
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import load_actuation
+from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, open_box
 
 WIRES = ("ipc", "udp_multicast")
 RSS_SAMPLE_S = 10.0
@@ -321,12 +321,13 @@ def run(
     with box_ctx as box:
         box_pid = box.pid if box_process else None
         for k in range(max(1, bringups)):
-            with process_settings(switch_interval_s=None, cpus=host_cpus):  # its threads
-                session = DriveSession(
-                    cfg, act, log_dir=log_dir, run_name=f"bench{k}", allow_uncalibrated=True
-                )
-            cpu_latency_held = session.cpu_latency.max_us if session.cpu_latency.held else None
-            with session:
+            options = SessionOptions(log_dir=log_dir, run_name=f"bench{k}", allow_uncalibrated=True)
+            with contextlib.ExitStack() as opened:
+                with process_settings(switch_interval_s=None, cpus=host_cpus):  # its threads
+                    session = opened.enter_context(
+                        open_box(cfg, act, options, watches=NO_WATCHES, bring_up=False)
+                    ).session
+                cpu_latency_held = session.cpu_latency.max_us if session.cpu_latency.held else None
                 t = time.perf_counter()
                 session.bring_up()
                 bringup_s.append(time.perf_counter() - t)

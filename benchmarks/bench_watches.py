@@ -43,16 +43,15 @@ from bench_drivers import BoxProcess, ms, thread_cpu, wire_config
 
 from drivers.config import load_box_config
 from drivers.realtime import process_settings
-from drivers.session import DriveSession
 from drivers.sources import CountsSource
-from hrm_ctrl.cli._watches import feedback_watches
-from hrm_ctrl.cli.ropes import setpoints_of_plan
 from hrm_ctrl.formats.planfile import PlanDoc
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.planning.planner import PlanOptions, plan_path
 from hrm_ctrl.planning.scenarios import scenario
 from hrm_ctrl.ropes.actuation import load_actuation
 from hrm_ctrl.ropes.estimator import RopeConsistencyCheck
+from hrm_ctrl.runtime.box import SessionOptions, WatchOptions, open_box
+from hrm_ctrl.runtime.playback import setpoints_of_plan
 from sim_bus.box import SimBox
 
 VARIANTS = {"none": (False, False), "tension": (True, False), "rope": (False, True)}
@@ -65,16 +64,16 @@ def one_run(
 ) -> dict[str, Any]:
     tension, ropes = VARIANTS[variant]
     source = CountsSource(act, counts, cfg.control.period_s, name="plan")
-    box = DriveSession(cfg, act, allow_uncalibrated=True)  # the simulated box
-    with box:
-        box.bring_up()
+    options = SessionOptions(allow_uncalibrated=True)  # the simulated box
+    chosen = WatchOptions(tension=tension, ropes=ropes)
+    with open_box(cfg, act, options, watches=chosen) as opened:
+        box, watches = opened.session, opened.watches
         if trace_box is not None:
             trace_box.record_trace(True)
-        with feedback_watches(cfg, act, box, tension=tension, ropes=ropes) as watches:
-            cpu0 = thread_cpu()
-            result = box.stream(source, raise_on_stop=False)
-            cpu1 = thread_cpu()
-            summary = watches.summary()
+        cpu0 = thread_cpu()
+        result = box.stream(source, raise_on_stop=False)
+        cpu1 = thread_cpu()
+        summary = watches.summary()
     s = result.stats
     n = max(1, result.cycles)
     threads = {

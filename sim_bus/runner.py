@@ -151,7 +151,7 @@ def run_box_process(
             if cmd is None or cmd == "quit":
                 break
             try:
-                later = _command(cmd, box, board, out, now)
+                later = control_command(cmd, box, board, out, now)
                 if later is not None:  # fault SPEC@T: applied T s after the start
                     pending = sorted([*pending, later], key=lambda f: f.at_s or 0.0)
             except HrmError as exc:
@@ -191,9 +191,15 @@ def control_lines(inp: TextIO) -> Iterator[str]:
 TOO_LONG = "\x00too-long"  # what control_lines gives for a line over the bound
 
 
-def _command(cmd: str, box: SimBox, board: TensionBoard, out: TextIO, now: float) -> Fault | None:
-    """Carry out one control command; a ``fault SPEC@T`` whose time is still to come is
-    returned (the caller applies it then)."""
+def control_command(
+    cmd: str, box: SimBox, board: TensionBoard, out: TextIO, now: float
+) -> Fault | None:
+    """Carry out one control command of ``hrm sim --control`` (``fault SPEC[@T]``,
+    ``state``, ``stats``, ``fixture on|off``, ``tracker-lost on|off``, ``truth``,
+    ``trace [on|off]``) on ``box`` and its tension ``board`` at ``now`` s after the box
+    started, writing its JSON event lines to ``out``: the box process's handler, and a box
+    in another's process answers the same way.  A ``fault SPEC@T`` whose time is still to
+    come is returned (the caller applies it then)."""
     if cmd == TOO_LONG:
         too_long = f"control line longer than {MAX_CONTROL_LINE_CHARS} characters"
         _emit(out, {"event": "error", "error": too_long})

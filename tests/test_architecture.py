@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import pkgutil
+import re
 import shutil
 import subprocess
 import sys
@@ -84,6 +85,9 @@ INJECTED = [
     ("hrm_ctrl/ropes/length.py", "import hrm_ctrl.formats.planfile", "ropes"),
     ("drivers/busload.py", "import hrm_ctrl.model", "drivers"),
     ("sim_bus/wire.py", "import drivers.session", "sim-bus"),
+    ("hrm_ctrl/runtime/box.py", "import hrm_ctrl.cli", "runtime"),
+    ("calibration/workflows.py", "import hrm_ctrl.runtime.box", "direction"),
+    ("hrm_ctrl/hil/rig.py", "import hrm_ctrl.cli", "direction"),
 ]
 DOCSTRING_ONLY = ("hrm_ctrl/planning/fitting.py", "import sim_bus.box")
 
@@ -123,3 +127,60 @@ def test_contracts_catch_a_forbidden_import(tmp_path):
         imported = line.removeprefix("import ")
         assert f"{_module(path)} -> {imported}" in _report_of(res.stdout, names[contract]), out
     assert f"{_module(DOCSTRING_ONLY[0])} -> " not in out
+
+
+# The one composition root (issue 33): a drive session is opened by the runtime layer alone
+# (hrm_ctrl.runtime.box.open_box), and the benchmarks, which are not a package import-linter
+# sees, use the library the way the entry points do, not the CLI.
+SESSION_CONSTRUCTED = re.compile(r"\bDriveSession\(")
+CLI_IMPORTED = re.compile(r"^\s*(from|import)\s+hrm_ctrl\.cli\b", re.MULTILINE)
+
+
+def _code_lines(path: Path) -> list[tuple[int, str]]:
+    """The lines of ``path`` outside docstrings and comments that construct a session."""
+    import ast
+
+    tree = ast.parse(path.read_text(), str(path))
+    hits = []
+    for node in ast.walk(tree):
+        if (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Name | ast.Attribute)
+            and (node.func.id if isinstance(node.func, ast.Name) else node.func.attr)
+            == "DriveSession"
+        ):
+            hits.append((node.lineno, ast.get_source_segment(path.read_text(), node) or ""))
+    return hits
+
+
+def test_only_the_runtime_layer_constructs_a_drive_session():
+    production = [
+        p
+        for pkg in (*PACKAGES, "benchmarks")
+        for p in sorted((ROOT / pkg).rglob("*.py"))
+        if "__pycache__" not in p.parts
+    ]
+    found = [
+        f"{p.relative_to(ROOT)}:{line}"
+        for p in production
+        if p.relative_to(ROOT).parts[:2] != ("hrm_ctrl", "runtime")
+        for line, _ in _code_lines(p)
+    ]
+    assert not found, f"DriveSession constructed outside hrm_ctrl/runtime: {found}"
+    # the check sees a construction where there is one
+    assert _code_lines(ROOT / "hrm_ctrl" / "runtime" / "box.py")
+    assert SESSION_CONSTRUCTED.search((ROOT / "hrm_ctrl" / "runtime" / "box.py").read_text())
+
+
+def test_the_benchmarks_import_nothing_of_the_cli():
+    benchmarks = sorted((ROOT / "benchmarks").glob("*.py"))
+    assert benchmarks
+    found = [
+        f"{p.relative_to(ROOT)}: {m.group(0).strip()}"
+        for p in benchmarks
+        for m in CLI_IMPORTED.finditer(p.read_text())
+    ]
+    assert not found, f"benchmarks import the CLI: {found}"
+    assert CLI_IMPORTED.search("x = 1\nfrom hrm_ctrl.cli._common import Input\n")
+    assert CLI_IMPORTED.search("import hrm_ctrl.cli\n")
+    assert not CLI_IMPORTED.search("from hrm_ctrl.clinic import x\n")

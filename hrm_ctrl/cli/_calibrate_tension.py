@@ -36,15 +36,15 @@ by the tension sensors); the stiffness routine needs one unless ``--sim`` or
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
+from calibration.workflows import Saved
 from hrm_ctrl.cli._common import (
     Input,
     Output,
@@ -127,15 +127,14 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     """Open the store and the box (``--sim``: the simulated one, its arm in the fixture),
     bring the drives up and run ``routine(session, reader, actuation)``; return
     ``(result, base calibration, store, robot description)``."""
-    from calibration.apply import calibrated_actuation, starting_point
+    from calibration.apply import calibrated_actuation, calibrated_model, starting_point
     from calibration.store import CalibrationStore
     from drivers.bus import ensure_log_dir
-    from drivers.interrupts import deferred_interrupts
-    from drivers.session import CalibrationRef, DriveSession
     from drivers.tension_sensor import TensionSensorReader
-    from hrm_ctrl.cli._simwire import sim_listen
     from hrm_ctrl.model import load_robot
-    from hrm_ctrl.ropes.actuation import load_actuation
+    from hrm_ctrl.runtime.arm import Arm
+    from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, open_box
+    from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
 
     store = CalibrationStore(calibrations_folder(args.calibrations))
     active_file = store.path_of(store.active()) if store.active() is not None else None
@@ -157,7 +156,8 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     actuation = calibrated_actuation(description, base)
     config.check_motors(actuation.motor_ids)
     ensure_log_dir(args.log_dir)
-    ref = None if active is None else CalibrationRef(active.version, active.sha256, active.path)
+    arm = Arm(description, calibrated_model(description, base), actuation, active)
+    ref = arm.calibration_ref()
     allow = args.sim or args.uncalibrated or args.calibrate == "zero"
     if ref is None and not allow:
         raise CalibrationFileError(
@@ -169,63 +169,32 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
               file=sys.stderr)  # fmt: skip
 
     sim = None
-    if args.sim:
-        from hrm_ctrl.cli._simwire import calibration_counts, start_in_process_sim
-        from sim_bus.truth import TrueArm
-
-        physical = load_actuation(description)  # the simulated arm: its description ...
-        truth = None if args.perturb is None else TrueArm.perturbed(physical, args.perturb)
-        config, sim = start_in_process_sim(  # ... or a perturbed one, in its fixture
-            config,
-            physical,
-            prog=prog,
-            truth=truth,
-            fixture=True,
-            initial_counts=calibration_counts(None if active is None else base, physical),
-        )
+    if args.sim:  # the simulated arm: its description, or a perturbed one, in its fixture
+        sim = SimulatedBox(simulated_arm(arm, perturb=args.perturb), fixture=True)
     else:
-        print(f"{prog}: the arm must lie in its zero fixture", file=sys.stderr)
-    try:
-        t = config.tension
-        if t is None:
+        if config.tension is None:  # refused before any bus opens
             raise CalibrationDataError(
                 f"{config.source}: no [tension] table: {args.calibrate} needs the tension sensors"
             )
-        with contextlib.ExitStack() as stack:
-            reader = stack.enter_context(
-                TensionSensorReader(
-                    t.port, actuation.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
-                )
-            )
-            with deferred_interrupts():  # the session is open and entered, or not at all
-                box = stack.enter_context(
-                    DriveSession(
-                        config,
-                        actuation,
-                        log_dir=args.log_dir,
-                        log_suffix=f".{args.log_format}",
-                        calibration=ref,
-                        allow_uncalibrated=allow,
-                        **sim_listen(args.sim),
-                    )
-                )
-                box.record_extra = {"routine": args.calibrate, "simulated_box": bool(args.sim)}
+        print(f"{prog}: the arm must lie in its zero fixture", file=sys.stderr)
+    options = SessionOptions(
+        log_dir=args.log_dir,
+        log_suffix=f".{args.log_format}",
+        calibration=ref,
+        allow_uncalibrated=allow,
+        record_extra={"routine": args.calibrate, "simulated_box": bool(args.sim)},
+    )
+    # no feedback watches: the routines guard the tensions themselves
+    with open_box(
+        config, actuation, options, sim=sim, watches=NO_WATCHES, bring_up=False, prog=prog
+    ) as box:
+        t = box.config.tension  # the simulated box's board, or the configured one
+        with TensionSensorReader(
+            t.port, actuation.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
+        ) as reader:
             box.bring_up()
-            result = routine(box, reader, actuation)
-    finally:
-        if sim is not None:
-            sim.stop()
+            result = routine(box.session, reader, actuation)
     return result, base, store, description
-
-
-class Saved(NamedTuple):
-    """Where :func:`save_calibration` put a routine's result: its ``version``, ``where``
-    (one line for the user) and ``usable``: whether loading would accept it (False: a
-    value out of :func:`calibration.apply.check_ranges`, kept but not made active)."""
-
-    version: int
-    where: str
-    usable: bool
 
 
 EXIT_NOT_USABLE = 1  # a routine ran and kept its result, which loading would refuse
@@ -233,7 +202,7 @@ EXIT_NOT_USABLE = 1  # a routine ran and kept its result, which loading would re
 
 def save_calibration(args: argparse.Namespace, store: Any, new: Any, description: Any) -> Saved:
     """Save ``new`` as the store's next version (active), or with ``--out FILE`` write that
-    one file (numbered as the store's next).
+    one file (numbered as the store's next): :func:`calibration.workflows.save_calibration`.
 
     A result that ``hrm calibrate use`` and every drive session would refuse (a value out
     of :func:`calibration.apply.check_ranges`) is still kept, the routine's work is not
@@ -242,28 +211,14 @@ def save_calibration(args: argparse.Namespace, store: Any, new: Any, description
     calibration it had as if the routine had succeeded).  ``--out`` writes such a result
     with the same stderr line.
     """
-    from calibration.apply import check_belongs
-    from calibration.store import to_json
+    from calibration.workflows import save_calibration as save
 
-    try:
-        check_belongs(description, new, "the new calibration")
-        problem = None
-    except CalibrationFileError as exc:
-        problem = str(exc)
-    if args.out is not None:
-        version = max(store.versions(), default=0) + 1  # the number it would have in the store
-        _write_file(args.out, to_json(new, version))
-        if problem is not None:
-            print(f"hrm calibrate: {args.out} would be refused: {problem}", file=sys.stderr)
-            return Saved(version, f"written to {args.out} (not in the store; out of range)", False)
-        return Saved(version, f"written to {args.out} (not in the store)", True)
+    saved, problem = save(store, new, description, out=args.out, write=_write_file)
     if problem is not None:
-        version = store.save(new, activate=False)
-        print(f"hrm calibrate: v{version:04d} not made active: {problem}", file=sys.stderr)
-        where = f"saved as v{version:04d} in {store.folder} (NOT active: out of range)"
-        return Saved(version, where, False)
-    version = store.save(new)
-    return Saved(version, f"saved as v{version:04d} in {store.folder} (active)", True)
+        what = args.out if args.out is not None else f"v{saved.version:04d}"
+        how = "would be refused" if args.out is not None else "not made active"
+        print(f"hrm calibrate: {what} {how}: {problem}", file=sys.stderr)
+    return saved
 
 
 def _progress(args: argparse.Namespace) -> Any:
@@ -323,12 +278,11 @@ def report_zero(
     (``out``: one line each; JSON with ``args.json``); returns where it went."""
     import numpy as np
 
-    from calibration.apply import updated
-    from calibration.store import Routine
+    from calibration.workflows import zero_calibration
 
     zeros = {m: int(v) for m, v in zip(result.motor_ids, result.zero_counts, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
-    new = updated(base, routine=Routine.ZERO, residuals=residuals, motor_zero_counts=zeros)
+    new = zero_calibration(base, result, residuals)
     saved = save_calibration(args, store, new, description)
     version, where = saved.version, saved.where
     shift = result.zero_shift_counts
@@ -395,12 +349,11 @@ def report_stiffness(
     """Save the stiffness's calibration and print its summary; returns where it went."""
     import numpy as np
 
-    from calibration.apply import updated
-    from calibration.store import Routine
+    from calibration.workflows import stiffness_calibration
 
     ea = {m: float(v) for m, v in zip(result.motor_ids, result.EA_N, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
-    new = updated(base, routine=Routine.STIFFNESS, residuals=residuals, rope_EA_N=ea)
+    new = stiffness_calibration(base, result, residuals)
     saved = save_calibration(args, store, new, description)
     version, where = saved.version, saved.where
     rel = result.EA_sigma_N / result.EA_N

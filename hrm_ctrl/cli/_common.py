@@ -30,9 +30,24 @@ import argparse
 import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from hrm_ctrl.errors import OverwriteInputError
+
+# the arm and the calibration store's folder: hrm_ctrl.runtime.arm (re-exported here)
+from hrm_ctrl.runtime.arm import (
+    CALIBRATIONS_ENV as CALIBRATIONS_ENV,
+)
+from hrm_ctrl.runtime.arm import (
+    DEFAULT_CALIBRATIONS as DEFAULT_CALIBRATIONS,
+)
+from hrm_ctrl.runtime.arm import (
+    Arm,
+    calibrations_folder,
+)
+
+if TYPE_CHECKING:
+    from hrm_ctrl.model import RobotModel
 
 
 class Input(NamedTuple):
@@ -161,10 +176,6 @@ def load_box(args: argparse.Namespace) -> Any:
     return config.with_bus_overrides(getattr(args, "bus", None) or [])
 
 
-CALIBRATIONS_ENV = "HRM_CALIBRATIONS"
-DEFAULT_CALIBRATIONS = Path(".local", "share", "hrm", "calibrations")  # under the home folder
-
-
 def calibrations_input(args: argparse.Namespace) -> Input:
     """The calibration store a command reads (``--calibrations``), as an input folder;
     none with ``--uncalibrated``."""
@@ -175,82 +186,19 @@ def calibrations_input(args: argparse.Namespace) -> Input:
     )
 
 
-def calibrations_folder(given: Path | str | None) -> Path:
-    """The calibration store: ``--calibrations``, else ``$HRM_CALIBRATIONS``, else
-    ``~/.local/share/hrm/calibrations``."""
-    if given is not None:
-        return Path(given)
-    env = os.environ.get(CALIBRATIONS_ENV)
-    if env:  # set but empty: as if unset
-        return Path(env)
-    return Path.home() / DEFAULT_CALIBRATIONS
-
-
-class Arm(NamedTuple):
-    """The arm a command works with: the robot description as loaded, the model with the
-    calibration's links, its rope layer, the active calibration used (None: the
-    description's values), and a line for stderr saying why there is none (``note``: the
-    command prints it once its own checks have passed, see :meth:`say_note`)."""
-
-    description: Any  # RobotModel
-    robot: Any  # RobotModel, calibrated links
-    actuation: Any  # Actuation
-    active: Any  # calibration.apply.ActiveCalibration | None
-    note: str | None = None
-
-    def say_note(self) -> None:
-        """Print :attr:`note` on stderr (if any)."""
-        if self.note is not None:
-            import sys
-
-            print(self.note, file=sys.stderr)
-
-    def calibration_ref(self) -> Any:
-        """The :class:`drivers.session.CalibrationRef` of the calibration used, or None."""
-        if self.active is None:
-            return None
-        from drivers.session import CalibrationRef
-
-        return CalibrationRef(self.active.version, self.active.sha256, self.active.path)
-
-
-def load_arm(
-    args: argparse.Namespace, description: Any, *, prog: str, simulated: bool = False
+def arm_from_args(
+    args: argparse.Namespace, description: RobotModel, *, prog: str, simulated: bool = False
 ) -> Arm:
-    """The arm of ``description`` with the store's active calibration for it.
+    """:func:`hrm_ctrl.runtime.arm.load_arm` with the command's ``--calibrations`` and
+    ``--uncalibrated`` (when it has them)."""
+    from hrm_ctrl.runtime.arm import load_arm
 
-    A damaged calibration, or one for another robot description, is refused
-    (:class:`~hrm_ctrl.errors.CalibrationFileError`, one line).  ``--uncalibrated`` (when
-    the command has it) uses the description's values, and its ``note`` says so; so does a
-    ``simulated`` arm's when the store has no calibration.  Otherwise no calibration means
-    the description's values, and ``active`` None (a drive session refuses to enable).
-    """
-    from calibration.apply import active_for, calibrated_actuation, calibrated_model
-    from calibration.store import CalibrationStore
-    from hrm_ctrl.ropes.actuation import load_actuation
-
-    folder = calibrations_folder(getattr(args, "calibrations", None))
-    if getattr(args, "uncalibrated", False):
-        note = (
-            f"{prog}: --uncalibrated: the robot description's values, not the calibration "
-            f"store ({folder})"
-        )
-        return Arm(description, description, load_actuation(description), None, note)
-    active = active_for(CalibrationStore(folder), description)
-    if active is None:
-        note = None
-        if simulated:
-            note = (
-                f"{prog}: --sim: no calibration in {folder}: the robot description's values "
-                "(a simulated arm; real drives are not enabled without a calibration)"
-            )
-        return Arm(description, description, load_actuation(description), None, note)
-    cal = active.calibration
-    return Arm(
+    return load_arm(
         description,
-        calibrated_model(description, cal),
-        calibrated_actuation(description, cal),
-        active,
+        calibrations=getattr(args, "calibrations", None),
+        uncalibrated=bool(getattr(args, "uncalibrated", False)),
+        simulated=simulated,
+        prog=prog,
     )
 
 

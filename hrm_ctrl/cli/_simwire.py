@@ -1,129 +1,26 @@
-"""Wiring the simulated box into the console (``--sim``): the only place that does.
+"""The in-process simulated box's wiring, as the commands import it: it lives in
+:mod:`hrm_ctrl.runtime.simulated` (the runtime layer); these names are re-exported."""
 
-The drivers only ever see buses: here the configured interfaces are replaced by
-in-process buses (python-can ``virtual``, or ``hrm_sim``, the simulated wire at the
-configured bitrate) and a :class:`sim_bus.box.SimBox` is started on the other end,
-with its tension-sensor board on a pseudo-terminal, which becomes the configuration's
-``[tension]`` port (thresholds from the file's table if it has one, else the defaults).
-With ``tracker`` the box's laser tracker is started too and its pseudo-terminal becomes
-the ``[tracker]`` port.  ``truth`` is how the simulated arm differs from its description
-(:class:`sim_bus.truth.TrueArm`; None: it does not), ``fixture`` starts it in its zero
-fixture (``box.set_straight_fixture(False)`` frees it).
-Host and box take the same :class:`drivers.config.BoxConfig`: the one configuration.
-"""
-
-from __future__ import annotations
-
-import sys
-import uuid
-from typing import Any
-
-from drivers.config import BoxConfig
-from hrm_ctrl.errors import DriverError
-from hrm_ctrl.ropes.actuation import Actuation
-from sim_bus.in_process import (
-    IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
-    IN_PROCESS_MISSING_TPDO_CYCLES,
-    IN_PROCESS_SDO_TIMEOUT_S,
-    IN_PROCESS_SWITCH_INTERVAL_S,
-    IN_PROCESS_TENSION_STALE_S,
+from hrm_ctrl.runtime.simulated import (
+    SIM_HEARTBEAT_TIMEOUT_MS,
+    SIM_LISTEN_S,
+    SIM_MISSING_TPDO_CYCLES,
+    SIM_SWITCH_INTERVAL_S,
+    SIM_TENSION_STALE_S,
+    SIM_WIRES,
+    calibration_counts,
+    sim_listen,
+    start_in_process_sim,
 )
 
-# the tolerances and why: sim_bus/in_process.py
-SIM_MISSING_TPDO_CYCLES = IN_PROCESS_MISSING_TPDO_CYCLES
-SIM_SWITCH_INTERVAL_S = IN_PROCESS_SWITCH_INTERVAL_S
-SIM_TENSION_STALE_S = IN_PROCESS_TENSION_STALE_S
-SIM_HEARTBEAT_TIMEOUT_MS = IN_PROCESS_HEARTBEAT_TIMEOUT_MS
-SIM_WIRES = ("virtual", "hrm_sim")
-# How long a session on the in-process box listens for another master before its first NMT
-# reset: the box's buses are private channels of this process (a fresh name each time), so
-# no other master can be on them; the listen still runs, shorter than a real bus's 1.1 s.
-SIM_LISTEN_S = 0.1
-
-
-def start_in_process_sim(
-    config: BoxConfig,
-    actuation: Actuation,
-    wire: str = "virtual",
-    prog: str = "hrm",
-    *,
-    truth: Any = None,
-    tracker: bool = False,
-    fixture: bool = False,
-    initial_counts: Any = None,
-) -> tuple[BoxConfig, Any]:
-    """Return the configuration rewritten onto in-process buses and the started box.
-
-    ``actuation`` is the host's rope layer; the box takes the motors and the robot
-    description from it, nothing of a calibration it carries (``sim_bus.arm``).  Pass the
-    arm's ``truth`` explicitly when the host's actuation is calibrated: the default truth
-    (None) is the nominal arm of ``actuation.robot``, whose links may be calibrated ones.
-    ``initial_counts`` (n motor counts, the rope layer's order) is where the simulated
-    motors stand at power-on (default 0): a simulated box remembers nothing between
-    processes, so a command that follows a calibration starts it where the calibration
-    left the motors (:func:`calibration_counts`).
-
-    The simulated drives and tension board run in this interpreter and share its CPU,
-    so their TPDOs get ``SIM_MISSING_TPDO_CYCLES`` cycles before the host calls them
-    missing, their heartbeats ``SIM_HEARTBEAT_TIMEOUT_MS`` (seen 379-860 ms apart with
-    both cores busy), each SDO transfer ``IN_PROCESS_SDO_TIMEOUT_S`` and the tension samples
-    ``SIM_TENSION_STALE_S`` before they are stale (a line
-    on stderr says so, and the run record keeps the configuration used).
-    """
-    from sim_bus.box import SimBox
-
-    if wire not in SIM_WIRES:
-        raise DriverError(f"--wire must be one of {', '.join(SIM_WIRES)}, got {wire!r}")
-    raised = []
-    if config.control.missing_tpdo_cycles < SIM_MISSING_TPDO_CYCLES:
-        config = config.with_control(missing_tpdo_cycles=SIM_MISSING_TPDO_CYCLES)
-        raised.append(f"TPDO tolerance raised to {SIM_MISSING_TPDO_CYCLES} cycles")
-    if config.control.heartbeat_timeout_ms < SIM_HEARTBEAT_TIMEOUT_MS:
-        config = config.with_control(heartbeat_timeout_ms=SIM_HEARTBEAT_TIMEOUT_MS)
-        raised.append(f"heartbeat timeout to {SIM_HEARTBEAT_TIMEOUT_MS} ms")
-    if config.control.sdo_timeout_s < IN_PROCESS_SDO_TIMEOUT_S:
-        config = config.with_control(sdo_timeout_s=IN_PROCESS_SDO_TIMEOUT_S)
-        raised.append(f"SDO timeout to {IN_PROCESS_SDO_TIMEOUT_S:g} s")
-    tension: dict[str, Any] = {}
-    if config.tension is None or config.tension.stale_s < SIM_TENSION_STALE_S:
-        tension["stale_s"] = SIM_TENSION_STALE_S
-        raised.append(f"tension staleness to {SIM_TENSION_STALE_S * 1000:.0f} ms")
-    tag = uuid.uuid4().hex[:8]
-    config = config.with_bus_kwargs(
-        [{"interface": wire, "channel": f"hrm-sim-{tag}-{b.name}"} for b in config.buses]
-    )
-    sim = SimBox(config, actuation=actuation, truth=truth, initial_counts=initial_counts)
-    if fixture:
-        sim.set_straight_fixture(True)
-    sim.start()
-    try:
-        config = config.with_tension(port=sim.start_tension_board().port, **tension)
-        if tracker:
-            config = config.with_tracker(port=sim.start_tracker().port)
-    except BaseException:
-        sim.stop()
-        raise
-    if raised:
-        print(
-            f"{prog}: --sim: {', '.join(raised)} (the simulated box shares this interpreter)",
-            file=sys.stderr,
-        )
-    return config, sim
-
-
-def calibration_counts(calibration: Any, actuation: Actuation) -> Any:
-    """The motor zero counts of a calibration (``calibration.store.Calibration``, or None:
-    all 0) in ``actuation``'s motor order: where the motors of a box a calibration has just
-    zeroed stand (its ropes at pretension, the arm straight)."""
-    import numpy as np
-
-    if calibration is None:
-        return None
-    zeros = calibration.motor_zero_counts
-    return np.array([int(zeros.get(m, 0)) for m in actuation.motor_ids], dtype=np.int64)
-
-
-def sim_listen(simulated: bool) -> dict[str, float]:
-    """The drive session's ``listen_s`` for a session on the in-process box (else none:
-    the session's own default)."""
-    return {"listen_s": SIM_LISTEN_S} if simulated else {}
+__all__ = [
+    "SIM_HEARTBEAT_TIMEOUT_MS",
+    "SIM_LISTEN_S",
+    "SIM_MISSING_TPDO_CYCLES",
+    "SIM_SWITCH_INTERVAL_S",
+    "SIM_TENSION_STALE_S",
+    "SIM_WIRES",
+    "calibration_counts",
+    "sim_listen",
+    "start_in_process_sim",
+]

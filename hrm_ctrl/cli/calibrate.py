@@ -41,14 +41,13 @@ carried over (``calibration.apply.updated``).  The store is ``--calibrations DIR
 from __future__ import annotations
 
 import argparse
-import contextlib
-import dataclasses
 import json
 import math
 import sys
 from pathlib import Path
 from typing import Any
 
+from calibration.workflows import NEST_READINGS, kinematic_calibration
 from hrm_ctrl.cli._calibrate_tension import EXIT_NOT_USABLE, save_calibration
 from hrm_ctrl.cli._calibrate_tension import register as register_tension_routines
 from hrm_ctrl.cli._common import (
@@ -75,9 +74,6 @@ from hrm_ctrl.cli._options import (
 )
 from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
 
-# Readings averaged per base nest: the frame's error reaches the tip over the arm's 2 m, so
-# the nests get more than a pose (0.05 mm / sqrt(200) = 3.5 um a nest; 0.2 ms a reading)
-NEST_READINGS = 200
 HELP = "calibration: the store (show, history, use) and the routines (kinematic, zero, stiffness)"
 DEFAULT_SAMPLES = 10
 MAX_COLLECT = 1000
@@ -332,54 +328,6 @@ def format_fit(fit: Any) -> str:
     return "\n".join(lines)
 
 
-def _residuals(fit: Any) -> dict[str, float]:
-    from calibration.kinematic import ALPHA_NAMES, LINK_NAMES, THETA_NAMES
-
-    links = [fit.std[n] for n in LINK_NAMES if n in fit.std]
-    offsets = [fit.std[n] for n in (*ALPHA_NAMES, *THETA_NAMES) if n in fit.std]
-    out = {
-        "n_poses": float(fit.n_poses),
-        "rms_before_mm": fit.rms_before_mm,
-        "max_before_mm": fit.max_before_mm,
-        "rms_after_mm": fit.rms_after_mm,
-        "max_after_mm": fit.max_after_mm,
-        "sigma_mm": fit.sigma_mm,
-        "max_std_link_mm": max(links),
-        "max_std_offset_rad": max(offsets),
-    }
-    for name, value in fit.params.items():
-        if name.startswith("frame_"):
-            out[name] = value
-    return out
-
-
-def kinematic_calibration(base: Any, fit: Any) -> Any:
-    """The next calibration from ``base`` with the fit's links and offsets; a parameter the
-    fit held fixed (``alpha_offset_1`` with a free instrument frame) keeps ``base``'s."""
-    import numpy as np
-
-    from calibration.apply import updated
-    from calibration.kinematic import ALPHA_NAMES, THETA_NAMES
-    from calibration.store import Routine
-
-    alpha = np.array(fit.alpha_offset_rad, dtype=float)
-    theta = np.array(fit.theta_offset_rad, dtype=float)
-    for j, name in enumerate(ALPHA_NAMES):
-        if name in fit.fixed:
-            alpha[j] = base.alpha_offset_rad[j]
-    for j, name in enumerate(THETA_NAMES):
-        if name in fit.fixed:
-            theta[j] = base.theta_offset_rad[j]
-    return updated(
-        base,
-        routine=Routine.KINEMATIC,
-        residuals=_residuals(fit),
-        links_mm=np.array(fit.links_mm, dtype=float),
-        alpha_offset_rad=alpha,
-        theta_offset_rad=theta,
-    )
-
-
 def _check_kinematic_args(args: argparse.Namespace) -> None:
     if args.collect is None:
         if args.data is None:
@@ -466,17 +414,17 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
     the poses and the pose file written into the log folder."""
     import numpy as np
 
-    from calibration.apply import calibrated_actuation
-    from calibration.collect import collect_poses, travel_order
-    from calibration.kinematic import format_pose_csv, instrument_frame, spread_configurations
+    from calibration.apply import calibrated_actuation, calibrated_model
+    from calibration.collect import travel_order
+    from calibration.kinematic import format_pose_csv, spread_configurations
+    from calibration.workflows import collect_in_base_frame, tracker_frame
     from drivers.bus import ensure_log_dir
-    from drivers.interrupts import deferred_interrupts
-    from drivers.session import CalibrationRef, DriveSession
     from drivers.tracker import TrackerReader
-    from hrm_ctrl.cli._simwire import sim_listen
-    from hrm_ctrl.cli._watches import feedback_watches
+    from hrm_ctrl.cli._progress import ProgressBar, bring_up_with_progress, wanted
     from hrm_ctrl.files import write_atomic
-    from hrm_ctrl.ropes.actuation import load_actuation
+    from hrm_ctrl.runtime.arm import Arm
+    from hrm_ctrl.runtime.box import SessionOptions, WatchOptions, open_box
+    from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
 
     prog = "hrm calibrate kinematic"
     config = load_box(args)  # --config with the --bus overrides
@@ -488,7 +436,8 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
     alpha, theta = alpha[order], theta[order]
     actuation.check_angles(alpha, theta)
     ensure_log_dir(args.log_dir)
-    ref = None if active is None else CalibrationRef(active.version, active.sha256, active.path)
+    arm = Arm(description, calibrated_model(description, base), actuation, active)
+    ref = arm.calibration_ref()
     if ref is None and args.uncalibrated:
         print(f"{prog}: --uncalibrated: drives enabled without a calibration", file=sys.stderr)
     elif ref is None and args.sim:
@@ -496,96 +445,64 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
             f"{prog}: --sim: no calibration: the robot description's values (a simulated arm)",
             file=sys.stderr,
         )
-
     sim = None
-    if args.sim:
-        from hrm_ctrl.cli._simwire import calibration_counts, start_in_process_sim
-        from sim_bus.truth import TrueArm
-
-        physical = load_actuation(description)  # the simulated arm: its description ...
-        truth = None if args.perturb is None else TrueArm.perturbed(physical, args.perturb)
-        config, sim = start_in_process_sim(  # ... or a perturbed one
-            config,
-            physical,
-            prog=prog,
-            truth=truth,
-            tracker=True,
-            initial_counts=calibration_counts(None if active is None else base, physical),
+    if args.sim:  # the simulated arm: its description, or a perturbed one
+        sim = SimulatedBox(simulated_arm(arm, perturb=args.perturb), tracker=True)
+    elif config.tracker is None:  # refused before any bus opens
+        raise CalibrationDataError(
+            f"{config.source}: no [tracker] table: --collect needs the laser tracker"
         )
-    try:
-        tracker = config.tracker
-        if tracker is None:
-            raise CalibrationDataError(
-                f"{config.source}: no [tracker] table: --collect needs the laser tracker"
-            )
-        with contextlib.ExitStack() as stack:
-            reader = stack.enter_context(
-                TrackerReader(tracker.port, tracker.timeout_s, baudrate=tracker.baudrate)
-            )
-            with deferred_interrupts():  # the session is open and entered, or not at all
-                box = stack.enter_context(
-                    DriveSession(
-                        config,
-                        actuation,
-                        log_dir=args.log_dir,
-                        log_suffix=f".{args.log_format}",
-                        calibration=ref,
-                        allow_uncalibrated=args.uncalibrated or args.sim,
-                        **sim_listen(args.sim),
-                    )
-                )
-                box.record_extra = {"routine": "kinematic", "poses": args.collect}
-                # The rope-consistency watch is left out while collecting: on the in-process
-                # simulated box its figure jumps on fast moves (one collection in three
-                # stopped falsely; docs/calibration.md).  The tension watch runs.
-                watches = stack.enter_context(
-                    feedback_watches(config, actuation, box, start=False, ropes=False)
-                )
-            from hrm_ctrl.cli._progress import ProgressBar, bring_up_with_progress, wanted
-
+    options = SessionOptions(
+        log_dir=args.log_dir,
+        log_suffix=f".{args.log_format}",
+        calibration=ref,
+        allow_uncalibrated=args.uncalibrated or args.sim,
+        record_extra={"routine": "kinematic", "poses": args.collect},
+    )
+    # The rope-consistency watch is left out while collecting: on the in-process simulated
+    # box its figure jumps on fast moves (one collection in three stopped falsely;
+    # docs/calibration.md).  The tension watch runs.
+    watches = WatchOptions(ropes=False)
+    with (
+        open_box(
+            config, actuation, options, sim=sim, watches=watches, bring_up=False, prog=prog
+        ) as box,
+    ):
+        tracker = box.config.tracker  # the simulated box's, or the configured one
+        session = box.session
+        with TrackerReader(tracker.port, tracker.timeout_s, baudrate=tracker.baudrate) as reader:
             show = wanted(getattr(args, "json", False))
-            bring_up_with_progress(box, enabled=show)
-            watches.start()
-            bar = stack.enter_context(ProgressBar("calibration poses", enabled=show))
+            box.bring_up(lambda s: bring_up_with_progress(s, enabled=show))
+            with ProgressBar("calibration poses", enabled=show) as bar:
 
-            def progress(k: int, n: int, p: np.ndarray) -> None:
-                text = f"pose {k}/{n}: {p[0]:.3f} {p[1]:.3f} {p[2]:.3f} mm"
-                if show:
-                    bar(k / n)
-                    bar.line(text)
-                else:
-                    print(text, file=sys.stderr)
+                def progress(k: int, n: int, p: np.ndarray) -> None:
+                    text = f"pose {k}/{n}: {p[0]:.3f} {p[1]:.3f} {p[2]:.3f} mm"
+                    if show:
+                        bar(k / n)
+                        bar.line(text)
+                    else:
+                        print(text, file=sys.stderr)
 
-            frame = instrument_frame(  # the tracker's frame, from the base plate's nests
-                description,
-                np.array(
-                    [
-                        reader.measure(NEST_READINGS, fiducial=k + 1)
-                        for k in range(len(description.base_fiducials))
-                    ]
-                ),
-            )
-            print(
-                f"tracker frame from {len(description.base_fiducials)} base nests: fit "
-                f"{frame.rms_mm:.3f} mm rms",
-                file=sys.stderr,
-            )
-            data = collect_poses(
-                box,
-                actuation,
-                reader,
-                alpha,
-                theta,
-                period_s=config.control.period_s,
-                samples=args.samples,
-                source=f"{box.run_name} (collected)",
-                progress=progress,
-            )
-            data = dataclasses.replace(data, points_mm=frame.to_base(data.points_mm))
-            pose_file = Path(args.log_dir) / f"{box.run_name}-poses.csv"
-            write_atomic(pose_file, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
-            box.record_extra["pose_file"] = str(pose_file)
-    finally:
-        if sim is not None:
-            sim.stop()
+                frame = tracker_frame(reader, description, NEST_READINGS)
+                print(
+                    f"tracker frame from {len(description.base_fiducials)} base nests: fit "
+                    f"{frame.rms_mm:.3f} mm rms",
+                    file=sys.stderr,
+                )
+                data, _ = collect_in_base_frame(
+                    session,
+                    actuation,
+                    reader,
+                    description,
+                    alpha,
+                    theta,
+                    period_s=box.config.control.period_s,
+                    frame=frame,
+                    samples=args.samples,
+                    source=f"{session.run_name} (collected)",
+                    progress=progress,
+                )
+        pose_file = Path(args.log_dir) / f"{session.run_name}-poses.csv"
+        write_atomic(pose_file, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
+        session.record_extra["pose_file"] = str(pose_file)
     return data, pose_file

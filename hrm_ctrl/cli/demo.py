@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import json
 import math
 import sys
@@ -119,169 +118,105 @@ def _say(text: str) -> None:
 
 @contextlib.contextmanager
 def _session(
-    config: Any, actuation: Any, out: Path, name: str, ref: Any, *, watch: bool, ropes: bool = True
-) -> Iterator[Any]:
-    """A drive session on the simulated box, brought up (and its feedback watches
+    running: Any, actuation: Any, out: Path, name: str, ref: Any, *, watch: bool,
+    ropes: bool = True,
+) -> Iterator[Any]:  # fmt: skip
+    """A drive session on the running simulated box, brought up (and its feedback watches
     running when ``watch``: tension, and rope consistency unless not ``ropes``); finished
     and closed on leaving."""
-    from drivers.interrupts import deferred_interrupts
-    from drivers.session import DriveSession
-    from hrm_ctrl.cli._simwire import sim_listen
-    from hrm_ctrl.cli._watches import feedback_watches
+    from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, WatchOptions, open_box
 
-    with contextlib.ExitStack() as stack:
-        with deferred_interrupts():  # the session is open and entered, or not at all
-            box = stack.enter_context(
-                DriveSession(
-                    config,
-                    actuation,
-                    log_dir=out,
-                    log_suffix=".blf",
-                    run_name=name,
-                    calibration=ref,
-                    allow_uncalibrated=True,  # the simulated box; the first calibration
-                    **sim_listen(True),
-                )
-            )
-            watches = (
-                stack.enter_context(
-                    feedback_watches(config, actuation, box, start=False, ropes=ropes)
-                )
-                if watch
-                else None
-            )
-        box.bring_up()
-        if watches is not None:
-            watches.start()  # tension, ropes
-        yield box
-
-
-def _ref(store: Any, version: int) -> Any:
-    from calibration.apply import file_sha256
-    from drivers.session import CalibrationRef
-
-    cal = store.load(version)
-    return CalibrationRef(version, file_sha256(cal, version), str(store.path_of(version)))
+    options = SessionOptions(
+        log_dir=out,
+        log_suffix=".blf",
+        run_name=name,
+        calibration=ref,
+        allow_uncalibrated=True,  # the simulated box; the first calibration
+    )
+    watches = WatchOptions(ropes=ropes) if watch else NO_WATCHES
+    with open_box(running.config, actuation, options, sim=running, watches=watches) as box:
+        yield box.session
 
 
 def calibrate_on_box(
-    args: argparse.Namespace, description: Any, config: Any, sim: Any, store: Any
+    args: argparse.Namespace, description: Any, running: Any, store: Any
 ) -> tuple[Any, int, dict[str, Any]]:
-    """Pretension and zero in the fixture, then the kinematic calibration out of it; each
-    saved as a version of ``store``.  Returns the calibration, its version and a summary."""
+    """Pretension and zero in the fixture, then the kinematic calibration out of it
+    (:func:`calibration.workflows.zero_then_kinematic`); each saved as a version of
+    ``store``.  Returns the calibration, its version and a summary."""
     import numpy as np
 
-    from calibration.apply import calibrated_actuation, nominal_calibration, updated
-    from calibration.collect import collect_poses, travel_order
-    from calibration.kinematic import (
-        fit_kinematics,
-        format_pose_csv,
-        instrument_frame,
-        spread_configurations,
-    )
-    from calibration.store import Routine
-    from calibration.zero import pretension_and_zero
+    from calibration.kinematic import format_pose_csv
+    from calibration.workflows import zero_then_kinematic
     from drivers.tension_sensor import TensionSensorReader
     from drivers.tracker import TrackerReader
-    from hrm_ctrl.cli.calibrate import NEST_READINGS, format_fit, kinematic_calibration
+    from hrm_ctrl.cli.calibrate import format_fit
 
     out: Path = args.out
-    base = nominal_calibration(description)
-    act0 = calibrated_actuation(description, base)
-    t = config.tension
-    t0 = time.monotonic()
-    _say("calibration 1/2: pretension and zero, the arm in its zero fixture")
-    with (
-        TensionSensorReader(
-            t.port, act0.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
-        ) as reader,
-        _session(config, act0, out, "demo-zero", None, watch=False) as box,
-    ):
-        zr = pretension_and_zero(box, reader, act0)
-    zeros = {m: int(v) for m, v in zip(zr.motor_ids, zr.zero_counts, strict=True)}
-    cal_zero = updated(
-        base, routine=Routine.ZERO, residuals=zr.residuals(), motor_zero_counts=zeros
-    )
-    v_zero = store.save(cal_zero)
-    true_zero = np.asarray(sim.truth.motor_zero_counts, dtype=float)
-    zero_err = np.abs(np.asarray(zr.zero_counts, dtype=float) - true_zero)
-    t_zero = time.monotonic() - t0
-    _say(
-        f"  {len(zeros)} motor zeros in {t_zero:.1f} s ({zr.moves} moves): largest change "
-        f"{int(np.abs(zr.zero_shift_counts).max())} counts, error against the simulated "
-        f"truth at most {zero_err.max():.0f} counts; saved as v{v_zero:04d}"
-    )
+    config, sim = running.config, running.sim
+    t, tr = config.tension, config.tracker
 
-    sim.set_straight_fixture(False)  # the technician takes the arm out of the tube
-    t1 = time.monotonic()
-    act1 = calibrated_actuation(description, cal_zero)
-    alpha, theta = spread_configurations(description, args.poses, np.random.default_rng(7))
-    order = travel_order(alpha, theta)  # short moves: the same poses
-    alpha, theta = alpha[order], theta[order]
-    tr = config.tracker
-    _say(f"calibration 2/2: kinematic, {args.poses} poses read on the laser tracker")
-    with (
-        TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate) as tracker,
-        _session(  # the rope-consistency watch left out, as hrm calibrate kinematic does
-            config, act1, out, "demo-kinematic", _ref(store, v_zero), watch=True, ropes=False
-        ) as box,
-    ):
-        frame = instrument_frame(
-            description,
-            np.array(
-                [
-                    tracker.measure(NEST_READINGS, fiducial=k + 1)
-                    for k in range(len(description.base_fiducials))
-                ]
-            ),
+    def open_session(act: Any, name: str, ref: Any, watch: bool) -> Any:
+        # the rope-consistency watch left out while collecting, as hrm calibrate kinematic
+        return _session(running, act, out, f"demo-{name}", ref, watch=watch, ropes=False)
+
+    true_zero = np.asarray(sim.truth.motor_zero_counts, dtype=float)
+    zero_err: list[float] = []
+
+    def on_zero(zr: Any, v_zero: int, t_zero: float) -> None:
+        err = np.abs(np.asarray(zr.zero_counts, dtype=float) - true_zero)
+        zero_err.append(float(err.max()))
+        _say(
+            f"  {len(zr.motor_ids)} motor zeros in {t_zero:.1f} s ({zr.moves} moves): largest "
+            f"change {int(np.abs(zr.zero_shift_counts).max())} counts, error against the "
+            f"simulated truth at most {err.max():.0f} counts; saved as v{v_zero:04d}"
         )
-        data = collect_poses(
-            box,
-            act1,
-            tracker,
-            alpha,
-            theta,
-            period_s=config.control.period_s,
-            samples=4,
-            settle_s=COLLECT_SETTLE_S,
-            rate_fraction=COLLECT_RATE_FRACTION,
-        )
-    data = dataclasses.replace(data, points_mm=frame.to_base(data.points_mm))
-    write_atomic(out / POSES_CSV, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
-    fit = fit_kinematics(
+
+    done = zero_then_kinematic(
         description,
-        data.alpha_rad,
-        data.theta_rad,
-        data.points_mm,
-        sigma_mm=0.05 / math.sqrt(4),
+        store,
+        open_session,
+        lambda: TensionSensorReader(
+            t.port, len(config.motor_ids), baudrate=t.baudrate, stale_after_s=t.stale_s
+        ),
+        lambda: TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate),
+        leave_fixture=lambda: sim.set_straight_fixture(False),
+        poses=args.poses,
+        period_s=config.control.period_s,
+        samples=4,
+        sigma_mm=0.05,
+        say=_say,
+        on_zero=on_zero,
+        settle_s=COLLECT_SETTLE_S,
+        rate_fraction=COLLECT_RATE_FRACTION,
     )
-    cal = kinematic_calibration(cal_zero, fit)
-    version = store.save(cal)
-    t_kin = time.monotonic() - t1
+    data, fit, cal = done.poses, done.fit, done.calibration
+    write_atomic(out / POSES_CSV, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
     link_err = np.abs(np.asarray(cal.links_mm) - np.asarray(sim.truth.links_mm))
     _say(format_fit(fit).splitlines()[0])
     _say(
-        f"  kinematic calibration in {t_kin:.1f} s: link lengths within {link_err.max():.3f} mm "
-        f"of the simulated truth; saved as v{version:04d} (active)"
+        f"  kinematic calibration in {done.kinematic_s:.1f} s: link lengths within "
+        f"{link_err.max():.3f} mm of the simulated truth; saved as v{done.version:04d} (active)"
     )
+    zr = done.zero
     summary = {
         "zero": {
-            "version": v_zero,
-            "seconds": t_zero,
+            "version": done.zero_version,
+            "seconds": done.zero_s,
             "moves": zr.moves,
-            "max_error_vs_truth_counts": float(zero_err.max()),
+            "max_error_vs_truth_counts": zero_err[0],
             "max_tension_error_N": float(np.abs(zr.tension_error_N).max()),
         },
         "kinematic": {
-            "version": version,
-            "seconds": t_kin,
+            "version": done.version,
+            "seconds": done.kinematic_s,
             "poses": args.poses,
             "rms_before_mm": fit.rms_before_mm,
             "rms_after_mm": fit.rms_after_mm,
             "max_link_error_vs_truth_mm": float(link_err.max()),
         },
     }
-    return cal, version, summary
+    return cal, done.version, summary
 
 
 def end_point_errors(sim: Any, counts: np.ndarray, path: Any) -> np.ndarray:
@@ -323,12 +258,11 @@ def run(args: argparse.Namespace) -> int:
 
     from calibration.apply import calibrated_actuation, calibrated_model
     from calibration.store import CalibrationStore
+    from calibration.workflows import calibration_ref
     from drivers.config import load_box_config
     from drivers.session import SafetyStopError
     from drivers.sources import CountsSource
-    from hrm_ctrl.cli._simwire import start_in_process_sim
     from hrm_ctrl.cli.plan import format_report
-    from hrm_ctrl.cli.ropes import setpoints_of_plan
     from hrm_ctrl.formats.planfile import PlanDoc, write_plan
     from hrm_ctrl.formats.plots import (
         ANGLES_PNG,
@@ -340,6 +274,8 @@ def run(args: argparse.Namespace) -> int:
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.planning.scenarios import scenario
     from hrm_ctrl.ropes.actuation import load_actuation
+    from hrm_ctrl.runtime.playback import setpoints_of_plan
+    from hrm_ctrl.runtime.simulated import SimulatedArm, SimulatedBox, in_process_box
     from sim_bus.tracking import tracking_error
     from sim_bus.truth import TrueArm
 
@@ -370,13 +306,13 @@ def run(args: argparse.Namespace) -> int:
     truth = TrueArm.perturbed(nominal, args.perturb) if args.calibrate else None
     out: Path = args.out
 
-    box_config, sim = start_in_process_sim(
-        config, nominal, args.wire, prog="hrm demo", truth=truth, tracker=args.calibrate,
-        fixture=args.calibrate,
-    )  # fmt: skip
+    simulated = SimulatedBox(
+        SimulatedArm(nominal, truth), args.wire, tracker=args.calibrate, fixture=args.calibrate
+    )
     stop: SafetyStopError | None = None
     calib: dict[str, Any] | None = None
-    try:
+    with in_process_box(config, simulated, prog="hrm demo") as running:
+        sim = running.sim
         if args.calibrate:
             _say(
                 f"simulated arm: seed {args.perturb}: links up to "
@@ -386,10 +322,10 @@ def run(args: argparse.Namespace) -> int:
                 f"{100 * (np.abs(truth.rope_EA_N / nominal.routing.stiffness_EA_N - 1)).max():.0f} %"  # noqa: E501
             )
             store = CalibrationStore(out / CALIBRATIONS_DIR)
-            cal, version, calib = calibrate_on_box(args, description, box_config, sim, store)
+            cal, version, calib = calibrate_on_box(args, description, running, store)
             robot = calibrated_model(description, cal)
             actuation = calibrated_actuation(description, cal)
-            ref = _ref(store, version)
+            ref = calibration_ref(store, version)
             plan = _plan(robot, sc, args)
         else:
             robot, actuation, ref, plan = description, nominal, None, plan_nominal
@@ -406,13 +342,15 @@ def run(args: argparse.Namespace) -> int:
         _say(f"plan and {len(figures)} figures written to {out}")
 
         sim.record_trace(True)
-        with _session(box_config, actuation, out, "demo-run", ref, watch=True) as box:
-            box.record_extra = {
-                "demo": sc.name,
-                "plan_file": str(out / PLAN_JSON),
-                "wire": args.wire,
-                "simulated_truth_seed": args.perturb if args.calibrate else None,
-            }
+        with _session(running, actuation, out, "demo-run", ref, watch=True) as box:
+            box.record_extra.update(
+                {
+                    "demo": sc.name,
+                    "plan_file": str(out / PLAN_JSON),
+                    "wire": args.wire,
+                    "simulated_truth_seed": args.perturb if args.calibrate else None,
+                }
+            )
             try:
                 result = box.stream(source)
             except SafetyStopError as exc:
@@ -422,8 +360,6 @@ def run(args: argparse.Namespace) -> int:
             bringup_s = box.bringup_s
         record_path = box.record_path  # written as the session closed
         _times, counts = sim.trace()
-    finally:
-        sim.stop()
 
     lead = source.n_lead_in
     n_body = source.table.shape[0] - lead

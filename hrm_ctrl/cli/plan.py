@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Any
 from hrm_ctrl.cli._common import (
     Input,
     Output,
+    arm_from_args,
     calibrations_input,
-    load_arm,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
@@ -105,7 +105,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
 
     if not (math.isfinite(args.step) and args.step > 0.0):
         raise PlanningError(f"--step must be a finite number > 0 mm, got {args.step}")
-    arm = load_arm(args, load_robot(args.robot), prog="hrm plan")
+    arm = arm_from_args(args, load_robot(args.robot), prog="hrm plan")
     robot = arm.robot  # the calibrated link lengths
     env = read_scene(args.scene) if args.scene is not None else None
     sc: Scenario | None = None

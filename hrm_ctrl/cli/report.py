@@ -148,7 +148,7 @@ def _version(v: object) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hrm_ctrl.cli._common import Input, calibrations_input, load_arm, robot_input
+    from hrm_ctrl.cli._common import Input, arm_from_args, calibrations_input, robot_input
     from hrm_ctrl.cli._progress import ProgressBar, wanted
     from hrm_ctrl.formats.runlog import log_paths, read_record, tension_path
     from hrm_ctrl.model import load_robot
@@ -164,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
     check_out(folder, inputs)  # before anything is read
     doc = read_record(record)
     check_out(folder, [Input("CAN log", p) for p in log_paths(record, doc)])  # it names them
-    arm = load_arm(args, load_robot(args.robot), prog="hrm report")
+    arm = arm_from_args(args, load_robot(args.robot), prog="hrm report")
     with ProgressBar("report", enabled=wanted(args.json)) as bar:
         summary, _figs = report(record, arm.actuation, folder, args.stream)
         bar(1.0)

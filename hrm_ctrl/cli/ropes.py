@@ -20,16 +20,15 @@ import argparse
 import io
 import json
 import math
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hrm_ctrl.cli._common import (
     Input,
     Output,
+    arm_from_args,
     calibrations_input,
     config_input,
-    load_arm,
     refuse_overwriting_inputs,
     robot_input,
     shipped_inputs,
@@ -46,8 +45,11 @@ from hrm_ctrl.cli._options import (
 from hrm_ctrl.errors import HrmError, RopeError
 from hrm_ctrl.files import write_atomic
 
+# the plan -> setpoints path: the runtime layer's (re-exported under the names used here)
+from hrm_ctrl.runtime.playback import setpoint_summary as summary
+from hrm_ctrl.runtime.playback import setpoints_of_plan
+
 if TYPE_CHECKING:
-    from hrm_ctrl.formats.planfile import PlanDoc
     from hrm_ctrl.ropes.actuation import Actuation
     from hrm_ctrl.ropes.setpoints import PlanSetpoints
 
@@ -66,94 +68,6 @@ def register(p: argparse.ArgumentParser) -> None:
     add_speed(p)
     add_json(p, "the summary")
     add_calibration(p, Uncalibrated.MODEL)
-
-
-def setpoints_of_plan(
-    doc: PlanDoc,
-    act: Actuation,
-    *,
-    period_s: float,
-    speed_mm_per_s: float,
-    max_duration_s: float | None = None,
-    progress: Callable[[float], None] | None = None,
-) -> PlanSetpoints:
-    """The plan's checked counts at the control rate for this arm: what ``hrm ropes``
-    reports and ``hrm run`` plays (``max_duration_s`` None:
-    :data:`hrm_ctrl.ropes.setpoints.MAX_PLAN_DURATION_S`).  Refuses a plan made for other
-    link lengths; every message starts with the plan file."""
-    from hrm_ctrl.ropes.setpoints import MAX_PLAN_DURATION_S, plan_setpoints
-
-    if max_duration_s is None:
-        max_duration_s = MAX_PLAN_DURATION_S
-    doc.check_robot(act.robot)
-    return plan_setpoints(
-        act,
-        doc.travel_mm,
-        doc.alpha_rad,
-        doc.theta_rad,
-        phase=doc.phase,
-        period_s=period_s,
-        speed_mm_per_s=speed_mm_per_s,
-        max_duration_s=max_duration_s,
-        where=doc.source,
-        progress=progress,
-    )
-
-
-def summary(act: Actuation, sp: PlanSetpoints) -> dict[str, Any]:
-    """Largest travel and step-to-step change per motor (counts and mm of rope) over the
-    plan's steps, and the playback at the control rate (duration, cycles, peak motor
-    speed and acceleration: finite differences of the counts sent, from and to rest)."""
-    import numpy as np
-
-    from hrm_ctrl.ropes.trajectory import finite_differences, finite_jerk
-
-    travel, counts = sp.travel_mm, sp.step_counts
-    cpm = act.motors.counts_per_mm
-    rates, accels = finite_differences(sp.counts, sp.period_s)
-    jerks = finite_jerk(sp.counts, sp.period_s)
-    j_limit = np.asarray(act.max_jerk_counts_per_s3, dtype=np.float64)
-    limit = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
-    a_limit = np.asarray(act.max_accel_counts_per_s2, dtype=np.float64)
-    rel = counts - act.motors.zero_offsets_counts
-    k_travel = np.abs(rel).argmax(axis=0)
-    diff = np.abs(np.diff(counts, axis=0)) if counts.shape[0] > 1 else np.zeros((1, act.n_motors))
-    k_diff = diff.argmax(axis=0)
-    motors = []
-    for i, mid in enumerate(act.motor_ids):
-        motors.append(
-            {
-                "motor": mid,
-                "min_counts": int(counts[:, i].min()),
-                "max_counts": int(counts[:, i].max()),
-                "largest_travel_counts": int(rel[k_travel[i], i]),
-                "largest_travel_mm": float(act.motors.direction[i] * rel[k_travel[i], i] / cpm[i]),
-                "largest_travel_step": int(k_travel[i]),
-                "largest_change_counts": int(diff[k_diff[i], i]),
-                "largest_change_mm": float(diff[k_diff[i], i] / cpm[i]),
-                "largest_change_step": int(k_diff[i]) + 1 if counts.shape[0] > 1 else 0,
-                "peak_rate_counts_per_s": float(rates[i]),
-                "rate_limit_counts_per_s": float(limit[i]),
-                "peak_accel_counts_per_s2": float(accels[i]),
-                "accel_limit_counts_per_s2": float(a_limit[i]),
-                "peak_jerk_counts_per_s3": float(jerks[i]),
-                "jerk_limit_counts_per_s3": float(j_limit[i]),
-            }
-        )
-    return {
-        "steps": int(counts.shape[0]),
-        "motors": motors,
-        "travel_mm": [float(travel[0]), float(travel[-1])],
-        "playback": {
-            "speed_mm_per_s": sp.speed_mm_per_s,
-            "period_s": sp.period_s,
-            "duration_s": round(sp.duration_s, 9),
-            "cycles": sp.n_cycles,
-            # the jerk bound's cost: the playback without it (TOPP-RA alone) and the difference
-            "duration_without_jerk_bound_s": round(sp.law_duration_s, 9),
-            "jerk_bound_cost_s": round(sp.jerk_cost_s, 9),
-        },
-    }
 
 
 def format_csv(act: Actuation, sp: PlanSetpoints, *, cycles: bool = False) -> str:
@@ -248,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.speed) and args.speed > 0.0):
         raise RopeError(f"--speed must be > 0 mm/s, got {args.speed}")
     doc = read_plan(args.plan)
-    arm = load_arm(args, load_robot(args.robot), prog="hrm ropes")
+    arm = arm_from_args(args, load_robot(args.robot), prog="hrm ropes")
     act = arm.actuation
     period_s = load_box_config(args.config).control.period_s
     from hrm_ctrl.cli._progress import progress_bar, wanted

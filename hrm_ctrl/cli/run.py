@@ -6,7 +6,7 @@ outside the rope or joint limits before anything is sent, brings every drive
 up (NMT, SDO, CiA 402 to operation enabled in CSP), streams the setpoints at the
 control rate and disables the drives at the end.  While the drives are enabled the
 tension-sensor board (when the configuration has a ``[tension]`` table) and the rope
-layer's consistency check on the feedback watch the arm (``hrm_ctrl.cli._watches``):
+layer's consistency check on the feedback watch the arm (``hrm_ctrl.runtime.watches``):
 either stops every axis, naming the rope.  Every run writes each bus's
 traffic (``--log-format``: ``.blf``, ``.asc``, ``.log``, ``.trc``, ...) and a run
 record JSON into ``--log-dir``; ``--bus NAME=INTERFACE:CHANNEL[@BITRATE]`` opens one bus
@@ -40,8 +40,6 @@ unless ``--allow-collision`` (then a stderr line says so).
 from __future__ import annotations
 
 import argparse
-import contextlib
-import hashlib
 import json
 import math
 import sys
@@ -52,9 +50,9 @@ from typing import TYPE_CHECKING, Any
 from hrm_ctrl.cli._common import (
     Input,
     Output,
+    arm_from_args,
     calibrations_input,
     config_input,
-    load_arm,
     load_box,
     refuse_overwriting_inputs,
     robot_input,
@@ -72,9 +70,10 @@ from hrm_ctrl.cli._options import (
     add_sim,
 )
 from hrm_ctrl.errors import DriverError
+from hrm_ctrl.runtime.playback import refuse_collision  # noqa: F401  (its old home)
 
 if TYPE_CHECKING:
-    from hrm_ctrl.formats.planfile import PlanDoc
+    pass
 
 HELP = "play a plan (or hold / jog) on the CiA 402 rope-motor drives over CAN"
 
@@ -97,45 +96,25 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_json(parser, "the summary")
 
 
-def _plan_record(path: Path, plan: PlanDoc) -> dict[str, Any]:
-    """What the run record keeps of the plan: file, sha256 of its bytes, format, steps."""
-    from hrm_ctrl.formats.planfile import PLAN_FORMAT
+def _playback(
+    args: argparse.Namespace,
+    actuation: Any,
+    period_s: float,
+    progress: Callable[[float], None] | None = None,
+) -> Any:
+    """The arguments' :func:`hrm_ctrl.runtime.playback.setpoint_source`."""
+    from hrm_ctrl.runtime.playback import setpoint_source
 
-    try:
-        digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    except OSError as exc:
-        raise DriverError(f"{path}: cannot read plan file ({exc.strerror or exc})") from None
-    return {
-        "plan_file": str(path),
-        "plan_sha256": digest,
-        "plan_format": PLAN_FORMAT,
-        "plan_steps": plan.n_steps,
-    }
-
-
-def refuse_collision(doc: PlanDoc, allow: bool, model: Any = None) -> None:
-    """Refuse (one line naming step and link) a plan whose arm meets an obstacle: its
-    stored clearance (``report.clearance_mm``), and the clearance recomputed against the
-    environment it stores, of the stored joint centres and of the joints its angles put
-    ``model``'s arm at (the robot that plays it: an edited summary or edited joint centres
-    cannot hide a collision).  With ``allow`` (``--allow-collision``) a warning line on
-    stderr instead."""
-    from hrm_ctrl.planning.report import check_clearance, clearance_summary, plan_file_clearance
-
-    c = plan_file_clearance(doc, model=model)
-    for summary in (doc.clearance, None if c is None else clearance_summary(c)):
-        if summary is None:
-            continue
-        if not allow:
-            check_clearance(dict(summary), doc.source)
-        elif summary.get("min") is not None and summary["min"] < 0.0:
-            print(
-                f"hrm run: warning: {doc.source}: link {summary['link']} meets an obstacle at "
-                f"step {summary['step']} (clearance {summary['min']:.2f} mm); played as "
-                "--allow-collision asks",
-                file=sys.stderr,
-            )
-            return
+    return setpoint_source(
+        actuation,
+        period_s,
+        plan=args.plan,
+        hold_s=args.hold,
+        jog=args.jog,
+        speed_mm_per_s=args.speed,
+        allow_collision=args.allow_collision,
+        progress=progress,
+    )
 
 
 def _source(
@@ -145,67 +124,21 @@ def _source(
     progress: Callable[[float], None] | None = None,
 ) -> tuple[Any, Any, dict[str, Any]]:
     """The setpoint source the arguments ask for, the hold time (s) of a hold, and what the
-    run record keeps of a plan.  A plan goes through the rope layer's one plan -> counts
-    path (as in ``hrm ropes``) at the control period ``period_s`` and is played by
-    :class:`drivers.sources.CountsSource`."""
-    from drivers.safety.limits import MAX_SOURCE_DURATION_S
-    from drivers.sources import CountsSource, HoldSource, JogSource
-
-    chosen = [x for x in (args.plan, args.hold, args.jog) if x is not None]
-    if len(chosen) != 1:
-        raise DriverError("give exactly one of PLAN.json, --hold S, --jog MOTOR:COUNTS_PER_S:S")
-    if args.hold is not None:
-        if not (math.isfinite(args.hold) and 0 < args.hold <= MAX_SOURCE_DURATION_S):
-            raise DriverError(
-                f"--hold must be > 0 s and at most {MAX_SOURCE_DURATION_S:g} s, got {args.hold}"
-            )
-        return HoldSource(n_cycles=None), args.hold, {}
-    if args.jog is not None:
-        parts = str(args.jog).split(":")
-        try:
-            motor, vel, dur = parts[0], float(parts[1]), float(parts[2])
-        except (IndexError, ValueError):
-            raise DriverError(f"--jog {args.jog!r}: expected MOTOR:COUNTS_PER_S:SECONDS") from None
-        if len(parts) != 3 or not (math.isfinite(dur) and dur > 0):
-            raise DriverError(f"--jog {args.jog!r}: expected MOTOR:COUNTS_PER_S:SECONDS (S > 0)")
-        return JogSource(actuation, motor, vel, dur), None, {}
-    from hrm_ctrl.cli.ropes import setpoints_of_plan
-    from hrm_ctrl.formats.planfile import read_plan
-
-    doc = read_plan(args.plan)
-    refuse_collision(doc, args.allow_collision, actuation.robot)  # before anything is sent to a bus
-    plan_record = _plan_record(Path(args.plan), doc)
-    sp = setpoints_of_plan(
-        doc,
-        actuation,
-        period_s=period_s,
-        speed_mm_per_s=args.speed,
-        max_duration_s=MAX_SOURCE_DURATION_S,
-        progress=progress,
-    )
-    info = {
-        "plan": str(args.plan),
-        "steps": sp.n_steps,
-        "speed_mm_per_s": sp.speed_mm_per_s,
-        "duration_s": sp.duration_s,
-    }
-    source = CountsSource.of_plan(actuation, sp, info=info)
-    source.plan_setpoints = sp  # type: ignore[attr-defined]  # the live line's travel
-    return source, None, plan_record
+    run record keeps of a plan."""
+    p = _playback(args, actuation, period_s, progress)
+    return p.source, p.hold_s, p.plan_record
 
 
 def run(args: argparse.Namespace) -> int:
     from drivers.bus import ensure_log_dir
-    from drivers.interrupts import deferred_interrupts
-    from drivers.session import DriveSession, SafetyStopError
+    from drivers.session import SafetyStopError
     from drivers.sources import HoldSource, PausableSource
     from hrm_ctrl.cli._progress import ProgressBar, bring_up_with_progress
     from hrm_ctrl.cli._progress import wanted as progress_wanted
     from hrm_ctrl.cli._runcontrol import RunDisplay, RunDriver, RunScript, write_run_tensions
-    from hrm_ctrl.cli._simwire import sim_listen
-    from hrm_ctrl.cli._watches import feedback_watches
     from hrm_ctrl.model import load_robot
-    from hrm_ctrl.ropes.actuation import load_actuation
+    from hrm_ctrl.runtime.box import SessionOptions, open_box
+    from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
 
     if not (math.isfinite(args.speed) and args.speed > 0):
         raise DriverError(f"--speed must be > 0 mm/s, got {args.speed}")
@@ -223,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
         ],
     )
     config = load_box(args)  # --config with the --bus overrides
-    arm = load_arm(args, load_robot(args.robot), prog="hrm run", simulated=args.sim)
+    arm = arm_from_args(args, load_robot(args.robot), prog="hrm run", simulated=args.sim)
     actuation = arm.actuation
     config.check_motors(actuation.motor_ids)
     script = RunScript.from_args(args)  # --pause-at etc.: refused before anything is sent
@@ -231,8 +164,8 @@ def run(args: argparse.Namespace) -> int:
         raise DriverError("--pause-at and --abort-at go with a PLAN.json")
     show = progress_wanted(args.json)
     with ProgressBar("time parameterisation", enabled=show and args.plan is not None) as bar:
-        source, hold_s, plan_record = _source(args, actuation, config.control.period_s, bar)
-    setpoints = getattr(source, "plan_setpoints", None)
+        playback = _playback(args, actuation, config.control.period_s, bar)
+    source, hold_s, setpoints = playback.source, playback.hold_s, playback.setpoints
     if setpoints is not None:  # a plan: played pausable (keys, --pause-at, --abort-at)
         source = PausableSource(source, actuation)
     if isinstance(source, HoldSource) and hold_s is not None:
@@ -241,111 +174,68 @@ def run(args: argparse.Namespace) -> int:
     ensure_log_dir(args.log_dir)  # a bad log directory: one line, before any bus opens
 
     sim = None
-    if args.sim:
-        from hrm_ctrl.cli._simwire import calibration_counts, start_in_process_sim
-        from sim_bus.truth import TrueArm, read_truth
-
-        # the simulated arm is the robot description's (links too), not the calibration's,
-        # or one that differs from it (--perturb, --truth)
-        physical = actuation if arm.active is None else load_actuation(arm.description)
-        truth = None
-        if args.perturb is not None:
-            truth = TrueArm.perturbed(physical, args.perturb)
-        elif args.truth is not None:
-            truth = read_truth(args.truth, physical)
-        arm.say_note()  # --sim without a calibration: said once every check passed
-        config, sim = start_in_process_sim(
-            config,
-            physical,
-            args.wire,
-            prog="hrm run",
-            truth=truth,
-            initial_counts=calibration_counts(
-                None if arm.active is None else arm.active.calibration, physical
-            ),
+    if args.sim:  # the simulated arm: the description's, or one that differs from it
+        sim = SimulatedBox(
+            simulated_arm(arm, perturb=args.perturb, truth_file=args.truth), args.wire
         )
-    else:
-        arm.say_note()  # --uncalibrated without a calibration
-    summary: dict[str, Any] = {}
+    arm.say_note()  # --sim or --uncalibrated without a calibration: said once all checks passed
+    options = SessionOptions(
+        log_dir=args.log_dir,
+        log_suffix=f".{args.log_format}",
+        take_over=args.take_over,
+        calibration=arm.calibration_ref(),
+        allow_uncalibrated=args.uncalibrated or args.sim,
+        record_extra={
+            "plan_file": None,
+            **playback.plan_record,
+            "source": source.__class__.__name__,
+            "simulated_box": bool(args.sim),
+        },
+    )
     interrupted: str | None = None
     driver = None
-    try:
-        stop: SafetyStopError | None = None
-        with contextlib.ExitStack() as stack:
-            with deferred_interrupts():  # the session is open and entered, or not at all
-                box = stack.enter_context(
-                    DriveSession(
-                        config,
-                        actuation,
-                        log_dir=args.log_dir,
-                        log_suffix=f".{args.log_format}",
-                        take_over=args.take_over,
-                        calibration=arm.calibration_ref(),
-                        allow_uncalibrated=args.uncalibrated or args.sim,
-                        **sim_listen(args.sim),
-                    )
-                )
-                box.record_extra = {
-                    "plan_file": None,
-                    **plan_record,
-                    "source": source.__class__.__name__,
-                    "simulated_box": bool(args.sim),
-                }
-                # tension board opened first: a bad port is refused before any NMT reset
-                watches = stack.enter_context(feedback_watches(config, actuation, box, start=False))
-            bring_up_with_progress(box, enabled=show)
-            watches.start()  # tension, ropes
-            if isinstance(source, PausableSource):
-                display = RunDisplay(source, setpoints, box, actuation.robot, watches)
-                bar = stack.enter_context(ProgressBar("run", enabled=show))
+    stop: SafetyStopError | None = None
+    bring_up = lambda session: bring_up_with_progress(session, enabled=show)  # noqa: E731
+    with open_box(config, actuation, options, sim=sim, bring_up=bring_up, prog="hrm run") as opened:
+        box = opened.session
+        if isinstance(source, PausableSource):
+            display = RunDisplay(source, setpoints, box, actuation.robot, opened.watches)
+            with ProgressBar("run", enabled=show) as bar:
                 driver = RunDriver(source, script, keys=show, display=display, bar=bar)
                 driver.start()
-            try:
-                result = box.stream(source)
-            except SafetyStopError as exc:
-                stop = exc
-                result = exc.result
-            except KeyboardInterrupt:  # every axis stopped (the supervisor): say where
-                interrupted = (
-                    f" at {display.where_text()}" if isinstance(source, PausableSource) else ""
-                )
-                result = box.supervisor.last_result
-            finally:
-                if driver is not None:
-                    driver.stop()
-            box.record_extra["setpoints"] = source.describe()
-            if driver is not None:
-                box.record_extra["run_control"] = [
-                    {"action": a, "fraction": round(f, 4)} for a, f in driver.events
-                ]
-        record = box.record()
-        log_errors = [str(e) for e in record["can_log_errors"]]
-        tension_file = write_run_tensions(driver, box.record_path, actuation.motor_ids)
-        if interrupted is not None and result is None:
-            print(f"hrm run: interrupted{interrupted}: every axis stopped", file=sys.stderr)
-            return 130
-        outcome = "completed"
-        if interrupted is not None:
-            outcome = "interrupted"
-        elif stop is not None:
-            outcome = "stopped"
-        elif isinstance(source, PausableSource) and source.state.value == "aborted":
-            outcome = "aborted"
-        summary = {
-            "outcome": outcome,
-            "completed": result.completed,
-            "cycles": result.cycles,
-            "bringup_s": box.bringup_s,
-            "causes": [x.text for x in result.causes],
-            "stats": result.stats,
-            "run_record": str(box.record_path),
-            "tension_file": None if tension_file is None else str(tension_file),
-            "can_logs": record["can_logs"],
-            "can_log_errors": log_errors,
-        }
-    finally:
-        if sim is not None:
-            sim.stop()
+                result, stop, interrupted = _stream(box, source, driver, display)
+        else:
+            result, stop, interrupted = _stream(box, source, None, None)
+        box.record_extra["setpoints"] = source.describe()
+        if driver is not None:
+            box.record_extra["run_control"] = [
+                {"action": a, "fraction": round(f, 4)} for a, f in driver.events
+            ]
+    record = box.record()
+    log_errors = [str(e) for e in record["can_log_errors"]]
+    tension_file = write_run_tensions(driver, box.record_path, actuation.motor_ids)
+    if interrupted is not None and result is None:
+        print(f"hrm run: interrupted{interrupted}: every axis stopped", file=sys.stderr)
+        return 130
+    outcome = "completed"
+    if interrupted is not None:
+        outcome = "interrupted"
+    elif stop is not None:
+        outcome = "stopped"
+    elif isinstance(source, PausableSource) and source.state.value == "aborted":
+        outcome = "aborted"
+    summary = {
+        "outcome": outcome,
+        "completed": result.completed,
+        "cycles": result.cycles,
+        "bringup_s": box.bringup_s,
+        "causes": [x.text for x in result.causes],
+        "stats": result.stats,
+        "run_record": str(box.record_path),
+        "tension_file": None if tension_file is None else str(tension_file),
+        "can_logs": record["can_logs"],
+        "can_log_errors": log_errors,
+    }
     if args.json:
         print(json.dumps(summary, indent=1))
     else:
@@ -378,3 +268,23 @@ def run(args: argparse.Namespace) -> int:
         )
         status = 2
     return status
+
+
+def _stream(box: Any, source: Any, driver: Any, display: Any) -> tuple[Any, Any, str | None]:
+    """Stream ``source`` on the session ``box``: ``(result, safety stop or None, where an
+    interrupt stopped it or None)``; the run driver (keys, run script) stops afterwards."""
+    from drivers.session import SafetyStopError
+
+    stop = interrupted = None
+    try:
+        result = box.stream(source)
+    except SafetyStopError as exc:
+        stop = exc
+        result = exc.result
+    except KeyboardInterrupt:  # every axis stopped (the supervisor): say where
+        interrupted = "" if display is None else f" at {display.where_text()}"
+        result = box.supervisor.last_result
+    finally:
+        if driver is not None:
+            driver.stop()
+    return result, stop, interrupted

@@ -25,7 +25,6 @@ run``.  The live view of real drives is the console's ``view`` command.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
 import sys
 import time
@@ -129,16 +128,16 @@ def _serve_plan(args: argparse.Namespace) -> int:
 def _live(args: argparse.Namespace) -> int:
     from drivers.bus import ensure_log_dir
     from drivers.config import load_box_config
-    from drivers.interrupts import deferred_interrupts
     from drivers.safety.limits import MAX_SOURCE_DURATION_S
-    from drivers.session import DriveSession, SafetyStopError
+    from drivers.session import SafetyStopError
     from drivers.sources import CountsSource, HoldSource
+    from hrm_ctrl.cli._common import arm_from_args
     from hrm_ctrl.cli._live import start_live_view
-    from hrm_ctrl.cli._simwire import start_in_process_sim
-    from hrm_ctrl.cli._watches import feedback_watches
     from hrm_ctrl.formats.planfile import read_plan
     from hrm_ctrl.model import load_robot
-    from hrm_ctrl.ropes.actuation import load_actuation
+    from hrm_ctrl.runtime.box import SessionOptions, open_box
+    from hrm_ctrl.runtime.playback import refuse_collision, setpoints_of_plan
+    from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
 
     refuse_overwriting_inputs(
         [Output("--log-dir", args.log_dir, folder=True)],
@@ -149,19 +148,14 @@ def _live(args: argparse.Namespace) -> int:
             *shipped_inputs(plan_schema=True, eds=True),
         ],
     )
-    from hrm_ctrl.cli._common import load_arm
-
     config = load_box_config(None)
-    arm = load_arm(args, load_robot(args.robot), prog="hrm view", simulated=True)
+    arm = arm_from_args(args, load_robot(args.robot), prog="hrm view", simulated=True)
     actuation = arm.actuation
     config.check_motors(actuation.motor_ids)
     period_s = config.control.period_s
     doc = None
     sources: list[Any] = []
     if args.plan is not None:
-        from hrm_ctrl.cli.ropes import setpoints_of_plan
-        from hrm_ctrl.cli.run import refuse_collision
-
         doc = read_plan(args.plan)
         if not 0 <= args.step < doc.n_steps:
             raise DriverError(
@@ -184,46 +178,31 @@ def _live(args: argparse.Namespace) -> int:
         s.precheck(period_s)
     ensure_log_dir(args.log_dir)
     arm.say_note()
-    physical = actuation if arm.active is None else load_actuation(arm.description)
-    truth = None
-    if args.perturb is not None:
-        from sim_bus.truth import TrueArm
-
-        truth = TrueArm.perturbed(physical, args.perturb)
-    config, sim = start_in_process_sim(config, physical, "virtual", prog="hrm view", truth=truth)
+    sim = SimulatedBox(simulated_arm(arm, perturb=args.perturb))
+    options = SessionOptions(
+        log_dir=args.log_dir,
+        calibration=arm.calibration_ref(),
+        allow_uncalibrated=True,
+        record_extra={"source": "hrm view --live", "simulated_box": True},
+    )
     env = None if doc is None else doc.environment
     stop: SafetyStopError | None = None
     live = None
-    try:
-        with contextlib.ExitStack() as stack:
-            with deferred_interrupts():
-                box = stack.enter_context(
-                    DriveSession(
-                        config,
-                        actuation,
-                        log_dir=args.log_dir,
-                        calibration=arm.calibration_ref(),
-                        allow_uncalibrated=True,
-                        listen_s=0.1,
-                    )
-                )
-                box.record_extra = {"source": "hrm view --live", "simulated_box": True}
-                watches = stack.enter_context(feedback_watches(config, actuation, box, start=False))
-            live = start_live_view(
-                box, actuation, arm.robot, env, args.port, plan=doc, step=args.step
-            )
-            stack.callback(live.close)
+    with open_box(config, actuation, options, sim=sim, bring_up=False, prog="hrm view") as box:
+        live = start_live_view(
+            box.session, actuation, arm.robot, env, args.port, plan=doc, step=args.step
+        )
+        try:
             print(f"view: {live.url}", flush=True)
             box.bring_up()
-            watches.start()
             for source in sources:
                 try:
-                    box.stream(source)
+                    box.session.stream(source)
                 except SafetyStopError as exc:
                     stop = exc
                     break
-    finally:
-        sim.stop()
+        finally:
+            live.close()
     if live is not None:
         print(
             f"live view: {live.shown} poses shown at {live.rate_hz():.1f} Hz, "

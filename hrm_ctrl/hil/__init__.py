@@ -7,7 +7,8 @@ and the true arm state, as pytest fixtures (``docs/hil.md``).
   this process or as its own process, the host side), usable without pytest;
 * :mod:`hrm_ctrl.hil.wirelog`: detection and stop times read off a run's CAN logs.
 
-Like :mod:`hrm_ctrl.cli` this package is a composition root: it wires the simulator
-(``sim_bus``) and the host (``drivers``) together.  Importing it imports neither (pytest
-loads the plugin in every run of the project): the fixtures import them when used.
+Like :mod:`hrm_ctrl.cli` this package is an entry point: the host side opens its box
+through the runtime layer (:func:`hrm_ctrl.runtime.box.open_box`).  Importing it imports
+neither the simulator nor the drivers (pytest loads the plugin in every run of the
+project): the fixtures import them when used.
 """

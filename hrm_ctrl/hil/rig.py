@@ -23,12 +23,8 @@ import io
 import json
 import math
 import os
-import queue
 import re
 import socket
-import subprocess
-import sys
-import tempfile
 import threading
 import time
 import tomllib
@@ -40,6 +36,9 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from hrm_ctrl.errors import SimError
+
+# the box in its own process: the runtime layer's (re-exported for the HIL and its tests)
+from hrm_ctrl.runtime.process_box import REPLY_TIMEOUT_S, BoxProcess
 from sim_bus.faults import has_control_character
 from sim_bus.in_process import IN_PROCESS_MISSING_TPDO_CYCLES, IN_PROCESS_TENSION_STALE_S
 
@@ -63,11 +62,11 @@ class BoxMode(StrEnum):
 IPC_INTERFACE = "hrm_ipc"
 MAX_BUSES = 8  # node maps (buses) of one HIL box at most
 HIL_CHANNEL_PREFIX = "hrm-hil-"  # the channels of HIL boxes: hrm-hil-<tag>-<bus>
-READY_TIMEOUT_S = 20.0  # the box process: start-up to its "ready" line (36 drives booted)
-REPLY_TIMEOUT_S = 5.0  # one control command's reply
 #: the host's listen for another master before its first reset: the box takes over on
 #: purpose (``take_over=True``), so what it hears only names an event
 HOST_LISTEN_S = 0.2
+#: how long the host's tension watch waits for the board's first frame after it starts
+HOST_TENSION_GRACE_S = 0.5
 #: how long after a stream the drives get to leave OPERATION_ENABLED (quick-stop ramps;
 #: a drive cut off from the host stops on its heartbeat consumer, 350 ms)
 SETTLE_TIMEOUT_S = 2.5
@@ -326,128 +325,6 @@ def arm_state(box: HilBox) -> ArmSnapshot:
     return ArmSnapshot.from_json(box.command("state", "state"))
 
 
-class BoxProcess:
-    """``hrm sim --control`` as a child process; JSON lines in, JSON lines out
-    (``sim_bus.runner``).  On a machine of two or more CPUs the box runs on the highest
-    one (``hrm sim --cpus``, :func:`drivers.realtime.split_cpus`) and a :class:`HilHost`
-    on it keeps its threads on the others: separate hardware, as the drives are
-    (``cpus=False``: anywhere).  ``rt_priority`` > 0: every box thread under
-    ``SCHED_FIFO`` at it (``hrm sim --rt-priority``; the box fails to start where the
-    process may not)."""
-
-    def __init__(
-        self,
-        config_path: Path,
-        *extra: str,
-        cwd: Path | None = None,
-        cpus: bool = True,
-        rt_priority: int = 0,
-    ) -> None:
-        from drivers.realtime import cpu_list, split_cpus
-
-        self.config_path = config_path
-        split = split_cpus() if cpus else None
-        self.host_cpus = None if split is None else split[0]
-        if split is not None:
-            extra = ("--cpus", cpu_list(split[1]), *extra)
-        if rt_priority:
-            extra = ("--rt-priority", str(rt_priority), *extra)
-        # stderr to a file, not a pipe nobody drains: a chatty box must not block
-        self._stderr = tempfile.TemporaryFile("w+")
-        self._lock = threading.Lock()
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "hrm_ctrl.cli",
-                "sim",
-                "--config",
-                f"{config_path}",
-                "--control",
-                *extra,
-            ],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=self._stderr,
-            text=True,
-            cwd=cwd,
-            # its own session: a terminal's Ctrl-C (SIGINT to the foreground process
-            # group) reaches the test run, which stops the box itself (``quit``)
-            start_new_session=True,
-        )
-        self.lines: queue.Queue[dict[str, Any]] = queue.Queue(maxsize=10_000)
-        threading.Thread(target=self._read, name="hil-box-stdout", daemon=True).start()
-        try:
-            self.ready = self.wait("ready", timeout_s=READY_TIMEOUT_S)
-        except BaseException:
-            self.close()
-            raise
-
-    def _read(self) -> None:
-        out = self.proc.stdout
-        if out is None:
-            return
-        for line in out:
-            try:
-                self.lines.put(json.loads(line), timeout=REPLY_TIMEOUT_S)
-            except json.JSONDecodeError:
-                self.lines.put({"event": "garbage", "line": line[:200]}, timeout=REPLY_TIMEOUT_S)
-            except queue.Full:
-                return
-
-    def wait(self, event: str, timeout_s: float = REPLY_TIMEOUT_S) -> dict[str, Any]:
-        """The next line whose ``event`` is ``event`` (others are dropped)."""
-        deadline = time.monotonic() + timeout_s
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                obj = self.lines.get(timeout=min(left, 0.25))
-            except queue.Empty:
-                if self.proc.poll() is not None and self.lines.empty():
-                    break  # the box died: no reply will come
-                continue
-            if obj.get("event") == event:
-                return obj
-            if obj.get("event") == "error":
-                raise SimError(f"box process {self.config_path}: {obj['error']}")
-        if self.proc.poll() is not None:  # the box died: say so, and what it printed
-            raise SimError(self._gone())
-        raise SimError(f"box process {self.config_path}: no '{event}' within {timeout_s} s")
-
-    def _gone(self) -> str:
-        """The box process has exited: its status and the last lines it printed."""
-        try:
-            self._stderr.seek(0)
-            err = " | ".join(self._stderr.read().strip().splitlines()[-3:])
-        except ValueError:  # closed: the box was closed
-            err = ""
-        return f"box process {self.config_path}: exited (status {self.proc.returncode})" + (
-            f": {err}" if err else ""
-        )
-
-    def command(self, text: str, reply: str, timeout_s: float = REPLY_TIMEOUT_S) -> dict[str, Any]:
-        """Send one control command; its reply (one command at a time)."""
-        if has_control_character(text):  # one command is one line
-            raise SimError(f"box process {self.config_path}: control character in {text!r}")
-        with self._lock:
-            if self.proc.stdin is None or self.proc.poll() is not None:
-                raise SimError(self._gone())
-            self.proc.stdin.write(text + "\n")
-            self.proc.stdin.flush()
-            return self.wait(reply, timeout_s)
-
-    def close(self) -> None:
-        try:
-            if self.proc.poll() is None and self.proc.stdin is not None:
-                self.proc.stdin.write("quit\n")
-                self.proc.stdin.flush()
-                self.proc.wait(timeout=5.0)
-        except (subprocess.TimeoutExpired, BrokenPipeError, OSError):
-            self.proc.kill()
-            self.proc.wait(timeout=5.0)
-        finally:
-            self._stderr.close()
-
-
 class InProcessBox:
     """A :class:`sim_bus.box.SimBox` with its tension board in this process, answering the
     same control commands as ``hrm sim --control`` (``sim_bus.runner``'s own handler)."""
@@ -476,13 +353,13 @@ class InProcessBox:
 
     def command(self, text: str, reply: str, timeout_s: float = REPLY_TIMEOUT_S) -> dict[str, Any]:
         """Run one control command (``timeout_s``: unused, the call is direct)."""
-        from sim_bus.runner import _command
+        from sim_bus.runner import control_command
 
         if has_control_character(text):  # as a box process: one line
             raise SimError(f"in-process box {self.config_path}: control character in {text!r}")
         out = io.StringIO()
         with self._lock:
-            _command(text.strip(), self.box, self.board, out, time.monotonic() - self._t0)
+            control_command(text.strip(), self.box, self.board, out, time.monotonic() - self._t0)
         for line in out.getvalue().splitlines():
             obj = json.loads(line)
             if obj.get("event") == "error":
@@ -583,40 +460,28 @@ class HilHost:
             self._open(log_dir, listen_s, bring_up)
 
     def _open(self, log_dir: Path, listen_s: float, bring_up: bool) -> None:
-        from drivers.safety.causes import StopKind
-        from drivers.session import DriveSession
-        from drivers.tension_sensor import TensionSensorReader, TensionWatch
+        from hrm_ctrl.runtime.box import SessionOptions, WatchOptions, open_box
         from sim_bus.box import enlarge_receive_buffer
 
+        options = SessionOptions(
+            log_dir=log_dir,
+            take_over=True,  # one box serves many tests: the next host takes over
+            allow_uncalibrated=True,  # the simulated arm is its description
+            listen_s=listen_s,
+        )
+        # the tension watch alone (no rope watch), on the whole arm's board
+        watches = WatchOptions(ropes=False, grace_s=HOST_TENSION_GRACE_S, actuation=self.actuation)
+        config = replace(self.config, tension=self.tension)
+        self.opened = self._stack.enter_context(
+            open_box(config, self.limits, options, watches=watches, bring_up=False)
+        )
         try:
-            self.session = self._stack.enter_context(
-                DriveSession(
-                    self.config,
-                    self.limits,
-                    log_dir=log_dir,
-                    take_over=True,  # one box serves many tests: the next host takes over
-                    allow_uncalibrated=True,  # the simulated arm is its description
-                    listen_s=listen_s,
-                )
-            )
+            self.session = self.opened.session
             for port in self.session._ports:  # see sim_bus.box.enlarge_receive_buffer
                 enlarge_receive_buffer(port.bus)
-            t = self.tension
-            self.reader = self._stack.enter_context(
-                TensionSensorReader(t.port, self.actuation.n_motors, stale_after_s=t.stale_s)
-            )
-            self.watch = TensionWatch(
-                self.reader,
-                self.actuation.motor_ids,
-                lambda text: self.session.monitor.report(StopKind.TENSION, text),
-                min_N=t.slack_N,
-                max_N=t.limit_N,
-                max_bad_per_s=t.garbage_per_s,
-            )
+            self.watch = self.opened.watches.watches["tension"]
             if bring_up:
-                self.session.bring_up()
-                self.watch.start()
-                self._stack.callback(self.watch.stop)
+                self.opened.bring_up()
         except BaseException:
             self._stack.close()
             raise
@@ -669,7 +534,8 @@ class HilHost:
         )
 
     def close(self) -> dict[str, Any]:
-        """Stop the watch, finish and close the session; its run record."""
+        """Stop the watch, finish and close the session (:func:`hrm_ctrl.runtime.box.open_box`
+        closes them in that order); its run record."""
         if self.record is None:
             self._stack.close()
             path = self.session.record_path

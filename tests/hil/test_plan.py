@@ -14,10 +14,10 @@ import pytest
 
 from drivers.config import load_box_config
 from drivers.sources import CountsSource
-from hrm_ctrl.cli.ropes import setpoints_of_plan
 from hrm_ctrl.formats.planfile import PlanDoc
 from hrm_ctrl.hil.rig import INPROCESS_CONTROL, BoxMode, HilBox, HilHost, production_control
 from hrm_ctrl.ropes.actuation import Actuation
+from hrm_ctrl.runtime.playback import setpoints_of_plan
 from sim_bus.tracking import tracking_error
 from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT_PRODUCTION
 

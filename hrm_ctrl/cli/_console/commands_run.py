@@ -137,9 +137,8 @@ def _run(ctx: ConsoleContext, args: list[str]) -> None:
     from drivers.sources import CountsSource, PausableSource
     from hrm_ctrl.cli._progress import ProgressBar
     from hrm_ctrl.cli._runcontrol import RunScript
-    from hrm_ctrl.cli.ropes import setpoints_of_plan
-    from hrm_ctrl.cli.run import refuse_collision
     from hrm_ctrl.formats.planfile import read_plan
+    from hrm_ctrl.runtime.playback import refuse_collision, setpoints_of_plan
 
     a = _run_parser().parse_args(args)
     if not (math.isfinite(a.speed) and a.speed > 0):
@@ -222,9 +221,10 @@ def _return(ctx: ConsoleContext, args: list[str]) -> None:
 def _check_lines(ctx: ConsoleContext, path: Path, speed: float) -> tuple[list[str], int]:
     """The lines of ``check`` and how many problems they name."""
     from drivers.safety.limits import MAX_SOURCE_DURATION_S
-    from hrm_ctrl.cli.ropes import setpoints_of_plan, summary
     from hrm_ctrl.formats.planfile import read_plan
     from hrm_ctrl.planning.report import clearance_summary, plan_file_clearance
+    from hrm_ctrl.runtime.playback import setpoint_summary as summary
+    from hrm_ctrl.runtime.playback import setpoints_of_plan
 
     doc = read_plan(path)
     model = ctx.actuation.robot

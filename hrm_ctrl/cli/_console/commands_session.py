@@ -60,10 +60,12 @@ def _help(ctx: ConsoleContext, args: list[str]) -> None:
          "configuration, NMT start); refused when another master operates the box",
          "connect [--take-over]")  # fmt: skip
 def _connect(ctx: ConsoleContext, args: list[str]) -> None:
+    import contextlib
+
     from drivers.bus import ensure_log_dir
-    from drivers.session import DriveSession
     from drivers.tension_sensor import TensionSensorReader
-    from hrm_ctrl.cli._simwire import sim_listen
+    from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, open_box
+    from hrm_ctrl.runtime.simulated import RunningSim
 
     if args not in ([], ["--take-over"]):
         raise ConsoleError("usage: connect [--take-over]")
@@ -72,19 +74,24 @@ def _connect(ctx: ConsoleContext, args: list[str]) -> None:
     ensure_log_dir(ctx.runs_dir)
     if ctx.extra.get("reload_arm"):  # a calibration was saved in the last session
         reload_arm(ctx)
-    session = DriveSession(
-        ctx.config,
-        ctx.actuation,
+    options = SessionOptions(
         log_dir=ctx.runs_dir,
         log_suffix=ctx.log_suffix,
         take_over=ctx.take_over or bool(args),
         calibration=ctx.calibration,
         allow_uncalibrated=ctx.allow_uncalibrated,
-        **sim_listen(ctx.simulated),
+        record_extra={"console": True, "simulated_box": ctx.simulated},
     )
+    sim = None if ctx.sim is None else RunningSim(ctx.config, ctx.sim)  # the console's own
+    stack = contextlib.ExitStack()
+    # the console's watches run while the drives are enabled (start_watches)
+    box = stack.enter_context(
+        open_box(ctx.config, ctx.actuation, options, sim=sim, watches=NO_WATCHES, bring_up=False)
+    )
+    session = box.session
     session.track_emergencies()
-    session.record_extra = {"console": True, "simulated_box": ctx.simulated}
     ctx.session = session
+    ctx.extra["box"] = stack
     try:
         t = ctx.config.tension
         if t is not None:  # opened before any NMT reset: a bad port is refused first
@@ -106,10 +113,10 @@ def _connect(ctx: ConsoleContext, args: list[str]) -> None:
 def reload_arm(ctx: ConsoleContext) -> None:
     """The robot model, rope layer and calibration from the store's active version (after
     a ``calibrate`` saved one); the simulated arm stays what it is."""
-    from hrm_ctrl.cli._common import load_arm
+    from hrm_ctrl.cli._common import arm_from_args
 
     given = ctx.extra.get("args")
-    arm = load_arm(given, ctx.description, prog=ctx.prog, simulated=ctx.simulated)
+    arm = arm_from_args(given, ctx.description, prog=ctx.prog, simulated=ctx.simulated)
     ctx.config.check_motors(arm.actuation.motor_ids)
     ctx.model, ctx.actuation = arm.robot, arm.actuation
     ctx.calibration, ctx.active = arm.calibration_ref(), arm.active
@@ -127,9 +134,12 @@ def close_session(ctx: ConsoleContext) -> None:
     if session is None:
         return
     stop_watches(ctx)
+    box = ctx.extra.pop("box")
     try:
-        close_view(ctx)
-        session.__exit__(None, None, None)  # finish, then close whatever happens
+        try:
+            close_view(ctx)
+        finally:
+            box.close()  # open_box: every drive disabled, then the run record written
     finally:
         ctx.session = None
         ctx.extra.pop("calibrated_version", None)

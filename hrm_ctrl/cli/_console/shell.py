@@ -77,16 +77,16 @@ def build_context(args: argparse.Namespace, prog: str) -> ConsoleContext:
     input raises :class:`~hrm_ctrl.errors.HrmError` (one line) before anything starts."""
     from hrm_ctrl.cli._common import (
         Output,
+        arm_from_args,
         calibrations_input,
         config_input,
-        load_arm,
         load_box,
         refuse_overwriting_inputs,
         robot_input,
         shipped_inputs,
     )
     from hrm_ctrl.model import load_robot
-    from hrm_ctrl.ropes.actuation import load_actuation
+    from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm, start_simulated_box
 
     refuse_overwriting_inputs(
         [Output("--log-dir", args.log_dir, folder=True)],
@@ -98,25 +98,14 @@ def build_context(args: argparse.Namespace, prog: str) -> ConsoleContext:
         ],
     )
     config = load_box(args)  # --config with the --bus overrides
-    arm = load_arm(args, load_robot(args.robot), prog=prog, simulated=args.sim)
+    arm = arm_from_args(args, load_robot(args.robot), prog=prog, simulated=args.sim)
     config.check_motors(arm.actuation.motor_ids)
     load_commands()
     arm.say_note()
     sim = None
-    if args.sim:
-        from hrm_ctrl.cli._simwire import calibration_counts, start_in_process_sim
-
-        # the simulated arm is the description's (links too), not the calibration's
-        physical = arm.actuation if arm.active is None else load_actuation(arm.description)
-        config, sim = start_in_process_sim(
-            config,
-            physical,
-            args.wire,
-            prog=prog,
-            initial_counts=calibration_counts(
-                None if arm.active is None else arm.active.calibration, physical
-            ),
-        )
+    if args.sim:  # the simulated arm: the description's (links too), not the calibration's
+        running = start_simulated_box(config, SimulatedBox(simulated_arm(arm), args.wire), prog)
+        config, sim = running.config, running.sim
     ctx = ConsoleContext(
         config=config,
         description=arm.description,

@@ -122,38 +122,21 @@ def tension_sample(ctx: ConsoleContext) -> Any:
 
 
 def start_watches(ctx: ConsoleContext) -> None:
-    """The feedback watches of the enabled drives: the tension board (over the reader
-    the session keeps open) and the rope layer's consistency check; either stops every
-    axis through the session's monitor, naming the rope."""
-    from drivers.safety.causes import StopKind
-    from drivers.safety.watches import ROPE_EVERY_CYCLES, FeedbackWatches, RopeWatch
-    from drivers.tension_sensor import TensionWatch
-    from hrm_ctrl.ropes.estimator import RopeConsistencyCheck
+    """The feedback watches of the enabled drives (:func:`hrm_ctrl.runtime.watches.watches_of`):
+    the tension board (over the reader the session keeps open) and the rope layer's
+    consistency check; either stops every axis through the session's monitor, naming the
+    rope."""
+    from hrm_ctrl.runtime.watches import watches_of
 
     stop_watches(ctx)
-    session = ctx.session
-    monitor = session.monitor
-    watches = FeedbackWatches(scheduling=session.thread_scheduling)
-    t = ctx.config.tension
     reader = ctx.extra.get("tension_reader")
-    if t is not None and reader is not None:
-        watches.add(
-            "tension",
-            TensionWatch(
-                reader,
-                ctx.actuation.motor_ids,
-                lambda text: monitor.report(StopKind.TENSION, text),
-                min_N=t.slack_N,
-                max_N=t.limit_N,
-                max_bad_per_s=t.garbage_per_s,
-                grace_s=0.0,  # the reader has been open since connect
-            ),
-        )
-    period_s = ctx.config.control.period_s * ROPE_EVERY_CYCLES
-    check = RopeConsistencyCheck(ctx.actuation, rate_hz=1.0 / period_s)
-    watches.add(
-        "rope_consistency",
-        RopeWatch(monitor, check, lambda: session.supervisor.targets, period_s),
+    watches = watches_of(
+        ctx.config,
+        ctx.actuation,
+        ctx.session,
+        reader=reader,
+        tension=reader is not None,
+        grace_s=0.0,  # the reader has been open since connect
     )
     watches.start()
     ctx.watches = watches

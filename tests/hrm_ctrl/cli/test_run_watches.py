@@ -12,11 +12,12 @@ from typing import Any
 
 import pytest
 
-from hrm_ctrl.cli import _simwire, main
+from hrm_ctrl.cli import main
 from hrm_ctrl.formats.planfile import PlanDoc, write_plan
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.planning.planner import PlanOptions, plan_path
 from hrm_ctrl.planning.scenarios import scenario
+from hrm_ctrl.runtime import simulated as _simwire
 from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT
 
 DEMO_SPEED = "50"  # mm/s, hrm demo's default

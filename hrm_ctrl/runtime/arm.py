@@ -1,0 +1,114 @@
+"""The arm a command works with: robot description, calibrated model and rope layer.
+
+:func:`load_arm` takes explicit parameters (the robot description as loaded, the
+calibration store's folder, ``uncalibrated``, ``simulated``, the command's name for its
+messages); the CLI turns its arguments into them.
+
+>>> import os
+>>> calibrations_folder("store")
+PosixPath('store')
+>>> os.environ[CALIBRATIONS_ENV] = "/tmp/cal"; calibrations_folder(None)
+PosixPath('/tmp/cal')
+>>> del os.environ[CALIBRATIONS_ENV]
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # heavy imports only where used (the CLI's start)
+    from calibration.apply import ActiveCalibration
+    from drivers.session import CalibrationRef
+    from hrm_ctrl.model import RobotModel
+    from hrm_ctrl.ropes.actuation import Actuation
+
+CALIBRATIONS_ENV = "HRM_CALIBRATIONS"
+DEFAULT_CALIBRATIONS = Path(".local", "share", "hrm", "calibrations")  # under the home folder
+
+
+def calibrations_folder(given: Path | str | None) -> Path:
+    """The calibration store: ``given``, else ``$HRM_CALIBRATIONS``, else
+    ``~/.local/share/hrm/calibrations``."""
+    if given is not None:
+        return Path(given)
+    env = os.environ.get(CALIBRATIONS_ENV)
+    if env:  # set but empty: as if unset
+        return Path(env)
+    return Path.home() / DEFAULT_CALIBRATIONS
+
+
+@dataclass(frozen=True)
+class Arm:
+    """The arm a command works with: the robot description as loaded, the model with the
+    calibration's links, its rope layer, the active calibration used (None: the
+    description's values), and a line for stderr saying why there is none (``note``: the
+    command prints it once its own checks have passed, see :meth:`say_note`)."""
+
+    description: RobotModel
+    robot: RobotModel  # calibrated links
+    actuation: Actuation
+    active: ActiveCalibration | None
+    note: str | None = None
+
+    def say_note(self) -> None:
+        """Print :attr:`note` on stderr (if any)."""
+        if self.note is not None:
+            print(self.note, file=sys.stderr)
+
+    def calibration_ref(self) -> CalibrationRef | None:
+        """The :class:`drivers.session.CalibrationRef` of the calibration used, or None."""
+        if self.active is None:
+            return None
+        from drivers.session import CalibrationRef
+
+        return CalibrationRef(self.active.version, self.active.sha256, self.active.path)
+
+
+def load_arm(
+    description: RobotModel,
+    *,
+    calibrations: Path | str | None = None,
+    uncalibrated: bool = False,
+    simulated: bool = False,
+    prog: str = "hrm",
+) -> Arm:
+    """The arm of ``description`` with the active calibration of the store
+    ``calibrations`` (:func:`calibrations_folder`) for it.
+
+    A damaged calibration, or one for another robot description, is refused
+    (:class:`~hrm_ctrl.errors.CalibrationFileError`, one line).  ``uncalibrated`` uses the
+    description's values, and the ``note`` says so; so does a ``simulated`` arm's when the
+    store has no calibration.  Otherwise no calibration means the description's values,
+    and ``active`` None (a drive session refuses to enable).
+    """
+    from calibration.apply import active_for, calibrated_actuation, calibrated_model
+    from calibration.store import CalibrationStore
+    from hrm_ctrl.ropes.actuation import load_actuation
+
+    folder = calibrations_folder(calibrations)
+    if uncalibrated:
+        note = (
+            f"{prog}: --uncalibrated: the robot description's values, not the calibration "
+            f"store ({folder})"
+        )
+        return Arm(description, description, load_actuation(description), None, note)
+    active = active_for(CalibrationStore(folder), description)
+    if active is None:
+        note = None
+        if simulated:
+            note = (
+                f"{prog}: --sim: no calibration in {folder}: the robot description's values "
+                "(a simulated arm; real drives are not enabled without a calibration)"
+            )
+        return Arm(description, description, load_actuation(description), None, note)
+    cal = active.calibration
+    return Arm(
+        description,
+        calibrated_model(description, cal),
+        calibrated_actuation(description, cal),
+        active,
+    )

@@ -1,0 +1,194 @@
+"""Opening a box: the one way every entry point gets a drive session.
+
+:func:`open_box` opens the box a command drives (its real buses from a
+:class:`~drivers.config.BoxConfig`, a box in its own process whose buses the configuration
+names, or the in-process simulated box: :class:`~hrm_ctrl.runtime.simulated.SimulatedBox`
+to start one for this block, :class:`~hrm_ctrl.runtime.simulated.RunningSim` for one that
+outlives it), with its :class:`~drivers.session.DriveSession` (CAN logs, run record) and
+its feedback watches (:mod:`hrm_ctrl.runtime.watches`), and brings the drives up.
+
+A box in its own process (``hrm sim --control``) is either started for the block
+(:class:`~hrm_ctrl.runtime.process_box.ProcessBox`; the session's threads then keep off its
+CPU) or started elsewhere (the HIL fixtures' session-wide box): then the configuration names
+its buses, as for real ones.
+
+The session opens whole or not at all (interrupts deferred); on any exit (the block ends,
+an exception in it, SIGTERM or Ctrl-C as an interrupt in it) the box closes in this order:
+
+1. the watches stop (their summaries go into the run record);
+2. the session finishes and closes (:meth:`DriveSession.__exit__`: after a signal every
+   axis is quick-stopped first; every drive disabled, NMT pre-operational, host heartbeat
+   off; then the buses and CAN logs close and the run record is written);
+3. the simulated box started for the block (in this process, or its own) stops.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from hrm_ctrl.runtime.process_box import BoxProcess, ProcessBox
+from hrm_ctrl.runtime.simulated import (
+    SIM_LISTEN_S,
+    RunningSim,
+    SimulatedBox,
+    in_process_box,
+)
+
+if TYPE_CHECKING:
+    from drivers.config import BoxConfig
+    from drivers.safety.limits import LimitChecker
+    from drivers.safety.watches import FeedbackWatches
+    from drivers.session import CalibrationRef, DriveSession
+    from hrm_ctrl.ropes.actuation import Actuation
+    from sim_bus.box import SimBox
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    """The drive session's parameters: where its CAN logs and run record go (``log_dir``;
+    None: nowhere) in which format (``log_suffix``), its ``run_name`` (None: the time),
+    ``take_over`` (reset the drives even when another master is heard), the
+    ``calibration`` used and ``allow_uncalibrated``, the listen before the first reset
+    (``listen_s``; None: the session's default, shorter on the in-process box), and what
+    the run record keeps besides (``record_extra``)."""
+
+    log_dir: Path | str | None = None
+    log_suffix: str = ".blf"
+    run_name: str | None = None
+    take_over: bool = False
+    calibration: CalibrationRef | None = None
+    allow_uncalibrated: bool = False
+    listen_s: float | None = None
+    record_extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class WatchOptions:
+    """Which feedback watches run while the drives are enabled: the tension board's (when
+    the configuration has a ``[tension]`` table) and the rope consistency check; the
+    tension watch's ``grace_s`` for the board's first frame; the rope layer they watch
+    (``actuation``; None: the session's)."""
+
+    tension: bool = True
+    ropes: bool = True
+    grace_s: float = 0.0
+    actuation: Actuation | None = None
+
+
+NO_WATCHES = WatchOptions(tension=False, ropes=False)
+
+
+@dataclass
+class OpenBox:
+    """An open box: its ``session``, its ``watches`` (started by :meth:`bring_up`), the
+    ``config`` the session runs on (rewritten onto the simulated box's buses with one)
+    and the simulated box started or used for it (``sim``: the in-process
+    :class:`~sim_bus.box.SimBox`, or the :class:`~hrm_ctrl.runtime.process_box.BoxProcess`;
+    None on real buses)."""
+
+    session: DriveSession
+    watches: FeedbackWatches
+    config: BoxConfig
+    sim: SimBox | BoxProcess | None = None
+
+    def bring_up(self, bring_up: Callable[[DriveSession], object] | None = None) -> None:
+        """Bring the drives up (``bring_up(session)``; default
+        :meth:`DriveSession.bring_up`), then start the watches."""
+        if bring_up is None:
+            self.session.bring_up()
+        else:
+            bring_up(self.session)
+        self.watches.start()
+
+
+@contextlib.contextmanager
+def open_box(
+    config: BoxConfig,
+    actuation: LimitChecker,
+    options: SessionOptions,
+    *,
+    sim: SimulatedBox | RunningSim | ProcessBox | None = None,
+    watches: WatchOptions = WatchOptions(),
+    bring_up: bool | Callable[[DriveSession], object] = True,
+    prog: str = "hrm",
+) -> Iterator[OpenBox]:
+    """The box of ``config`` opened for ``actuation`` (the rope layer, or a subset of it);
+    see the module docstring for what opens and the order things close in.  With
+    ``bring_up`` True (or a callable doing it, e.g. with a progress display) the drives are
+    up and the watches running when the block starts; with False the caller calls
+    :meth:`OpenBox.bring_up` (after opening what must be refused before anything is sent,
+    e.g. a sensor's port)."""
+    from drivers.interrupts import deferred_interrupts
+    from drivers.realtime import process_settings
+    from drivers.safety.watches import FeedbackWatches
+    from drivers.session import DriveSession
+    from hrm_ctrl.runtime.watches import feedback_watches
+
+    with contextlib.ExitStack() as stack:
+        simbox: SimBox | BoxProcess | None = None
+        listen_s = options.listen_s
+        host_cpus = None
+        if isinstance(sim, SimulatedBox):
+            running = stack.enter_context(in_process_box(config, sim, prog))
+            config, simbox = running.config, running.sim
+        elif isinstance(sim, RunningSim):
+            config, simbox = sim.config, sim.sim
+        elif isinstance(sim, ProcessBox):
+            process = sim.start()
+            stack.callback(lambda: process.close())  # looked up at the exit
+            simbox, host_cpus = process, process.host_cpus
+            if config.tension is None:  # the box's board, at the [tension] defaults
+                config = config.with_tension(port=str(process.ready["tension_port"]))
+        if listen_s is None and isinstance(sim, SimulatedBox | RunningSim):
+            listen_s = SIM_LISTEN_S  # private in-process channels: no other master
+        kw: dict[str, Any] = {} if listen_s is None else {"listen_s": listen_s}
+        # every thread of the session (and its watches) on the CPUs a box process leaves
+        # free; the caller's thread gets its own back
+        placed = (
+            contextlib.nullcontext()
+            if host_cpus is None
+            else process_settings(switch_interval_s=None, cpus=host_cpus)
+        )
+        with placed:  # the bring-up's threads too
+            with deferred_interrupts():  # the session is open and entered, or not at all
+                session = stack.enter_context(
+                    DriveSession(
+                        config,
+                        actuation,
+                        log_dir=options.log_dir,
+                        log_suffix=options.log_suffix,
+                        run_name=options.run_name,
+                        take_over=options.take_over,
+                        calibration=options.calibration,
+                        allow_uncalibrated=options.allow_uncalibrated,
+                        **kw,
+                    )
+                )
+                session.record_extra.update(options.record_extra)
+                if watches.tension or watches.ropes:
+                    # the tension board's port opened first: a bad port is refused before any
+                    # NMT reset
+                    watched = actuation if watches.actuation is None else watches.actuation
+                    running_watches = stack.enter_context(
+                        feedback_watches(
+                            config,
+                            watched,  # type: ignore[arg-type]
+                            session,
+                            tension=watches.tension,
+                            ropes=watches.ropes,
+                            start=False,
+                            grace_s=watches.grace_s,
+                        )
+                    )
+                else:
+                    running_watches = FeedbackWatches(scheduling=session.thread_scheduling)
+            box = OpenBox(session, running_watches, config, simbox)
+            if bring_up is True:
+                box.bring_up()
+            elif callable(bring_up):
+                box.bring_up(bring_up)
+        yield box
