@@ -52,16 +52,18 @@ import json
 import math
 from collections.abc import Mapping
 from datetime import UTC, datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from calibration.store import Calibration, CalibrationStore, Routine, checksum
 from hrm_ctrl.errors import CalibrationFileError
 from hrm_ctrl.model import RobotModel
-from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from hrm_ctrl.ropes.motor_map import motor_map_from_table
 from hrm_ctrl.ropes.routing import routing_from_model
+
+if TYPE_CHECKING:  # the rope layer is imported where one is built (slow to import)
+    from hrm_ctrl.ropes.actuation import Actuation
 
 UPDATABLE = frozenset(
     {"links_mm", "alpha_offset_rad", "theta_offset_rad", "motor_zero_counts", "rope_EA_N"}
@@ -237,6 +239,8 @@ def calibrated_model(model: RobotModel, cal: Calibration) -> RobotModel:
 def calibrated_actuation(model: RobotModel, cal: Calibration) -> Actuation:
     """The rope layer of the calibrated arm: calibrated links, the motor zero counts, the
     per-rope axial rigidity and the joint zero offsets of ``cal``."""
+    from hrm_ctrl.ropes.actuation import load_actuation
+
     return load_actuation(
         calibrated_model(model, cal),
         dict(cal.motor_zero_counts),

@@ -4,10 +4,10 @@
 :meth:`TrafficLog.log_batch`) and frames it received (as a ``can.Listener``) and writes
 them in arrival order, so the control cycle never waits for the disk, in one of the
 formats python-can reads back with ``can.LogReader`` (:func:`log_formats`: ``blf``,
-``asc``, candump ``log``, ``trc``, and ``mf4`` where asammdf is installed).  BLF is
+``asc``, candump ``log``, ``trc``; not ``mf4``: :data:`REFUSED_LOG_FORMATS`).  BLF is
 formatted by :mod:`drivers.blf` (our own writer: why, there); the text formats by
 python-can's public writers, whose formatted lines this class writes to the file itself
-(durability below); MF4 by python-can's writer alone.  Channels follow python-can's
+(durability below).  Channels follow python-can's
 numbering: the first bus (``can0``) is channel 0 for python-can, ``1`` in an ASC, BLF or
 TRC file (the writers add one, python-can's readers take it off) and ``can0`` in a
 candump ``.log``.
@@ -51,22 +51,25 @@ LOG_FORMAT_DURABILITY = {
     "log": "crash-safe: at most FLUSH_S behind, whole lines after a kill -9",
     "trc": "crash-safe: at most FLUSH_S behind, whole lines after a kill -9; python-can's "
     "writer leaves out error and remote frames",
-    "mf4": "written when the log closes: a killed process leaves no readable file",
 }
 """What a process killed mid-run keeps of a log in each format (docs/drivers.md)."""
 
 
-def log_formats() -> tuple[str, ...]:
-    """The log formats this installation writes: :data:`LOG_FORMATS_ALWAYS`, plus ``mf4``
-    when asammdf (python-can's MF4 writer needs it) is installed.
+REFUSED_LOG_FORMATS = {
+    "mf4": "python-can's MF4 writer takes about 0.5 ms a frame, slower than a bus sends "
+    "them (a 36-drive cycle every 10 ms): the log would be incomplete; use blf",
+}
+"""Formats python-can writes that a CAN log of a run refuses, and why (``--log-format``)."""
 
-    >>> log_formats()[:4]
+
+def log_formats() -> tuple[str, ...]:
+    """The log formats a CAN log is written in (:data:`LOG_FORMATS_ALWAYS`; python-can's
+    ``mf4`` is refused: :data:`REFUSED_LOG_FORMATS`).
+
+    >>> log_formats()
     ('blf', 'asc', 'log', 'trc')
     """
-    import importlib.util
-
-    extra = ("mf4",) if importlib.util.find_spec("asammdf") is not None else ()
-    return LOG_FORMATS_ALWAYS + extra
+    return LOG_FORMATS_ALWAYS
 
 
 LOG_SUFFIXES = tuple(f".{f}" for f in (*LOG_FORMATS_ALWAYS, "mf4"))
@@ -113,7 +116,11 @@ class TrafficLog(can.Listener):
     Every frame on the wire is logged once: what the host sends when it sends it, and
     everything received (drives, other masters, error and remote frames) as the bus's
     receiver (:class:`drivers.receive.BusReceiver`) hands it over, our own echoes
-    excepted."""
+    excepted.  Times in a file never go back: a frame is written with its own timestamp
+    (a sent frame: the host's send time; a received one: its receive time on the host's
+    clock as the interface gives it), or, when it reached the log after a frame stamped
+    later (a received frame the host picked up late; an interface that stamps with the
+    sender's time), with that later time: when the host had it at the latest."""
 
     def __init__(self, path: str | Path, channel: int = 1) -> None:
         self.path = Path(path)
@@ -126,7 +133,10 @@ class TrafficLog(can.Listener):
         self.write_errors = 0
         self.first_error: str | None = None
         formats = log_formats()
-        if self.path.suffix.lower().lstrip(".") not in formats:
+        suffix = self.path.suffix.lower().lstrip(".")
+        if suffix in REFUSED_LOG_FORMATS:
+            raise DriverError(f"{self.path}: .{suffix} refused: {REFUSED_LOG_FORMATS[suffix]}")
+        if suffix not in formats:
             raise DriverError(
                 f"{self.path}: CAN log must end in "
                 f"{', '.join('.' + f for f in formats)} (python-can's formats here)"
@@ -136,6 +146,7 @@ class TrafficLog(can.Listener):
         self.n_lost = 0  # frames that never reached the file (it could not take more)
         self._unflushed = 0  # frames handed to the writer since the last flush
         self._last_ts: float | None = None  # timestamp of the last frame handed over
+        self._file_ts = -math.inf  # ... as written: a file's times never go back
         self._logged_until: float | None = None  # ... and of the last one in the file
         self._broken = False
         self._durable = False  # this class writes the file (BLF, ASC, candump, TRC)
@@ -174,6 +185,9 @@ class TrafficLog(can.Listener):
         the echoes of our own frames, which were logged when sent)."""
         # Interfaces name channels freely (a virtual bus: any string); logs want a number.
         msg.channel = self._msg_channel
+        # received: python-can's socketcan marks a frame another socket of this machine
+        # sent (MSG_DONTROUTE: every frame on vcan, a local candump's) as not received
+        msg.is_rx = True
         self._queue.append(msg)
 
     def log_sent(self, msg: can.Message) -> None:
@@ -219,6 +233,8 @@ class TrafficLog(can.Listener):
                 else:  # packed at once: the packing's fixed cost once per drain
                     frames = np.concatenate([f for f, _rx in entries])
                     is_rx = np.repeat([rx for _f, rx in entries], [len(f) for f, _rx in entries])
+                stamps = frames["timestamp"]  # our copy (log_batch): never earlier than the last
+                running = file_times(stamps, self._file_ts)
                 try:
                     done = write_batch is not None and write_batch(frames, is_rx)
                 except Exception as exc:
@@ -226,16 +242,23 @@ class TrafficLog(can.Listener):
                     continue
                 if done:
                     self._unflushed += len(frames)
-                    self._last_ts = float(frames["timestamp"][-1])
+                    self._last_ts = float(stamps[-1])
+                    self._file_ts = running
                 else:  # frame by frame, before everything queued after the batches
                     for f, rx in reversed(entries):
                         q.extendleft(reversed(to_messages(f, self._msg_channel, rx)))
                 continue
+            ts = msg.timestamp
+            datable = 0.0 <= ts < MAX_LOG_TIMESTAMP_S  # else left as it is (BLF refuses it)
+            if datable and ts < self._file_ts:  # reached the log after a later frame
+                msg.timestamp = self._file_ts
             try:
                 write(msg)
             except Exception as exc:  # one bad frame must not end the log
                 self._failed(f"{self.path.name}: cannot log {msg} ({exc})")
                 continue
+            if datable:
+                self._file_ts = msg.timestamp
             if durable:
                 self._unflushed += 1
                 self._last_ts = msg.timestamp
@@ -302,8 +325,7 @@ class TrafficLog(can.Listener):
     # writes of BLF (drivers.blf formats) and of the text formats (python-can's ASC,
     # candump .log and TRC writers format into a StringIO): every FLUSH_S the formatted
     # frames go out in one write(2) (BLF: zlib containers; text: whole lines), then the
-    # BLF header is rewritten in place.  MF4 (asammdf) is written when the log closes
-    # (LOG_FORMAT_DURABILITY).  A SIGKILL can cut a write(2) only between pages (the
+    # BLF header is rewritten in place.  A SIGKILL can cut a write(2) only between pages (the
     # kernel checks for it page by page), so no line and no container header is let
     # straddle a page boundary: a cut file still ends with whole lines, or with a
     # container whose headers are whole (its cut zlib stream yields every whole frame in
@@ -368,8 +390,7 @@ class TrafficLog(can.Listener):
 
     def _take_over_writes(self) -> bool:
         """Make python-can's ASC, candump or TRC writer format only; this class writes
-        the file (see above).  Another writer (MF4) is left alone: it writes the file when
-        it stops."""
+        the file (see above).  Another writer is left alone: it writes the file itself."""
         w = self._writer
         if isinstance(w, can.ASCWriter):
             # python-can (4.6) writes a date's milliseconds without leading zeros (".18"
@@ -431,18 +452,25 @@ class TrafficLog(can.Listener):
 
     def _asc_lines(self) -> bytes:
         """The whole lines the writer formatted (ASC, candump, TRC), each kept within one
-        page (a line that would straddle a page boundary is put after a blank line that
-        fills the page: the readers of all three skip blank lines)."""
+        page.  ASC and TRC: a line that would straddle a page boundary is put after a
+        blank line that fills the page (their readers skip blank lines).  candump: can-utils'
+        tools (``log2long``, ``canplayer``) stop at a line that is not a frame, so the page
+        is filled with spaces at the end of the line before it (every candump reader splits
+        a line at whitespace), and the last line of a write is padded so when less than
+        :data:`CANDUMP_LINE_BYTES` of its page are left (the next write's first line fits)."""
         text_io = self._writer.file
         text = text_io.getvalue()
         cut = text.rfind("\n") + 1
         text_io.seek(0)
         text_io.truncate()
         text_io.write(text[cut:])
+        lines = text[:cut].encode(self._encoding).splitlines(keepends=True)
+        if isinstance(self._writer, can.CanutilsLogWriter):
+            return candump_lines(lines, self._end, self.PAGE_BYTES)
         page = self.PAGE_BYTES
         pos = self._end
         out = bytearray()
-        for line in text[:cut].encode(self._encoding).splitlines(keepends=True):
+        for line in lines:
             room = page - pos % page
             if room < len(line) <= page:
                 out += b" " * (room - 1) + b"\n"
@@ -498,6 +526,50 @@ class TrafficLog(can.Listener):
             w.stop()
         except Exception as exc:  # flush/close failed (disk full, I/O error)
             self._failed(f"{self.path.name}: cannot close ({exc})")
+
+
+def file_times(stamps: np.ndarray, last_s: float) -> float:
+    """Raise each time of ``stamps`` (in place) to the latest before it and ``last_s``, so
+    they never go back; a time outside [0, :data:`MAX_LOG_TIMESTAMP_S`) is left as it is
+    and sets no floor.  Returns the floor after the last.
+
+    >>> t = np.array([5.0, 3.0, -1.0, 4.0, 7.0, 6.0])
+    >>> file_times(t, 4.5), t.tolist()
+    (7.0, [5.0, 5.0, -1.0, 5.0, 7.0, 7.0])
+    """
+    datable = (stamps >= 0.0) & (stamps < MAX_LOG_TIMESTAMP_S)
+    floor = np.maximum.accumulate(np.maximum(np.where(datable, stamps, -math.inf), last_s))
+    stamps[datable] = floor[datable]
+    return float(floor[-1]) if len(floor) else last_s
+
+
+#: A candump line python-can writes for a classical frame is at most 55 bytes ("(%f)" of a
+#: Unix time, " can" + channel, a 29-bit id, 8 data bytes, " R", newline): a write leaves
+#: at least this much of its last page, or fills it.
+CANDUMP_LINE_BYTES = 64
+
+
+def candump_lines(lines: list[bytes], pos: int, page: int) -> bytes:
+    """candump ``lines`` to be written at file offset ``pos``, none straddling a ``page``
+    boundary: the page is filled with spaces at the end of the line before (a candump
+    reader splits at whitespace; no line that is not a frame, where can-utils' tools stop).
+
+    >>> out = candump_lines([b"(1.000000) can0 181#01 R\\n"] * 3, 4096 - 60, 4096)
+    >>> [len(x) for x in out.splitlines(keepends=True)], out.split(b"\\n")[0].rstrip()
+    ([25, 35, 25], b'(1.000000) can0 181#01 R')
+    """
+    out = bytearray()
+    for line in lines:
+        room = page - pos % page
+        if out and room < len(line) <= page:  # the line before fills the page
+            out[-1:-1] = b" " * room
+            pos += room
+        out += line
+        pos += len(line)
+    room = page - pos % page
+    if out and room < CANDUMP_LINE_BYTES and room != page:
+        out[-1:-1] = b" " * room
+    return bytes(out)
 
 
 def asc_date(when: dt.datetime) -> str:

@@ -142,7 +142,7 @@ def after_stop(stop: StopRecord) -> tuple[SessionState, str | None]:
     >>> after_stop(NS(failed=[], unconfirmed=[], while_streaming=True))
     (<SessionState.STOPPED: 'stopped'>, None)
     >>> after_stop(NS(failed=[], unconfirmed=["m0"], while_streaming=False))[1][:40]
-    'quick stop while idle failed: not confirm'
+    'quick stop while idle failed: not confir'
     """
     problems = [x.text for x in stop.failed]
     if stop.unconfirmed:

@@ -68,6 +68,7 @@ import numpy as np
 from hrm_ctrl.errors import SimError
 from hrm_ctrl.kinematics import joint_centres
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
+from hrm_ctrl.ropes.inverse import load_fallback_solver
 from sim_bus.truth import TrueArm
 
 
@@ -114,6 +115,7 @@ class SimArm:
         self.model = truth.model(actuation.robot)  # true link lengths, for the FK
         rope = load_actuation(self.model)  # the ropes of the true arm: no calibration in it
         self.rope = rope
+        load_fallback_solver()  # state() may need it at any cycle: import it before
         if self.truth.motor_ids != rope.motor_ids:
             raise SimError(
                 f"{self.truth.source}: the truth's motors differ from the rope layer's "

@@ -46,8 +46,10 @@ import contextlib
 import heapq
 import logging
 import math
+import platform
 import select
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -59,6 +61,7 @@ import numpy as np
 import drivers.protocol.cia301 as cia301
 from drivers.config import BoxConfig
 from drivers.protocol.cia402 import EMCY_FOLLOWING_ERROR, OD_POSITION_ACTUAL_VALUE
+from drivers.realtime import GcHold
 from hrm_ctrl.errors import SimError
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
@@ -74,6 +77,17 @@ log = logging.getLogger("sim_bus.box")
 #: Receive buffer asked for on socket-based buses (udp_multicast, socketcan): a Python
 #: process that stalls for 50-100 ms on a loaded machine must not lose frames in the kernel.
 RECEIVE_BUFFER_BYTES = 8 * 1024 * 1024
+#: Linux's SO_RCVBUFFORCE (a buffer beyond ``net.core.rmem_max``, with CAP_NET_ADMIN): the
+#: socket module does not define it; 33 in the kernel's generic socket.h, which x86, arm and
+#: riscv use (alpha, mips, parisc and sparc number it differently: not used there)
+SO_RCVBUFFORCE: int | None = getattr(
+    socket,
+    "SO_RCVBUFFORCE",
+    33
+    if sys.platform.startswith("linux")
+    and platform.machine() in ("x86_64", "i686", "aarch64", "armv7l", "riscv64")
+    else None,
+)
 
 
 def enlarge_receive_buffer(bus: can.BusABC, size_bytes: int = RECEIVE_BUFFER_BYTES) -> int | None:
@@ -88,7 +102,7 @@ def enlarge_receive_buffer(bus: can.BusABC, size_bytes: int = RECEIVE_BUFFER_BYT
         sock = getattr(bus, "socket", None)
     if not isinstance(sock, socket.socket):
         return None
-    for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+    for opt in (SO_RCVBUFFORCE, socket.SO_RCVBUF):
         if opt is None:
             continue
         try:
@@ -224,6 +238,7 @@ class SimBox:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._gc_hold = GcHold()  # held while the threads run: see start()
         self.events: list[str] = []
         self._cpu_closed_s = 0.0
         self._tension_cache: tuple[float, np.ndarray, tuple[int, ...], bool] | None = None
@@ -276,6 +291,9 @@ class SimBox:
             groups = [self._buses]  # one thread waits on every bus
         else:
             groups = [[bb] for bb in self._buses]
+        # a full collection of the heap the imports left pauses every thread for tens of
+        # ms (measured: 40 ms in ``hrm sim``), past the host's feedback watchdog (3 cycles)
+        self._gc_hold.acquire()
         for group in groups:
             name = "simbox:" + "+".join(bb.name for bb in group)
             t = threading.Thread(target=self._run_buses, args=(group,), name=name)
@@ -339,6 +357,7 @@ class SimBox:
         for t in self._threads:
             t.join(timeout=2.0)
         self._threads.clear()
+        self._gc_hold.release()
         self._close_buses()
 
     @property

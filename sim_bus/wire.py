@@ -12,6 +12,9 @@ node on one shared :class:`SimWire`.  The wire models classical CAN:
 * when the wire becomes free, the pending frame with the lowest arbitration
   key wins (11-bit id before a 29-bit id with the same base id, data before
   remote); a frame sent onto an idle wire starts at once;
+* a frame is copied at ``send`` (a sender may reuse its ``can.Message``); a node's
+  transmit queue holds :data:`TX_QUEUE_FRAMES`, and a send finding it full waits up to
+  its ``timeout`` (None: until there is room) before it raises;
 * every other node receives a frame at the end of its wire time, stamped with
   that ideal end time; the sender does not get its own frame back unless it
   asked for ``receive_own_messages=True``.  No thread runs the wire: every
@@ -59,12 +62,39 @@ FrameMatch = Callable[[can.Message], bool]
 
 
 #: Frames one node may have waiting for the wire, as a CAN controller's transmit queue (a
-#: SocketCAN device's ``txqueuelen`` is 10 to 1000): one more raises
-#: ``can.CanOperationError`` ("transmit queue full") instead of growing without bound.
+#: SocketCAN device's ``txqueuelen`` is 10 to 1000): one more waits for room as long as the
+#: send's ``timeout`` allows, then raises ``can.CanOperationError`` ("transmit queue
+#: full"), instead of growing without bound.
 TX_QUEUE_FRAMES = 256
 #: Frames a node's receive queue holds; when full the oldest go (counted in
 #: ``SimWire.stats()["rx_dropped"]``), as a receive buffer overruns.
 RX_QUEUE_FRAMES = 65_536
+
+
+#: Longest single wait of a send for room in its transmit queue (s): the wait is re-checked
+#: at least this often (bus off, shutdown), whatever the ``timeout``.
+SEND_POLL_S = 0.05
+
+
+def snapshot(msg: can.Message) -> can.Message:
+    """A copy of the frame ``msg`` is now (id, flags, dlc, data): what the wire carries.
+
+    >>> m = can.Message(arbitration_id=0x181, data=b"\\x01", is_extended_id=False)
+    >>> s = snapshot(m)
+    >>> m.arbitration_id, m.data[0] = 0x182, 9
+    >>> hex(s.arbitration_id), bytes(s.data)
+    ('0x181', b'\\x01')
+    """
+    return can.Message(
+        timestamp=msg.timestamp,
+        arbitration_id=msg.arbitration_id,
+        is_extended_id=msg.is_extended_id,
+        is_remote_frame=msg.is_remote_frame,
+        is_error_frame=msg.is_error_frame,
+        dlc=msg.dlc,
+        data=bytes(msg.data),
+        check=False,
+    )
 
 
 class WireConfigError(SimError):
@@ -245,27 +275,42 @@ class SimWire:
             self._cond.notify_all()
             return not self._nodes
 
-    def _submit(self, msg: can.Message, sender: SimWireBus) -> None:
-        now = time.monotonic()
+    def _submit(self, msg: can.Message, sender: SimWireBus, timeout: float | None) -> None:
+        """Queue a copy of ``msg`` (the frame as it is now: a sender may reuse its object)
+        for the wire; with the sender's transmit queue full, wait for room up to
+        ``timeout`` s (None: until there is room; 0: not at all), then raise."""
+        frame = snapshot(msg)
+        deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
         with self._cond:
-            if self._bus_off:
-                raise can.CanOperationError(f"hrm_sim channel {self.channel!r}: bus off")
+            while True:
+                now = time.monotonic()
+                if self._bus_off:
+                    raise can.CanOperationError(f"hrm_sim channel {self.channel!r}: bus off")
+                if not sender._open:
+                    raise can.CanOperationError("hrm_sim: cannot send on a closed bus")
+                next_event = self._advance(now)
+                if sender._tx_pending < TX_QUEUE_FRAMES:
+                    break
+                if deadline is not None and now >= deadline:
+                    raise can.CanOperationError(
+                        f"hrm_sim channel {self.channel!r}: transmit queue full "
+                        f"({TX_QUEUE_FRAMES} frames waiting for the wire)"
+                    )
+                # the queue drains as the wire runs: wake at its next event (a bounded
+                # wait; another node's send or recv may run the wire first and notify)
+                waits = [max(0.0, t - now) for t in (next_event, deadline) if t is not None]
+                self._cond.wait(min([SEND_POLL_S, *waits]))
             t_ready = now
             for rule in self._rules:
-                if rule.applies(msg):
+                if rule.applies(frame):
                     if rule.kind == "drop":
                         self.frames_dropped += 1
                         return
                     t_ready += rule.delay_s
-            if sender._tx_pending >= TX_QUEUE_FRAMES:
-                raise can.CanOperationError(
-                    f"hrm_sim channel {self.channel!r}: transmit queue full "
-                    f"({TX_QUEUE_FRAMES} frames waiting for the wire)"
-                )
             sender._tx_pending += 1
             self._seq += 1
             self._pending.append(
-                _Pending(t_ready, self._seq, arbitration_key(msg), msg, sender, now)
+                _Pending(t_ready, self._seq, arbitration_key(frame), frame, sender, now)
             )
             self._advance(now)
             self._cond.notify_all()  # waiting receivers recompute when to wake
@@ -422,11 +467,14 @@ class SimWireBus(can.BusABC):
         raise NotImplementedError("hrm_sim: the bus state follows the wire (SimWire.set_bus_off)")
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Offer a copy of ``msg`` to the wire (python-can's contract): with this node's
+        transmit queue full, wait for room up to ``timeout`` s (None: as long as it takes,
+        0: not at all), then raise ``can.CanOperationError`` ("transmit queue full")."""
         if not self._open:
             raise can.CanOperationError("hrm_sim: cannot send on a closed bus")
         if msg.is_fd:
             raise can.CanOperationError("hrm_sim: CAN FD frames are not supported")
-        self.wire._submit(msg, self)
+        self.wire._submit(msg, self, timeout)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if not self._open:

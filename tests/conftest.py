@@ -3,8 +3,13 @@
 ``can_backend`` is parametrised over python-can ``virtual`` (everywhere),
 ``udp_multicast`` (IPv4 group, ``hop_limit=0`` so nothing leaves the host, a
 UDP port of its own per bus: Linux hands every group on a port to every socket
-bound to that port) and SocketCAN ``vcan0`` (skipped, with the reason, where
-the kernel has no vcan interface, as on the development machine).
+bound to that port) and SocketCAN (the kernel's ``vcan0``, ``vcan1``: a test's
+first bus is ``vcan0``, its second ``vcan1``).
+
+Where the kernel has no vcan (as on the development machine and in CI) the SocketCAN
+tests skip, naming the reason, or with ``HRM_VCAN_GUEST=on`` run at the end of the
+session in a User-Mode-Linux guest that has it, their results reported here
+(``tests/vcan_guest.py``, ``tools/vcan-guest/``).
 
 Note: a udp_multicast socket also receives the frames it sent itself; code
 under test must tolerate its own frames coming back.
@@ -34,6 +39,7 @@ import pytest
 from hypothesis import HealthCheck, settings
 
 from drivers.realtime import GcHold, process_settings
+from tests import vcan_guest
 
 BACKENDS = ("virtual", "udp_multicast", "socketcan")
 _group_counter = itertools.count(1)
@@ -83,6 +89,29 @@ def vcan_available(name: str = "vcan0") -> bool:
     return Path(f"/sys/class/net/{name}").exists()
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    vcan_guest.split_for_guest(config, items)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> bool | None:
+    return vcan_guest.run_in_guest(item)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    vcan_guest.register_report_writer(config)
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    line = vcan_guest.summary_line(terminalreporter.config)
+    if line is not None:
+        terminalreporter.write_line(line)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    vcan_guest.stop_guest(config)
+
+
 BusFactory = Callable[[], dict[str, Any]]
 
 
@@ -93,10 +122,21 @@ def can_backend(request: pytest.FixtureRequest) -> BusFactory:
     kind = request.param
     if kind == "socketcan":
         if not vcan_available():
+            why = vcan_guest.guest_unavailable()
             pytest.skip(
-                "SocketCAN: no vcan0 on this kernel (modprobe vcan; ip link add vcan0 type vcan)"
+                "SocketCAN: no vcan0 on this kernel (modprobe vcan; ip link add vcan0 type"
+                f" vcan), no vcan guest: {why}"
             )
-        return lambda: {"interface": "socketcan", "channel": "vcan0"}
+        channels = iter(vcan_guest.VCAN_INTERFACES)
+
+        def vcan() -> dict[str, Any]:
+            channel = next(channels, None)
+            if channel is None:
+                names = ", ".join(vcan_guest.VCAN_INTERFACES)
+                pytest.fail(f"SocketCAN: a test has at most the buses {names}")
+            return {"interface": "socketcan", "channel": channel}
+
+        return vcan
     if kind == "udp_multicast":
 
         def udp() -> dict[str, Any]:

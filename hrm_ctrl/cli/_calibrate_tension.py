@@ -42,9 +42,8 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from calibration.workflows import Saved
 from hrm_ctrl.cli._common import (
     Input,
     Output,
@@ -70,6 +69,9 @@ from hrm_ctrl.cli._options import (
     add_zero_options,
 )
 from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
+
+if TYPE_CHECKING:  # the CLI starts without the calibration package
+    from calibration.workflows import Saved
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
@@ -156,7 +158,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     actuation = calibrated_actuation(description, base)
     config.check_motors(actuation.motor_ids)
     ensure_log_dir(args.log_dir)
-    arm = Arm(description, calibrated_model(description, base), actuation, active)
+    arm = Arm(description, calibrated_model(description, base), active, rope_layer=actuation)
     ref = arm.calibration_ref()
     allow = args.sim or args.uncalibrated or args.calibrate == "zero"
     if ref is None and not allow:

@@ -183,12 +183,22 @@ def add_log(
         from drivers.canlog import log_formats
 
         parser.add_argument(
-            "--log-format", choices=log_formats(), default="blf",
+            "--log-format", choices=log_formats(), default="blf", type=_log_format,
             help=when_prefix(
                 when, "format of the CAN logs, as python-can writes them (default blf; "
-                "log: candump; mf4 needs asammdf)",
+                "log: candump; not mf4: python-can's MF4 writer cannot keep up)",
             ),
         )  # fmt: skip
+
+
+def _log_format(text: str) -> str:
+    """``--log-format``'s value; a format a run's log refuses is named with the reason
+    (:data:`drivers.canlog.REFUSED_LOG_FORMATS`), any other the choices check."""
+    from drivers.canlog import REFUSED_LOG_FORMATS
+
+    if text in REFUSED_LOG_FORMATS:
+        raise argparse.ArgumentTypeError(f"{text} refused: {REFUSED_LOG_FORMATS[text]}")
+    return text
 
 
 # -------------------------------------------------------------------- simulated box

@@ -47,7 +47,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from calibration.workflows import NEST_READINGS, kinematic_calibration
 from hrm_ctrl.cli._calibrate_tension import EXIT_NOT_USABLE, save_calibration
 from hrm_ctrl.cli._calibrate_tension import register as register_tension_routines
 from hrm_ctrl.cli._common import (
@@ -389,6 +388,8 @@ def run_kinematic(args: argparse.Namespace) -> int:
         estimate_frame=estimate_frame,
         sigma_mm=sigma_mm,
     )
+    from calibration.workflows import kinematic_calibration
+
     new = kinematic_calibration(base, fit)
     if note is not None:  # what the new version starts from, once there is one
         print(f"hrm calibrate kinematic: {note}", file=sys.stderr)
@@ -436,7 +437,7 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
     alpha, theta = alpha[order], theta[order]
     actuation.check_angles(alpha, theta)
     ensure_log_dir(args.log_dir)
-    arm = Arm(description, calibrated_model(description, base), actuation, active)
+    arm = Arm(description, calibrated_model(description, base), active, rope_layer=actuation)
     ref = arm.calibration_ref()
     if ref is None and args.uncalibrated:
         print(f"{prog}: --uncalibrated: drives enabled without a calibration", file=sys.stderr)
@@ -483,7 +484,7 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
                     else:
                         print(text, file=sys.stderr)
 
-                frame = tracker_frame(reader, description, NEST_READINGS)
+                frame = tracker_frame(reader, description)
                 print(
                     f"tracker frame from {len(description.base_fiducials)} base nests: fit "
                     f"{frame.rms_mm:.3f} mm rms",

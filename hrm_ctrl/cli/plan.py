@@ -61,8 +61,8 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--fit",
         choices=[m.value for m in FitMode],
-        help="paper: the paper's joint fitting; clearance: refined for the largest clearance "
-        "and joint-limit margin (default: clearance where an environment is known, else paper)",
+        help="paper: the paper's joint fitting; clearance (default): refined for the largest "
+        "clearance where an environment is known and joint-limit margin everywhere",
     )
     p.add_argument(
         "--round-corners",
@@ -160,12 +160,12 @@ def make_plan(args: argparse.Namespace) -> Plan:
         alpha_step=args.alpha_step,
         return_to_start=args.ret,
         backbone_steps=steps,
-        fit=FitMode(args.fit) if args.fit else None,
+        fit=FitMode(args.fit) if args.fit else FitMode.CLEARANCE,  # the margin by default
     )
     environment = sc.environment if sc is not None else None
     from hrm_ctrl.cli._progress import progress_bar, wanted
 
-    refined = environment is not None and opts.fit_mode(environment) is FitMode.CLEARANCE
+    refined = opts.fit_mode(environment) is FitMode.CLEARANCE
     with progress_bar("refinement", enabled=refined and wanted(args.json)) as bar:
         plan = plan_path(robot, path, opts, scenario=sc, environment=environment, progress=bar)
     arm.say_note()
@@ -268,6 +268,9 @@ def format_report(plan: Plan, name: str) -> str:
         )
     if "margin_statement" in r:
         rows.append(("margin", r["margin_statement"]))
+    method = r.get("method")
+    if isinstance(method, dict):
+        rows.append(("method", method["text"]))
     rows.append(("planning time", f"{r['plan_time_ms']:.1f} ms"))
     head = (
         f"plan: {name}: {r['steps']} steps over {r['path_length_mm']:.2f} mm "

@@ -185,6 +185,11 @@ def _message(error: Any, where: str) -> str:
     if kw in ("minItems", "maxItems") and isinstance(inst, list):
         want = expected or f"{'at least' if kw == 'minItems' else 'at most'} {value} items"
         return f"{head}: expected {want}, got {len(inst)} item{'s' if len(inst) != 1 else ''}"
+    if kw == "anyOf" and schema.get("x-rule") and error.context:
+        # a rule between alternatives (phase on every step or on none): the first
+        # alternative's first failure, and the rule
+        first = min(error.context, key=lambda e: (e.relative_schema_path[0], list(e.path)))
+        return f"{_message(first, where)} ({schema['x-rule']})"
     if kw == "exclusiveMinimum":
         return f"{head}: expected a number > {value}, got {_short(inst)}"
     return f"{head}: {error.message}"
@@ -403,12 +408,7 @@ class PlanDoc:
         if error is not None:
             raise PlanFileError(_message(error, where))
         steps = doc["steps"]
-        given = ["phase" in st for st in steps]
-        if any(given) and not all(given):
-            k = given.index(False)
-            raise PlanFileError(
-                f"{where}: steps[{k}]: missing key 'phase' (give it on every step or on none)"
-            )
+        given = ["phase" in st for st in steps]  # on every step or on none: the schema's rule
         robot = doc["robot"]
         links = _array(robot["links_mm"], "robot.links_mm", where)
         lim = robot.get("joint_limits_deg", {})

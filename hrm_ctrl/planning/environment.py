@@ -74,6 +74,7 @@ AXIS_SPACING = 0.5  # mm, resampling of a pipe's axis for nearest-point queries
 SAMPLES_PER_SEGMENT = 33  # samples of a link for its minimum (every <= 5.6 mm of 179 mm)
 REFINED_MINIMA = 2  # lowest sampled local minima of a link refined by golden section
 GOLDEN_ITERATIONS = 20  # the bracket (2 sample spacings, <= 11.2 mm) shrinks to < 0.0011 mm
+DISPLAY_GOLDEN_ITERATIONS = 8  # to < 0.25 mm: a clearance shown, not one planned with
 _EPS = 1e-12
 
 
@@ -580,14 +581,22 @@ class Environment:
         return self.free_distance_and_gradient(p)[0]
 
 
-def link_clearance(env: Environment, O: np.ndarray, radius: np.ndarray) -> np.ndarray:
+def link_clearance(
+    env: Environment,
+    O: np.ndarray,
+    radius: np.ndarray,
+    *,
+    iterations: int = GOLDEN_ITERATIONS,
+) -> np.ndarray:
     """O (N, 13, 3) joint centres and end point, radius (12,) link outer radii ->
     (N, 12) clearance: the minimum over each link's segment of the free distance
     minus the link's radius (negative = collision; +inf in free space).
 
     Each segment is sampled at :data:`SAMPLES_PER_SEGMENT` points; around its
     :data:`REFINED_MINIMA` lowest sampled local minima, a golden-section search over
-    the two neighbouring sample intervals finds the minimum to < 0.001 mm.
+    the two neighbouring sample intervals finds the minimum to < 0.001 mm
+    (``iterations`` steps: each shrinks the bracket by 0.618, and a display needs
+    fewer, :data:`DISPLAY_GOLDEN_ITERATIONS`).
 
     >>> env = Environment((Box(np.zeros(3), np.array([10.0, 10, 10])),))
     >>> O = np.zeros((1, 3, 3)); O[0, :, 0] = [-50, 50, 150]; O[0, :, 1] = 20.0
@@ -627,7 +636,7 @@ def link_clearance(env: Environment, O: np.ndarray, radius: np.ndarray) -> np.nd
     a, b = lo, hi
     c, d = b - phi * (b - a), a + phi * (b - a)
     fc, fd = at(c), at(d)
-    for _ in range(GOLDEN_ITERATIONS):
+    for _ in range(iterations):
         left_better = fc < fd
         b = np.where(left_better, d, b)
         a = np.where(left_better, a, c)

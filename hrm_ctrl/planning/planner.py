@@ -43,7 +43,13 @@ from hrm_ctrl.planning.environment import Environment, link_clearance
 from hrm_ctrl.planning.fitting import fit_joint_centres_batch
 from hrm_ctrl.planning.joint_angles import joint_angles_from_centres
 from hrm_ctrl.planning.known_path import KnownPath, tangent_angles
-from hrm_ctrl.planning.refine import Refinement, RefineOptions, angle_margin, refine_angles
+from hrm_ctrl.planning.refine import (
+    Refinement,
+    RefineOptions,
+    angle_margin,
+    best_margin_at,
+    refine_angles,
+)
 from hrm_ctrl.planning.report import plan_report
 from hrm_ctrl.planning.scenarios import Scenario
 
@@ -280,31 +286,45 @@ def plan_path(
     t_start = time.perf_counter()
     choice: dict[str, Any] | None = None
     fw: _Forward | None = None
+    beyond = fit is FitMode.CLEARANCE  # refinement carries on where the paper's stops
     if search:
         chosen, choice = choose_free_parameters(model, path, opt, environment)
         try:
-            fw = forward_configurations(model, path, chosen)
+            fw = forward_configurations(model, path, chosen, partial=beyond)
             opt = chosen
         except PlanningError:  # the coarse search found it, the fine plan did not
             choice["note"] = "the chosen parameters failed at the plan's step; kept the given"
     if fw is None:
-        fw = forward_configurations(model, path, opt)
+        fw = forward_configurations(model, path, opt, partial=beyond)
     t_forward = time.perf_counter()
     alpha, theta = fw.alpha, fw.theta
     refinement: Refinement | None = None
     if fit is FitMode.CLEARANCE:
+        targets = path.points_at(fw.travel)
         refinement = refine_angles(
             model,
             alpha,
             theta,
-            path.points_at(fw.travel),
+            targets,
             environment,
             clearance_of=worst_link_clearance_of(model, environment),
             options=opt.refine,
             travel=fw.travel,
             progress=progress,
+            start_only_from=fw.unreached,
         )
         alpha, theta = refinement.alpha, refinement.theta
+        if fw.unreached is not None:
+            off = refinement.tip_error_mm[fw.unreached :]
+            bad = np.flatnonzero(~(off <= opt.refine.tip_tolerance_mm))
+            if len(bad):
+                k = fw.unreached + int(bad[0])
+                raise UnreachableError(
+                    f"{fw.unreached_reason}; beyond the paper's family neither: from step {k} "
+                    f"(travel {fw.travel[k]:.1f} mm) the tip stays {off[bad[0]]:.1f} mm off "
+                    "the path within the joint limits and the per-step change limit"
+                )
+    family = paper_family_report(model, fw, alpha, theta, choice)
     travel, iters, modal_a, seg = fw.travel, fw.iterations, fw.modal_a, fw.seg
     step_time = fw.step_time_s.copy()
     if refinement is not None:
@@ -342,6 +362,7 @@ def plan_path(
     )
     t_report = time.perf_counter()
     plan.report = plan_report(plan, seg, opt.Q)
+    plan.report["method"] = family
     if fit is FitMode.CLEARANCE or search:
         plan.report.update(
             refinement_report(plan, fit, choice, refinement, environment, fw.forward_time_s)
@@ -373,10 +394,20 @@ class _Forward:
     step_time_s: np.ndarray
     backbones: dict[int, np.ndarray]
     forward_time_s: float
+    # the first step the modal backbone could not reach (with ``partial``; the steps from
+    # it on hold the last reached step's angles, a start for refinement only), else None
+    unreached: int | None = None
+    unreached_reason: str = ""
 
 
-def forward_configurations(model: RobotModel, path: KnownPath, opt: PlanOptions) -> _Forward:
-    """The paper's configurations of the forward leg (modal curve, fit, angles)."""
+def forward_configurations(
+    model: RobotModel, path: KnownPath, opt: PlanOptions, partial: bool = False
+) -> _Forward:
+    """The paper's configurations of the forward leg (modal curve, fit, angles).
+
+    With ``partial``, a step the modal backbone cannot reach (after the first) ends the
+    paper's plan there: the later steps repeat the last reached step's configuration
+    (``unreached`` names the first of them), for refinement to carry on from."""
     t_start = time.perf_counter()
     basis = ModalBasis(opt.Q)
     X0 = model.base_position
@@ -395,7 +426,9 @@ def forward_configurations(model: RobotModel, path: KnownPath, opt: PlanOptions)
     #    (linearly extrapolated from the last two): sequential by nature.
     modal_a = np.empty((n, 3))
     iters = np.zeros(n, dtype=np.int64)
-    step_time = np.empty(n)
+    step_time = np.zeros(n)
+    unreached: int | None = None
+    reason = ""
     for i in range(n):
         t0 = time.perf_counter()
         try:
@@ -410,16 +443,28 @@ def forward_configurations(model: RobotModel, path: KnownPath, opt: PlanOptions)
                         raise
                     sol = solve_modal_factors(basis, X0, A, float(L_m[i]), b, a0=modal_a[i - 1])
         except UnreachableError as exc:
-            raise UnreachableError(f"step {i} (travel {travel[i]:.1f} mm): {exc}") from None
+            reason = f"step {i} (travel {travel[i]:.1f} mm): {exc}"
+            if not partial or i < 2:
+                raise UnreachableError(reason) from None
+            unreached = i
+            break
         modal_a[i] = sol.a
         iters[i] = sol.iterations
         step_time[i] = time.perf_counter() - t0
     t_solve = time.perf_counter()
+    if unreached is not None:  # the steps beyond: the last reached one's, for refinement
+        modal_a[unreached:] = modal_a[unreached - 1]
+        L_m = L_m.copy()
+        L_m[unreached:] = L_m[unreached - 1]
+        reached_travel = travel.copy()
+        reached_travel[unreached:] = travel[unreached - 1]
+    else:
+        reached_travel = travel
 
     # 2. Every step's backbone: its modal curve, then the travelled path (Steps 2-3),
     #    padded at the tip so that all steps share one array.
     mode = backbone_points(basis, X0, L_m, modal_a, b)  # (n, Q+1, 3)
-    curves = np.concatenate((mode, travelled_path_padded(path, travel)), axis=1)
+    curves = np.concatenate((mode, travelled_path_padded(path, reached_travel)), axis=1)
     # 3. Fitting (Sec. 3.3), joint 2 nearest the modal curve at arc length l_1,
     #    turned about the O_1-O_3 axis by joint2_offset.
     f = np.clip(model.links[0] / L_m, 0.0, 1.0) * opt.Q
@@ -443,6 +488,9 @@ def forward_configurations(model: RobotModel, path: KnownPath, opt: PlanOptions)
     }
     for i in keep:  # drop the padding: end the curve at the tip
         backbones[i] = np.vstack((backbones[i], O[i, -1]))
+    if unreached is not None:
+        seg[unreached:] = -1  # no joint of these steps is fitted onto the path
+        backbones = {i: b for i, b in backbones.items() if i < unreached}
     return _Forward(
         travel=travel,
         alpha=alpha,
@@ -453,7 +501,82 @@ def forward_configurations(model: RobotModel, path: KnownPath, opt: PlanOptions)
         step_time_s=step_time,
         backbones=backbones,
         forward_time_s=time.perf_counter() - t_start,
+        unreached=unreached,
+        unreached_reason=reason,
     )
+
+
+def paper_family_report(
+    model: RobotModel,
+    fw: _Forward,
+    alpha: np.ndarray,
+    theta: np.ndarray,
+    choice: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The report's ``method``: whether the paper's family (Sec. 3: the modal backbone,
+    joints on it, with the parameters planned with) follows the path within the joint
+    limits, and if not whether the plan (``alpha, theta``, forward leg) goes beyond it:
+    ``paper_family_follows``, ``paper_family_failure`` (why not, or None),
+    ``beyond_paper_family``, ``given_parameters_follow`` (with a search: whether the
+    given parameters' paper plan at the search's step kept the limits), ``text``."""
+    reached = len(fw.travel) if fw.unreached is None else fw.unreached
+    m = angle_margin(model, fw.alpha[:reached], fw.theta[:reached])
+    failure: str | None = None
+    if fw.unreached is not None:
+        failure = f"its modal backbone cannot reach the path's start at {fw.unreached_reason}"
+    elif float(m.min()) <= 0.0:
+        i = int(np.argmin(m))
+        j = int(
+            np.argmin(
+                np.minimum(
+                    model.limit_alpha - np.abs(fw.alpha[i]), model.limit_theta - np.abs(fw.theta[i])
+                )
+            )
+        )
+        name, v = (
+            ("alpha", fw.alpha[i, j])
+            if model.limit_alpha - abs(fw.alpha[i, j]) <= model.limit_theta - abs(fw.theta[i, j])
+            else ("theta", fw.theta[i, j])
+        )
+        first = int(np.flatnonzero(m <= 0.0)[0])
+        failure = (
+            f"its fit breaks joint {j + 1} {name} ({math.degrees(float(v)):.1f} deg at step {i}, "
+            f"travel {fw.travel[i]:.1f} mm; first broken at step {first})"
+        )
+    within = bool(float(angle_margin(model, alpha, theta).min()) > 0.0)
+    beyond = failure is not None and within
+    given_ok: bool | None = None
+    if choice is not None:
+        gm = choice.get("given_margin_deg")
+        given_ok = gm is not None and gm > 0.0
+    if failure is None:
+        text = "the paper's family (modal backbone, Sec. 3)"
+        if given_ok is False and choice is not None:
+            k, t = choice["start_angles_deg"]
+            text += (
+                f", with the searched parameters (start angles ({k:.1f}, {t:.1f}) deg, "
+                f"alpha_step {choice['alpha_step']:g}, joint-2 turn "
+                f"{choice['joint2_offset_deg']:.1f} deg): with the given ones it "
+                + (
+                    "cannot reach the path"
+                    if choice.get("given_margin_deg") is None
+                    else f"breaks the joint limits ({choice['given_margin_deg']:.1f} deg)"
+                )
+            )
+    elif beyond:
+        text = (
+            f"beyond the paper's family: {failure}; all 24 angles fitted with the tip on "
+            "the path, started from the paper's steps"
+        )
+    else:
+        text = f"the paper's family fails: {failure}"
+    return {
+        "paper_family_follows": failure is None,
+        "paper_family_failure": failure,
+        "beyond_paper_family": beyond,
+        "given_parameters_follow": given_ok,
+        "text": text,
+    }
 
 
 def turn_about_axis(P: np.ndarray, A: np.ndarray, B: np.ndarray, phi: float) -> np.ndarray:
@@ -587,6 +710,9 @@ def choose_free_parameters(
         "alpha_step": chosen.alpha_step,
         "joint2_offset_deg": math.degrees(chosen.joint2_offset),
         "candidates": len(tried),
+        # the given parameters' paper plan at the search's step: its margin, None if the
+        # modal backbone could not follow the path
+        "given_margin_deg": tried[0].get("margin_deg"),
         "candidates_followed": len(ok),
         "score": best if math.isfinite(best) else None,
         "given_score": given if math.isfinite(given) else None,
@@ -658,13 +784,15 @@ def refinement_report(
             "paper_plan_ms": paper_time_s * 1e3,
         }
     out["per_step"] = per
-    out["margin_statement"] = margin_statement(plan)
+    out["margin_statement"] = margin_statement(plan, environment)
     return out
 
 
-def margin_statement(plan: Plan) -> str:
-    """One line on the plan's joint-limit margin against :data:`SAFE_MARGIN_DEG`."""
-    m = angle_margin(plan.model, plan.alpha, plan.theta)
+def margin_statement(plan: Plan, environment: Environment | None = None) -> str:
+    """One line on the plan's joint-limit margin against :data:`SAFE_MARGIN_DEG`, and
+    when it is less, what binds the joint (:func:`margin_reason`)."""
+    fwd = np.array([ph == "in" for ph in plan.phase])
+    m = np.where(fwd, angle_margin(plan.model, plan.alpha, plan.theta), np.inf)
     i = int(np.argmin(m))
     ma = plan.model.limit_alpha - np.abs(plan.alpha[i])
     mt = plan.model.limit_theta - np.abs(plan.theta[i])
@@ -678,7 +806,45 @@ def margin_statement(plan: Plan) -> str:
         return f"joint-limit margin {deg:.2f} deg (>= {SAFE_MARGIN_DEG:g} deg), least at {where}"
     return (
         f"no plan with >= {SAFE_MARGIN_DEG:g} deg joint-limit margin found: the best has "
-        f"{deg:.2f} deg at {where}"
+        f"{deg:.2f} deg at {where}: {margin_reason(plan, i, environment)}"
+    )
+
+
+def margin_reason(plan: Plan, i: int, environment: Environment | None) -> str:
+    """Why step ``i`` has no more joint-limit margin: a local search of that step alone
+    (:func:`hrm_ctrl.planning.refine.best_margin_at`), the tip on its path point, first
+    with every angle free within its limits and no obstacle (if that finds less than
+    :data:`SAFE_MARGIN_DEG`, the path itself forces the joint), then with the environment
+    (the clearance binds), else the per-step change limit from the step before (the
+    refinement is greedy along the travel and reached the step too late to turn the
+    joint away)."""
+    model, ro = plan.model, plan.options.refine
+    q = np.r_[plan.alpha[i], plan.theta[i]]
+    target = plan.path.points_at(plan.travel[i : i + 1])[0]
+    at = f"travel {plan.travel[i]:.1f} mm"
+    free = math.degrees(best_margin_at(model, q, target, None, ro))
+    if free == -math.inf:
+        return (
+            f"the path forces it: a search finds no configuration within the joint limits "
+            f"with the tip on the path at {at}"
+        )
+    if free < SAFE_MARGIN_DEG:
+        return (
+            f"the path forces it: with the tip on the path at {at} and every angle free "
+            f"within its limits, a search finds at most {free:.2f} deg there"
+        )
+    if environment is not None:
+        clear = math.degrees(best_margin_at(model, q, target, environment, ro))
+        if clear < SAFE_MARGIN_DEG:
+            return (
+                f"the environment binds it: clear of the obstacles a search finds at most "
+                f"{clear:.2f} deg at {at} ({free:.2f} deg without them)"
+            )
+    step = ro.max_step_change_deg - ro.step_change_slack_deg
+    return (
+        f"the per-step change limit ({step:g} deg per {ro.reference_step_mm:g} mm of travel) "
+        f"binds it: {free:.2f} deg exists at {at} with the angles free, but the fit, greedy "
+        f"along the travel, cannot turn the joints there in time from step {max(i - 1, 0)}"
     )
 
 

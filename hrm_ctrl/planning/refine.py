@@ -445,9 +445,15 @@ def refine_angles(
     options: RefineOptions | None = None,
     travel: np.ndarray | None = None,
     progress: Callable[[float], None] | None = None,
+    start_only_from: int | None = None,
 ) -> Refinement:
     """Refine the configurations ``alpha, theta`` (N, 12), whose tips should lie on
     ``targets`` (N, 3), step by step in order (see the module docstring).
+
+    With ``start_only_from`` the input of the steps from that one on is no plan (the
+    paper's method could not reach them): each such step starts from the last refined
+    step carried on at its last change, is never judged against its input, and its tip
+    error is what the caller checks (the beyond-the-paper mode of the planner).
 
     With ``travel`` (N,) (mm) the bound on the change between steps is
     ``max_step_change_deg`` per ``reference_step_mm`` of travel; without, per step.
@@ -487,11 +493,15 @@ def refine_angles(
     O_in = _centres(model, Q_in)
     c_paper = np.asarray(clearance_of(O_in), dtype=float)
     tip_in = np.linalg.norm(O_in[:, -1] - targets, axis=1)
+    free_from = N if start_only_from is None else max(1, int(start_only_from))
+    c_paper[free_from:] = -math.inf
+    tip_in[free_from:] = math.inf
     f = _StepObjective(model, environment, radius, t, opt, split)
     c_in_est = np.full(N, math.inf)
     if environment is not None:
         d_in = zoomed_link_minima(environment, O_in, t)[1]
         c_in_est = np.minimum(d_in - radius[None, :, None], cap).min(axis=(1, 2))
+    c_in_est[free_from:] = -math.inf
 
     def judge(q: np.ndarray, i: int) -> tuple[float, float]:
         """(exact worst clearance of q, of the input) at step i, both capped."""
@@ -520,6 +530,8 @@ def refine_angles(
         t0 = time.perf_counter()
         jumps: list[int] = []
         for i in range(start, N):
+            if i >= free_from:  # no input: carry the last steps on (a direct fit)
+                Q_in[i] = Q_in[i - 1] + (Q_out[i - 1] - Q_out[i - 2] if i >= 2 else 0.0)
             q, k, keep = _refine_one(
                 f, Q_in, Q_out, targets, i, bound[i], c_in_est[i], judge, i in exact, i in pull, opt
             )
@@ -663,3 +675,53 @@ def _sampled_clearance(
         return (np.asarray(d) - radius[None, :, None]).min(axis=(1, 2))
 
     return clearance_of
+
+
+def best_margin_at(
+    model: RobotModel,
+    q: np.ndarray,
+    target: np.ndarray,
+    environment: FreeSpace | None,
+    options: RefineOptions | None = None,
+    lo: np.ndarray | None = None,
+    hi: np.ndarray | None = None,
+) -> float:
+    """The largest joint-limit margin (rad) a local search finds for one step: the
+    tip on ``target``, the angles within [lo, hi] (by default the joint limits) and,
+    with ``environment``, the clearance kept in the score as refinement keeps it.
+    Started from ``q`` (24,); -inf if the tip cannot be kept on ``target``.  It says
+    why a plan's margin is what it is (:func:`hrm_ctrl.planning.planner.margin_statement`).
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> m = default_robot()
+    >>> q = np.zeros(24); q[5] = np.radians(59.0)               # alpha_6 near its limit
+    >>> X = joint_axes(m, q)[0][-1]
+    >>> bool(np.degrees(best_margin_at(m, q, X, None)) > 20.0)  # the arm has room elsewhere
+    True
+    """
+    opt = options or RefineOptions()
+    deep = RefineOptions(
+        max_step_change_deg=opt.max_step_change_deg,
+        margin_goal_deg=60.0 - 1e-6,
+        margin_weight_mm_per_deg=opt.margin_weight_mm_per_deg,
+        clearance_cap_mm=opt.clearance_cap_mm,
+        samples_per_link=opt.samples_per_link,
+        band_mm=opt.band_mm,
+        max_iterations=40,
+        patient_iterations=40,
+        trials=4,
+    )
+    n = model.n_joints
+    hard = np.r_[np.full(n, model.limit_alpha), np.full(n, model.limit_theta)] - 1e-6
+    lo = -hard if lo is None else np.maximum(lo, -hard)
+    hi = hard if hi is None else np.minimum(hi, hard)
+    split = {"kinematics_and_jacobians": 0.0, "environment": 0.0}
+    radius = 0.5 * np.asarray(model.outer_diameter, dtype=float)
+    t = np.linspace(0.0, 1.0, deep.samples_per_link)
+    f = _StepObjective(model, environment, radius, t, deep, split)
+    q0 = project_tip(model, q, target, lo, hi)
+    best, _ = refine_step(f, q0, target, lo, hi, deep)
+    best = project_tip(model, best, target, lo, hi)
+    if float(np.linalg.norm(joint_axes(model, best)[0][-1] - target)) > opt.tip_tolerance_mm:
+        return -math.inf
+    return float(angle_margin(model, best[:n], best[n:]))

@@ -344,6 +344,29 @@ def _end_tangent(centres: list[np.ndarray], span: float, h: float) -> np.ndarray
     return t / np.linalg.norm(t)
 
 
+def _end_point(C: np.ndarray, length: float, m: int = 7) -> np.ndarray:
+    """The point ``length`` mm before ``C[0]`` (away from ``C[1]``) on the quadratic through
+    ``C[0]`` fitted to the centres ``C[:m]`` by chord length: an end placed along the
+    tangent alone would leave a bend's curve by ``length**2 / (2 R)`` (0.4 mm for an
+    11 mm end on a radius of 150 mm).
+
+    >>> t = np.linspace(0.0, 0.3, 7)                          # centres 5 mm apart
+    >>> C = np.c_[100 * np.sin(t), 100 * (1 - np.cos(t)), 0 * t]      # a circle, R 100
+    >>> off = lambda p: abs(float(np.linalg.norm(p - [0, 100, 0])) - 100.0)
+    >>> off(_end_point(C, 10.0)) < 0.05, round(off(C[0] - [10.0, 0, 0]), 2)  # vs the tangent
+    (True, 0.5)
+    """
+    m = min(m, len(C))
+    Y = C[1:m] - C[0]
+    if m < 3:
+        return C[0] - length * Y[0] / np.linalg.norm(Y[0])
+    s = np.cumsum(np.linalg.norm(np.diff(C[:m], axis=0), axis=1))
+    coef, *_ = np.linalg.lstsq(np.column_stack((s, s * s)), Y, rcond=None)
+    b, c = coef
+    u = -length / float(np.linalg.norm(b))  # the parameter 'length' of arc before C[0]
+    return C[0] + b * u + c * u * u
+
+
 def _march(
     sl: _Slicer,
     c0: np.ndarray,
@@ -602,8 +625,8 @@ def pipe_from_scan(
     keep[:k] = (C[:k] - C[k]) @ -T[k] < head - 1e-9
     if k:
         keep[-k:] = (C[-k:] - C[-1 - k]) @ T[-1 - k] < tail - 1e-9
-    start = C[k] - head * T[k]
-    end = C[-1 - k] + tail * T[-1 - k]
+    start = _end_point(C[k:], head)  # along the centre line's curve, not its tangent
+    end = _end_point(C[len(C) - 1 - k :: -1], tail)
     parts = [C[keep]]
     if np.linalg.norm(start - parts[0][0]) > 1e-9:
         parts.insert(0, start[None])

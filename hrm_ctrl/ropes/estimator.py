@@ -44,7 +44,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from hrm_ctrl.errors import RopeError
 from hrm_ctrl.ropes.actuation import Actuation
-from hrm_ctrl.ropes.inverse import solve_angles, standardized_residual
+from hrm_ctrl.ropes.inverse import load_fallback_solver, solve_angles, standardized_residual
 from hrm_ctrl.ropes.length import lengths_and_jacobian
 
 # Ropes of the flagged joint whose figure is within this share of the joint's largest
@@ -120,6 +120,7 @@ class RopeStateEstimator:
         if not (np.isfinite(model_noise_mm) and model_noise_mm >= 0):
             raise RopeError(f"estimator: model_noise_mm must be >= 0, got {model_noise_mm!r}")
         self.act = actuation
+        load_fallback_solver()  # update() may need it at any cycle: import it before
         n_j = actuation.robot.n_joints
         self.n_x = 2 * n_j
         n = actuation.n_motors

@@ -345,6 +345,22 @@ def solve_angles(
     )
 
 
+def load_fallback_solver() -> None:
+    """Import what the robust path of :func:`solve_angles` needs (``scipy.optimize``,
+    0.2 s on this machine) now, not at its first use.
+
+    A thread that solves on a schedule (the simulated box's tension board, a session's
+    estimator) calls this before it starts: an import at the first near miss holds the
+    import lock and most of the interpreter for 0.2-0.5 s, longer than every watchdog
+    of a running box.
+
+    >>> load_fallback_solver()
+    >>> import sys; "scipy.optimize" in sys.modules
+    True
+    """
+    import scipy.optimize  # noqa: F401
+
+
 def _polish(
     geom: RopeGeometry, L: np.ndarray, x0: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -355,7 +371,7 @@ def _polish(
     Unlike the joint-by-joint fit it uses every rope crossing a joint, also those of
     the joints further out, which is what tells a fold's two sides apart.
     """
-    from scipy.optimize import least_squares  # 0.1 s to import: only when needed
+    from scipy.optimize import least_squares  # 0.2 s to import: see load_fallback_solver
 
     memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import sys
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -44,15 +45,31 @@ def calibrations_folder(given: Path | str | None) -> Path:
 @dataclass(frozen=True)
 class Arm:
     """The arm a command works with: the robot description as loaded, the model with the
-    calibration's links, its rope layer, the active calibration used (None: the
-    description's values), and a line for stderr saying why there is none (``note``: the
-    command prints it once its own checks have passed, see :meth:`say_note`)."""
+    calibration's links, the active calibration used (None: the description's values),
+    a line for stderr saying why there is none (``note``: the command prints it once its
+    own checks have passed, see :meth:`say_note`), and its rope layer (:attr:`actuation`:
+    ``rope_layer`` when given, else built from the description and the active calibration
+    on first use, so that a command that only plans never builds it)."""
 
     description: RobotModel
     robot: RobotModel  # calibrated links
-    actuation: Actuation
     active: ActiveCalibration | None
     note: str | None = None
+    rope_layer: Actuation | None = None
+
+    @cached_property
+    def actuation(self) -> Actuation:
+        """The rope layer: ``rope_layer``, else the description's with the active
+        calibration (its values where there is none)."""
+        if self.rope_layer is not None:
+            return self.rope_layer
+        if self.active is None:
+            from hrm_ctrl.ropes.actuation import load_actuation
+
+            return load_actuation(self.description)
+        from calibration.apply import calibrated_actuation
+
+        return calibrated_actuation(self.description, self.active.calibration)
 
     def say_note(self) -> None:
         """Print :attr:`note` on stderr (if any)."""
@@ -85,9 +102,8 @@ def load_arm(
     store has no calibration.  Otherwise no calibration means the description's values,
     and ``active`` None (a drive session refuses to enable).
     """
-    from calibration.apply import active_for, calibrated_actuation, calibrated_model
+    from calibration.apply import active_for, calibrated_model
     from calibration.store import CalibrationStore
-    from hrm_ctrl.ropes.actuation import load_actuation
 
     folder = calibrations_folder(calibrations)
     if uncalibrated:
@@ -95,7 +111,7 @@ def load_arm(
             f"{prog}: --uncalibrated: the robot description's values, not the calibration "
             f"store ({folder})"
         )
-        return Arm(description, description, load_actuation(description), None, note)
+        return Arm(description, description, None, note)
     active = active_for(CalibrationStore(folder), description)
     if active is None:
         note = None
@@ -104,11 +120,5 @@ def load_arm(
                 f"{prog}: --sim: no calibration in {folder}: the robot description's values "
                 "(a simulated arm; real drives are not enabled without a calibration)"
             )
-        return Arm(description, description, load_actuation(description), None, note)
-    cal = active.calibration
-    return Arm(
-        description,
-        calibrated_model(description, cal),
-        calibrated_actuation(description, cal),
-        active,
-    )
+        return Arm(description, description, None, note)
+    return Arm(description, calibrated_model(description, active.calibration), active)

@@ -29,7 +29,15 @@ from hrm_ctrl.errors import HrmError
 from hrm_ctrl.formats.planfile import PlanDoc
 from hrm_ctrl.kinematics import joint_centres
 from hrm_ctrl.model import RobotModel
-from hrm_ctrl.planning.environment import Box, Environment, Pipe, Wall, link_clearance
+from hrm_ctrl.planning.environment import (
+    DISPLAY_GOLDEN_ITERATIONS,
+    GOLDEN_ITERATIONS,
+    Box,
+    Environment,
+    Pipe,
+    Wall,
+    link_clearance,
+)
 from hrm_ctrl.view import geometry as g
 
 M_PER_MM = 1e-3
@@ -38,7 +46,8 @@ HOST = "127.0.0.1"  # the view is served to this machine only
 # in between are dropped; the latest is kept for flush()).
 MAX_UPDATE_RATE_HZ = 30.0
 SAME_POSE_MM = 0.01  # a pose within this of the one shown is not sent again
-CLEARANCE_REUSE_MM = 0.25  # the clearance shown may be this much off (see ArmView._push)
+CLEARANCE_REUSE_MM = 0.25  # the clearance shown may be this much off (see ArmView._push),
+# and as much again from its search (DISPLAY_GOLDEN_ITERATIONS)
 PLANNED_OPACITY = 0.35
 ENV_OPACITY = 0.18
 
@@ -271,12 +280,13 @@ class ArmView:
             if not state.get(("v", i)):
                 hd.visible = state[("v", i)] = True
 
-    def clearance_mm(self, O: np.ndarray) -> np.ndarray:
+    def clearance_mm(self, O: np.ndarray, iterations: int = GOLDEN_ITERATIONS) -> np.ndarray:
         """(12,) link clearance (mm) of joint centres ``O`` (13, 3) against the
-        environment (+inf where none is known)."""
+        environment (+inf where none is known); ``iterations`` of its golden-section
+        search (:func:`~hrm_ctrl.planning.environment.link_clearance`)."""
         if self.environment is None:
             return np.full(len(O) - 1, math.inf)
-        return link_clearance(self.environment, O[None], self.radius_mm)[0]
+        return link_clearance(self.environment, O[None], self.radius_mm, iterations=iterations)[0]
 
     def _show_clearance(self, c: np.ndarray) -> None:
         self.last_clearance_mm = c
@@ -373,7 +383,7 @@ class ArmView:
         if self._clearance_O is None or float(np.abs(O - self._clearance_O).max()) >= (
             CLEARANCE_REUSE_MM
         ):
-            self._clearance = self.clearance_mm(O)
+            self._clearance = self.clearance_mm(O, DISPLAY_GOLDEN_ITERATIONS)
             self._clearance_O = O
         c = self._clearance
         with self.server.atomic():

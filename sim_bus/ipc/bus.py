@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import difflib
+import logging
 import os
 import select
 import socket
@@ -49,6 +51,8 @@ from sim_bus.ipc.wire_format import (
     records_valid,
 )
 
+log = logging.getLogger("sim_bus.ipc")
+
 #: Default receive queue length (frames), about 18 s of a 36-drive bus at 100 Hz.
 RX_QUEUE_FRAMES = 65_536
 #: Datagrams read from one connection per wake-up (fairness between senders).
@@ -60,8 +64,17 @@ MAX_CONNECTIONS = 64
 #: When accept(2) fails for want of descriptors, the listener is left unpolled this long
 #: (s) instead of waking every receive at once (a busy loop).
 ACCEPT_PAUSE_S = 0.1
-#: Options python-can's configuration may add that this interface accepts and ignores.
-_TOLERATED_OPTIONS = frozenset({"fd", "data_bitrate"})
+#: The options this interface takes (an unknown option this close to one is refused as
+#: misspelt: it would silently put this end on another bus).
+OPTIONS = (
+    "directory",
+    "receive_own_messages",
+    "bitrate",
+    "rx_queue_size",
+    "send_wait_s",
+    "send_buffer_bytes",
+    "can_filters",
+)
 #: Longest wait in shutdown() for a recv in another thread to let go (s).
 SHUTDOWN_WAIT_S = 1.0
 
@@ -120,6 +133,34 @@ def _peer_pid(sock: socket.socket) -> int:
     return int(pid)
 
 
+def ignore_options(
+    interface: str, channel: str, options: dict[str, Any], known: Sequence[str]
+) -> None:
+    """Accept the options an interface does not use, as python-can's own interfaces do
+    (generic python-can code and configuration pass ``fd``, ``single_handle``,
+    ``data_bitrate``...): one log line names them.  An option that looks like a misspelling
+    of a ``known`` one is refused (``can.CanInitializationError``).
+
+    >>> ignore_options("hrm_ipc", "c", {"single_handle": True}, ("directory",))
+    >>> try:
+    ...     ignore_options("hrm_ipc", "c", {"diretory": "/tmp"}, ("directory",))
+    ... except can.CanInitializationError as exc:
+    ...     print(exc)
+    hrm_ipc channel 'c': unknown option diretory (did you mean directory? known: directory)
+    """
+    for key in sorted(options):
+        close = difflib.get_close_matches(key, known, n=1, cutoff=0.8)
+        if close:
+            raise can.CanInitializationError(
+                f"{interface} channel {channel!r}: unknown option {key} (did you mean "
+                f"{close[0]}? known: {', '.join(known)})"
+            )
+    if options:
+        what = ", ".join(f"{k}={v!r}" for k, v in sorted(options.items()))
+        note = " (classical CAN only: an FD frame is refused at send)" if options.get("fd") else ""
+        log.warning("%s channel %r: ignoring option(s) %s%s", interface, channel, what, note)
+
+
 class IpcBus(can.BusABC):
     """One end of a cross-process bus: ``can.Bus(interface="hrm_ipc", channel=NAME)``.
 
@@ -127,7 +168,10 @@ class IpcBus(can.BusABC):
     :func:`default_directory`), ``receive_own_messages`` (default False), ``bitrate``
     (accepted, informational: nothing is paced), ``rx_queue_size`` (frames, default
     :data:`RX_QUEUE_FRAMES`), ``send_wait_s`` (longest wait for a full peer per send, default
-    :data:`SEND_WAIT_S`).  Opening fails with ``can.CanInitializationError`` naming the
+    :data:`SEND_WAIT_S`).  Other options (python-can's generic ``fd``, ``single_handle``,
+    ``data_bitrate``...) are accepted and ignored, named in a log line
+    (:func:`ignore_options`); one that looks like a misspelt option of this list is
+    refused.  Opening fails with ``can.CanInitializationError`` naming the
     channel or path (bad channel name, folder not a private directory of this user, socket
     path too long).
     """
@@ -145,17 +189,7 @@ class IpcBus(can.BusABC):
         **kwargs: Any,
     ) -> None:
         name = str(channel)
-        unknown = sorted(set(kwargs) - _TOLERATED_OPTIONS)
-        if unknown:  # a misspelt option would silently put this end on another bus
-            raise can.CanInitializationError(
-                f"hrm_ipc channel {name!r}: unknown option {', '.join(unknown)} (known: "
-                "directory, receive_own_messages, bitrate, rx_queue_size, send_wait_s, "
-                "send_buffer_bytes, can_filters)"
-            )
-        if kwargs.get("fd"):
-            raise can.CanInitializationError(
-                f"hrm_ipc channel {name!r}: CAN FD is not supported (fd must be false)"
-            )
+        ignore_options("hrm_ipc", name, kwargs, OPTIONS)
         if not CHANNEL_RE.fullmatch(name):
             raise can.CanInitializationError(
                 f"hrm_ipc: channel {name!r} must be 1-64 characters of A-Z a-z 0-9 . _ -"

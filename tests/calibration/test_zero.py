@@ -91,7 +91,7 @@ def fixture_rig(
     ).with_control(
         # the box shares this interpreter: the tolerances hrm --sim runs with (with both
         # cores busy heartbeats came 374-428 ms apart and TPDOs 10 cycles late).  The
-        # production watches themselves: tests/drivers/safety/test_stops.py, tests/hil
+        # production watches themselves: tests/drivers/safety/test_supervisor_stops.py, tests/hil
         missing_tpdo_cycles=IN_PROCESS_MISSING_TPDO_CYCLES,
         heartbeat_timeout_ms=IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
     )

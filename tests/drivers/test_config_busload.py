@@ -444,7 +444,7 @@ def test_the_rigs_and_the_simulator_fit_the_ranges() -> None:
     benchmark's settings are all within the safe ranges (none needs a value this module
     refuses)."""
     from hrm_ctrl.cli._simwire import SIM_MISSING_TPDO_CYCLES
-    from tests.drivers.test_log_durability import KILL_TEST_CONTROL
+    from tests.drivers.test_canlog_durability import KILL_TEST_CONTROL
 
     cfg = load_box_config(None)
     assert cfg.with_control(**KILL_TEST_CONTROL).control.missing_tpdo_cycles == 25

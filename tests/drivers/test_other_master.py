@@ -1,5 +1,5 @@
 """drivers/other_master.py: what the session says about another master or device on its
-buses (the session's refusals on them: tests/drivers/safety/test_foreign.py)."""
+buses (the session's refusals on them: tests/drivers/safety/test_supervisor_foreign.py)."""
 
 from __future__ import annotations
 

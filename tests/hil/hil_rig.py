@@ -1,5 +1,5 @@
 """What tests outside ``tests/hil`` still import from the old HIL rig
-(``tests/drivers/test_log_durability.py``, ``tests/drivers/test_config_busload.py``); the rig
+(``tests/drivers/test_canlog_durability.py``, ``tests/drivers/test_config_busload.py``); the rig
 itself is ``hrm_ctrl.hil.rig`` now, and the HIL tests use the ``hrm_hil`` plugin at
 production settings.
 

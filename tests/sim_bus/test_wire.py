@@ -139,13 +139,59 @@ def test_a_nodes_transmit_queue_is_bounded(
         for _ in range(n):
             a.send(frame(0x1A5))
         with pytest.raises(can.CanOperationError, match="transmit queue full"):
-            a.send(frame(0x1A5))
+            a.send(frame(0x1A5), timeout=0.0)  # 0: no wait (the wire's clock stands still)
         b.send(frame(0x181))  # another node's queue is its own
     got = drain(a, 1)
     assert [m.arbitration_id for m in got] == [0x181]
     assert len(drain(b, n, timeout_s=5.0)) == n
     a.send(frame(0x1A5))  # carried: room again
     assert [m.arbitration_id for m in drain(b, 1)] == [0x1A5]
+
+
+def test_a_frame_is_copied_at_send(pair: tuple[can.BusABC, can.BusABC]) -> None:
+    """A sender that reuses its message object (python-can code may) has each frame
+    delivered as it was at send(), also while it waits for the wire."""
+    a, b = pair
+    msg = can.Message(arbitration_id=0x100, data=bytes(8), is_extended_id=False)
+    for k in range(20):  # sent faster than the wire carries them: most wait in the queue
+        msg.arbitration_id = 0x100 + k
+        msg.data[0] = k
+        a.send(msg)
+    msg.arbitration_id, msg.data[0], msg.is_extended_id = 0x7FF, 0xEE, True
+    got = drain(b, 20)
+    assert [(m.arbitration_id, m.data[0]) for m in got] == [(0x100 + k, k) for k in range(20)]
+    assert not any(m.is_extended_id for m in got)
+
+
+def test_send_waits_for_room_as_long_as_its_timeout_allows(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """python-can's send contract on a full transmit queue: ``timeout=0`` raises at once, a
+    timeout waits that long and raises ``CanOperationError``, ``None`` blocks until a frame
+    has left the wire.  A 100 bit/s wire carries one frame in 1.35 s, so the queue stays
+    full through the timed wait."""
+    monkeypatch.setattr(wire_module, "TX_QUEUE_FRAMES", 2)
+    ch = f"t-{uuid.uuid4().hex[:8]}"
+    a = can.Bus(interface="hrm_sim", channel=ch, bitrate=100)
+    b = can.Bus(interface="hrm_sim", channel=ch, bitrate=100)
+    try:
+        t0 = time.monotonic()
+        for k in range(3):  # one on the wire, two queued
+            a.send(frame(0x200 + k))
+        first_end = t0 + frame_bits(frame(0x200)) / 100
+        with pytest.raises(can.CanOperationError, match="transmit queue full"):
+            a.send(frame(0x210), timeout=0.0)
+        start = time.monotonic()
+        with pytest.raises(can.CanOperationError, match="transmit queue full"):
+            a.send(frame(0x211), timeout=0.2)
+        assert time.monotonic() - start >= 0.2
+        assert time.monotonic() < first_end  # (the queue was full all along)
+        a.send(frame(0x212))  # None: until the first frame has left the wire
+        assert time.monotonic() >= first_end
+        assert [m.arbitration_id for m in drain(b, 1, timeout_s=10.0)] == [0x200]
+    finally:
+        a.shutdown()
+        b.shutdown()
 
 
 def test_a_nodes_receive_queue_is_bounded_drop_oldest(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -155,12 +155,18 @@ def test_joint_limit_violation_names_step_joint_angle_and_writes_nothing(
 ) -> None:
     path = write(tmp_path, "sharp.csv", SHARP)
     out = tmp_path / "plan.json"
-    rc, stdout, err = run(["plan", "--path", str(path), "--out", str(out)], capsys)
+    # the paper's fit: the default (refined, beyond the paper's family) follows this corner
+    rc, stdout, err = run(
+        ["plan", "--path", str(path), "--fit", "paper", "--out", str(out)], capsys
+    )
     assert rc == 2
     assert "joint limit broken at step" in err and "joint" in err and "deg" in err
     assert "BROKEN" in stdout
     assert not out.exists()
-    rc, _, err = run(["plan", "--path", str(path), "--out", str(out), "--allow-violations"], capsys)
+    rc, _, err = run(
+        ["plan", "--path", str(path), "--fit", "paper", "--out", str(out), "--allow-violations"],
+        capsys,
+    )
     assert rc == 0
     assert read_plan(out).report["first_violation"]["step"] > 0
 

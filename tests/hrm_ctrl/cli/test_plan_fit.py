@@ -62,3 +62,39 @@ def test_round_corners_makes_the_cabins_corner_followable(tmp_path: Path, capsys
     assert rc == 2 and "--round-corners" in err
     rc, _, err = run(["plan", "--path", str(csv), "--round-corners", "nan"], capsys)
     assert rc == 2 and "--round-corners" in err
+
+
+def helix_csv(tmp_path: Path, radius: float, pitch: float, turns: float) -> Path:
+    t = np.linspace(0.0, 2.0 * np.pi * turns, 200)
+    pts = np.c_[
+        1200.0 + pitch * t / (2 * np.pi),
+        100.0 + radius * np.sin(t),
+        300.0 + radius * (1 - np.cos(t)),
+    ]
+    csv = tmp_path / "helix.csv"
+    csv.write_text("x,y,z\n" + "\n".join(",".join(f"{v:.6f}" for v in p) for p in pts))
+    return csv
+
+
+def test_a_bare_path_gets_the_margin_fit_by_default(tmp_path: Path, capsys) -> None:
+    """Issue 39: no environment, no flag: the joint-limit margin fit, not the paper's."""
+    csv = helix_csv(tmp_path, 100.0, 300.0, 0.5)
+    rc, out, err = run(["plan", "--path", str(csv), "--step", "10", "--json"], capsys)
+    assert rc == 0, err
+    r = json.loads(out)
+    assert r["fit"] == "clearance" and r["joint_limit_margin_deg"] >= 3.0
+    assert r["margin_statement"].startswith("joint-limit margin")
+    rc, out, err = run(
+        ["plan", "--path", str(csv), "--step", "10", "--fit", "paper", "--json"], capsys
+    )
+    assert rc == 0, err
+    assert "fit" not in json.loads(out)  # the paper's plan, as before
+
+
+def test_beyond_the_paper_is_said_in_the_report(tmp_path: Path, capsys) -> None:
+    csv = helix_csv(tmp_path, 60.0, 150.0, 0.5)  # the paper's fit breaks joint 12
+    rc, out, err = run(["plan", "--path", str(csv), "--step", "10"], capsys)
+    assert rc == 0, err
+    assert "beyond the paper's family: its fit breaks joint" in out
+    rc, _, err = run(["plan", "--path", str(csv), "--step", "10", "--fit", "paper"], capsys)
+    assert rc == 2 and "joint limit broken" in err

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 from pathlib import Path
@@ -11,6 +12,7 @@ import can
 import numpy as np
 import pytest
 
+from drivers.canlog import TrafficLog
 from hrm_ctrl.cli import main
 from hrm_ctrl.formats.planfile import write_plan
 from tests.hrm_ctrl.cli.cli_helpers import small_plan
@@ -109,25 +111,19 @@ def test_busload_refuses_a_rate_0x60C2_cannot_encode(capsys: pytest.CaptureFixtu
 def test_incomplete_can_log_fails_the_run(
     tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    real = can.Logger
+    """A disk that fills up after each log's first write: the next write of frames fails
+    with ENOSPC, as os.write would (the log is cut back to its last whole write)."""
+    real_flush = TrafficLog._flush
+    wrote: set[int] = set()
 
-    class FullDisk:
-        """A log writer on a disk that fills up after 40 frames."""
+    def full_disk_flush(log: TrafficLog) -> None:
+        if id(log) in wrote and log._unflushed:
+            log._break(OSError(errno.ENOSPC, "No space left on device"))
+            return
+        real_flush(log)
+        wrote.add(id(log))
 
-        def __init__(self, path: str) -> None:
-            self.inner = real(path)
-            self.n = 0
-
-        def on_message_received(self, msg: can.Message) -> None:
-            self.n += 1
-            if self.n > 40:
-                raise OSError(28, "No space left on device")
-            self.inner.on_message_received(msg)
-
-        def stop(self) -> None:
-            self.inner.stop()
-
-    monkeypatch.setattr(can, "Logger", FullDisk)
+    monkeypatch.setattr(TrafficLog, "_flush", full_disk_flush)
     logs = tmp_path / "runs"
     rc = main(["run", "--hold", "0.1", "--sim", "--log-dir", str(logs), "--json"])
     out = capsys.readouterr()

@@ -297,3 +297,22 @@ def test_every_travel_schedule_is_a_plan_files(length: float, step: float) -> No
         return
     assert d[-1] == length and (d[0] == 0.0 or len(d) == 1) and (np.diff(d) >= 0).all()
     planfile._check_travel_steps(d, "plan")
+
+
+def test_the_schema_states_the_phase_rule() -> None:
+    """'phase' on every step or on none: a plan with it on half its steps is refused by the
+    schema itself (any JSON Schema validator, as another tool checks a plan), and by the
+    reader in one line naming the first step without it."""
+    plain = jsonschema.Draft202012Validator(plan_schema())
+    none, every, half = hand_plan(), hand_plan(), hand_plan()
+    for k, step in enumerate(every["steps"]):
+        step["phase"] = "in"
+        if k % 2 == 0:
+            half["steps"][k]["phase"] = "in"
+    assert plain.is_valid(none) and plain.is_valid(every)
+    assert not plain.is_valid(half)
+    with pytest.raises(PlanFileError) as info:
+        PlanDoc.from_dict(half, "plan.json")
+    assert str(info.value) == (
+        "plan.json: steps[1]: missing key 'phase' (give it on every step or on none)"
+    )

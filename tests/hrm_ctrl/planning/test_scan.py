@@ -229,3 +229,30 @@ def test_a_noisy_wall_is_still_a_pipe_and_a_scan_in_metres_is_refused() -> None:
     metres = synthetic_pipe_scan(STRAIGHT, 70.0, 20_000, 0.3, 0.0, rng) / 1000.0
     with pytest.raises(ScanFitError, match=r"0\.07 mm, below 1 mm \(is the scan in metres"):
         pipe_from_scan(metres)
+
+
+def test_a_plan_along_a_scanned_helix_tracks_the_true_axis() -> None:
+    """Issue 39: the round trip scan -> centre line -> plan keeps the tip within 0.1 mm of
+    the true axis (each end of the centre line placed along its curve, not its tangent,
+    which left a bend's end 0.4 mm off)."""
+    from hrm_ctrl.model import default_robot
+    from hrm_ctrl.planning.environment import Environment
+    from hrm_ctrl.planning.planner import PlanOptions, plan_path
+
+    t = np.linspace(0.0, math.pi, 300)  # half a turn of radius 150 mm, pitch 300 mm
+    true = KnownPath.from_points(
+        np.c_[
+            1200.0 + 300.0 * t / (2 * math.pi),
+            100.0 + 150 * np.sin(t),
+            300.0 + 150 * (1 - np.cos(t)),
+        ]
+    )
+    cloud = synthetic_pipe_scan(true, 70.0, 60_000, 0.0, 0.0, np.random.default_rng(3))
+    fit = pipe_from_scan(cloud)
+    model = default_robot()
+    path = fit.path(model.base_position)
+    assert float(true.distance_to(path.points).max()) < 0.05  # the ends too
+    assert float(np.linalg.norm(path.points[0] - true.points[0])) < 0.1
+    env = Environment((Pipe(path, fit.inner_diameter),))
+    plan = plan_path(model, path, PlanOptions(step=10.0), environment=env)
+    assert float(true.distance_to(plan.joints[:, -1]).max()) < 0.1

@@ -54,7 +54,7 @@ class Observed:
         self.log_dir = log_dir
 
     def __call__(self) -> Any:
-        arm = Arm(self.actuation.robot, self.actuation.robot, self.actuation, None)
+        arm = Arm(self.actuation.robot, self.actuation.robot, None, rope_layer=self.actuation)
         options = SessionOptions(log_dir=self.log_dir, run_name="box", allow_uncalibrated=True)
         return open_box(
             load_box_config(None),

@@ -20,7 +20,7 @@ from drivers.protocol import cia301, cia402
 from drivers.protocol.batch import from_messages, to_messages
 from drivers.receive import BusPoller, pollable
 from sim_bus.ipc import open_ends
-from tests.drivers.test_lean_cycle import rig
+from tests.drivers.test_cycle_lean import rig
 
 FAULT_SW = 0x0237 | cia402.SW_FAULT
 

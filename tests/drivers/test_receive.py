@@ -16,7 +16,7 @@ from drivers.protocol import cia301, cia402
 from drivers.receive import BusReader
 from drivers.safety.causes import StopKind
 from drivers.safety.monitor import NodeMonitor
-from tests.drivers.test_lean_cycle import rig
+from tests.drivers.test_cycle_lean import rig
 
 WAIT_S = 5.0  # generous bound on waits that normally take milliseconds
 HB_TIMEOUT_S = 0.35

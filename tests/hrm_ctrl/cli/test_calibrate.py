@@ -31,8 +31,8 @@ from calibration.kinematic import (
     spread_configurations,
 )
 from calibration.store import CalibrationStore, Routine, from_json
+from calibration.workflows import NEST_READINGS
 from hrm_ctrl.cli import main
-from hrm_ctrl.cli.calibrate import NEST_READINGS
 from hrm_ctrl.formats.planfile import write_plan
 from hrm_ctrl.kinematics import frames
 from hrm_ctrl.model import default_robot
