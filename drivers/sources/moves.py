@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.safety.limits import MAX_SOURCE_DURATION_S, SetpointError
+from drivers.safety.limits import MAX_SOURCE_DURATION_S, SetpointError, check_duration
 
 MOVE_MARGIN = 0.95  # moves are planned for this share of the rounding-corrected limits
 MOVE_RETRIES = 4  # a sampled move that still breaks a limit is planned again, slower
@@ -300,3 +300,83 @@ def stop_table(
     traj = calculate(inp, n, "stop")
     n_rows = max(1, math.ceil(float(traj.duration) / period_s - 1e-9)) + 1
     return last + np.rint(sample(traj, n_rows, period_s, n) * scale).astype(np.int64)
+
+
+SLOWED_MAX_TRIES = 40  # uniform slow-downs :func:`slowed_table` tries before it refuses
+
+
+def cubic_at(rows: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """A table's rows interpolated at fractional rows ``s`` by the Catmull-Rom cubic (the
+    rows themselves at whole ``s``; the first and last row held beyond the ends): its
+    second derivative jumps at a row by about the rows' third difference, so sampling it
+    keeps third differences near the table's, where a straight line between rows would
+    make them as large as its second differences.
+
+    >>> cubic_at(np.array([[0.0], [0.0], [10.0], [30.0]]), np.array([1.0, 1.5, 2.0]))[:, 0]
+    array([ 0.   ,  4.375, 10.   ])
+    """
+    p = np.asarray(rows, dtype=np.float64)
+    n = p.shape[0]
+    i = np.clip(np.floor(s).astype(np.int64), 0, max(n - 2, 0))
+    f = (np.asarray(s, dtype=np.float64) - i)[:, None]
+    p0, p1 = p[np.maximum(i - 1, 0)], p[i]
+    p2, p3 = p[np.minimum(i + 1, n - 1)], p[np.minimum(i + 2, n - 1)]
+    return 0.5 * (
+        2.0 * p1
+        + (p2 - p0) * f
+        + (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3) * f**2
+        + (3.0 * (p1 - p2) + p3 - p0) * f**3
+    )
+
+
+def slowed_table(
+    rows: np.ndarray,
+    period_s: float,
+    max_rate_counts_per_s: np.ndarray,
+    max_accel_counts_per_s2: np.ndarray,
+    max_jerk_counts_per_s3: np.ndarray,
+    what: str = "table",
+) -> np.ndarray:
+    """A table of counts from rest at its first row to rest at its last, played along the
+    same path at one uniform rate (rows per period, at most 1: :func:`cubic_at` between
+    rows, rounded) slow enough that every speed, second and third difference of the
+    integers, from rest to rest, is within the motors' limits: the table itself when it
+    keeps them, else slower by what the worst one exceeds (speed as the rate, acceleration
+    as its square, jerk as its cube), tried again until it keeps them.
+
+    >>> t = np.array([[0], [0], [40], [80], [80]])  # 40 counts a cycle at once: jerky
+    >>> s = slowed_table(t, 0.01, np.full(1, 4e5), np.full(1, 2e6), np.full(1, 4e7))
+    >>> int(s[0, 0]), int(s[-1, 0]), len(s) > len(t)
+    (0, 80, True)
+    >>> slowed_table(t[:2], 0.01, np.full(1, 4e5), np.full(1, 2e6), np.full(1, 4e7)).shape
+    (2, 1)
+    """
+    table = np.asarray(rows, dtype=np.int64)
+    v_m = np.asarray(max_rate_counts_per_s, np.float64)
+    a_m = np.asarray(max_accel_counts_per_s2, np.float64)
+    j_m = np.asarray(max_jerk_counts_per_s3, np.float64)
+    n = table.shape[0]
+    if n < 2:
+        return table
+    out, rate = table, 1.0
+    for _ in range(SLOWED_MAX_TRIES):
+        seq = np.concatenate([out[:1], out[:1], out[:1], out, out[-1:], out[-1:]])
+        d1 = np.abs(np.diff(seq, axis=0))
+        d2 = np.abs(np.diff(seq, n=2, axis=0))
+        d3 = np.abs(np.diff(seq, n=3, axis=0))
+        excess = max(
+            float(np.max(d1 / (v_m * period_s))),
+            math.sqrt(float(np.max(d2 / (a_m * period_s**2)))),
+            math.cbrt(float(np.max(d3 / (j_m * period_s**3)))),
+        )
+        if excess <= 1.0:
+            return out
+        rate *= MOVE_MARGIN / excess
+        m = math.ceil((n - 1) / rate)
+        check_duration(what, m * period_s, period_s)
+        s = np.arange(m + 1, dtype=np.float64) * ((n - 1) / m)
+        out = np.rint(cubic_at(table, s)).astype(np.int64)
+        out[0], out[-1] = table[0], table[-1]
+    raise SetpointError(
+        f"{what}: no uniform slow-down within the motors' limits after {SLOWED_MAX_TRIES} tries"
+    )

@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 
 from drivers.rope_model import MotorLimits
-from drivers.safety.limits import SetpointError, accel_limits
+from drivers.safety.limits import SetpointError, accel_limits, jerk_limits
+from drivers.sources.moves import slowed_table
 from drivers.sources.table import TabledSource
 
 PAUSE_RAMP_S = 0.5  # a pause or a resume changes the playback rate by 1 in about this long
@@ -211,16 +212,22 @@ class PausableSource:
     def way_back(self) -> np.ndarray:
         """The setpoints played so far, backwards (from where the arm stands, at rest, to
         where it started), with every stretch at rest shortened to two rows: the table of
-        a return along the same path within the same limits (a speed or second difference
-        reversed is the same size).  Empty when nothing was played or more than
-        :data:`MAX_PLAYED_ROWS` were (no way back kept)."""
+        a return along the same path (a speed, second or third difference reversed is the
+        same size).  Where what was played breaks a motor's jerk limit (a pause's rate
+        ramp is limited in speed and acceleration only), the way back is played slower,
+        at one uniform rate, until it keeps the motors' speed, acceleration and jerk
+        (:func:`~drivers.sources.moves.slowed_table`).  Empty when nothing was played or
+        more than :data:`MAX_PLAYED_ROWS` were (no way back kept)."""
         if not self.played_complete or len(self._played) < 2:
             return np.zeros((0, self._table.shape[1] if self._table.ndim == 2 else 0), np.int64)
         rows = np.array(self._played, dtype=np.int64)
         same = np.all(rows[1:] == rows[:-1], axis=1)
         keep = np.ones(len(rows), dtype=bool)
         keep[2:] = ~(same[1:] & same[:-1])  # a row equal to the two before it goes
-        return rows[keep][::-1].copy()
+        back = rows[keep][::-1].copy()
+        acc = accel_limits(self.limits)
+        return slowed_table(back, self._period_s, np.asarray(self.limits.max_rate_counts_per_s),
+                            acc, jerk_limits(self.limits), f"{self.name}: way back")  # fmt: skip
 
     def _candidates(self, target: float) -> tuple[int, np.ndarray]:
         """Rates to try this cycle: first choices (the rate a nominal step toward the

@@ -334,8 +334,12 @@ def _toppra_leg(
     a_plan: np.ndarray,
     v_tip: float,
     label: str,
-) -> _Leg:
-    """TOPP-RA of one leg (rest to rest)."""
+    j_path: np.ndarray | None = None,
+) -> _Leg | None:
+    """TOPP-RA of one leg (rest to rest); with ``j_path`` (counts/s^3 per motor) the
+    speed along the path is capped where the path's own third derivative would jerk a
+    motor by more than that at it (``|d3q/ds3| sigma_dot**3 <= j_path``), and None
+    returned where that cap is nowhere below the others."""
     import toppra.algorithm as ta
     import toppra.constraint as tc
 
@@ -346,6 +350,13 @@ def _toppra_leg(
     q1, q2 = q(grid, 1), q(grid, 2)
     with np.errstate(divide="ignore"):
         sd_max = np.minimum(np.min(v_plan / np.abs(q1), axis=1), v_tip)
+        if j_path is not None:  # d3q/ds3, constant between gridpoints: the larger side's
+            mid = np.abs(q(0.5 * (grid[:-1] + grid[1:]), 3))
+            q3 = np.concatenate([mid[:1], np.maximum(mid[:-1], mid[1:]), mid[-1:]])
+            sd_jerk = np.min(np.cbrt(j_path / q3), axis=1)
+            if not (sd_jerk < sd_max).any():
+                return None
+            sd_max = np.minimum(sd_max, sd_jerk)
     xbound = np.stack([np.zeros_like(sd_max), sd_max**2], axis=1)
 
     class _SpeedBound(tc.LinearConstraint):  # type: ignore[misc]
@@ -529,6 +540,9 @@ def plan_jerk_limits(act: Actuation, period_s: float, margin: float = DEFAULT_MA
     return j_plan
 
 
+# the share of a motor's jerk the path's own third derivative may take at the speed
+# TOPP-RA plans (the rest: the time law's changes of acceleration, the jerk window's)
+JERK_PATH_SHARE = 0.8
 JERK_BINS = 20_000  # the jerk window is found on at most this many time bins of a leg
 
 
@@ -606,21 +620,26 @@ def time_parameterise(
     if not (math.isfinite(tip_speed_mm_per_s) and tip_speed_mm_per_s > 0.0):
         raise RopeError(f"tip speed must be > 0 mm/s, got {tip_speed_mm_per_s}")
     label = label_of_leg or (lambda j: _leg_label(path, j))
-    v_lim = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
-    a_lim = np.asarray(act.max_accel_counts_per_s2, dtype=np.float64)
     v_plan, a_plan = plan_limits(act, period_s, margin)
-    j_lim = np.asarray(act.max_jerk_counts_per_s3, dtype=np.float64)
     j_plan = plan_jerk_limits(act, period_s, margin) if jerk_limited else None
     # averaging the law keeps its speed within the cap up to float rounding: a hair below
     v_law = tip_speed_mm_per_s * (1.0 - 1e-7) if jerk_limited else tip_speed_mm_per_s
-    legs = []
+    # per leg, TOPP-RA's law, and (jerk-limited, where it binds) one also capped in speed
+    # by the path's own third derivative: whichever plays the leg sooner is kept
+    options: list[list[_Leg]] = []
     for j in range(len(path.legs)):
-        leg = _toppra_leg(act, path, j, v_plan, a_plan, v_law, label(j))
+        found = [_toppra_leg(act, path, j, v_plan, a_plan, v_law, label(j))]
         if j_plan is not None:
-            leg = dataclasses.replace(leg, window_s=jerk_window(leg, j_plan, period_s))
-        legs.append(leg)
+            j_path = JERK_PATH_SHARE * j_plan
+            found.append(_toppra_leg(act, path, j, v_plan, a_plan, v_law, label(j), j_path))
+        found_legs = [leg for leg in found if leg is not None]
+        if j_plan is not None:
+            found_legs = [dataclasses.replace(leg, window_s=jerk_window(leg, j_plan, period_s))
+                          for leg in found_legs]  # fmt: skip
+        options.append(found_legs)
         if progress is not None:
             progress((j + 1) / len(path.legs))
+    legs = [min(found, key=lambda leg: leg.duration_unstretched_s) for found in options]
     if max_rows is not None:
         rows = 1 + sum(
             max(1, math.ceil(leg.duration_unstretched_s / period_s - 1e-9)) for leg in legs
@@ -635,29 +654,53 @@ def time_parameterise(
     tables: list[np.ndarray] = []
     periods: list[int] = []
     stretches: list[float] = []
-    for j, leg in enumerate(legs):
-        stretch = 1.0
-        for _ in range(MAX_STRETCH_TRIES + 1):
-            local, counts, n_per = _sample_leg(act, path, j, leg, stretch, period_s)
-            v, a = finite_differences(counts, period_s)
-            excess = max(float(np.max(v / v_lim)), math.sqrt(float(np.max(a / a_lim))))
-            if jerk_limited:
-                jerk = finite_jerk(counts, period_s)
-                excess = max(excess, float(np.max(jerk / j_lim)) ** (1.0 / 3.0))
-            if excess <= 1.0:
-                break
-            stretch *= excess * STRETCH_EXTRA
-        else:
-            raise RopeLimitError(
-                f"{label(j)}: no sampled time law within the motors' limits after "
-                f"{MAX_STRETCH_TRIES} time stretches"
-            )
+    for j in range(len(legs)):
+        played = [_stretched_leg(act, path, j, leg, period_s, jerk_limited, label(j))
+                  for leg in options[j]]  # fmt: skip
+        best = min(range(len(played)), key=lambda i: played[i][2])
+        leg = legs[j] = options[j][best]
+        local, counts, n_per = played[best]
         sigmas.append(local + path.distance_mm[path.legs[j][0]])
         tables.append(counts)
         periods.append(n_per)
         stretches.append(n_per * period_s / leg.duration_unstretched_s)
-    return _assemble(act, path, legs, sigmas, tables, periods, stretches, period_s,
+    traj = _assemble(act, path, legs, sigmas, tables, periods, stretches, period_s,
                      tip_speed_mm_per_s)  # fmt: skip
+    # without the jerk bound: TOPP-RA's own laws (the first option of every leg)
+    law = sum(max(1, math.ceil(found[0].law_duration_s / period_s - 1e-9)) for found in options)
+    return dataclasses.replace(traj, law_duration_s=law * period_s) if options else traj
+
+
+def _stretched_leg(
+    act: Actuation,
+    path: StepPath,
+    j: int,
+    leg: _Leg,
+    period_s: float,
+    jerk_limited: bool,
+    label: str,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Leg ``j`` sampled at the control period, its time law stretched until the
+    integers keep every motor's speed, acceleration and (``jerk_limited``) jerk limit:
+    (local positions, counts, periods)."""
+    v_lim = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
+    a_lim = np.asarray(act.max_accel_counts_per_s2, dtype=np.float64)
+    j_lim = np.asarray(act.max_jerk_counts_per_s3, dtype=np.float64)
+    stretch = 1.0
+    for _ in range(MAX_STRETCH_TRIES + 1):
+        local, counts, n_per = _sample_leg(act, path, j, leg, stretch, period_s)
+        v, a = finite_differences(counts, period_s)
+        excess = max(float(np.max(v / v_lim)), math.sqrt(float(np.max(a / a_lim))))
+        if jerk_limited:
+            jerk = finite_jerk(counts, period_s)
+            excess = max(excess, float(np.max(jerk / j_lim)) ** (1.0 / 3.0))
+        if excess <= 1.0:
+            return local, counts, n_per
+        stretch *= excess * STRETCH_EXTRA
+    raise RopeLimitError(
+        f"{label}: no sampled time law within the motors' limits after "
+        f"{MAX_STRETCH_TRIES} time stretches"
+    )
 
 
 def _assemble(
