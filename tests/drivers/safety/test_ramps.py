@@ -41,7 +41,7 @@ def test_a_controlled_stop_keeps_every_limit_to_rest(v: int, a: int, V: int, A: 
             break
     else:
         raise AssertionError("never at rest")
-    x = np.concatenate(rows + [pos, pos])
+    x = np.concatenate([*rows, pos, pos])
     d1 = np.diff(x)
     assert np.abs(d1).max() <= V
     assert np.abs(np.diff(x[1:], 2)).max() <= A
