@@ -313,7 +313,7 @@ def cubic_at(rows: np.ndarray, s: np.ndarray) -> np.ndarray:
     make them as large as its second differences.
 
     >>> cubic_at(np.array([[0.0], [0.0], [10.0], [30.0]]), np.array([1.0, 1.5, 2.0]))[:, 0]
-    array([ 0.   ,  4.375, 10.   ])
+    array([ 0.  ,  3.75, 10.  ])
     """
     p = np.asarray(rows, dtype=np.float64)
     n = p.shape[0]
