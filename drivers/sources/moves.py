@@ -342,7 +342,8 @@ def slowed_table(
     rows, rounded) slow enough that every speed, second and third difference of the
     integers, from rest to rest, is within the motors' limits: the table itself when it
     keeps them, else slower by what the worst one exceeds (speed as the rate, acceleration
-    as its square, jerk as its cube), tried again until it keeps them.
+    as its square, jerk as its cube), tried again until it keeps them; a slowed table
+    ends with its last row twice (at rest, as a table that ends is taken to be).
 
     >>> t = np.array([[0], [0], [40], [80], [80]])  # 40 counts a cycle at once: jerky
     >>> s = slowed_table(t, 0.01, np.full(1, 4e5), np.full(1, 2e6), np.full(1, 4e7))
@@ -377,6 +378,8 @@ def slowed_table(
         s = np.arange(m + 1, dtype=np.float64) * ((n - 1) / m)
         out = np.rint(cubic_at(table, s)).astype(np.int64)
         out[0], out[-1] = table[0], table[-1]
+        if not np.array_equal(out[-2], out[-1]):  # at rest at the end: its last row twice
+            out = np.concatenate([out, out[-1:]])
     raise SetpointError(
         f"{what}: no uniform slow-down within the motors' limits after {SLOWED_MAX_TRIES} tries"
     )

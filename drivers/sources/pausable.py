@@ -10,14 +10,17 @@ from typing import Any
 import numpy as np
 
 from drivers.rope_model import MotorLimits
-from drivers.safety.limits import SetpointError, accel_limits, jerk_limits
-from drivers.sources.moves import slowed_table
+from drivers.safety.limits import SetpointError, accel_limits, jerk_limits, jerk_limits_of
+from drivers.sources.moves import cubic_at, slowed_table
 from drivers.sources.table import TabledSource
 
 PAUSE_RAMP_S = 0.5  # a pause or a resume changes the playback rate by 1 in about this long
 MAX_PAUSE_S = 600.0  # a run paused longer in all than this is aborted (at rest: at once)
 MAX_PLAYED_ROWS = 360_000  # setpoints a pausable source keeps for a way back (1 h at 100 Hz)
 MAX_OFF_PATH_COUNTS = 2.0  # a setpoint may leave the interpolated path by this much (rounding)
+# the share of a motor's jerk a change of the playback rate's own change may take (the
+# fastest row of the table times the change of the rate per cycle, per cycle)
+JERK_RATE_SHARE = 0.5
 
 
 class PlayState(Enum):
@@ -157,6 +160,16 @@ class PausableSource:
         # smallest acceleration limit's second difference
         a_min = math.inf if self._a is None else float(np.min(self._a)) * period_s**2
         self._cap = 1.0 if not math.isfinite(a_min) else max(0.5, 1.0 - 6.0 / a_min)
+        # the jerk: a window of third differences, and the rate's change changing by at
+        # most _ddr a cycle (none where the table is slow enough not to need it)
+        jerk = jerk_limits_of(self.limits)
+        self._j = None if jerk is None else np.asarray(jerk, np.float64)
+        self._ddr = math.inf
+        if self._j is not None and self._table.shape[0] > 1:
+            step = float(np.max(np.abs(np.diff(self._table, axis=0))))
+            ddr = JERK_RATE_SHARE * float(np.min(self._j)) * period_s**3 / max(step, 1.0)
+            self._ddr = ddr if ddr < 2.0 * self._dr else math.inf
+        self._drate = 0.0
         self.position, self.rate, self._k, self._out = 0.0, 1.0, -1, None
         self._prev = self._before = self._actual
         self._played = [self._actual.astype(np.int32)]
@@ -239,7 +252,13 @@ class PausableSource:
         r0, dr, s = self.rate, self._dr, self.position
         whole = s == math.floor(s)
         cap = self._cap
-        want = r0 + max(-dr, min(dr, target - r0))
+        gap = target - r0
+        if math.isfinite(self._ddr):  # the rate's change eased, braking toward the target
+            ddr = self._ddr
+            d = math.copysign(min(dr, abs(gap), math.sqrt(2.0 * ddr * abs(gap))), gap)
+            want = r0 + max(self._drate - ddr, min(self._drate + ddr, d))
+        else:
+            want = r0 + max(-dr, min(dr, gap))
         up = whole and target == 1.0 and want > cap and r0 >= 1.0 - dr
         first = [1.0 if up else min(cap, max(0.0, want))]
         if target == 1.0 and not whole and r0 >= cap - dr:
@@ -287,6 +306,7 @@ class PausableSource:
         r = float(rates[c])
         if r == self.rate and r != target:
             self.held_cycles += 1
+        self._drate = r - self.rate
         self.rate = r
         self.position = min(end, self.position + r)
         aborting = self._abort
@@ -311,9 +331,12 @@ class PausableSource:
         s_new = np.minimum(end, self.position + rates)
         i = np.minimum(np.floor(s_new).astype(np.int64), n - 1)
         j = np.minimum(i + 1, n - 1)
-        f = (s_new - i)[:, None]
         t = self._table
-        path = t[i] + f * (t[j] - t[i]).astype(np.float64)
+        if self._j is None:  # a straight line between rows
+            f = (s_new - i)[:, None]
+            path = t[i] + f * (t[j] - t[i]).astype(np.float64)
+        else:  # a cubic: no kink at a row for a third difference to see
+            path = cubic_at(t, s_new)
         lo, hi = self._window()
         xs = np.clip(np.rint(path).astype(np.int64), lo, hi)
         over = np.max(np.abs(xs - path), axis=1) - MAX_OFF_PATH_COUNTS

@@ -147,7 +147,7 @@ def test_way_back_is_a_table_within_the_limits_to_the_start(act, abort_at, pause
     assert np.array_equal(back[0], out[-1]) and np.array_equal(back[-1], actual)
     ret = CountsSource(act, back, T, name="return", hold_s=0.0)
     ret.start(out[-1].copy(), T)  # checked (jerk too) from rest where it stands: no lead-in
-    assert ret.n_lead_in == 0
+    assert ret.n_lead_in == 0 and ret.n_stop == 0  # it ends at rest, where it started
     _check_like_supervisor(act, out[-1], ret.table)
     seq = np.concatenate([back[:1]] * 3 + [back] + [back[-1:]] * 2)
     assert np.all(np.abs(np.diff(seq, n=3, axis=0)) <= act.max_jerk_counts_per_s3 * T**3)
