@@ -253,20 +253,31 @@ class PausableSource:
         whole = s == math.floor(s)
         cap = self._cap
         gap = target - r0
-        if math.isfinite(self._ddr):  # the rate's change eased, braking toward the target
+        eased = math.isfinite(self._ddr)
+        if eased:  # the rate's change eased, braking toward the target
             ddr = self._ddr
-            d = math.copysign(min(dr, abs(gap), math.sqrt(2.0 * ddr * abs(gap))), gap)
-            want = r0 + max(self._drate - ddr, min(self._drate + ddr, d))
+            brake = ddr * (math.sqrt(2.0 * abs(gap) / ddr + 0.25) - 0.5)  # stops in time
+            d = math.copysign(min(dr, abs(gap), brake), gap)
+            lo_d, hi_d = self._drate - ddr, self._drate + ddr
+            want = r0 + max(lo_d, min(hi_d, d))
+            # no step down to the cap and back: the window alone keeps the acceleration
+            # (a first choice it does not take falls back to the rates below); near full
+            # rate off whole rows a hair below it, so that a whole row comes (the snap)
+            cap = 1.0 if whole else 1.0 - 0.5 * ddr
+            up = whole and target == 1.0 and r0 >= 1.0 - 1.5 * ddr
         else:
             want = r0 + max(-dr, min(dr, gap))
-        up = whole and target == 1.0 and want > cap and r0 >= 1.0 - dr
+            up = whole and target == 1.0 and want > cap and r0 >= 1.0 - dr
         first = [1.0 if up else min(cap, max(0.0, want))]
         if target == 1.0 and not whole and r0 >= cap - dr:
             snap = math.ceil(s) - s
-            if r0 - dr <= snap <= min(1.0, r0 + dr):
+            if eased:
+                if lo_d <= snap - r0 <= hi_d and r0 >= 1.0 - 2.0 * ddr:
+                    first.insert(0, snap)
+            elif r0 - dr <= snap <= min(1.0, r0 + dr):
                 first.insert(0, snap)
         rest = np.concatenate([r0 + np.linspace(-w, w, 33) for w in (dr, dr / 16, dr / 256)])
-        rest = rest[(rest >= 0.0) & (rest <= cap)]
+        rest = rest[(rest >= 0.0) & (rest <= self._cap)]
         if whole and r0 == 1.0:
             rest = np.concatenate([[1.0], rest])
         return len(first), np.concatenate([np.array(first), rest])
