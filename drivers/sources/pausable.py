@@ -53,6 +53,13 @@ class PausableSource:
     by at most ``period_s / ramp_s`` a cycle, by less (or not at all that cycle) where
     that would leave the path further, so a pause waits for a point of the table that
     lets it slow down.  At rate 1 on whole rows the setpoints are the inner table's rows.
+    With jerk limits, on a table fast enough to need it, the rate's own change also
+    changes by at most ``JERK_RATE_SHARE`` of the smallest jerk limit over the table's
+    largest row step a cycle (braked in time to reach its target), the path between rows
+    is a cubic (:func:`~drivers.sources.moves.cubic_at`, no kink at a row) and the rate is
+    not capped below 1 off whole rows; this eases the jerk without a window of its own
+    (at a tenth of the motors' speed every third difference keeps the limit; at 90 % of
+    their speed and acceleration it can reach about 1.5 times it).
 
     >>> from drivers.safety.subset import ActuationSubset
     >>> from drivers.sources.counts import CountsSource

@@ -1,5 +1,6 @@
 """PausableSource (drivers/sources.py): pause, resume and abort along the path, never a
-setpoint beyond a motor's speed or acceleration limit (checked as the supervisor checks)."""
+setpoint beyond a motor's speed or acceleration limit (checked as the supervisor checks);
+the jerk of a pause at a tenth of the speed, and the way back, within the jerk limit."""
 
 from __future__ import annotations
 
@@ -153,6 +154,34 @@ def test_way_back_is_a_table_within_the_limits_to_the_start(act, abort_at, pause
     assert np.all(np.abs(np.diff(seq, n=3, axis=0)) <= act.max_jerk_counts_per_s3 * T**3)
 
 
+def _eased_body(act, peak: float = 400.0, rows: int = 300) -> np.ndarray:
+    """Every motor eased up to ``peak`` counts a cycle (400: 10 % of its speed) and down
+    again (a cosine ramp over 40 cycles: within the jerk), the signs alternating."""
+    k = np.arange(rows)
+    speed = peak / 2 * (1.0 - np.cos(np.pi * np.minimum(np.minimum(k, rows - 1 - k) / 40.0, 1.0)))
+    sign = np.where(np.arange(act.n_motors) % 2 == 0, 1, -1)
+    return np.rint(np.cumsum(speed)[:, None] * sign[None, :]).astype(np.int64)
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=FIXTURE)
+@given(
+    pause_at=st.integers(1, 250),
+    paused_for=st.integers(0, 80),
+    ramp_s=st.sampled_from([0.2, 0.5]),
+)
+def test_a_pause_keeps_the_jerk_at_a_tenth_of_the_speed(act, pause_at, paused_for, ramp_s):
+    """A pause and a resume of a playback at 10 % of the motors' speed: every third
+    difference within the motors' jerk (the rate's own change eased, a cubic between
+    rows), as well as speed and acceleration."""
+    body = _eased_body(act)
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act, ramp_s=ramp_s)
+    out = _play(src, body[0].copy(), {pause_at: "pause", pause_at + paused_for: "resume"})
+    _check_like_supervisor(act, body[0], out)
+    seq = np.concatenate([body[:1]] * 3 + [out] + [out[-1:]] * 2)
+    assert np.all(np.abs(np.diff(seq, n=3, axis=0)) <= act.max_jerk_counts_per_s3 * T**3)
+    assert np.array_equal(out[-1], body[-1])
+
+
 def test_way_back_of_a_jerk_limited_playback_is_its_reverse(act):
     """A playback within the jerk limit all along: the way back is exactly what was
     played, backwards (without a pause; with a pause while cruising at 10 % of the
@@ -162,11 +191,7 @@ def test_way_back_of_a_jerk_limited_playback_is_its_reverse(act):
     src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act)
     out = _play(src, body[0].copy(), {})
     np.testing.assert_array_equal(src.way_back(), np.concatenate([body[:1], out])[::-1])
-    # every motor eased up to 400 counts a cycle (10 % of its speed) and down again
-    k = np.arange(300)
-    speed = 200.0 * (1.0 - np.cos(np.pi * np.minimum(np.minimum(k, 299 - k) / 40.0, 1.0)))
-    sign = np.where(np.arange(act.n_motors) % 2 == 0, 1, -1)
-    body = np.rint(np.cumsum(speed)[:, None] * sign[None, :]).astype(np.int64)
+    body = _eased_body(act)
     src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act)
     out = _play(src, body[0].copy(), {60: "pause", 200: "abort"})
     played = np.concatenate([body[:1], out])
