@@ -19,10 +19,10 @@ taken for a version; :meth:`~CalibrationStore.save` removes those older than an 
 (``hrm_ctrl.files.write_atomic`` fsyncs the file but not the folder, and replaces an
 existing file, hence the writer of its own here.)
 
-The file format ``hrm-calibration/1`` (JSON, UTF-8, at most :data:`MAX_FILE_BYTES`)::
+The file format ``hrm-calibration/2`` (JSON, UTF-8, at most :data:`MAX_FILE_BYTES`)::
 
     {
-      "format": "hrm-calibration/1",
+      "format": "hrm-calibration/2",
       "version": 3,                                 # the number in the file's name
       "created_utc": "2026-12-01T21:24:33.123456+00:00",
       "routine": "kinematic",                       # zero | kinematic | stiffness | manual
@@ -33,8 +33,17 @@ The file format ``hrm-calibration/1`` (JSON, UTF-8, at most :data:`MAX_FILE_BYTE
       "motor_zero_counts": {"j01r1": -1234, ...},   # per motor id: an integer (32-bit)
       "rope_EA_N": {"j01r1": 30000.0, ...},         # per rope id: axial rigidity > 0 (N)
       "residuals": {"rms_after_mm": 0.05, ...},     # the routine's figures (numbers)
+      "box": {"simulated": false,                   # the box it was made on, or null:
+              "drives": {"j01r1": {"vendor_id": 154, "product_code": 1026,
+                                   "revision": 65536, "serial": 305419896}, ...}},
       "sha256": "<64 hex digits>"
     }
+
+``box`` names the box the calibration was made on: each drive's identity object (CiA 301
+0x1018, read at the bring-up; :mod:`drivers.identity`) per motor id, and whether the box
+was simulated; ``null`` when it is not known.  A file of the previous format
+``hrm-calibration/1`` (the same members but ``box``) is read with its box unknown; every
+file is written in the present format.
 
 ``sha256`` is the SHA-256 (lower-case hex) of the UTF-8 bytes of the canonical form of
 every other member: ``json.dumps(doc, sort_keys=True, separators=(",", ":"),
@@ -84,11 +93,13 @@ from typing import Any
 
 import numpy as np
 
+from drivers.identity import BoxIdentity
 from hrm_ctrl.errors import CalibrationFileError
 from hrm_ctrl.files import parse_json, read_text_file
 from hrm_ctrl.ropes.motor_map import POSITION_COUNTS_MAX
 
-FORMAT = "hrm-calibration/1"
+FORMAT = "hrm-calibration/2"
+FORMAT_1 = "hrm-calibration/1"  # read: no ``box`` member (box unknown)
 N_JOINTS = 12
 MAX_FILE_BYTES = 256 * 1024  # 128 motors and ropes take about 12 kB
 MAX_MOTORS = 128  # the robot has 2..8 ropes per joint: 96 at most
@@ -114,6 +125,7 @@ _KEYS = (
     "motor_zero_counts",
     "rope_EA_N",
     "residuals",
+    "box",
 )
 
 
@@ -218,6 +230,7 @@ class Calibration:
     routine: Routine
     robot_sha256: str  # 64 lower-case hex digits: the robot description's
     residuals: Mapping[str, float] = field(default_factory=dict)
+    box: BoxIdentity | None = None  # the box it was made on (None: unknown)
 
     def __post_init__(self) -> None:
         self._check("calibration")
@@ -253,6 +266,8 @@ class Calibration:
             raise _fail(name, f"created_utc must be a UTC date and time, not {t!r}")
         if not isinstance(self.robot_sha256, str) or not _HEX64.fullmatch(self.robot_sha256):
             raise _fail(name, "robot_sha256 is not 64 lower-case hex digits")
+        if self.box is not None and not isinstance(self.box, BoxIdentity):
+            put(self, "box", BoxIdentity.from_dict(self.box, lambda why: _fail(name, why)))
 
     @classmethod
     def nominal(
@@ -297,6 +312,7 @@ class Calibration:
             "motor_zero_counts": dict(self.motor_zero_counts),
             "rope_EA_N": dict(self.rope_EA_N),
             "residuals": dict(self.residuals),
+            "box": None if self.box is None else self.box.to_dict(),
         }
 
     def __eq__(self, other: object) -> bool:
@@ -336,7 +352,7 @@ def from_json(text: str, name: str, version: int | None = None) -> Calibration:
         raise CalibrationFileError(f"{exc} - truncated or damaged") from None
     if not isinstance(doc, dict):
         raise _fail(name, "not a calibration file (not a JSON object)")
-    if doc.get("format") != FORMAT:
+    if doc.get("format") not in (FORMAT, FORMAT_1):
         raise _fail(name, f"format is {doc.get('format')!r}, not {FORMAT!r}")
     recorded = doc.get("sha256")
     if not isinstance(recorded, str):
@@ -348,8 +364,9 @@ def from_json(text: str, name: str, version: int | None = None) -> Calibration:
             f"checksum mismatch (edited by hand or damaged): content {actual[:12]}…, "
             f"recorded {recorded[:12]}…",
         )
-    missing = [k for k in _KEYS if k not in doc]
-    extra = sorted(doc.keys() - {*_KEYS, "sha256"})
+    keys = _KEYS if doc["format"] == FORMAT else _KEYS[:-1]  # /1: no box
+    missing = [k for k in keys if k not in doc]
+    extra = sorted(doc.keys() - {*keys, "sha256"})
     if missing or extra:
         raise _fail(name, f"members missing {missing}, unknown {extra}")
     v = doc["version"]
@@ -363,7 +380,7 @@ def from_json(text: str, name: str, version: int | None = None) -> Calibration:
         raise _fail(name, f"created_utc {doc['created_utc']!r} is not an ISO 8601 time") from None
     cal = object.__new__(Calibration)  # checked below, naming the file
     for key in _KEYS[3:]:
-        object.__setattr__(cal, key, doc[key])
+        object.__setattr__(cal, key, doc.get(key))
     object.__setattr__(cal, "created_utc", created)
     cal._check(name)
     return cal

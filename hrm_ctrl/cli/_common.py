@@ -198,6 +198,8 @@ def arm_from_args(
         calibrations=getattr(args, "calibrations", None),
         uncalibrated=bool(getattr(args, "uncalibrated", False)),
         simulated=simulated,
+        perturb=getattr(args, "perturb", None) if simulated else None,
+        truth_file=getattr(args, "truth", None) if simulated else None,
         prog=prog,
     )
 

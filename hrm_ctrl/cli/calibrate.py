@@ -180,6 +180,7 @@ def format_calibration(cal: Any, description: Any, version: int, path: str) -> s
         f"{cal.created_utc.isoformat(timespec='seconds')}",
         f"file {path}",
         f"robot description {cal.robot_sha256[:12]}… ({description.source})",
+        f"box: {box_text(cal.box)}",
         f"{'joint':>5} {'link mm':>10} {'(descr.)':>9} {'alpha offset deg':>17} "
         f"{'theta offset deg':>17}",
     ]
@@ -196,6 +197,13 @@ def format_calibration(cal: Any, description: Any, version: int, path: str) -> s
     res = ", ".join(f"{k} {v:.6g}" for k, v in cal.residuals.items()) or "none"
     lines.append(f"residuals: {res}")
     return "\n".join(lines)
+
+
+def box_text(box: Any) -> str:
+    """The box a calibration was made on, one line (``box unknown`` for an old file)."""
+    if box is None:
+        return "unknown (made before calibrations named their box: hrm calibrate use N --box)"
+    return box.describe()
 
 
 def run_show(args: argparse.Namespace) -> int:
@@ -236,6 +244,8 @@ def run_history(args: argparse.Namespace) -> int:
                 "routine": None if cal is None else cal.routine.value,
                 "robot_sha256": None if cal is None else cal.robot_sha256,
                 "this_robot": None if cal is None else cal.robot_sha256 == mine,
+                "box": None if cal is None or cal.box is None else cal.box.to_dict(),
+                "box_text": None if cal is None else box_text(cal.box).split(" (")[0],
                 "problem": problem,
             }
         )
@@ -259,7 +269,7 @@ def run_history(args: argparse.Namespace) -> int:
         robot = r["robot_sha256"][:12] + "…" + ("" if r["this_robot"] else " (another robot)")
         print(
             f"{mark} v{r['version']:04d}  {r['created_utc'][:19]}Z  {r['routine']:<9}  "
-            f"robot {robot}"
+            f"robot {robot}  box: {r['box_text']}"
         )
     return 0
 
@@ -368,7 +378,12 @@ def run_kinematic(args: argparse.Namespace) -> int:
         outputs.append(Output("--log-dir", args.log_dir, folder=True))
     refuse_overwriting_inputs(outputs, inputs)  # before anything is read or written
     description = _description(args)
-    base, active, note = starting_point(store, description)
+    sim_box = None
+    if args.collect is not None and args.sim:  # a calibration of another truth: not used
+        from hrm_ctrl.runtime.arm import simulated_box_identity
+
+        sim_box = simulated_box_identity(description, perturb=args.perturb)
+    base, active, note = starting_point(store, description, sim_box)
 
     estimate_frame = args.estimate_frame
     sigma_mm = 0.05 if args.sigma_mm is None else args.sigma_mm

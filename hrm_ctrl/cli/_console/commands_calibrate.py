@@ -168,7 +168,8 @@ def _run_routine(ctx: ConsoleContext, routine: str, ns: argparse.Namespace) -> N
         if ctx.enabled:
             start_watches(ctx)
     report = tension_cli.report_zero if routine == "zero" else tension_cli.report_stiffness
-    version = report(ns, result, base, store, t0, ctx.out, ctx.description).version
+    box = ctx.session.box_identity
+    version = report(ns, result, base, store, t0, ctx.out, ctx.description, box=box).version
     if store.active() != version:  # kept, not made active (out of range): nothing changes
         ctx.out(f"{name}: v{version:04d} is not active: the session and the store keep "
                 "the calibration they had")  # fmt: skip
