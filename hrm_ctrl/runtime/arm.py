@@ -77,6 +77,12 @@ class Arm:
         if self.note is not None:
             print(self.note, file=sys.stderr)
 
+    def say_calibration(self, prog: str) -> None:
+        """Print :attr:`note` (if any) and :meth:`version_line` on stderr: which calibration
+        a command uses (``plan``, ``ropes``, ``run``)."""
+        self.say_note()
+        print(self.version_line(prog), file=sys.stderr)
+
     def calibration_ref(self) -> CalibrationRef | None:
         """The :class:`drivers.session.CalibrationRef` of the calibration used, or None."""
         if self.active is None:
