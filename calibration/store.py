@@ -57,6 +57,13 @@ No value may be NaN or infinite.
 Every refusal is one :class:`~hrm_ctrl.errors.CalibrationFileError` line naming the file
 and the reason.
 
+**A store others can write is not ours.**  As ssh refuses keys others can write, the store
+refuses to read or write a folder that is writable by everyone or owned by another user,
+naming its owner and mode (:meth:`CalibrationStore.check_owned`).  **Check before you
+move.**  :meth:`CalibrationStore.check_can_save` is what a routine that drives the arm
+calls before its first move: the folder ours and writable (a file made and removed in it)
+and a version number left, so its result cannot be lost for want of a place to keep it.
+
 >>> import tempfile
 >>> store = CalibrationStore(tempfile.mkdtemp())
 >>> cal = Calibration.nominal(
@@ -81,7 +88,9 @@ import hashlib
 import json
 import math
 import os
+import pwd
 import re
+import stat
 import tempfile
 import time
 from collections.abc import Iterable, Mapping
@@ -127,6 +136,14 @@ _KEYS = (
     "residuals",
     "box",
 )
+
+
+def _user(uid: int) -> str:
+    """``name (uid N)``, or ``uid N`` when the name is unknown."""
+    try:
+        return f"{pwd.getpwuid(uid).pw_name} (uid {uid})"
+    except KeyError:
+        return f"uid {uid}"
 
 
 class Routine(enum.Enum):
@@ -440,8 +457,58 @@ class CalibrationStore:
             raise CalibrationFileError(f"{self.folder}: version {version} is not 1..{MAX_VERSION}")
         return self.folder / f"v{version:04d}.json"
 
+    def check_owned(self) -> None:
+        """Refuse (one line naming owner and mode) a store folder writable by everyone or
+        owned by another user; a folder not made yet passes (the store makes it, ours)."""
+        try:
+            st = os.stat(self.folder)
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            raise CalibrationFileError(f"{self.folder}: cannot read the store ({exc})") from None
+        mode = f"mode {stat.filemode(st.st_mode)} ({st.st_mode & 0o7777:04o})"
+        me = os.getuid()
+        if st.st_uid != me:
+            raise CalibrationFileError(
+                f"{self.folder}: the calibration store is owned by {_user(st.st_uid)}, not "
+                f"by {_user(me)} ({mode}): a store others can write is not used"
+            )
+        if st.st_mode & stat.S_IWOTH:
+            raise CalibrationFileError(
+                f"{self.folder}: the calibration store is writable by everyone (owner "
+                f"{_user(st.st_uid)}, {mode}): a store others can write is not used "
+                f"(chmod o-w {self.folder})"
+            )
+
+    def check_can_save(self) -> None:
+        """Everything :meth:`save` needs, checked before a routine moves the arm: the
+        folder (made if missing) ours, writable (a temporary file written and removed in
+        it) with no folder in the active pointer's place, and a version number left."""
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CalibrationFileError(f"{self.folder}: cannot create the store ({exc})") from None
+        self.check_owned()
+        self._refuse_folder_pointer()
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{ACTIVE}.", suffix=".tmp", dir=self.folder)
+            os.close(fd)
+            os.unlink(tmp)
+        except OSError as exc:
+            raise CalibrationFileError(
+                f"{self.folder}: the calibration store is not writable ({exc.strerror or exc}):"
+                " a result could not be kept"
+            ) from None
+        last = max(self.versions(), default=0)
+        if last >= MAX_VERSION:
+            raise CalibrationFileError(
+                f"{self.folder}: no version number left (v{last:04d} is the last of "
+                f"{MAX_VERSION}): a result could not be kept"
+            )
+
     def versions(self) -> list[int]:
         """The versions in the folder, oldest first (temporary files are not versions)."""
+        self.check_owned()
         try:
             names = os.listdir(self.folder)
         except FileNotFoundError:
@@ -463,6 +530,7 @@ class CalibrationStore:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise CalibrationFileError(f"{self.folder}: cannot create the store ({exc})") from None
+        self.check_owned()
         if activate:  # refused before the version is written: nothing left behind
             self._refuse_folder_pointer()
         self._remove_stale_tmp()
@@ -483,6 +551,7 @@ class CalibrationStore:
     def load(self, version: int) -> Calibration:
         """Version ``version``, checked (format, checksum, values); any robot."""
         path = self.path_of(version)
+        self.check_owned()
         text = read_text_file(
             path,
             CalibrationFileError,
@@ -555,6 +624,7 @@ class CalibrationStore:
     def _active_or_none(self) -> int | None:
         if os.path.exists(self.folder) and not os.path.isdir(self.folder):  # not "none yet"
             raise CalibrationFileError(f"{self.folder}: the calibration store is not a folder")
+        self.check_owned()
         path = self.folder / ACTIVE
         try:
             text = read_text_file(

@@ -288,6 +288,7 @@ def zero_then_kinematic(
     from calibration.kinematic import fit_kinematics, spread_configurations
     from calibration.zero import pretension_and_zero
 
+    store.check_can_save()  # before the first move: both results have a place to go
     base = nominal_calibration(description)
     act0 = calibrated_actuation(description, base)
     t0 = time.monotonic()

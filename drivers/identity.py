@@ -43,11 +43,14 @@ import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from drivers.bringup import DriveLink, sdo_read
-from drivers.protocol import cia301
 from hrm_ctrl.errors import DriverError
+
+if TYPE_CHECKING:  # the calibration store reads identities without the CANopen stack
+    from drivers.bringup import DriveLink
+
+OD_IDENTITY = 0x1018  # drivers.protocol.cia301.OD_IDENTITY
 
 SIMULATOR_VENDOR_ID = 0x00000000
 """The vendor-ID of the simulated drives (the shipped EDS's; no real vendor has it)."""
@@ -152,7 +155,9 @@ class BoxIdentity:
 def read_identity(link: DriveLink) -> DriveIdentity:
     """The identity object 0x1018 of one drive, read by SDO (:class:`SdoError` naming the
     drive when it does not answer)."""
-    values = [int(sdo_read(link, cia301.OD_IDENTITY, sub)) for sub in (1, 2, 3, 4)]
+    from drivers.bringup import sdo_read
+
+    values = [int(sdo_read(link, OD_IDENTITY, sub)) for sub in (1, 2, 3, 4)]
     return DriveIdentity(*values)
 
 

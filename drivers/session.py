@@ -439,7 +439,7 @@ class DriveSession:
         if self.calibration is None and not self.allow_uncalibrated:
             text = (
                 f"{action} refused: no calibration (drives are not enabled without one; "
-                "the operator may override explicitly)"
+                "the operator may override explicitly: --uncalibrated)"
             )
             self.events.add("error", text)
             raise SessionStateError(text, self._state)

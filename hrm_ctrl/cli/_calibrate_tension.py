@@ -187,6 +187,8 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
                 f"{config.source}: no [tension] table: {args.calibrate} needs the tension sensors"
             )
         print(f"{prog}: the arm must lie in its zero fixture", file=sys.stderr)
+    if args.out is None:  # checked before the first move: the result has a place to go
+        store.check_can_save()
     options = SessionOptions(
         log_dir=args.log_dir,
         log_suffix=f".{args.log_format}",

@@ -8,7 +8,11 @@ Sub-commands:
   mark; a damaged file, or a version of this robot whose ropes or values ``use`` would
   refuse, is listed with its problem);
 * ``use VERSION``: make an older version active (it must load and belong to this robot,
-  its values within ``calibration.apply.check_ranges``);
+  its values within ``calibration.apply.check_ranges``); ``use VERSION --box --config
+  BOX.toml`` confirms that a calibration whose box is unknown (a file made before
+  calibrations named their box) was made on this box: the drives' identities are read
+  (the drives configured, never enabled) and the version saved again, as the next
+  version naming this box, and made active (:func:`run_use`);
 * ``kinematic DATA.csv [--estimate-frame]``: fit link lengths and joint zero offsets (and
   the instrument's frame) to a pose file (``calibration.kinematic``: header
   ``alpha_1_rad..alpha_12_rad,theta_1_rad..theta_12_rad,x_mm,y_mm,z_mm``, the commanded
@@ -103,6 +107,12 @@ def register(parser: argparse.ArgumentParser) -> None:
         help="the version to activate (see hrm calibrate history)",
     )  # fmt: skip
     _common(p)
+    p.add_argument(
+        "--box", action="store_true",
+        help="confirm that VERSION, whose box is unknown, was made on the box of --config: "
+        "save it again naming that box (its drives' identities, read by SDO)",
+    )  # fmt: skip
+    add_bus(p)  # --config, --bus
     p.set_defaults(_run=run_use)
 
     p = sub.add_parser(
@@ -275,13 +285,49 @@ def run_history(args: argparse.Namespace) -> int:
 
 
 def run_use(args: argparse.Namespace) -> int:
+    """``use VERSION``, or with ``--box`` confirm an old calibration on a box.
+
+    ``--box`` is the one way a calibration whose box is unknown reaches real drives: the
+    operator says it was made on this box, the drives' identities are read from it and the
+    calibration is saved again as the next version naming them (the old file is never
+    changed); a calibration that names its box already is refused (a replaced drive is
+    calibrated anew, not confirmed)."""
     from calibration.apply import check_belongs, robot_sha256
 
     store = _store(args)
     description = _description(args)
-    check_belongs(description, store.load(args.version), str(store.path_of(args.version)))
-    store.use(args.version, robot_sha256(description))
-    print(f"active: v{args.version:04d} ({store.path_of(args.version)})")
+    path = str(store.path_of(args.version))
+    cal = store.load(args.version)
+    check_belongs(description, cal, path)
+    if not args.box:
+        if args.config is not None or args.bus:
+            raise CalibrationDataError("use: --config and --bus go with --box")
+        store.use(args.version, robot_sha256(description))
+        print(f"active: v{args.version:04d} ({store.path_of(args.version)})")
+        return 0
+    if cal.box is not None:
+        raise CalibrationDataError(
+            f"{path}: names its box already ({cal.box.describe()}): --box confirms only a "
+            "calibration whose box is unknown"
+        )
+    if args.config is None:
+        raise CalibrationDataError("use --box: give --config BOX.toml, the box to confirm it on")
+    refuse_overwriting_inputs([], [robot_input(args.robot), config_input(args.config)])
+    import dataclasses
+
+    from calibration.apply import calibrated_actuation
+    from hrm_ctrl.runtime.box import identify_box
+
+    config = load_box(args)
+    actuation = calibrated_actuation(description, cal)
+    config.check_motors(actuation.motor_ids)
+    store.check_can_save()  # before the box is touched
+    box = identify_box(config, actuation, prog="hrm calibrate use")
+    version = store.save(dataclasses.replace(cal, box=box))
+    print(
+        f"active: v{version:04d} ({store.path_of(version)}): v{args.version:04d} confirmed "
+        f"on this box ({box.describe()})"
+    )
     return 0
 
 
@@ -390,6 +436,8 @@ def run_kinematic(args: argparse.Namespace) -> int:
     if args.collect is None:
         data = read_pose_csv(args.data)
     else:
+        if args.out is None:  # checked before the first move: the result has a place to go
+            store.check_can_save()
         data, pose_file = _collect(args, description, base, active)
         print(f"poses written to {pose_file}")
         # the points are in the base frame: the tracker's frame was found from the base nests

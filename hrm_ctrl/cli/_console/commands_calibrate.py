@@ -151,6 +151,8 @@ def _run_routine(ctx: ConsoleContext, routine: str, ns: argparse.Namespace) -> N
     base = (
         ctx.active.calibration if ctx.active is not None else nominal_calibration(ctx.description)
     )
+    if ns.out is None:  # checked before the first move: the result has a place to go
+        store.check_can_save()
     build = tension_cli.zero_routine if routine == "zero" else tension_cli.stiffness_routine
     run = build(ns, progress=ctx.out)
     t0 = time.monotonic()
