@@ -151,6 +151,8 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
             *shipped_inputs(eds=True),
         ],
     )
+    if args.out is None:  # checked before the first move: the result has a place to go
+        store.check_can_save()
     description = load_robot(args.robot)
     config = load_box(args)  # --config with the --bus overrides
     sim_box = None
@@ -187,8 +189,6 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
                 f"{config.source}: no [tension] table: {args.calibrate} needs the tension sensors"
             )
         print(f"{prog}: the arm must lie in its zero fixture", file=sys.stderr)
-    if args.out is None:  # checked before the first move: the result has a place to go
-        store.check_can_save()
     options = SessionOptions(
         log_dir=args.log_dir,
         log_suffix=f".{args.log_format}",

@@ -154,17 +154,17 @@ def refuse_overwriting_inputs(outputs: Iterable[Output], inputs: Iterable[Input]
             raise OverwriteInputError(
                 f"{out.option} {base}: {odd[0]} exists and is not a regular file"
             )
+        for what, folder in folders:
+            if _inside(base, folder):
+                raise OverwriteInputError(
+                    f"{out.option} {base} is inside the {what} being read ({folder})"
+                )
         store = _store_folder(base)
         if store is not None:
             raise OverwriteInputError(
                 f"{out.option} {base} is inside the calibration store ({store}): only hrm "
                 "calibrate writes there"
             )
-        for what, folder in folders:
-            if _inside(base, folder):
-                raise OverwriteInputError(
-                    f"{out.option} {base} is inside the {what} being read ({folder})"
-                )
         for target in (base, *(base / m for m in out.members)):
             for what, src in read:
                 if not _same_file(target, src):
