@@ -157,3 +157,32 @@ def test_a_simulated_calibration_stays_with_its_simulated_arm(
         "calibrate zero for it"
     ), text
     assert SIMULATOR_VENDOR_ID == 0  # the simulated drives' vendor (the EDS's)
+
+
+@STALL_TOLERANT
+def test_a_joint_slack_at_the_enable_names_the_calibration(
+    store_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A calibration of this simulated arm whose joint-3 motor zeros are 5000 counts off:
+    every rope of joint 3 goes slack as the drives take hold, and the stop says the
+    calibration is the likely cause, not only "slack or broken"."""
+    from calibration.apply import nominal_calibration, updated
+
+    model = default_robot()
+    base = nominal_calibration(model)
+    zeros = {m: (-5000 if m.startswith("j03") else 0) for m in base.motor_ids}
+    cal = updated(
+        base,
+        routine="zero",
+        residuals={},
+        motor_zero_counts=zeros,
+        box=simulated_box_identity(model),
+    )
+    store = CalibrationStore(store_dir)
+    assert store.save(cal) == 1
+    rc = main(["run", "--hold", "2", "--sim", "--log-dir", str(tmp_path / "runs")])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    (line,) = [x for x in err.splitlines() if "stopped" in x]
+    assert "rope j03r" in line and "(slack or broken); every rope of joint 3 (j03r0 " in line
+    assert f"likely the calibration in use (v0001, {store.path_of(1)})" in line, line
