@@ -78,10 +78,11 @@ class Arm:
             print(self.note, file=sys.stderr)
 
     def say_calibration(self, prog: str) -> None:
-        """Print :attr:`note` (if any) and :meth:`version_line` on stderr: which calibration
-        a command uses (``plan``, ``ropes``, ``run``)."""
+        """Print :attr:`note` (if any) and, when a calibration is used, :meth:`version_line`
+        on stderr: which calibration a command uses (``plan``, ``ropes``, ``run``)."""
         self.say_note()
-        print(self.version_line(prog), file=sys.stderr)
+        if self.active is not None:
+            print(self.version_line(prog), file=sys.stderr)
 
     def calibration_ref(self) -> CalibrationRef | None:
         """The :class:`drivers.session.CalibrationRef` of the calibration used, or None."""

@@ -108,7 +108,7 @@ def test_a_simulated_calibration_stays_with_its_simulated_arm(
     out = capsys.readouterr()
     assert rc == 0, out.err[-2000:]
     assert "made on another simulated arm" in out.err and "not used" in out.err, out.err
-    assert "hrm run: calibration: none (the robot description's values)" in out.err
+    assert "hrm run: calibration v" not in out.err
     record = json.loads(Path(json.loads(out.out)["run_record"]).read_text())
     assert record["calibration"] == "uncalibrated (override)"
     assert record["box"]["simulated"] is True
@@ -186,3 +186,67 @@ def test_a_joint_slack_at_the_enable_names_the_calibration(
     (line,) = [x for x in err.splitlines() if "stopped" in x]
     assert "rope j03r" in line and "(slack or broken); every rope of joint 3 (j03r0 " in line
     assert f"likely the calibration in use (v0001, {store.path_of(1)})" in line, line
+
+
+def _old_file(store_dir: Path) -> None:
+    """Version 1 in the previous format (``hrm-calibration/1``: no box), active."""
+    from calibration.apply import nominal_calibration
+    from calibration.store import checksum, to_json
+
+    doc = json.loads(to_json(nominal_calibration(default_robot()), 1))
+    del doc["box"]
+    doc["format"] = "hrm-calibration/1"
+    doc["sha256"] = checksum(doc)
+    store_dir.mkdir(parents=True)
+    (store_dir / "v0001.json").write_text(json.dumps(doc))
+    (store_dir / "active").write_text("v0001.json\n")
+
+
+def test_an_old_file_is_box_unknown_until_confirmed_on_a_box(
+    store_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _old_file(store_dir)
+    store = CalibrationStore(store_dir)
+    assert store.load(1).box is None  # read, its box unknown
+    assert main(["calibrate", "history"]) == 0
+    assert "box: unknown" in capsys.readouterr().out
+    assert main(["calibrate", "show"]) == 0
+    assert "\nbox: unknown (made before calibrations named their box" in capsys.readouterr().out
+    # plan and ropes use it (no drives), and say which version
+    plan = tmp_path / "plan.json"
+    write_plan(plan, small_plan())
+    assert main(["ropes", str(plan)]) == 0
+    err = capsys.readouterr().err
+    assert f"hrm ropes: calibration v0001 ({store.path_of(1)}; manual, box unknown)" in err
+    box_toml = _virtual_box(tmp_path)
+    runs = tmp_path / "runs"
+    hold = ["run", "--hold", "0.1", "--config", str(box_toml)]
+    with _box_behind(box_toml, None) as box:
+        text = _refusal([*hold, "--log-dir", str(runs / "a")], capsys)
+        assert "box unknown (made before calibrations named their box)" in text, text
+        assert "hrm calibrate use VERSION --box" in text
+        # --box without a box to confirm it on, or with --sim's options: refused
+        assert _refusal(["calibrate", "use", "1", "--box"], capsys).endswith(
+            "use --box: give --config BOX.toml, the box to confirm it on"
+        )
+        rc = main(["calibrate", "use", "1", "--box", "--config", str(box_toml)])
+        out = capsys.readouterr()
+        assert rc == 0, out.err
+        assert out.out.startswith(f"active: v0002 ({store.path_of(2)}): v0001 confirmed on this")
+        serials = {m: d.params.serial_number for m, d in box.drives.items()}
+    confirmed = store.load(2)
+    assert store.active() == 2 and confirmed.box is not None and confirmed.box.simulated
+    assert {m: d.serial for m, d in confirmed.box.drives.items()} == serials
+    assert dict(confirmed.motor_zero_counts) == dict(store.load(1).motor_zero_counts)
+    assert store.load(1).box is None  # the old file is never changed
+    # a version that names its box is not confirmed again (a replaced drive: zero anew)
+    text = _refusal(["calibrate", "use", "2", "--box", "--config", str(box_toml)], capsys)
+    assert "names its box already (simulated box, 36 drives" in text, text
+    # --sim uses none of them but its own arm's: the old file's box is unknown
+    _refusal(["calibrate", "use", "1", "--config", str(box_toml)], capsys)  # --config: --box
+    assert main(["calibrate", "use", "1"]) == 0
+    capsys.readouterr()
+    rc = main(["run", str(plan), "--sim", "--log-dir", str(runs / "b")])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "box unknown (made before calibrations named their box)" in err and "not used" in err
