@@ -50,8 +50,6 @@ from hrm_ctrl.errors import DriverError
 if TYPE_CHECKING:  # the calibration store reads identities without the CANopen stack
     from drivers.bringup import DriveLink
 
-OD_IDENTITY = 0x1018  # drivers.protocol.cia301.OD_IDENTITY
-
 SIMULATOR_VENDOR_ID = 0x00000000
 """The vendor-ID of the simulated drives (the shipped EDS's; no real vendor has it)."""
 
@@ -156,6 +154,7 @@ def read_identity(link: DriveLink) -> DriveIdentity:
     """The identity object 0x1018 of one drive, read by SDO (:class:`SdoError` naming the
     drive when it does not answer)."""
     from drivers.bringup import sdo_read
+    from drivers.protocol.cia301 import OD_IDENTITY
 
     values = [int(sdo_read(link, OD_IDENTITY, sub)) for sub in (1, 2, 3, 4)]
     return DriveIdentity(*values)
