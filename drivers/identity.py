@@ -40,15 +40,16 @@ box at hand; each problem is one line:
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from hrm_ctrl.errors import DriverError
 
 if TYPE_CHECKING:  # the calibration store reads identities without the CANopen stack
     from drivers.bringup import DriveLink
+    from drivers.cycle import EventLog
 
 SIMULATOR_VENDOR_ID = 0x00000000
 """The vendor-ID of the simulated drives (the shipped EDS's; no real vendor has it)."""
@@ -222,3 +223,39 @@ def check_box(calibrated: BoxIdentity | None, live: BoxIdentity, where: str) -> 
     problems = box_problems(calibrated, live, where)
     if problems:
         raise BoxIdentityError("calibration refused: " + "; ".join(problems))
+
+
+class CalibratedBox(Protocol):
+    """What the check needs of the calibration in use
+    (:class:`drivers.run_record.CalibrationRef`)."""
+
+    @property
+    def box(self) -> BoxIdentity | None: ...
+
+    @property
+    def check_box(self) -> bool: ...
+
+    @property
+    def source(self) -> str: ...
+
+
+def identify_box(
+    links: Sequence[DriveLink],
+    parallel: Callable[[str, Callable[[DriveLink], DriveIdentity], float], list[DriveIdentity]],
+    timeout_s: float,
+    calibration: CalibratedBox | None,
+    events: EventLog,
+) -> BoxIdentity:
+    """The box of ``links`` (every drive's identity read at once: ``parallel(what, fn,
+    timeout_s)``, the session's), refused (:class:`BoxIdentityError`, logged in
+    ``events``) unless the ``calibration`` in use was made on it (when it asks to be
+    checked)."""
+    ids = parallel("identity", read_identity, timeout_s)
+    box = BoxIdentity.of({k.motor: v for k, v in zip(links, ids, strict=True)})
+    if calibration is not None and calibration.check_box:
+        try:
+            check_box(calibration.box, box, calibration.source)
+        except BoxIdentityError as exc:
+            events.add("error", str(exc))
+            raise
+    return box

@@ -72,7 +72,7 @@ from drivers.bus import BusPort
 from drivers.busload import BusLoad, check_bus_load
 from drivers.config import BoxConfig
 from drivers.cycle import EventLog, StreamResult
-from drivers.identity import BoxIdentity, BoxIdentityError, check_box, read_identity
+from drivers.identity import BoxIdentity, identify_box
 from drivers.interrupts import deferred_interrupts
 from drivers.lifecycle import Call, SessionState, SessionStateError, after_stop, next_state
 from drivers.other_master import (
@@ -395,18 +395,10 @@ class DriveSession:
                 "before_reset", before.text, cause=before.kind.value, motor=before.motor
             )
         # which box this is (0x1018 of every drive): the calibration's, or refused
-        ids = self._parallel("identity", read_identity, self._budget_s(4))
-        self.box_identity = BoxIdentity.of(
-            {k.motor: v for k, v in zip(self.links, ids, strict=True)}
+        self.box_identity = identify_box(
+            self.links, self._parallel, self._budget_s(4), self.calibration, self.events
         )
         self.record_extra["box"] = self.box_identity.to_dict()
-        ref = self.calibration
-        if ref is not None and ref.check_box:
-            try:
-                check_box(ref.box, self.box_identity, ref.source)
-            except BoxIdentityError as exc:
-                self.events.add("error", str(exc))
-                raise
         try:
             self._parallel(
                 "configuration",
