@@ -131,22 +131,23 @@ def watches_of(
         board = reader
 
         def on_fault(text: str) -> None:
-            """Report the watch's fault, with its likely cause (:func:`slack_cause`)."""
+            """Report the watch's fault, with its likely cause (:func:`slack_cause`); the
+            report is made whatever the cause's reading meets."""
             try:
                 tensions = board.latest().tensions_N
+                armed = monitor.hb_armed_at
+                since = None if armed is None else session.supervisor.clock() - armed
+                text = slack_cause(
+                    text,
+                    tensions,
+                    actuation.motor_ids,
+                    np.asarray(actuation.joint_of_motor),
+                    t.slack_N,
+                    session.calibration,
+                    since,
+                )
             except Exception:  # stale or unreadable: the text says why already
-                tensions = None
-            armed = monitor.hb_armed_at
-            since = None if armed is None else session.supervisor.clock() - armed
-            text = slack_cause(
-                text,
-                tensions,
-                actuation.motor_ids,
-                np.asarray(actuation.joint_of_motor),
-                t.slack_N,
-                session.calibration,
-                since,
-            )
+                pass
             monitor.report(StopKind.TENSION, text)
 
         watch = TensionWatch(
