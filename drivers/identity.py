@@ -6,10 +6,11 @@ product code (2), revision number (3) and serial number (4).  A session reads it
 every drive at the bring-up, after the boot-ups and before any configuration
 (:func:`read_identity`), and keeps it as the box's :class:`BoxIdentity`.
 
-**Simulated drives.**  The simulated drives answer with the shipped EDS's vendor-ID,
+**Simulated drives.**  The simulated drives answer with the vendor-ID
 :data:`SIMULATOR_VENDOR_ID` (0: CiA assigns no vendor the ID 0, so no real drive
-reports it), and serial numbers derived from the simulated arm's truth
-(``sim_bus.truth.drive_serials``): a perturbed arm is another box.  A box whose every
+reports it; whatever device file the box configuration gives them), and serial numbers
+derived from the simulated arm's truth (``sim_bus.truth.drive_serials``): a perturbed arm
+is another box.  A box whose every
 drive has that vendor-ID is a simulated box (:attr:`BoxIdentity.simulated`).
 
 **The check** (:func:`box_problems`), of the box a calibration was made on against the
@@ -79,7 +80,12 @@ class DriveIdentity:
                 raise ValueError(f"{name} must be an UNSIGNED32, not {v!r}")
 
     def same_drive(self, other: DriveIdentity) -> bool:
-        """The same physical drive (vendor, product code and serial; not the revision)."""
+        """The same physical drive (vendor, product code and serial; not the revision).
+        Two simulated drives (vendor :data:`SIMULATOR_VENDOR_ID`) are the same when their
+        serials are: the serial is their simulated truth's, the product code the device
+        file's the box configuration names."""
+        if self.vendor_id == other.vendor_id == SIMULATOR_VENDOR_ID:
+            return self.serial == other.serial
         return (self.vendor_id, self.product_code, self.serial) == (
             other.vendor_id,
             other.product_code,

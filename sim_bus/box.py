@@ -279,7 +279,13 @@ class SimBox:
                             initial_position_counts=int(self._initial[i]),
                             serial_number=serials[motor],
                         )
-                        d = DriveSim(node, self._sender(bb), params, now=now)
+                        d = DriveSim(
+                            node,
+                            self._sender(bb),
+                            params,
+                            now=now,
+                            eds=self.config.drives.device_file(motor),  # box.toml [drives]
+                        )
                         d.motor_id = motor  # type: ignore[attr-defined]
                         bb.drives.append(d)
                         self.drives[motor] = d

@@ -61,6 +61,7 @@ __all__ = ["DriveParams", "DriveSim", "DriveSimError", "object_table"]
 
 State = cia402.State402
 EVENTS_KEPT = 200
+SIMULATOR_VENDOR_ID = 0  # 0x1018:1 of every simulated drive (drivers.identity's)
 
 
 class DriveSimError(SimError):
@@ -74,8 +75,9 @@ class DriveParams:
     ``max_velocity_counts_per_s`` and ``max_accel_counts_per_s2`` limit CSP
     following; ``quick_stop_decel_counts_per_s2`` is the quick-stop and fault
     reaction ramp.  ``initial_position_counts`` is where the motor is at power-on.
-    ``serial_number`` is what the identity object answers (0x1018:4; the EDS gives the
-    rest: the simulator's vendor-ID 0, product code, revision).
+    ``serial_number`` is what the identity object answers (0x1018:4); its vendor-ID is
+    always :data:`SIMULATOR_VENDOR_ID` (0x1018:1, 0: no vendor's), its product code and
+    revision the device file's.
     """
 
     max_velocity_counts_per_s: float = 2.0e6
@@ -197,6 +199,8 @@ class DriveSim:
             return self.error_code
         if key == (cia301.OD_ERROR_REGISTER, 0):
             return self.error_register
+        if key == (cia301.OD_IDENTITY, 1):  # a simulated drive, whatever its device file
+            return SIMULATOR_VENDOR_ID
         if key == (cia301.OD_IDENTITY, 4):
             return self.params.serial_number
         return self.od.values[key]

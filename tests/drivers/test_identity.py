@@ -69,6 +69,18 @@ def test_each_replaced_drive_is_named(serials: list[int], replaced: set[str]) ->
         )
 
 
+def test_the_simulator_and_the_check_agree_on_its_vendor() -> None:
+    import sim_bus.drive
+
+    assert sim_bus.drive.SIMULATOR_VENDOR_ID == SIMULATOR_VENDOR_ID == 0
+    # two simulated drives are the same by their serial (their truth's), whatever the
+    # device file's product code
+    a = DriveIdentity(0, 0x402, 1, 77)
+    assert a.same_drive(DriveIdentity(0, 0x60500, 7, 77))
+    assert not a.same_drive(DriveIdentity(0, 0x402, 1, 78))
+    assert not DriveIdentity(9, 0x402, 1, 77).same_drive(DriveIdentity(9, 0x403, 1, 77))
+
+
 def test_unknown_simulated_and_real_boxes_are_told_apart() -> None:
     sim, real = _box(0, [1, 2, 3, 4]), _box(0x9A, [1, 2, 3, 4])
     assert "box unknown" in box_problems(None, real, "v1")[0]
