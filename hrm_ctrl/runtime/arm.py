@@ -171,9 +171,17 @@ def load_arm(
         box = simulated_box_identity(description, perturb=perturb, truth_file=truth_file)
         problems = box_problems(active.calibration.box, box, active.path)
         if problems:
+            made = active.calibration.box
+            why = (
+                "box unknown (made before calibrations named their box)"
+                if made is None
+                else "made on another simulated arm"
+                if made.simulated
+                else "made on a real box"
+            )
             note = (
-                f"{prog}: --sim: {problems[0].split(': run ')[0]}: not used on this simulated "
-                "arm: the robot description's values"
+                f"{prog}: --sim: {active.path}: {why}: not used on this simulated arm: the "
+                "robot description's values"
             )
             return Arm(description, description, None, note)
     if active is None:
