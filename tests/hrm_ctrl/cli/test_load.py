@@ -1,0 +1,91 @@
+"""The simulated box's commands beside two CPU burners (issue 34, item 5).
+
+Each test starts two busy loops (``sh``, in this test's session: they compete with the
+command as any other work of its user would), runs one command as a user does and
+checks that it completed with no stop.  The burners end with the test whatever ends it
+(the fixture kills them), and end by themselves once this process is gone (each loops
+only while this process exists).  Marked ``load``: CI runs them once, in the normal
+suite; ``pytest -m load`` runs only these.  The figures of 10 runs each are in
+``docs/sim.md``.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.load
+
+PYTHON = sys.executable
+BURNERS = 2
+COMMAND_TIMEOUT_S = 280.0  # below the suite's 300 s per test
+
+
+@pytest.fixture
+def burners() -> Iterator[list[subprocess.Popen[bytes]]]:
+    """Two CPU burners beside the test, killed on any exit of the test."""
+    loop = f"while kill -0 {os.getpid()} 2>/dev/null; do :; done"  # ends with this process
+    procs = [subprocess.Popen(["sh", "-c", loop]) for _ in range(BURNERS)]
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            p.kill()
+        for p in procs:
+            p.wait(timeout=10)
+
+
+def hrm(tmp_path: Path, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "HRM_CALIBRATIONS": str(tmp_path / "calibrations")}
+    return subprocess.run(
+        [PYTHON, "-m", "hrm_ctrl.cli", *args],
+        input=stdin, capture_output=True, text=True, timeout=COMMAND_TIMEOUT_S,
+        cwd=tmp_path, env=env,
+    )  # fmt: skip
+
+
+def completed(p: subprocess.CompletedProcess[str]) -> None:
+    """Exit 0 and no stop said on stderr or stdout."""
+    said = p.stdout + p.stderr
+    assert p.returncode == 0, said[-2000:]
+    assert "stopped" not in said and "Traceback" not in said, said[-2000:]
+
+
+def plan(tmp_path: Path, scenario: str) -> Path:
+    out = tmp_path / f"{scenario}.json"
+    p = hrm(tmp_path, "plan", "--scenario", scenario, "--return", "--out", str(out))
+    assert p.returncode == 0, p.stderr
+    return out
+
+
+@pytest.mark.parametrize("scenario", ["bent-pipe", "cabins"])
+def test_run_sim_of_a_scenario_with_return(tmp_path: Path, burners: list, scenario: str) -> None:
+    path = plan(tmp_path, scenario)
+    p = hrm(tmp_path, "run", "--sim", str(path), "--log-dir", "runs")
+    completed(p)
+    assert "cycles:" in p.stdout
+
+
+def test_calibrate_kinematic_collect_sim(tmp_path: Path, burners: list) -> None:
+    p = hrm(
+        tmp_path, "calibrate", "kinematic", "--collect", "10", "--sim", "--perturb", "2",
+        "--log-dir", "runs",
+    )  # fmt: skip
+    completed(p)
+
+
+def test_demo(tmp_path: Path, burners: list) -> None:
+    p = hrm(tmp_path, "demo", "--poses", "10", "--out", "demo")
+    completed(p)
+
+
+def test_console_sim_runs_a_plan_and_returns(tmp_path: Path, burners: list) -> None:
+    path = plan(tmp_path, "cabins")
+    script = f"connect\nenable\nrun {path.name}\nquit\n"
+    p = hrm(tmp_path, "console", "--sim", "--log-dir", "runs", stdin=script)
+    completed(p)
