@@ -239,21 +239,15 @@ def add_wire(parser: argparse.ArgumentParser, *, when: str | None, process: bool
     also ``hrm_ipc``, the default: the simulated box in its own process."""
     from hrm_ctrl.cli._simwire import PROCESS_WIRE, SIM_WIRES
 
-    if not process:
-        parser.add_argument(
-            "--wire", choices=SIM_WIRES, default="virtual",
-            help=when_prefix(
-                when, "python-can virtual buses, or hrm_sim (simulated wire at the bitrate)"
-            ),
-        )  # fmt: skip
-        return
+    in_process = "python-can virtual buses, or hrm_sim (simulated wire at the bitrate)"
+    if process:
+        in_process = (
+            "hrm_ipc: the simulated box in its own process (default); virtual or hrm_sim: in "
+            "this process, on python-can virtual buses or the simulated wire at the bitrate"
+        )
     parser.add_argument(
-        "--wire", choices=(PROCESS_WIRE, *SIM_WIRES), default=PROCESS_WIRE,
-        help=when_prefix(
-            when, "hrm_ipc: the simulated box in its own process (default); virtual or "
-            "hrm_sim: in this process, on python-can virtual buses or the simulated wire at "
-            "the bitrate",
-        ),
+        "--wire", choices=(PROCESS_WIRE, *SIM_WIRES) if process else SIM_WIRES,
+        default=PROCESS_WIRE if process else "virtual", help=when_prefix(when, in_process),
     )  # fmt: skip
 
 
