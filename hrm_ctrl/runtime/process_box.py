@@ -189,9 +189,9 @@ SIM_CHANNEL_PREFIX = "hrm-sim-"  # the channels of --sim box processes: hrm-sim-
 
 
 def box_toml(config: BoxConfig) -> str:
-    """The ``[control]`` and ``[buses]`` tables of ``config`` as a bus configuration file
-    (what a box process needs; its own board and tracker replace ``[tension]`` and
-    ``[tracker]``).
+    """The ``[control]``, ``[buses]`` and ``[drives]`` tables of ``config`` as a bus
+    configuration file (what a box process needs; its own board and tracker replace
+    ``[tension]`` and ``[tracker]``).
 
     >>> from drivers.config import box_config_from_dict, load_box_config
     >>> import tomllib
@@ -199,6 +199,11 @@ def box_toml(config: BoxConfig) -> str:
     >>> again = box_config_from_dict(tomllib.loads(box_toml(cfg)), "again")
     >>> again.buses == cfg.buses, again.control == cfg.control
     (True, True)
+    >>> from drivers import eds_path
+    >>> drives = {"j01r0": {"device_file": str(eds_path())}}
+    >>> own = box_config_from_dict({**cfg.to_dict(), "drives": drives}, "x")
+    >>> box_config_from_dict(tomllib.loads(box_toml(own)), "again").drives == own.drives
+    True
     """
     doc = config.to_dict()
     lines = ["[control]"]
@@ -211,6 +216,14 @@ def box_toml(config: BoxConfig) -> str:
             lines += [f"{k} = {json.dumps(v)}" for k, v in b["options"].items()]
         lines += [f"[buses.{name}.nodes]"]
         lines += [f"{k} = {v}" for k, v in b["nodes"].items()]
+    drives = doc.get("drives", {})  # each drive's device file (absolute paths)
+    if drives:
+        lines += ["[drives]"]
+        lines += [f"{k} = {json.dumps(v)}" for k, v in drives.items() if not isinstance(v, dict)]
+        for motor, table in drives.items():
+            if isinstance(table, dict):
+                lines += [f"[drives.{motor}]"]
+                lines += [f"{k} = {json.dumps(v)}" for k, v in table.items()]
     return "\n".join(lines) + "\n"
 
 
