@@ -5,8 +5,8 @@ command as any other work of its user would), runs one command as a user does an
 checks that it completed with no stop.  The burners end with the test whatever ends it
 (the fixture kills them), and end by themselves once this process is gone (each loops
 only while this process exists).  Marked ``load``: CI runs them once, in the normal
-suite; ``pytest -m load`` runs only these.  The figures of 10 runs each are in
-``docs/sim.md``.
+suite; ``pytest -m load`` runs only these.  What starved and the runs measured:
+``docs/sim.md`` ("A busy machine").
 """
 
 from __future__ import annotations
