@@ -359,6 +359,26 @@ def step_below_starter() -> int:
         return NORMAL_PRIORITY
 
 
+def realtime_permitted(priority: int) -> bool:
+    """Whether a thread of this process may run under ``SCHED_FIFO`` at ``priority``: tried
+    in a thread of its own that ends at once (nothing of the caller changes, nothing is
+    logged).
+
+    >>> realtime_permitted(1) in (True, False)
+    True
+    """
+    granted: list[bool] = []
+
+    def probe() -> None:
+        restore, _ = _raise_priority(check_realtime_priority(priority))
+        granted.append(restore is not None)
+
+    thread = threading.Thread(target=probe, name="realtime-probe", daemon=True)
+    thread.start()
+    thread.join()
+    return bool(granted and granted[0])
+
+
 def _set_switch_interval(seconds: float) -> None:
     """Set the GIL switch interval to the nearest whole microsecond.
 

@@ -92,15 +92,17 @@ def run_box_process(
     truth: TrueArm | None = None,
     fixture: bool = False,
     tracker: bool = False,
+    initial_counts: Sequence[int] | None = None,
 ) -> int:
     """Run the box until ``duration_s``, ``quit``, end of stdin (with ``control``) or
-    SIGTERM/SIGINT.  Returns the exit status (0)."""
+    SIGTERM/SIGINT.  ``initial_counts``: where the motors stand at power-on (the rope
+    layer's order; None: 0).  Returns the exit status (0)."""
     stop = threading.Event()
     commands: queue.Queue[str | None] = queue.Queue()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
-    box = SimBox(config, actuation=actuation, truth=truth)
+    box = SimBox(config, actuation=actuation, truth=truth, initial_counts=initial_counts)
     if fixture:
         box.set_straight_fixture(True)
     board = TensionBoard(box.tension_N, tension_rate_hz)

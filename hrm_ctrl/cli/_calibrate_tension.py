@@ -36,6 +36,7 @@ by the tension sensors); the stiffness routine needs one unless ``--sim`` or
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
@@ -201,9 +202,14 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
         config, actuation, options, sim=sim, watches=NO_WATCHES, bring_up=False, prog=prog
     ) as box:
         t = box.config.tension  # the simulated box's board, or the configured one
-        with TensionSensorReader(
-            t.port, actuation.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
-        ) as reader:
+        # its reading thread under the session's scheduling (SCHED_FIFO where granted), as
+        # the watches' readers: under normal scheduling beside two CPU burners it fell
+        # 502 ms behind the board
+        with box.session.thread_scheduling():
+            opened = TensionSensorReader(
+                t.port, actuation.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
+            ).open()
+        with contextlib.closing(opened) as reader:
             box.bring_up()
             result = routine(box.session, reader, actuation)
     return result, base, store, description, box.session.box_identity

@@ -212,7 +212,7 @@ class SimArm(Enum):
 
 
 SIM_HELP = (
-    "the in-process simulated box (without a stored calibration: the robot description's "
+    "the simulated box (without a stored calibration: the robot description's "
     "values, said on stderr)"
 )
 
@@ -223,24 +223,31 @@ def add_sim(
     wire: bool = False,
     arm: SimArm = SimArm.PERTURB,
     when: str | None = None,
+    process: bool = False,
 ) -> None:
     """``--sim`` (``when``: the condition it goes with), and with it ``--wire`` (with
-    ``wire``) and the simulated arm's options (:class:`SimArm`), each ``with --sim``."""
+    ``wire``; ``process``: the box in its own process its default) and the simulated
+    arm's options (:class:`SimArm`), each ``with --sim``."""
     parser.add_argument("--sim", action="store_true", help=when_prefix(when, SIM_HELP))
     if wire:
-        add_wire(parser, when="with --sim")
+        add_wire(parser, when="with --sim", process=process)
     add_sim_arm(parser, arm, when="with --sim")
 
 
-def add_wire(parser: argparse.ArgumentParser, *, when: str | None) -> None:
-    """``--wire virtual|hrm_sim``: the in-process simulated box's buses."""
-    from hrm_ctrl.cli._simwire import SIM_WIRES
+def add_wire(parser: argparse.ArgumentParser, *, when: str | None, process: bool = False) -> None:
+    """``--wire virtual|hrm_sim``: the in-process simulated box's buses; with ``process``
+    also ``hrm_ipc``, the default: the simulated box in its own process."""
+    from hrm_ctrl.cli._simwire import PROCESS_WIRE, SIM_WIRES
 
+    in_process = "python-can virtual buses, or hrm_sim (simulated wire at the bitrate)"
+    if process:
+        in_process = (
+            "hrm_ipc: the simulated box in its own process (default); virtual or hrm_sim: in "
+            "this process, on python-can virtual buses or the simulated wire at the bitrate"
+        )
     parser.add_argument(
-        "--wire", choices=SIM_WIRES, default="virtual",
-        help=when_prefix(
-            when, "python-can virtual buses, or hrm_sim (simulated wire at the bitrate)"
-        ),
+        "--wire", choices=(PROCESS_WIRE, *SIM_WIRES) if process else SIM_WIRES,
+        default=PROCESS_WIRE if process else "virtual", help=when_prefix(when, in_process),
     )  # fmt: skip
 
 

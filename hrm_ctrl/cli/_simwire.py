@@ -2,6 +2,7 @@
 :mod:`hrm_ctrl.runtime.simulated` (the runtime layer); these names are re-exported."""
 
 from hrm_ctrl.runtime.simulated import (
+    PROCESS_WIRE,
     SIM_HEARTBEAT_TIMEOUT_MS,
     SIM_LISTEN_S,
     SIM_MISSING_TPDO_CYCLES,
@@ -14,6 +15,7 @@ from hrm_ctrl.runtime.simulated import (
 )
 
 __all__ = [
+    "PROCESS_WIRE",
     "SIM_HEARTBEAT_TIMEOUT_MS",
     "SIM_LISTEN_S",
     "SIM_MISSING_TPDO_CYCLES",

@@ -12,10 +12,10 @@ traffic (``--log-format``: ``.blf``, ``.asc``, ``.log``, ``.trc``, ...) and a ru
 record JSON into ``--log-dir``; ``--bus NAME=INTERFACE:CHANNEL[@BITRATE]`` opens one bus
 of the configuration elsewhere.
 
-``--sim`` starts the simulated box (``sim_bus``) in this process on python-can
-virtual buses (or, with ``--wire hrm_sim``, on the simulated wire at the configured
-bitrate) instead of opening the configured interfaces; nothing else changes (the
-drivers only see buses).
+``--sim`` starts the simulated box (``sim_bus``) in its own process on ``hrm_ipc`` buses
+(``hrm sim --control``; with ``--wire virtual`` or ``--wire hrm_sim`` in this process, on
+python-can virtual buses or the simulated wire at the configured bitrate) instead of
+opening the configured interfaces; nothing else changes (the drivers only see buses).
 
 Calibration (issue 12): the rope layer is built with the active calibration of the store
 (``--calibrations DIR``, default ``$HRM_CALIBRATIONS`` or
@@ -82,7 +82,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("plan", nargs="?", type=Path, metavar="PLAN.json", help="plan to play")
     add_bus(parser, take_over=True)  # --config, --bus, --take-over
     add_robot(parser)
-    add_sim(parser, wire=True, arm=SimArm.PERTURB_OR_TRUTH)  # --sim, --wire, --perturb | --truth
+    add_sim(parser, wire=True, arm=SimArm.PERTURB_OR_TRUTH, process=True)  # --sim, --wire, ...
     add_calibration(parser, Uncalibrated.DRIVES)
     add_log(parser)  # --log-dir, --log-format
     add_run_controls(parser)  # --speed, --pause-at, --resume-after, --abort-at, --allow-collision

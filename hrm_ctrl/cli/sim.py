@@ -104,6 +104,13 @@ def register(parser: argparse.ArgumentParser) -> None:
         help="start the laser tracker (its pseudo-terminal in 'ready' as tracker_port)",
     )
     parser.add_argument(
+        "--initial-counts",
+        default=None,
+        metavar="COUNTS",
+        help="where the motors stand at power-on, comma-separated counts in the rope layer's "
+        "motor order (default all 0): a box a calibration has zeroed",
+    )
+    parser.add_argument(
         "--cpus",
         default=None,
         metavar="LIST",
@@ -142,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
             f"--rt-priority must be in 0..{REALTIME_PRIORITY_SAFE_MAX}, got {args.rt_priority}"
         )
     faults = [parse_fault(f) for f in args.fault]
+    initial_counts = None if args.initial_counts is None else parse_counts(args.initial_counts)
     if args.max_slack and args.perturb is None:
         raise SimError("--max-slack needs --perturb SEED (a truth file says its own slack)")
     if not 0.0 <= args.max_slack <= TRUTH_SLACK_MAX_MM:  # nan fails too
@@ -166,6 +174,8 @@ def run(args: argparse.Namespace) -> int:
     if args.write_truth is not None:
         write_truth(args.write_truth, truth if truth is not None else TrueArm.nominal(actuation))
     known = set(actuation.motor_ids)
+    if initial_counts is not None and len(initial_counts) != len(known):
+        raise SimError(f"--initial-counts: {len(initial_counts)} values for {len(known)} motors")
     buses = {b.name for b in config.buses}
     for f in faults:
         if f.kind in ("heartbeat-stop", "heartbeat-resume", "drive-fault", "jam", "rope-snap"):
@@ -189,4 +199,25 @@ def run(args: argparse.Namespace) -> int:
             truth=truth,
             fixture=args.fixture,
             tracker=args.tracker,
+            initial_counts=initial_counts,
         )
+
+
+def parse_counts(text: str) -> list[int]:
+    """``--initial-counts``: comma-separated integer motor counts.
+
+    >>> parse_counts("0,-12,5000")
+    [0, -12, 5000]
+    >>> parse_counts("1,x")
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.SimError: --initial-counts: 'x' is not an integer count
+    """
+    counts = []
+    for part in text.split(","):
+        try:
+            counts.append(int(part))
+        except ValueError:
+            shown = part.strip()[:20]
+            raise SimError(f"--initial-counts: {shown!r} is not an integer count") from None
+    return counts

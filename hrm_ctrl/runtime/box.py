@@ -2,11 +2,12 @@
 
 :func:`open_box` opens the box a command drives (its real buses from a
 :class:`~drivers.config.BoxConfig`, a box in its own process whose buses the configuration
-names, or the in-process simulated box: :class:`~hrm_ctrl.runtime.simulated.SimulatedBox`
-to start one for this block, :class:`~hrm_ctrl.runtime.simulated.RunningSim` for one that
-outlives it), with its :class:`~drivers.session.DriveSession` (CAN logs, run record) and
-its feedback watches (:mod:`hrm_ctrl.runtime.watches`), and brings the drives up.  Before
-anything opens, every drive's device file is checked against what hrm needs
+names, or a simulated box: :class:`~hrm_ctrl.runtime.simulated.SimulatedBox` to start one
+for this block, in its own process by default or in this one,
+:class:`~hrm_ctrl.runtime.simulated.RunningSim` for an in-process one that outlives it),
+with its :class:`~drivers.session.DriveSession` (CAN logs, run record) and its feedback
+watches (:mod:`hrm_ctrl.runtime.watches`), and brings the drives up.  Before anything
+opens, every drive's device file is checked against what hrm needs
 (:func:`drivers.device_check.check_box`, as ``hrm box check``): a refusal is one line, and
 nothing is opened or sent.
 
@@ -33,8 +34,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from hrm_ctrl.runtime.process_box import BoxProcess, ProcessBox
+from hrm_ctrl.runtime.process_box import BoxProcess, ProcessBox, simulated_box_process
 from hrm_ctrl.runtime.simulated import (
+    PROCESS_WIRE,
     SIM_LISTEN_S,
     RunningSim,
     SimulatedBox,
@@ -151,7 +153,9 @@ def open_box(
         simbox: SimBox | BoxProcess | None = None
         listen_s = options.listen_s
         host_cpus = None
-        if isinstance(sim, SimulatedBox):
+        if isinstance(sim, SimulatedBox) and sim.wire == PROCESS_WIRE:
+            config, simbox = stack.enter_context(simulated_box_process(config, sim, prog))
+        elif isinstance(sim, SimulatedBox):
             running = stack.enter_context(in_process_box(config, sim, prog))
             config, simbox = running.config, running.sim
         elif isinstance(sim, RunningSim):
@@ -163,7 +167,7 @@ def open_box(
             if config.tension is None:  # the box's board, at the [tension] defaults
                 config = config.with_tension(port=str(process.ready["tension_port"]))
         if listen_s is None and isinstance(sim, SimulatedBox | RunningSim):
-            listen_s = SIM_LISTEN_S  # private in-process channels: no other master
+            listen_s = SIM_LISTEN_S  # private channels of a fresh name: no other master
         kw: dict[str, Any] = {} if listen_s is None else {"listen_s": listen_s}
         # every thread of the session (and its watches) on the CPUs a box process leaves
         # free; the caller's thread gets its own back

@@ -3,7 +3,16 @@
 The box answers ``sim_bus.runner``'s control commands (JSON lines in, JSON lines out) and
 reports ``ready`` with its tension board's pseudo-terminal once its drives have booted.
 The HIL fixtures (``hrm_ctrl.hil``) start one per test session;
-:func:`hrm_ctrl.runtime.box.open_box` starts one for a block (:class:`ProcessBox`).
+:func:`hrm_ctrl.runtime.box.open_box` starts one for a block (:class:`ProcessBox`), and
+for ``--sim`` (:func:`simulated_box_process`: the simulated box of a
+:class:`~hrm_ctrl.runtime.simulated.SimulatedBox` whose ``wire`` is :data:`PROCESS_WIRE`).
+
+Why its own process: in the host's interpreter the box's 36 drives, its tension board
+and the host's control loop, receive threads and watches take turns on one GIL; beside two
+CPU burners the box's TPDOs and the board's frames fell behind by more than the simulated
+box's tolerances (``sim_bus.in_process``).  In a process of its own the box runs in
+parallel with the host, and the scheduler sees two processes (each in a session of its
+own: a group of its own where the kernel groups tasks by session).
 """
 
 from __future__ import annotations
@@ -15,12 +24,20 @@ import sys
 import tempfile
 import threading
 import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hrm_ctrl.errors import SimError
+from hrm_ctrl.runtime.simulated import PROCESS_WIRE
 from sim_bus.faults import has_control_character
+
+if TYPE_CHECKING:
+    from drivers.config import BoxConfig
+    from hrm_ctrl.runtime.simulated import SimulatedBox
 
 READY_TIMEOUT_S = 20.0  # the box process: start-up to its "ready" line (36 drives booted)
 REPLY_TIMEOUT_S = 5.0  # one control command's reply
@@ -58,6 +75,7 @@ class BoxProcess:
         cwd: Path | None = None,
         cpus: bool = True,
         rt_priority: int = 0,
+        ready_timeout_s: float = READY_TIMEOUT_S,
     ) -> None:
         from drivers.realtime import cpu_list, split_cpus
 
@@ -94,7 +112,7 @@ class BoxProcess:
         self.lines: queue.Queue[dict[str, Any]] = queue.Queue(maxsize=10_000)
         threading.Thread(target=self._read, name="hil-box-stdout", daemon=True).start()
         try:
-            self.ready = self.wait("ready", timeout_s=READY_TIMEOUT_S)
+            self.ready = self.wait("ready", timeout_s=ready_timeout_s)
         except BaseException:
             self.close()
             raise
@@ -162,3 +180,117 @@ class BoxProcess:
             self.proc.wait(timeout=5.0)
         finally:
             self._stderr.close()
+
+
+#: the simulated box process: start-up (imports, 36 drives booted) to its ``ready`` line;
+#: longer than the HIL's: a command waits for it on a machine that may be busy
+SIM_READY_TIMEOUT_S = 60.0
+SIM_CHANNEL_PREFIX = "hrm-sim-"  # the channels of --sim box processes: hrm-sim-<tag>-<bus>
+
+
+def box_toml(config: BoxConfig) -> str:
+    """The ``[control]``, ``[buses]`` and ``[drives]`` tables of ``config`` as a bus
+    configuration file (what a box process needs; its own board and tracker replace
+    ``[tension]`` and ``[tracker]``).
+
+    >>> from drivers.config import box_config_from_dict, load_box_config
+    >>> import tomllib
+    >>> cfg = load_box_config(None)
+    >>> again = box_config_from_dict(tomllib.loads(box_toml(cfg)), "again")
+    >>> again.buses == cfg.buses, again.control == cfg.control
+    (True, True)
+    >>> from drivers import eds_path
+    >>> drives = {"j01r0": {"device_file": str(eds_path())}}
+    >>> own = box_config_from_dict({**cfg.to_dict(), "drives": drives}, "x")
+    >>> box_config_from_dict(tomllib.loads(box_toml(own)), "again").drives == own.drives
+    True
+    """
+    doc = config.to_dict()
+    lines = ["[control]"]
+    lines += [f"{k} = {json.dumps(v)}" for k, v in doc["control"].items() if v is not None]
+    for name, b in doc["buses"].items():
+        lines += [f"[buses.{name}]"]
+        lines += [f"{k} = {json.dumps(b[k])}" for k in ("interface", "channel", "bitrate")]
+        if b["options"]:
+            lines += [f"[buses.{name}.options]"]
+            lines += [f"{k} = {json.dumps(v)}" for k, v in b["options"].items()]
+        lines += [f"[buses.{name}.nodes]"]
+        lines += [f"{k} = {v}" for k, v in b["nodes"].items()]
+    drives = doc.get("drives", {})  # each drive's device file (absolute paths)
+    if drives:
+        lines += ["[drives]"]
+        lines += [f"{k} = {json.dumps(v)}" for k, v in drives.items() if not isinstance(v, dict)]
+        for motor, table in drives.items():
+            if isinstance(table, dict):
+                lines += [f"[drives.{motor}]"]
+                lines += [f"{k} = {json.dumps(v)}" for k, v in table.items()]
+    return "\n".join(lines) + "\n"
+
+
+@contextmanager
+def simulated_box_process(
+    config: BoxConfig, box: SimulatedBox, prog: str = "hrm"
+) -> Iterator[tuple[BoxConfig, BoxProcess]]:
+    """The simulated box of ``box`` in its own process (``hrm sim --control`` on
+    :data:`PROCESS_WIRE` buses of fresh channels): ``config`` rewritten onto its buses, its
+    tension board (and tracker) as ports, and the process; closed on leaving, whatever
+    ends the block.
+
+    The box simulates ``box.arm``: the robot description ``box.arm.physical`` was read from,
+    its truth (passed as a truth file), its motors at ``box.arm.initial_counts``.  The
+    simulated box's tolerances (:func:`~hrm_ctrl.runtime.simulated.sim_tolerances`) apply
+    as in the host's interpreter, said on stderr: the box still shares this machine's CPUs.
+    """
+    from hrm_ctrl.runtime.simulated import sim_realtime_priority, sim_tolerances
+    from sim_bus.ipc.cleanup import remove_stale_channels
+    from sim_bus.truth import write_truth
+
+    config, raised, tension = sim_tolerances(config)
+    tag = uuid.uuid4().hex[:8]
+    config = config.with_bus_kwargs(
+        [
+            {"interface": PROCESS_WIRE, "channel": f"{SIM_CHANNEL_PREFIX}{tag}-{b.name}"}
+            for b in config.buses
+        ]
+    )
+    remove_stale_channels(SIM_CHANNEL_PREFIX)  # of earlier runs killed before their end
+    arm = box.arm
+    with tempfile.TemporaryDirectory(prefix="hrm-sim-") as folder:
+        path = Path(folder, "box.toml")
+        path.write_text(box_toml(config))
+        extra: list[str] = []
+        source = arm.physical.robot.source
+        if not source.startswith("<"):  # a file, not the shipped description
+            extra += ["--robot", source]
+        if arm.truth is not None:
+            write_truth(Path(folder, "truth.toml"), arm.truth)
+            extra += ["--truth", str(Path(folder, "truth.toml"))]
+        if arm.initial_counts is not None:
+            extra += ["--initial-counts", ",".join(str(int(c)) for c in arm.initial_counts)]
+        if box.fixture:
+            extra.append("--fixture")
+        if box.tracker:
+            extra.append("--tracker")
+        process = BoxProcess(
+            path,
+            *extra,
+            cpus=False,
+            rt_priority=sim_realtime_priority(config),
+            ready_timeout_s=SIM_READY_TIMEOUT_S,
+        )
+        try:
+            motors = tuple(process.ready.get("motor_ids", ()))
+            if motors != tuple(arm.physical.motor_ids):
+                raise SimError(f"box process {path}: motors {motors[:3]}... are not the arm's")
+            config = config.with_tension(port=str(process.ready["tension_port"]), **tension)
+            if box.tracker:
+                config = config.with_tracker(port=str(process.ready["tracker_port"]))
+            if raised:
+                print(
+                    f"{prog}: --sim: {', '.join(raised)} (the simulated box, in its own "
+                    "process, shares this machine's CPUs)",
+                    file=sys.stderr,
+                )
+            yield config, process
+        finally:
+            process.close()

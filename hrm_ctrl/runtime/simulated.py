@@ -53,7 +53,19 @@ SIM_MISSING_TPDO_CYCLES = IN_PROCESS_MISSING_TPDO_CYCLES
 SIM_SWITCH_INTERVAL_S = IN_PROCESS_SWITCH_INTERVAL_S
 SIM_TENSION_STALE_S = IN_PROCESS_TENSION_STALE_S
 SIM_HEARTBEAT_TIMEOUT_MS = IN_PROCESS_HEARTBEAT_TIMEOUT_MS
-SIM_WIRES = ("virtual", "hrm_sim")
+SIM_WIRES = ("virtual", "hrm_sim")  # the buses of a simulated box in this interpreter
+#: the buses of a simulated box in its own process (``hrm sim --control``; ``--sim``'s
+#: default: :func:`hrm_ctrl.runtime.process_box.simulated_box_process`)
+PROCESS_WIRE = "hrm_ipc"
+#: SCHED_FIFO priority of the simulated box's threads and of the session's on it, where the
+#: process may (best effort, :func:`drivers.realtime.realtime_permitted`; the real box's
+#: ``realtime_priority`` stays the configuration's, 0 as shipped).  Low: below the
+#: kernel's interrupt threads (50) and below a real-time session's usual priorities.  Beside
+#: two CPU burners on the 2-core development machine (load 13-15 from other work besides)
+#: ``hrm run --sim`` of the bent-pipe plan with the box in its own process stopped on a
+#: missing TPDO or heartbeat in 2 of 2 runs under normal scheduling, 1 of 2 with only the
+#: box under FIFO, and 0 of 2 with box and session under FIFO (jitter p99 3-4 ms).
+SIM_REALTIME_PRIORITY = 10
 # How long a session on the in-process box listens for another master before its first NMT
 # reset: the box's buses are private channels of this process (a fresh name each time), so
 # no other master can be on them; the listen still runs, shorter than a real bus's 1.1 s.
@@ -89,10 +101,53 @@ def start_in_process_sim(
     ``SIM_TENSION_STALE_S`` before they are stale (a line
     on stderr says so, and the run record keeps the configuration used).
     """
+    from drivers.realtime import process_settings
     from sim_bus.box import SimBox
 
     if wire not in SIM_WIRES:
         raise DriverError(f"--wire must be one of {', '.join(SIM_WIRES)}, got {wire!r}")
+    config, raised, tension = sim_tolerances(config)
+    tag = uuid.uuid4().hex[:8]
+    config = config.with_bus_kwargs(
+        [{"interface": wire, "channel": f"hrm-sim-{tag}-{b.name}"} for b in config.buses]
+    )
+    sim = SimBox(config, actuation=actuation, truth=truth, initial_counts=initial_counts)
+    if fixture:
+        sim.set_straight_fixture(True)
+    # the box's threads inherit the policy of the thread that starts them
+    with process_settings(switch_interval_s=None, realtime_priority=sim_realtime_priority(config)):
+        sim.start()
+        try:
+            config = config.with_tension(port=sim.start_tension_board().port, **tension)
+            if tracker:
+                config = config.with_tracker(port=sim.start_tracker().port)
+        except BaseException:
+            sim.stop()
+            raise
+    if raised:
+        print(
+            f"{prog}: --sim: {', '.join(raised)} (the simulated box shares this interpreter)",
+            file=sys.stderr,
+        )
+    return config, sim
+
+
+def sim_tolerances(config: BoxConfig) -> tuple[BoxConfig, list[str], dict[str, Any]]:
+    """``config`` with the simulated box's watchdog tolerances (``sim_bus.in_process``)
+    where its own are tighter, what was raised (for the stderr line), and the ``[tension]``
+    values to take with the simulated board's port.
+
+    Where the process may, the session's threads run under ``SCHED_FIFO`` at
+    :data:`SIM_REALTIME_PRIORITY` (the configuration's ``realtime_priority``, unless it
+    has one of its own) and so do the box's (:func:`sim_realtime_priority`).
+
+    >>> from drivers.config import load_box_config
+    >>> cfg, raised, tension = sim_tolerances(load_box_config(None))
+    >>> cfg.control.missing_tpdo_cycles, raised[:2], tension
+    (25, ['TPDO tolerance raised to 25 cycles', 'heartbeat timeout to 1000 ms'], {'stale_s': 0.5})
+    """
+    from drivers.realtime import realtime_permitted
+
     raised = []
     if config.control.missing_tpdo_cycles < SIM_MISSING_TPDO_CYCLES:
         config = config.with_control(missing_tpdo_cycles=SIM_MISSING_TPDO_CYCLES)
@@ -107,27 +162,19 @@ def start_in_process_sim(
     if config.tension is None or config.tension.stale_s < SIM_TENSION_STALE_S:
         tension["stale_s"] = SIM_TENSION_STALE_S
         raised.append(f"tension staleness to {SIM_TENSION_STALE_S * 1000:.0f} ms")
-    tag = uuid.uuid4().hex[:8]
-    config = config.with_bus_kwargs(
-        [{"interface": wire, "channel": f"hrm-sim-{tag}-{b.name}"} for b in config.buses]
-    )
-    sim = SimBox(config, actuation=actuation, truth=truth, initial_counts=initial_counts)
-    if fixture:
-        sim.set_straight_fixture(True)
-    sim.start()
-    try:
-        config = config.with_tension(port=sim.start_tension_board().port, **tension)
-        if tracker:
-            config = config.with_tracker(port=sim.start_tracker().port)
-    except BaseException:
-        sim.stop()
-        raise
-    if raised:
-        print(
-            f"{prog}: --sim: {', '.join(raised)} (the simulated box shares this interpreter)",
-            file=sys.stderr,
-        )
-    return config, sim
+    if config.control.realtime_priority == 0 and realtime_permitted(SIM_REALTIME_PRIORITY):
+        config = config.with_control(realtime_priority=SIM_REALTIME_PRIORITY)
+        raised.append(f"threads under SCHED_FIFO {SIM_REALTIME_PRIORITY}")
+    return config, raised, tension
+
+
+def sim_realtime_priority(config: BoxConfig) -> int:
+    """The ``SCHED_FIFO`` priority the simulated box's threads run at: the session's
+    (``config`` as :func:`sim_tolerances` left it) where the process may, else 0."""
+    from drivers.realtime import realtime_permitted
+
+    priority = config.control.realtime_priority
+    return priority if priority and realtime_permitted(priority) else 0
 
 
 def calibration_counts(calibration: Calibration | None, actuation: Actuation) -> np.ndarray | None:
@@ -181,12 +228,12 @@ def simulated_arm(
 
 @dataclass(frozen=True)
 class SimulatedBox:
-    """An in-process simulated box to start: the arm it simulates, its bus kind
-    (``wire``: one of :data:`SIM_WIRES`), with a laser ``tracker``, its arm in the zero
-    ``fixture``."""
+    """A simulated box to start: the arm it simulates, its bus kind (``wire``:
+    :data:`PROCESS_WIRE`, the box in its own process; one of :data:`SIM_WIRES`, the box in
+    this interpreter), with a laser ``tracker``, its arm in the zero ``fixture``."""
 
     arm: SimulatedArm
-    wire: str = "virtual"
+    wire: str = PROCESS_WIRE
     tracker: bool = False
     fixture: bool = False
 
@@ -200,8 +247,9 @@ class RunningSim:
 
 
 def start_simulated_box(config: BoxConfig, box: SimulatedBox, prog: str = "hrm") -> RunningSim:
-    """Start the in-process simulated box of ``box`` on ``config``'s buses (rewritten);
-    the caller stops it (``.sim.stop()``; :func:`in_process_box` does for a block)."""
+    """Start the in-process simulated box of ``box`` (its ``wire`` one of
+    :data:`SIM_WIRES`) on ``config``'s buses (rewritten); the caller stops it
+    (``.sim.stop()``; :func:`in_process_box` does for a block)."""
     a = box.arm
     new, sim = start_in_process_sim(
         config,

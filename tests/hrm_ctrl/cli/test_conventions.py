@@ -181,7 +181,9 @@ def test_bad_log_format_or_bus_is_one_line_exit_2(
 @pytest.mark.parametrize(
     ("argv", "in_process_box"),
     [
-        (["run", "plan.json", "--sim"], True),
+        (["run", "plan.json", "--sim", "--wire", "virtual"], True),
+        (["run", "plan.json", "--sim"], False),  # the box in its own process (hrm_ipc)
+        (["calibrate", "kinematic", "--collect", "5", "--sim"], False),
         (["demo"], True),
         (["status", "--sim"], True),
         (["run", "plan.json"], False),

@@ -64,10 +64,14 @@ def inject(monkeypatch: pytest.MonkeyPatch) -> Callable[[int, Callable[[Any], No
     done.set()
 
 
-def hrm_run(args: list[str], tmp_path: Path, capsys: pytest.CaptureFixture) -> tuple[int, Any]:
+def hrm_run(
+    args: list[str], tmp_path: Path, capsys: pytest.CaptureFixture, *, in_process: bool = True
+) -> tuple[int, Any]:
     # the bent-pipe paper plan grazes the pipe (issue 10: refused without the flag); these
-    # tests are about the watches
-    argv = ["run", *args, "--sim", "--log-dir", str(tmp_path / "runs"), "--json"]
+    # tests are about the watches.  The box in this interpreter (--wire virtual) where a
+    # fault is injected into it, else in its own process (the default)
+    wire = ["--wire", "virtual"] if in_process else []
+    argv = ["run", *args, "--sim", *wire, "--log-dir", str(tmp_path / "runs"), "--json"]
     rc = main([*argv, "--allow-collision"])
     out = capsys.readouterr()
     assert "Traceback" not in out.err, out.err
@@ -144,7 +148,9 @@ def test_sensor_garbage_past_the_rate_stops_the_run(
 def test_the_whole_bent_pipe_at_the_demo_speed_raises_nothing(
     bent_pipe: Path, tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:
-    rc, (err, summary, record) = hrm_run([str(bent_pipe), "--speed", DEMO_SPEED], tmp_path, capsys)
+    rc, (err, summary, record) = hrm_run(
+        [str(bent_pipe), "--speed", DEMO_SPEED], tmp_path, capsys, in_process=False
+    )
     assert rc == 0, err
     assert summary["completed"] is True and summary["causes"] == []
     assert summary["cycles"] > 1300

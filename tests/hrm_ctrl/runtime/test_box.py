@@ -45,7 +45,8 @@ def _after(events: list[str], name: str, call: Callable[..., Any], check: Callab
 
 
 class Observed:
-    """``open_box`` on a fresh in-process box (:meth:`__call__`), and the closing steps as
+    """``open_box`` on a fresh simulated box (:meth:`__call__`; in its own process, the
+    default), and the closing steps as
     they complete (:attr:`events`, filled once :meth:`observe` has wrapped the box)."""
 
     def __init__(self, actuation: Actuation, log_dir: Path) -> None:
