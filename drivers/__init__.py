@@ -1,9 +1,10 @@
 """Host-side CAN drivers: CANopen CiA 301/402 drives in cyclic synchronous position mode.
 
-The drive's object dictionary ships as an EDS file beside the code:
+The drive's object dictionary ships as an EDS file beside the code, read (as every
+drive's device file) by :mod:`drivers.protocol.cia306`:
 
->>> import canopen
->>> od = canopen.import_od(str(eds_path()), 5)
+>>> from drivers.protocol.cia306 import canopen_dictionary, read_device_file
+>>> od = canopen_dictionary(read_device_file(eds_path()), 5)
 >>> hex(od[0x1400][1].default)
 '0x205'
 """

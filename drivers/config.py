@@ -7,7 +7,11 @@ arguments) and ``[buses.NAME.nodes]`` mapping each rope motor id to its CANopen
 node id; an optional ``[tension]`` table names the tension-sensor board's serial port
 and its stop thresholds (:class:`TensionConfig`; no table: the box has no board); an
 optional ``[tracker]`` table names the laser tracker's serial port and the wait for each of
-its replies (:class:`TrackerConfig`; no table: no tracker).
+its replies (:class:`TrackerConfig`; no table: no tracker); an optional ``[drives]`` table
+names each drive's CiA 306 device file, EDS or DCF (:class:`DrivesConfig`: ``device_file``
+for every drive, ``[drives.MOTOR]`` ``device_file`` for one; no table: hrm's own
+``drivers/data/hrm_drive.eds``), which ``hrm box check`` and every bring-up check first
+(:mod:`drivers.device_check`).
 The interface is configuration, never code: any name python-can knows (built-in or
 registered under the ``can.interface`` entry point) is accepted.  A bus table without an
 ``interface`` takes python-can's own configuration (:func:`can.util.load_config` with the
@@ -51,7 +55,7 @@ from typing import Any, TypeVar
 
 import can
 
-from drivers import default_box_path
+from drivers import default_box_path, eds_path
 from drivers.protocol.cia301 import (
     HOST_HEARTBEAT_NODE_ID,
     NODE_ID_MAX,
@@ -78,6 +82,7 @@ from hrm_ctrl.validate import (
     refuse_unknown,
     spec,
     specs,
+    unknown_key,
 )
 
 
@@ -341,6 +346,42 @@ class TrackerConfig:
     # fmt: on
 
 
+DRIVE_KEYS = frozenset({"device_file"})
+"""The keys of ``[drives]`` (for every drive) and of ``[drives.MOTOR]`` (for one)."""
+
+
+@dataclass(frozen=True)
+class DrivesConfig:
+    """Each drive's device file (the optional ``[drives]`` table): ``device_file`` for every
+    drive (``default_file``), ``[drives.MOTOR]`` ``device_file`` for one rope motor's
+    (``motor_files``); a relative path is taken from the box file's folder; none given:
+    hrm's own EDS (:func:`drivers.eds_path`).
+
+    >>> d = DrivesConfig(motor_files={"j01r0": Path("/x/epos4.dcf")})
+    >>> d.device_file("j01r0").name, d.device_file("j01r1").name
+    ('epos4.dcf', 'hrm_drive.eds')
+    """
+
+    default_file: Path | None = None
+    motor_files: Mapping[str, Path] = field(default_factory=dict)
+
+    def device_file(self, motor_id: str) -> Path:
+        """The device file of rope motor ``motor_id``'s drive."""
+        own = self.motor_files.get(motor_id)
+        if own is not None:
+            return own
+        return eds_path() if self.default_file is None else self.default_file
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``[drives]`` table (absolute paths; empty when every drive is hrm's own)."""
+        out: dict[str, Any] = {}
+        if self.default_file is not None:
+            out["device_file"] = str(self.default_file)
+        for motor, path in self.motor_files.items():
+            out[motor] = {"device_file": str(path)}
+        return out
+
+
 @dataclass(frozen=True)
 class BoxConfig:
     """Every bus of the box plus the control settings; immutable."""
@@ -351,6 +392,7 @@ class BoxConfig:
     _where: Mapping[str, tuple[int, int]] = field(default_factory=dict, repr=False)
     tension: TensionConfig | None = None  # the [tension] table: None, the box has no board
     tracker: TrackerConfig | None = None  # the [tracker] table: None, no laser tracker
+    drives: DrivesConfig = DrivesConfig()  # the [drives] table: each drive's device file
 
     @property
     def motor_ids(self) -> tuple[str, ...]:
@@ -480,6 +522,7 @@ class BoxConfig:
             },
             **({} if self.tension is None else {"tension": asdict(self.tension)}),
             **({} if self.tracker is None else {"tracker": asdict(self.tracker)}),
+            **({"drives": d} if (d := self.drives.to_dict()) else {}),
         }
 
 
@@ -672,10 +715,53 @@ def _tracker_from(doc: Any, where: str) -> TrackerConfig:
     return _device_from(TrackerConfig, doc, "tracker", "the tracker's", where)
 
 
-def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
-    """Validate a parsed bus configuration and build a :class:`BoxConfig`."""
+def _device_file_path(value: Any, where: str, base_dir: Path | None) -> Path:
+    if not isinstance(value, str) or not value.strip():
+        raise BusConfigError(f"{where}: expected the path of an EDS or DCF file, got {value!r}")
+    path = Path(value).expanduser()
+    if not path.is_absolute() and base_dir is not None:
+        path = base_dir / path
+    return path.absolute()
+
+
+def _drives_from(
+    doc: Any, where: str, motors: Mapping[str, Any], base_dir: Path | None
+) -> DrivesConfig:
+    """The ``[drives]`` table: ``device_file`` for every drive, ``[drives.MOTOR]`` tables
+    (one per rope motor of the buses) for one."""
+    if not isinstance(doc, Mapping):
+        raise BusConfigError(f"{where}: [drives] must be a table")
+    default: Path | None = None
+    own: dict[str, Path] = {}
+    for key, value in doc.items():
+        if key in DRIVE_KEYS:
+            default = _device_file_path(value, f"{where}: drives.{key}", base_dir)
+        elif key in motors:
+            if not isinstance(value, Mapping):
+                raise BusConfigError(f"{where}: drives.{key}: must be a table (device_file = ...)")
+            for sub in value:
+                if sub not in DRIVE_KEYS:
+                    hint = unknown_key(str(sub), DRIVE_KEYS)
+                    raise BusConfigError(f"{where}: drives.{key}.{sub}: unknown key{hint}")
+            if "device_file" in value:
+                own[str(key)] = _device_file_path(
+                    value["device_file"], f"{where}: drives.{key}.device_file", base_dir
+                )
+        else:
+            raise BusConfigError(
+                f"{where}: drives.{key}: neither a key of [drives] "
+                f"({', '.join(sorted(DRIVE_KEYS))}) nor a rope motor of the buses"
+            )
+    return DrivesConfig(default_file=default, motor_files=own)
+
+
+def box_config_from_dict(
+    doc: Mapping[str, Any], source: str, base_dir: Path | None = None
+) -> BoxConfig:
+    """Validate a parsed bus configuration and build a :class:`BoxConfig` (``base_dir``:
+    the folder relative device-file paths are taken from)."""
     where = source
-    unknown = set(doc) - {"control", "buses", "tension", "tracker"}
+    unknown = set(doc) - {"control", "buses", "tension", "tracker", "drives"}
     if unknown:
         raise BusConfigError(f"{where}: unknown table(s) {sorted(unknown)}")
     control = _control_from(doc.get("control", {}), where)
@@ -751,6 +837,7 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
     _check_distinct_channels(buses, source)
     tension = _tension_from(doc["tension"], where) if "tension" in doc else None
     tracker = _tracker_from(doc["tracker"], where) if "tracker" in doc else None
+    drives = _drives_from(doc["drives"], where, placed, base_dir) if "drives" in doc else None
     return BoxConfig(
         buses=tuple(buses),
         control=control,
@@ -758,6 +845,7 @@ def box_config_from_dict(doc: Mapping[str, Any], source: str) -> BoxConfig:
         _where=placed,
         tension=tension,
         tracker=tracker,
+        drives=DrivesConfig() if drives is None else drives,
     )
 
 
@@ -827,4 +915,4 @@ def load_box_config(path: str | Path | None = None) -> BoxConfig:
     p = default_box_path() if path is None else Path(path)
     source = str(p) if path is not None else f"<default {p.name}>"
     doc, source = read_toml(p, BusConfigError, "bus configuration", source)
-    return box_config_from_dict(doc, source)
+    return box_config_from_dict(doc, source, base_dir=p.parent)

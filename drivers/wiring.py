@@ -23,7 +23,6 @@ import can
 import canopen
 import numpy as np
 
-from drivers import eds_path
 from drivers.bringup import DriveLink
 from drivers.bus import ECHOING_INTERFACES, BusPort
 from drivers.busload import BusLoad
@@ -31,6 +30,7 @@ from drivers.canlog import TrafficLog
 from drivers.config import BoxConfig, BusConfig
 from drivers.cycle import BusLayout
 from drivers.protocol import cia301
+from drivers.protocol.cia306 import canopen_dictionary, read_device_file
 from drivers.receive import BusPoller, BusReader, BusReceiver, pollable
 from drivers.safety.monitor import NodeMonitor
 from hrm_ctrl.errors import DriverError
@@ -147,7 +147,16 @@ class BoxWiring:
     ) -> None:
         config, slots = self.config, self.slots
         control = config.control
-        od = canopen.import_od(str(eds_path()))
+        # each drive's object dictionary from its device file (box.toml [drives]), one
+        # read per file
+        ods: dict[Path, canopen.ObjectDictionary] = {}
+
+        def od_of(motor: str) -> canopen.ObjectDictionary:
+            path = config.drives.device_file(motor)
+            if path not in ods:
+                ods[path] = canopen_dictionary(read_device_file(path))
+            return ods[path]
+
         opened: list[can.BusABC] = []
         for bi, b in enumerate(config.buses):  # every bus first: no log for a bad one
             if given is not None:
@@ -182,7 +191,7 @@ class BoxWiring:
             self.receivers.append(router)
             for motor, nid in b.nodes.items():
                 i = slots.slot[motor]
-                node = canopen.RemoteNode(nid, od)
+                node = canopen.RemoteNode(nid, od_of(motor))
                 net.add_node(node)
                 node.sdo.RESPONSE_TIMEOUT = control.sdo_timeout_s
                 links[i] = DriveLink(node, b.name, motor)

@@ -48,6 +48,8 @@ The whole tree, each class with the module that defines it::
      |    |    +-- SafetyStopError          drivers.safety.stops
      |    |    +-- ProcessSettingsError     drivers.realtime
      |    |    +-- TrackerLineError         drivers.protocol.tracker
+     |    |    +-- DeviceFileError          drivers.protocol.cia306
+     |    |    +-- DeviceCheckError         drivers.device_check
      |    |    +-- TrackerError             drivers.tracker
      |    |    |    +-- TrackerTargetLostError drivers.tracker
      |    |    +-- TensionSensorError       drivers.tension_sensor

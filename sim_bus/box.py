@@ -277,7 +277,13 @@ class SimBox:
                             quick_stop_decel_counts_per_s2=self._qs_decel,
                             initial_position_counts=int(self._initial[i]),
                         )
-                        d = DriveSim(node, self._sender(bb), params, now=now)
+                        d = DriveSim(
+                            node,
+                            self._sender(bb),
+                            params,
+                            now=now,
+                            eds=self.config.drives.device_file(motor),  # box.toml [drives]
+                        )
                         d.motor_id = motor  # type: ignore[attr-defined]
                         bb.drives.append(d)
                         self.drives[motor] = d

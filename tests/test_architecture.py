@@ -31,7 +31,9 @@ TIMEOUT_S = 120.0
 # hrm_ctrl modules the drivers may import; every other one is in contract "drivers".
 DRIVERS_MAY_USE = {"errors", "files", "validate"}
 # drivers modules the simulator may import; every other one is in contract "sim-bus".
-SIM_MAY_USE = {"protocol", "config", "data"}
+# realtime: the process settings (CPU split, SCHED_FIFO, the GC hold) a box process needs
+# as much as the host does.
+SIM_MAY_USE = {"protocol", "config", "data", "realtime"}
 
 
 def _lint_imports(cwd: Path) -> subprocess.CompletedProcess[str]:

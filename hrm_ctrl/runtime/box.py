@@ -5,7 +5,10 @@
 names, or the in-process simulated box: :class:`~hrm_ctrl.runtime.simulated.SimulatedBox`
 to start one for this block, :class:`~hrm_ctrl.runtime.simulated.RunningSim` for one that
 outlives it), with its :class:`~drivers.session.DriveSession` (CAN logs, run record) and
-its feedback watches (:mod:`hrm_ctrl.runtime.watches`), and brings the drives up.
+its feedback watches (:mod:`hrm_ctrl.runtime.watches`), and brings the drives up.  Before
+anything opens, every drive's device file is checked against what hrm needs
+(:func:`drivers.device_check.check_box`, as ``hrm box check``): a refusal is one line, and
+nothing is opened or sent.
 
 A box in its own process (``hrm sim --control``) is either started for the block
 (:class:`~hrm_ctrl.runtime.process_box.ProcessBox`; the session's threads then keep off its
@@ -122,12 +125,15 @@ def open_box(
     up and the watches running when the block starts; with False the caller calls
     :meth:`OpenBox.bring_up` (after opening what must be refused before anything is sent,
     e.g. a sensor's port)."""
+    from drivers.device_check import check_box
     from drivers.interrupts import deferred_interrupts
     from drivers.realtime import process_settings
     from drivers.safety.watches import FeedbackWatches
     from drivers.session import DriveSession
     from hrm_ctrl.runtime.watches import feedback_watches
 
+    # every drive's device file offers what hrm needs (hrm box check), before anything opens
+    check_box(config).raise_if_refused()
     with contextlib.ExitStack() as stack:
         simbox: SimBox | BoxProcess | None = None
         listen_s = options.listen_s

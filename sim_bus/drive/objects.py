@@ -24,6 +24,7 @@ from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
 from drivers import eds_path
 from drivers.protocol import cia301
+from drivers.protocol.cia306 import canopen_dictionary, read_device_file
 
 Key = tuple[int, int]
 Value = int | str | bytes
@@ -45,7 +46,8 @@ class SdoAbort(Exception):  # noqa: N818 (an SDO abort answer, not a stack error
 
 @functools.lru_cache(maxsize=8)
 def _load_od(path: str) -> canopen.ObjectDictionary:
-    return canopen.import_od(path)
+    """The device file read by the drivers' one reader (:mod:`drivers.protocol.cia306`)."""
+    return canopen_dictionary(read_device_file(path))
 
 
 def object_table(path: str | Path | None = None) -> dict[Key, ODVariable]:

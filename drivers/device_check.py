@@ -1,0 +1,489 @@
+"""What each drive's device file allows against what hrm needs, checked before any bus opens.
+
+hrm drives every rope motor in cyclic synchronous position mode with one RPDO
+(controlword, target position) and one TPDO (statusword, position actual value), both on
+SYNC, and its bring-up (:func:`drivers.bringup.configure_drive`) writes the heartbeats,
+the PDO mappings, the software limits, the interpolation period, the following-error
+window and the quick-stop option code.  A drive whose device file (CiA 306, read by
+:mod:`drivers.protocol.cia306`; named per drive in ``box.toml``'s ``[drives]`` table) does
+not offer one of these is refused with one line naming the rope motor, the file and the
+object, e.g. ``j03r1: 605.3150.68-B-EK-2-60.eds: no cyclic synchronous position mode
+(0x6502 = 0x25: PP, PV, HM)``.  What it needs (:data:`NEEDS` lists it for the docs):
+
+- CSP: bit 7 of 0x6502 (supported drive modes); 0x6060 writable, 0x6061 readable;
+- 0x60C2 (interpolation time period) settable to the SYNC period within its limits;
+- a heartbeat consumer 0x1016 (sub-index 1 writable) and producer 0x1017: the drive
+  watches the host's heartbeat, the host the drive's (node guarding, 0x100C/0x100D,
+  is named when a drive offers only that: hrm's bring-up does not guard nodes);
+- RPDO1 and TPDO1 (0x1400/0x1600, 0x1800/0x1A00) with writable COB-ID, transmission type
+  and two mapping entries, the four objects PDO-mappable;
+- writable software position limits 0x607D, following-error window 0x6065, quick-stop
+  option code 0x605A, quick-stop deceleration 0x6085 and max profile velocity 0x607F;
+- positions in encoder increments: 0x60A8 (SI unit position), where the file has it,
+  must say increments (hrm sends counts).
+
+>>> from drivers.config import load_box_config
+>>> report = check_box(load_box_config(None))
+>>> report.refused, len(report.nodes)
+(False, 36)
+>>> print(report.lines()[0].replace("; ", ";\\n"))
+j01r0: hrm_drive.eds: ok: RPDO1 = 0x6040, 0x607A;
+TPDO1 = 0x6041, 0x6064 on SYNC (type 1);
+0x60C2 = 10 x 10^-3 s;
+heartbeat consumer 0x1016
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from drivers.protocol import cia301, cia402
+from drivers.protocol.cia306 import DeviceFile, ODEntry, read_device_file
+from drivers.protocol.pdo import PdoLayout
+from hrm_ctrl.errors import DriverError
+
+if TYPE_CHECKING:
+    from drivers.config import BoxConfig
+
+
+class DeviceCheckError(DriverError):
+    """Some drive's device file does not offer what hrm needs (the first refusal, and how
+    many there are: ``hrm box check`` lists them all)."""
+
+
+#: 0x6502 bit -> mode (CiA 402: bit n is mode n+1; bit 4 is reserved)
+MODE_BITS: Mapping[int, str] = {
+    0: "PP", 1: "VL", 2: "PV", 3: "TQ", 5: "HM", 6: "IP", 7: "CSP", 8: "CSV", 9: "CST",
+}  # fmt: skip
+CSP_BIT = cia402.MODE_CSP - 1
+
+#: 0x60A8 SI unit codes (byte 2) the check names; 0xB5: increments, what hrm sends
+SI_UNITS: Mapping[int, str] = {
+    0x00: "none", 0x01: "m", 0x10: "rad", 0x41: "degree", 0xB4: "revolution",
+    0xB5: "increments",
+}  # fmt: skip
+SI_INCREMENTS = 0xB5
+OD_SI_UNIT_POSITION = 0x60A8
+OD_QUICK_STOP_DECELERATION = 0x6085
+OD_MAX_PROFILE_VELOCITY = 0x607F
+OD_GUARD_TIME = 0x100C
+OD_LIFE_TIME_FACTOR = 0x100D
+
+#: What hrm needs from a drive, for the docs' table: (object, what for)
+NEEDS: tuple[tuple[str, str], ...] = (
+    ("0x6502 bit 7", "cyclic synchronous position mode (CSP)"),
+    ("0x6060 / 0x6061", "mode of operation written, its display read"),
+    ("0x60C2", "interpolation time period set to the SYNC period"),
+    ("0x1016 sub 1, 0x1017", "heartbeat consumer (the host's) and producer"),
+    ("0x1400/0x1600, 0x1800/0x1A00", "RPDO1 and TPDO1, 2 entries each, on SYNC"),
+    ("0x6040, 0x607A / 0x6041, 0x6064", "PDO-mappable (RPDO / TPDO)"),
+    ("0x607D", "software position limits, writable"),
+    ("0x6065", "following-error window, writable"),
+    ("0x605A", "quick-stop option code, writable"),
+    ("0x6085", "quick-stop deceleration, writable"),
+    ("0x607F", "max profile velocity, writable"),
+    ("0x60A8", "position unit: increments (where the file has it)"),
+)
+
+_NAMES = {
+    cia402.OD_MODES_OF_OPERATION: "modes of operation",
+    cia402.OD_MODES_OF_OPERATION_DISPLAY: "modes of operation display",
+    cia402.OD_SOFTWARE_POSITION_LIMIT: "software position limit",
+    cia402.OD_FOLLOWING_ERROR_WINDOW: "following error window",
+    cia402.OD_QUICK_STOP_OPTION_CODE: "quick stop option code",
+    OD_QUICK_STOP_DECELERATION: "quick stop deceleration",
+    OD_MAX_PROFILE_VELOCITY: "max profile velocity",
+    cia301.OD_PRODUCER_HEARTBEAT_TIME: "producer heartbeat time",
+    cia402.OD_CONTROLWORD: "controlword",
+    cia402.OD_TARGET_POSITION: "target position",
+    cia402.OD_STATUSWORD: "statusword",
+    cia402.OD_POSITION_ACTUAL_VALUE: "position actual value",
+}
+
+
+def modes_text(modes: int) -> str:
+    """The modes a 0x6502 value declares.
+
+    >>> modes_text(0x25), modes_text(0x3A5)
+    ('PP, PV, HM', 'PP, PV, HM, CSP, CSV, CST')
+    """
+    names = [name for bit, name in MODE_BITS.items() if modes >> bit & 1]
+    return ", ".join(names) if names else "none"
+
+
+def unit_text(value: int) -> str:
+    """A 0x60A8 value as prefix and unit.
+
+    >>> unit_text(0xFF410000), unit_text(0x00B50000)
+    ('10^-1 degree', 'increments')
+    """
+    prefix = (value >> 24) & 0xFF
+    exponent = prefix - 256 if prefix > 127 else prefix
+    unit = SI_UNITS.get((value >> 16) & 0xFF, f"unit 0x{(value >> 16) & 0xFF:02X}")
+    return unit if exponent == 0 else f"10^{exponent} {unit}"
+
+
+@dataclass(frozen=True)
+class PdoUse:
+    """A PDO hrm uses on a drive: its name, communication and mapping objects, the
+    objects it maps and its transmission type."""
+
+    name: str
+    communication: int
+    mapping: int
+    layout: PdoLayout
+    transmission_type: int = cia301.PDO_TRANSMISSION_SYNCHRONOUS
+
+    def text(self) -> str:
+        """``RPDO1 = 0x6040, 0x607A``: the PDO and the objects it maps."""
+        return f"{self.name} = {', '.join(f'0x{e.index:04X}' for e in self.layout.entries)}"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "communication": f"0x{self.communication:04X}",
+            "mapping": f"0x{self.mapping:04X}",
+            "entries": [f"0x{v:08X}" for v in self.layout.mapping],
+            "transmission_type": self.transmission_type,
+        }
+
+
+#: The cyclic layout hrm uses on every drive (drivers.bringup.configure_drive)
+RPDO_USE = PdoUse(
+    "RPDO1", cia301.OD_RPDO1_COMMUNICATION, cia301.OD_RPDO1_MAPPING, cia402.RPDO_TARGET
+)
+TPDO_USE = PdoUse(
+    "TPDO1", cia301.OD_TPDO1_COMMUNICATION, cia301.OD_TPDO1_MAPPING, cia402.TPDO_FEEDBACK
+)
+
+
+@dataclass(frozen=True)
+class DeviceVerdict:
+    """What one device file allows against what hrm needs, at one SYNC period
+    (independent of the node): the refusals (each a phrase naming the object), the PDO
+    layout hrm will use, the 0x60C2 value it will write, and what else the file says."""
+
+    refusals: tuple[str, ...]
+    pdos: tuple[PdoUse, ...]
+    interpolation: tuple[int, int] | None
+    heartbeat: str
+    facts: Mapping[str, Any] = field(default_factory=dict)
+
+    def ok_text(self) -> str:
+        pdos = "; ".join(p.text() for p in self.pdos)
+        period = (
+            ""
+            if self.interpolation is None
+            else (f"; 0x60C2 = {self.interpolation[0]} x 10^{self.interpolation[1]} s")
+        )
+        return f"{pdos} on SYNC (type 1){period}; {self.heartbeat}"
+
+
+def _hex(value: Any) -> str:
+    return f"0x{value:X}" if isinstance(value, int) and value >= 0 else str(value)
+
+
+def _writable_problem(f: DeviceFile, index: int, sub: int = 0) -> str | None:
+    """Why hrm cannot write (index, sub) on this drive, or None."""
+    name = _NAMES.get(index, "")
+    label = f"0x{index:04X}" + (f"sub{sub}" if sub else "") + (f" ({name})" if name else "")
+    e = f.entry(index, sub)
+    if e is None:
+        return f"no {label}"
+    if not e.access.writable:
+        return f"{label} is not writable (AccessType={e.access.value})"
+    return None
+
+
+def _mode_problems(f: DeviceFile) -> list[str]:
+    out = []
+    modes = f.value(cia402.OD_SUPPORTED_DRIVE_MODES)
+    if f.entry(cia402.OD_SUPPORTED_DRIVE_MODES) is None:
+        out.append(
+            "no 0x6502 (supported drive modes): cyclic synchronous position mode not declared"
+        )
+    elif not isinstance(modes, int):
+        out.append(
+            "0x6502 (supported drive modes) has no value in the file: cyclic synchronous "
+            "position mode not declared"
+        )
+    elif not modes >> CSP_BIT & 1:
+        out.append(
+            f"no cyclic synchronous position mode (0x6502 = 0x{modes:X}: {modes_text(modes)})"
+        )
+    for problem in (
+        _writable_problem(f, cia402.OD_MODES_OF_OPERATION),
+        None
+        if f.entry(cia402.OD_MODES_OF_OPERATION_DISPLAY) is not None
+        else "no 0x6061 (modes of operation display)",
+    ):
+        if problem:
+            out.append(problem)
+    return out
+
+
+def _limits(e: ODEntry) -> tuple[int, int]:
+    lo, hi = e.data_type.int_range() if e.data_type.is_integer else (0, 0)
+    if isinstance(e.low, int):
+        lo = max(lo, e.low)
+    if isinstance(e.high, int):
+        hi = min(hi, e.high)
+    return lo, hi
+
+
+def interpolation_setting(f: DeviceFile, period_s: float) -> tuple[int, int] | str:
+    """(value, index) the drive's 0x60C2 takes for ``period_s`` within its limits (hrm's
+    own encoding first, :func:`cia402.interpolation_time_period`), or why none fits."""
+    e1, e2 = f.entry(cia402.OD_INTERPOLATION_TIME_PERIOD, 1), f.entry(0x60C2, 2)
+    if e1 is None or e2 is None:
+        return "no 0x60C2 (interpolation time period): the SYNC period cannot be set"
+    ms = period_s * 1e3
+    if not e1.access.writable:
+        return (
+            "0x60C2sub1 (interpolation time period value) is not writable "
+            f"(AccessType={e1.access.value})"
+        )
+    lo1, hi1 = _limits(e1)
+    if e2.access.writable:
+        lo2, hi2 = _limits(e2)
+        indices = [i for i in (-3, -4, -5, -6, -2, -1, 0) if lo2 <= i <= hi2]
+    else:
+        fixed = e2.value
+        indices = [fixed] if isinstance(fixed, int) else []
+    for index in indices:
+        value = period_s / 10.0**index
+        rounded = round(value)
+        if lo1 <= rounded <= hi1 and abs(value - rounded) <= 1e-9 * max(1.0, value):
+            return int(rounded), index
+    allowed = ", ".join(f"10^{i}" for i in indices) or "none"
+    return (
+        f"0x60C2 (interpolation time period) cannot be set to the SYNC period {ms:g} ms "
+        f"(value {lo1}..{hi1}, index {allowed})"
+    )
+
+
+def _heartbeat(f: DeviceFile) -> tuple[str, list[str]]:
+    """(how the drive watches the host, problems)."""
+    problems = []
+    consumer = f.entry(cia301.OD_CONSUMER_HEARTBEAT_TIME, 1)
+    guarding = f.entry(OD_GUARD_TIME) is not None and f.entry(OD_LIFE_TIME_FACTOR) is not None
+    if consumer is not None and consumer.access.writable:
+        how = "heartbeat consumer 0x1016"
+    elif consumer is not None:
+        how = "none"
+        problems.append(
+            "0x1016sub1 (consumer heartbeat time) is not writable "
+            f"(AccessType={consumer.access.value})"
+        )
+    elif guarding:
+        how = "node guarding 0x100C/0x100D"
+        problems.append(
+            "no heartbeat consumer 0x1016 (node guarding 0x100C/0x100D only: hrm's bring-up "
+            "watches the host by heartbeat)"
+        )
+    else:
+        how = "none"
+        problems.append("no heartbeat consumer 0x1016 nor node guarding 0x100C/0x100D")
+    producer = _writable_problem(f, cia301.OD_PRODUCER_HEARTBEAT_TIME)
+    if producer:
+        problems.append(producer)
+    return how, problems
+
+
+def _pdo_problems(f: DeviceFile, use: PdoUse, count: int) -> list[str]:
+    out = []
+    kind = use.name[:4]
+    n_available = sum(1 for i in f.objects if use.communication <= i < use.communication + 0x200)
+    if f.entry(use.communication, 1) is None or use.mapping not in f.objects:
+        return [
+            f"no {use.name} (0x{use.communication:04X}/0x{use.mapping:04X}): "
+            f"{kind}s in the file: {n_available}"
+        ]
+    for sub, what in ((1, "COB-ID"), (2, "transmission type")):
+        e = f.entry(use.communication, sub)
+        if e is None or not e.access.writable:
+            shown = "absent" if e is None else f"AccessType={e.access.value}"
+            out.append(
+                f"0x{use.communication:04X}sub{sub} ({use.name} {what}) is not writable ({shown})"
+            )
+    sub0 = f.entry(use.mapping, 0)
+    if sub0 is None or not sub0.access.writable:
+        out.append(
+            f"0x{use.mapping:04X}sub0 ({use.name} number of mapped objects) is not "
+            "writable: the mapping is fixed"
+        )
+    slots = [s for s, e in f.objects[use.mapping].entries.items() if s >= 1 and e.access.writable]
+    if sub0 is not None and isinstance(sub0.high, int):
+        slots = [s for s in slots if s <= sub0.high]
+    if len(slots) < count:
+        out.append(
+            f"0x{use.mapping:04X} ({use.name} mapping) has {len(slots)} writable entries, "
+            f"hrm maps {count}"
+        )
+    for entry in use.layout.entries:
+        e = f.entry(entry.index, entry.subindex)
+        name = _NAMES.get(entry.index, entry.label)
+        if e is None:
+            out.append(f"no 0x{entry.index:04X} ({name})")
+        elif not e.pdo_mappable:
+            out.append(f"0x{entry.index:04X} ({name}) is not PDO-mappable (PDOMapping=0)")
+        elif e.data_type.bits != entry.size * 8:
+            out.append(
+                f"0x{entry.index:04X} ({name}) is {e.data_type.name}, hrm maps "
+                f"{entry.size * 8} bits"
+            )
+    return out
+
+
+def _unit_problem(f: DeviceFile) -> str | None:
+    e = f.entry(OD_SI_UNIT_POSITION)
+    value = f.value(OD_SI_UNIT_POSITION)
+    if e is None or not isinstance(value, int) or value == 0:
+        return None
+    if (value >> 16) & 0xFF == SI_INCREMENTS and (value >> 24) & 0xFF == 0:
+        return None
+    settable = (
+        "writable, but box.toml has no SDO overlay yet" if e.access.writable else "not writable"
+    )
+    return (
+        f"position unit 0x60A8 = 0x{value:08X} ({unit_text(value)}), not increments: hrm sends "
+        f"encoder counts ({settable})"
+    )
+
+
+def check_device(f: DeviceFile, period_s: float) -> DeviceVerdict:
+    """What device file ``f`` allows against what hrm needs at SYNC period ``period_s``."""
+    refusals: list[str] = _mode_problems(f)
+    setting = interpolation_setting(f, period_s)
+    if isinstance(setting, str):
+        refusals.append(setting)
+    how, problems = _heartbeat(f)
+    refusals += problems
+    refusals += _pdo_problems(f, RPDO_USE, len(cia402.RPDO_TARGET.entries))
+    refusals += _pdo_problems(f, TPDO_USE, len(cia402.TPDO_FEEDBACK.entries))
+    for index, sub in (
+        (cia402.OD_SOFTWARE_POSITION_LIMIT, 1),
+        (cia402.OD_SOFTWARE_POSITION_LIMIT, 2),
+        (cia402.OD_FOLLOWING_ERROR_WINDOW, 0),
+        (cia402.OD_QUICK_STOP_OPTION_CODE, 0),
+        (OD_QUICK_STOP_DECELERATION, 0),
+        (OD_MAX_PROFILE_VELOCITY, 0),
+    ):
+        problem = _writable_problem(f, index, sub)
+        if problem:
+            refusals.append(problem)
+    unit = _unit_problem(f)
+    if unit:
+        refusals.append(unit)
+    modes = f.value(cia402.OD_SUPPORTED_DRIVE_MODES)
+    unit_value = f.value(OD_SI_UNIT_POSITION)
+    facts = {
+        "device": f"{f.device.vendor_name} {f.device.product_name}".strip(),
+        "dcf": f.is_dcf,
+        "dcf_node_id": f.node_id,  # a DCF's values are its node's (COB-IDs rewritten at bring-up)
+        "modes": modes_text(modes) if isinstance(modes, int) else None,
+        "rpdos": sum(1 for i in f.objects if 0x1400 <= i < 0x1600),
+        "tpdos": sum(1 for i in f.objects if 0x1800 <= i < 0x1A00),
+        "tpdo1_transmission_type": f.value(cia301.OD_TPDO1_COMMUNICATION, 2),
+        "interpolation_default": [f.value(0x60C2, 1), f.value(0x60C2, 2)],
+        "position_unit": unit_text(unit_value)
+        if isinstance(unit_value, int) and unit_value
+        else None,
+        "watches_host_by": how,
+        "quirks": list(f.quirks),
+    }
+    return DeviceVerdict(
+        refusals=tuple(refusals),
+        pdos=(RPDO_USE, TPDO_USE),
+        interpolation=None if isinstance(setting, str) else setting,
+        heartbeat=how,
+        facts=facts,
+    )
+
+
+@dataclass(frozen=True)
+class NodeCheck:
+    """One drive of the box: its rope motor, bus, node id, device file and verdict."""
+
+    motor: str
+    bus: str
+    node_id: int
+    path: Path
+    verdict: DeviceVerdict
+
+    @property
+    def file(self) -> str:
+        return self.path.name
+
+    def lines(self) -> list[str]:
+        """One line per refusal, or one ``ok`` line with the layout hrm will use."""
+        if not self.verdict.refusals:
+            return [f"{self.motor}: {self.file}: ok: {self.verdict.ok_text()}"]
+        return [f"{self.motor}: {self.file}: {r}" for r in self.verdict.refusals]
+
+    def to_dict(self) -> dict[str, Any]:
+        v = self.verdict
+        return {
+            "motor": self.motor,
+            "bus": self.bus,
+            "node_id": self.node_id,
+            "device_file": str(self.path),
+            "ok": not v.refusals,
+            "refusals": list(v.refusals),
+            "pdos": [p.to_dict() for p in v.pdos],
+            "interpolation_time_period": None if v.interpolation is None else list(v.interpolation),
+            "file": dict(v.facts),
+        }
+
+
+@dataclass(frozen=True)
+class BoxCheck:
+    """Every drive of a box checked (:func:`check_box`)."""
+
+    source: str
+    nodes: tuple[NodeCheck, ...]
+
+    @property
+    def refused(self) -> bool:
+        return any(n.verdict.refusals for n in self.nodes)
+
+    def lines(self) -> list[str]:
+        return [line for n in self.nodes for line in n.lines()]
+
+    def refusal_lines(self) -> list[str]:
+        return [line for n in self.nodes if n.verdict.refusals for line in n.lines()]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "config": self.source,
+            "ok": not self.refused,
+            "nodes": [n.to_dict() for n in self.nodes],
+        }
+
+    def raise_if_refused(self) -> None:
+        """:class:`DeviceCheckError` with the first refusal and the count, if any."""
+        refusals = self.refusal_lines()
+        if refusals:
+            more = (
+                f" (and {len(refusals) - 1} more: hrm box check lists them)"
+                if len(refusals) > 1
+                else ""
+            )
+            raise DeviceCheckError(f"{self.source}: {refusals[0]}{more}")
+
+
+def check_box(config: BoxConfig) -> BoxCheck:
+    """Every drive of ``config`` against its device file (each file read once);
+    :class:`drivers.protocol.cia306.DeviceFileError` on a file that cannot be read."""
+    files: dict[Path, DeviceVerdict] = {}
+    nodes = []
+    for bus in config.buses:
+        for motor, node_id in bus.nodes.items():
+            path = config.drives.device_file(motor)
+            if path not in files:
+                files[path] = check_device(read_device_file(path), config.control.period_s)
+            nodes.append(NodeCheck(motor, bus.name, node_id, path, files[path]))
+    return BoxCheck(config.source, tuple(nodes))

@@ -1,0 +1,51 @@
+"""``hrm box check``: every drive's device file against what hrm needs, before any bus opens.
+
+One line per drive: ``MOTOR: FILE: ok: ...`` with the PDO layout hrm will use, or one
+line per refusal naming the object (``j03r1: 605.3150.68-B-EK-2-60.eds: no cyclic
+synchronous position mode (0x6502 = 0x25: PP, PV, HM)``); exit status 2 when any drive is
+refused.  The check itself is :mod:`drivers.device_check`; ``hrm run`` and every command
+that opens a box run it first (:func:`hrm_ctrl.runtime.box.open_box`).
+
+>>> import argparse
+>>> p = argparse.ArgumentParser(prog="hrm box")
+>>> register(p)
+>>> args = p.parse_args(["check", "--json"])
+>>> args.action, args.json, args.config
+('check', True, None)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from hrm_ctrl.cli._common import load_box
+from hrm_ctrl.cli._options import add_bus, add_json
+
+HELP = "check every drive's device file (EDS/DCF) against what hrm needs, offline"
+
+EXIT_REFUSED = 2
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    check = actions.add_parser(
+        "check",
+        help="what each drive's device file allows against what hrm needs, and the PDO "
+        "layout hrm will use (exit 2 when a drive is refused)",
+    )
+    add_bus(check, overrides=False)  # --config
+    add_json(check, "every drive's verdict")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Exit 0 when every drive's device file offers what hrm needs, 2 otherwise."""
+    from drivers.device_check import check_box
+
+    report = check_box(load_box(args))
+    if args.json:
+        print(json.dumps(report.to_dict(), indent=1))
+    else:
+        for line in report.lines():
+            print(line)
+    return EXIT_REFUSED if report.refused else 0

@@ -1,0 +1,140 @@
+"""Each drive's device file against what hrm needs: the verdict on the six vendor files and
+ours pinned, the ``[drives]`` table of box.toml, a refusal before anything opens."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from drivers.config import BusConfigError, DrivesConfig, load_box_config
+from drivers.device_check import DeviceCheckError, check_box, interpolation_setting
+from drivers.protocol.cia306 import DeviceFileError, read_device_file
+
+VENDOR = Path(__file__).parent / "vendor_eds"
+
+OK = (
+    "ok: RPDO1 = 0x6040, 0x607A; TPDO1 = 0x6041, 0x6064 on SYNC (type 1); "
+    "0x60C2 = 10 x 10^-3 s; heartbeat consumer 0x1016"
+)
+
+#: What ``hrm box check`` says of each file at 100 Hz (the shipped box.toml's rate)
+PINNED: dict[str | None, list[str]] = {
+    None: [OK],  # hrm's own EDS
+    "epos4_50_15_can_ec90flat_gp52c_mile800_node1.dcf": [OK],
+    "C5-E-2-09.eds": [
+        "position unit 0x60A8 = 0xFF410000 (10^-1 degree), not increments: hrm sends encoder "
+        "counts (writable, but box.toml has no SDO overlay yet)"
+    ],
+    "epos2_347717.eds": [
+        "0x6502 (supported drive modes) has no value in the file: cyclic synchronous position "
+        "mode not declared",
+        "0x60C2 (interpolation time period) cannot be set to the SYNC period 10 ms "
+        "(value 1..1, index 10^-3)",
+        "no 0x605A (quick stop option code)",
+    ],
+    "605.3150.68-B-EK-2-60.eds": [
+        "no cyclic synchronous position mode (0x6502 = 0x25: PP, PV, HM)",
+        "no 0x60C2 (interpolation time period): the SYNC period cannot be set",
+        "no 0x6065 (following error window)",
+        "no 0x605A (quick stop option code)",
+    ],
+    "technosoft.eds": [
+        "no cyclic synchronous position mode (0x6502 = 0x1F0065: PP, PV, HM, IP)",
+        "no heartbeat consumer 0x1016 (node guarding 0x100C/0x100D only: hrm's bring-up "
+        "watches the host by heartbeat)",
+        "no 0x607F (max profile velocity)",
+    ],
+    "prbt_0_1.dcf": [
+        "no cyclic synchronous position mode (0x6502 = 0x43: PP, VL, IP)",
+        "no 0x605A (quick stop option code)",
+        "no 0x6085 (quick stop deceleration)",
+        "no 0x607F (max profile velocity)",
+    ],
+}
+
+
+@pytest.mark.parametrize("name", list(PINNED), ids=lambda n: n or "hrm_drive.eds")
+def test_box_check_pinned_per_device_file(name: str | None) -> None:
+    cfg = load_box_config(None)
+    drives = DrivesConfig(default_file=None if name is None else VENDOR / name)
+    report = check_box(replace(cfg, drives=drives))
+    shown = name or "hrm_drive.eds"
+    assert len(report.nodes) == 36
+    first = [line for line in report.lines() if line.startswith("j01r0: ")]
+    assert first == [f"j01r0: {shown}: {text}" for text in PINNED[name]]
+    assert report.refused == (PINNED[name] != [OK])
+    assert len(report.lines()) == 36 * len(PINNED[name])  # every node, one line each
+
+
+def test_refusal_names_node_file_and_object_and_counts_the_rest() -> None:
+    cfg = load_box_config(None)
+    drives = DrivesConfig(motor_files={"j03r1": VENDOR / "605.3150.68-B-EK-2-60.eds"})
+    report = check_box(replace(cfg, drives=drives))
+    with pytest.raises(DeviceCheckError) as info:
+        report.raise_if_refused()
+    assert str(info.value) == (
+        "<default box.toml>: j03r1: 605.3150.68-B-EK-2-60.eds: no cyclic synchronous position "
+        "mode (0x6502 = 0x25: PP, PV, HM) (and 3 more: hrm box check lists them)"
+    )
+    assert [n.motor for n in report.nodes if n.verdict.refusals] == ["j03r1"]
+
+
+def test_epos2_interpolation_period_is_1_ms_only() -> None:
+    epos2 = read_device_file(VENDOR / "epos2_347717.eds")
+    assert interpolation_setting(epos2, 0.001) == (1, -3)
+    assert isinstance(interpolation_setting(epos2, 0.01), str)
+    epos4 = read_device_file(VENDOR / "epos4_50_15_can_ec90flat_gp52c_mile800_node1.dcf")
+    assert interpolation_setting(epos4, 0.0025) == (25, -4)  # index writable
+    assert interpolation_setting(epos4, 0.2) == (20, -2)  # value 0..100: not 200 x 10^-3
+
+
+def _box(tmp_path: Path, drives: str) -> Path:
+    box = tmp_path / "box.toml"
+    box.write_text(
+        drives + '[buses.can0]\ninterface = "virtual"\nchannel = "x"\nbitrate = 1000000\n'
+        "[buses.can0.nodes]\nj01r0 = 1\nj01r1 = 2\n"
+    )
+    return box
+
+
+def test_drives_table_default_and_per_motor_relative_to_the_box_file(tmp_path: Path) -> None:
+    (tmp_path / "eds").mkdir()
+    box = _box(
+        tmp_path,
+        '[drives]\ndevice_file = "eds/a.dcf"\n[drives.j01r1]\ndevice_file = "/abs/b.eds"\n',
+    )
+    cfg = load_box_config(box)
+    assert cfg.drives.device_file("j01r0") == tmp_path / "eds" / "a.dcf"
+    assert cfg.drives.device_file("j01r1") == Path("/abs/b.eds")
+    again = cfg.with_control(rate_hz=200)  # through to_dict and back
+    assert again.drives == cfg.drives
+    assert load_box_config(None).to_dict().get("drives") is None  # the shipped box unchanged
+
+
+@pytest.mark.parametrize(
+    ("drives", "expected"),
+    [
+        ("[drives]\ndevice_file = 3\n", "drives.device_file: expected the path of an EDS or DCF"),
+        ("[drives.j09r9]\ndevice_file = 'a.eds'\n", "drives.j09r9: neither a key of [drives]"),
+        ("[drives.j01r0]\ndevice_fle = 'a.eds'\n", "drives.j01r0.device_fle: unknown key (did"),
+        ("[drives]\nj01r0 = 'a.eds'\n", "drives.j01r0: must be a table"),
+        ("drives = 1\n", "[drives] must be a table"),
+    ],
+)
+def test_bad_drives_table_one_line(tmp_path: Path, drives: str, expected: str) -> None:
+    with pytest.raises(BusConfigError) as info:
+        load_box_config(_box(tmp_path, drives))
+    assert expected in str(info.value) and "\n" not in str(info.value)
+    assert str(info.value).startswith(str(tmp_path / "box.toml"))
+
+
+def test_hostile_device_file_named_in_the_box_is_one_line(tmp_path: Path) -> None:
+    (tmp_path / "bad.eds").write_text("[6502]\nDataType=0x0099\nAccessType=ro\n")
+    cfg = load_box_config(_box(tmp_path, '[drives]\ndevice_file = "bad.eds"\n'))
+    with pytest.raises(DeviceFileError) as info:
+        check_box(cfg)
+    assert str(info.value) == f"{tmp_path / 'bad.eds'}: [6502] DataType: unknown data type 0x0099"
+    with pytest.raises(DeviceFileError, match=r"none\.eds: device file not found"):
+        check_box(load_box_config(_box(tmp_path, '[drives]\ndevice_file = "none.eds"\n')))
