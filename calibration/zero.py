@@ -76,6 +76,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from drivers.safety.causes import StopKind
+from drivers.safety.limits import jerk_limits
 from drivers.session import DriveSession, SafetyStopError
 from drivers.sources import CountsSource
 from drivers.tension_sensor import TensionSample
@@ -384,11 +385,12 @@ def move_table(
     speed_counts_per_s: np.ndarray,
     accel_counts_per_s2: np.ndarray,
     period_s: float,
+    jerk_counts_per_s3: np.ndarray | None = None,
 ) -> np.ndarray:
     """Rows (excluding ``start``, ending at ``end``) of a minimum-jerk move, ``s(tau) =
     10 tau^3 - 15 tau^4 + 6 tau^5``: peak speed ``1.875 D / T``, peak acceleration
-    ``5.774 D / T^2``, both from rest to rest, ``T`` the shortest whole number of periods
-    within every motor's speed and acceleration.
+    ``5.774 D / T^2``, peak jerk ``60 D / T^3``, all from rest to rest, ``T`` the shortest
+    whole number of periods within every motor's speed, acceleration and (if given) jerk.
 
     >>> move_table(np.array([0]), np.array([100]), np.array([1e4]), np.array([1e5]), 0.01)[
     ...     :, 0].tolist()
@@ -399,7 +401,12 @@ def move_table(
     D = np.abs(delta)
     t_v = 1.875 * D / np.asarray(speed_counts_per_s, dtype=float)
     t_a = np.sqrt(5.7735 * D / np.asarray(accel_counts_per_s2, dtype=float))
-    T = float(max(np.max(t_v), np.max(t_a), period_s))
+    t_j = (
+        np.zeros(1)
+        if jerk_counts_per_s3 is None
+        else np.cbrt(60.0 * D / np.asarray(jerk_counts_per_s3, dtype=float))
+    )
+    T = float(max(np.max(t_v), np.max(t_a), np.max(t_j), period_s))
     n = max(1, math.ceil(T / period_s - 1e-9))
     tau = np.arange(1, n + 1, dtype=np.float64)[:, None] / n
     s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau**2)
@@ -460,7 +467,11 @@ class FixtureMover:
         # the body starts on the held counts, so the source adds no lead-in of its own (a
         # lead-in goes by the pose the counts show, which the fixture does not let the arm
         # take: the ropes' counts there are what this calibration is finding out)
-        body = np.vstack([held[None, :], move_table(held, target, self.speed, self.accel, period)])
+        # the jerk: ACCEL_FRACTION of each motor's, less the four counts a period cubed
+        # that rounding may add to a third difference
+        jerk = ACCEL_FRACTION * (jerk_limits(self.actuation) - 4.0 / period**3)
+        rows = move_table(held, target, self.speed, self.accel, period, np.maximum(jerk, 1.0))
+        body = np.vstack([held[None, :], rows])
         source = CountsSource(self.actuation, body, period, name=self.name, hold_s=HOLD_S)
         try:
             self.session.stream(source)

@@ -285,6 +285,82 @@ def acceleration_text(limits: MotorLimits, i: int, acc: float) -> str:
     )
 
 
+def jerk_limits_of(limits: MotorLimits) -> np.ndarray | None:
+    """The motors' own jerk limits (counts/s^3), or None when they have none."""
+    j = limits.max_jerk_counts_per_s3
+    return None if j is None else np.asarray(j, dtype=np.float64)
+
+
+def first_too_jerky(
+    limits: MotorLimits, table: np.ndarray, period_s: float, previous: np.ndarray | None = None
+) -> tuple[int, int, float] | None:
+    """The first (row, motor, counts/s^3) whose third difference exceeds the motor's jerk
+    limit (``|r[k] - 3 r[k-1] + 3 r[k-2] - r[k-3]| / T**3``), or None.  With ``previous``
+    the table starts from rest there (``previous`` held for three periods before), so
+    its first rows are checked too; limits without jerk limits check none.
+
+    >>> class Lim:
+    ...     max_jerk_counts_per_s3 = np.array([8.0]); motor_ids = ("m0",)
+    ...     def motor_label(self, i): return self.motor_ids[i]
+    >>> first_too_jerky(Lim(), np.array([[0], [2], [4]]), 0.5, previous=np.array([0]))
+    (1, 0, 16.0)
+    >>> first_too_jerky(Lim(), np.array([[0], [1], [3]]), 0.5) is None
+    True
+    """
+    j = jerk_limits_of(limits)
+    if j is None:
+        return None
+    t = np.asarray(table, dtype=np.int64)
+    if previous is not None:
+        p = np.asarray(previous, dtype=np.int64).reshape(1, -1)
+        t = np.concatenate([p, p, p, t], axis=0)
+    if t.shape[0] < 4:
+        return None
+    jerk = np.abs(np.diff(t, n=3, axis=0)).astype(np.float64) / period_s**3
+    hard = jerk > j
+    if not hard.any():
+        return None
+    k, i = (int(v) for v in np.argwhere(hard)[0])
+    row = k if previous is not None else k + 3
+    return row, i, float(jerk[k, i])
+
+
+def jerk_text(limits: MotorLimits, i: int, jerk: float) -> str:
+    """``motor m0: jerks 5e+07 counts/s^3, more than the motor's 4.096e+07 counts/s^3``."""
+    lim = float(np.asarray(limits.max_jerk_counts_per_s3)[i])
+    return (
+        f"motor {limits.motor_label(i)}: jerks {jerk:.4g} counts/s^3, more than the "
+        f"motor's {lim:.4g} counts/s^3"
+    )
+
+
+def check_jerk(
+    limits: MotorLimits,
+    table: np.ndarray,
+    period_s: float,
+    previous: np.ndarray | None = None,
+    name_of_row: Callable[[int], str] | None = None,
+) -> None:
+    """Refuse (:class:`SetpointError`, one line naming the row and the motor) a table whose
+    third difference exceeds a motor's jerk limit (see :func:`first_too_jerky`).
+
+    >>> class Lim:
+    ...     max_jerk_counts_per_s3 = np.array([8.0]); motor_ids = ("m0",)
+    ...     def motor_label(self, i): return self.motor_ids[i]
+    >>> check_jerk(Lim(), np.array([[0], [2], [4]]), 0.5, previous=np.array([0]))
+    ... # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    drivers.safety.limits.SetpointError: cycle 1: motor m0: jerks 16 counts/s^3, more ... 8 ...
+    """
+    hit = first_too_jerky(limits, table, period_s, previous)
+    if hit is None:
+        return
+    row, i, jerk = hit
+    where = f"cycle {row}" if name_of_row is None else name_of_row(row)
+    raise SetpointError(f"{where}: {jerk_text(limits, i, jerk)}")
+
+
 # The per-cycle fast test works on counts up to this size (float64 holds every integer
 # up to 2**53 exactly, so the slow path's float arithmetic on them is exact as well).
 _FAST_EDGE = 2**52

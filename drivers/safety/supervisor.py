@@ -22,6 +22,10 @@ The quick stop's targets are a deceleration ramp, not a jump to standstill: from
 speed of the last two applied targets each motor slows down by its acceleration limit
 every period (``floor(a T**2)`` counts per period, at least one), beginning with the
 very first quick-stop RPDO, and holds once at rest (clipped to the position limits).
+That is a fault stop's ramp; a controlled stop (the operator's or a signal's: nothing
+wrong with a drive, a bus or a limit) keeps the motors' jerk too, from the speed and
+acceleration of the last three applied targets (:mod:`drivers.safety.ramps`: at most
+``A/J``, 0.05 s with the default motors, longer).
 The drives decelerate on their own in quick stop (0x605A, 0x6085); the targets they get
 meanwhile stay within every motor's speed and acceleration limit per SYNC, as the CAN log
 shows.  A stop found between deadlines goes out at once, so its first SYNC may follow the
@@ -74,8 +78,9 @@ from drivers.realtime import NORMAL_PRIORITY, process_settings
 from drivers.receive import BusPoller
 from drivers.rope_model import MotorLimits
 from drivers.safety.causes import StopCause, StopKind, unique_causes
-from drivers.safety.limits import CycleLimits, SetpointError, accel_limits
+from drivers.safety.limits import CycleLimits, SetpointError, accel_limits, jerk_limits
 from drivers.safety.monitor import NodeMonitor
+from drivers.safety.ramps import braked, eased, is_controlled_stop
 from drivers.sources import SetpointSource
 from hrm_ctrl.errors import DriverError, HrmError, interrupting_signal
 
@@ -139,6 +144,7 @@ class _Stream:
     applied: np.ndarray  # last targets a SYNC applied
     pending: np.ndarray | None  # targets whose RPDOs went out, applied at the next SYNC
     before: np.ndarray  # the targets applied one SYNC before ``applied`` (its speed)
+    earlier: np.ndarray  # the targets applied one SYNC before ``before`` (acceleration)
     t0: float  # the stream's first SYNC deadline
     g: int = 0  # grid slot of the next SYNC
     k: int = 0  # setpoint index of the pending targets
@@ -242,8 +248,16 @@ class Supervisor:
             if self._accel is None
             else np.maximum(np.floor(self._accel * self.period_s**2), 1).astype(np.int64)
         )
+        # a controlled stop's ramp keeps the jerk too (drivers.safety.ramps): the motors'
+        # speed, acceleration and jerk in whole counts per period (squared, cubed)
+        if self._stop_decel is not None:
+            T = self.period_s
+            v_max = np.asarray(limits.max_rate_counts_per_s, dtype=np.float64)
+            self._stop_speed = np.maximum(np.floor(v_max * T), 1).astype(np.int64)
+            self._stop_jerk = np.maximum(np.floor(jerk_limits(limits) * T**3), 1).astype(np.int64)
         self._ramp_pos: np.ndarray | None = None
         self._ramp_vel: np.ndarray | None = None
+        self._ramp_acc: np.ndarray | None = None  # a controlled stop's (None: a fault stop)
         self._rpdos_sent_at = -math.inf  # clock() when the last RPDO burst was handed over
         self._last_sync_at = -math.inf  # clock() when the last SYNC was handed over
         self._recent_syncs: collections.deque[float] = collections.deque(maxlen=RECENT_SYNCS)
@@ -547,6 +561,7 @@ class Supervisor:
                 applied=self.targets.copy(),
                 pending=None,
                 before=self.targets.copy(),
+                earlier=self.targets.copy(),
                 t0=t0,
                 missing0=self.monitor.missing_total,
                 cpu0=time.process_time(),
@@ -793,12 +808,11 @@ class Supervisor:
         t_sync = self.clock()
         self._recent_syncs.append(t_sync)
         stream.due_seq = self.seq
+        stream.earlier = stream.before
+        stream.before = stream.applied
         if stream.pending is not None:
-            stream.before = stream.applied
             stream.applied = stream.pending
             self.targets = stream.pending
-        else:
-            stream.before = stream.applied
         if causes:
             self._begin_stop(causes, now)
             return
@@ -863,14 +877,19 @@ class Supervisor:
         causes = unique_causes(causes)
         detected = min((x.time_s for x in causes if x.time_s > 0), default=now)
         hold = self.targets if self.targets is not None else self._fed_back_positions()
-        before = hold
+        before = earlier = hold
         stream = self._stream
         if stream is not None:
-            hold, before = stream.applied, stream.before
+            hold, before, earlier = stream.applied, stream.before, stream.earlier
         self.monitor.armed = False
         self._stop_request.clear()
         self._ramp_pos = np.asarray(hold, dtype=np.int64).copy()
         self._ramp_vel = self._ramp_pos - np.asarray(before, dtype=np.int64)
+        self._ramp_acc = None
+        if is_controlled_stop(causes) and self._stop_decel is not None:
+            self._ramp_acc = self._ramp_vel - (
+                np.asarray(before, dtype=np.int64) - np.asarray(earlier, dtype=np.int64)
+            )
         failed = self.send_controlword(cia402.CW_QUICK_STOP, self._stop_targets())
         latency = self.clock() - detected
         syncs_after = sum(t > detected for t in self._recent_syncs) if stream is not None else 0
@@ -902,25 +921,37 @@ class Supervisor:
         return np.where(mon.n_tpdo > 0, mon.position, 0).astype(np.int64)
 
     def _stop_targets(self) -> np.ndarray:
-        """The next targets of the stop ramp (module docstring): each motor's speed less
-        its deceleration, at once; held where the rope layer has no acceleration limits.
+        """The next targets of the stop ramp (module docstring): a fault stop's each
+        motor's speed less its deceleration, at once; a controlled stop's also keeping the
+        jerk (:mod:`drivers.safety.ramps`); held where the rope layer has no acceleration
+        limits.
         What the SYNC applies is what the drives hold from then on (``targets``)."""
         pos, vel = self._ramp_pos, self._ramp_vel
         if pos is None or vel is None:
             pos = self.targets if self.targets is not None else self._fed_back_positions()
             return np.asarray(pos, dtype=np.int64)
         if self._stop_decel is not None:
-            vel = np.sign(vel) * np.maximum(np.abs(vel) - self._stop_decel, 0)
+            acc = self._ramp_acc
+            if acc is None:  # a fault stop: as fast as the acceleration allows
+                nxt, vel = braked(pos, vel, self._stop_decel)
+            else:  # a controlled stop: the jerk limit kept too
+                nxt, vel, acc = eased(
+                    pos, vel, acc, self._stop_speed, self._stop_decel, self._stop_jerk
+                )
             lo = np.asarray(self.limits.counts_min, dtype=np.int64)
             hi = np.asarray(self.limits.counts_max, dtype=np.int64)
-            nxt = np.clip(pos + vel, np.minimum(lo, pos), np.maximum(hi, pos))
+            nxt = np.clip(nxt, np.minimum(lo, pos), np.maximum(hi, pos))
+            if acc is not None:
+                acc = acc - (vel - (nxt - pos))  # what the position limits took
             vel = nxt - pos
             pos = nxt
+            self._ramp_acc = acc
         else:
             vel = np.zeros_like(vel)
         self._ramp_pos, self._ramp_vel = pos, vel
         self.targets = pos
         if self._stream is not None:
+            self._stream.earlier = self._stream.before
             self._stream.before = self._stream.applied
             self._stream.applied = pos
         return pos

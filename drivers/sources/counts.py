@@ -47,11 +47,12 @@ class CountsSource(TableSource):
     >>> from hrm_ctrl.ropes.actuation import load_actuation
     >>> from hrm_ctrl.model import default_robot
     >>> act = load_actuation(default_robot())
-    >>> body = np.repeat(np.array([[0], [100], [200], [200]]), act.n_motors, axis=1)
+    >>> body = np.repeat(np.array([[0], [10], [40], [80], [110], [120], [120]]),
+    ...                  act.n_motors, axis=1)
     >>> src = CountsSource(act, body, 0.01, name="plan", hold_s=0.02)
     >>> src.start(np.zeros(act.n_motors, dtype=np.int64), 0.01)
     >>> src.n_lead_in, src.n_stop, src.n_cycles, src.table[:, 0].tolist()
-    (0, 0, 6, [0, 100, 200, 200, 200, 200])
+    (0, 0, 9, [0, 10, 40, 80, 110, 120, 120, 120, 120])
     >>> src.start(np.full(act.n_motors, -500, dtype=np.int64), 0.01)  # from elsewhere
     >>> src.n_lead_in > 0, int(src.table[src.n_lead_in - 1, 0])
     (True, 0)
@@ -101,10 +102,17 @@ class CountsSource(TableSource):
     ) -> CountsSource:
         """The source of a plan's counts (the rope layer's ``PlanSetpoints``: its counts,
         control period, row labels, and its first step's configuration for the lead-in to
-        go to).  ``kw`` as for the constructor (``hold_s``, ``info``)."""
+        go to).  ``kw`` as for the constructor (``hold_s``, ``info``); the info gets what
+        the jerk bound costs the body (``jerk_bound_cost_s``, and the body's duration
+        without it, ``duration_without_jerk_bound_s``)."""
         first = (setpoints.alpha_rad[0], setpoints.theta_rad[0])
+        info = {
+            **dict(kw.pop("info", None) or {}),
+            "duration_without_jerk_bound_s": round(float(setpoints.law_duration_s), 6),
+            "jerk_bound_cost_s": round(float(setpoints.jerk_cost_s), 6),
+        }
         return cls(limits, setpoints.counts, setpoints.period_s, name=name,
-                   label=setpoints.label, first_pose=first, **kw)  # fmt: skip
+                   label=setpoints.label, first_pose=first, info=info, **kw)  # fmt: skip
 
     def _row_name(self, row: int) -> str:
         """A row of the full table (lead-in, body, hold) as a message names it."""

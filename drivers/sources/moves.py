@@ -1,8 +1,8 @@
 """Jerk-limited moves a source makes itself (Ruckig, offline): from rest to rest in
 counts (:func:`move_table`), along a path in counts (:func:`path_move`), and the stop of
-a table that ends moving (:func:`stop_table`).  Every sampled, rounded speed and second
-difference is within the motors' limits, checked on the integers: a move that breaks
-one is planned again, slower (:func:`timed_rest_to_rest`, the one retry loop).
+a table that ends moving (:func:`stop_table`).  Every sampled, rounded speed, second
+and third difference is within the motors' limits, checked on the integers: a move that
+breaks one is planned again, slower (:func:`timed_rest_to_rest`, the one retry loop).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.safety.limits import MAX_SOURCE_DURATION_S, SetpointError
+from drivers.safety.limits import MAX_SOURCE_DURATION_S, SetpointError, check_duration
 
 MOVE_MARGIN = 0.95  # moves are planned for this share of the rounding-corrected limits
 MOVE_RETRIES = 4  # a sampled move that still breaks a limit is planned again, slower
@@ -25,17 +25,18 @@ def move_limits(
     v_cap: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Limits a move is planned for, so that its rounded samples keep the motors' limits:
-    a sampled speed is off by at most one count per period, a second difference by two.
+    a sampled speed is off by at most one count per period, a second difference by two,
+    a third difference by four.
 
-    >>> v, a, j = move_limits(np.array([200.0]), np.array([3e4]), np.array([1e6]), 0.01, None)
-    >>> v.round(1).tolist(), a.round(1).tolist(), j.tolist()
-    ([95.0], [9500.0], [950000.0])
+    >>> v, a, j = move_limits(np.array([200.0]), np.array([3e4]), np.array([1e7]), 0.01, None)
+    >>> v.round(1).tolist(), a.round(1).tolist(), j.round(1).tolist()
+    ([95.0], [9500.0], [5700000.0])
     """
     v = MOVE_MARGIN * (np.asarray(v_motor, np.float64) - 1.0 / period_s)
     if v_cap is not None:
         v = np.minimum(v, np.asarray(v_cap, np.float64))
     a = MOVE_MARGIN * (np.asarray(a_motor, np.float64) - 2.0 / period_s**2)
-    j = MOVE_MARGIN * np.asarray(j_motor, np.float64)
+    j = MOVE_MARGIN * (np.asarray(j_motor, np.float64) - 4.0 / period_s**3)
     if not ((v > 0).all() and (a > 0).all() and (j > 0).all()):
         raise SetpointError(
             f"move: speed, acceleration or jerk limits too small for whole counts at a "
@@ -73,21 +74,25 @@ def sample(trajectory: Any, n_rows: int, period_s: float, n: int) -> np.ndarray:
 
 def within(
     rows: np.ndarray, start: np.ndarray, period_s: float, v_motor: np.ndarray,
-    a_motor: np.ndarray,
+    a_motor: np.ndarray, j_motor: np.ndarray | None = None,
 ) -> bool:  # fmt: skip
-    """Rows after ``start`` (at rest), ending at rest, within the motors' speed and
-    acceleration (the sampled, rounded differences).
+    """Rows after ``start`` (at rest), ending at rest, within the motors' speed,
+    acceleration and (if given) jerk (the sampled, rounded differences).
 
     >>> within(np.array([[1], [3], [4], [4]]), np.array([0]), 1.0, np.array([2.0]),
     ...        np.array([1.0]))
     True
+    >>> within(np.array([[1], [3], [4], [4]]), np.array([0]), 1.0, np.array([2.0]),
+    ...        np.array([1.0]), np.array([1.0]))      # third differences 1 0 -3 ...
+    False
     """
-    seq = np.concatenate([start[None], start[None], rows, rows[-1:]])
+    seq = np.concatenate([start[None], start[None], start[None], rows, rows[-1:], rows[-1:]])
     d1 = np.diff(seq, axis=0)
     d2 = np.diff(d1, axis=0)
-    return bool(
-        (np.abs(d1) <= v_motor * period_s).all() and (np.abs(d2) <= a_motor * period_s**2).all()
-    )
+    ok = (np.abs(d1) <= v_motor * period_s).all() and (np.abs(d2) <= a_motor * period_s**2).all()
+    if ok and j_motor is not None:
+        ok = bool((np.abs(np.diff(d2, axis=0)) <= j_motor * period_s**3).all())
+    return bool(ok)
 
 
 def timed_rest_to_rest(
@@ -96,21 +101,21 @@ def timed_rest_to_rest(
     period_s: float,
     rows_of: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
     start: np.ndarray,
-    motor_limits: tuple[np.ndarray, np.ndarray],
+    motor_limits: tuple[np.ndarray, np.ndarray, np.ndarray],
     what: str,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A jerk-limited move of ``len(target)`` degrees of freedom from 0 at rest to
     ``target`` at rest within ``limits`` (speed, acceleration, jerk per degree of
     freedom), sampled every control period after the start; ``rows_of(samples)`` makes
     the motors' counts of the (n_rows, dof) samples (and what else goes with them).
-    Planned again, slower, while the counts leave the ``motor_limits`` (speed and
-    acceleration of each motor, from rest at ``start`` to rest at the end): returns the
-    first ``rows_of`` that keeps them.
+    Planned again, slower, while the counts leave the ``motor_limits`` (speed,
+    acceleration and jerk of each motor, from rest at ``start`` to rest at the end):
+    returns the first ``rows_of`` that keeps them.
 
     >>> lim = (np.array([50.0]), np.array([2000.0]), np.array([1e5]))
     >>> rows, s = timed_rest_to_rest(np.array([100.0]), lim, 0.01,
     ...     lambda s: (np.rint(s).astype(np.int64), s), np.array([0]),
-    ...     (np.array([200.0]), np.array([4e4])), "move")
+    ...     (np.array([200.0]), np.array([4e4]), np.array([5e6])), "move")
     >>> int(rows[-1, 0]), len(rows) > 2
     (100, True)
     """
@@ -177,8 +182,9 @@ def move_table(
         return rows, s
 
     limits = (v / scale, a / scale, j / scale)
-    rows, _s = timed_rest_to_rest(delta / scale, limits, period_s, rows_of, start, (v_m, a_m),
-                                  "move")  # fmt: skip
+    j_m = np.asarray(max_jerk_counts_per_s3, np.float64)
+    rows, _s = timed_rest_to_rest(delta / scale, limits, period_s, rows_of, start,
+                                  (v_m, a_m, j_m), "move")  # fmt: skip
     return rows
 
 
@@ -245,8 +251,9 @@ def path_move(
         rows[-1] = end
         return rows, x
 
+    j_m = np.asarray(max_jerk_counts_per_s3, np.float64)
     return timed_rest_to_rest(np.array([1.0]), (v_s, a_s, j_s), period_s, rows_of, start,
-                              (v_m, a_m), what)  # fmt: skip
+                              (v_m, a_m, j_m), what)  # fmt: skip
 
 
 def stop_table(
@@ -293,3 +300,86 @@ def stop_table(
     traj = calculate(inp, n, "stop")
     n_rows = max(1, math.ceil(float(traj.duration) / period_s - 1e-9)) + 1
     return last + np.rint(sample(traj, n_rows, period_s, n) * scale).astype(np.int64)
+
+
+SLOWED_MAX_TRIES = 40  # uniform slow-downs :func:`slowed_table` tries before it refuses
+
+
+def cubic_at(rows: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """A table's rows interpolated at fractional rows ``s`` by the Catmull-Rom cubic (the
+    rows themselves at whole ``s``; the first and last row held beyond the ends): its
+    second derivative jumps at a row by about the rows' third difference, so sampling it
+    keeps third differences near the table's, where a straight line between rows would
+    make them as large as its second differences.
+
+    >>> cubic_at(np.array([[0.0], [0.0], [10.0], [30.0]]), np.array([1.0, 1.5, 2.0]))[:, 0]
+    array([ 0.  ,  3.75, 10.  ])
+    """
+    p = np.asarray(rows, dtype=np.float64)
+    n = p.shape[0]
+    i = np.clip(np.floor(s).astype(np.int64), 0, max(n - 2, 0))
+    f = (np.asarray(s, dtype=np.float64) - i)[:, None]
+    p0, p1 = p[np.maximum(i - 1, 0)], p[i]
+    p2, p3 = p[np.minimum(i + 1, n - 1)], p[np.minimum(i + 2, n - 1)]
+    return 0.5 * (
+        2.0 * p1
+        + (p2 - p0) * f
+        + (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3) * f**2
+        + (3.0 * (p1 - p2) + p3 - p0) * f**3
+    )
+
+
+def slowed_table(
+    rows: np.ndarray,
+    period_s: float,
+    max_rate_counts_per_s: np.ndarray,
+    max_accel_counts_per_s2: np.ndarray,
+    max_jerk_counts_per_s3: np.ndarray,
+    what: str = "table",
+) -> np.ndarray:
+    """A table of counts from rest at its first row to rest at its last, played along the
+    same path at one uniform rate (rows per period, at most 1: :func:`cubic_at` between
+    rows, rounded) slow enough that every speed, second and third difference of the
+    integers, from rest to rest, is within the motors' limits: the table itself when it
+    keeps them, else slower by what the worst one exceeds (speed as the rate, acceleration
+    as its square, jerk as its cube), tried again until it keeps them; a slowed table
+    ends with its last row twice (at rest, as a table that ends is taken to be).
+
+    >>> t = np.array([[0], [0], [40], [80], [80]])  # 40 counts a cycle at once: jerky
+    >>> s = slowed_table(t, 0.01, np.full(1, 4e5), np.full(1, 2e6), np.full(1, 4e7))
+    >>> int(s[0, 0]), int(s[-1, 0]), len(s) > len(t)
+    (0, 80, True)
+    >>> slowed_table(t[:2], 0.01, np.full(1, 4e5), np.full(1, 2e6), np.full(1, 4e7)).shape
+    (2, 1)
+    """
+    table = np.asarray(rows, dtype=np.int64)
+    v_m = np.asarray(max_rate_counts_per_s, np.float64)
+    a_m = np.asarray(max_accel_counts_per_s2, np.float64)
+    j_m = np.asarray(max_jerk_counts_per_s3, np.float64)
+    n = table.shape[0]
+    if n < 2:
+        return table
+    out, rate = table, 1.0
+    for _ in range(SLOWED_MAX_TRIES):
+        seq = np.concatenate([out[:1], out[:1], out[:1], out, out[-1:], out[-1:]])
+        d1 = np.abs(np.diff(seq, axis=0))
+        d2 = np.abs(np.diff(seq, n=2, axis=0))
+        d3 = np.abs(np.diff(seq, n=3, axis=0))
+        excess = max(
+            float(np.max(d1 / (v_m * period_s))),
+            math.sqrt(float(np.max(d2 / (a_m * period_s**2)))),
+            math.cbrt(float(np.max(d3 / (j_m * period_s**3)))),
+        )
+        if excess <= 1.0:
+            return out
+        rate *= MOVE_MARGIN / excess
+        m = math.ceil((n - 1) / rate)
+        check_duration(what, m * period_s, period_s)
+        s = np.arange(m + 1, dtype=np.float64) * ((n - 1) / m)
+        out = np.rint(cubic_at(table, s)).astype(np.int64)
+        out[0], out[-1] = table[0], table[-1]
+        if not np.array_equal(out[-2], out[-1]):  # at rest at the end: its last row twice
+            out = np.concatenate([out, out[-1:]])
+    raise SetpointError(
+        f"{what}: no uniform slow-down within the motors' limits after {SLOWED_MAX_TRIES} tries"
+    )

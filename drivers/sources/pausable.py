@@ -10,13 +10,17 @@ from typing import Any
 import numpy as np
 
 from drivers.rope_model import MotorLimits
-from drivers.safety.limits import SetpointError, accel_limits
+from drivers.safety.limits import SetpointError, accel_limits, jerk_limits, jerk_limits_of
+from drivers.sources.moves import cubic_at, slowed_table
 from drivers.sources.table import TabledSource
 
 PAUSE_RAMP_S = 0.5  # a pause or a resume changes the playback rate by 1 in about this long
 MAX_PAUSE_S = 600.0  # a run paused longer in all than this is aborted (at rest: at once)
 MAX_PLAYED_ROWS = 360_000  # setpoints a pausable source keeps for a way back (1 h at 100 Hz)
 MAX_OFF_PATH_COUNTS = 2.0  # a setpoint may leave the interpolated path by this much (rounding)
+# the share of a motor's jerk a change of the playback rate's own change may take (the
+# fastest row of the table times the change of the rate per cycle, per cycle)
+JERK_RATE_SHARE = 0.5
 
 
 class PlayState(Enum):
@@ -49,6 +53,13 @@ class PausableSource:
     by at most ``period_s / ramp_s`` a cycle, by less (or not at all that cycle) where
     that would leave the path further, so a pause waits for a point of the table that
     lets it slow down.  At rate 1 on whole rows the setpoints are the inner table's rows.
+    With jerk limits, on a table fast enough to need it, the rate's own change also
+    changes by at most ``JERK_RATE_SHARE`` of the smallest jerk limit over the table's
+    largest row step a cycle (braked in time to reach its target), the path between rows
+    is a cubic (:func:`~drivers.sources.moves.cubic_at`, no kink at a row) and the rate is
+    not capped below 1 off whole rows; this eases the jerk without a window of its own
+    (at a tenth of the motors' speed every third difference keeps the limit; at 90 % of
+    their speed and acceleration it can reach about 1.5 times it).
 
     >>> from drivers.safety.subset import ActuationSubset
     >>> from drivers.sources.counts import CountsSource
@@ -156,6 +167,16 @@ class PausableSource:
         # smallest acceleration limit's second difference
         a_min = math.inf if self._a is None else float(np.min(self._a)) * period_s**2
         self._cap = 1.0 if not math.isfinite(a_min) else max(0.5, 1.0 - 6.0 / a_min)
+        # the jerk: a window of third differences, and the rate's change changing by at
+        # most _ddr a cycle (none where the table is slow enough not to need it)
+        jerk = jerk_limits_of(self.limits)
+        self._j = None if jerk is None else np.asarray(jerk, np.float64)
+        self._ddr = math.inf
+        if self._j is not None and self._table.shape[0] > 1:
+            step = float(np.max(np.abs(np.diff(self._table, axis=0))))
+            ddr = JERK_RATE_SHARE * float(np.min(self._j)) * period_s**3 / max(step, 1.0)
+            self._ddr = ddr if ddr < 2.0 * self._dr else math.inf
+        self._drate = 0.0
         self.position, self.rate, self._k, self._out = 0.0, 1.0, -1, None
         self._prev = self._before = self._actual
         self._played = [self._actual.astype(np.int32)]
@@ -211,16 +232,22 @@ class PausableSource:
     def way_back(self) -> np.ndarray:
         """The setpoints played so far, backwards (from where the arm stands, at rest, to
         where it started), with every stretch at rest shortened to two rows: the table of
-        a return along the same path within the same limits (a speed or second difference
-        reversed is the same size).  Empty when nothing was played or more than
-        :data:`MAX_PLAYED_ROWS` were (no way back kept)."""
+        a return along the same path (a speed, second or third difference reversed is the
+        same size).  Where what was played breaks a motor's jerk limit (a pause's rate
+        ramp is limited in speed and acceleration only), the way back is played slower,
+        at one uniform rate, until it keeps the motors' speed, acceleration and jerk
+        (:func:`~drivers.sources.moves.slowed_table`).  Empty when nothing was played or
+        more than :data:`MAX_PLAYED_ROWS` were (no way back kept)."""
         if not self.played_complete or len(self._played) < 2:
             return np.zeros((0, self._table.shape[1] if self._table.ndim == 2 else 0), np.int64)
         rows = np.array(self._played, dtype=np.int64)
         same = np.all(rows[1:] == rows[:-1], axis=1)
         keep = np.ones(len(rows), dtype=bool)
         keep[2:] = ~(same[1:] & same[:-1])  # a row equal to the two before it goes
-        return rows[keep][::-1].copy()
+        back = rows[keep][::-1].copy()
+        acc = accel_limits(self.limits)
+        return slowed_table(back, self._period_s, np.asarray(self.limits.max_rate_counts_per_s),
+                            acc, jerk_limits(self.limits), f"{self.name}: way back")  # fmt: skip
 
     def _candidates(self, target: float) -> tuple[int, np.ndarray]:
         """Rates to try this cycle: first choices (the rate a nominal step toward the
@@ -232,15 +259,32 @@ class PausableSource:
         r0, dr, s = self.rate, self._dr, self.position
         whole = s == math.floor(s)
         cap = self._cap
-        want = r0 + max(-dr, min(dr, target - r0))
-        up = whole and target == 1.0 and want > cap and r0 >= 1.0 - dr
+        gap = target - r0
+        eased = math.isfinite(self._ddr)
+        if eased:  # the rate's change eased, braking toward the target
+            ddr = self._ddr
+            brake = ddr * (math.sqrt(2.0 * abs(gap) / ddr + 0.25) - 0.5)  # stops in time
+            d = math.copysign(min(dr, abs(gap), brake), gap)
+            lo_d, hi_d = self._drate - ddr, self._drate + ddr
+            want = r0 + max(lo_d, min(hi_d, d))
+            # no step down to the cap and back: the window alone keeps the acceleration
+            # (a first choice it does not take falls back to the rates below); near full
+            # rate off whole rows a hair below it, so that a whole row comes (the snap)
+            cap = 1.0 if whole else 1.0 - 0.5 * ddr
+            up = whole and target == 1.0 and r0 >= 1.0 - 1.5 * ddr
+        else:
+            want = r0 + max(-dr, min(dr, gap))
+            up = whole and target == 1.0 and want > cap and r0 >= 1.0 - dr
         first = [1.0 if up else min(cap, max(0.0, want))]
         if target == 1.0 and not whole and r0 >= cap - dr:
             snap = math.ceil(s) - s
-            if r0 - dr <= snap <= min(1.0, r0 + dr):
+            if eased:
+                if lo_d <= snap - r0 <= hi_d and r0 >= 1.0 - 2.0 * ddr:
+                    first.insert(0, snap)
+            elif r0 - dr <= snap <= min(1.0, r0 + dr):
                 first.insert(0, snap)
         rest = np.concatenate([r0 + np.linspace(-w, w, 33) for w in (dr, dr / 16, dr / 256)])
-        rest = rest[(rest >= 0.0) & (rest <= cap)]
+        rest = rest[(rest >= 0.0) & (rest <= self._cap)]
         if whole and r0 == 1.0:
             rest = np.concatenate([[1.0], rest])
         return len(first), np.concatenate([np.array(first), rest])
@@ -280,6 +324,7 @@ class PausableSource:
         r = float(rates[c])
         if r == self.rate and r != target:
             self.held_cycles += 1
+        self._drate = r - self.rate
         self.rate = r
         self.position = min(end, self.position + r)
         aborting = self._abort
@@ -304,9 +349,12 @@ class PausableSource:
         s_new = np.minimum(end, self.position + rates)
         i = np.minimum(np.floor(s_new).astype(np.int64), n - 1)
         j = np.minimum(i + 1, n - 1)
-        f = (s_new - i)[:, None]
         t = self._table
-        path = t[i] + f * (t[j] - t[i]).astype(np.float64)
+        if self._j is None:  # a straight line between rows
+            f = (s_new - i)[:, None]
+            path = t[i] + f * (t[j] - t[i]).astype(np.float64)
+        else:  # a cubic: no kink at a row for a third difference to see
+            path = cubic_at(t, s_new)
         lo, hi = self._window()
         xs = np.clip(np.rint(path).astype(np.int64), lo, hi)
         over = np.max(np.abs(xs - path), axis=1) - MAX_OFF_PATH_COUNTS

@@ -11,7 +11,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from drivers.rope_model import MotorLimits
-from drivers.safety.limits import SetpointError, acceleration_text, first_too_hard
+from drivers.safety.limits import (
+    SetpointError,
+    acceleration_text,
+    first_too_hard,
+    first_too_jerky,
+    jerk_text,
+)
 from hrm_ctrl.errors import HrmError
 
 
@@ -91,10 +97,10 @@ def check_table(
     what: str,
     previous: np.ndarray | None = None,
 ) -> None:
-    """``limits.check_counts`` of a (rows, motors) table at the control period, and every
-    second difference within the motors' acceleration (from rest at ``previous`` when
-    given: the drives hold it), the first offending row named by ``name_of_row(row)``
-    (:class:`SetpointError`, one line).
+    """``limits.check_counts`` of a (rows, motors) table at the control period, every
+    second difference within the motors' acceleration and every third difference within
+    their jerk (from rest at ``previous`` when given: the drives hold it), the first
+    offending row named by ``name_of_row(row)`` (:class:`SetpointError`, one line).
 
     >>> class Lim:
     ...     counts_min = np.array([-10]); counts_max = np.array([10])
@@ -114,6 +120,12 @@ def check_table(
     except HrmError as exc:
         whole = exc
     hard = first_too_hard(limits, table, period_s, previous)
+    jerky = first_too_jerky(limits, table, period_s, previous)
+    if jerky is not None and (hard is None or jerky[0] < hard[0]):
+        hard = jerky  # the first row past a limit of the motions' derivatives
+        hard_text = jerk_text(limits, jerky[1], jerky[2])
+    elif hard is not None:
+        hard_text = acceleration_text(limits, hard[1], hard[2])
     if whole is None and hard is None:
         return
     n = table.shape[0]
@@ -130,9 +142,7 @@ def check_table(
     if r >= n:  # the checker refused for another reason: say so as it did
         raise SetpointError(f"{what}: {whole}") from None
     if r not in (first_out, first_fast) and hard is not None:
-        raise SetpointError(
-            f"{what}: {name_of_row(r)}: {acceleration_text(limits, hard[1], hard[2])}"
-        )
+        raise SetpointError(f"{what}: {name_of_row(r)}: {hard_text}")
     try:
         if r == first_out:
             limits.check_counts(table[r])

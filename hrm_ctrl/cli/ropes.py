@@ -5,10 +5,11 @@ The plan goes through the one plan -> counts path that playback (``hrm run``) us
 rope layer (exact rope lengths, stretch at the pretension, drum and encoder), the
 plan's time-parameterised trajectory at the control rate of the bus configuration
 (``--config``) with the tip at most ``--speed``, checked against the joint limits, the
-drum travel and the motors' speed and acceleration before anything is written.  The
+drum travel and the motors' speed, acceleration and jerk before anything is written.  The
 CSV lists the counts of every plan step with the time ``t_s`` the playback passes it
 (``--cycles``: every control cycle of the playback instead); the summary adds what
-playing it takes (duration, cycles, peak motor speed and acceleration).  The rope layer is the
+playing it takes (duration, cycles, peak motor speed, acceleration and jerk, and what the
+jerk bound costs: the duration without it).  The rope layer is the
 calibrated arm's: the store's active calibration for this robot description
 (``--calibrations DIR``; ``--uncalibrated``: the description's values).
 """
@@ -113,6 +114,9 @@ def format_summary(s: dict[str, Any]) -> str:
     worst_a = max(
         s["motors"], key=lambda m: m["peak_accel_counts_per_s2"] / m["accel_limit_counts_per_s2"]
     )
+    worst_j = max(
+        s["motors"], key=lambda m: m["peak_jerk_counts_per_s3"] / m["jerk_limit_counts_per_s3"]
+    )
     pb = s["playback"]
     lines.append(
         f"largest travel: {worst_t['motor']} {worst_t['largest_travel_mm']:.3f} mm at step "
@@ -127,6 +131,15 @@ def format_summary(s: dict[str, Any]) -> str:
         f"of its limit), hardest accelerating {worst_a['motor']} "
         f"{worst_a['peak_accel_counts_per_s2']:.0f} counts/s^2 "
         f"({100 * worst_a['peak_accel_counts_per_s2'] / worst_a['accel_limit_counts_per_s2']:.1f}%)"
+    )
+    without = pb["duration_without_jerk_bound_s"]
+    cost = pb["jerk_bound_cost_s"]
+    lines.append(
+        f"jerk-limited: hardest jerking {worst_j['motor']} "
+        f"{worst_j['peak_jerk_counts_per_s3']:.4g} counts/s^3 "
+        f"({100 * worst_j['peak_jerk_counts_per_s3'] / worst_j['jerk_limit_counts_per_s3']:.1f}%); "
+        f"the jerk bound costs {cost:.3f} s ({100 * cost / without if without else 0.0:.1f}% "
+        f"over {without:.3f} s without it)"
     )
     return "\n".join(lines)
 

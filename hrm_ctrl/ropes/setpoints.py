@@ -110,6 +110,8 @@ class PlanSetpoints:
     speed_mm_per_s: float
     sigma_mm: np.ndarray  # (cycles,) where each row is along the sequence of steps (mm)
     path: StepPath
+    #: the playback without the jerk bound (TOPP-RA's laws, whole periods; s)
+    law_duration_s: float = 0.0
 
     @property
     def n_cycles(self) -> int:
@@ -122,6 +124,11 @@ class PlanSetpoints:
     @property
     def duration_s(self) -> float:
         return float(self.time_s[-1])
+
+    @property
+    def jerk_cost_s(self) -> float:
+        """What the motors' jerk bound adds to the playback (s)."""
+        return self.duration_s - self.law_duration_s
 
     def step_label(self, k: int) -> str:
         """``plan step 41 (travel 205.0 mm)``."""
@@ -293,6 +300,7 @@ def plan_setpoints(
         speed_mm_per_s=float(speed_mm_per_s),
         sigma_mm=traj.sigma_mm,
         path=path,
+        law_duration_s=traj.law_duration_s,
     )
 
 
@@ -327,26 +335,43 @@ def _check_rates(
     step_time: np.ndarray,
     where: str | None,
 ) -> None:
-    """Every change from one control slot to the next within the motors' speed, and
-    every change of that speed within their acceleration, from rest and to rest (the
-    time law makes it so; this checks the integers that are sent); the first offending
-    change is named by the plan steps it moves through."""
+    """Every change from one control slot to the next within the motors' speed, every
+    change of that speed within their acceleration and every change of that within their
+    jerk, from rest and to rest (the time law makes it so; this checks the integers that
+    are sent); the first offending change is named by the plan steps it moves through."""
     c = np.concatenate([counts[:1], counts, counts[-1:]], axis=0)  # at rest before, after
     r = 0  # rows of c: the change ending at row r of c is the first offending one
+    jerk_at = -1  # the row of counts whose third difference is the first too big
     for lo in range(0, c.shape[0] - 1, _BLOCK_ROWS):
         block = c[lo : lo + _BLOCK_ROWS + 2]
         d1 = np.diff(block, axis=0).astype(np.float64)
         fast = (np.abs(d1) / period_s > act.max_rate_counts_per_s).any(axis=1)
         hard = np.zeros_like(fast)
-        hard[1:] = (np.abs(np.diff(d1, axis=0)) / period_s**2 > act.max_accel_counts_per_s2).any(
-            axis=1
-        )
+        d2 = np.diff(d1, axis=0)
+        hard[1:] = (np.abs(d2) / period_s**2 > act.max_accel_counts_per_s2).any(axis=1)
         bad = fast | hard
         if bad.any():
             r = lo + int(np.flatnonzero(bad)[0]) + 1
             break
     if r == 0:
-        return
+        jerk_at = _first_jerk(act, counts, period_s)
+        if jerk_at < 0:
+            return
+        r = jerk_at + 1
+    if jerk_at >= 0:
+        row = min(jerk_at, counts.shape[0] - 1)
+        j = int(step_of_row[max(row - 1, 0)])
+        label = _steps_label(travel, j, int(step_of_row[row]))
+        c3 = np.concatenate([counts[:1]] * 3 + [counts] + [counts[-1:]] * 3, axis=0)
+        d3 = np.abs(np.diff(c3[jerk_at : jerk_at + 4], n=3, axis=0))[0] / period_s**3
+        i = int(np.argmax(d3 / act.max_jerk_counts_per_s3))
+        raise RopeLimitError(
+            _prefixed(
+                where,
+                f"{label}: motor {act.motor_label(i)}: jerks {d3[i]:.4g} counts/s^3, more than "
+                f"the motor's {float(act.max_jerk_counts_per_s3[i]):.4g} counts/s^3",
+            )
+        )
     row = min(max(r - 1, 0), counts.shape[0] - 1)  # back to rows of counts
     prev = max(row - 1, 0)
     j = int(step_of_row[prev])
@@ -356,6 +381,23 @@ def _check_rates(
     _raise_labelled(
         where, label, act.check_counts, counts[lo : row + 1], previous=None, dt_s=period_s
     )
+
+
+def _first_jerk(act: Actuation, counts: np.ndarray, period_s: float) -> int:
+    """The first row of a rest-to-rest table (rows held three periods before and after)
+    whose third difference ``r[k] - 3 r[k-1] + 3 r[k-2] - r[k-3]`` exceeds a motor's
+    jerk limit (index into the table padded with two held rows before: clipped by the
+    caller), or -1."""
+    j_lim = np.asarray(act.max_jerk_counts_per_s3, dtype=np.float64) * period_s**3
+    n = counts.shape[0]
+    for lo in range(0, n + 3, _BLOCK_ROWS):
+        idx = np.arange(lo, min(lo + _BLOCK_ROWS + 3, n + 6))
+        block = counts[np.clip(idx - 3, 0, n - 1)].astype(np.int64)
+        d3 = np.abs(np.diff(block, n=3, axis=0))
+        bad = (d3 > j_lim).any(axis=1)
+        if bad.any():
+            return lo + int(np.flatnonzero(bad)[0])
+    return -1
 
 
 __all__ = [

@@ -59,6 +59,7 @@ True
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from collections.abc import Callable, Sequence
@@ -191,6 +192,16 @@ class Trajectory:
     leg_rows: tuple[tuple[int, int], ...]
     period_s: float
     tip_speed_mm_per_s: float
+    #: each leg's jerk window (s; 0: not jerk-limited)
+    jerk_window_s: tuple[float, ...] = ()
+    #: the legs' TOPP-RA laws, each rounded up to whole periods: the playback without the
+    #: jerk bound (before any stretch)
+    law_duration_s: float = 0.0
+
+    @property
+    def jerk_cost_s(self) -> float:
+        """What the jerk bound adds to the playback: ``duration_s - law_duration_s``."""
+        return self.duration_s - self.law_duration_s
 
     @property
     def n_rows(self) -> int:
@@ -204,15 +215,26 @@ class Trajectory:
 @dataclass(frozen=True)
 class _Leg:
     """One leg's time law: gridpoints ``s`` (local mm), the speed ``sd`` (mm/s) along
-    the path at them, and the time at which each is passed (before any stretch)."""
+    the path at them, and the time at which each is passed (before any stretch);
+    ``q1``/``q2`` (N+1, motors) the counts' first and second derivatives along the path
+    there; ``window_s`` the jerk window (the position is TOPP-RA's averaged over the
+    last ``window_s``; 0: TOPP-RA's law itself)."""
 
     s: np.ndarray
     sd: np.ndarray
     t_grid: np.ndarray  # (N+1,) unstretched time at each gridpoint
+    q1: np.ndarray
+    q2: np.ndarray
+    window_s: float = 0.0
+
+    @property
+    def law_duration_s(self) -> float:
+        """TOPP-RA's duration (without the jerk window)."""
+        return float(self.t_grid[-1])
 
     @property
     def duration_unstretched_s(self) -> float:
-        return float(self.t_grid[-1])
+        return float(self.t_grid[-1]) + self.window_s
 
 
 def finite_differences(
@@ -234,6 +256,22 @@ def finite_differences(
     d2 = np.diff(d1, axis=0)
     a = np.abs(d2).max(axis=0) / period_s**2 if d2.shape[0] else np.zeros(c.shape[1])
     return v.astype(np.float64), a.astype(np.float64)
+
+
+def finite_jerk(counts: np.ndarray, period_s: float, *, at_rest: bool = True) -> np.ndarray:
+    """Per motor, the largest jerk ``|r[k+1] - 3 r[k] + 3 r[k-1] - r[k-2]| / T**3`` of
+    an integer table (rows, motors); with ``at_rest`` the table is taken to start and end
+    at rest (its first and last rows held before and after).
+
+    >>> finite_jerk(np.array([[0], [1], [3]]), 1.0)    # 0 0 0 1 3 3 3: 1 0 -3 2
+    array([3.])
+    """
+    c = np.asarray(counts, dtype=np.int64)
+    if at_rest:
+        c = np.concatenate([c[:1], c[:1], c, c[-1:], c[-1:]], axis=0)
+    d3 = np.diff(c, n=3, axis=0)
+    j = np.abs(d3).max(axis=0) / period_s**3 if d3.shape[0] else np.zeros(c.shape[1])
+    return np.asarray(j, dtype=np.float64)
 
 
 def _float_counts(act: Actuation, angles: np.ndarray) -> np.ndarray:
@@ -296,8 +334,12 @@ def _toppra_leg(
     a_plan: np.ndarray,
     v_tip: float,
     label: str,
-) -> _Leg:
-    """TOPP-RA of one leg (rest to rest)."""
+    j_path: np.ndarray | None = None,
+) -> _Leg | None:
+    """TOPP-RA of one leg (rest to rest); with ``j_path`` (counts/s^3 per motor) the
+    speed along the path is capped where the path's own third derivative would jerk a
+    motor by more than that at it (``|d3q/ds3| sigma_dot**3 <= j_path``), and None
+    returned where that cap is nowhere below the others."""
     import toppra.algorithm as ta
     import toppra.constraint as tc
 
@@ -308,6 +350,13 @@ def _toppra_leg(
     q1, q2 = q(grid, 1), q(grid, 2)
     with np.errstate(divide="ignore"):
         sd_max = np.minimum(np.min(v_plan / np.abs(q1), axis=1), v_tip)
+        if j_path is not None:  # d3q/ds3, constant between gridpoints: the larger side's
+            mid = np.abs(q(0.5 * (grid[:-1] + grid[1:]), 3))
+            q3 = np.concatenate([mid[:1], np.maximum(mid[:-1], mid[1:]), mid[-1:]])
+            sd_jerk = np.min(np.cbrt(j_path / q3), axis=1)
+            if not (sd_jerk < sd_max).any():
+                return None
+            sd_max = np.minimum(sd_max, sd_jerk)
     xbound = np.stack([np.zeros_like(sd_max), sd_max**2], axis=1)
 
     class _SpeedBound(tc.LinearConstraint):  # type: ignore[misc]
@@ -333,7 +382,7 @@ def _toppra_leg(
     if not (vsum > 0.0).all():
         raise RopeLimitError(f"{label}: the time law stops inside the leg (TOPP-RA)")
     t_grid = np.concatenate(([0.0], np.cumsum(2.0 * h / vsum)))
-    return _Leg(grid, sd, t_grid)
+    return _Leg(grid, sd, t_grid, q1, q2)
 
 
 def _leg_label(path: StepPath, j: int) -> str:
@@ -344,9 +393,9 @@ def _leg_label(path: StepPath, j: int) -> str:
     )
 
 
-def _leg_positions(leg: _Leg, tau: np.ndarray) -> np.ndarray:
-    """Local positions (mm) at unstretched times ``tau`` (constant acceleration between
-    gridpoints: sigma_dot^2 linear in sigma)."""
+def _law_positions(leg: _Leg, tau: np.ndarray) -> np.ndarray:
+    """Local positions (mm) of TOPP-RA's law at times ``tau`` (constant acceleration
+    between gridpoints: sigma_dot^2 linear in sigma)."""
     s, sd, tg = leg.s, leg.sd, leg.t_grid
     i = np.clip(np.searchsorted(tg, tau, side="right") - 1, 0, s.shape[0] - 2)
     h = s[i + 1] - s[i]
@@ -356,8 +405,44 @@ def _leg_positions(leg: _Leg, tau: np.ndarray) -> np.ndarray:
     return np.clip(pos, s[i], s[i + 1])
 
 
+def _law_integral(leg: _Leg, tau: np.ndarray) -> np.ndarray:
+    """``int_0^tau sigma(t) dt`` (mm s) of TOPP-RA's law, at rest at 0 before ``tau = 0``
+    and at its end after its duration."""
+    s, sd, tg = leg.s, leg.sd, leg.t_grid
+    h = np.diff(s)
+    u = (sd[1:] ** 2 - sd[:-1] ** 2) / (2.0 * h)
+    dtg = np.diff(tg)
+    pieces = s[:-1] * dtg + sd[:-1] * dtg**2 / 2.0 + u * dtg**3 / 6.0
+    cum = np.concatenate(([0.0], np.cumsum(pieces)))
+    t = np.clip(tau, 0.0, tg[-1])
+    i = np.clip(np.searchsorted(tg, t, side="right") - 1, 0, s.shape[0] - 2)
+    dt = np.clip(t - tg[i], 0.0, dtg[i])
+    inner = cum[i] + s[i] * dt + sd[i] * dt**2 / 2.0 + u[i] * dt**3 / 6.0
+    return inner + s[-1] * np.clip(tau - tg[-1], 0.0, None)
+
+
+def _leg_positions(leg: _Leg, tau: np.ndarray) -> np.ndarray:
+    """Local positions (mm) at unstretched times ``tau``: TOPP-RA's law averaged over the
+    jerk window (a moving average: speed and acceleration are averages of the law's, the
+    third derivative the change of its acceleration across the window over its length)."""
+    w = leg.window_s
+    if w <= 0.0:
+        return _law_positions(leg, tau)
+    pos = (_law_integral(leg, tau) - _law_integral(leg, tau - w)) / w
+    return np.clip(pos, 0.0, leg.s[-1])
+
+
 def _leg_times(leg: _Leg, local: np.ndarray) -> np.ndarray:
     """Unstretched times at which local positions (mm) are passed."""
+    if leg.window_s > 0.0:  # the average is increasing: bisection
+        lo = np.zeros_like(local, dtype=np.float64)
+        hi = np.full_like(lo, leg.duration_unstretched_s)
+        for _ in range(64):
+            mid = 0.5 * (lo + hi)
+            below = _leg_positions(leg, mid) < local
+            lo = np.where(below, mid, lo)
+            hi = np.where(below, hi, mid)
+        return hi
     s, sd, tg = leg.s, leg.sd, leg.t_grid
     i = np.clip(np.searchsorted(s, local, side="right") - 1, 0, s.shape[0] - 2)
     ds = np.clip(local - s[i], 0.0, None)
@@ -433,6 +518,80 @@ def plan_limits(
     return v_plan, a_plan
 
 
+def plan_jerk_limits(act: Actuation, period_s: float, margin: float = DEFAULT_MARGIN) -> np.ndarray:
+    """The jerk (counts/s^3) a trajectory is planned for, so that its rounded, sampled
+    table keeps the motors' jerk limits: a third difference of rounded counts is off by at
+    most four counts (``margin * (j - 4/T**3)``).
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> from hrm_ctrl.ropes.actuation import load_actuation
+    >>> round(float(plan_jerk_limits(load_actuation(default_robot()), 0.01)[0]))
+    35112000
+    """
+    j = np.asarray(act.max_jerk_counts_per_s3, dtype=np.float64)
+    j_plan = margin * (j - 4.0 / period_s**3)
+    if not (j_plan > 0).all():
+        i = int(np.flatnonzero(~(j_plan > 0))[0])
+        raise RopeLimitError(
+            f"motor {act.motor_label(i)}: a jerk limit of {j[i]:g} counts/s^3 leaves no "
+            f"motion in whole counts at a {period_s:g} s control period (at least "
+            f"{4.0 / period_s**3:g} counts/s^3)"
+        )
+    return j_plan
+
+
+# the share of a motor's jerk the path's own third derivative may take at the speed
+# TOPP-RA plans (the rest: the time law's changes of acceleration, the jerk window's)
+JERK_PATH_SHARE = 0.8
+JERK_BINS = 20_000  # the jerk window is found on at most this many time bins of a leg
+
+
+def jerk_window(leg: _Leg, j_plan: np.ndarray, period_s: float) -> float:
+    """The shortest averaging window (s) found for a leg's TOPP-RA law so that every
+    motor's acceleration changes by at most ``j_plan * window`` within any window (its
+    jerk once averaged).  The motors' accelerations ``q' u + q'' sigma_dot**2`` at both
+    ends of every grid interval, and 0 at rest before and after, are binned in time
+    (at most :data:`JERK_BINS` bins, no finer than a quarter period); from the whole
+    leg's range, the window shrinks while the range within it allows (each window found
+    is long enough: the range within a shorter window is no larger).
+    """
+    s, sd, tg = leg.s, leg.sd, leg.t_grid
+    u = (sd[1:] ** 2 - sd[:-1] ** 2) / (2.0 * np.diff(s))
+    acc = np.concatenate(
+        [
+            leg.q1[:-1] * u[:, None] + leg.q2[:-1] * (sd[:-1] ** 2)[:, None],
+            leg.q1[1:] * u[:, None] + leg.q2[1:] * (sd[1:] ** 2)[:, None],
+        ]
+    )
+    times = np.concatenate([tg[:-1], tg[1:]])
+    duration = float(tg[-1])
+    width = max(period_s / 4.0, duration / JERK_BINS)
+    n_bins = math.ceil(duration / width) + 3
+    b = np.minimum((times / width).astype(np.int64) + 1, n_bins - 2)
+    hi = np.zeros((n_bins, acc.shape[1]))  # bins 0 and last: at rest (acceleration 0)
+    lo = np.zeros_like(hi)
+    np.maximum.at(hi, b, acc)
+    np.minimum.at(lo, b, acc)
+    filled = np.zeros(n_bins, dtype=bool)
+    filled[b] = True
+    filled[0] = filled[-1] = True
+    # empty bins lie inside a grid interval: the acceleration of their neighbours
+    idx = np.maximum.accumulate(np.where(filled, np.arange(n_bins), 0))
+    hi = np.where(filled[:, None], hi, hi[idx])
+    lo = np.where(filled[:, None], lo, lo[idx])
+    from scipy.ndimage import maximum_filter1d, minimum_filter1d
+
+    window = float(np.max((hi.max(axis=0) - lo.min(axis=0)) / j_plan))
+    for _ in range(8):
+        size = min(math.ceil(window / width) + 2, n_bins)
+        span = maximum_filter1d(hi, size, axis=0) - minimum_filter1d(lo, size, axis=0)
+        shorter = float(np.max(span / j_plan))
+        if shorter >= 0.98 * window:
+            break
+        window = shorter
+    return window
+
+
 def time_parameterise(
     act: Actuation,
     path: StepPath,
@@ -443,10 +602,11 @@ def time_parameterise(
     max_rows: int | None = None,
     label_of_leg: Any = None,
     progress: Callable[[float], None] | None = None,
+    jerk_limited: bool = True,
 ) -> Trajectory:
-    """The fastest playback of ``path`` at the control period within every motor's speed
-    and acceleration limit and the tip-speed cap, each leg from rest to rest, as int64
-    counts per control cycle (module docstring).
+    """The fastest playback of ``path`` at the control period within every motor's speed,
+    acceleration and (``jerk_limited``) jerk limit and the tip-speed cap, each leg from
+    rest to rest, as int64 counts per control cycle (module docstring).
 
     ``max_rows`` (if given) refuses, before the table is allocated, a playback of more
     rows (:class:`RopeError` saying how many).  ``label_of_leg(j)`` names leg j in
@@ -460,14 +620,26 @@ def time_parameterise(
     if not (math.isfinite(tip_speed_mm_per_s) and tip_speed_mm_per_s > 0.0):
         raise RopeError(f"tip speed must be > 0 mm/s, got {tip_speed_mm_per_s}")
     label = label_of_leg or (lambda j: _leg_label(path, j))
-    v_lim = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
-    a_lim = np.asarray(act.max_accel_counts_per_s2, dtype=np.float64)
     v_plan, a_plan = plan_limits(act, period_s, margin)
-    legs = []
+    j_plan = plan_jerk_limits(act, period_s, margin) if jerk_limited else None
+    # averaging the law keeps its speed within the cap up to float rounding: a hair below
+    v_law = tip_speed_mm_per_s * (1.0 - 1e-7) if jerk_limited else tip_speed_mm_per_s
+    # per leg, TOPP-RA's law, and (jerk-limited, where it binds) one also capped in speed
+    # by the path's own third derivative: whichever plays the leg sooner is kept
+    options: list[list[_Leg]] = []
     for j in range(len(path.legs)):
-        legs.append(_toppra_leg(act, path, j, v_plan, a_plan, tip_speed_mm_per_s, label(j)))
+        found = [_toppra_leg(act, path, j, v_plan, a_plan, v_law, label(j))]
+        if j_plan is not None:
+            j_path = JERK_PATH_SHARE * j_plan
+            found.append(_toppra_leg(act, path, j, v_plan, a_plan, v_law, label(j), j_path))
+        found_legs = [leg for leg in found if leg is not None]
+        if j_plan is not None:
+            found_legs = [dataclasses.replace(leg, window_s=jerk_window(leg, j_plan, period_s))
+                          for leg in found_legs]  # fmt: skip
+        options.append(found_legs)
         if progress is not None:
             progress((j + 1) / len(path.legs))
+    legs = [min(found, key=lambda leg: leg.duration_unstretched_s) for found in options]
     if max_rows is not None:
         rows = 1 + sum(
             max(1, math.ceil(leg.duration_unstretched_s / period_s - 1e-9)) for leg in legs
@@ -482,26 +654,53 @@ def time_parameterise(
     tables: list[np.ndarray] = []
     periods: list[int] = []
     stretches: list[float] = []
-    for j, leg in enumerate(legs):
-        stretch = 1.0
-        for _ in range(MAX_STRETCH_TRIES + 1):
-            local, counts, n_per = _sample_leg(act, path, j, leg, stretch, period_s)
-            v, a = finite_differences(counts, period_s)
-            excess = max(float(np.max(v / v_lim)), math.sqrt(float(np.max(a / a_lim))))
-            if excess <= 1.0:
-                break
-            stretch *= excess * STRETCH_EXTRA
-        else:
-            raise RopeLimitError(
-                f"{label(j)}: no sampled time law within the motors' limits after "
-                f"{MAX_STRETCH_TRIES} time stretches"
-            )
+    for j in range(len(legs)):
+        played = [_stretched_leg(act, path, j, leg, period_s, jerk_limited, label(j))
+                  for leg in options[j]]  # fmt: skip
+        best = min(range(len(played)), key=lambda i: played[i][2])
+        leg = legs[j] = options[j][best]
+        local, counts, n_per = played[best]
         sigmas.append(local + path.distance_mm[path.legs[j][0]])
         tables.append(counts)
         periods.append(n_per)
         stretches.append(n_per * period_s / leg.duration_unstretched_s)
-    return _assemble(act, path, legs, sigmas, tables, periods, stretches, period_s,
+    traj = _assemble(act, path, legs, sigmas, tables, periods, stretches, period_s,
                      tip_speed_mm_per_s)  # fmt: skip
+    # without the jerk bound: TOPP-RA's own laws (the first option of every leg)
+    law = sum(max(1, math.ceil(found[0].law_duration_s / period_s - 1e-9)) for found in options)
+    return dataclasses.replace(traj, law_duration_s=law * period_s) if options else traj
+
+
+def _stretched_leg(
+    act: Actuation,
+    path: StepPath,
+    j: int,
+    leg: _Leg,
+    period_s: float,
+    jerk_limited: bool,
+    label: str,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Leg ``j`` sampled at the control period, its time law stretched until the
+    integers keep every motor's speed, acceleration and (``jerk_limited``) jerk limit:
+    (local positions, counts, periods)."""
+    v_lim = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
+    a_lim = np.asarray(act.max_accel_counts_per_s2, dtype=np.float64)
+    j_lim = np.asarray(act.max_jerk_counts_per_s3, dtype=np.float64)
+    stretch = 1.0
+    for _ in range(MAX_STRETCH_TRIES + 1):
+        local, counts, n_per = _sample_leg(act, path, j, leg, stretch, period_s)
+        v, a = finite_differences(counts, period_s)
+        excess = max(float(np.max(v / v_lim)), math.sqrt(float(np.max(a / a_lim))))
+        if jerk_limited:
+            jerk = finite_jerk(counts, period_s)
+            excess = max(excess, float(np.max(jerk / j_lim)) ** (1.0 / 3.0))
+        if excess <= 1.0:
+            return local, counts, n_per
+        stretch *= excess * STRETCH_EXTRA
+    raise RopeLimitError(
+        f"{label}: no sampled time law within the motors' limits after "
+        f"{MAX_STRETCH_TRIES} time stretches"
+    )
 
 
 def _assemble(
@@ -539,7 +738,10 @@ def _assemble(
         step_time[first : last + 1] = t
     for arr in (counts, time_s, sigma, step_of_row, step_time):
         arr.setflags(write=False)
+    law = sum(max(1, math.ceil(leg.law_duration_s / period_s - 1e-9)) for leg in legs)
     return Trajectory(
+        jerk_window_s=tuple(leg.window_s for leg in legs),
+        law_duration_s=law * period_s,
         counts=counts,
         time_s=time_s,
         sigma_mm=sigma,
@@ -556,6 +758,9 @@ __all__ = [
     "StepPath",
     "Trajectory",
     "finite_differences",
+    "finite_jerk",
+    "jerk_window",
+    "plan_jerk_limits",
     "plan_limits",
     "step_path",
     "time_parameterise",

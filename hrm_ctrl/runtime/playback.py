@@ -70,14 +70,17 @@ def setpoints_of_plan(
 def setpoint_summary(act: Actuation, sp: PlanSetpoints) -> dict[str, Any]:
     """Largest travel and step-to-step change per motor (counts and mm of rope) over the
     plan's steps, and the playback at the control rate (duration, cycles, peak motor
-    speed and acceleration: finite differences of the counts sent, from and to rest)."""
+    speed, acceleration and jerk: finite differences of the counts sent, from and to
+    rest; and what the jerk bound costs: the duration without it)."""
     import numpy as np
 
-    from hrm_ctrl.ropes.trajectory import finite_differences
+    from hrm_ctrl.ropes.trajectory import finite_differences, finite_jerk
 
     travel, counts = sp.travel_mm, sp.step_counts
     cpm = act.motors.counts_per_mm
     rates, accels = finite_differences(sp.counts, sp.period_s)
+    jerks = finite_jerk(sp.counts, sp.period_s)
+    j_limit = np.asarray(act.max_jerk_counts_per_s3, dtype=np.float64)
     limit = np.asarray(act.max_rate_counts_per_s, dtype=np.float64)
     a_limit = np.asarray(act.max_accel_counts_per_s2, dtype=np.float64)
     rel = counts - act.motors.zero_offsets_counts
@@ -101,6 +104,8 @@ def setpoint_summary(act: Actuation, sp: PlanSetpoints) -> dict[str, Any]:
                 "rate_limit_counts_per_s": float(limit[i]),
                 "peak_accel_counts_per_s2": float(accels[i]),
                 "accel_limit_counts_per_s2": float(a_limit[i]),
+                "peak_jerk_counts_per_s3": float(jerks[i]),
+                "jerk_limit_counts_per_s3": float(j_limit[i]),
             }
         )
     return {
@@ -112,6 +117,9 @@ def setpoint_summary(act: Actuation, sp: PlanSetpoints) -> dict[str, Any]:
             "period_s": sp.period_s,
             "duration_s": round(sp.duration_s, 9),
             "cycles": sp.n_cycles,
+            # the jerk bound's cost: the playback without it (TOPP-RA alone) and the difference
+            "duration_without_jerk_bound_s": round(sp.law_duration_s, 9),
+            "jerk_bound_cost_s": round(sp.jerk_cost_s, 9),
         },
     }
 

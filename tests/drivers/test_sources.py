@@ -14,7 +14,12 @@ from hypothesis import strategies as st
 
 from drivers.config import load_box_config
 from drivers.protocol import cia402 as c
-from drivers.safety.limits import MAX_SOURCE_DURATION_S, check_acceleration, check_move
+from drivers.safety.limits import (
+    MAX_SOURCE_DURATION_S,
+    check_acceleration,
+    check_jerk,
+    check_move,
+)
 from drivers.session import DriveSession
 from drivers.sources import (
     CountsSource,
@@ -98,8 +103,9 @@ def test_counts_source_lead_in_from_elsewhere(actuation: Actuation) -> None:
 
 def test_counts_source_stops_a_body_that_ends_moving(actuation: Actuation) -> None:
     n = actuation.n_motors
-    # every joint bending from rest up to 0.6 rad/s and on (the ropes at the pretension)
-    rate = np.minimum(0.0002 * np.arange(40), 0.006)
+    # every joint bending from rest up to 0.6 rad/s and on (the ropes at the pretension),
+    # the rate eased in (a cosine ramp: within the motors' jerk too)
+    rate = 0.003 * (1.0 - np.cos(np.pi * np.minimum(np.arange(40) / 30.0, 1.0)))
     a = np.cumsum(rate)[:, None] * np.ones((1, actuation.robot.n_joints))
     body = actuation.counts_from_angles(a, np.zeros_like(a))
     src = CountsSource(actuation, body, 0.01, name="table", hold_s=0.05)
@@ -176,15 +182,15 @@ def test_jog_and_hold(actuation: Actuation) -> None:
     delta=st.lists(st.integers(-200_000, 200_000), min_size=3, max_size=3),
     v=st.floats(2_000, 500_000),
     a=st.floats(3e4, 5e7),
-    j=st.floats(1e5, 1e9),
+    j=st.floats(4.5e6, 1e9),  # at least 4 counts a period cubed: whole counts can keep it
 )
-@example(delta=[1, 0, -1], v=2_000.0, a=3e4, j=1e5)
+@example(delta=[1, 0, -1], v=2_000.0, a=3e4, j=4.5e6)
 @example(delta=[200_000, -3, 0], v=500_000.0, a=5e7, j=1e9)
 def test_moves_and_stops_respect_random_limits(
     delta: list[int], v: float, a: float, j: float
 ) -> None:
-    """Jerk-limited moves (lead-in, jog) and stops: every sampled, rounded speed and
-    second difference within the limits, from rest, ending exactly (moves) or at rest."""
+    """Jerk-limited moves (lead-in, jog) and stops: every sampled, rounded speed, second
+    and third difference within the limits, from rest, ending exactly (moves) or at rest."""
     start = np.array([5, -5, 0])
     end = start + np.array(delta)
     lim = (np.full(3, v), np.full(3, a), np.full(3, j))
@@ -196,12 +202,25 @@ def test_moves_and_stops_respect_random_limits(
     seq = np.vstack([start[None], start[None], table, table[-1:]])
     assert np.abs(np.diff(seq, axis=0)).max() <= v * 0.01
     assert np.abs(np.diff(seq, n=2, axis=0)).max() <= a * 0.01**2
+    seq = np.vstack([start[None], start[None], start[None], table, table[-1:], table[-1:]])
+    assert np.abs(np.diff(seq, n=3, axis=0)).max() <= j * 0.01**3
     moving = np.array([0, int(0.5 * v * 0.01), -int(0.3 * v * 0.01)])
     stop = stop_table(np.zeros(3, dtype=np.int64), moving, 0.01, *lim)
     seq = np.vstack([np.zeros((1, 3), dtype=np.int64), moving[None], stop])
     if stop.shape[0]:
         assert np.array_equal(stop[-1], stop[-2])  # at rest
         assert np.abs(np.diff(seq, n=2, axis=0)).max() <= a * 0.01**2
+        # at a constant speed before (the row before moving -moving): jerk-limited too
+        seq = np.vstack([-moving[None], seq])
+        assert np.abs(np.diff(seq, n=3, axis=0)).max() <= j * 0.01**3
+
+
+def test_a_jerk_limit_whole_counts_cannot_keep_is_refused() -> None:
+    """Below four counts a period cubed (4e6 counts/s^3 at 100 Hz) rounding alone breaks
+    it: refused with one line, before anything is planned."""
+    lim = (np.full(3, 4e5), np.full(3, 2e6), np.full(3, 3e6))
+    with pytest.raises(SetpointError, match=r"^move: speed, acceleration or jerk limits too"):
+        move_table(np.zeros(3, dtype=np.int64), np.array([100, 0, 0]), 0.01, *lim)
 
 
 def test_check_table_refuses_an_acceleration_naming_row_and_motor(actuation: Actuation) -> None:
@@ -216,8 +235,29 @@ def test_check_table_refuses_an_acceleration_naming_row_and_motor(actuation: Act
     assert "counts/s^2, more than the motor's 2048000 counts/s^2" in msg and "\n" not in msg
     with pytest.raises(SetpointError, match=r"^cycle 2: motor j03r1"):
         check_acceleration(actuation, table, 0.01, previous=np.zeros(n, dtype=np.int64))
-    table[2:, 7] = [100, 300, 500]  # within: 1e6 then 1e6 counts/s^2
+    table[2:, 7] = [20, 60, 120]  # within: 2e5 counts/s^2, jerk 2e7 counts/s^3
     check_table(actuation, table, 0.01, str, "plan", previous=np.zeros(n, dtype=np.int64))
+
+
+def test_check_table_refuses_a_jerk_naming_row_and_motor(actuation: Actuation) -> None:
+    """Within speed and acceleration (5e5 counts/s^2) but 5e7 counts/s^3 from rest in one
+    cycle: refused with one line naming the row and the motor, as acceleration is."""
+    n = actuation.n_motors
+    table = np.zeros((5, n), dtype=np.int64)
+    table[2:, 7] = [50, 150, 250]
+    zero = np.zeros(n, dtype=np.int64)
+    with pytest.raises(SetpointError) as info:
+        check_table(actuation, table, 0.01, lambda r: f"plan step {r}", "plan", previous=zero)
+    msg = str(info.value)
+    assert msg == (
+        "plan: plan step 2: motor j03r1 (joint 3, rope 1): jerks 5e+07 counts/s^3, more than "
+        "the motor's 4.096e+07 counts/s^3"
+    )
+    with pytest.raises(SetpointError, match=r"^cycle 2: motor j03r1 \(joint 3, rope 1\): jerks"):
+        check_jerk(actuation, table, 0.01, previous=zero)
+    check_acceleration(actuation, table, 0.01, previous=zero)  # the acceleration is within
+    table[2:, 7] = [40, 120, 240]  # 40 then 40 then 40 counts a period cubed: within
+    check_table(actuation, table, 0.01, str, "plan", previous=zero)
 
 
 def test_full_box_36_drives_short_run(actuation: Actuation, tmp_path: Path) -> None:

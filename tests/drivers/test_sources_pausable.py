@@ -1,5 +1,6 @@
 """PausableSource (drivers/sources.py): pause, resume and abort along the path, never a
-setpoint beyond a motor's speed or acceleration limit (checked as the supervisor checks)."""
+setpoint beyond a motor's speed or acceleration limit (checked as the supervisor checks);
+the jerk of a pause at a tenth of the speed, and the way back, within the jerk limit."""
 
 from __future__ import annotations
 
@@ -22,15 +23,22 @@ def act():
     return load_actuation(default_robot())
 
 
-def _bang_bang_body(act, cruise: int = 40) -> np.ndarray:
-    """Every motor accelerating and braking at (the floor of) its limit up to 90 % of its
-    speed: the hardest table for a pause, the second difference at the limit wherever it
-    is not zero."""
+def _bang_bang_body(act, cruise: int = 40, speed: float = 0.9) -> np.ndarray:
+    """Every motor accelerating and braking at (the floor of) its limit up to about
+    ``speed`` (90 %) of its speed, each change of acceleration eased in (at 80 % of the
+    jerk limit): the hardest table for a pause, the second difference at the limit
+    wherever it is not ramping or zero."""
     a = np.floor(act.max_accel_counts_per_s2 * T**2).astype(np.int64)  # counts/cycle^2
-    q = int(0.9 * act.max_rate_counts_per_s[0] * T // a[0])
+    # counts/cycle^3: 80 % of the jerk limit (room for the rounding of a slowed playback)
+    jerk = int(np.floor(0.8 * act.max_jerk_counts_per_s3.min() * T**3))
+    r = int(np.ceil(a.max() / jerk))  # cycles of a ramp of the acceleration
+    q = max(int(speed * act.max_rate_counts_per_s[0] * T // a[0]) - r, 1)
+    frac = np.concatenate([np.arange(1, r) / r, np.ones(q), np.arange(r - 1, 0, -1) / r])
     sign = np.where(np.arange(act.n_motors) % 2 == 0, 1, -1)
-    profile = [0] + [1] * q + [0] * cruise + [-1] * (2 * q) + [0] * cruise + [1] * q
-    acc = np.array(profile, dtype=np.int64)[:, None] * (a * sign)[None, :]
+    block = np.rint(frac[:, None] * a[None, :]).astype(np.int64) * sign[None, :]
+    rest = np.zeros((cruise, act.n_motors), dtype=np.int64)
+    zero = np.zeros((1, act.n_motors), dtype=np.int64)
+    acc = np.concatenate([zero, block, rest, -block, -block, rest, block])
     vel = np.cumsum(acc, axis=0)
     return np.cumsum(vel, axis=0).astype(np.int64)
 
@@ -124,21 +132,73 @@ def test_bad_ramp_refused(act):
 
 
 @settings(max_examples=10, deadline=None, suppress_health_check=FIXTURE)
-@given(abort_at=st.integers(5, 150))
-def test_way_back_is_a_table_within_the_limits_to_the_start(act, abort_at):
+@given(abort_at=st.integers(5, 150), paused_for=st.sampled_from([20, 120]))
+def test_way_back_is_a_table_within_the_limits_to_the_start(act, abort_at, paused_for):
+    """The way back after a pause, a resume and an abort: from where the arm stands to
+    where it started, within every motor's speed, acceleration and jerk (the pause's rate
+    ramp is not jerk-limited at 90 % of the motors' speed: the way back is played slower
+    then), a long stand at rest not played again."""
     body = _bang_bang_body(act)
     actual = body[0].copy()
     src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act)
-    events = {abort_at // 2: "pause", abort_at // 2 + 20: "resume", abort_at: "abort"}
+    events = {abort_at // 2: "pause", abort_at // 2 + paused_for: "resume",
+              abort_at + paused_for: "abort"}  # fmt: skip
     out = _play(src, actual, events)
     back = src.way_back()
     assert np.array_equal(back[0], out[-1]) and np.array_equal(back[-1], actual)
-    same = np.all(back[1:] == back[:-1], axis=1)
-    assert not (same[1:] & same[:-1]).any()  # no stretch at rest longer than two rows
     ret = CountsSource(act, back, T, name="return", hold_s=0.0)
-    ret.start(out[-1].copy(), T)  # checked from rest where the arm stands: no lead-in
-    assert ret.n_lead_in == 0
+    ret.start(out[-1].copy(), T)  # checked (jerk too) from rest where it stands: no lead-in
+    assert ret.n_lead_in == 0 and ret.n_stop == 0  # it ends at rest, where it started
     _check_like_supervisor(act, out[-1], ret.table)
+    seq = np.concatenate([back[:1]] * 3 + [back] + [back[-1:]] * 2)
+    assert np.all(np.abs(np.diff(seq, n=3, axis=0)) <= act.max_jerk_counts_per_s3 * T**3)
+
+
+def _eased_body(act, peak: float = 400.0, rows: int = 300) -> np.ndarray:
+    """Every motor eased up to ``peak`` counts a cycle (400: 10 % of its speed) and down
+    again (a cosine ramp over 40 cycles: within the jerk), the signs alternating."""
+    k = np.arange(rows)
+    speed = peak / 2 * (1.0 - np.cos(np.pi * np.minimum(np.minimum(k, rows - 1 - k) / 40.0, 1.0)))
+    sign = np.where(np.arange(act.n_motors) % 2 == 0, 1, -1)
+    return np.rint(np.cumsum(speed)[:, None] * sign[None, :]).astype(np.int64)
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=FIXTURE)
+@given(
+    pause_at=st.integers(1, 250),
+    paused_for=st.integers(0, 80),
+    ramp_s=st.sampled_from([0.2, 0.5]),
+)
+def test_a_pause_keeps_the_jerk_at_a_tenth_of_the_speed(act, pause_at, paused_for, ramp_s):
+    """A pause and a resume of a playback at 10 % of the motors' speed: every third
+    difference within the motors' jerk (the rate's own change eased, a cubic between
+    rows), as well as speed and acceleration."""
+    body = _eased_body(act)
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act, ramp_s=ramp_s)
+    out = _play(src, body[0].copy(), {pause_at: "pause", pause_at + paused_for: "resume"})
+    _check_like_supervisor(act, body[0], out)
+    seq = np.concatenate([body[:1]] * 3 + [out] + [out[-1:]] * 2)
+    assert np.all(np.abs(np.diff(seq, n=3, axis=0)) <= act.max_jerk_counts_per_s3 * T**3)
+    assert np.array_equal(out[-1], body[-1])
+
+
+def test_way_back_of_a_jerk_limited_playback_is_its_reverse(act):
+    """A playback within the jerk limit all along: the way back is exactly what was
+    played, backwards (without a pause; with a pause while cruising at 10 % of the
+    motors' speed, where the pause's rate ramp keeps the jerk too), a stand at rest
+    shortened to two rows."""
+    body = _bang_bang_body(act, 10)
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act)
+    out = _play(src, body[0].copy(), {})
+    np.testing.assert_array_equal(src.way_back(), np.concatenate([body[:1], out])[::-1])
+    body = _eased_body(act)
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act)
+    out = _play(src, body[0].copy(), {60: "pause", 200: "abort"})
+    played = np.concatenate([body[:1], out])
+    stood = np.all(played[1:] == played[:-1], axis=1)
+    assert src.state is PlayState.ABORTED and stood[140:199].all()  # stood still
+    keep = np.concatenate([[True, True], ~(stood[1:] & stood[:-1])])
+    np.testing.assert_array_equal(src.way_back(), played[keep][::-1])
 
 
 def test_abort_while_paused_and_resume_while_pausing(act):

@@ -57,7 +57,7 @@ def targets_per_sync(log: Path, nodes: dict[str, int]) -> tuple[np.ndarray, np.n
     return np.array(rows, dtype=np.int64), np.array(stops)
 
 
-def test_playback_within_speed_and_acceleration_in_every_cycle(
+def test_playback_within_speed_acceleration_and_jerk_in_every_cycle(
     tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:
     plan = tmp_path / "plan.json"
@@ -70,6 +70,10 @@ def test_playback_within_speed_and_acceleration_in_every_cycle(
     assert summary["completed"] is True
     record = json.loads(Path(summary["run_record"]).read_text())
     assert record["setpoints"]["lead_in_cycles"] >= 5
+    # what the jerk bound cost the plan's body, in the record: one jerk window (a few
+    # hundredths of a second) on this short plan's one leg
+    cost = record["setpoints"]["jerk_bound_cost_s"]
+    assert 0.0 < cost < 0.2 and record["setpoints"]["duration_without_jerk_bound_s"] > 0.0
     act = load_actuation(default_robot())
     config = load_box_config(None)
     checked = 0
@@ -80,12 +84,15 @@ def test_playback_within_speed_and_acceleration_in_every_cycle(
         cols = [act.motor_ids.index(m) for m in bus.nodes]
         v_max = act.max_rate_counts_per_s[cols] * T
         a_max = act.max_accel_counts_per_s2[cols] * T**2
+        j_max = act.max_jerk_counts_per_s3[cols] * T**3
         # the drives held their positions at enable (the straight arm: 0 counts), at rest
-        seq = np.vstack([np.zeros((2, len(cols)), dtype=np.int64), targets])
+        seq = np.vstack([np.zeros((3, len(cols)), dtype=np.int64), targets])
         speed = np.abs(np.diff(seq, axis=0))
         accel = np.abs(np.diff(seq, n=2, axis=0))
+        jerk = np.abs(np.diff(seq, n=3, axis=0))
         assert np.all(speed <= v_max), speed.max()
         assert np.all(accel <= a_max), (accel / a_max).max()
+        assert np.all(jerk <= j_max), (jerk / j_max).max()
         lead = record["setpoints"]["lead_in_cycles"]
         assert np.abs(targets[lead]).max() > 1000  # the lead-in moved the motors there
         checked += len(cols)

@@ -19,6 +19,8 @@ from hrm_ctrl.ropes.setpoints import plan_setpoints
 from hrm_ctrl.ropes.trajectory import (
     StepPath,
     finite_differences,
+    finite_jerk,
+    plan_jerk_limits,
     plan_limits,
     step_path,
     time_parameterise,
@@ -45,6 +47,11 @@ def assert_within(act: Actuation, counts: np.ndarray) -> None:
     d2 = np.diff(d1, axis=0)
     assert np.all(np.abs(d1) <= act.max_rate_counts_per_s * T), np.abs(d1).max()
     assert np.all(np.abs(d2) <= act.max_accel_counts_per_s2 * T**2), np.abs(d2).max()
+    # the jerk: third differences, the first and last rows held twice more
+    c3 = np.concatenate([counts[:1], counts[:1], counts[:1], counts, counts[-1:], counts[-1:],
+                         counts[-1:]]).astype(np.int64)  # fmt: skip
+    d3 = np.diff(c3, n=3, axis=0)
+    assert np.all(np.abs(d3) <= act.max_jerk_counts_per_s3 * T**3), np.abs(d3).max()
 
 
 @pytest.mark.parametrize("name", ["bent-pipe", "cabins"])
@@ -77,9 +84,12 @@ def test_scenario_with_return_within_every_limit(act: Actuation, name: str, spee
     if speed == 50.0:  # the cap binds: the duration is the path at the cap, plus the ramps
         at_cap = sp.path.length_mm / speed
         assert at_cap <= sp.duration_s <= at_cap + 0.2
-    else:  # the motors bind: one of them near its limit
-        ratio = max((v / act.max_rate_counts_per_s).max(), (a / act.max_accel_counts_per_s2).max())
-        assert 0.8 < ratio <= 1.0
+    else:  # the motors bind: one of them near its speed, acceleration or jerk limit, or
+        # the path's own third derivative caps the speed (the cabins: 59 % of the jerk)
+        j = finite_jerk(sp.counts, T)
+        ratio = max((v / act.max_rate_counts_per_s).max(), (a / act.max_accel_counts_per_s2).max(),
+                    (j / act.max_jerk_counts_per_s3).max())  # fmt: skip
+        assert 0.5 < ratio <= 1.0
 
 
 def test_rows_are_configurations_of_the_path(act: Actuation) -> None:
@@ -147,11 +157,68 @@ def test_random_limits_hold_on_the_integers(
     assert tr.sigma_mm[0] == 0.0 and tr.sigma_mm[-1] == 25.0
 
 
+@settings(
+    max_examples=20,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    v=st.floats(20_000.0, 500_000.0),
+    a=st.floats(2e5, 5e7),
+    j=st.floats(5e6, 1e9),
+    speed=st.floats(5.0, 2000.0),
+    deg=st.floats(1.0, 40.0),
+    n=st.integers(2, 9),
+)
+@example(v=409_600.0, a=2.048e6, j=5e6, speed=2000.0, deg=40.0, n=9)  # the softest jerk
+def test_random_plans_and_jerk_limits_hold_on_the_integers(
+    act: Actuation, v: float, a: float, j: float, speed: float, deg: float, n: int
+) -> None:
+    """Random plans (steps, bend) and motor limits: speed, acceleration and jerk of every
+    motor in every cycle within the limits on the integers, the tip within its cap, and
+    the jerk bound's cost what is reported."""
+    lim = dataclasses.replace(
+        with_limits(act, v, a), max_jerk_counts_per_s3=np.full(act.n_motors, j)
+    )
+    tr = time_parameterise(lim, small_path(n, deg), period_s=T, tip_speed_mm_per_s=speed)
+    assert_within(lim, tr.counts)
+    assert np.diff(tr.sigma_mm).max() <= speed * T * (1 + 1e-9)
+    assert tr.sigma_mm[0] == 0.0 and tr.sigma_mm[-1] == 5.0 * (n - 1)
+    assert tr.law_duration_s > 0.0 and tr.jerk_cost_s == tr.duration_s - tr.law_duration_s
+    assert all(w > 0.0 for w in tr.jerk_window_s)
+
+
+def test_a_plan_over_the_jerk_limit_is_refused_naming_step_and_motor(
+    act: Actuation, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The check of the integers catches a time law that breaks the jerk limit (here
+    TOPP-RA's own, without the jerk bound: 2.7 times the limit along the bent pipe): one
+    line naming the plan steps and the motor."""
+    import functools
+
+    from hrm_ctrl.ropes import setpoints
+
+    travel, alpha, theta, phase = scenario_plan("bent-pipe")
+    unbounded = functools.partial(time_parameterise, jerk_limited=False)
+    monkeypatch.setattr(setpoints, "time_parameterise", unbounded)
+    with pytest.raises(RopeLimitError) as info:
+        plan_setpoints(act, travel, alpha, theta, phase=list(phase), period_s=T,
+                       speed_mm_per_s=50.0, where="bent.json")  # fmt: skip
+    msg = str(info.value)
+    assert msg.startswith("bent.json: plan step") and "\n" not in msg
+    assert ": motor j" in msg and "counts/s^3, more than the motor's 4.096e+07 counts/s^3" in msg
+
+
 def test_limits_too_small_for_whole_counts_are_refused(act: Actuation) -> None:
     with pytest.raises(RopeLimitError, match=r"leave no motion in whole counts at a 0\.01 s"):
         plan_limits(with_limits(act, 400_000.0, 15_000.0), T)
     v, a = plan_limits(act, T)
     assert np.all(v < act.max_rate_counts_per_s) and np.all(a < act.max_accel_counts_per_s2)
+    soft = dataclasses.replace(act, max_jerk_counts_per_s3=np.full(act.n_motors, 3.9e6))
+    with pytest.raises(RopeLimitError, match=r"jerk limit of 3\.9e\+06 counts/s\^3 leaves no"):
+        plan_jerk_limits(soft, T)
+    assert np.all(plan_jerk_limits(act, T) < act.max_jerk_counts_per_s3)
 
 
 def test_one_step_is_one_row_and_too_many_rows_are_refused(act: Actuation) -> None:
