@@ -57,6 +57,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from calibration.store import Calibration, CalibrationStore, Routine, checksum
+from drivers.identity import BoxIdentity, box_problems, same_box
 from hrm_ctrl.errors import CalibrationFileError
 from hrm_ctrl.model import RobotModel
 from hrm_ctrl.ropes.motor_map import motor_map_from_table
@@ -66,7 +67,7 @@ if TYPE_CHECKING:  # the rope layer is imported where one is built (slow to impo
     from hrm_ctrl.ropes.actuation import Actuation
 
 UPDATABLE = frozenset(
-    {"links_mm", "alpha_offset_rad", "theta_offset_rad", "motor_zero_counts", "rope_EA_N"}
+    {"links_mm", "alpha_offset_rad", "theta_offset_rad", "motor_zero_counts", "rope_EA_N", "box"}
 )
 """The fields a routine may replace (:func:`updated`)."""
 
@@ -295,12 +296,13 @@ def active_for(store: CalibrationStore, model: RobotModel) -> ActiveCalibration 
 
 
 def starting_point(
-    store: CalibrationStore, model: RobotModel
+    store: CalibrationStore, model: RobotModel, box: BoxIdentity | None = None
 ) -> tuple[Calibration, ActiveCalibration | None, str | None]:
-    """What a routine's new version starts from: the active calibration for ``model``, or
+    """What a routine's new version starts from: the active calibration for ``model`` (and,
+    when ``box`` is given, made on that box: a simulated box's, known before it starts), or
     the description's values.  Returns ``(base, active, note)``: ``note`` says why the
-    description's values are used (no active version, or the active one belongs to another
-    robot description).  A damaged active file is refused."""
+    description's values are used (no active version, the active one belongs to another
+    robot description or another box).  A damaged active file is refused."""
     version = store.active()
     if version is None:
         return nominal_calibration(model), None, "no active calibration: the description's values"
@@ -314,4 +316,30 @@ def starting_point(
             "starting from this description's values",
         )
     check_belongs(model, cal, path)
+    if box is not None:
+        problems = box_problems(cal.box, box, f"{path} (active)")
+        if problems:
+            return (
+                nominal_calibration(model),
+                None,
+                f"{problems[0]}: starting from the description's values",
+            )
     return cal, ActiveCalibration(cal, version, path, file_sha256(cal, version)), None
+
+
+def for_box(
+    base: Calibration, box: BoxIdentity | None, model: RobotModel
+) -> tuple[Calibration, str | None]:
+    """What the zero routine, which measures every motor zero anew on ``box``, keeps of
+    ``base``: all of it when ``base`` was made on that box (drives replaced since or not),
+    else the description's values (a calibration of a simulated arm, or of another box,
+    or one whose box is unknown, lends none of its links, offsets or EA to this box's new
+    version); the note says why.  ``box`` None (not known): ``base``."""
+    if box is None or same_box(base.box, box):
+        return base, None
+    nominal = nominal_calibration(model)
+    lent = ("links_mm", "alpha_offset_rad", "theta_offset_rad", "rope_EA_N")
+    if all(base.content()[k] == nominal.content()[k] for k in lent):
+        return base, None  # the description's values already
+    why = box_problems(base.box, box, "the active calibration")
+    return nominal, f"{why[0]}: the new version starts from the description's values"

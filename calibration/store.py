@@ -19,10 +19,10 @@ taken for a version; :meth:`~CalibrationStore.save` removes those older than an 
 (``hrm_ctrl.files.write_atomic`` fsyncs the file but not the folder, and replaces an
 existing file, hence the writer of its own here.)
 
-The file format ``hrm-calibration/1`` (JSON, UTF-8, at most :data:`MAX_FILE_BYTES`)::
+The file format ``hrm-calibration/2`` (JSON, UTF-8, at most :data:`MAX_FILE_BYTES`)::
 
     {
-      "format": "hrm-calibration/1",
+      "format": "hrm-calibration/2",
       "version": 3,                                 # the number in the file's name
       "created_utc": "2026-12-01T21:24:33.123456+00:00",
       "routine": "kinematic",                       # zero | kinematic | stiffness | manual
@@ -33,8 +33,17 @@ The file format ``hrm-calibration/1`` (JSON, UTF-8, at most :data:`MAX_FILE_BYTE
       "motor_zero_counts": {"j01r1": -1234, ...},   # per motor id: an integer (32-bit)
       "rope_EA_N": {"j01r1": 30000.0, ...},         # per rope id: axial rigidity > 0 (N)
       "residuals": {"rms_after_mm": 0.05, ...},     # the routine's figures (numbers)
+      "box": {"simulated": false,                   # the box it was made on, or null:
+              "drives": {"j01r1": {"vendor_id": 154, "product_code": 1026,
+                                   "revision": 65536, "serial": 305419896}, ...}},
       "sha256": "<64 hex digits>"
     }
+
+``box`` names the box the calibration was made on: each drive's identity object (CiA 301
+0x1018, read at the bring-up; :mod:`drivers.identity`) per motor id, and whether the box
+was simulated; ``null`` when it is not known.  A file of the previous format
+``hrm-calibration/1`` (the same members but ``box``) is read with its box unknown; every
+file is written in the present format.
 
 ``sha256`` is the SHA-256 (lower-case hex) of the UTF-8 bytes of the canonical form of
 every other member: ``json.dumps(doc, sort_keys=True, separators=(",", ":"),
@@ -47,6 +56,13 @@ No value may be NaN or infinite.
 
 Every refusal is one :class:`~hrm_ctrl.errors.CalibrationFileError` line naming the file
 and the reason.
+
+**A store others can write is not ours.**  As ssh refuses keys others can write, the store
+refuses to read or write a folder that is writable by everyone or owned by another user,
+naming its owner and mode (:meth:`CalibrationStore.check_owned`).  **Check before you
+move.**  :meth:`CalibrationStore.check_can_save` is what a routine that drives the arm
+calls before its first move: the folder ours and writable (a file made and removed in it)
+and a version number left, so its result cannot be lost for want of a place to keep it.
 
 >>> import tempfile
 >>> store = CalibrationStore(tempfile.mkdtemp())
@@ -72,7 +88,9 @@ import hashlib
 import json
 import math
 import os
+import pwd
 import re
+import stat
 import tempfile
 import time
 from collections.abc import Iterable, Mapping
@@ -84,11 +102,13 @@ from typing import Any
 
 import numpy as np
 
+from drivers.identity import BoxIdentity
 from hrm_ctrl.errors import CalibrationFileError
 from hrm_ctrl.files import parse_json, read_text_file
 from hrm_ctrl.ropes.motor_map import POSITION_COUNTS_MAX
 
-FORMAT = "hrm-calibration/1"
+FORMAT = "hrm-calibration/2"
+FORMAT_1 = "hrm-calibration/1"  # read: no ``box`` member (box unknown)
 N_JOINTS = 12
 MAX_FILE_BYTES = 256 * 1024  # 128 motors and ropes take about 12 kB
 MAX_MOTORS = 128  # the robot has 2..8 ropes per joint: 96 at most
@@ -114,7 +134,16 @@ _KEYS = (
     "motor_zero_counts",
     "rope_EA_N",
     "residuals",
+    "box",
 )
+
+
+def _user(uid: int) -> str:
+    """``name (uid N)``, or ``uid N`` when the name is unknown."""
+    try:
+        return f"{pwd.getpwuid(uid).pw_name} (uid {uid})"
+    except KeyError:
+        return f"uid {uid}"
 
 
 class Routine(enum.Enum):
@@ -218,6 +247,7 @@ class Calibration:
     routine: Routine
     robot_sha256: str  # 64 lower-case hex digits: the robot description's
     residuals: Mapping[str, float] = field(default_factory=dict)
+    box: BoxIdentity | None = None  # the box it was made on (None: unknown)
 
     def __post_init__(self) -> None:
         self._check("calibration")
@@ -253,6 +283,8 @@ class Calibration:
             raise _fail(name, f"created_utc must be a UTC date and time, not {t!r}")
         if not isinstance(self.robot_sha256, str) or not _HEX64.fullmatch(self.robot_sha256):
             raise _fail(name, "robot_sha256 is not 64 lower-case hex digits")
+        if self.box is not None and not isinstance(self.box, BoxIdentity):
+            put(self, "box", BoxIdentity.from_dict(self.box, lambda why: _fail(name, why)))
 
     @classmethod
     def nominal(
@@ -297,6 +329,7 @@ class Calibration:
             "motor_zero_counts": dict(self.motor_zero_counts),
             "rope_EA_N": dict(self.rope_EA_N),
             "residuals": dict(self.residuals),
+            "box": None if self.box is None else self.box.to_dict(),
         }
 
     def __eq__(self, other: object) -> bool:
@@ -336,7 +369,7 @@ def from_json(text: str, name: str, version: int | None = None) -> Calibration:
         raise CalibrationFileError(f"{exc} - truncated or damaged") from None
     if not isinstance(doc, dict):
         raise _fail(name, "not a calibration file (not a JSON object)")
-    if doc.get("format") != FORMAT:
+    if doc.get("format") not in (FORMAT, FORMAT_1):
         raise _fail(name, f"format is {doc.get('format')!r}, not {FORMAT!r}")
     recorded = doc.get("sha256")
     if not isinstance(recorded, str):
@@ -348,8 +381,9 @@ def from_json(text: str, name: str, version: int | None = None) -> Calibration:
             f"checksum mismatch (edited by hand or damaged): content {actual[:12]}…, "
             f"recorded {recorded[:12]}…",
         )
-    missing = [k for k in _KEYS if k not in doc]
-    extra = sorted(doc.keys() - {*_KEYS, "sha256"})
+    keys = _KEYS if doc["format"] == FORMAT else _KEYS[:-1]  # /1: no box
+    missing = [k for k in keys if k not in doc]
+    extra = sorted(doc.keys() - {*keys, "sha256"})
     if missing or extra:
         raise _fail(name, f"members missing {missing}, unknown {extra}")
     v = doc["version"]
@@ -363,7 +397,7 @@ def from_json(text: str, name: str, version: int | None = None) -> Calibration:
         raise _fail(name, f"created_utc {doc['created_utc']!r} is not an ISO 8601 time") from None
     cal = object.__new__(Calibration)  # checked below, naming the file
     for key in _KEYS[3:]:
-        object.__setattr__(cal, key, doc[key])
+        object.__setattr__(cal, key, doc.get(key))
     object.__setattr__(cal, "created_utc", created)
     cal._check(name)
     return cal
@@ -423,8 +457,58 @@ class CalibrationStore:
             raise CalibrationFileError(f"{self.folder}: version {version} is not 1..{MAX_VERSION}")
         return self.folder / f"v{version:04d}.json"
 
+    def check_owned(self) -> None:
+        """Refuse (one line naming owner and mode) a store folder writable by everyone or
+        owned by another user; a folder not made yet passes (the store makes it, ours)."""
+        try:
+            st = os.stat(self.folder)
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            raise CalibrationFileError(f"{self.folder}: cannot read the store ({exc})") from None
+        mode = f"mode {stat.filemode(st.st_mode)} ({st.st_mode & 0o7777:04o})"
+        me = os.getuid()
+        if st.st_uid != me:
+            raise CalibrationFileError(
+                f"{self.folder}: the calibration store is owned by {_user(st.st_uid)}, not "
+                f"by {_user(me)} ({mode}): a store others can write is not used"
+            )
+        if st.st_mode & stat.S_IWOTH:
+            raise CalibrationFileError(
+                f"{self.folder}: the calibration store is writable by everyone (owner "
+                f"{_user(st.st_uid)}, {mode}): a store others can write is not used "
+                f"(chmod o-w {self.folder})"
+            )
+
+    def check_can_save(self) -> None:
+        """Everything :meth:`save` needs, checked before a routine moves the arm: the
+        folder (made if missing) ours, writable (a temporary file written and removed in
+        it) with no folder in the active pointer's place, and a version number left."""
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CalibrationFileError(f"{self.folder}: cannot create the store ({exc})") from None
+        self.check_owned()
+        self._refuse_folder_pointer()
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{ACTIVE}.", suffix=".tmp", dir=self.folder)
+            os.close(fd)
+            os.unlink(tmp)
+        except OSError as exc:
+            raise CalibrationFileError(
+                f"{self.folder}: the calibration store is not writable ({exc.strerror or exc}):"
+                " a result could not be kept"
+            ) from None
+        last = max(self.versions(), default=0)
+        if last >= MAX_VERSION:
+            raise CalibrationFileError(
+                f"{self.folder}: no version number left (v{last:04d} is the last of "
+                f"{MAX_VERSION}): a result could not be kept"
+            )
+
     def versions(self) -> list[int]:
         """The versions in the folder, oldest first (temporary files are not versions)."""
+        self.check_owned()
         try:
             names = os.listdir(self.folder)
         except FileNotFoundError:
@@ -446,6 +530,7 @@ class CalibrationStore:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise CalibrationFileError(f"{self.folder}: cannot create the store ({exc})") from None
+        self.check_owned()
         if activate:  # refused before the version is written: nothing left behind
             self._refuse_folder_pointer()
         self._remove_stale_tmp()
@@ -466,6 +551,7 @@ class CalibrationStore:
     def load(self, version: int) -> Calibration:
         """Version ``version``, checked (format, checksum, values); any robot."""
         path = self.path_of(version)
+        self.check_owned()
         text = read_text_file(
             path,
             CalibrationFileError,
@@ -538,6 +624,7 @@ class CalibrationStore:
     def _active_or_none(self) -> int | None:
         if os.path.exists(self.folder) and not os.path.isdir(self.folder):  # not "none yet"
             raise CalibrationFileError(f"{self.folder}: the calibration store is not a folder")
+        self.check_owned()
         path = self.folder / ACTIVE
         try:
             text = read_text_file(

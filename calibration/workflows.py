@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from calibration.stiffness import StiffnessResult
     from calibration.store import Calibration, CalibrationStore
     from calibration.zero import ZeroResult
+    from drivers.identity import BoxIdentity
     from drivers.session import CalibrationRef, DriveSession
     from hrm_ctrl.model import RobotModel
     from hrm_ctrl.ropes.actuation import Actuation
@@ -97,16 +98,22 @@ def kinematic_calibration(base: Calibration, fit: KinematicFit) -> Calibration:
 
 
 def zero_calibration(
-    base: Calibration, result: ZeroResult, residuals: dict[str, float] | None = None
+    base: Calibration,
+    result: ZeroResult,
+    residuals: dict[str, float] | None = None,
+    box: BoxIdentity | None = None,
 ) -> Calibration:
     """The next calibration from ``base`` with the zero routine's motor zeros
-    (``residuals``: what it keeps of the routine; default the result's own)."""
+    (``residuals``: what it keeps of the routine; default the result's own), made on
+    ``box`` (the session's :attr:`~drivers.session.DriveSession.box_identity`; None:
+    ``base``'s)."""
     from calibration.apply import updated
     from calibration.store import Routine
 
     zeros = {m: int(v) for m, v in zip(result.motor_ids, result.zero_counts, strict=True)}
     kept = result.residuals() if residuals is None else residuals
-    return updated(base, routine=Routine.ZERO, residuals=kept, motor_zero_counts=zeros)
+    made_on = {} if box is None else {"box": box}
+    return updated(base, routine=Routine.ZERO, residuals=kept, motor_zero_counts=zeros, **made_on)
 
 
 def stiffness_calibration(
@@ -178,7 +185,8 @@ def calibration_ref(store: CalibrationStore, version: int) -> CalibrationRef:
     from drivers.session import CalibrationRef
 
     cal = store.load(version)
-    return CalibrationRef(version, file_sha256(cal, version), str(store.path_of(version)))
+    path = str(store.path_of(version))
+    return CalibrationRef(version, file_sha256(cal, version), path, box=cal.box)
 
 
 def tracker_frame(
@@ -280,13 +288,15 @@ def zero_then_kinematic(
     from calibration.kinematic import fit_kinematics, spread_configurations
     from calibration.zero import pretension_and_zero
 
+    store.check_can_save()  # before the first move: both results have a place to go
     base = nominal_calibration(description)
     act0 = calibrated_actuation(description, base)
     t0 = time.monotonic()
     say("calibration 1/2: pretension and zero, the arm in its zero fixture")
     with tension() as reader, open_session(act0, "zero", None, False) as session:
         zr = pretension_and_zero(session, reader, act0)
-    cal_zero = zero_calibration(base, zr)
+        box = session.box_identity  # the box the zeros belong to
+    cal_zero = zero_calibration(base, zr, box=box)
     v_zero = store.save(cal_zero)
     t_zero = time.monotonic() - t0
     if on_zero is not None:

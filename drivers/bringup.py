@@ -129,27 +129,42 @@ def _var(link: DriveLink, index: int) -> Any:
 
 
 def _map_pdo(
-    link: DriveLink, pdo_map: Any, cob_id: int, objects: tuple[int, ...], name: str
+    link: DriveLink, comm_index: int, cob_id: int, objects: tuple[int, ...], name: str
 ) -> None:
-    try:
-        pdo_map.clear()
-        for index in objects:
-            pdo_map.add_variable(index)
-        pdo_map.cob_id = cob_id
-        pdo_map.trans_type = cia301.PDO_TRANSMISSION_SYNCHRONOUS
-        pdo_map.enabled = True
-        pdo_map.save()
-    except canopen.SdoAbortedError as exc:
-        raise SdoError(
-            f"{link.label}: mapping {name} aborted: {cia301.describe_sdo_abort(exc.code)}"
-        ) from exc
-    except canopen.SdoCommunicationError as exc:
-        raise SdoError(f"{link.label}: mapping {name}: {exc}") from exc
-    # The supervisor reads the PDOs itself; canopen need not decode every frame.
-    try:
-        link.node.network.unsubscribe(cob_id, pdo_map.on_message)
-    except (KeyError, ValueError):
-        pass
+    """Map ``objects`` (sub-index 0 each, lengths from the EDS) into the PDO whose
+    communication parameter is ``comm_index`` (its mapping: ``comm_index + 0x200``), in
+    the order CiA 301 requires: PDO invalid, transmission type, mapping emptied, the
+    entries, their count, PDO valid.  An abort names the entry, hence the object, the
+    drive refused (a CiA 301 drive checks each entry as it is written)."""
+    map_index = comm_index + 0x200
+    steps: list[tuple[int, int, int, str]] = [
+        (comm_index, 1, cob_id | cia301.PDO_COB_ID_INVALID, "COB-ID (PDO invalid)"),
+        (comm_index, 2, cia301.PDO_TRANSMISSION_SYNCHRONOUS, "transmission type"),
+        (map_index, 0, 0, "number of entries (0)"),
+    ]
+    for k, index in enumerate(objects, start=1):
+        bits = len(link.node.object_dictionary[index])
+        steps.append(
+            (map_index, k, cia301.pdo_mapping_entry(index, 0, bits),
+             f"entry {k}: object 0x{index:04X}:00 ({bits} bits)")
+        )  # fmt: skip
+    steps += [
+        (map_index, 0, len(objects), f"number of entries ({len(objects)})"),
+        (comm_index, 1, cob_id, "COB-ID (PDO valid)"),
+    ]
+    for index, sub, value, what in steps:
+        where = f"0x{index:04X}:{sub:02X} {what}"
+        try:
+            link.node.sdo[index][sub].raw = value
+        except canopen.SdoAbortedError as exc:
+            raise SdoError(
+                f"{link.label}: mapping {name}: {where} aborted: "
+                f"{cia301.describe_sdo_abort(exc.code)}"
+            ) from exc
+        except canopen.SdoCommunicationError as exc:
+            raise SdoError(f"{link.label}: mapping {name}: {where}: {exc}") from exc
+        except DriverError as exc:  # the request could not be sent (bus failure)
+            raise SdoError(f"{link.label}: mapping {name}: {where}: {exc}") from exc
 
 
 def configure_drive(link: DriveLink, s: DriveSettings) -> None:
@@ -165,14 +180,14 @@ def configure_drive(link: DriveLink, s: DriveSettings) -> None:
     )
     _map_pdo(
         link,
-        link.node.rpdo[1],
+        cia301.OD_RPDO1_COMMUNICATION,
         cia301.COB_RPDO1 + nid,
         (cia402.OD_CONTROLWORD, cia402.OD_TARGET_POSITION),
         "RPDO1 (controlword, target position)",
     )
     _map_pdo(
         link,
-        link.node.tpdo[1],
+        cia301.OD_TPDO1_COMMUNICATION,
         cia301.COB_TPDO1 + nid,
         (cia402.OD_STATUSWORD, cia402.OD_POSITION_ACTUAL_VALUE),
         "TPDO1 (statusword, position actual value)",

@@ -26,6 +26,7 @@ from drivers.busload import BusLoad
 from drivers.canlog import TrafficLog
 from drivers.config import BoxConfig
 from drivers.cycle import EventLog, StreamResult
+from drivers.identity import BoxIdentity
 from drivers.receive import BusReceiver
 from drivers.safety.causes import StopCause
 from drivers.safety.monitor import NodeMonitor
@@ -40,11 +41,16 @@ NO_CALIBRATION = "none (enable refused)"  # neither a calibration nor the overri
 @dataclass(frozen=True)
 class CalibrationRef:
     """Which calibration the session's rope layer was built with: its version in the
-    store, the file's SHA-256 checksum and where it came from (a path)."""
+    store, the file's SHA-256 checksum, where it came from (a path) and the box it was
+    made on (``box``; None: unknown).  With ``check_box`` the session refuses it at the
+    bring-up unless that box is the one at hand (:func:`drivers.identity.check_box`);
+    a routine that makes every motor zero anew (``calibrate zero``) does not check it."""
 
     version: int
     sha256: str
     source: str
+    box: BoxIdentity | None = None
+    check_box: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         return {"version": self.version, "sha256": self.sha256, "source": self.source}

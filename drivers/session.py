@@ -60,6 +60,7 @@ from drivers.busload import BusLoad, check_bus_load
 from drivers.config import BoxConfig
 from drivers.cycle import EventLog, StreamResult
 from drivers.drive_group import DriveGroup
+from drivers.identity import BoxIdentity, identify_box
 from drivers.interrupts import deferred_interrupts
 from drivers.lifecycle import Call, SessionState, SessionStateError, after_stop, next_state
 from drivers.other_master import (
@@ -150,6 +151,7 @@ class DriveSession:
         self.results: list[StreamResult] = []
         self.record_extra: dict[str, Any] = {}
         self.actual: np.ndarray | None = None
+        self.box_identity: BoxIdentity | None = None  # read at configure()
         self.bringup_s: float | None = None
         self.idle_causes: list[StopCause] = []
         self.stop_error: str | None = None  # why the last quick stop could not be sent
@@ -332,6 +334,11 @@ class DriveSession:
             self.events.add(
                 "before_reset", before.text, cause=before.kind.value, motor=before.motor
             )
+        # which box this is (0x1018 of every drive): the calibration's, or refused
+        self.box_identity = identify_box(
+            self.links, self.drives.parallel, self.drives.budget_s(4), self.calibration, self.events
+        )
+        self.record_extra["box"] = self.box_identity.to_dict()
         self.drives.configure()
         self.send_nmt(cia301.NMT_START_REMOTE_NODE)
         self.events.add("nmt", "NMT start remote node sent on every bus")
@@ -344,7 +351,7 @@ class DriveSession:
         if self.calibration is None and not self.allow_uncalibrated:
             text = (
                 f"{action} refused: no calibration (drives are not enabled without one; "
-                "the operator may override explicitly)"
+                "the operator may override explicitly: --uncalibrated)"
             )
             self.events.add("error", text)
             raise SessionStateError(text, self._state)

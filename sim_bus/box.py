@@ -69,7 +69,7 @@ from sim_bus.arm import ArmState, SimArm
 from sim_bus.drive import DriveParams, DriveSim
 from sim_bus.tension_board import TensionBoard
 from sim_bus.tracker import Tracker
-from sim_bus.truth import TrueArm
+from sim_bus.truth import TrueArm, drive_serials
 from sim_bus.wire import FrameMatch, SimWireBus
 
 log = logging.getLogger("sim_bus.box")
@@ -254,6 +254,7 @@ class SimBox:
         now = self.clock()
         ids = self.actuation.motor_ids
         vmax = self.actuation.max_rate_counts_per_s
+        serials = drive_serials(self.truth)  # another truth: another box (0x1018)
         try:
             for k, bcfg in enumerate(self.config.buses):
                 if self._given is not None:
@@ -276,6 +277,7 @@ class SimBox:
                             max_accel_counts_per_s2=self._accel,
                             quick_stop_decel_counts_per_s2=self._qs_decel,
                             initial_position_counts=int(self._initial[i]),
+                            serial_number=serials[motor],
                         )
                         d = DriveSim(
                             node,

@@ -1,8 +1,10 @@
 """Fault scripts for the simulated box: one text form for tests, ``hrm sim --fault`` and
 the ``hrm sim`` control channel.
 
-A fault is ``KIND[:ARG...][@T]``; ``@T`` (seconds after start) delays it, else it
-applies at once:
+A fault is ``KIND[:ARG...][@T]``; ``@T`` (seconds after start, at most a day) delays
+it, else it applies at once.  Every number is bounded (:data:`MAX_FRAME_COUNT`,
+:data:`MAX_DELAY_MS`, :data:`MAX_GARBAGE_BYTES`, ...): a spec beyond a bound is a one-line
+:class:`FaultSpecError`, never a fault that holds a frame for ever:
 
 =========================== =====================================================
 ``heartbeat-stop:MOTOR``    the drive of rope motor MOTOR stops its heartbeat
@@ -60,6 +62,13 @@ KINDS: dict[str, tuple[int, int]] = {
 MAX_GARBAGE_BYTES = 65_536
 #: frames with a wrong CRC at most (a counter: ~4 months of frames at 100 a second)
 MAX_CORRUPT_FRAMES = 10**9
+#: frames a drop or delay fault takes at most (``all`` for every one)
+MAX_FRAME_COUNT = 10**9
+#: a frame held back this long at most (every timeout of the stack, heartbeat, SDO,
+#: missing TPDO, has fired long before: a longer hold is a ``drop``)
+MAX_DELAY_MS = 60_000.0
+#: ``@T`` at most (a day after the start: longer than a simulated box is run)
+MAX_AT_S = 86_400.0
 
 
 class FaultSpecError(SimError):
@@ -96,6 +105,8 @@ def parse_fault(text: str) -> Fault:
             raise FaultSpecError(f"fault '{text}': time after @ must be seconds") from None
         if not math.isfinite(at) or at < 0:
             raise FaultSpecError(f"fault '{text}': time after @ must be >= 0 s")
+        if at > MAX_AT_S:
+            raise FaultSpecError(f"fault '{text}': time after @ must be 0..{MAX_AT_S:g} s")
     kind, *args = spec.split(":")
     if kind not in KINDS:
         raise FaultSpecError(f"fault '{text}': unknown kind '{kind}' (known: {', '.join(KINDS)})")
@@ -120,8 +131,8 @@ def _count(value: str | None, text: str) -> int | None:
     if value == "all":
         return None
     n = _int(value, "count", text)
-    if n < 1:
-        raise FaultSpecError(f"fault '{text}': count must be >= 1 or 'all'")
+    if not 1 <= n <= MAX_FRAME_COUNT:
+        raise FaultSpecError(f"fault '{text}': count must be 1..{MAX_FRAME_COUNT} or 'all'")
     return n
 
 
@@ -136,11 +147,16 @@ def _numbers(f: Fault, text: str) -> tuple[int | None, int | None, float]:
         count = _count(f.args[2] if len(f.args) > 2 else None, text)
     elif f.kind == "delay":
         try:
-            delay_s = float(f.args[1]) / 1000.0
+            delay_ms = float(f.args[1])
         except ValueError:
             raise FaultSpecError(f"fault '{text}': delay must be milliseconds") from None
-        if not math.isfinite(delay_s) or delay_s < 0:
+        if not math.isfinite(delay_ms) or delay_ms < 0:
             raise FaultSpecError(f"fault '{text}': delay must be >= 0 ms")
+        if delay_ms > MAX_DELAY_MS:
+            raise FaultSpecError(
+                f"fault '{text}': delay must be 0..{MAX_DELAY_MS:g} ms (a longer hold: drop)"
+            )
+        delay_s = delay_ms / 1000.0
         if len(f.args) > 2:
             cob = _int(f.args[2], "COB-ID", text)
         count = _count(f.args[3] if len(f.args) > 3 else None, text)

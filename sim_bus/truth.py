@@ -52,6 +52,7 @@ True
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 from collections.abc import Mapping
@@ -380,6 +381,29 @@ class TrueArm:
                 "noise_mm": self.tracker_noise_mm,
             },
         }
+
+
+def drive_serials(truth: TrueArm) -> dict[str, int]:
+    """The serial number (0x1018:4) each simulated drive of ``truth``'s arm reports: from
+    the SHA-256 of the arm's truth (all of it but the laser tracker's frame, which is not
+    the box) and the motor id, so that another truth (a perturbed arm) is another box.
+    Never 0 (the EDS's default).
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> from hrm_ctrl.ropes.actuation import load_actuation
+    >>> act = load_actuation(default_robot())
+    >>> a, b = drive_serials(TrueArm.nominal(act)), drive_serials(TrueArm.perturbed(act, 3))
+    >>> len(a), a == drive_serials(TrueArm.nominal(act)), a["j01r0"] == b["j01r0"]
+    (36, True, False)
+    """
+    doc = truth.to_dict()
+    del doc["tracker"]
+    arm = json.dumps(doc, sort_keys=True, separators=(",", ":")).encode("ascii")
+    out = {}
+    for motor in truth.motor_ids:
+        digest = hashlib.sha256(arm + b"\0" + motor.encode("ascii")).digest()
+        out[motor] = int.from_bytes(digest[:4], "big") or 1
+    return out
 
 
 def _description_EA(actuation: Actuation) -> np.ndarray:

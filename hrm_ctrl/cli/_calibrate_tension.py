@@ -36,6 +36,7 @@ by the tension sensors); the stiffness routine needs one unless ``--sim`` or
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -128,7 +129,7 @@ def _write_file(path: Path, text: str) -> None:
 def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any, Any, Any, Any]:
     """Open the store and the box (``--sim``: the simulated one, its arm in the fixture),
     bring the drives up and run ``routine(session, reader, actuation)``; return
-    ``(result, base calibration, store, robot description)``."""
+    ``(result, base calibration, store, robot description, the box's identity)``."""
     from calibration.apply import calibrated_actuation, calibrated_model, starting_point
     from calibration.store import CalibrationStore
     from drivers.bus import ensure_log_dir
@@ -150,9 +151,16 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
             *shipped_inputs(eds=True),
         ],
     )
+    if args.out is None:  # checked before the first move: the result has a place to go
+        store.check_can_save()
     description = load_robot(args.robot)
     config = load_box(args)  # --config with the --bus overrides
-    base, active, note = starting_point(store, description)
+    sim_box = None
+    if args.sim:  # known before it starts: a calibration of another truth is not used
+        from hrm_ctrl.runtime.arm import simulated_box_identity
+
+        sim_box = simulated_box_identity(description, perturb=args.perturb)
+    base, active, note = starting_point(store, description, sim_box)
     if note is not None:
         print(f"{prog}: {note}", file=sys.stderr)
     actuation = calibrated_actuation(description, base)
@@ -160,6 +168,8 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     ensure_log_dir(args.log_dir)
     arm = Arm(description, calibrated_model(description, base), active, rope_layer=actuation)
     ref = arm.calibration_ref()
+    if ref is not None and args.calibrate == "zero":  # every zero measured anew: any box
+        ref = dataclasses.replace(ref, check_box=False)
     allow = args.sim or args.uncalibrated or args.calibrate == "zero"
     if ref is None and not allow:
         raise CalibrationFileError(
@@ -196,7 +206,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
         ) as reader:
             box.bring_up()
             result = routine(box.session, reader, actuation)
-    return result, base, store, description
+    return result, base, store, description, box.session.box_identity
 
 
 EXIT_NOT_USABLE = 1  # a routine ran and kept its result, which loading would refuse
@@ -234,10 +244,10 @@ def _run_routine(args: argparse.Namespace, build: Any, report: Any) -> int:
     _check(args)
     routine = build(args)
     t0 = time.monotonic()
-    result, base, store, description = _session_run(
+    result, base, store, description, box = _session_run(
         args, f"hrm calibrate {args.calibrate}", routine
     )
-    saved = report(args, result, base, store, t0, print, description)
+    saved = report(args, result, base, store, t0, print, description, box=box)
     return 0 if saved.usable else EXIT_NOT_USABLE
 
 
@@ -274,17 +284,23 @@ def zero_routine(
 
 def report_zero(
     args: argparse.Namespace, result: Any, base: Any, store: Any, t0: float,
-    out: Callable[[str], None], description: Any,
+    out: Callable[[str], None], description: Any, *, box: Any = None,
 ) -> Saved:  # fmt: skip
-    """Save the zero's calibration (:func:`save_calibration`) and print its summary
-    (``out``: one line each; JSON with ``args.json``); returns where it went."""
+    """Save the zero's calibration (:func:`save_calibration`), made on ``box`` (the
+    session's :class:`drivers.identity.BoxIdentity`), and print its summary (``out``: one
+    line each; JSON with ``args.json``); returns where it went.  A ``base`` made on
+    another box lends the new version nothing (:func:`calibration.apply.for_box`)."""
     import numpy as np
 
+    from calibration.apply import for_box
     from calibration.workflows import zero_calibration
 
+    base, note = for_box(base, box, description)
+    if note is not None:
+        print(f"hrm calibrate zero: {note}", file=sys.stderr)
     zeros = {m: int(v) for m, v in zip(result.motor_ids, result.zero_counts, strict=True)}
     residuals = {**result.residuals(), "routine_s": round(result.elapsed_s, 3)}
-    new = zero_calibration(base, result, residuals)
+    new = zero_calibration(base, result, residuals, box=box)
     saved = save_calibration(args, store, new, description)
     version, where = saved.version, saved.where
     shift = result.zero_shift_counts
@@ -346,7 +362,7 @@ def stiffness_routine(
 
 def report_stiffness(
     args: argparse.Namespace, result: Any, base: Any, store: Any, t0: float,
-    out: Callable[[str], None], description: Any,
+    out: Callable[[str], None], description: Any, *, box: Any = None,
 ) -> Saved:  # fmt: skip
     """Save the stiffness's calibration and print its summary; returns where it went."""
     import numpy as np

@@ -10,6 +10,11 @@ refused with one line naming both.  Two paths name the same file when they resol
 the same path (symbolic links followed) or, when both exist, are the same file
 (:func:`os.path.samefile`: hard links too).
 
+The calibration store is an input of every command, whether it reads it or not: no output
+is written into the default store (``$HRM_CALIBRATIONS``, else the one under the home
+folder) nor into any folder that holds a store's files (an ``active`` pointer or a
+version file ``v0001.json``); only ``hrm calibrate`` writes there, through the store.
+
 >>> import tempfile, pathlib
 >>> d = pathlib.Path(tempfile.mkdtemp())
 >>> _ = (d / "plan.json").write_text("{}")
@@ -28,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -48,6 +54,9 @@ from hrm_ctrl.runtime.arm import (
 
 if TYPE_CHECKING:
     from hrm_ctrl.model import RobotModel
+
+
+_STORE_FILE = re.compile(r"v\d{4,6}\.json")  # a version file (calibration.store)
 
 
 class Input(NamedTuple):
@@ -96,6 +105,22 @@ def _inside(path: Path, folder: Path) -> bool:
     return p == f or f in p.parents
 
 
+def _store_folder(path: Path) -> Path | None:
+    """The calibration store ``path`` would be written into, else None: the default store
+    (:func:`calibrations_folder`) or a folder on the way holding a store's files."""
+    default = calibrations_folder(None)
+    if _inside(path, default):
+        return default
+    for folder in (path, *path.parents)[:2]:  # the output itself, or the folder it is in
+        try:
+            names = os.listdir(folder) if os.path.isdir(folder) else []
+        except OSError:
+            continue
+        if any(n == "active" or _STORE_FILE.fullmatch(n) for n in names):
+            return folder
+    return None
+
+
 def refuse_overwriting_inputs(outputs: Iterable[Output], inputs: Iterable[Input]) -> None:
     """Raise :class:`OverwriteInputError` (one line naming both) when an output, or a file
     a directory output is written with, is one of the ``inputs`` or inside an input
@@ -134,6 +159,12 @@ def refuse_overwriting_inputs(outputs: Iterable[Output], inputs: Iterable[Input]
                 raise OverwriteInputError(
                     f"{out.option} {base} is inside the {what} being read ({folder})"
                 )
+        store = _store_folder(base)
+        if store is not None:
+            raise OverwriteInputError(
+                f"{out.option} {base} is inside the calibration store ({store}): only hrm "
+                "calibrate writes there"
+            )
         for target in (base, *(base / m for m in out.members)):
             for what, src in read:
                 if not _same_file(target, src):
@@ -198,6 +229,8 @@ def arm_from_args(
         calibrations=getattr(args, "calibrations", None),
         uncalibrated=bool(getattr(args, "uncalibrated", False)),
         simulated=simulated,
+        perturb=getattr(args, "perturb", None) if simulated else None,
+        truth_file=getattr(args, "truth", None) if simulated else None,
         prog=prog,
     )
 

@@ -8,7 +8,11 @@ Sub-commands:
   mark; a damaged file, or a version of this robot whose ropes or values ``use`` would
   refuse, is listed with its problem);
 * ``use VERSION``: make an older version active (it must load and belong to this robot,
-  its values within ``calibration.apply.check_ranges``);
+  its values within ``calibration.apply.check_ranges``); ``use VERSION --box --config
+  BOX.toml`` confirms that a calibration whose box is unknown (a file made before
+  calibrations named their box) was made on this box: the drives' identities are read
+  (the drives configured, never enabled) and the version saved again, as the next
+  version naming this box, and made active (:func:`run_use`);
 * ``kinematic DATA.csv [--estimate-frame]``: fit link lengths and joint zero offsets (and
   the instrument's frame) to a pose file (``calibration.kinematic``: header
   ``alpha_1_rad..alpha_12_rad,theta_1_rad..theta_12_rad,x_mm,y_mm,z_mm``, the commanded
@@ -103,6 +107,12 @@ def register(parser: argparse.ArgumentParser) -> None:
         help="the version to activate (see hrm calibrate history)",
     )  # fmt: skip
     _common(p)
+    p.add_argument(
+        "--box", action="store_true",
+        help="confirm that VERSION, whose box is unknown, was made on the box of --config: "
+        "save it again naming that box (its drives' identities, read by SDO)",
+    )  # fmt: skip
+    add_bus(p)  # --config, --bus
     p.set_defaults(_run=run_use)
 
     p = sub.add_parser(
@@ -180,6 +190,7 @@ def format_calibration(cal: Any, description: Any, version: int, path: str) -> s
         f"{cal.created_utc.isoformat(timespec='seconds')}",
         f"file {path}",
         f"robot description {cal.robot_sha256[:12]}… ({description.source})",
+        f"box: {box_text(cal.box)}",
         f"{'joint':>5} {'link mm':>10} {'(descr.)':>9} {'alpha offset deg':>17} "
         f"{'theta offset deg':>17}",
     ]
@@ -196,6 +207,13 @@ def format_calibration(cal: Any, description: Any, version: int, path: str) -> s
     res = ", ".join(f"{k} {v:.6g}" for k, v in cal.residuals.items()) or "none"
     lines.append(f"residuals: {res}")
     return "\n".join(lines)
+
+
+def box_text(box: Any) -> str:
+    """The box a calibration was made on, one line (``box unknown`` for an old file)."""
+    if box is None:
+        return "unknown (made before calibrations named their box: hrm calibrate use N --box)"
+    return box.describe()
 
 
 def run_show(args: argparse.Namespace) -> int:
@@ -236,6 +254,8 @@ def run_history(args: argparse.Namespace) -> int:
                 "routine": None if cal is None else cal.routine.value,
                 "robot_sha256": None if cal is None else cal.robot_sha256,
                 "this_robot": None if cal is None else cal.robot_sha256 == mine,
+                "box": None if cal is None or cal.box is None else cal.box.to_dict(),
+                "box_text": None if cal is None else box_text(cal.box).split(" (")[0],
                 "problem": problem,
             }
         )
@@ -259,19 +279,55 @@ def run_history(args: argparse.Namespace) -> int:
         robot = r["robot_sha256"][:12] + "…" + ("" if r["this_robot"] else " (another robot)")
         print(
             f"{mark} v{r['version']:04d}  {r['created_utc'][:19]}Z  {r['routine']:<9}  "
-            f"robot {robot}"
+            f"robot {robot}  box: {r['box_text']}"
         )
     return 0
 
 
 def run_use(args: argparse.Namespace) -> int:
+    """``use VERSION``, or with ``--box`` confirm an old calibration on a box.
+
+    ``--box`` is the one way a calibration whose box is unknown reaches real drives: the
+    operator says it was made on this box, the drives' identities are read from it and the
+    calibration is saved again as the next version naming them (the old file is never
+    changed); a calibration that names its box already is refused (a replaced drive is
+    calibrated anew, not confirmed)."""
     from calibration.apply import check_belongs, robot_sha256
 
     store = _store(args)
     description = _description(args)
-    check_belongs(description, store.load(args.version), str(store.path_of(args.version)))
-    store.use(args.version, robot_sha256(description))
-    print(f"active: v{args.version:04d} ({store.path_of(args.version)})")
+    path = str(store.path_of(args.version))
+    cal = store.load(args.version)
+    check_belongs(description, cal, path)
+    if not args.box:
+        if args.config is not None or args.bus:
+            raise CalibrationDataError("use: --config and --bus go with --box")
+        store.use(args.version, robot_sha256(description))
+        print(f"active: v{args.version:04d} ({store.path_of(args.version)})")
+        return 0
+    if cal.box is not None:
+        raise CalibrationDataError(
+            f"{path}: names its box already ({cal.box.describe()}): --box confirms only a "
+            "calibration whose box is unknown"
+        )
+    if args.config is None:
+        raise CalibrationDataError("use --box: give --config BOX.toml, the box to confirm it on")
+    refuse_overwriting_inputs([], [robot_input(args.robot), config_input(args.config)])
+    import dataclasses
+
+    from calibration.apply import calibrated_actuation
+    from hrm_ctrl.runtime.box import identify_box
+
+    config = load_box(args)
+    actuation = calibrated_actuation(description, cal)
+    config.check_motors(actuation.motor_ids)
+    store.check_can_save()  # before the box is touched
+    box = identify_box(config, actuation, prog="hrm calibrate use")
+    version = store.save(dataclasses.replace(cal, box=box))
+    print(
+        f"active: v{version:04d} ({store.path_of(version)}): v{args.version:04d} confirmed "
+        f"on this box ({box.describe()})"
+    )
     return 0
 
 
@@ -368,13 +424,20 @@ def run_kinematic(args: argparse.Namespace) -> int:
         outputs.append(Output("--log-dir", args.log_dir, folder=True))
     refuse_overwriting_inputs(outputs, inputs)  # before anything is read or written
     description = _description(args)
-    base, active, note = starting_point(store, description)
+    sim_box = None
+    if args.collect is not None and args.sim:  # a calibration of another truth: not used
+        from hrm_ctrl.runtime.arm import simulated_box_identity
+
+        sim_box = simulated_box_identity(description, perturb=args.perturb)
+    base, active, note = starting_point(store, description, sim_box)
 
     estimate_frame = args.estimate_frame
     sigma_mm = 0.05 if args.sigma_mm is None else args.sigma_mm
     if args.collect is None:
         data = read_pose_csv(args.data)
     else:
+        if args.out is None:  # checked before the first move: the result has a place to go
+            store.check_can_save()
         data, pose_file = _collect(args, description, base, active)
         print(f"poses written to {pose_file}")
         # the points are in the base frame: the tracker's frame was found from the base nests

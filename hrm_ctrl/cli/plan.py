@@ -168,7 +168,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
     refined = opts.fit_mode(environment) is FitMode.CLEARANCE
     with progress_bar("refinement", enabled=refined and wanted(args.json)) as bar:
         plan = plan_path(robot, path, opts, scenario=sc, environment=environment, progress=bar)
-    arm.say_note()
+    arm.say_calibration("hrm plan")
     if steps is not None and steps[-1] >= len(plan.travel):
         raise PlanningError(
             f"--plot-steps: step {steps[-1]} is past the plan's last step {len(plan.travel) - 1}"

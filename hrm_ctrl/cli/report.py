@@ -13,7 +13,11 @@ Bad input is one line and exit status 2, with nothing written: an ``--out`` nami
 the run's files (its record, CAN logs or tension file, the robot description, the
 calibration store) or a path that is not a folder is refused before the CAN logs are
 read (the record's own path and the tension file before anything is read), and a damaged
-record or log, or a figure that cannot be written, leaves no figure behind.
+record or log, or a figure that cannot be written, leaves no figure behind.  The frames
+each CAN log holds are compared with the counts the run record keeps: a log that misses
+frames (cut, damaged, frames lost as it was written) is refused the same way, naming the
+log and both counts; ``--partial`` draws the figures from what the logs hold, with a
+warning line per log (and ``complete: false``, ``missing`` in the JSON summary).
 
 >>> p = argparse.ArgumentParser(prog="hrm report")
 >>> register(p)
@@ -58,6 +62,11 @@ def register(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     add_robot(parser)
     add_calibration(parser, Uncalibrated.MODEL)
+    parser.add_argument(
+        "--partial", action="store_true",
+        help="draw the figures even from CAN logs that miss frames the run record counts "
+        "(a cut or damaged log), with a warning line per log (default: refused)",
+    )  # fmt: skip
     add_json(parser, "the summary")
 
 
@@ -100,15 +109,25 @@ def check_out(folder: Path, inputs: list[Input]) -> None:
 
 
 def report(
-    record: Path, actuation: Any, out: Path | None, stream: int = -1
+    record: Path, actuation: Any, out: Path | None, stream: int = -1, *, partial: bool = False
 ) -> tuple[dict[str, Any], list[Path]]:
     """Read the run, write its figures; (summary, figure paths).  A figure that cannot be
-    written is one line (:class:`~hrm_ctrl.errors.HrmError`) and leaves none behind."""
+    written is one line (:class:`~hrm_ctrl.errors.HrmError`) and leaves none behind.
+
+    CAN logs that miss frames the run record counts (:func:`~hrm_ctrl.formats.runlog.
+    missing_frames`: a cut or damaged log, frames lost as it was written) are refused, one
+    line naming the log and both counts, unless ``partial``: then the figures are drawn
+    from what the logs hold and the summary's ``missing`` says what is not there
+    (``complete`` False; None where the record keeps no counts)."""
     from hrm_ctrl.errors import HrmError
-    from hrm_ctrl.formats.runlog import read_run
+    from hrm_ctrl.formats.runlog import RunLogError, missing_frames, read_run
     from hrm_ctrl.formats.runplots import run_analysis, write_run_figures
 
     log = read_run(record)
+    missing = missing_frames(log)
+    if missing and not partial:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise RunLogError(f"{missing[0]}{more}: no figures (--partial draws what the logs hold)")
     analysis = run_analysis(log, actuation, stream)
     folder = out_folder(record, out)
     name = log.record.get("run")
@@ -130,6 +149,8 @@ def report(
         "record": str(record),
         "stream": stream,
         "streams": len(log.streams),
+        "complete": None if missing is None else not missing,
+        "missing": missing or [],
         **analysis.summary(),
         "figures": [str(p) for p in figures],
     }
@@ -166,8 +187,18 @@ def run(args: argparse.Namespace) -> int:
     check_out(folder, [Input("CAN log", p) for p in log_paths(record, doc)])  # it names them
     arm = arm_from_args(args, load_robot(args.robot), prog="hrm report")
     with ProgressBar("report", enabled=wanted(args.json)) as bar:
-        summary, _figs = report(record, arm.actuation, folder, args.stream)
+        summary, _figs = report(record, arm.actuation, folder, args.stream, partial=args.partial)
         bar(1.0)
+    for line in summary["missing"]:  # with --partial only: else refused above
+        print(
+            f"hrm report: warning: {line}: figures drawn from what the log holds", file=sys.stderr
+        )
+    if summary["complete"] is None:
+        print(
+            f"hrm report: note: {record}: the run record does not count its CAN logs' "
+            "frames: a cut log cannot be told",
+            file=sys.stderr,
+        )
     ran = doc.get("calibration")
     used = None if arm.active is None else arm.calibration_ref()
     if isinstance(ran, dict) and (used is None or ran.get("sha256") != used.sha256):

@@ -170,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
     with progress_bar("time parameterisation", enabled=wanted(args.json)) as bar:
         sp = setpoints_of_plan(doc, act, period_s=period_s, speed_mm_per_s=args.speed,
                                progress=bar)  # fmt: skip
-    arm.say_note()
+    arm.say_calibration("hrm ropes")
     s = summary(act, sp)
     if args.out is not None:
         try:

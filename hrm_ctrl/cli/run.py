@@ -178,7 +178,9 @@ def run(args: argparse.Namespace) -> int:
         sim = SimulatedBox(
             simulated_arm(arm, perturb=args.perturb, truth_file=args.truth), args.wire
         )
-    arm.say_note()  # --sim or --uncalibrated without a calibration: said once all checks passed
+    arm.say_calibration(
+        "hrm run"
+    )  # --sim or --uncalibrated without a calibration: said once all checks passed
     options = SessionOptions(
         log_dir=args.log_dir,
         log_suffix=f".{args.log_format}",

@@ -117,6 +117,46 @@ class RunLog:
         return d
 
 
+def missing_frames(log: RunLog) -> list[str] | None:
+    """What the run's CAN logs miss, one line per log, against the counts the session kept
+    in the run record: ``can_log_frames`` (the frames it wrote to each log: a log that
+    reads fewer is cut or damaged, more is not the log the run wrote) and ``can_log_lost``
+    (frames that never reached the log).  Empty: every frame the run sent or received is
+    there; None: the record has no counts (written before they were kept), the logs
+    cannot be checked.
+
+    >>> log = RunLog(Path("run.json"), {"can_logs": ["a.blf"], "can_log_frames": [9056],
+    ...              "can_log_lost": [0]}, (), 0.01, 0.0, np.zeros(0), np.zeros((0, 0)),
+    ...              np.zeros((0, 0)), [], [4239])
+    >>> missing_frames(log)
+    ['a.blf: 4,239 of the 9,056 frames the run record counts (the log is cut or damaged)']
+    """
+    rec, where = log.record, log.record_path
+    written, lost = rec.get("can_log_frames"), rec.get("can_log_lost", [0] * len(log.frames))
+    if written is None:
+        return None
+    for key, counts in (("can_log_frames", written), ("can_log_lost", lost)):
+        ok = isinstance(counts, list) and len(counts) == len(log.frames)
+        if not ok or not all(type(c) is int and c >= 0 for c in counts):
+            raise RunLogError(f"{where}: {key} is not a frame count per CAN log")
+    out = []
+    for name, read, wrote, gone in zip(rec["can_logs"], log.frames, written, lost, strict=True):
+        shown = _log_path(where, str(name))
+        if read < wrote:
+            out.append(
+                f"{shown}: {read:,} of the {wrote:,} frames the run record counts "
+                "(the log is cut or damaged)"
+            )
+        elif read > wrote:
+            out.append(
+                f"{shown}: {read:,} frames, the run record counts {wrote:,} "
+                "(not the log the run wrote)"
+            )
+        if gone:
+            out.append(f"{shown}: {gone:,} frame(s) never reached the log (lost as it was written)")
+    return out
+
+
 def split_streams(t_s: np.ndarray, gap_s: float = STREAM_GAP_S) -> list[tuple[int, int]]:
     """(start, end) index ranges of runs of SYNC times without a gap over ``gap_s``."""
     n = len(t_s)

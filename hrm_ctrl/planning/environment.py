@@ -427,6 +427,22 @@ class Wall:
         return self.free_distance_and_gradient(q)[0]
 
 
+def _box_distance_and_gradient(x: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``x`` (P, 3) in a box's coordinates, its half edge lengths ``half`` (3,) or
+    (P, 3) -> signed distance (P,) to the box and its gradient (P, 3), box coordinates."""
+    a = np.abs(x) - half
+    o = np.maximum(a, 0.0)
+    on = _norm(o)
+    outside = on > 0.0
+    sgn = np.where(x < 0, -1.0, 1.0)
+    k = np.argmax(a, axis=1)
+    g_in = np.zeros_like(x)
+    g_in[np.arange(len(x)), k] = sgn[np.arange(len(x)), k]
+    g_out = o * sgn / np.where(outside, on, 1.0)[:, None]
+    d = np.where(outside, on, a.max(axis=1))
+    return d, np.where(outside[:, None], g_out, g_in)
+
+
 @dataclass(frozen=True, eq=False)
 class Box:
     """A solid box: ``centre`` (3,), edge lengths ``size`` (3,), world-from-box ``rotation``.
@@ -457,24 +473,111 @@ class Box:
     def free_distance_and_gradient(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(P, 3) points -> signed distance (P,) to the box and its gradient (P, 3)."""
         R = self.rotation
-        x = (q - self.centre) @ R  # box coordinates
-        a = np.abs(x) - 0.5 * self.size
-        o = np.maximum(a, 0.0)
-        on = _norm(o)
-        outside = on > 0.0
-        sgn = np.where(x < 0, -1.0, 1.0)
-        k = np.argmax(a, axis=1)
-        g_in = np.zeros_like(x)
-        g_in[np.arange(len(x)), k] = sgn[np.arange(len(x)), k]
-        g_out = o * sgn / np.where(outside, on, 1.0)[:, None]
-        d = np.where(outside, on, a.max(axis=1))
-        return d, np.where(outside[:, None], g_out, g_in) @ R.T
+        d, g = _box_distance_and_gradient((q - self.centre) @ R, 0.5 * self.size)
+        return d, g @ R.T
 
     def free_distance(self, q: np.ndarray) -> np.ndarray:
         return self.free_distance_and_gradient(q)[0]
 
 
 Obstacle: TypeAlias = Pipe | Wall | Box
+
+#: an environment with at least this many boxes finds each point's boxes in a spatial
+#: index (:class:`BoxIndex`); fewer are each evaluated at every point
+BROAD_PHASE_MIN_BOXES = 4
+BROAD_PHASE_NEIGHBOURS = 4  # box centres looked up per point first (more where needed)
+
+
+class BoxIndex:
+    """Boxes of one size class (bounding-sphere radii within a factor of 2) in a k-d tree of
+    their centres: the broad phase of :meth:`Environment.free_distance_and_gradient`.
+
+    A box lies inside the sphere of radius ``rho`` (half its diagonal) about its centre,
+    so its signed distance from a point ``q`` is at least ``|q - c| - rho`` (inside the box
+    too).  A point whose nearest centre is farther than its distance so far plus the
+    largest ``rho`` is done; for the others, their nearest box centres are looked up
+    (:data:`BROAD_PHASE_NEIGHBOURS`) and only those boxes evaluated;
+    every other box is at least the k-th centre's distance minus the largest ``rho``
+    away: where that is no nearer than the distance found, the point is done, else it is
+    looked up again with four times as many centres.  The result is exact; its cost
+    grows with the boxes near the points, not with the boxes in the scene.
+
+    >>> boxes = [Box(np.array([100.0 * k, 0, 0]), np.full(3, 10.0)) for k in range(50)]
+    >>> idx = BoxIndex(boxes)
+    >>> d, g = np.full(2, math.inf), np.zeros((2, 3))
+    >>> idx.lower(np.array([[300.0, 30, 0], [-40.0, 0, 0]]), d, g)
+    >>> d.tolist(), g.tolist()
+    ([25.0, 35.0], [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    """
+
+    def __init__(self, boxes: list[Box]) -> None:
+        self.centre = np.array([b.centre for b in boxes], dtype=float).reshape(-1, 3)
+        self.half = 0.5 * np.array([b.size for b in boxes], dtype=float).reshape(-1, 3)
+        self.rotation = np.array([b.rotation for b in boxes], dtype=float).reshape(-1, 3, 3)
+        self.rho_max = float(_norm(self.half).max())
+        self.tree = cKDTree(self.centre)
+
+    def __len__(self) -> int:
+        return len(self.centre)
+
+    def _pairs(self, q: np.ndarray, box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Points (M, 3) and a box index each (M,) -> signed distance (M,), gradient (M, 3)."""
+        R = self.rotation[box]
+        x = np.einsum("mj,mjk->mk", q - self.centre[box], R)
+        d, gl = _box_distance_and_gradient(x, self.half[box])
+        return d, np.einsum("mk,mjk->mj", gl, R)
+
+    def _lower_pairs(
+        self, q: np.ndarray, d: np.ndarray, g: np.ndarray, pts: np.ndarray, box: np.ndarray
+    ) -> None:
+        """Evaluate box ``box[m]`` at point ``pts[m]`` (a point may come more than once) and
+        lower ``d``, ``g`` to each point's nearest of them where nearer (in place)."""
+        if not len(pts):
+            return
+        db, gb = self._pairs(q[pts], box)
+        order = np.lexsort((db, pts))  # by point, nearest box first
+        ps = pts[order]
+        sel = order[np.concatenate(([True], ps[1:] != ps[:-1]))]  # each point's nearest
+        p, best = pts[sel], db[sel]
+        take = best < d[p]
+        d[p[take]] = best[take]
+        g[p[take]] = gb[sel[take]]
+
+    def lower(self, q: np.ndarray, d: np.ndarray, g: np.ndarray) -> None:
+        """Lower ``d`` (P,) and ``g`` (P, 3), the distance and gradient of points ``q``
+        (P, 3) so far, to these boxes' where one is nearer (in place)."""
+        n, rho = len(self), self.rho_max
+        if not len(q):
+            return
+        # the nearest centre first: most points (inside a pipe, beside a wall) are nearer
+        # to something else than any of these boxes can be, and are done; the others
+        # take their nearest centre's box (most often the nearest box)
+        dist, box = self.tree.query(q, k=1, distance_upper_bound=float(d.max()) + rho)
+        todo = np.flatnonzero(dist - rho < d)
+        self._lower_pairs(q, d, g, todo, box[todo])
+        seen, k = 1, min(BROAD_PHASE_NEIGHBOURS, n)
+        while len(todo) and seen < n:
+            qq = q[todo]
+            reach = float(d[todo].max()) + rho
+            dist, box = self.tree.query(qq, k=k, distance_upper_bound=reach)
+            dist, box = dist.reshape(len(qq), k), box.reshape(len(qq), k)
+            near = (box < n) & (dist - rho < d[todo][:, None])
+            near[:, :seen] = False  # evaluated in an earlier round
+            rows, cols = np.nonzero(near)
+            self._lower_pairs(q, d, g, todo[rows], box[rows, cols])
+            # done: fewer than k centres within reach, or the k-th one's sphere no nearer
+            done = (box[:, -1] == n) | (dist[:, -1] - rho >= d[todo])
+            todo = todo[~done]
+            seen, k = k, min(4 * k, n)
+
+
+def _box_indices(boxes: list[Box]) -> tuple[BoxIndex, ...]:
+    """The boxes in one :class:`BoxIndex` per size class (half diagonals in [2^i, 2^(i+1)))."""
+    rho = np.array([0.5 * float(np.linalg.norm(b.size)) for b in boxes])
+    cls = np.floor(np.log2(rho)).astype(np.int64)
+    return tuple(
+        BoxIndex([b for b, c in zip(boxes, cls, strict=True) if c == k]) for k in np.unique(cls)
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -554,9 +657,23 @@ class Environment:
                 )
         return {k: v for k, v in out.items() if v}
 
+    @cached_property
+    def _broad_phase(self) -> tuple[tuple[Obstacle, ...], tuple[BoxIndex, ...]]:
+        """(the obstacles evaluated at every point, the boxes' spatial indices): with
+        fewer than :data:`BROAD_PHASE_MIN_BOXES` boxes, every obstacle and no index."""
+        boxes = [o for o in self.obstacles if isinstance(o, Box)]
+        if len(boxes) < BROAD_PHASE_MIN_BOXES:
+            return self.obstacles, ()
+        rest = tuple(o for o in self.obstacles if not isinstance(o, Box))
+        return rest, _box_indices(boxes)
+
     def free_distance_and_gradient(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(..., 3) points -> distance (...) to the nearest material (mm, negative inside)
-        and its gradient (..., 3) (of the nearest obstacle; zero in free space)."""
+        and its gradient (..., 3) (of the nearest obstacle; zero in free space).
+
+        Pipes and walls (unbounded: a pipe is embedded in material, a wall is a plane)
+        are evaluated at every point; many boxes are found through spatial indices
+        (:class:`BoxIndex`), so boxes far from the points cost next to nothing."""
         p = np.asarray(p, dtype=float)
         if p.shape[-1:] != (3,):
             raise PlanningError(f"points must have shape (..., 3), got {p.shape}")
@@ -565,7 +682,8 @@ class Environment:
         d = np.full(len(q), math.inf)
         g = np.zeros_like(q)
         if len(q):
-            for o in self.obstacles:
+            everywhere, indices = self._broad_phase
+            for o in everywhere:
                 dk, gk = o.free_distance_and_gradient(q)
                 take = dk < d
                 if take.all():  # the first obstacle (or one nearer everywhere): no blend
@@ -573,6 +691,10 @@ class Environment:
                     continue
                 d = np.where(take, dk, d)
                 g = np.where(take[:, None], gk, g)
+            if indices:
+                d, g = np.array(d), np.array(g)  # written in place: never an obstacle's own
+                for index in indices:
+                    index.lower(q, d, g)
         return d.reshape(shape), g.reshape(*shape, 3)
 
     def free_distance(self, p: np.ndarray) -> np.ndarray:

@@ -43,6 +43,7 @@ from hrm_ctrl.runtime.simulated import (
 
 if TYPE_CHECKING:
     from drivers.config import BoxConfig
+    from drivers.identity import BoxIdentity
     from drivers.safety.limits import LimitChecker
     from drivers.safety.watches import FeedbackWatches
     from drivers.session import CalibrationRef, DriveSession
@@ -106,6 +107,18 @@ class OpenBox:
         else:
             bring_up(self.session)
         self.watches.start()
+
+
+def identify_box(config: BoxConfig, actuation: LimitChecker, *, prog: str = "hrm") -> BoxIdentity:
+    """The identity of the box of ``config`` (real buses, or a box behind them): its
+    drives configured (NMT reset, identity objects read, SDO configuration), never
+    enabled, then the session closed (``hrm calibrate use VERSION --box``)."""
+    options = SessionOptions()  # no calibration: nothing is enabled
+    with open_box(config, actuation, options, watches=NO_WATCHES, bring_up=False, prog=prog) as box:
+        box.session.configure()
+        identity = box.session.box_identity
+    assert identity is not None  # configure() reads it
+    return identity
 
 
 @contextlib.contextmanager

@@ -4,7 +4,9 @@ arm at a step chosen with a slider, and, fed by :meth:`ArmView.update`, the arm 
 host estimates it, every link a cylinder coloured by its clearance band
 (:mod:`hrm_ctrl.view.geometry`).
 
-viser ships its built web client in its wheel: the page needs no internet.  The viewer's
+The websocket serves the view's own page only: a connection with another page's
+``Origin`` is closed before the scene is sent (:func:`origin_allowed`).  viser ships its
+built web client in its wheel: the page needs no internet.  The viewer's
 unit is the metre (the stack's millimetres scaled by :data:`M_PER_MM`).
 
 Scene names (a test or a tool finds the objects by them in viser's scene tree):
@@ -52,8 +54,42 @@ PLANNED_OPACITY = 0.35
 ENV_OPACITY = 0.18
 
 
+WS_POLICY_VIOLATION = 1008  # websocket close code (RFC 6455): a foreign Origin
+
+
 class ViewError(HrmError):
     """The view cannot be served (port, bad step, bad pose)."""
+
+
+def own_origins(port: int) -> frozenset[str]:
+    """The origins of the view's own page: the URL printed, or ``localhost`` for it.
+
+    >>> sorted(own_origins(8080))
+    ['http://127.0.0.1:8080', 'http://localhost:8080']
+    """
+    return frozenset({f"http://{HOST}:{port}", f"http://localhost:{port}"})
+
+
+def origin_allowed(origins: list[str], port: int) -> bool:
+    """Whether a websocket handshake with these ``Origin`` header values may see the view.
+
+    A browser always sends one ``Origin`` on a websocket handshake: it must be the
+    view's own page (:func:`own_origins`; ``null``, another host or another port is a
+    foreign page, and so is a host name that merely resolves to 127.0.0.1, the DNS
+    rebinding case).  No ``Origin`` at all is a client that is not a browser (a script
+    on this machine, which can reach 127.0.0.1 anyway): accepted.  More than one
+    ``Origin`` is refused.
+
+    >>> origin_allowed(["http://127.0.0.1:8080"], 8080), origin_allowed([], 8080)
+    (True, True)
+    >>> origin_allowed(["http://evil.example"], 8080), origin_allowed(["null"], 8080)
+    (False, False)
+    >>> origin_allowed(["http://127.0.0.1:8081"], 8080)
+    False
+    """
+    if not origins:
+        return True
+    return len(origins) == 1 and origins[0].lower().rstrip("/") in own_origins(port)
 
 
 def _link_name(prefix: str, i: int) -> str:
@@ -118,11 +154,49 @@ class ArmView:
         if port and self.port != port:  # viser moves on to the next free port: refuse that
             self.close()
             raise ViewError(f"--port {port}: the port is in use on {HOST}")
+        self.refused_origins: list[str] = []  # the Origin headers of connections refused
+        try:
+            self._guard_origin()
+        except BaseException:
+            self.close()
+            raise
         try:
             self._build()
         except BaseException:
             self.close()
             raise
+
+    # ------------------------------------------------------------------ origin
+    def _guard_origin(self) -> None:
+        """Close every websocket whose ``Origin`` is not this server's own page before
+        anything is sent on it (:func:`origin_allowed`).
+
+        A web page in the operator's browser can open a websocket to 127.0.0.1; only the
+        ``Origin`` header the browser sets tells it from the view's own page.  viser
+        offers no hook on the handshake, so the check runs as the first thing after it:
+        a callback of viser's websocket server, run for a new connection before the
+        tasks that send the scene start; the connection is closed with code 1008
+        (policy violation) and the scene never leaves.  A viser without the connection
+        table this needs is refused (:class:`ViewError`) rather than served unchecked.
+        """
+        ws = self.server._websock_server
+        try:
+            live = ws._live_connections
+        except AttributeError:
+            raise ViewError(
+                "this viser version does not expose its websocket connections: "
+                "the view cannot check a connection's Origin and is not served"
+            ) from None
+        port = self.port
+
+        async def close_foreign(conn: Any) -> None:
+            connection = live[conn.client_id]
+            origins = connection.request.headers.get_all("Origin")
+            if not origin_allowed(origins, port):
+                self.refused_origins.append(", ".join(origins))
+                await connection.close(WS_POLICY_VIOLATION, "origin not allowed")
+
+        ws.on_client_connect(close_foreign)
 
     # ------------------------------------------------------------------ scene
     def _build(self) -> None:

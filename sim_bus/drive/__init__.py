@@ -61,6 +61,7 @@ __all__ = ["DriveParams", "DriveSim", "DriveSimError", "object_table"]
 
 State = cia402.State402
 EVENTS_KEPT = 200
+SIMULATOR_VENDOR_ID = 0  # 0x1018:1 of every simulated drive (drivers.identity's)
 
 
 class DriveSimError(SimError):
@@ -74,12 +75,16 @@ class DriveParams:
     ``max_velocity_counts_per_s`` and ``max_accel_counts_per_s2`` limit CSP
     following; ``quick_stop_decel_counts_per_s2`` is the quick-stop and fault
     reaction ramp.  ``initial_position_counts`` is where the motor is at power-on.
+    ``serial_number`` is what the identity object answers (0x1018:4); its vendor-ID is
+    always :data:`SIMULATOR_VENDOR_ID` (0x1018:1, 0: no vendor's), its product code and
+    revision the device file's.
     """
 
     max_velocity_counts_per_s: float = 2.0e6
     max_accel_counts_per_s2: float = 2.0e8
     quick_stop_decel_counts_per_s2: float = 4.0e8
     initial_position_counts: int = 0
+    serial_number: int = 0
 
     def __post_init__(self) -> None:
         for name in (
@@ -90,6 +95,9 @@ class DriveParams:
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise DriveSimError(f"DriveParams.{name} must be a finite number > 0, got {v!r}")
+        sn = self.serial_number
+        if not isinstance(sn, int) or isinstance(sn, bool) or not 0 <= sn <= 0xFFFFFFFF:
+            raise DriveSimError(f"DriveParams.serial_number must be an UNSIGNED32, got {sn!r}")
 
 
 class DriveSim:
@@ -191,6 +199,10 @@ class DriveSim:
             return self.error_code
         if key == (cia301.OD_ERROR_REGISTER, 0):
             return self.error_register
+        if key == (cia301.OD_IDENTITY, 1):  # a simulated drive, whatever its device file
+            return SIMULATOR_VENDOR_ID
+        if key == (cia301.OD_IDENTITY, 4):
+            return self.params.serial_number
         return self.od.values[key]
 
     def check_write(self, index: int, sub: int, value: int) -> None:

@@ -6,7 +6,9 @@ the next SYNC (synchronous types 0..240; 254/255 at once); the TPDO
 every SYNC).  An RPDO shorter than its mapping raises EMCY 0x8210 and is not
 applied.  Each SYNC first moves the motor one interpolation period
 (:mod:`sim_bus.drive.motion`).  Mapping parameters can only change while the
-PDO is invalid (bit 31 of its COB-ID), sub-index 0 last.  A mapping is compiled into a
+PDO is invalid (bit 31 of its COB-ID), sub-index 0 last; each entry is checked as it
+is written (an absent object: 0x06020000 or 0x06090011; one that cannot be mapped there:
+0x06040041), and the whole mapping again when sub-index 0 is set.  A mapping is compiled into a
 :class:`~drivers.protocol.pdo.PdoLayout`, the layout the host encodes and parses its PDOs
 with: both ends of the wire use the same encoder.
 """
@@ -223,6 +225,24 @@ class PdoService:
                     raise SdoAbort(cia301.SDO_ABORT_PDO_LENGTH)
             elif od.int_value(index) != 0:
                 raise SdoAbort(cia301.SDO_ABORT_UNSUPPORTED_ACCESS)  # set sub 0 to 0 first
+            else:
+                self._check_entry(index == cia301.OD_RPDO1_MAPPING, value)
+
+    def _check_entry(self, rx: bool, value: int) -> None:
+        """A mapping entry (sub-index 1..8) as it is written: 0 (no entry), or an object of
+        the dictionary (else 0x06020000 / 0x06090011) that is PDO-mappable with its own
+        length, writable for an RPDO (else 0x06040041).  The drive has no dummy objects
+        (its EDS lists none in ``[DummyUsage]``)."""
+        if value == 0:
+            return
+        m_index, m_sub, bits = cia301.parse_pdo_mapping_entry(value)
+        target = self._od.lookup(m_index, m_sub)
+        if (
+            not target.pdo_mappable
+            or len(target) != bits
+            or (rx and target.access_type not in WRITABLE)
+        ):
+            raise SdoAbort(cia301.SDO_ABORT_NOT_MAPPABLE)
 
     def after_write(self, index: int) -> None:
         if 0x1400 <= index <= 0x1BFF:

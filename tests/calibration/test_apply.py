@@ -191,6 +191,7 @@ def test_updated_carries_the_other_fields(model):
         "theta_offset_rad",
         "motor_zero_counts",
         "rope_EA_N",
+        "box",  # the box a routine ran on (issue 34)
     }
     with pytest.raises(TypeError, match="robot_sha256"):
         updated(a, routine="manual", residuals={}, robot_sha256="0" * 64)
@@ -256,3 +257,39 @@ def test_the_estimator_works_in_true_angles_with_offsets(model):
     assert check.max_figure < 2.0
     np.testing.assert_allclose(check.last.alpha, q[0], atol=1e-3)
     np.testing.assert_allclose(check.last.theta, q[1], atol=1e-3)
+
+
+def test_a_calibration_lends_nothing_to_another_box(model, tmp_path):
+    """``starting_point`` with the box at hand (a simulated one, known before it starts)
+    and ``for_box`` (the zero routine's base, once the box is read): a calibration of
+    another box, or of an unknown one, gives way to the description's values."""
+    from calibration.apply import for_box, starting_point
+    from drivers.identity import BoxIdentity, DriveIdentity
+
+    def box(vendor, serial0):
+        return BoxIdentity.of(
+            {m: DriveIdentity(vendor, 0x402, 1, serial0 + k) for k, m in enumerate(MOTORS)}
+        )
+
+    MOTORS = nominal_calibration(model).motor_ids
+    mine, other, real = box(0, 100), box(0, 900), box(0x9A, 100)
+    cal = updated(
+        nominal_calibration(model), routine="kinematic", residuals={},
+        links_mm=model.links + 0.5, box=mine,
+    )  # fmt: skip
+    store = CalibrationStore(tmp_path)
+    store.save(cal)
+    base, active, note = starting_point(store, model, mine)
+    assert base == cal and active is not None and note is None
+    for at in (other, real):
+        base, active, note = starting_point(store, model, at)
+        assert active is None and base.box is None and "starting from the description" in note
+        np.testing.assert_array_equal(base.links_mm, model.links)
+    # the zero routine: a replaced drive keeps the rest; another box lends nothing
+    replaced = BoxIdentity.of({**mine.drives, MOTORS[0]: other.drives[MOTORS[0]]})
+    assert for_box(cal, replaced, model) == (cal, None)
+    base, note = for_box(cal, other, model)
+    np.testing.assert_array_equal(base.links_mm, model.links)
+    assert "made on another simulated arm" in note
+    nominal = nominal_calibration(model)
+    assert for_box(nominal, real, model) == (nominal, None)  # nothing to lend

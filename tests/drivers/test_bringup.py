@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 from collections.abc import Callable
@@ -51,6 +52,28 @@ def test_sdo_abort_names_node_object_and_code(rig_factory: Callable[..., Rig]) -
     assert "0x605A:00" in msg and "0x06090030" in msg and "node" in msg
     assert "\n" not in msg
     # No drive was enabled.
+    assert c.State402.OPERATION_ENABLED not in {
+        c.decode_state(sw) for sw in rig.sim.statuswords().values()
+    }
+
+
+def test_a_refused_mapping_entry_names_node_object_and_code(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    rig = rig_factory()
+    # a drive whose 0x607A cannot be mapped: it refuses the RPDO entry itself (CiA 301)
+    drive = rig.sim.drives["j07r0"]
+    drive.od.objects = dict(drive.od.objects)
+    target = copy.copy(drive.od.objects[(c.OD_TARGET_POSITION, 0)])
+    target.pdo_mappable = False
+    drive.od.objects[(c.OD_TARGET_POSITION, 0)] = target
+    box = rig.open_box()
+    with pytest.raises(SdoError) as info:
+        box.bring_up()
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert "j07r0" in msg and "node" in msg
+    assert "RPDO1" in msg and "object 0x607A:00" in msg and "0x06040041" in msg
     assert c.State402.OPERATION_ENABLED not in {
         c.decode_state(sw) for sw in rig.sim.statuswords().values()
     }

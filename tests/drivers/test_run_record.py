@@ -25,14 +25,20 @@ from tests.drivers.driver_rig import Rig
 def test_the_run_record_names_the_calibration(
     rig_factory: Callable[..., Rig], tmp_path: Path
 ) -> None:
-    ref = CalibrationRef(version=7, sha256="ab" * 32, source="/store/v0007.json")
     rig = rig_factory()
+    box = rig.open_box(log_dir=tmp_path / "a", allow_uncalibrated=True)
+    box.bring_up()  # (the rig's box: a calibration of it names its drives)
+    ref = CalibrationRef(7, "ab" * 32, "/store/v0007.json", box=box.box_identity)
+    box.finish()
+    box.close()
+    rig.box = None
     box = rig.open_box(log_dir=tmp_path / "a", calibration=ref, allow_uncalibrated=False)
     box.bring_up()
     assert box.stream(HoldSource(n_cycles=3)).completed
     box.finish()
     record = json.loads(box.close().read_text())  # type: ignore[union-attr]
     assert record["calibration"] == {"version": 7, "sha256": "ab" * 32, "source": ref.source}
+    assert record["box"] == ref.box.to_dict() and record["box"]["simulated"] is True
     rig.box = None
     box = rig.open_box(log_dir=tmp_path / "b")  # the rig's explicit override
     box.bring_up()

@@ -34,6 +34,12 @@ REPO = Path(__file__).resolve().parents[2]
         ("delay:can1:20:0x181:3@0", "delay", ("can1", "20", "0x181", "3"), 0.0),
         ("sensor-garbage:128", "sensor-garbage", ("128",), None),
         ("reset", "reset", (), None),
+        (
+            "delay:can0:60000:0x181:1000000000@86400",
+            "delay",
+            ("can0", "60000", "0x181", "1000000000"),
+            86400.0,
+        ),
     ],
 )
 def test_parse_fault(text: str, kind: str, args: tuple[str, ...], at: float | None) -> None:
@@ -55,6 +61,16 @@ def test_parse_fault(text: str, kind: str, args: tuple[str, ...], at: float | No
         ("rope-snap:j01r0\x1b[2J", "control character"),
         ("drive-fault:j01r0\n", "control character"),  # at an end too (hrm_fault.after)
         ("\treset", "control character"),
+        # absurd numbers: bounded, one line each
+        ("delay:can0:1e300", r"0\.\.60000 ms"),
+        ("delay:can0:inf", ">= 0 ms"),
+        ("delay:can0:20:0x181:99999999999999999999", r"count must be 1\.\.1000000000"),
+        ("drop:can0:0x181:10000000000", r"count must be 1\.\.1000000000"),
+        ("drop:can0:0x181:" + "9" * 5000, "must be an integer"),
+        ("rope-snap:j01r0@1e300", r"0\.\.86400 s"),
+        ("bus-off:can0@nan", ">= 0"),
+        ("sensor-garbage:1e9", "must be an integer"),
+        ("sensor-corrupt:10000000001", r"count must be in 0\.\.1000000000"),
     ],
 )
 def test_bad_fault_specs_are_one_line_errors(text: str, match: str) -> None:
@@ -127,6 +143,7 @@ def test_cli_bad_inputs_exit_2_with_one_line(
         (["sim", "--fault", "rope-snap:j99r9"], "no simulated drive"),
         (["sim", "--fault", "bus-off:can7"], "no bus"),
         (["sim", "--duration", "-1"], "--duration"),
+        (["sim", "--fault", "delay:can0:1e300"], "delay must be 0..60000 ms"),
     ]:
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()

@@ -151,6 +151,8 @@ def _run_routine(ctx: ConsoleContext, routine: str, ns: argparse.Namespace) -> N
     base = (
         ctx.active.calibration if ctx.active is not None else nominal_calibration(ctx.description)
     )
+    if ns.out is None:  # checked before the first move: the result has a place to go
+        store.check_can_save()
     build = tension_cli.zero_routine if routine == "zero" else tension_cli.stiffness_routine
     run = build(ns, progress=ctx.out)
     t0 = time.monotonic()
@@ -168,7 +170,8 @@ def _run_routine(ctx: ConsoleContext, routine: str, ns: argparse.Namespace) -> N
         if ctx.enabled:
             start_watches(ctx)
     report = tension_cli.report_zero if routine == "zero" else tension_cli.report_stiffness
-    version = report(ns, result, base, store, t0, ctx.out, ctx.description).version
+    box = ctx.session.box_identity
+    version = report(ns, result, base, store, t0, ctx.out, ctx.description, box=box).version
     if store.active() != version:  # kept, not made active (out of range): nothing changes
         ctx.out(f"{name}: v{version:04d} is not active: the session and the store keep "
                 "the calibration they had")  # fmt: skip

@@ -397,6 +397,8 @@ def test_kinematic_bad_arguments_are_one_line(store_dir, model, tmp_path, capsys
 
 
 def _offset_calibration(model, store_dir: Path, *, links=None, seed=5):
+    from hrm_ctrl.runtime.arm import simulated_box_identity
+
     rng = np.random.default_rng(seed)
     cal = updated(
         nominal_calibration(model),
@@ -405,6 +407,7 @@ def _offset_calibration(model, store_dir: Path, *, links=None, seed=5):
         links_mm=model.links if links is None else links,
         alpha_offset_rad=np.radians(rng.uniform(-1, 1, 12)),
         theta_offset_rad=np.radians(rng.uniform(-1, 1, 12)),
+        box=simulated_box_identity(model),  # made on the (unperturbed) simulated arm
     )
     return cal, CalibrationStore(store_dir).save(cal)
 
@@ -532,6 +535,7 @@ def test_collect_on_the_simulated_box_recovers_the_truth(
     0.02 deg).
     """
     from calibration.kinematic import read_pose_csv
+    from hrm_ctrl.runtime.arm import simulated_box_identity
     from sim_bus.truth import TrueArm
 
     nominal = load_actuation(model)
@@ -543,6 +547,7 @@ def test_collect_on_the_simulated_box_recovers_the_truth(
         residuals={},
         motor_zero_counts={m: int(z) for m, z in zip(nominal.motor_ids, zero, strict=True)},
         rope_EA_N={m: float(e) for m, e in zip(nominal.motor_ids, truth.rope_EA_N, strict=True)},
+        box=simulated_box_identity(model, perturb=3),  # made on this simulated arm
     )
     store = CalibrationStore(store_dir)
     assert store.save(start) == 1

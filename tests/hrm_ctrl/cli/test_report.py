@@ -178,10 +178,11 @@ def test_report_bad_input_one_line(tmp_path: Path, capsys: pytest.CaptureFixture
 PDO = (0x200, 0x080, 0x180)  # RPDO1 base, SYNC, TPDO1 base
 
 
-def _synthetic_run(folder: Path, cycles: int = 6) -> dict[str, Path]:
-    """A run of the default robot as ``hrm run`` leaves it, without running it: the record,
-    one BLF per bus (every motor commanded and reporting 0 counts, one SYNC every 10 ms)
-    and a tension file.  ``hrm report`` reads it in well under a second."""
+def _synthetic_run(folder: Path, cycles: int = 6, fmt: str = "blf") -> dict[str, Path]:
+    """A run of the default robot as ``hrm run`` leaves it, without running it: the record
+    (with the frames written to each log), one BLF (or ``fmt``) log per bus (every motor
+    commanded and reporting 0 counts, one SYNC every 10 ms) and a tension file.
+    ``hrm report`` reads it in well under a second."""
     import struct
 
     from hrm_ctrl.formats.runlog import tension_path, write_tension_csv
@@ -192,8 +193,8 @@ def _synthetic_run(folder: Path, cycles: int = 6) -> dict[str, Path]:
     t0 = 1.7e9
     paths: dict[str, Path] = {}
     for bus, ids in buses.items():
-        path = folder / f"run-s_{bus}.blf"
-        with can.BLFWriter(str(path)) as w:
+        path = folder / f"run-s_{bus}.{fmt}"
+        with can.Logger(str(path)) as w:
             for k in range(cycles):
                 t = t0 + 0.01 * k
                 frames = [(PDO[0] + n, struct.pack("<Hi", 15, 0)) for n in range(1, len(ids) + 1)]
@@ -213,6 +214,8 @@ def _synthetic_run(folder: Path, cycles: int = 6) -> dict[str, Path]:
                    "buses": {b: {"nodes": {m: i + 1 for i, m in enumerate(ids)}}
                              for b, ids in buses.items()}},
         "can_logs": [str(paths[b]) for b in buses],
+        "can_log_frames": [cycles * (2 * len(ids) + 1) for ids in buses.values()],
+        "can_log_lost": [0, 0],
     }  # fmt: skip
     paths["record"] = folder / "run-s.json"
     paths["record"].write_text(json.dumps(record))
@@ -350,6 +353,16 @@ def _node(p: dict[str, Path]) -> Path:
     return p["record"]
 
 
+def _counts(value: Any) -> Any:
+    def damage(p: dict[str, Path]) -> Path:
+        rec = json.loads(p["record"].read_text())
+        rec["can_log_frames"] = value
+        p["record"].write_text(json.dumps(rec))
+        return p["record"]
+
+    return damage
+
+
 def _tension(cell: str) -> Any:
     def damage(p: dict[str, Path]) -> Path:
         lines = p["tension"].read_text().splitlines()
@@ -364,10 +377,12 @@ def _tension(cell: str) -> Any:
     "damage",
     [_nested, _blf("can0", b""), _blf("can1", bytes(range(256)) * 16), _blf("can0", None),
      _rate("NaN"), _rate("Infinity"), _rate("-Infinity"), _rate("-100"), _rate("0"),
-     _rate("1e300"), _rate("true"), _motors, _node, _tension("nan"), _tension("1e999")],
+     _rate("1e300"), _rate("true"), _motors, _node, _tension("nan"), _tension("1e999"),
+     _counts("many"), _counts([222]), _counts([222, -1]), _counts([222, 1.5e300])],
     ids=["nested-record", "empty-blf", "random-blf", "damaged-blf", "rate-nan", "rate-inf",
          "rate-minus-inf", "rate-negative", "rate-zero", "rate-huge", "rate-bool",
-         "two-million-motors", "node-id-huge", "tension-nan-time", "tension-inf-time"],
+         "two-million-motors", "node-id-huge", "tension-nan-time", "tension-inf-time",
+         "counts-text", "counts-one-log", "counts-negative", "counts-float"],
 )  # fmt: skip
 def test_report_damaged_input_one_line(
     synthetic: dict[str, Path],
@@ -382,3 +397,90 @@ def test_report_damaged_input_one_line(
     _one_line_error(rc, text, err, bad.name)
     assert not out.exists()
     assert not [r for r in caplog.records if r.name.startswith("can")]  # nothing logged either
+
+
+# -- CAN logs that miss frames the run record counts -------------------------------------
+
+
+def _cut_in_half(path: Path) -> None:
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) // 2])
+
+
+def _lines_replaced(path: Path) -> None:
+    """40 frame lines in the middle of a text log replaced by 3 lines of garbage (python-can's
+    ASC reader skips what it cannot parse, without a word)."""
+    lines = path.read_text().splitlines(keepends=True)
+    n = len(lines) // 3
+    lines[n : n + 40] = ["garbage line here 0x\n"] * 3
+    path.write_text("".join(lines))
+
+
+@pytest.mark.parametrize(
+    ("fmt", "damage", "read"),
+    [("blf", _cut_in_half, None), ("asc", _lines_replaced, 120 * 37 - 40)],
+    ids=["cut-blf", "damaged-asc"],
+)
+def test_a_log_that_misses_frames_is_refused_and_partial_says_what_is_missing(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    fmt: str,
+    damage: Any,
+    read: int | None,
+) -> None:
+    monkeypatch.setenv("HRM_CALIBRATIONS", str(tmp_path / "calibrations"))
+    run = _synthetic_run(tmp_path / "runs", cycles=120, fmt=fmt)  # 4,440 frames a bus
+    damage(run["can1"])
+    out = tmp_path / "figs"
+    rc, text, err = run_cli(["report", str(run["record"]), "--out", str(out)], capsys)
+    _one_line_error(rc, text, err, str(run["can1"]))
+    assert "of the 4,440 frames the run record counts (the log is cut or damaged)" in err
+    assert "--partial" in err and not out.exists()
+    if read is not None:
+        assert f"{read:,} of the 4,440" in err
+    # --partial: the figures of what the logs hold, a warning line naming the log
+    rc, text, err = run_cli(
+        ["report", str(run["record"]), "--out", str(out), "--partial", "--json"], capsys
+    )
+    assert rc == 0, err
+    (line,) = err.splitlines()
+    assert line.startswith(f"hrm report: warning: {run['can1']}: ") and "4,440" in line
+    rep = json.loads(text)
+    assert rep["complete"] is False and len(rep["missing"]) == 1
+    assert sorted(p.name for p in out.iterdir()) == ["angles.png", "lateness.png", "tracking.png"]
+
+
+def _record_edit(path: Path, **changes: Any) -> None:
+    rec = json.loads(path.read_text())
+    for key, value in changes.items():
+        if value is None:
+            del rec[key]
+        else:
+            rec[key] = value
+    path.write_text(json.dumps(rec))
+
+
+def test_every_frame_there_is_complete_and_more_or_lost_frames_are_named(
+    synthetic: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    record, out = synthetic["record"], synthetic["record"].parent / "figs"
+    rc, text, err = run_cli(["report", str(record), "--out", str(out), "--json"], capsys)
+    assert rc == 0 and err == "" and json.loads(text)["complete"] is True
+    # more frames than the run wrote: not its log
+    _record_edit(record, can_log_frames=[222, 100])
+    rc, text, err = run_cli(["report", str(record), "--out", str(tmp := out / "x")], capsys)
+    _one_line_error(rc, text, err, str(synthetic["can1"]))
+    assert "222 frames, the run record counts 100 (not the log the run wrote)" in err
+    assert not tmp.exists()
+    # frames the session could not write: missing too
+    _record_edit(record, can_log_frames=[222, 222], can_log_lost=[5, 0])
+    rc, text, err = run_cli(["report", str(record), "--out", str(tmp)], capsys)
+    _one_line_error(rc, text, err, str(synthetic["can0"]))
+    assert "5 frame(s) never reached the log" in err
+    # a record that keeps no counts: drawn, with a note that the logs are not checked
+    _record_edit(record, can_log_frames=None, can_log_lost=None)
+    rc, text, err = run_cli(["report", str(record), "--out", str(tmp), "--json"], capsys)
+    assert rc == 0 and json.loads(text)["complete"] is None
+    (line,) = err.splitlines()
+    assert line.startswith("hrm report: note: ") and "a cut log cannot be told" in line

@@ -12,7 +12,9 @@ from hypothesis import strategies as st
 from hrm_ctrl.errors import PlanningError
 from hrm_ctrl.planning.environment import (
     AXIS_SPACING,
+    BROAD_PHASE_MIN_BOXES,
     Box,
+    BoxIndex,
     Environment,
     Pipe,
     RectOpening,
@@ -378,3 +380,107 @@ def test_pipe_distance_matches_a_brute_force_reference(seed: int, u_bend: bool) 
     assert np.abs(d - want)[ok].max() < 1e-9
     assert np.abs(np.linalg.norm(g, axis=1) - 1.0).max() < 1e-9
     assert pipe.free_distance(q[:0]).shape == (0,)
+
+
+def _rotation(rng: np.random.Generator) -> np.ndarray:
+    Q, R = np.linalg.qr(rng.normal(size=(3, 3)))
+    Q = Q * np.sign(np.diag(R))
+    return Q if np.linalg.det(Q) > 0 else -Q
+
+
+def _random_boxes(rng: np.random.Generator, n: int, spread: float) -> list[Box]:
+    """Boxes of sizes 1..300 mm (several size classes), rotated, within ``spread`` mm."""
+    sizes = np.exp(rng.uniform(0.0, math.log(300.0), (n, 3)))
+    centres = rng.uniform(-spread, spread, (n, 3))
+    return [Box(c, s, _rotation(rng)) for c, s in zip(centres, sizes, strict=True)]
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(BROAD_PHASE_MIN_BOXES, 80),
+    with_wall=st.booleans(),
+)
+def test_the_box_index_gives_every_obstacles_own_nearest_distance(
+    seed: int, n: int, with_wall: bool
+) -> None:
+    """Many boxes (an index): the distance and gradient of the nearest obstacle, exactly as
+    evaluating every obstacle at every point gives them (inside boxes, between, far)."""
+    rng = np.random.default_rng(seed)
+    boxes = _random_boxes(rng, n, 800.0)
+    wall = Wall(np.array([0.0, 0, -900]), np.array([0.0, 0.2, 1.0]))
+    env = Environment((wall, *boxes) if with_wall else tuple(boxes))
+    near = np.array([b.centre for b in boxes])[rng.integers(n, size=200)]
+    q = np.vstack(
+        (
+            rng.uniform(-1200.0, 1200.0, (300, 3)),
+            near + rng.normal(0.0, 60.0, near.shape),
+            rng.uniform(-1e5, 1e5, (20, 3)),
+        )
+    )
+    d, g = env.free_distance_and_gradient(q)
+    each = [o.free_distance_and_gradient(q) for o in env.obstacles]
+    D = np.array([e[0] for e in each])  # (obstacles, points)
+    want = D.min(axis=0)
+    assert np.abs(d - want).max() <= 1e-9 * max(1.0, np.abs(want).max())  # rounding only
+    first = np.argmin(D, axis=0)
+    unique = np.sort(D, axis=0)[1] > want + 1e-9  # the gradient is the nearest one's
+    G = np.array([e[1] for e in each])[first, np.arange(len(q))]
+    assert np.abs(g - G)[unique].max() < 1e-9
+    assert env.free_distance(q[:0]).shape == (0,)
+
+
+def _pairs_counted(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    counted: list[int] = []
+    pairs = BoxIndex._pairs
+
+    def counting(self: BoxIndex, q: np.ndarray, box: np.ndarray):  # type: ignore[no-untyped-def]
+        counted.append(len(box))
+        return pairs(self, q, box)
+
+    monkeypatch.setattr(BoxIndex, "_pairs", counting)
+    return counted
+
+
+def test_boxes_that_cannot_matter_are_not_evaluated(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bent pipe's arm among 1,000 small boxes far from it (beyond 3 m of every point):
+    no box is evaluated at any point, and the clearance is the pipe's alone."""
+    sc = bent_pipe()
+    pipe = Pipe(sc.path, 70.0)
+    rng = np.random.default_rng(7)
+    c = rng.normal(size=(1000, 3))
+    c *= (rng.uniform(6000.0, 9000.0, 1000) / np.linalg.norm(c, axis=1))[:, None]
+    boxes = [Box(x, np.full(3, 20.0)) for x in c]
+    O = np.zeros((4, 13, 3))
+    O[:, :, 0] = np.linspace(0.0, 1800.0, 13)  # a straight arm from the base into the pipe
+    O[:, :, 1], O[:, :, 2] = 100.0, np.array([[300.0], [280.0], [260.0], [240.0]])
+    counted = _pairs_counted(monkeypatch)
+    crowded = link_clearance(Environment((pipe, *boxes)), O, np.full(12, 15.0))
+    assert sum(counted) == 0
+    assert np.array_equal(crowded, link_clearance(Environment((pipe,)), O, np.full(12, 15.0)))
+
+
+def test_box_evaluations_grow_with_the_boxes_near_the_points_not_with_the_scene(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """100 and 1,000 small boxes scattered 1.5-3 m around the bent pipe's arm: the box
+    evaluations per point stay a few, whatever the number of boxes."""
+    sc = bent_pipe()
+    pipe = Pipe(sc.path, 70.0)
+    rng = np.random.default_rng(3)
+    q = np.column_stack(
+        (rng.uniform(0.0, 1800.0, 5000), rng.normal(100.0, 50.0, 5000), rng.normal(200, 50, 5000))
+    )
+    per_point = []
+    for n in (100, 1000):
+        c = rng.normal(size=(n, 3))
+        c *= (rng.uniform(1500.0, 3000.0, n) / np.linalg.norm(c, axis=1))[:, None]
+        env = Environment(
+            (pipe, *[Box(x + np.array([900.0, 100, 200]), np.full(3, 20.0)) for x in c])
+        )
+        counted = _pairs_counted(monkeypatch)
+        d = env.free_distance(q)
+        per_point.append(sum(counted) / len(q))
+        brute = np.min([o.free_distance(q) for o in env.obstacles], axis=0)
+        assert np.abs(d - brute).max() < 1e-9
+    assert max(per_point) < 1.0, per_point  # every box at every point: 100 and 1,000

@@ -176,3 +176,50 @@ def test_bad_input_is_refused() -> None:
         port = s.getsockname()[1]
         with pytest.raises(ViewError, match=f"--port {port}: the port is in use"):
             ArmView(MODEL, None, plan, port=port)
+
+
+def _received_bytes(url: str, origin: str | None) -> tuple[int, int | None]:
+    """Connect to the view's websocket as a browser page of ``origin`` would (viser's
+    subprotocol); the bytes received in the first second and the close code, if closed."""
+    import viser
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+    from websockets.typing import Origin, Subprotocol
+
+    ws_url = url.replace("http://", "ws://")
+    got = 0
+    with connect(
+        ws_url,
+        origin=None if origin is None else Origin(origin),
+        subprotocols=[Subprotocol(f"viser-v{viser.__version__}")],
+        proxy=None,
+        open_timeout=10,
+    ) as ws:
+        try:
+            while True:
+                msg = ws.recv(timeout=1.0)
+                got += len(msg)
+        except TimeoutError:
+            return got, None
+        except ConnectionClosed as exc:
+            return got, exc.rcvd.code if exc.rcvd is not None else None
+
+
+def test_a_foreign_origin_gets_nothing_of_the_scene() -> None:
+    env = Environment(tuple(_box_beside(k, 50.0) for k in (3, 6, 9)))
+    plan = _plan(5, env)
+    with ArmView(MODEL, plan.environment, plan, step=2) as view:
+        for origin in ("http://evil.example", "null", f"http://127.0.0.1:{view.port + 1}"):
+            got, code = _received_bytes(view.url, origin)
+            assert (got, code) == (0, 1008), origin
+        assert view.refused_origins == [
+            "http://evil.example",
+            "null",
+            f"http://127.0.0.1:{view.port + 1}",
+        ]
+        # the view's own page (by the URL printed, or by localhost), and a client that is
+        # not a browser (no Origin), get the scene
+        for origin in (f"http://127.0.0.1:{view.port}", f"http://localhost:{view.port}", None):
+            got, code = _received_bytes(view.url, origin)
+            assert code is None and got > 1_000, (origin, got)
+        assert len(view.refused_origins) == 3

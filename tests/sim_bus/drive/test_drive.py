@@ -432,9 +432,10 @@ def test_pdo_remapping() -> None:
     assert r.write(0x1400, 1, struct.pack("<I", 0x80000205))[0] == 0x60
     assert r.write(0x1600, 0, b"\x00")[0] == 0x60
     assert r.write(0x1600, 1, struct.pack("<I", 0x607A0020))[0] == 0x60
-    # an unmappable object is refused when the mapping is activated
-    assert r.write(0x1600, 2, struct.pack("<I", 0x10170010))[0] == 0x60
-    assert abort_code(r.write(0x1600, 0, b"\x02")) == cia301.SDO_ABORT_NOT_MAPPABLE
+    # an unmappable object is refused as the entry is written (test_pdo.py: every kind)
+    assert abort_code(r.write(0x1600, 2, struct.pack("<I", 0x10170010))) == (
+        cia301.SDO_ABORT_NOT_MAPPABLE
+    )
     assert r.write(0x1600, 0, b"\x01")[0] == 0x60
     assert r.write(0x1400, 1, struct.pack("<I", 0x305))[0] == 0x60  # new COB-ID, valid
     r.operational()
