@@ -16,6 +16,11 @@ counts commanded at each pose (the rope layer's inverse of the rounded counts, n
 target angles: a count is 0.5 um of rope, 4e-5 rad at the hole radius, which over 24
 joints and a 2 m arm is tens of um at the end point), and the measured points.
 
+A collection keeps its poses as they are measured (:class:`PoseJournal`: one JSON file
+rewritten atomically after each pose, named by what identifies the collection,
+:func:`journal_key`): a collection that stops (a safety stop, the operator, a crash)
+resumes from them, driving only the poses still missing.
+
 A move interpolates the joint angles with the minimum-jerk profile
 ``s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5`` (rest to rest: speed and acceleration 0 at
 both ends), each cycle's counts through the rope layer, so every cycle is one
@@ -172,13 +177,17 @@ def collect_poses(
     return_home: bool = True,
     source: str = "collected",
     progress: Callable[[int, int, np.ndarray], None] | None = None,
+    on_pose: Callable[[int, np.ndarray, np.ndarray, np.ndarray], None] | None = None,
 ) -> PoseData:
     """Drive the arm to each target configuration (true angles, (N, 12) each), hold
     ``settle_s``, read ``reader.measure(samples)`` (moves at ``rate_fraction`` of the motor
     limits, at most 1), and at the end (``return_home``) move back to the configuration the
     arm started in; return the poses (commanded angles and
     measured points, see the module docstring).  ``progress(k, N, point)`` is called after
-    each pose.  A safety stop raises what the session raises (nothing is measured after)."""
+    each pose, and ``on_pose(k, alpha, theta, point)`` with the pose as it is kept
+    (commanded angles (12,) each, the instrument's point): a :class:`PoseJournal` writes it
+    down, so a collection that stops keeps what it measured.  A safety stop raises what the
+    session raises (nothing is measured after)."""
     a = np.asarray(alpha, dtype=float)
     t = np.asarray(theta, dtype=float)
     nj = actuation.robot.n_joints
@@ -212,6 +221,9 @@ def collect_poses(
         points[k] = _point_of(reader.measure(samples))
         here = (a[k], t[k])
         reached[0, k], reached[1, k] = actuation.angles_from_counts(table[-1], None, *here)[:2]
+        if on_pose is not None:
+            a_k, t_k = actuation.commanded_angles(reached[0, k], reached[1, k])
+            on_pose(k, np.asarray(a_k), np.asarray(t_k), points[k].copy())
         if progress is not None:
             progress(k + 1, len(a), points[k])
     if return_home:  # back where the arm started, along a joint path (a move in counts
@@ -222,3 +234,122 @@ def collect_poses(
         )
     a_cmd, t_cmd = actuation.commanded_angles(reached[0], reached[1])
     return PoseData(np.array(a_cmd), np.array(t_cmd), points, source)
+
+
+JOURNAL_FORMAT = "hrm-collect/1"
+
+
+def journal_key(alpha: np.ndarray, theta: np.ndarray, *about: str) -> str:
+    """What identifies a collection (its target configurations, in order, and ``about``:
+    the arm it drives, the calibration it starts from): 16 hex digits.
+
+    >>> z = np.zeros((2, 12))
+    >>> journal_key(z, z, "sim") == journal_key(z, z, "sim") != journal_key(z, z, "real")
+    True
+    """
+    import hashlib
+
+    h = hashlib.sha256()
+    for arr in (alpha, theta):
+        h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
+    for text in about:
+        h.update(b"\0" + text.encode())
+    return h.hexdigest()[:16]
+
+
+class PoseJournal:
+    """The poses of one collection, kept in ``path`` as they are measured (a JSON file,
+    ``hrm-collect/1``, rewritten atomically after each pose: a stop, a crash or a power
+    cut leaves the poses measured before it) and read back to resume: :attr:`kept` are
+    the first poses of the collection ``key`` of ``n`` poses (commanded angles (k, 12)
+    each, points (k, 3) in the base frame).  A file of another collection, or one that is
+    not a journal, is refused (:class:`CalibrationDataError` naming it), never overwritten.
+
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> d = Path(tempfile.mkdtemp())
+    >>> j = PoseJournal(d / "c.json", "k1", 3)
+    >>> j.add(np.zeros(12), np.ones(12), np.array([1.0, 2.0, 3.0]))
+    >>> again = PoseJournal(d / "c.json", "k1", 3)
+    >>> len(again), again.kept.points_mm.tolist()
+    (1, [[1.0, 2.0, 3.0]])
+    >>> PoseJournal(d / "c.json", "k2", 3)
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.CalibrationDataError: ...c.json: the poses of another collection (not ...)
+    """
+
+    def __init__(self, path: Any, key: str, n: int) -> None:
+        from pathlib import Path
+
+        self.path = Path(path)
+        self.key = key
+        self.n = int(n)
+        self._rows: list[tuple[list[float], list[float], list[float]]] = []
+        if self.path.exists():
+            self._rows = self._read()
+
+    def _read(self) -> list[tuple[list[float], list[float], list[float]]]:
+        import json
+
+        where = str(self.path)
+        try:
+            doc = json.loads(self.path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            raise CalibrationDataError(f"{where}: not a pose journal ({exc})") from exc
+        if not isinstance(doc, dict) or doc.get("format") != JOURNAL_FORMAT:
+            raise CalibrationDataError(f"{where}: not a pose journal (format {JOURNAL_FORMAT})")
+        if doc.get("key") != self.key or doc.get("poses") != self.n:
+            raise CalibrationDataError(
+                f"{where}: the poses of another collection (not resumed: move it away, or run "
+                "the collection it was made for)"
+            )
+        rows = doc.get("measured")
+        if not isinstance(rows, list) or len(rows) > self.n:
+            raise CalibrationDataError(f"{where}: measured: a list of at most {self.n} poses")
+        out = []
+        for i, r in enumerate(rows):
+            try:
+                a, t, p = (np.asarray(r[k], dtype=float) for k in ("alpha_rad", "theta_rad",
+                                                                   "point_mm"))  # fmt: skip
+            except (TypeError, KeyError, ValueError):
+                raise CalibrationDataError(f"{where}: measured[{i}]: not a pose") from None
+            n_j = len(a)
+            if a.shape != (n_j,) or t.shape != (n_j,) or p.shape != (3,):
+                raise CalibrationDataError(f"{where}: measured[{i}]: not a pose")
+            if not (np.isfinite(a).all() and np.isfinite(t).all() and np.isfinite(p).all()):
+                raise CalibrationDataError(f"{where}: measured[{i}]: not finite")
+            out.append((a.tolist(), t.tolist(), p.tolist()))
+        return out
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    @property
+    def kept(self) -> PoseData:
+        """The poses kept so far (empty arrays when none)."""
+        n_j = len(self._rows[0][0]) if self._rows else 0
+        a = np.array([r[0] for r in self._rows], dtype=float).reshape(-1, n_j)
+        t = np.array([r[1] for r in self._rows], dtype=float).reshape(-1, n_j)
+        p = np.array([r[2] for r in self._rows], dtype=float).reshape(-1, 3)
+        return PoseData(a, t, p, str(self.path))
+
+    def add(self, alpha: np.ndarray, theta: np.ndarray, point_mm: np.ndarray) -> None:
+        """Keep one more pose (written before this returns)."""
+        import json
+
+        from hrm_ctrl.files import write_atomic
+
+        row = tuple(np.asarray(x, dtype=float).tolist() for x in (alpha, theta, point_mm))
+        self._rows.append(row)  # type: ignore[arg-type]
+        doc = {
+            "format": JOURNAL_FORMAT,
+            "key": self.key,
+            "poses": self.n,
+            "measured": [{"alpha_rad": a, "theta_rad": t, "point_mm": p} for a, t, p in self._rows],
+        }
+        write_atomic(self.path, json.dumps(doc) + "\n")
+
+    def remove(self) -> None:
+        """The collection is complete (its pose file written): the journal goes."""
+        self.path.unlink(missing_ok=True)

@@ -475,12 +475,61 @@ def run_kinematic(args: argparse.Namespace) -> int:
 
 def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any) -> Any:
     """Drive the arm through ``args.collect`` configurations and read the tracker; return
-    the poses and the pose file written into the log folder."""
+    the poses and the pose file written into the log folder.  Every pose is kept as it is
+    measured (``calibration.collect.PoseJournal``, in the log folder): the same command
+    after a stop resumes from them."""
+    from calibration.collect import PoseJournal, journal_key
+
+    prog = "hrm calibrate kinematic"
+    alpha, theta = _collect_targets(args, description)
+    arm_id = f"sim, perturb {args.perturb}" if args.sim else "real box"
+    key = journal_key(alpha, theta, str(args.robot), arm_id,
+                      "no calibration" if active is None else active.sha256)  # fmt: skip
+    journal = PoseJournal(Path(args.log_dir) / f"collect-{key}.json", key, args.collect)
+    if len(journal):
+        print(f"{prog}: resuming: {len(journal)} of {args.collect} poses kept in "
+              f"{journal.path}", file=sys.stderr)  # fmt: skip
+    else:
+        print(f"{prog}: poses kept in {journal.path} as they are measured", file=sys.stderr)
+    try:
+        data, pose_file = _collect_rest(args, description, base, active, alpha, theta, journal)
+    except BaseException:
+        if len(journal):
+            print(f"{prog}: {len(journal)} of {args.collect} poses kept in {journal.path}: "
+                  "the same command resumes from them", file=sys.stderr)  # fmt: skip
+        raise
+    journal.remove()
+    return data, pose_file
+
+
+def _collect_targets(args: argparse.Namespace, description: Any) -> Any:
+    """The configurations of ``--collect N --seed S``, in the order they are visited."""
+    import numpy as np
+
+    from calibration.collect import travel_order
+    from calibration.kinematic import spread_configurations
+
+    rng = np.random.default_rng(args.seed)
+    alpha, theta = spread_configurations(description, args.collect, rng)
+    order = travel_order(alpha, theta)  # short moves: the same poses
+    return alpha[order], theta[order]
+
+
+def _collect_rest(
+    args: argparse.Namespace,
+    description: Any,
+    base: Any,
+    active: Any,
+    alpha: Any,
+    theta: Any,
+    journal: Any,
+) -> Any:
+    """The poses ``journal`` does not keep yet, collected (each kept as it is measured);
+    return all the poses and the pose file."""
     import numpy as np
 
     from calibration.apply import calibrated_actuation, calibrated_model
-    from calibration.collect import travel_order
-    from calibration.kinematic import format_pose_csv, spread_configurations
+    from calibration.kinematic import PoseData, format_pose_csv
     from calibration.workflows import collect_in_base_frame, tracker_frame
     from drivers.bus import ensure_log_dir
     from drivers.tracker import TrackerReader
@@ -494,12 +543,14 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
     config = load_box(args)  # --config with the --bus overrides
     actuation = calibrated_actuation(description, base)
     config.check_motors(actuation.motor_ids)
-    rng = np.random.default_rng(args.seed)
-    alpha, theta = spread_configurations(description, args.collect, rng)
-    order = travel_order(alpha, theta)  # short moves: the same poses
-    alpha, theta = alpha[order], theta[order]
     actuation.check_angles(alpha, theta)
     ensure_log_dir(args.log_dir)
+    k0 = len(journal)
+    if k0 == args.collect:  # every pose kept: nothing to drive
+        data = journal.kept
+        pose_file = journal.path.with_name(f"{journal.path.stem}-poses.csv")
+        write_atomic(pose_file, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
+        return data, pose_file
     arm = Arm(description, calibrated_model(description, base), active, rope_layer=actuation)
     ref = arm.calibration_ref()
     if ref is None and args.uncalibrated:
@@ -540,6 +591,7 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
             with ProgressBar("calibration poses", enabled=show) as bar:
 
                 def progress(k: int, n: int, p: np.ndarray) -> None:
+                    k, n = k + k0, n + k0  # the poses kept before count too
                     text = f"pose {k}/{n}: {p[0]:.3f} {p[1]:.3f} {p[2]:.3f} mm"
                     if show:
                         bar(k / n)
@@ -548,6 +600,10 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
                         print(text, file=sys.stderr)
 
                 frame = tracker_frame(reader, description)
+
+                def keep(_k: int, a: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
+                    journal.add(a, t, frame.to_base(p[None, :])[0])
+
                 print(
                     f"tracker frame from {len(description.base_fiducials)} base nests: fit "
                     f"{frame.rms_mm:.3f} mm rms",
@@ -558,14 +614,18 @@ def _collect(args: argparse.Namespace, description: Any, base: Any, active: Any)
                     actuation,
                     reader,
                     description,
-                    alpha,
-                    theta,
+                    alpha[k0:],
+                    theta[k0:],
                     period_s=box.config.control.period_s,
                     frame=frame,
                     samples=args.samples,
                     source=f"{session.run_name} (collected)",
                     progress=progress,
+                    on_pose=keep,
                 )
+        if k0:  # the poses kept before, then these (all in the journal now)
+            kept = journal.kept
+            data = PoseData(kept.alpha_rad, kept.theta_rad, kept.points_mm, data.source)
         pose_file = Path(args.log_dir) / f"{session.run_name}-poses.csv"
         write_atomic(pose_file, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
         session.record_extra["pose_file"] = str(pose_file)

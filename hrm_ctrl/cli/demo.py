@@ -27,7 +27,9 @@ zeros 5000 counts off, the ropes would be far from their pretension).  ``--no-ca
 plays on an unperturbed arm with the description's values (the demo before issue 12).
 Everything goes to ``--out``: ``plan.json``, ``figures/*.png``, ``calibrations/``, each
 session's CAN traffic (``.blf``) and run record, ``poses.csv`` and ``demo.json`` (the
-summary).
+summary; an earlier demo's files of these names are removed first).  A run that does not
+finish (a safety stop) is said first (``FAILED: ...``, on stdout and stderr; ``outcome``
+and ``failure`` open ``demo.json``), its figures are not printed, and the exit status is 2.
 """
 
 from __future__ import annotations
@@ -244,6 +246,21 @@ def _plan(robot: Any, sc: Any, args: argparse.Namespace) -> Any:
     return plan
 
 
+def _remove_stale_outputs(out: Path, names: list[str]) -> None:
+    """The files a demo writes into ``out``, left by an earlier demo, removed before this
+    one writes any: a demo that stops half-way leaves none of another's beside its own
+    (an earlier ``demo.json`` would tell of a run that is not this one)."""
+    gone = []
+    for name in names:
+        path = out / name
+        if path.is_file():
+            path.unlink()
+            gone.append(name)
+    if gone:
+        print(f"hrm demo: an earlier demo's outputs removed from {out}: {', '.join(gone)}",
+              file=sys.stderr)  # fmt: skip
+
+
 def _check_args(args: argparse.Namespace) -> None:
     if not (math.isfinite(args.step) and args.step > 0.0):
         raise PlanningError(f"--step must be > 0 mm, got {args.step}")
@@ -303,6 +320,7 @@ def run(args: argparse.Namespace) -> int:
     config.check_motors(nominal.motor_ids)
     sc = scenario(args.scenario)
     plan_nominal = _plan(description, sc, args)  # the description's values: planned first
+    _remove_stale_outputs(args.out, [SUMMARY_JSON, PLAN_JSON, POSES_CSV, *pngs])
     truth = TrueArm.perturbed(nominal, args.perturb) if args.calibrate else None
     out: Path = args.out
 
@@ -388,7 +406,13 @@ def run(args: argparse.Namespace) -> int:
     }
 
     st = result.stats
+    failure = None if stop is None else (
+        f"the run did not finish: safety stop after {result.cycles} of "
+        f"{source.n_cycles} cycles: {stop}"
+    )  # fmt: skip
     summary: dict[str, Any] = {
+        "outcome": "done" if failure is None else "failed",
+        "failure": failure,
         "scenario": sc.name,
         "plan_report": plan.report,
         "calibration": calib,
@@ -407,6 +431,9 @@ def run(args: argparse.Namespace) -> int:
         "seconds": time.monotonic() - t_start,
     }
     write_atomic(out / SUMMARY_JSON, json.dumps(summary, indent=1, default=str) + "\n")
+    if failure is not None:  # said first, and no figures of a run that did not finish
+        print(f"hrm demo: FAILED: {failure}", file=sys.stderr, flush=True)
+        print(f"FAILED: {failure}")
     print(
         f"box: {len(ids)} drives on {len(config.buses)} buses ({args.wire}), "
         f"bring-up {bringup_s:.2f} s"
@@ -417,6 +444,13 @@ def run(args: argparse.Namespace) -> int:
         f"late cycles {st.get('late_cycles', 0)}, "
         f"missing feedback {st.get('missing_feedback_node_cycles', 0)}"
     )
+    if failure is not None:
+        print("figures of the run not shown: it did not finish (demo.json keeps what was measured)")
+        print(f"run record: {record_path}")
+        for log in can_logs:
+            print(f"CAN log: {log}")
+        print(f"demo took {summary['seconds']:.1f} s")
+        return 2
     print(
         f"simulated arm vs plan: worst joint centre {tr.max_error_mm:.3f} mm off "
         f"(joint {tr.worst_joint}) over {tr.compared_cycles} of {tr.body_cycles} cycles, "
@@ -441,7 +475,4 @@ def run(args: argparse.Namespace) -> int:
     for log in can_logs:
         print(f"CAN log: {log}")
     print(f"demo took {summary['seconds']:.1f} s")
-    if stop is not None:
-        print(f"hrm demo: safety stop: {stop}", file=sys.stderr)
-        return 2
     return 0

@@ -112,3 +112,52 @@ def test_a_measurement_that_is_not_a_point_is_refused(model):
 
     with pytest.raises(CalibrationDataError, match="not one finite point"):
         collect_poses(session, act, Broken(), np.zeros((1, 12)), np.zeros((1, 12)), period_s=0.01)
+
+
+def test_a_stopped_collection_keeps_its_poses_and_resumes_from_them(model, tmp_path):
+    """Every pose is written down as it is measured (PoseJournal, one atomic file): a
+    collection that stops at pose 3 of 5 keeps 2; resumed on the 3 missing targets it ends
+    with the same 5 poses as a collection that never stopped; a journal of another
+    collection is refused, not overwritten."""
+    from calibration.collect import PoseJournal, journal_key
+    from hrm_ctrl.errors import DriverError
+
+    act = load_actuation(model)
+    zero = (np.zeros(12), np.zeros(12))
+    alpha, theta = spread_configurations(model, 5, np.random.default_rng(9))
+    key = journal_key(alpha, theta, "test arm")
+    path = tmp_path / f"collect-{key}.json"
+
+    session = FakeSession(act, act.counts_from_angles(*zero))
+    whole = collect_poses(session, act, FakeTracker(session, act, model, zero), alpha, theta,
+                          period_s=PERIOD_S)  # fmt: skip
+
+    class Failing(FakeTracker):
+        def measure(self, n):
+            if len(self.calls) == 2:
+                raise DriverError("tracker: no answer (simulated failure)")
+            return super().measure(n)
+
+    journal = PoseJournal(path, key, 5)
+    session = FakeSession(act, act.counts_from_angles(*zero))
+    keep = lambda _k, a, t, p: journal.add(a, t, p)  # noqa: E731
+    with pytest.raises(DriverError):
+        collect_poses(session, act, Failing(session, act, model, zero), alpha, theta,
+                      period_s=PERIOD_S, on_pose=keep)  # fmt: skip
+    again = PoseJournal(path, key, 5)  # what the next command reads
+    assert len(again) == 2
+    session = FakeSession(act, act.counts_from_angles(*zero))
+    keep = lambda _k, a, t, p: again.add(a, t, p)  # noqa: E731
+    collect_poses(session, act, FakeTracker(session, act, model, zero), alpha[2:], theta[2:],
+                  period_s=PERIOD_S, on_pose=keep)  # fmt: skip
+    kept = again.kept
+    np.testing.assert_allclose(kept.points_mm, whole.points_mm, atol=1e-9)
+    np.testing.assert_allclose(kept.alpha_rad, whole.alpha_rad, atol=1e-9)
+    np.testing.assert_allclose(kept.theta_rad, whole.theta_rad, atol=1e-9)
+    text = path.read_text()
+    with pytest.raises(CalibrationDataError, match="the poses of another collection"):
+        PoseJournal(path, journal_key(alpha, theta, "another arm"), 5)
+    assert path.read_text() == text
+    path.write_text("{not json")
+    with pytest.raises(CalibrationDataError, match="not a pose journal"):
+        PoseJournal(path, key, 5)

@@ -4,7 +4,8 @@ Every move starts from what the drives hold, is checked against the joint, rope 
 motor limits before anything is sent (one line naming the limit when it would leave
 one), is jerk-limited (Ruckig: :func:`drivers.sources.move_table`,
 :class:`~drivers.sources.JogSource`) or time-parameterised within every motor's limits
-(``home``: :func:`hrm_ctrl.ropes.jog.home_setpoints`), and is stopped by Ctrl-C.
+(``home``: :func:`hrm_ctrl.ropes.jog.home_setpoints`, its straight move in joint space
+checked against the environment of the last run's plan), and is stopped by Ctrl-C.
 """
 
 from __future__ import annotations
@@ -101,8 +102,31 @@ def _jog(ctx: ConsoleContext, args: list[str]) -> None:
     raise ConsoleError("usage: jog JOINT alpha|theta DEG | jog MOTOR COUNTS")
 
 
+def _refuse_home_into_obstacle(ctx: ConsoleContext, held: np.ndarray) -> None:
+    """``home``'s straight move in joint space checked against the environment the
+    console knows (the last run's plan's): refused, naming the link and ``return``, where
+    it would meet an obstacle."""
+    from hrm_ctrl.cli._console.commands_run import LAST_PLAYED, SURROUNDINGS
+    from hrm_ctrl.runtime.wayback import straight_home_clearance
+
+    known = ctx.extra.get(SURROUNDINGS)
+    if known is None:
+        return
+    c, at = straight_home_clearance(ctx.actuation, known, held)
+    if c.least_mm >= 0.0:
+        return
+    other = ("; 'return' backs out along the path of " + ctx.extra[LAST_PLAYED]["plan"]
+             if ctx.extra.get(LAST_PLAYED) else "")  # fmt: skip
+    raise ConsoleError(
+        f"home: refused: the straight move in joint space to the zero configuration meets "
+        f"an obstacle of {known.source} (link {c.link}, clearance {c.least_mm:.1f} mm, "
+        f"{100 * at:.0f} % of the way){other}"
+    )
+
+
 @command("home", "back to the calibrated zero configuration (the straight arm) by a "
-         "checked, time-parameterised trajectory", "home [SPEED_MM_S]",
+         "checked, time-parameterised trajectory; refused where it would meet an obstacle "
+         "of the last run's environment", "home [SPEED_MM_S]",
          needs=Need.ENABLED)  # fmt: skip
 def _home(ctx: ConsoleContext, args: list[str]) -> None:
     from drivers.sources import CountsSource
@@ -120,6 +144,7 @@ def _home(ctx: ConsoleContext, args: list[str]) -> None:
     if np.array_equal(held, zero):  # a script's home where the arm is: not an error
         ctx.out("home: the arm is at its zero configuration already (nothing to move)")
         return
+    _refuse_home_into_obstacle(ctx, held)
     sp = home_setpoints(ctx.actuation, actual, period_s=period_s, speed_mm_per_s=speed)
     source = CountsSource.of_plan(ctx.actuation, sp, name="home", info={"speed_mm_per_s": speed})
     result = play(ctx, source, "home")

@@ -9,8 +9,11 @@ quick stop of every axis, which says where it stopped); in a script ``--pause-at
 --resume-after 1s`` and ``--abort-at 60%`` do the same.  At the end it writes the run's
 figures (planned vs measured angles, tracking error and tensions, from samples the console
 took at 10 Hz; ``hrm report`` draws them from the CAN log once the session is closed) and
-prints where.  ``return`` backs out along the setpoints the last ``run`` played, in
-reverse, to where it started.
+prints where, and after a stop or an abort which way back there is.  ``return`` backs
+out along the last run's path to where it started, from where the drives' feedback says the
+arm is (:func:`hrm_ctrl.runtime.wayback.way_back`: the nearest point of the path, joined by
+a straight move in joint space, the join and the path back checked against the plan's
+environment), also after a quick stop (Ctrl-C, a safety stop) and a return that stopped.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from hrm_ctrl.cli._console.table import ConsoleError, Need, command, complete_pa
 from hrm_ctrl.errors import HrmError
 
 LAST_PLAYED = "last_played"  # ctx.extra key: what the last run played (for ``return``)
+SURROUNDINGS = "surroundings"  # ctx.extra key: the environment of the last run's plan
 RUN_USAGE = (
     "run PLAN [--speed MM_S] [--pause-at F%] [--resume-after S] [--abort-at F%] "
     "[--allow-collision] [--no-figures]"
@@ -144,6 +148,12 @@ def _run(ctx: ConsoleContext, args: list[str]) -> None:
     if not (math.isfinite(a.speed) and a.speed > 0):
         raise ConsoleError(f"--speed must be > 0 mm/s, got {a.speed}")
     script = RunScript.from_args(a)
+    if script.pause_at is not None and script.resume_after_s is None and not ctx.interactive:
+        # a script's keys are its lines, read between commands: nothing would resume it
+        raise ConsoleError(
+            "--pause-at without --resume-after in a script: nothing could resume the run (it "
+            "would stand paused until it is aborted); give --resume-after"
+        )
     doc = read_plan(a.plan)
     refuse_collision(doc, a.allow_collision, ctx.actuation.robot)
     period_s = ctx.config.control.period_s
@@ -162,15 +172,27 @@ def _run(ctx: ConsoleContext, args: list[str]) -> None:
     def note(driver: Any, where: str) -> None:
         _note_run(ctx, source, str(a.plan), where, driver)
 
+    from hrm_ctrl.runtime.wayback import surroundings_of_plan
+
+    ctx.extra[SURROUNDINGS] = surroundings_of_plan(doc, ctx.actuation.robot)
+    held = ctx.session.supervisor.targets
+    start = np.asarray(sp.counts[0] if held is None else held, dtype=np.int64).copy()
     try:
         result, driver, display = _play_pausable(ctx, source, sp, "run", script, note)
-    finally:  # also after a stop: what was played is the way back
-        ctx.extra[LAST_PLAYED] = {"plan": str(a.plan), "source": source}
+    except ConsoleError:  # a stop: the way back along the path stays
+        _keep_way_back(ctx, str(a.plan), sp, source, inner, a, start)
+        _say_ways_back(ctx)
+        raise
+    except BaseException:  # a signal: kept as well (the console ends)
+        _keep_way_back(ctx, str(a.plan), sp, source, inner, a, start)
+        raise
+    _keep_way_back(ctx, str(a.plan), sp, source, inner, a, start)
     state = source.state.value
     where = display.where_text()
     if state == "aborted":
         ctx.out(f"run {a.plan}: {source.abort_reason}: stopped on the path at {where}; "
                 f"{result.cycles} cycles")  # fmt: skip
+        _say_ways_back(ctx)
     else:
         ctx.out(f"run {a.plan}: done, {result.cycles} cycles ({result.cycles * period_s:.2f} s), "
                 f"paused {source.paused_cycles * period_s:.2f} s")  # fmt: skip
@@ -184,38 +206,106 @@ def _run(ctx: ConsoleContext, args: list[str]) -> None:
             ctx.out(f"figures: {figs[0].parent} ({', '.join(p.name for p in figs)})")
 
 
-@command("return", "back out along the setpoints the last run played, in reverse, to where "
-         "it started", "return", needs=Need.ENABLED)  # fmt: skip
+def _keep_way_back(
+    ctx: ConsoleContext,
+    plan: str,
+    sp: Any,
+    source: Any,
+    inner: Any,
+    a: argparse.Namespace,
+    start: np.ndarray,
+) -> None:
+    """What ``return`` needs of a run: its plan's setpoints, how far it played (a row of
+    the plan's table), where it started (``start``, counts), its speed and whether it was
+    let collide."""
+    played = max(0.0, float(source.position) - float(inner.n_lead_in))
+    ctx.extra[LAST_PLAYED] = {"plan": plan, "setpoints": sp, "played_row": played,
+                              "start_counts": start,
+                              "speed_mm_per_s": float(a.speed),
+                              "allow_collision": bool(a.allow_collision)}  # fmt: skip
+
+
+def _say_ways_back(ctx: ConsoleContext) -> None:
+    """One line after a run that ended early: which way back there is (``return`` along
+    the path; ``home`` where a straight move in joint space stays clear of the
+    environment the console knows)."""
+    last = ctx.extra.get(LAST_PLAYED)
+    ways = []
+    if last is not None:
+        ways.append(f"'return' backs out along the path of {last['plan']}")
+    ways.append(_home_verdict(ctx, ctx.session.supervisor.targets))
+    ctx.out(f"way back (once enabled): {'; '.join(ways)}")
+
+
+def _home_verdict(ctx: ConsoleContext, held: Any) -> str:
+    """``home`` from ``held`` in words: clear, refused (where it would hit), or not
+    checked (no environment known)."""
+    from hrm_ctrl.runtime.wayback import straight_home_clearance
+
+    known = ctx.extra.get(SURROUNDINGS)
+    if known is None:
+        return "'home' (no environment known: its clearance is not checked)"
+    if held is None:
+        return "'home' (where the arm is not known yet)"
+    try:
+        c, at = straight_home_clearance(ctx.actuation, known, held)
+    except HrmError as exc:
+        return f"'home' not possible: {exc}"
+    if c.least_mm < 0.0:
+        return (f"'home' refused: its straight move in joint space meets an obstacle of "
+                f"{known.source} (link {c.link}, {100 * at:.0f} % of the way)")  # fmt: skip
+    return f"'home' is clear of {known.source} (least clearance {c.least_mm:.1f} mm)"
+
+
+@command("return", "back out along the last run's path to where it started, from where the "
+         "arm is (after a stop too): joined to the nearest point of the path, checked against "
+         "the plan's environment", "return", needs=Need.ENABLED)  # fmt: skip
 def _return(ctx: ConsoleContext, args: list[str]) -> None:
     from drivers.sources import CountsSource, PausableSource
+    from hrm_ctrl.cli._console.streaming import play
     from hrm_ctrl.cli._runcontrol import RunScript
+    from hrm_ctrl.runtime.wayback import return_setpoints, way_back
 
     if args:
         raise ConsoleError("usage: return")
     last = ctx.extra.get(LAST_PLAYED)
     if last is None:
         raise ConsoleError("no run to return from (run a plan first)")
-    back = last["source"].way_back()
-    if back.shape[0] < 2:
-        raise ConsoleError("the last run kept no way back (nothing played, or too long)")
-    targets = ctx.session.supervisor.targets
-    if targets is None or not np.array_equal(np.asarray(targets), back[0]):
-        raise ConsoleError(
-            "the arm is not where the last run left it (moved since): no way back along it"
-        )
+    held = ctx.session.supervisor.targets
+    if held is None:
+        raise ConsoleError("the drives hold no known position (enable first)")
+    back = way_back(ctx.actuation, last["setpoints"], held, last["played_row"],
+                    ctx.extra.get(SURROUNDINGS), start_counts=last["start_counts"],
+                    allow_collision=last["allow_collision"])  # fmt: skip
+    ctx.out(f"return: {back.describe()}")
     period_s = ctx.config.control.period_s
-    inner = CountsSource(ctx.actuation, back, period_s, name="return", hold_s=0.2,
-                         info={"plan": last["plan"], "rows": int(back.shape[0])})  # fmt: skip
+    sp = return_setpoints(ctx.actuation, back, period_s=period_s,
+                          speed_mm_per_s=last["speed_mm_per_s"],
+                          where=f"return along {last['plan']}")  # fmt: skip
+    info = {"plan": last["plan"], "joined_at_row": back.row, "steps": back.n_steps}
+    inner = CountsSource.of_plan(ctx.actuation, sp, name="return", info=info)
     source = PausableSource(inner, ctx.actuation)
-    result, _driver, _display = _play_pausable(ctx, source, None, "return",
+    # a return that stops leaves the arm on the same path: the run's way back stays
+    result, _driver, _display = _play_pausable(ctx, source, sp, "return",
                                                RunScript(None, None, None))  # fmt: skip
     if source.state.value == "aborted":
         ctx.out(f"return: {source.abort_reason}: stopped on the way back; {result.cycles} cycles")
-        ctx.extra[LAST_PLAYED] = None
         return
+    cycles = result.cycles
+    if back.lead_out_blocked is not None and not last["allow_collision"]:
+        ctx.extra[LAST_PLAYED] = None
+        ctx.out(f"return: back at the first step of {last['plan']}, {cycles} cycles "
+                f"({cycles * period_s:.2f} s); not on to where the run started: that straight "
+                f"move in joint space {back.lead_out_blocked}")  # fmt: skip
+        return
+    if not np.array_equal(np.asarray(ctx.session.supervisor.targets), back.start_counts):
+        # the run's lead-in, reversed: a straight move in joint space to where it started
+        lead = CountsSource(ctx.actuation, back.start_counts[None, :], period_s, name="return",
+                            hold_s=0.1, first_pose=back.start_pose, info=info)  # fmt: skip
+        cycles += play(ctx, lead, "return").cycles
     ctx.extra[LAST_PLAYED] = None
-    ctx.out(f"return: back at the start of {last['plan']}, {result.cycles} cycles "
-            f"({result.cycles * period_s:.2f} s)")  # fmt: skip
+    ctx.out(f"return: back at the start of {last['plan']}, {cycles} cycles "
+            f"({cycles * period_s:.2f} s)")  # fmt: skip
 
 
 def _check_lines(ctx: ConsoleContext, path: Path, speed: float) -> tuple[list[str], int]:

@@ -102,3 +102,36 @@ def test_demo_refuses_a_bad_pose_count(tmp_path: Path, capsys) -> None:
     _, err = capsys.readouterr()
     assert rc == 2 and "--poses must be" in err and err.count("\n") == 1
     assert not (tmp_path / "d").exists()
+
+
+def test_a_demo_whose_run_stops_says_so_first_and_fails(tmp_path: Path, capsys, monkeypatch):
+    """A safety stop in the middle of the run (here a setpoint the rope layer's limits
+    refuse, at row 60): ``FAILED`` and why before anything of the run, no figures of it,
+    ``demo.json`` opening with the failure, exit 2; an earlier demo's ``demo.json`` (a
+    finished run) is not left beside this one's outputs."""
+    import numpy as np
+
+    from drivers.sources import CountsSource
+
+    (tmp_path / "demo.json").write_text('{"outcome": "done"}\n')  # an earlier demo's
+    real = CountsSource.setpoint
+
+    def broken(self, k):
+        row = real(self, k)
+        if self.name == "plan" and k == 60 and row is not None:
+            return row + np.int64(200_000)  # a jump no motor may make in one cycle
+        return row
+
+    monkeypatch.setattr(CountsSource, "setpoint", broken)
+    argv = ["demo", "--scenario", "cabins", "--out", str(tmp_path), "--no-calibrate"]
+    rc = main([*argv, "--no-return", "--speed", "50"])
+    out, err = capsys.readouterr()
+    assert rc == 2, err
+    summary_lines = out[out.index("FAILED: ") :].splitlines()
+    assert summary_lines[0].startswith("FAILED: the run did not finish: safety stop after ")
+    assert "simulated arm vs plan" not in out and "end point vs path" not in out
+    assert "hrm demo: FAILED: the run did not finish" in err
+    assert "an earlier demo's outputs removed" in err
+    summary = json.loads((tmp_path / "demo.json").read_text())
+    assert list(summary)[:2] == ["outcome", "failure"] and summary["outcome"] == "failed"
+    assert summary["run"]["completed"] is False

@@ -264,3 +264,16 @@ def test_a_stopped_run_is_kept_in_the_run_record(make_ctx, plan: Path, tmp_path:
         timer.cancel()
     (noted,) = ctx.session.record_extra["console_runs"]
     assert noted["plan"] == str(plan) and noted["where"]
+
+
+def test_a_script_pause_with_nothing_to_resume_it_is_refused(make_ctx, plan: Path) -> None:
+    """In a script the input may end in the middle of a run: a ``--pause-at`` without
+    ``--resume-after`` would leave the run paused with nothing to resume it (until the
+    longest pause aborts it, 600 s later).  Refused before anything moves."""
+    ctx = make_ctx()
+    run(ctx, "connect", "enable")
+    before = _positions(ctx)
+    with pytest.raises(ConsoleError, match="--pause-at without --resume-after in a script"):
+        run(ctx, f"run {plan} --pause-at 30%")
+    assert np.array_equal(_positions(ctx), before)
+    assert not any(x.startswith("run: moving") for x in ctx.lines)
