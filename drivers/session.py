@@ -10,7 +10,7 @@ move between them are one table (:mod:`drivers.lifecycle`, with the diagram):
 
 1. :meth:`configure`: refuse a bus over its load budget; host heartbeat on; NMT
    reset and every node's boot-up (the error lists the missing ones); SDO
-   configuration of every drive in parallel (:mod:`drivers.parallel`: PDO mappings,
+   configuration of every drive in parallel (:mod:`drivers.drive_group`: PDO mappings,
    heartbeat times, software limits 0x607D from the rope layer, interpolation period,
    CSP); NMT start.  :meth:`enable`: the CiA 402 state machine to OPERATION_ENABLED
    with a statusword check at every transition, the actual positions inside the
@@ -49,42 +49,28 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import can
 import numpy as np
 
-from drivers.bringup import (
-    FAULTY,
-    BootupError,
-    DriveLink,
-    DriveSettings,
-    configure_drive,
-    disable_unless_faulty,
-    enable_operation,
-    quick_stop,
-    read_state,
-    read_status,
-    reset_to_ready,
-    sdo_read,
-)
+from drivers.bringup import DriveLink
 from drivers.bus import BusPort
 from drivers.busload import BusLoad, check_bus_load
 from drivers.config import BoxConfig
 from drivers.cycle import EventLog, StreamResult
+from drivers.drive_group import DriveGroup
 from drivers.identity import BoxIdentity, identify_box
 from drivers.interrupts import deferred_interrupts
 from drivers.lifecycle import Call, SessionState, SessionStateError, after_stop, next_state
 from drivers.other_master import (
     OtherMasterError,
-    duplicate_boot_text,
     foreign_frames,
     listen_for_other_masters,
     unconfigured_counts,
     unconfigured_traffic,
 )
-from drivers.parallel import budget_s, run_parallel, sdo_transfer_s
-from drivers.protocol import cia301, cia402
+from drivers.protocol import cia301
 from drivers.realtime import AppliedSettings
 from drivers.receive import BusReceiver
 from drivers.rope_model import MotorLimits
@@ -118,11 +104,6 @@ __all__ = [
     "SessionStateError",
 ]
 
-# Upper bounds of the parallel SDO work, in SDO transfers / CiA 402 transitions per drive
-# (each transfer may take (1 + retries) SDO timeouts; each transition the state timeout).
-CONFIG_SDO_TRANSFERS = 48
-ENABLE_TRANSITIONS = 7
-ENABLE_SDO_TRANSFERS = 12
 # Before the first NMT reset: listen this long for another master (heartbeats of nodes in
 # NMT operational, a SYNC producer, RPDOs, PDOs, node guarding); covers a heartbeat period
 # of up to 1 s, the longest usual one (CiA 301 leaves it free).
@@ -132,7 +113,6 @@ HEARTBEAT_START_WAIT_S = 0.5  # the first host heartbeat precedes the NMT reset
 STOP_RECORD_WAIT_S = 2.0  # longest wait for a stop being confirmed (10 periods at most)
 EMCY_WAIT_S = 0.25  # a drive seen in FAULT: its EMCY is on the wire, the stop follows
 _STOPPING = frozenset({Mode.STOPPING})
-_T = TypeVar("_T")
 
 
 class DriveSession:
@@ -220,6 +200,7 @@ class DriveSession:
                 clock=clock,
             )
             self.supervisor.start()
+        self.drives = DriveGroup(self.wiring.links, self.slots, actuation, ctl, mon, self.events)
         self.realtime_granted = self.scheduling.realtime_granted
         self.cpu_latency = self.scheduling.hold_cpu_latency()  # while the session is open
         self._state = SessionState.CONNECTED
@@ -306,59 +287,25 @@ class DriveSession:
         """A quick stop under way is confirmed first (bounded: :data:`STOP_RECORD_WAIT_S`)."""
         self.supervisor.wait_while(_STOPPING, STOP_RECORD_WAIT_S)
 
-    # ------------------------------------------------------------------ parallel SDO
     @property
     def sdo_transfer_s(self) -> float:
         """Longest one SDO transfer can take (timeout x (1 + canopen's retries))."""
-        return sdo_transfer_s(self.control.sdo_timeout_s)
-
-    def _budget_s(self, transfers: int, transitions: int = 0) -> float:
-        """Time bound of parallel work of ``transfers`` SDO transfers and ``transitions``
-        CiA 402 transitions per drive."""
-        ctl = self.control
-        return budget_s(ctl.sdo_timeout_s, ctl.state_timeout_s, transfers, transitions)
-
-    def _parallel(self, what: str, fn: Callable[[DriveLink], _T], timeout_s: float) -> list[_T]:
-        """``fn`` for every drive at once, in slot order (:func:`run_parallel`: the first
-        error raised as itself, or the drives still busy after ``timeout_s`` named)."""
-        return run_parallel(
-            what,
-            fn,
-            self.links,
-            timeout_s,
-            label=lambda link: link.label,
-            on_error=lambda text: self.events.add("error", text),
-        )
+        return self.drives.sdo_transfer_s
 
     # ------------------------------------------------------------------ sequence
-    def _settings(self, link: DriveLink) -> DriveSettings:
-        ctl = self.control
-        act = self.actuation
-        i = self.slots.slot[link.motor]
-        return DriveSettings(
-            period_s=ctl.period_s,
-            host_node_id=ctl.host_node_id,
-            host_heartbeat_timeout_ms=ctl.heartbeat_timeout_ms,
-            node_heartbeat_ms=ctl.node_heartbeat_ms,
-            counts_min=int(act.counts_min[i]),
-            counts_max=int(act.counts_max[i]),
-            following_error_window_counts=ctl.following_error_window_counts,
-            quick_stop_option_code=ctl.quick_stop_option_code,
-        )
-
     def configure(self) -> None:
-        """NMT reset, boot-ups, SDO configuration of every drive, NMT start (-> READY).
+        """NMT reset, boot-ups, SDO configuration of every drive (:class:`DriveGroup`),
+        NMT start (-> READY).
 
         From ENABLED the drives are first disabled by SDO (never reset while enabled)."""
         self._require(Call.CONFIGURE)
         t_start = time.monotonic()
-        ctl = self.control
         sup = self.supervisor
         self._gc_hold.acquire()  # released by finish() and close()
         if self._state is SessionState.ENABLED:
             sup.disarm()
             try:
-                self._disable_drives("disable before reset")
+                self.drives.disable("disable before reset")
             except HrmError:
                 self._abort_enable()
                 self._set_state(SessionState.FAULT)
@@ -379,14 +326,7 @@ class DriveSession:
         self.send_nmt(cia301.NMT_RESET_NODE)
         self._brought_up = True
         self.events.add("nmt", "NMT reset node sent on every bus")
-        if not self.monitor.boot_event.wait(ctl.bootup_timeout_s):
-            missing = self.monitor.describe_missing_boot(reset_at)
-            raise BootupError(
-                f"no boot-up within {ctl.bootup_timeout_s:g} s from {len(missing)} node(s): "
-                + "; ".join(missing)
-            )
-        self.events.add("bootup", f"every node booted ({time.monotonic() - t_start:.3f} s)")
-        self._refuse_duplicate_nodes()
+        self.drives.await_bootup(reset_at, t_start)  # and no node booted twice
         sup.mark_configured()  # a boot-up from here on: that drive lost its configuration
         for before in sup.drain_causes():
             # sent before the node's boot-up, so before its reset (e.g. the EMCYs of
@@ -396,35 +336,15 @@ class DriveSession:
             )
         # which box this is (0x1018 of every drive): the calibration's, or refused
         self.box_identity = identify_box(
-            self.links, self._parallel, self._budget_s(4), self.calibration, self.events
+            self.links, self.drives.parallel, self.drives.budget_s(4), self.calibration, self.events
         )
         self.record_extra["box"] = self.box_identity.to_dict()
-        try:
-            self._parallel(
-                "configuration",
-                lambda link: configure_drive(link, self._settings(link)),
-                self._budget_s(CONFIG_SDO_TRANSFERS),
-            )
-        except DriverError:
-            # a second device's boot-up may come after every node's first: two answers
-            # to each SDO request fail the configuration, and this is why
-            self._refuse_duplicate_nodes()
-            raise
-        self.events.add("configured", "every drive configured by SDO (CSP, PDOs, limits)")
+        self.drives.configure()
         self.send_nmt(cia301.NMT_START_REMOTE_NODE)
         self.events.add("nmt", "NMT start remote node sent on every bus")
         self.bringup_s = time.monotonic() - t_start
         sup.set_guard(True)
         self._set_state(SessionState.READY)
-
-    def _refuse_duplicate_nodes(self) -> None:
-        """:class:`BootupError` if a node booted more than once after the one NMT reset:
-        two devices answer as that node (a second box, or a simulator, on the same bus; a
-        node-id clash), and each SDO request would get two answers."""
-        text = duplicate_boot_text(self.monitor.describe_duplicate_boot())
-        if text is not None:
-            self.events.add("error", text)
-            raise BootupError(text)
 
     def _require_calibration(self, action: str) -> None:
         """Refuse to enable drives without a calibration, unless overridden (sends nothing)."""
@@ -467,24 +387,13 @@ class DriveSession:
             sup.set_guard_idle(True)
             raise
         t_start = time.monotonic()
-        ctl = self.control
         try:
-            actual_list = self._parallel(
-                "enable",
-                lambda link: enable_operation(
-                    link,
-                    ctl.state_timeout_s,
-                    counts_min=self._settings(link).counts_min,
-                    counts_max=self._settings(link).counts_max,
-                ),
-                self._budget_s(ENABLE_SDO_TRANSFERS, ENABLE_TRANSITIONS),
-            )
+            actual = self.drives.enable()
         except HrmError:
             self._abort_enable()
             sup.set_guard_idle(True)
             self._set_state(SessionState.FAULT)
             raise
-        actual = np.array(actual_list, dtype=np.int64)  # (the links are in slot order)
         self.actual = actual
         self.bringup_s = (self.bringup_s or 0.0) + time.monotonic() - t_start
         self.events.add(
@@ -513,12 +422,7 @@ class DriveSession:
         why = self.supervisor.cause_since_configured()
         if why is not None:
             self._refuse_enable(f"enable refused: {why}")
-        states = self._parallel("state check", read_state, self._budget_s(1))
-        in_fault = [
-            f"{link.label} (statusword 0x{sw:04X})"
-            for link, (state, sw) in zip(self.links, states, strict=True)
-            if state in FAULTY
-        ]
+        in_fault = self.drives.in_fault()
         if in_fault:
             self._refuse_enable(
                 f"enable refused: {', '.join(in_fault)} in FAULT (a fault is reset only on "
@@ -542,7 +446,7 @@ class DriveSession:
         written), then NMT pre-operational; failures here are logged, the original
         error is what the caller gets."""
         try:
-            self._parallel("abort", quick_stop, self._budget_s(1))
+            self.drives.quick_stop("abort")
         except HrmError as exc:
             self.events.add("error", f"quick stop after failed enable: {exc}")
         try:
@@ -550,19 +454,6 @@ class DriveSession:
         except DriverError as exc:
             self.events.add("error", f"NMT pre-operational after failed enable: {exc}")
         self.events.add("quick_stop", "bring-up failed: quick stop (SDO) and NMT pre-operational")
-
-    def _disable_drives(self, what: str) -> None:
-        """Controlled disable of every drive by SDO along the CiA 402 transition table
-        (:func:`drivers.bringup.disable`): from OPERATION_ENABLED *disable operation*
-        then *shutdown*; from QUICK_STOP_ACTIVE or SWITCH_ON_DISABLED (after a quick stop)
-        to READY_TO_SWITCH_ON (power stage off), each step confirmed by the statusword.
-        No target position is sent.  A drive in FAULT is left there (a fault is reset
-        only on purpose).  Raises naming the drives that failed (the others are still
-        disabled)."""
-        timeout_s = self.control.state_timeout_s
-        self._parallel(
-            what, lambda link: disable_unless_faulty(link, timeout_s), self._budget_s(1, 3)
-        )
 
     @deferred_interrupts()
     def disable(self) -> None:
@@ -576,7 +467,7 @@ class DriveSession:
         self.supervisor.clear_stop_request()  # (asked for while stopped: done by disabling)
         with self._guard_suspended():
             try:
-                self._disable_drives("disable")
+                self.drives.disable("disable")
             except HrmError:
                 self._set_state(SessionState.FAULT)
                 raise
@@ -594,21 +485,6 @@ class DriveSession:
             yield
         finally:
             self.supervisor.set_guard_idle(self.supervisor.guarding)
-
-    def _check_ready(self) -> None:
-        """Before the first RPDO of a stream: every drive's statusword (SDO upload of
-        0x6041, in parallel, with timeouts) must show OPERATION_ENABLED; else
-        :class:`DriverError` naming the motors and their states (nothing is sent)."""
-        states = self._parallel("statusword check", read_state, self._budget_s(1))
-        bad = [
-            f"{link.label} statusword 0x{sw:04X} ({state.name})"
-            for link, (state, sw) in zip(self.links, states, strict=True)
-            if state is not cia402.State402.OPERATION_ENABLED
-        ]
-        if bad:
-            text = f"stream refused: not OPERATION_ENABLED: {', '.join(bad)}"
-            self.events.add("error", text)
-            raise DriverError(text)
 
     def _last_causes(self) -> list[StopCause]:
         """Why the box stopped last: the idle stop's causes, or the last stream's."""
@@ -657,7 +533,7 @@ class DriveSession:
                 )
             source.start(np.asarray(targets, dtype=np.int64).copy(), self.control.period_s)
             try:
-                self._check_ready()
+                self.drives.check_operation_enabled()  # before the first RPDO
             except DriverError:
                 self._raise_if_stopped(EMCY_WAIT_S)  # the supervisor stops the box meanwhile
                 raise
@@ -730,7 +606,7 @@ class DriveSession:
             self._wait_stop_confirmed()
             if self.enabled or self._state in (SessionState.STOPPED, SessionState.FAULT):
                 try:
-                    self._disable_drives("disable")
+                    self.drives.disable("disable")
                     self.events.add(
                         "disable", "every drive disabled and shut down (READY_TO_SWITCH_ON)"
                     )
@@ -857,7 +733,7 @@ class DriveSession:
             stop_causes=[x.text for x in self._last_causes()] if stopped else [],
             slots=self.slots,
             monitor=self.monitor,
-            sdo_values=self._parallel("status", read_status, self._budget_s(2)) if by_sdo else None,
+            sdo_values=self.drives.statuses() if by_sdo else None,
             targets=self.supervisor.targets if held else None,
             tension_N=tension_N,
             last_emcy=self.emergencies.last,
@@ -869,12 +745,7 @@ class DriveSession:
         SDO in parallel, bounded by the SDO timeouts (not while streaming: the feedback
         TPDOs have it); a drive that does not answer raises :class:`DriverError`."""
         self._require(Call.ACTUAL_POSITIONS)
-        values = self._parallel(
-            "actual positions",
-            lambda link: int(sdo_read(link, cia402.OD_POSITION_ACTUAL_VALUE)),
-            self._budget_s(1),
-        )
-        return np.array(values, dtype=np.int64)
+        return self.drives.actual_positions()
 
     @deferred_interrupts()
     def reset_fault(self) -> list[str]:
@@ -897,18 +768,12 @@ class DriveSession:
                 "cause_cleared", f"{cause.text} (cleared by the fault reset)",
                 cause=cause.kind.value, motor=cause.motor,
             )  # fmt: skip
-        timeout_s = self.control.state_timeout_s
         with self._guard_suspended():
             try:
-                was_faulty = self._parallel(
-                    "fault reset",
-                    lambda link: reset_to_ready(link, timeout_s),
-                    self._budget_s(2, 4),
-                )
+                reset = self.drives.reset_faults()
             except HrmError:
                 self._set_state(SessionState.FAULT)
                 raise
-            reset = [link.label for link, f in zip(self.links, was_faulty, strict=True) if f]
             self.events.add(
                 "fault_reset",
                 f"fault reset of {len(reset)} drive(s)"

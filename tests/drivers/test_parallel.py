@@ -79,5 +79,5 @@ def test_parallel_sdo_work_is_bounded_in_time(rig_factory: Callable[..., Rig]) -
     box = rig.open_box()
     t0 = time.monotonic()
     with pytest.raises(DriverError, match=r"probe: no answer within 0.2 s from 3 drive\(s\)"):
-        box._parallel("probe", lambda link: time.sleep(1.5), 0.2)
+        box.drives.parallel("probe", lambda link: time.sleep(1.5), 0.2)
     assert time.monotonic() - t0 < 1.0

@@ -217,13 +217,13 @@ def test_a_stop_cause_during_the_enable_stops_every_axis_once_enabled(
     are still being enabled), or an operator's stop asked for meanwhile: as soon as every
     drive is enabled the supervisor quick-stops them all and ``enable`` raises naming the
     cause (before, the EMCY was filed as a bring-up event and the stop request cleared)."""
-    import drivers.session as session_mod
+    import drivers.drive_group as drive_group
     from drivers.session import SafetyStopError
 
     rig = rig_factory()
     box = rig.open_box()
     box.configure()
-    real = session_mod.enable_operation
+    real = drive_group.enable_operation
     first = rig.limits.motor_ids[0]
 
     def enable_then_cause(link: Any, *args: Any, **kw: Any) -> int:
@@ -236,7 +236,7 @@ def test_a_stop_cause_during_the_enable_stops_every_axis_once_enabled(
             time.sleep(0.2)  # the other drives are being enabled meanwhile
         return actual
 
-    monkeypatch.setattr(session_mod, "enable_operation", enable_then_cause)
+    monkeypatch.setattr(drive_group, "enable_operation", enable_then_cause)
     with pytest.raises(SafetyStopError, match="EMCY" if what == "emcy" else "stop requested"):
         box.enable()
     assert box.state is SessionState.STOPPED
@@ -313,17 +313,17 @@ def test_a_stop_asked_for_during_the_configuration_refuses_the_enable(
     helper: ``enable`` cleared it and enabled every drive): ``enable`` refuses naming it,
     logged; the next ``enable`` works.  A stop asked for while already stopped is done
     with by ``disable``."""
-    import drivers.session as session_mod
+    import drivers.drive_group as drive_group
 
     rig = rig_factory()
     box = rig.open_box()
-    real = session_mod.configure_drive
+    real = drive_group.configure_drive
 
     def configure_then_stop(link: Any, *args: Any, **kw: Any) -> None:
         real(link, *args, **kw)
         box.request_stop(text="stop (operator)")
 
-    monkeypatch.setattr(session_mod, "configure_drive", configure_then_stop)
+    monkeypatch.setattr(drive_group, "configure_drive", configure_then_stop)
     box.configure()
     with pytest.raises(SessionStateError, match=r"enable refused: stop \(operator\) before"):
         box.enable()

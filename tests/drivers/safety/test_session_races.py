@@ -45,13 +45,13 @@ def test_a_signal_inside_finish_waits_for_its_end(
     rig = rig_factory()
     box = rig.open_box()
     box.bring_up()
-    real = box._disable_drives
+    real = box.drives.disable
 
     def disable_then_signal(what: str) -> None:
         interrupt(SignalInterrupt("SIGTERM", 15))  # arrives in the middle of finish
         real(what)
 
-    monkeypatch.setattr(box, "_disable_drives", disable_then_signal)
+    monkeypatch.setattr(box.drives, "disable", disable_then_signal)
     with pytest.raises(SignalInterrupt):
         box.finish()
     # finish ran to its end first: drives disabled, NMT pre-operational, heartbeat off

@@ -270,12 +270,12 @@ def test_another_master_during_the_enable_stops_every_axis_once_enabled(
     being enabled (found by a red-team helper: only counted, the session went ENABLED
     holding where node 1 no longer was): the enable raises naming the foreign frame and
     every axis is quick-stopped."""
-    import drivers.session as session_mod
+    import drivers.drive_group as drive_group
 
     rig = rig_factory()
     box = rig.open_box()
     box.configure()
-    real = session_mod.enable_operation
+    real = drive_group.enable_operation
     first = rig.limits.motor_ids[0]
 
     def enable_then_foreign(link: Any, *args: Any, **kw: Any) -> int:
@@ -288,7 +288,7 @@ def test_another_master_during_the_enable_stops_every_axis_once_enabled(
             time.sleep(0.1)  # the other drives are being enabled meanwhile
         return actual
 
-    monkeypatch.setattr(session_mod, "enable_operation", enable_then_foreign)
+    monkeypatch.setattr(drive_group, "enable_operation", enable_then_foreign)
     with pytest.raises(SafetyStopError, match=r"0x20\d .*another master"):
         box.enable()
     assert box.state is SessionState.STOPPED
@@ -355,7 +355,7 @@ def test_another_master_during_a_disable_or_fault_reset_is_not_hidden_by_ready(
     if during == "reset_fault":
         box.request_stop()
         assert wait_until(lambda: box.state is SessionState.STOPPED)
-    real = box._parallel
+    real = box.drives.parallel
 
     def with_foreign(what: str, fn: Any, timeout_s: float) -> Any:
         if what in ("disable", "fault reset"):
@@ -363,9 +363,9 @@ def test_another_master_during_a_disable_or_fault_reset_is_not_hidden_by_ready(
             time.sleep(3 * T)
         return real(what, fn, timeout_s)
 
-    box._parallel = with_foreign  # type: ignore[method-assign]
+    box.drives.parallel = with_foreign  # type: ignore[method-assign]
     getattr(box, during)()
-    box._parallel = real  # type: ignore[method-assign]
+    box.drives.parallel = real  # type: ignore[method-assign]
     assert wait_until(lambda: box.state is SessionState.STOPPED)
     assert any(e["kind"] == "stop_cause" and e.get("cause") == "foreign"
                for e in box.record()["events"])  # fmt: skip
