@@ -89,7 +89,9 @@ def within(
     seq = np.concatenate([start[None], start[None], start[None], rows, rows[-1:], rows[-1:]])
     d1 = np.diff(seq, axis=0)
     d2 = np.diff(d1, axis=0)
-    ok = (np.abs(d1) <= v_motor * period_s).all() and (np.abs(d2) <= a_motor * period_s**2).all()
+    ok = bool(
+        (np.abs(d1) <= v_motor * period_s).all() and (np.abs(d2) <= a_motor * period_s**2).all()
+    )
     if ok and j_motor is not None:
         ok = bool((np.abs(np.diff(d2, axis=0)) <= j_motor * period_s**3).all())
     return bool(ok)

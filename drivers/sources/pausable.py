@@ -246,6 +246,7 @@ class PausableSource:
         keep[2:] = ~(same[1:] & same[:-1])  # a row equal to the two before it goes
         back = rows[keep][::-1].copy()
         acc = accel_limits(self.limits)
+        assert acc is not None  # with the fallback there always is one
         return slowed_table(back, self._period_s, np.asarray(self.limits.max_rate_counts_per_s),
                             acc, jerk_limits(self.limits), f"{self.name}: way back")  # fmt: skip
 
