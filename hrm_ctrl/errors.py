@@ -50,6 +50,7 @@ The whole tree, each class with the module that defines it::
      |    |    +-- TrackerLineError         drivers.protocol.tracker
      |    |    +-- DeviceFileError          drivers.protocol.cia306
      |    |    +-- DeviceCheckError         drivers.device_check
+     |    |    +-- BoxIdentityError         drivers.identity
      |    |    +-- TrackerError             drivers.tracker
      |    |    |    +-- TrackerTargetLostError drivers.tracker
      |    |    +-- TensionSensorError       drivers.tension_sensor
