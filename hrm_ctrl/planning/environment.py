@@ -65,10 +65,10 @@ from functools import cached_property
 from typing import Any, TypeAlias
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from hrm_ctrl.errors import PlanningError
 from hrm_ctrl.planning.known_path import KnownPath
+from hrm_ctrl.planning.point_tree import PointTree
 
 AXIS_SPACING = 0.5  # mm, resampling of a pipe's axis for nearest-point queries
 SAMPLES_PER_SEGMENT = 33  # samples of a link for its minimum (every <= 5.6 mm of 179 mm)
@@ -135,13 +135,13 @@ class Pipe:
         return 0.5 * self.inner_diameter
 
     @cached_property
-    def _dense(self) -> tuple[np.ndarray, cKDTree]:
+    def _dense(self) -> tuple[np.ndarray, PointTree]:
         s, pts = self.axis.s, self.axis.points
         k = np.maximum(np.ceil(np.diff(s) / AXIS_SPACING).astype(np.int64), 1)
         t = np.concatenate([np.arange(kk) / kk for kk in k])
         j = np.repeat(np.arange(len(k)), k)
         dense = np.vstack((pts[j] + t[:, None] * (pts[j + 1] - pts[j]), pts[-1]))
-        return dense, cKDTree(dense)
+        return dense, PointTree(dense)
 
     @cached_property
     def _ends(self) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
@@ -515,7 +515,7 @@ class BoxIndex:
         self.half = 0.5 * np.array([b.size for b in boxes], dtype=float).reshape(-1, 3)
         self.rotation = np.array([b.rotation for b in boxes], dtype=float).reshape(-1, 3, 3)
         self.rho_max = float(_norm(self.half).max())
-        self.tree = cKDTree(self.centre)
+        self.tree = PointTree(self.centre)
 
     def __len__(self) -> int:
         return len(self.centre)

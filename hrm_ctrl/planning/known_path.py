@@ -22,10 +22,10 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from hrm_ctrl.errors import PathFileError
 from hrm_ctrl.files import read_text_file
+from hrm_ctrl.planning.point_tree import PointTree
 
 DENSE_SPACING = 0.5  # mm, resampling of the path for distance queries
 # Bounds on what a path may size (memory and time of everything planned along it): the
@@ -145,7 +145,7 @@ class KnownPath:
         return t / np.linalg.norm(t)
 
     @cached_property
-    def _dense(self) -> tuple[np.ndarray, cKDTree]:
+    def _dense(self) -> tuple[np.ndarray, PointTree]:
         """The same polyline resampled every <= DENSE_SPACING mm, and a KD-tree of it."""
         seg = np.diff(self.s)
         k = np.maximum(np.ceil(seg / DENSE_SPACING).astype(np.int64), 1)
@@ -153,7 +153,7 @@ class KnownPath:
         j = np.repeat(np.arange(len(seg)), k)
         pts = self.points[j] + t[:, None] * (self.points[j + 1] - self.points[j])
         pts = np.vstack((pts, self.points[-1]))
-        return pts, cKDTree(pts)
+        return pts, PointTree(pts)
 
     def distance_to(self, q: np.ndarray) -> np.ndarray:
         """Shortest distance from each point of ``q`` (..., 3) to the polyline.
