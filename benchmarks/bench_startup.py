@@ -4,8 +4,8 @@
 Each command runs as its own process, as an operator types it, ``--repeats`` times (default
 5); the figure is the best (least) wall time, beside ``python -c pass`` (the interpreter's
 own start), ``python -c "import hrm_ctrl.cli"`` and the libraries a plan cannot do without
-(``import numpy``; ``import numpy, scipy.spatial``: the KD-tree of the clearance and path
-distance queries); with it the least CPU time (user +
+(``import numpy``; ``import numpy, pykdtree.kdtree``: the k-d tree of the clearance and
+path distance queries, :mod:`hrm_ctrl.planning.point_tree`); with it the least CPU time (user +
 system) of the process, which other processes on a loaded machine inflate less.  For the
 two plans (the paper's fit and the default, refined for clearance) the plan's own planning
 time is read from its JSON report (``plan_time_ms``), and ``overhead_s`` is the least of
@@ -121,8 +121,8 @@ def main() -> None:
         "python_pass": best_of([py, "-c", "pass"], args.repeats),
         "import_hrm_ctrl_cli": best_of([py, "-c", "import hrm_ctrl.cli"], args.repeats),
         "import_numpy": best_of([py, "-c", "import numpy"], args.repeats),
-        "import_numpy_scipy_spatial": best_of(
-            [py, "-c", "import numpy, scipy.spatial"], args.repeats
+        "import_numpy_pykdtree": best_of(
+            [py, "-c", "import numpy, pykdtree.kdtree"], args.repeats
         ),
         "version": best_of([*hrm, "--version"], args.repeats),
         "help": best_of([*hrm, "--help"], args.repeats),
