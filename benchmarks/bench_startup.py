@@ -121,9 +121,7 @@ def main() -> None:
         "python_pass": best_of([py, "-c", "pass"], args.repeats),
         "import_hrm_ctrl_cli": best_of([py, "-c", "import hrm_ctrl.cli"], args.repeats),
         "import_numpy": best_of([py, "-c", "import numpy"], args.repeats),
-        "import_numpy_pykdtree": best_of(
-            [py, "-c", "import numpy, pykdtree.kdtree"], args.repeats
-        ),
+        "import_numpy_pykdtree": best_of([py, "-c", "import numpy, pykdtree.kdtree"], args.repeats),
         "version": best_of([*hrm, "--version"], args.repeats),
         "help": best_of([*hrm, "--help"], args.repeats),
         # the paper's fit meets the pipe wall (-7.3 mm): reported, not refused
