@@ -335,9 +335,17 @@ class DriveSession:
                 "before_reset", before.text, cause=before.kind.value, motor=before.motor
             )
         # which box this is (0x1018 of every drive): the calibration's, or refused
-        self.box_identity = identify_box(
-            self.links, self.drives.parallel, self.drives.budget_s(4), self.calibration, self.events
-        )
+        try:
+            self.box_identity = identify_box(
+                self.links,
+                self.drives.parallel,
+                self.drives.budget_s(4),
+                self.calibration,
+                self.events,
+            )
+        except DriverError:  # two answers to each SDO request: a node that booted twice
+            self.drives.refuse_duplicate_nodes()
+            raise
         self.record_extra["box"] = self.box_identity.to_dict()
         self.drives.configure()
         self.send_nmt(cia301.NMT_START_REMOTE_NODE)
