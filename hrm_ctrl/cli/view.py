@@ -208,6 +208,10 @@ def _live(args: argparse.Namespace) -> int:
             f"live view: {live.shown} poses shown at {live.rate_hz():.1f} Hz, "
             f"{live.skipped} skipped"
         )
+        print(
+            f"tip camera: {live.view.tip_frames} frames at {live.view.tip_rate_hz():.1f} Hz "
+            f"(rendered by the page; none without one)"
+        )
     if stop is not None:
         print(f"hrm view: {stop}", file=sys.stderr)
         return 2

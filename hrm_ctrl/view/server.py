@@ -11,8 +11,17 @@ unit is the metre (the stack's millimetres scaled by :data:`M_PER_MM`).
 
 Scene names (a test or a tool finds the objects by them in viser's scene tree):
 ``/env/...``, ``/plan/path``, ``/plan/backbone``, ``/plan/arm/linkNN`` (the planned arm
-at the slider's step) and ``/arm/linkNN`` (the arm shown: the planned one, or with
-``live`` the estimated one, hidden until the first :meth:`ArmView.update`).
+at the slider's step), ``/arm/linkNN`` (the arm shown: the planned one, or with
+``live`` the estimated one, hidden until the first :meth:`ArmView.update`),
+``/tip/camera`` (the tip camera's frustum) and ``/live/trail`` (the trail the tip has
+drawn, from :meth:`ArmView.show_trail`).
+
+The tip camera: a virtual camera at the end effector looking along the tip's axis
+(:func:`hrm_ctrl.view.geometry.tip_camera_pose`), shown in the panel as the image
+"tip camera".  The browser draws it: a thread asks a connected page to render the scene
+from the tip's pose (viser's ``get_render``) whenever the tip has moved, at most
+:data:`TIP_CAMERA_RATE_HZ` times a second, and shows the frame in the panel; no page
+connected, no frame (``tip_frames`` counts the frames shown).
 """
 
 from __future__ import annotations
@@ -29,7 +38,7 @@ import numpy as np
 
 from hrm_ctrl.errors import HrmError
 from hrm_ctrl.formats.planfile import PlanDoc
-from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.kinematics import frames, joint_centres
 from hrm_ctrl.model import RobotModel
 from hrm_ctrl.planning.environment import (
     DISPLAY_GOLDEN_ITERATIONS,
@@ -51,6 +60,13 @@ SAME_POSE_MM = 0.01  # a pose within this of the one shown is not sent again
 CLEARANCE_REUSE_MM = 0.25  # the clearance shown may be this much off (see ArmView._push),
 # and as much again from its search (DISPLAY_GOLDEN_ITERATIONS)
 PLANNED_OPACITY = 0.35
+TIP_CAMERA_WIDTH, TIP_CAMERA_HEIGHT = 256, 192  # pixels of the tip camera's frame
+TIP_CAMERA_FOV_RAD = math.radians(70.0)  # vertical field of view
+TIP_CAMERA_RATE_HZ = 15.0  # frames a second at most (the tip moving)
+TIP_CAMERA_IDLE_S = 2.0  # a still tip's frame is renewed this often (a page that joined late)
+TIP_RENDER_TIMEOUT_S = 2.0  # longest wait for a page's frame
+TIP_FRUSTUM_M = 0.03  # the frustum drawn at the tip (m)
+TIP_FRUSTUM_RGB = (250, 210, 40)
 ENV_OPACITY = 0.18
 
 
@@ -143,6 +159,16 @@ class ArmView:
         self._clearance = np.zeros(0)
         self._names: list[str] = []
         self._sent: dict[int, dict[tuple[str, int], Any]] = {}
+        self.tip_pose_mm: tuple[np.ndarray, np.ndarray] | None = None  # position, wxyz
+        self._tip_version = 0  # bumped whenever the tip pose or the trail changes
+        self._trail: Any = None
+        self.trail_mm: np.ndarray | None = None  # the trail drawn (thinned)
+        self.tip_frames = 0  # tip camera frames shown
+        self.tip_failures = 0  # renders a page did not deliver
+        self.tip_error: str | None = None
+        self._tip_t: list[float] = []  # times of the first and the last frame shown
+        self._tip_stop = threading.Event()
+        self._tip_thread: threading.Thread | None = None
         try:
             with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: we print the URL
                 self.server = viser.ViserServer(host=HOST, port=port, verbose=False)
@@ -165,6 +191,10 @@ class ArmView:
         except BaseException:
             self.close()
             raise
+        self._tip_thread = threading.Thread(
+            target=self._tip_camera_loop, name="hrm-view-tip-camera", daemon=True
+        )
+        self._tip_thread.start()
 
     # ------------------------------------------------------------------ origin
     def _guard_origin(self) -> None:
@@ -218,6 +248,24 @@ class ArmView:
         ]
         self._planned: list[Any] = []
         self._backbone = None
+        self._tipcam = self._add(
+            "add_camera_frustum",
+            "/tip/camera",
+            fov=TIP_CAMERA_FOV_RAD,
+            aspect=TIP_CAMERA_WIDTH / TIP_CAMERA_HEIGHT,
+            scale=TIP_FRUSTUM_M,
+            thickness=1.5,
+            thickness_units="screen",
+            color=TIP_FRUSTUM_RGB,
+            visible=False,
+            cast_shadow=False,
+            receive_shadow=False,
+        )
+        self._tip_image = gui.add_image(
+            np.zeros((TIP_CAMERA_HEIGHT, TIP_CAMERA_WIDTH, 3), dtype=np.uint8),
+            label="tip camera",
+            format="jpeg",
+        )
         gui.add_text(
             "arm shown",
             initial_value="estimated from drive feedback" if self.live else "the plan's",
@@ -387,6 +435,8 @@ class ArmView:
                 c = self.clearance_mm(O)
                 self._place(self._arm, O, g.clearance_colours(c))
                 self._show_clearance(c)
+                R = frames(self.model, p.alpha_rad[step], p.theta_rad[step])[0]
+                self._place_tip(R[-1], O[-1])
             self._step_text.value = f"{p.travel_mm[step]:.1f} mm ({p.phase[step].value})"
             bb = p.backbones_mm.get(step)
             if bb is not None:
@@ -448,7 +498,7 @@ class ArmView:
             return True
 
     def _push(self, a: np.ndarray, t: np.ndarray) -> None:
-        O = joint_centres(self.model, a, t)
+        R, O = frames(self.model, a, t)
         moved = math.inf if self._pushed_O is None else float(np.abs(O - self._pushed_O).max())
         if moved < SAME_POSE_MM:  # a held arm: nothing to send
             return
@@ -463,8 +513,92 @@ class ArmView:
         with self.server.atomic():
             self._place(self._arm, O, g.clearance_colours(c))
             self._show_clearance(c)
+            self._place_tip(R[-1], O[-1])
         self._pushed_O = O
         self.pushes += 1
+
+    def _place_tip(self, R_tip: np.ndarray, O_tip: np.ndarray) -> None:
+        """Put the tip camera (its frustum, the pose its frames are rendered from) on the
+        tip frame ``R_tip``, ``O_tip`` (mm)."""
+        pos, wxyz = g.tip_camera_pose(R_tip, O_tip)
+        self._tipcam.position = tuple(pos * M_PER_MM)
+        self._tipcam.wxyz = tuple(wxyz)
+        if not self._tipcam.visible:
+            self._tipcam.visible = True
+        self.tip_pose_mm = (pos, wxyz)
+        self._tip_version += 1
+
+    def show_trail(self, points_mm: np.ndarray) -> bool:
+        """Draw the trail the tip has drawn (``/live/trail``): points (P, 3) mm, P >= 2,
+        thinned to :data:`~hrm_ctrl.view.geometry.MAX_TRAIL_POINTS`; thread-safe.  A
+        trail within :data:`SAME_POSE_MM` of the one drawn sends nothing (False)."""
+        p = np.asarray(points_mm, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 3 or len(p) < 2 or not np.isfinite(p).all():
+            raise ViewError(f"trail: expected (P >= 2, 3) finite points in mm, got {p.shape}")
+        p = g.trail_points(p)
+        with self._lock:
+            if self._closed:
+                return False
+            old = self.trail_mm
+            if old is not None and old.shape == p.shape and np.abs(old - p).max() < SAME_POSE_MM:
+                return False
+            seg = g.polyline_segments(p) * M_PER_MM
+            if self._trail is None:
+                self._trail = self._add(
+                    "add_line_segments",
+                    "/live/trail",
+                    seg,
+                    g.TRAIL_RGB,
+                    thickness=3.0,
+                    thickness_units="screen",
+                )
+            else:
+                self._trail.points = seg
+            self.trail_mm = p
+            self._tip_version += 1
+            return True
+
+    # ------------------------------------------------------------------ tip camera
+    def _tip_camera_loop(self) -> None:
+        """Render the tip camera's frames in a connected page and show them (module doc)."""
+        period_s = 1.0 / TIP_CAMERA_RATE_HZ
+        shown_version = -1
+        last_s = -math.inf
+        while not self._tip_stop.wait(period_s):
+            pose, version = self.tip_pose_mm, self._tip_version
+            now = time.monotonic()
+            if pose is None or (version == shown_version and now - last_s < TIP_CAMERA_IDLE_S):
+                continue
+            clients = self.server.get_clients()
+            if not clients:
+                continue
+            client = clients[min(clients)]
+            pos, wxyz = pose
+            try:
+                img = client.get_render(
+                    TIP_CAMERA_HEIGHT,
+                    TIP_CAMERA_WIDTH,
+                    wxyz=tuple(float(v) for v in wxyz),
+                    position=tuple(float(v) * M_PER_MM for v in pos),
+                    fov=TIP_CAMERA_FOV_RAD,
+                    timeout=TIP_RENDER_TIMEOUT_S,
+                )
+            except (RuntimeError, TimeoutError, OSError) as exc:  # the page left, or hung
+                self.tip_failures += 1
+                self.tip_error = str(exc)
+                continue
+            if self._tip_stop.is_set():
+                break
+            self._tip_image.image = np.ascontiguousarray(img[..., :3])
+            shown_version, last_s = version, time.monotonic()
+            self.tip_frames += 1
+            self._tip_t = [self._tip_t[0] if self._tip_t else last_s, last_s]
+
+    def tip_rate_hz(self) -> float:
+        """Tip camera frames shown a second so far (0 before two were shown)."""
+        if self.tip_frames < 2 or len(self._tip_t) < 2 or self._tip_t[1] <= self._tip_t[0]:
+            return 0.0
+        return (self.tip_frames - 1) / (self._tip_t[1] - self._tip_t[0])
 
     @property
     def arm_links(self) -> tuple[Any, ...]:
@@ -483,6 +617,9 @@ class ArmView:
             if self._closed:
                 return
             self._closed = True
+        self._tip_stop.set()
+        if self._tip_thread is not None and self._tip_thread is not threading.current_thread():
+            self._tip_thread.join(TIP_RENDER_TIMEOUT_S + 1.0)
         with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
             self.server.stop()
 
