@@ -19,9 +19,11 @@ drawn, from :meth:`ArmView.show_trail`).
 The tip camera: a virtual camera at the end effector looking along the tip's axis
 (:func:`hrm_ctrl.view.geometry.tip_camera_pose`), shown in the panel as the image
 "tip camera".  The browser draws it: a thread asks a connected page to render the scene
-from the tip's pose (viser's ``get_render``) whenever the tip has moved, at most
-:data:`TIP_CAMERA_RATE_HZ` times a second, and shows the frame in the panel; no page
-connected, no frame (``tip_frames`` counts the frames shown).
+from the tip's pose (viser's ``get_render``) whenever the tip has moved, the trail has
+changed or a page has connected, at most :data:`TIP_CAMERA_RATE_HZ` times a second, and
+shows the frame in the panel; no page connected, no frame (``tip_frames`` counts the
+frames shown).  Its rate is the page's renderer's: a software renderer on a busy machine
+gives far fewer frames than a GPU.
 """
 
 from __future__ import annotations
@@ -63,8 +65,7 @@ PLANNED_OPACITY = 0.35
 TIP_CAMERA_WIDTH, TIP_CAMERA_HEIGHT = 256, 192  # pixels of the tip camera's frame
 TIP_CAMERA_FOV_RAD = math.radians(70.0)  # vertical field of view
 TIP_CAMERA_RATE_HZ = 15.0  # frames a second at most (the tip moving)
-TIP_CAMERA_IDLE_S = 2.0  # a still tip's frame is renewed this often (a page that joined late)
-TIP_RENDER_TIMEOUT_S = 2.0  # longest wait for a page's frame
+TIP_RENDER_TIMEOUT_S = 10.0  # longest wait for a page's frame (a software renderer, busy)
 TIP_FRUSTUM_M = 0.03  # the frustum drawn at the tip (m)
 TIP_FRUSTUM_RGB = (250, 210, 40)
 ENV_OPACITY = 0.18
@@ -191,6 +192,7 @@ class ArmView:
         except BaseException:
             self.close()
             raise
+        self.server.on_client_connect(self._new_page)
         self._tip_thread = threading.Thread(
             target=self._tip_camera_loop, name="hrm-view-tip-camera", daemon=True
         )
@@ -559,15 +561,19 @@ class ArmView:
             return True
 
     # ------------------------------------------------------------------ tip camera
+    def _new_page(self, _client: Any) -> None:
+        """A page connected: render the tip camera again (the frame shown may predate
+        the scene it now has)."""
+        with self._lock:
+            self._tip_version += 1
+
     def _tip_camera_loop(self) -> None:
         """Render the tip camera's frames in a connected page and show them (module doc)."""
         period_s = 1.0 / TIP_CAMERA_RATE_HZ
         shown_version = -1
-        last_s = -math.inf
         while not self._tip_stop.wait(period_s):
             pose, version = self.tip_pose_mm, self._tip_version
-            now = time.monotonic()
-            if pose is None or (version == shown_version and now - last_s < TIP_CAMERA_IDLE_S):
+            if pose is None or version == shown_version:
                 continue
             clients = self.server.get_clients()
             if not clients:
@@ -590,9 +596,9 @@ class ArmView:
             if self._tip_stop.is_set():
                 break
             self._tip_image.image = np.ascontiguousarray(img[..., :3])
-            shown_version, last_s = version, time.monotonic()
+            shown_version, now = version, time.monotonic()
             self.tip_frames += 1
-            self._tip_t = [self._tip_t[0] if self._tip_t else last_s, last_s]
+            self._tip_t = [self._tip_t[0] if self._tip_t else now, now]
 
     def tip_rate_hz(self) -> float:
         """Tip camera frames shown a second so far (0 before two were shown)."""
@@ -618,10 +624,10 @@ class ArmView:
                 return
             self._closed = True
         self._tip_stop.set()
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
+            self.server.stop()  # a frame still asked for fails with its page gone
         if self._tip_thread is not None and self._tip_thread is not threading.current_thread():
             self._tip_thread.join(TIP_RENDER_TIMEOUT_S + 1.0)
-        with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
-            self.server.stop()
 
     def __enter__(self) -> ArmView:
         return self

@@ -298,7 +298,7 @@ def test_the_tip_camera_renders_in_a_page_when_the_tip_moves(monkeypatch: Any) -
         shown = view._tip_image.image
         assert shown.shape == (srv.TIP_CAMERA_HEIGHT, srv.TIP_CAMERA_WIDTH, 3)
         n = len(page.requests)
-        time.sleep(0.5)  # a still tip is not rendered again (until TIP_CAMERA_IDLE_S)
+        time.sleep(0.5)  # a still tip is not rendered again
         assert len(page.requests) == n
 
         def fails(*_a: Any, **_k: Any) -> np.ndarray:
