@@ -23,19 +23,22 @@ then, while it is held, the keyboard's auto-repeat (after an initial delay of ty
 * for :attr:`HoldTiming.repeat_hold_s` after each later press (a repeat: the key is
   released at most that long after its last repeat).
 
-A device with real key-up events (:attr:`KeyKind.RELEASE`) ends the hold at once.  The
+A device with real key-up events (a :class:`KeyInput` with ``down=False``) ends the hold
+at once.  The
 command is zero at the latest ``first_hold_s`` after the last event of a key
 (:func:`release_deadline_s`); the planner then ramps the advance down within the motors'
 deceleration.  A terminal repeats only the key pressed last: two motion keys at once are
 not held together (the gamepad does that).
 
-Everything here is a pure function of the events and the time: :func:`next_state`
+The motion keys are the key scripts' (:class:`~hrm_ctrl.drive.script.SteerKey`, one
+command of the keys held: :func:`~hrm_ctrl.drive.script.command_of_keys`).  Everything
+here is a pure function of the events and the time: :func:`next_state`
 folds one event into an immutable :class:`KeyState`, :func:`command_at` reads the
 command at a time.  :class:`KeyboardSteer` wraps them for two threads (the key reader
 feeds, the control loop reads).
 
 >>> st = KeyState()
->>> st = next_state(st, KeyEvent(Key.ADVANCE, 10.0))
+>>> st = next_state(st, KeyInput(SteerKey.ADVANCE, 10.0))
 >>> command_at(st, 10.1, SteerLimits())
 SteerCommand(yaw_rate_rad_s=0.0, pitch_rate_rad_s=0.0, advance_mm_s=10.0)
 >>> command_at(st, 10.0 + HoldTiming().first_hold_s, SteerLimits()).is_stop
@@ -51,21 +54,16 @@ from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 from hrm_ctrl.drive.command import DriveError, SteerCommand, SteerLimits
+from hrm_ctrl.drive.script import SteerKey, command_of_keys
 
 SPEED_STEP = 0.1  # the speed cap moves in tenths of the limits
 MIN_SPEED_FRACTION = 0.1
 START_SPEED_FRACTION = 0.5  # a drive starts at half the limits
 
 
-class Key(StrEnum):
-    """What a key means to the drive."""
+class ControlKey(StrEnum):
+    """The keys besides the motion keys (:class:`~hrm_ctrl.drive.script.SteerKey`)."""
 
-    YAW_LEFT = "yaw_left"
-    YAW_RIGHT = "yaw_right"
-    PITCH_UP = "pitch_up"
-    PITCH_DOWN = "pitch_down"
-    ADVANCE = "advance"
-    RETRACT = "retract"
     SPEED_UP = "speed_up"
     SPEED_DOWN = "speed_down"
     PAUSE = "pause"  # toggles: pause / resume
@@ -73,59 +71,46 @@ class Key(StrEnum):
     ABORT = "abort"
 
 
-# A motion key: (its axis index in (yaw, pitch, advance), its sign).
-MOTION: dict[Key, tuple[int, float]] = {
-    Key.YAW_LEFT: (0, 1.0),
-    Key.YAW_RIGHT: (0, -1.0),
-    Key.PITCH_UP: (1, 1.0),
-    Key.PITCH_DOWN: (1, -1.0),
-    Key.ADVANCE: (2, 1.0),
-    Key.RETRACT: (2, -1.0),
-}
+Key = SteerKey | ControlKey  # what a key means to the drive
+
 
 # Terminal input -> key.  Arrows come as ESC [ X (or ESC O X in application mode).
 TERMINAL_KEYS: dict[str, Key] = {
-    "\x1b[D": Key.YAW_LEFT,
-    "\x1bOD": Key.YAW_LEFT,
-    "h": Key.YAW_LEFT,
-    "\x1b[C": Key.YAW_RIGHT,
-    "\x1bOC": Key.YAW_RIGHT,
-    "l": Key.YAW_RIGHT,
-    "\x1b[A": Key.PITCH_UP,
-    "\x1bOA": Key.PITCH_UP,
-    "k": Key.PITCH_UP,
-    "\x1b[B": Key.PITCH_DOWN,
-    "\x1bOB": Key.PITCH_DOWN,
-    "j": Key.PITCH_DOWN,
-    "w": Key.ADVANCE,
-    "s": Key.RETRACT,
-    "+": Key.SPEED_UP,
-    "=": Key.SPEED_UP,
-    "-": Key.SPEED_DOWN,
-    "_": Key.SPEED_DOWN,
-    " ": Key.PAUSE,
-    "p": Key.PAUSE,
-    "r": Key.RESUME,
-    "a": Key.ABORT,
+    "\x1b[D": SteerKey.YAW_LEFT,
+    "\x1bOD": SteerKey.YAW_LEFT,
+    "h": SteerKey.YAW_LEFT,
+    "\x1b[C": SteerKey.YAW_RIGHT,
+    "\x1bOC": SteerKey.YAW_RIGHT,
+    "l": SteerKey.YAW_RIGHT,
+    "\x1b[A": SteerKey.PITCH_UP,
+    "\x1bOA": SteerKey.PITCH_UP,
+    "k": SteerKey.PITCH_UP,
+    "\x1b[B": SteerKey.PITCH_DOWN,
+    "\x1bOB": SteerKey.PITCH_DOWN,
+    "j": SteerKey.PITCH_DOWN,
+    "w": SteerKey.ADVANCE,
+    "s": SteerKey.RETRACT,
+    "+": ControlKey.SPEED_UP,
+    "=": ControlKey.SPEED_UP,
+    "-": ControlKey.SPEED_DOWN,
+    "_": ControlKey.SPEED_DOWN,
+    " ": ControlKey.PAUSE,
+    "p": ControlKey.PAUSE,
+    "r": ControlKey.RESUME,
+    "a": ControlKey.ABORT,
 }
 _ESC = "\x1b"
 _ESC_LEN = 3  # every escape sequence above is three characters
 
 
-class KeyKind(StrEnum):
-    """A key event: pressed (a terminal's every key, auto-repeats included) or released."""
-
-    PRESS = "press"
-    RELEASE = "release"
-
-
 @dataclass(frozen=True, slots=True)
-class KeyEvent:
-    """One key event at ``t_s`` (s, the reader's monotonic clock)."""
+class KeyInput:
+    """One key at ``t_s`` (s, the reader's monotonic clock): pressed (``down``; a
+    terminal's every key, auto-repeats included) or released."""
 
     key: Key
     t_s: float
-    kind: KeyKind = KeyKind.PRESS
+    down: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -155,7 +140,7 @@ class KeyState:
     """The keyboard's state: the motion keys held, the speed cap (a fraction of the
     limits), whether paused (latched) and whether the operator aborted."""
 
-    held: dict[Key, Held] = field(default_factory=dict)
+    held: dict[SteerKey, Held] = field(default_factory=dict)
     speed_fraction: float = START_SPEED_FRACTION
     paused: bool = False
     aborted: bool = False
@@ -171,32 +156,32 @@ def step_speed_fraction(f: float, sign: int) -> float:
     return min(1.0, max(MIN_SPEED_FRACTION, round(n * SPEED_STEP, 10)))
 
 
-def next_state(state: KeyState, event: KeyEvent) -> KeyState:
+def next_state(state: KeyState, event: KeyInput) -> KeyState:
     """``state`` after ``event`` (events come in time order).
 
     A press of a motion key starts or extends its hold, a release ends it; pause
     toggles the latch (and drops every hold: a resume needs a fresh press), resume
     clears it, abort latches the abort and drops every hold."""
     k = event.key
-    if k in MOTION:
+    if isinstance(k, SteerKey):
         held = dict(state.held)
-        if event.kind is KeyKind.RELEASE:
+        if not event.down:
             held.pop(k, None)
         else:
             h = held.get(k)
             held[k] = Held(event.t_s, event.t_s) if h is None else Held(h.first_s, event.t_s)
         return replace(state, held=held)
-    if event.kind is KeyKind.RELEASE:
+    if not event.down:
         return state
-    if k is Key.SPEED_UP:
+    if k is ControlKey.SPEED_UP:
         return replace(state, speed_fraction=step_speed_fraction(state.speed_fraction, 1))
-    if k is Key.SPEED_DOWN:
+    if k is ControlKey.SPEED_DOWN:
         return replace(state, speed_fraction=step_speed_fraction(state.speed_fraction, -1))
-    if k is Key.PAUSE:
+    if k is ControlKey.PAUSE:
         return replace(state, paused=not state.paused, held={})
-    if k is Key.RESUME:
+    if k is ControlKey.RESUME:
         return replace(state, paused=False, held={})
-    return replace(state, aborted=True, held={})  # Key.ABORT
+    return replace(state, aborted=True, held={})  # ControlKey.ABORT
 
 
 def is_held(h: Held, t_s: float, timing: HoldTiming) -> bool:
@@ -224,27 +209,22 @@ def release_deadline_s(state: KeyState, timing: HoldTiming) -> float:
     )
 
 
-def axes_at(state: KeyState, t_s: float, timing: HoldTiming) -> tuple[float, float, float]:
-    """The normalised (yaw, pitch, advance) axes in ``{-1, 0, 1}`` at ``t_s``: opposite
-    keys held together cancel; paused or aborted: all zero."""
-    axes = [0.0, 0.0, 0.0]
+def held_at(state: KeyState, t_s: float, timing: HoldTiming) -> frozenset[SteerKey]:
+    """The motion keys held at ``t_s`` (none while paused or aborted)."""
     if state.paused or state.aborted:
-        return (0.0, 0.0, 0.0)
-    for k, h in state.held.items():
-        if is_held(h, t_s, timing):
-            i, sign = MOTION[k]
-            axes[i] += sign
-    return (axes[0], axes[1], axes[2])
+        return frozenset()
+    return frozenset(k for k, h in state.held.items() if is_held(h, t_s, timing))
 
 
 def command_at(
     state: KeyState, t_s: float, limits: SteerLimits, timing: HoldTiming = HoldTiming()
 ) -> SteerCommand:
-    """The steer command the keys ask for at ``t_s``: the held axes scaled by the speed
-    cap (``speed_fraction`` of ``limits``), never above ``limits``."""
-    y, p, a = axes_at(state, t_s, timing)
+    """The steer command the keys ask for at ``t_s``: the keys held
+    (:func:`~hrm_ctrl.drive.script.command_of_keys`, as a key script's) scaled by the
+    speed cap (``speed_fraction`` of ``limits``), never above ``limits``."""
+    c = command_of_keys(held_at(state, t_s, timing), limits)
     f = min(1.0, max(0.0, state.speed_fraction))
-    return SteerCommand.from_axes(y * f, p * f, a * f, limits)
+    return SteerCommand(c.yaw_rate_rad_s * f, c.pitch_rate_rad_s * f, c.advance_mm_s * f)
 
 
 def decode_terminal(text: str) -> tuple[list[Key], str]:
@@ -252,7 +232,7 @@ def decode_terminal(text: str) -> tuple[list[Key], str]:
     off at its end (to be put before the next read).  Other input is ignored.
 
     >>> decode_terminal("\\x1b[Dxs\\x1b[")
-    ([<Key.YAW_LEFT: 'yaw_left'>, <Key.RETRACT: 'retract'>], '\\x1b[')
+    ([<SteerKey.YAW_LEFT: 'yaw_left'>, <SteerKey.RETRACT: 'retract'>], '\\x1b[')
     """
     keys: list[Key] = []
     i = 0
@@ -286,14 +266,14 @@ class KeyboardSteer:
         self.state = KeyState()
         self._rest = ""
 
-    def feed(self, event: KeyEvent) -> None:
+    def feed(self, event: KeyInput) -> None:
         self.state = next_state(self.state, event)
 
     def feed_terminal(self, text: str, t_s: float) -> list[Key]:
         """Feed what was read from the terminal at ``t_s``; returns the keys found."""
         keys, self._rest = decode_terminal(self._rest + text)
         for k in keys:
-            self.feed(KeyEvent(k, t_s))
+            self.feed(KeyInput(k, t_s))
         return keys
 
     def command(self, t_s: float) -> SteerCommand:
