@@ -16,14 +16,16 @@ at the slider's step), ``/arm/linkNN`` (the arm shown: the planned one, or with
 ``/tip/camera`` (the tip camera's frustum) and ``/live/trail`` (the trail the tip has
 drawn, from :meth:`ArmView.show_trail`).
 
-The tip camera: a virtual camera at the end effector looking along the tip's axis
-(:func:`hrm_ctrl.view.geometry.tip_camera_pose`), shown in the panel as the image
-"tip camera".  The browser draws it: a thread asks a connected page to render the scene
-from the tip's pose (viser's ``get_render``) whenever the tip has moved, the trail has
-changed or a page has connected, at most :data:`TIP_CAMERA_RATE_HZ` times a second, and
-shows the frame in the panel; no page connected, no frame (``tip_frames`` counts the
-frames shown).  Its rate is the page's renderer's: a software renderer on a busy machine
-gives far fewer frames than a GPU.
+The tip camera (a ``live`` view's): a virtual camera at the end effector looking along
+the tip's axis (:func:`hrm_ctrl.view.geometry.tip_camera_pose`), shown in the panel as
+the image "tip camera" (its checkbox turns it off).  The browser draws it: a thread asks
+a connected page to render the scene from the tip's pose (viser's ``get_render``)
+whenever the tip has moved, the trail has changed or a page has connected, at most
+:data:`TIP_CAMERA_RATE_HZ` times a second and with the page rendering for the camera at
+most :data:`TIP_CAMERA_DUTY` of the time (it stays responsive), and shows the frame in
+the panel; no page connected, no frame (``tip_frames`` counts the frames shown).  Its
+rate is the page's renderer's: a software renderer on a busy machine gives far fewer
+frames than a GPU.
 """
 
 from __future__ import annotations
@@ -65,7 +67,8 @@ PLANNED_OPACITY = 0.35
 TIP_CAMERA_WIDTH, TIP_CAMERA_HEIGHT = 256, 192  # pixels of the tip camera's frame
 TIP_CAMERA_FOV_RAD = math.radians(70.0)  # vertical field of view
 TIP_CAMERA_RATE_HZ = 15.0  # frames a second at most (the tip moving)
-TIP_RENDER_TIMEOUT_S = 10.0  # longest wait for a page's frame (a software renderer, busy)
+TIP_CAMERA_DUTY = 0.5  # the share of the page's time its frames may take at most
+TIP_RENDER_TIMEOUT_S = 60.0  # longest wait for a page's frame (one asked for at a time)
 TIP_FRUSTUM_M = 0.03  # the frustum drawn at the tip (m)
 TIP_FRUSTUM_RGB = (250, 210, 40)
 ENV_OPACITY = 0.18
@@ -192,11 +195,12 @@ class ArmView:
         except BaseException:
             self.close()
             raise
-        self.server.on_client_connect(self._new_page)
-        self._tip_thread = threading.Thread(
-            target=self._tip_camera_loop, name="hrm-view-tip-camera", daemon=True
-        )
-        self._tip_thread.start()
+        if live:
+            self.server.on_client_connect(self._new_page)
+            self._tip_thread = threading.Thread(
+                target=self._tip_camera_loop, name="hrm-view-tip-camera", daemon=True
+            )
+            self._tip_thread.start()
 
     # ------------------------------------------------------------------ origin
     def _guard_origin(self) -> None:
@@ -263,11 +267,13 @@ class ArmView:
             cast_shadow=False,
             receive_shadow=False,
         )
-        self._tip_image = gui.add_image(
-            np.zeros((TIP_CAMERA_HEIGHT, TIP_CAMERA_WIDTH, 3), dtype=np.uint8),
-            label="tip camera",
-            format="jpeg",
-        )
+        if self.live:
+            self._tip_on = gui.add_checkbox("tip camera", initial_value=True)
+            self._tip_image = gui.add_image(
+                np.zeros((TIP_CAMERA_HEIGHT, TIP_CAMERA_WIDTH, 3), dtype=np.uint8),
+                label="tip camera",
+                format="jpeg",
+            )
         gui.add_text(
             "arm shown",
             initial_value="estimated from drive feedback" if self.live else "the plan's",
@@ -571,15 +577,18 @@ class ArmView:
         """Render the tip camera's frames in a connected page and show them (module doc)."""
         period_s = 1.0 / TIP_CAMERA_RATE_HZ
         shown_version = -1
-        while not self._tip_stop.wait(period_s):
+        wait_s = period_s
+        while not self._tip_stop.wait(wait_s):
+            wait_s = period_s
             pose, version = self.tip_pose_mm, self._tip_version
-            if pose is None or version == shown_version:
+            if pose is None or version == shown_version or not self._tip_on.value:
                 continue
             clients = self.server.get_clients()
             if not clients:
                 continue
             client = clients[min(clients)]
             pos, wxyz = pose
+            t0 = time.monotonic()
             try:
                 img = client.get_render(
                     TIP_CAMERA_HEIGHT,
@@ -593,6 +602,9 @@ class ArmView:
                 self.tip_failures += 1
                 self.tip_error = str(exc)
                 continue
+            finally:  # the page's time rendering for the camera: at most TIP_CAMERA_DUTY
+                took_s = time.monotonic() - t0
+                wait_s = max(period_s - took_s, took_s * (1.0 / TIP_CAMERA_DUTY - 1.0))
             if self._tip_stop.is_set():
                 break
             self._tip_image.image = np.ascontiguousarray(img[..., :3])
