@@ -69,6 +69,7 @@ TIP_CAMERA_FOV_RAD = math.radians(70.0)  # vertical field of view
 TIP_CAMERA_RATE_HZ = 15.0  # frames a second at most (the tip moving)
 TIP_CAMERA_DUTY = 0.25  # the share of the page's time its frames may take at most
 TIP_RENDER_TIMEOUT_S = 60.0  # longest wait for a page's frame (one asked for at a time)
+TRAIL_MIN_INTERVAL_S = 0.2  # a growing trail is sent at most this often (it is whole each time)
 TIP_FRUSTUM_M = 0.03  # the frustum drawn at the tip (m)
 TIP_FRUSTUM_RGB = (250, 210, 40)
 ENV_OPACITY = 0.18
@@ -167,6 +168,7 @@ class ArmView:
         self._tip_version = 0  # bumped whenever the tip pose or the trail changes
         self._trail: Any = None
         self.trail_mm: np.ndarray | None = None  # the trail drawn (thinned)
+        self._trail_t = -math.inf
         self.tip_frames = 0  # tip camera frames shown
         self.tip_failures = 0  # renders a page did not deliver
         self.tip_error: str | None = None
@@ -539,7 +541,9 @@ class ArmView:
     def show_trail(self, points_mm: np.ndarray) -> bool:
         """Draw the trail the tip has drawn (``/live/trail``): points (P, 3) mm, P >= 2,
         thinned to :data:`~hrm_ctrl.view.geometry.MAX_TRAIL_POINTS`; thread-safe.  A
-        trail within :data:`SAME_POSE_MM` of the one drawn sends nothing (False)."""
+        trail within :data:`SAME_POSE_MM` of the one drawn, or one given sooner than
+        :data:`TRAIL_MIN_INTERVAL_S` after the last one drawn, sends nothing (False: the
+        caller gives it again, as the live feed does every tick)."""
         p = np.asarray(points_mm, dtype=float)
         if p.ndim != 2 or p.shape[1] != 3 or len(p) < 2 or not np.isfinite(p).all():
             raise ViewError(f"trail: expected (P >= 2, 3) finite points in mm, got {p.shape}")
@@ -550,6 +554,10 @@ class ArmView:
             old = self.trail_mm
             if old is not None and old.shape == p.shape and np.abs(old - p).max() < SAME_POSE_MM:
                 return False
+            now = self._clock()
+            if now - self._trail_t < TRAIL_MIN_INTERVAL_S:
+                return False
+            self._trail_t = now
             seg = g.polyline_segments(p) * M_PER_MM
             if self._trail is None:
                 self._trail = self._add(

@@ -226,7 +226,10 @@ def test_a_foreign_origin_gets_nothing_of_the_scene() -> None:
 
 
 def test_the_trail_is_served_thinned_and_not_resent_unchanged() -> None:
-    with ArmView(MODEL, None, None, live=True) as view:
+    from hrm_ctrl.view.server import TRAIL_MIN_INTERVAL_S
+
+    now = [0.0]
+    with ArmView(MODEL, None, None, live=True, clock=lambda: now[0]) as view:
         assert "/live/trail" not in view.scene_names()
         trail = np.stack([np.linspace(0.0, 2500.0, 6001), np.zeros(6001), np.zeros(6001)], 1)
         assert view.show_trail(trail[:2000])
@@ -234,6 +237,9 @@ def test_the_trail_is_served_thinned_and_not_resent_unchanged() -> None:
         seg = view._trail.points  # what the page is sent (m)
         assert seg.shape == (1999, 2, 3)
         assert np.allclose(seg, g.polyline_segments(trail[:2000]) * M_PER_MM, atol=1e-7)
+        now[0] += 0.5 * TRAIL_MIN_INTERVAL_S
+        assert not view.show_trail(trail)  # grown, but too soon after the last one sent
+        now[0] += 0.5 * TRAIL_MIN_INTERVAL_S
         assert not view.show_trail(trail[:2000] + 0.001)  # within SAME_POSE_MM: not resent
         assert view.show_trail(trail)  # the trail grew: thinned to MAX_TRAIL_POINTS
         assert view.trail_mm is not None and len(view.trail_mm) == g.MAX_TRAIL_POINTS
