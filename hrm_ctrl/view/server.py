@@ -22,7 +22,8 @@ the image "tip camera" (its checkbox turns it off).  The browser draws it: a thr
 a connected page to render the scene from the tip's pose (viser's ``get_render``)
 whenever the tip has moved, the trail has changed or a page has connected, at most
 :data:`TIP_CAMERA_RATE_HZ` times a second and with the page rendering for the camera at
-most :data:`TIP_CAMERA_DUTY` of the time (it stays responsive), and shows the frame in
+most :data:`TIP_CAMERA_DUTY` of the time (it stays responsive; a page slower than
+that still gets a request every :data:`TIP_CAMERA_MAX_WAIT_S`), and shows the frame in
 the panel; no page connected, no frame (``tip_frames`` counts the frames shown).  Its
 rate is the page's renderer's: a software renderer on a busy machine gives far fewer
 frames than a GPU.
@@ -68,6 +69,7 @@ TIP_CAMERA_WIDTH, TIP_CAMERA_HEIGHT = 256, 192  # pixels of the tip camera's fra
 TIP_CAMERA_FOV_RAD = math.radians(70.0)  # vertical field of view
 TIP_CAMERA_RATE_HZ = 15.0  # frames a second at most (the tip moving)
 TIP_CAMERA_DUTY = 0.25  # the share of the page's time its frames may take at most
+TIP_CAMERA_MAX_WAIT_S = 2.0  # but a slow page's next frame is asked for within this
 TIP_RENDER_TIMEOUT_S = 60.0  # longest wait for a page's frame (one asked for at a time)
 TRAIL_MIN_INTERVAL_S = 0.2  # a growing trail is sent at most this often (it is whole each time)
 TIP_FRUSTUM_M = 0.03  # the frustum drawn at the tip (m)
@@ -613,6 +615,7 @@ class ArmView:
             finally:  # the page's time rendering for the camera: at most TIP_CAMERA_DUTY
                 took_s = time.monotonic() - t0
                 wait_s = max(period_s - took_s, took_s * (1.0 / TIP_CAMERA_DUTY - 1.0))
+                wait_s = min(wait_s, TIP_CAMERA_MAX_WAIT_S)
             if self._tip_stop.is_set():
                 break
             self._tip_image.image = np.ascontiguousarray(img[..., :3])
