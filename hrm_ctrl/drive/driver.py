@@ -86,6 +86,8 @@ class Driver:
             self.refusal = None
             return self._status(None)
         target = p.travel + ds
+        if target < 0.0 < p.travel:  # retracting onto the trail's start: stop there
+            target, v = 0.0, 0.0
         steer = cmd.yaw_rate_rad_s != 0.0 or cmd.pitch_rate_rad_s != 0.0
         grown = 0.0
         restore: tuple[float, np.ndarray, np.ndarray] | None = None

@@ -8,8 +8,9 @@ solved by :func:`hrm_ctrl.planning.backbone.solve_modal_factors`), then the trai
 ``A`` up to ``d``, the joints fitted onto that backbone
 (:func:`hrm_ctrl.planning.fitting.fit_joint_centres_on_segments`) and their angles
 (:func:`hrm_ctrl.planning.joint_angles.joint_angles_from_centres`).  Where an environment
-is known the angles are then refined for clearance and joint-limit margin as the offline
-planner refines them (:mod:`hrm_ctrl.planning.refine`: the tip held on the trail, every
+is known the angles are then refined for clearance and joint-limit margin (elsewhere for
+the margin alone; ``refine_steps=False`` keeps the paper's fit) as the offline planner
+refines them (:mod:`hrm_ctrl.planning.refine`: the tip held on the trail, every
 angle within ``max_step_change_deg`` per 5 mm of travel of the last step), starting from
 the last step moved by the paper fit's change, with a few Gauss-Newton iterations a step
 (``refine_iterations``): the warm start leaves little to do.
@@ -116,6 +117,12 @@ class OnlineOptions:
         default_factory=lambda: RefineOptions(max_iterations=1, trials=1, patient_iterations=0)
     )
     tip_tolerance_mm: float = 0.05  # the refined tip's distance from the trail point
+    # the modal segment keeps this much more than the straight line from the base to the
+    # trail's start: near full stretch its shape changes faster than a step may turn a joint
+    length_margin_mm: float = 2.0
+    # refine every step (for clearance where an environment is known, for joint-limit
+    # margin everywhere, as ``hrm plan`` does); False: the paper's fit alone
+    refine_steps: bool = True
 
     def __post_init__(self) -> None:
         from hrm_ctrl.drive.command import DriveError
@@ -177,7 +184,8 @@ class OnlinePlanner:
         b2k, b2t = tangent_angles(trail.start_tangent())
         self.boundary = Boundary(b1k, b1t, b2k, b2t)
         self.lim = np.r_[np.full(n, model.limit_alpha), np.full(n, model.limit_theta)]
-        self.hard = self.lim - math.radians(self.opt.joint_margin_deg)
+        self.hard = self.lim - math.radians(self.opt.joint_margin_deg)  # refused beyond
+        self.box = self.lim - 1e-6  # the refinement's box, as the offline refinement's
         self.phi_max = bend_limit(model)
         self.radius = 0.5 * np.asarray(model.outer_diameter, dtype=float)
         self._t = np.linspace(0.0, 1.0, self.opt.refine.samples_per_link)
@@ -187,10 +195,9 @@ class OnlinePlanner:
             "solver": 0.0,
             "checks": 0.0,
         }
-        self._objective = (
-            StepObjective(model, self.env, self.radius, self._t, self.opt.refine, self._split)
-            if self.env is not None
-            else None
+        # the refinement's objective: clearance and margin, or the margin alone
+        self._objective = StepObjective(
+            model, self.env, self.radius, self._t, self.opt.refine, self._split
         )
         # work buffers: the backbone (modal curve + trail), its size grows with the trail
         self._curve = np.empty((self.opt.Q + 1 + 1024, 3))
@@ -210,10 +217,10 @@ class OnlinePlanner:
             raise PlanningError(fit.text)
         q_paper, _O, _seg = fit
         q = q_paper
-        if self._objective is not None:
+        if self.opt.refine_steps:
             wide = math.radians(self.opt.refine.first_step_change_deg)
-            lo = np.maximum(q_paper - wide, -self.hard)
-            hi = np.minimum(q_paper + wide, self.hard)
+            lo = np.maximum(q_paper - wide, -self.box)
+            hi = np.minimum(q_paper + wide, self.box)
             target = trail.point_at(travel_mm)
             q = project_tip(model, q_paper, target, lo, hi)
             q, _ = refine_step(self._objective, q, target, lo, hi, RefineOptions(max_iterations=20))
@@ -275,7 +282,7 @@ class OnlinePlanner:
             )
         L_m = self.model.length - d
         gap = float(np.linalg.norm(self.A - self.X0))
-        if L_m <= gap * (1.0 + 1e-6):
+        if L_m <= gap + self.opt.length_margin_mm:
             return self._end_of_length(d, L_m, gap)
         guess = predict_modal_factors(self.a_hist)
         try:
@@ -304,7 +311,7 @@ class OnlinePlanner:
         q = q_paper
         t3 = t2
         clearance: tuple[float, int] = (math.inf, 0)
-        if self._objective is not None:
+        if self.opt.refine_steps:
             refined = self._refined(d, q_paper)
             t3 = time.perf_counter()
             if isinstance(refined, Refusal):
@@ -338,8 +345,9 @@ class OnlinePlanner:
     def _end_of_length(self, d: float, L_m: float, gap: float) -> Refusal:
         return Refusal(
             RefusalKind.END_OF_LENGTH,
-            f"the arm's length ends here: at travel {d:.1f} mm the {L_m:.1f} mm left before "
-            f"the trail's start cannot span the {gap:.1f} mm from the base to it",
+            f"end of the arm's length at travel {d:.1f} mm: {L_m:.1f} mm left for the "
+            f"{gap:.1f} mm from the base to the trail's start (margin "
+            f"{self.opt.length_margin_mm:g} mm)",
             self.travel,
         )
 
@@ -384,7 +392,8 @@ class OnlinePlanner:
         return Refusal(
             RefusalKind.TOO_TIGHT,
             f"steer too tight at travel {d:.1f} mm: joint {j + 2} would bend "
-            f"{math.degrees(bend[j]):.1f} deg, it can bend {math.degrees(self.phi_max):.1f}",
+            f"{math.degrees(bend[j]):.2f} deg, more than the {math.degrees(self.phi_max):.0f} "
+            "it can bend in any direction",
             self.travel,
             joint=j + 2,
             angle="bend",
@@ -404,12 +413,11 @@ class OnlinePlanner:
         from that evaluation (the step moves the angles by at most a few hundredths of a
         degree); the next step's evaluation measures it again."""
         f = self._objective
-        assert f is not None
         ro = self.opt.refine
         step = abs(d - self.travel) / ro.reference_step_mm
         bound = math.radians(ro.max_step_change_deg - ro.step_change_slack_deg) * step
-        lo = np.maximum(self.q - bound, -self.hard)
-        hi = np.minimum(self.q + bound, self.hard)
+        lo = np.maximum(self.q - bound, -self.box)
+        hi = np.minimum(self.q + bound, self.box)
         target = self.trail.point_at(d, out=self._tip_target)
         guess = np.clip(self.q + (q_paper - self.q_paper), lo, hi)
         tip, Jtip, c, Jc = f.evaluate(guess)
@@ -436,10 +444,9 @@ class OnlinePlanner:
     def _clearance(self, q: np.ndarray) -> tuple[float, int]:
         """Worst sampled link clearance of ``q`` (one evaluation) and its link (1-based);
         inf, 0 without an environment."""
-        f = self._objective
-        if f is None:
+        if self.env is None:
             return math.inf, 0
-        c = f.evaluate(q)[2]
+        c = self._objective.evaluate(q)[2]
         if c is None:
             return math.inf, 0
         k = int(np.argmin(c))
