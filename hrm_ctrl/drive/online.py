@@ -15,6 +15,13 @@ angle within ``max_step_change_deg`` per 5 mm of travel of the last step), start
 the last step moved by the paper fit's change, with a few Gauss-Newton iterations a step
 (``refine_iterations``): the warm start leaves little to do.
 
+**The way back.**  Every step taken beyond the farthest travel so far is recorded; a step
+back over the recorded travel (retracting, or advancing again over it) replays the recorded
+configurations, linearly interpolated between the two around it, as the offline plan's
+return leg replays its forward steps: the arm retraces the shapes it came in with (the
+refinement, greedy along the travel, would otherwise take another way back).  Cutting the
+trail for a new branch (:meth:`OnlinePlanner.forget_beyond`) drops the records beyond.
+
 **Refusals.**  A step is checked before it is taken; a failed check returns a
 :class:`Refusal` (its kind, one line for the operator, and the numbers: which joint,
 which limit, how close) and leaves the planner where it was, so the arm holds:
@@ -230,6 +237,12 @@ class OnlinePlanner:
         self.q_paper = q_paper
         self.a_hist = a_hist
         self.clearance_mm = self._clearance(q)[0]
+        # the way back: every committed step of the travel drawn so far (travel, q,
+        # paper's q, modal factors, clearance), replayed when the tip goes back over it
+        self._hist_n = 0
+        self._hist_d = np.empty(4096)
+        self._hist_q = np.empty((4096, 4 * n + 3 + 1))
+        self._record()
 
     # read-outs
     @property
@@ -268,6 +281,10 @@ class OnlinePlanner:
         when taken, else the refusal (nothing changed)."""
         t0 = time.perf_counter()
         d = float(travel_mm)
+        if 0.0 <= d <= self._hist_d[self._hist_n - 1] and self._hist_n >= 2:
+            self._replay(d)
+            self.times = StepTimes(0.0, 0.0, 0.0, time.perf_counter() - t0)
+            return None
         if d < 0.0:
             return Refusal(
                 RefusalKind.END_OF_LENGTH,
@@ -330,7 +347,48 @@ class OnlinePlanner:
         self.a_hist = np.vstack((self.a_hist[-2:], sol.a[None, :]))
         self.clearance_mm = clearance[0]
         self.steps += 1
+        self._record()
         return None
+
+    # the way back
+    def _record(self) -> None:
+        """Keep the committed step (a travel beyond every recorded one)."""
+        k = self._hist_n
+        if k and self.travel <= self._hist_d[k - 1]:
+            return
+        if k == len(self._hist_d):
+            self._hist_d = np.concatenate((self._hist_d, np.empty(k)))
+            self._hist_q = np.concatenate((self._hist_q, np.empty_like(self._hist_q)))
+        n2 = 2 * self.n
+        row = self._hist_q[k]
+        row[:n2] = self.q
+        row[n2 : 2 * n2] = self.q_paper
+        row[2 * n2 : 2 * n2 + 3] = self.a_hist[-1]
+        row[-1] = self.clearance_mm
+        self._hist_d[k] = self.travel
+        self._hist_n = k + 1
+
+    def _replay(self, d: float) -> None:
+        """The recorded steps at travel ``d``, linearly interpolated between the two
+        around it (0.2-1 mm apart): the arm retraces the configurations it came with."""
+        D = self._hist_d[: self._hist_n]
+        j = min(max(int(np.searchsorted(D, d, side="right")) - 1, 0), self._hist_n - 2)
+        w = (d - D[j]) / (D[j + 1] - D[j])
+        row = (1.0 - w) * self._hist_q[j] + w * self._hist_q[j + 1]
+        n2 = 2 * self.n
+        self.travel = d
+        self.q = row[:n2].copy()
+        self.q_paper = row[n2 : 2 * n2].copy()
+        a = row[2 * n2 : 2 * n2 + 3]
+        self.a_hist = np.vstack((self._hist_q[max(j - 1, 0), 2 * n2 : 2 * n2 + 3], a))
+        self.clearance_mm = float(min(self._hist_q[j, -1], self._hist_q[j + 1, -1]))
+        self.steps += 1
+
+    def forget_beyond(self, travel_mm: float) -> None:
+        """Drop the recorded steps beyond ``travel_mm`` (the trail is cut there: a new
+        branch is drawn from it)."""
+        D = self._hist_d[: self._hist_n]
+        self._hist_n = max(1, int(np.searchsorted(D, travel_mm, side="right")))
 
     # parts
     def _solve_cold(self, L_m: float, d: float) -> Refusal | object:
