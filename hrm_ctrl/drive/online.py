@@ -8,11 +8,19 @@ solved by :func:`hrm_ctrl.planning.backbone.solve_modal_factors`), then the trai
 ``A`` up to ``d``, the joints fitted onto that backbone
 (:func:`hrm_ctrl.planning.fitting.fit_joint_centres_on_segments`) and their angles
 (:func:`hrm_ctrl.planning.joint_angles.joint_angles_from_centres`).  Where an environment
-is known the angles are then refined for clearance and joint-limit margin as the offline
-planner refines them (:mod:`hrm_ctrl.planning.refine`: the tip held on the trail, every
+is known the angles are then refined for clearance and joint-limit margin (elsewhere for
+the margin alone; ``refine_steps=False`` keeps the paper's fit) as the offline planner
+refines them (:mod:`hrm_ctrl.planning.refine`: the tip held on the trail, every
 angle within ``max_step_change_deg`` per 5 mm of travel of the last step), starting from
 the last step moved by the paper fit's change, with a few Gauss-Newton iterations a step
 (``refine_iterations``): the warm start leaves little to do.
+
+**The way back.**  Every step taken beyond the farthest travel so far is recorded; a step
+back over the recorded travel (retracting, or advancing again over it) replays the recorded
+configurations, linearly interpolated between the two around it, as the offline plan's
+return leg replays its forward steps: the arm retraces the shapes it came in with (the
+refinement, greedy along the travel, would otherwise take another way back).  Cutting the
+trail for a new branch (:meth:`OnlinePlanner.forget_beyond`) drops the records beyond.
 
 **Refusals.**  A step is checked before it is taken; a failed check returns a
 :class:`Refusal` (its kind, one line for the operator, and the numbers: which joint,
@@ -116,6 +124,12 @@ class OnlineOptions:
         default_factory=lambda: RefineOptions(max_iterations=1, trials=1, patient_iterations=0)
     )
     tip_tolerance_mm: float = 0.05  # the refined tip's distance from the trail point
+    # the modal segment keeps this much more than the straight line from the base to the
+    # trail's start: near full stretch its shape changes faster than a step may turn a joint
+    length_margin_mm: float = 2.0
+    # refine every step (for clearance where an environment is known, for joint-limit
+    # margin everywhere, as ``hrm plan`` does); False: the paper's fit alone
+    refine_steps: bool = True
 
     def __post_init__(self) -> None:
         from hrm_ctrl.drive.command import DriveError
@@ -177,7 +191,8 @@ class OnlinePlanner:
         b2k, b2t = tangent_angles(trail.start_tangent())
         self.boundary = Boundary(b1k, b1t, b2k, b2t)
         self.lim = np.r_[np.full(n, model.limit_alpha), np.full(n, model.limit_theta)]
-        self.hard = self.lim - math.radians(self.opt.joint_margin_deg)
+        self.hard = self.lim - math.radians(self.opt.joint_margin_deg)  # refused beyond
+        self.box = self.lim - 1e-6  # the refinement's box, as the offline refinement's
         self.phi_max = bend_limit(model)
         self.radius = 0.5 * np.asarray(model.outer_diameter, dtype=float)
         self._t = np.linspace(0.0, 1.0, self.opt.refine.samples_per_link)
@@ -187,10 +202,9 @@ class OnlinePlanner:
             "solver": 0.0,
             "checks": 0.0,
         }
-        self._objective = (
-            StepObjective(model, self.env, self.radius, self._t, self.opt.refine, self._split)
-            if self.env is not None
-            else None
+        # the refinement's objective: clearance and margin, or the margin alone
+        self._objective = StepObjective(
+            model, self.env, self.radius, self._t, self.opt.refine, self._split
         )
         # work buffers: the backbone (modal curve + trail), its size grows with the trail
         self._curve = np.empty((self.opt.Q + 1 + 1024, 3))
@@ -210,10 +224,10 @@ class OnlinePlanner:
             raise PlanningError(fit.text)
         q_paper, _O, _seg = fit
         q = q_paper
-        if self._objective is not None:
+        if self.opt.refine_steps:
             wide = math.radians(self.opt.refine.first_step_change_deg)
-            lo = np.maximum(q_paper - wide, -self.hard)
-            hi = np.minimum(q_paper + wide, self.hard)
+            lo = np.maximum(q_paper - wide, -self.box)
+            hi = np.minimum(q_paper + wide, self.box)
             target = trail.point_at(travel_mm)
             q = project_tip(model, q_paper, target, lo, hi)
             q, _ = refine_step(self._objective, q, target, lo, hi, RefineOptions(max_iterations=20))
@@ -223,6 +237,12 @@ class OnlinePlanner:
         self.q_paper = q_paper
         self.a_hist = a_hist
         self.clearance_mm = self._clearance(q)[0]
+        # the way back: every committed step of the travel drawn so far (travel, q,
+        # paper's q, modal factors, clearance), replayed when the tip goes back over it
+        self._hist_n = 0
+        self._hist_d = np.empty(4096)
+        self._hist_q = np.empty((4096, 4 * n + 3 + 1))
+        self._record()
 
     # read-outs
     @property
@@ -261,6 +281,10 @@ class OnlinePlanner:
         when taken, else the refusal (nothing changed)."""
         t0 = time.perf_counter()
         d = float(travel_mm)
+        if 0.0 <= d <= self._hist_d[self._hist_n - 1] and self._hist_n >= 2:
+            self._replay(d)
+            self.times = StepTimes(0.0, 0.0, 0.0, time.perf_counter() - t0)
+            return None
         if d < 0.0:
             return Refusal(
                 RefusalKind.END_OF_LENGTH,
@@ -275,7 +299,7 @@ class OnlinePlanner:
             )
         L_m = self.model.length - d
         gap = float(np.linalg.norm(self.A - self.X0))
-        if L_m <= gap * (1.0 + 1e-6):
+        if L_m <= gap + self.opt.length_margin_mm:
             return self._end_of_length(d, L_m, gap)
         guess = predict_modal_factors(self.a_hist)
         try:
@@ -304,7 +328,7 @@ class OnlinePlanner:
         q = q_paper
         t3 = t2
         clearance: tuple[float, int] = (math.inf, 0)
-        if self._objective is not None:
+        if self.opt.refine_steps:
             refined = self._refined(d, q_paper)
             t3 = time.perf_counter()
             if isinstance(refined, Refusal):
@@ -323,7 +347,48 @@ class OnlinePlanner:
         self.a_hist = np.vstack((self.a_hist[-2:], sol.a[None, :]))
         self.clearance_mm = clearance[0]
         self.steps += 1
+        self._record()
         return None
+
+    # the way back
+    def _record(self) -> None:
+        """Keep the committed step (a travel beyond every recorded one)."""
+        k = self._hist_n
+        if k and self.travel <= self._hist_d[k - 1]:
+            return
+        if k == len(self._hist_d):
+            self._hist_d = np.concatenate((self._hist_d, np.empty(k)))
+            self._hist_q = np.concatenate((self._hist_q, np.empty_like(self._hist_q)))
+        n2 = 2 * self.n
+        row = self._hist_q[k]
+        row[:n2] = self.q
+        row[n2 : 2 * n2] = self.q_paper
+        row[2 * n2 : 2 * n2 + 3] = self.a_hist[-1]
+        row[-1] = self.clearance_mm
+        self._hist_d[k] = self.travel
+        self._hist_n = k + 1
+
+    def _replay(self, d: float) -> None:
+        """The recorded steps at travel ``d``, linearly interpolated between the two
+        around it (0.2-1 mm apart): the arm retraces the configurations it came with."""
+        D = self._hist_d[: self._hist_n]
+        j = min(max(int(np.searchsorted(D, d, side="right")) - 1, 0), self._hist_n - 2)
+        w = (d - D[j]) / (D[j + 1] - D[j])
+        row = (1.0 - w) * self._hist_q[j] + w * self._hist_q[j + 1]
+        n2 = 2 * self.n
+        self.travel = d
+        self.q = row[:n2].copy()
+        self.q_paper = row[n2 : 2 * n2].copy()
+        a = row[2 * n2 : 2 * n2 + 3]
+        self.a_hist = np.vstack((self._hist_q[max(j - 1, 0), 2 * n2 : 2 * n2 + 3], a))
+        self.clearance_mm = float(min(self._hist_q[j, -1], self._hist_q[j + 1, -1]))
+        self.steps += 1
+
+    def forget_beyond(self, travel_mm: float) -> None:
+        """Drop the recorded steps beyond ``travel_mm`` (the trail is cut there: a new
+        branch is drawn from it)."""
+        D = self._hist_d[: self._hist_n]
+        self._hist_n = max(1, int(np.searchsorted(D, travel_mm, side="right")))
 
     # parts
     def _solve_cold(self, L_m: float, d: float) -> Refusal | object:
@@ -338,8 +403,9 @@ class OnlinePlanner:
     def _end_of_length(self, d: float, L_m: float, gap: float) -> Refusal:
         return Refusal(
             RefusalKind.END_OF_LENGTH,
-            f"the arm's length ends here: at travel {d:.1f} mm the {L_m:.1f} mm left before "
-            f"the trail's start cannot span the {gap:.1f} mm from the base to it",
+            f"end of the arm's length at travel {d:.1f} mm: {L_m:.1f} mm left for the "
+            f"{gap:.1f} mm from the base to the trail's start (margin "
+            f"{self.opt.length_margin_mm:g} mm)",
             self.travel,
         )
 
@@ -384,7 +450,8 @@ class OnlinePlanner:
         return Refusal(
             RefusalKind.TOO_TIGHT,
             f"steer too tight at travel {d:.1f} mm: joint {j + 2} would bend "
-            f"{math.degrees(bend[j]):.1f} deg, it can bend {math.degrees(self.phi_max):.1f}",
+            f"{math.degrees(bend[j]):.2f} deg, more than the {math.degrees(self.phi_max):.0f} "
+            "it can bend in any direction",
             self.travel,
             joint=j + 2,
             angle="bend",
@@ -404,12 +471,11 @@ class OnlinePlanner:
         from that evaluation (the step moves the angles by at most a few hundredths of a
         degree); the next step's evaluation measures it again."""
         f = self._objective
-        assert f is not None
         ro = self.opt.refine
         step = abs(d - self.travel) / ro.reference_step_mm
         bound = math.radians(ro.max_step_change_deg - ro.step_change_slack_deg) * step
-        lo = np.maximum(self.q - bound, -self.hard)
-        hi = np.minimum(self.q + bound, self.hard)
+        lo = np.maximum(self.q - bound, -self.box)
+        hi = np.minimum(self.q + bound, self.box)
         target = self.trail.point_at(d, out=self._tip_target)
         guess = np.clip(self.q + (q_paper - self.q_paper), lo, hi)
         tip, Jtip, c, Jc = f.evaluate(guess)
@@ -436,10 +502,9 @@ class OnlinePlanner:
     def _clearance(self, q: np.ndarray) -> tuple[float, int]:
         """Worst sampled link clearance of ``q`` (one evaluation) and its link (1-based);
         inf, 0 without an environment."""
-        f = self._objective
-        if f is None:
+        if self.env is None:
             return math.inf, 0
-        c = f.evaluate(q)[2]
+        c = self._objective.evaluate(q)[2]
         if c is None:
             return math.inf, 0
         k = int(np.argmin(c))

@@ -186,17 +186,17 @@ class Trail:
         if not (math.isfinite(ds_mm) and ds_mm > 0.0):
             return
         h, u = self._heading, self._up
-        if yaw_per_mm == 0.0 and pitch_per_mm == 0.0:
+        left = np.cross(u, h)
+        w = yaw_per_mm * u - pitch_per_mm * left  # pitch up turns h towards up
+        kappa = float(np.linalg.norm(w))
+        if not kappa > 1e-12:  # straight (a turn of less than 1e-9 rad a km is none)
             end = self._p[self._n - 1] + ds_mm * h
             if self._straight_end and self._n >= 2:
                 self._n -= 1  # lengthen the last straight segment in place
             self._append(end)
             self._straight_end = True
             return
-        # the turn: a rotation by angle phi = |k| ds about axis w = yaw * up + pitch * side
-        left = np.cross(u, h)
-        w = yaw_per_mm * u - pitch_per_mm * left  # pitch up turns h towards up
-        kappa = float(np.linalg.norm(w))
+        # the turn: a rotation by angle phi = |w| ds about the axis w
         axis = w / kappa
         remaining = ds_mm
         while remaining > 1e-12:
