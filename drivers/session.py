@@ -145,6 +145,9 @@ class DriveSession:
         self.control = config.control
         self.events = EventLog()
         self.loads: list[BusLoad] = check_bus_load(config)
+        # each drive's overlay, 0x60C2 encoding and identity, from its device file (read
+        # before anything opens: open_box has checked them)
+        setups = check_box(config).setups()
         self.run_name = run_name or dt.datetime.now(dt.UTC).strftime("run-%Y%m%dT%H%M%S-%f")
         self.log_dir = None if log_dir is None else Path(log_dir)
         self.log_suffix = log_suffix
@@ -201,7 +204,6 @@ class DriveSession:
                 clock=clock,
             )
             self.supervisor.start()
-        setups = check_box(config).setups()  # each drive's overlay, 0x60C2 encoding, identity
         self.drives = DriveGroup(
             self.wiring.links, self.slots, actuation, ctl, mon, self.events, setups
         )
