@@ -475,9 +475,11 @@ class NodeCheck:
         return DriveSetup(self.verdict.interpolation, self.overlay, self.identity)
 
     def lines(self) -> list[str]:
-        """One line per refusal, or one ``ok`` line with the layout hrm will use."""
+        """One line per refusal, or one ``ok`` line with the layout hrm will use (and the
+        SDO overlay's writes)."""
         if not self.verdict.refusals:
-            return [f"{self.motor}: {self.file}: ok: {self.verdict.ok_text()}"]
+            overlay = "".join(f"; {w.label} = {_hex(w.value)}" for w in self.overlay)
+            return [f"{self.motor}: {self.file}: ok: {self.verdict.ok_text()}{overlay}"]
         return [f"{self.motor}: {self.file}: {r}" for r in self.verdict.refusals]
 
     def to_dict(self) -> dict[str, Any]:

@@ -148,7 +148,7 @@ def test_an_sdo_overlay_setting_increments_makes_the_c5e_ok(tmp_path: Path) -> N
     box = _box(tmp_path, f'[drives]\ndevice_file = "{C5E}"\nsdo = {{ "0x60A8" = 0x00B50000 }}\n')
     report = check_box(load_box_config(box))
     assert not report.refused
-    assert report.lines()[0] == f"j01r0: C5-E-2-09.eds: {OK}"
+    assert report.lines()[0] == f"j01r0: C5-E-2-09.eds: {OK}; 0x60A8:00 = 0xB50000"
     setup = report.setups()["j01r0"]
     assert [(w.index, w.sub, w.value) for w in setup.sdo] == [(0x60A8, 0, 0x00B50000)]
     assert setup.interpolation == (10, -3)
