@@ -460,14 +460,17 @@ class DrivesConfig:
     motors: Mapping[str, DriveSpec] = field(default_factory=dict)
 
     def device_file(self, motor_id: str) -> Path:
-        """The device file of rope motor ``motor_id``'s drive."""
-        own = self.motor_files.get(motor_id)
+        """The device file of rope motor ``motor_id``'s drive (``motor_files`` or the
+        motor's :class:`DriveSpec`, else ``default_file`` or the default's, else hrm's)."""
+        own = self.motor_files.get(motor_id) or self.motors.get(motor_id, DriveSpec()).device_file
         if own is not None:
             return own
-        return eds_path() if self.default_file is None else self.default_file
+        default = self.default_file or self.default.device_file
+        return eds_path() if default is None else default
 
     def _inherits(self, motor_id: str) -> bool:
-        return motor_id not in self.motor_files
+        own = self.motor_files.get(motor_id) or self.motors.get(motor_id, DriveSpec()).device_file
+        return own is None
 
     def sdo_overlay(self, motor_id: str) -> tuple[SdoWrite, ...]:
         """The SDO writes of ``motor_id``'s overlay, in the file's order (the motor's
@@ -484,12 +487,13 @@ class DrivesConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """The ``[drives]`` table (absolute paths; empty when every drive is hrm's own)."""
-        out = replace(self.default, device_file=self.default_file).to_dict()
+        out = replace(
+            self.default, device_file=self.default_file or self.default.device_file
+        ).to_dict()
         for motor in {**self.motor_files, **self.motors}:
-            spec = replace(
-                self.motors.get(motor, DriveSpec()), device_file=self.motor_files.get(motor)
-            )
-            out[motor] = spec.to_dict()
+            spec = self.motors.get(motor, DriveSpec())
+            own = self.motor_files.get(motor) or spec.device_file
+            out[motor] = replace(spec, device_file=own).to_dict()
         return out
 
 
