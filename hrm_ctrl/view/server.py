@@ -18,7 +18,8 @@ drawn, from :meth:`ArmView.show_trail`).
 
 The tip camera (a ``live`` view's): a virtual camera at the end effector looking along
 the tip's axis (:func:`hrm_ctrl.view.geometry.tip_camera_pose`), shown in the panel as
-the image "tip camera" (its checkbox turns it off).  The browser draws it: a thread asks
+the image "tip camera", off until its checkbox is ticked (a page without a GPU renders
+its frames in software, slowly, and would take the CPU the live feed needs).  The browser draws it: a thread asks
 a connected page to render the scene from the tip's pose (viser's ``get_render``)
 whenever the tip has moved, the trail has changed or a page has connected, at most
 :data:`TIP_CAMERA_RATE_HZ` times a second and with the page rendering for the camera at
@@ -272,7 +273,7 @@ class ArmView:
             receive_shadow=False,
         )
         if self.live:
-            self._tip_on = gui.add_checkbox("tip camera", initial_value=True)
+            self._tip_on = gui.add_checkbox("tip camera", initial_value=False)
             self._tip_image = gui.add_image(
                 np.zeros((TIP_CAMERA_HEIGHT, TIP_CAMERA_WIDTH, 3), dtype=np.uint8),
                 label="tip camera",

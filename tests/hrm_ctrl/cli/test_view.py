@@ -417,6 +417,7 @@ def test_the_page_draws_the_trail_and_renders_the_tip_camera(browser: Any) -> No
         while not page.evaluate(read_trail, n_segments) and time.monotonic() < end:
             time.sleep(0.1)
         assert page.evaluate(read_trail, n_segments), "the page never showed the trail"
+        view._tip_on.value = True  # off until ticked (the module's doc)
         end = time.monotonic() + TIP_FRAME_WAIT_S
         while view.tip_frames == 0 and time.monotonic() < end:
             time.sleep(0.1)

@@ -292,6 +292,9 @@ def test_the_tip_camera_renders_in_a_page_when_the_tip_moves(monkeypatch: Any) -
         assert view.tip_frames == 0  # no pose, no page: nothing rendered
         monkeypatch.setattr(view.server, "get_clients", lambda: {7: page})
         view.update(np.full(12, 0.1), np.zeros(12))
+        time.sleep(0.3)
+        assert view.tip_frames == 0  # off until its checkbox is ticked
+        view._tip_on.value = True
         end = time.monotonic() + 30.0
         while view.tip_frames == 0 and time.monotonic() < end:
             time.sleep(0.02)
