@@ -153,6 +153,7 @@ class DriveSource:
         self.worst_clearance_mm = math.inf
         self.step_cpu_ms: list[float] = []
         self.shaping_lag_counts = 0  # the largest |setpoint - online step's counts|
+        self.last_setpoint = np.zeros(n, dtype=np.int64)  # the last setpoint given
 
     def _check_period(self, period_s: float) -> None:
         if abs(period_s - self.driver.period_s) > 1e-9 * period_s:
@@ -230,12 +231,17 @@ class DriveSource:
     def setpoint(self, k: int) -> np.ndarray | None:
         n_lead = self._lead.shape[0]
         if k < n_lead:
-            return self._lead[k]
-        if self._stopping_from >= 0:
-            return self._stop_row(k, None)
-        j = k - n_lead
-        if j >= self._n_drive:
-            return self._stop_row(k, None)
+            row: np.ndarray | None = self._lead[k]
+        elif self._stopping_from >= 0 or k - n_lead >= self._n_drive:
+            row = self._stop_row(k, None)
+        else:
+            row = self._drive_row(k, k - n_lead)
+        if row is not None:
+            self.last_setpoint = row
+        return row
+
+    def _drive_row(self, k: int, j: int) -> np.ndarray | None:
+        """Slot ``k``, drive cycle ``j``: the online step, shaped."""
         assert self._shaper is not None
         c0 = time.thread_time()
         status = self.driver.cycle(self.command_at(j * self.driver.period_s))
@@ -284,4 +290,5 @@ class DriveSource:
             "stop_reason": self.stop_reason,
             "refusals": [{"cycle": j, "text": t} for j, t in self.refusals],
             "shaping_lag_counts": self.shaping_lag_counts,
+            "last_setpoint": self.last_setpoint.tolist(),
         }
