@@ -42,6 +42,7 @@ The whole tree, each class with the module that defines it::
      |    |    +-- SdoError                 drivers.bringup
      |    |    +-- StateTimeoutError        drivers.bringup
      |    |    +-- BootupError              drivers.bringup
+     |    |    +-- IdentityMismatchError    drivers.bringup
      |    |    +-- SetpointError            drivers.safety.limits
      |    |    +-- SupervisorModeError      drivers.safety.supervisor
      |    |    +-- SessionStateError        drivers.lifecycle

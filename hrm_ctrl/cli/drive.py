@@ -65,7 +65,10 @@ def register(p: argparse.ArgumentParser) -> None:
         "yaw_right, pitch_up, pitch_down; 'T_S end' ends the drive)",
     )  # fmt: skip
     p.add_argument("--save-trail", type=Path, metavar="FILE", help="write the trail (path file)")
-    p.add_argument("--speed", type=float, default=20.0, help="advance cap, mm/s (default 20)")
+    p.add_argument(
+        "--advance-speed", type=float, default=20.0, metavar="MM_S",
+        help="advance cap of the tip, mm/s (default 20)",
+    )  # fmt: skip
     p.add_argument(
         "--turn-rate", type=float, default=11.4592, metavar="DEG_S",
         help="yaw and pitch rate cap at full speed, deg/s (default 11.46: a radius of "
@@ -104,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         inputs += [config_input(args.config), calibrations_input(args)]
     refuse_overwriting_inputs(outputs, inputs)
     rate = math.radians(args.turn_rate) if math.isfinite(args.turn_rate) else args.turn_rate
-    limits = SteerLimits(rate, rate, args.speed, args.accel)
+    limits = SteerLimits(rate, rate, args.advance_speed, args.accel)
     keys = KeyScript.read(args.keys)
     robot = load_robot(args.robot)
     arm = None

@@ -19,16 +19,15 @@ drawn, from :meth:`ArmView.show_trail`).
 The tip camera (a ``live`` view's): a virtual camera at the end effector looking along
 the tip's axis (:func:`hrm_ctrl.view.geometry.tip_camera_pose`), shown in the panel as
 the image "tip camera", off until its checkbox is ticked (a page without a GPU renders
-its frames in software, slowly, and would take the CPU the live feed needs).  The browser draws it: a thread asks
-a connected page to render the scene from the tip's pose (viser's ``get_render``)
-whenever the tip has moved, the trail has changed or a page has connected, at most
-:data:`TIP_CAMERA_RATE_HZ` times a second and with the page rendering for the camera at
-most :data:`TIP_CAMERA_DUTY` of the time (it stays responsive; a page slower than
-that still gets a request every :data:`TIP_CAMERA_MAX_WAIT_S`), and shows the frame in
-the panel; no page connected, no frame (``tip_frames`` counts the frames shown).  Its
-rate is the page's renderer's: a software renderer on a busy machine gives far fewer
-frames than a GPU.
-"""
+its frames in software, slowly, and would take the CPU the live feed needs).  The browser
+draws it: a thread asks a connected page to render the scene from the tip's pose
+(viser's ``get_render``) whenever the tip has moved, the trail has changed or a page has
+connected, at most :data:`TIP_CAMERA_RATE_HZ` times a second and with the page rendering
+for the camera at most :data:`TIP_CAMERA_DUTY` of the time (it stays responsive; a page
+slower than that still gets a request every :data:`TIP_CAMERA_MAX_WAIT_S`), and shows
+the frame in the panel; no page connected, no frame (``tip_frames`` counts the frames
+shown).  Its rate is the page's renderer's: a software renderer on a busy machine gives
+far fewer frames than a GPU."""
 
 from __future__ import annotations
 
