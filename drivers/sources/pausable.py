@@ -457,7 +457,7 @@ class PausableSource:
         third difference, the speed kept where the acceleration can still be eased off
         before the speed limit (:func:`~drivers.safety.ramps.jerk_window`)."""
         prev, before = self._prev, self._before
-        if jerk and self._jc is not None:
+        if jerk and self._jc is not None and self._ac is not None:
             lo, hi = jerk_window(prev, before, self._before2, self._vc, self._ac, self._jc)
         else:
             lo, hi = prev - self._vc, prev + self._vc
