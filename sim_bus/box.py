@@ -67,12 +67,17 @@ from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.arm import ArmState, SimArm
 from sim_bus.drive import DriveParams, DriveSim
+from sim_bus.physics import Physics
 from sim_bus.tension_board import TensionBoard
 from sim_bus.tracker import Tracker
 from sim_bus.truth import TrueArm, drive_serials
 from sim_bus.wire import FrameMatch, SimWireBus
 
 log = logging.getLogger("sim_bus.box")
+
+#: with the arm's physics, how often the tension board's refresh steps the arm (s): the
+#: control cycle of the shipped configuration (100 Hz)
+PHYSICS_PERIOD_S = 0.01
 
 #: Receive buffer asked for on socket-based buses (udp_multicast, socketcan): a Python
 #: process that stalls for 50-100 ms on a loaded machine must not lose frames in the kernel.
@@ -184,6 +189,9 @@ class SimBox:
         truth: how the simulated arm differs from its description (``None``: it does not;
             :class:`sim_bus.truth.TrueArm`), also the tracker's frame and noise.
         seed: the seed of the box's noise (tension sensor, tracker).
+        physics: the arm's physics (:class:`sim_bus.physics.Physics`; ``None``, the
+            default: none, the arm goes where its ropes' lengths put it).  With physics the
+            tension board's refresh steps the arm every :data:`PHYSICS_PERIOD_S`.
     """
 
     def __init__(
@@ -201,6 +209,7 @@ class SimBox:
         clock: Callable[[], float] = time.monotonic,
         truth: TrueArm | None = None,
         seed: int = 0,
+        physics: Physics | None = None,
     ) -> None:
         self.config = config
         self.actuation = actuation if actuation is not None else load_actuation(default_robot())
@@ -228,6 +237,7 @@ class SimBox:
             noise_N=tension_noise_N,
             snap_drift_rad_per_s=snap_drift_rad_per_s,
             seed=seed,
+            physics=physics,
         )
         self.truth: TrueArm = self.arm.truth
         self._seed = int(seed)
@@ -556,8 +566,11 @@ class SimBox:
     def tension_N(self, max_age_s: float = 0.05) -> np.ndarray:
         """Rope tensions (n,) for the tension board: the arm state is recomputed at most
         every ``max_age_s`` (the rope inverse costs ~1-2 ms; at 100 Hz that would take a
-        large share of the box's CPU), and at once after a rope snaps."""
+        large share of the box's CPU), and at once after a rope snaps; with the arm's
+        physics at most every :data:`PHYSICS_PERIOD_S` (each state continues the last)."""
         now = self.clock()
+        if self.arm.physics is not None:
+            max_age_s = min(max_age_s, PHYSICS_PERIOD_S)
         cached = self._tension_cache
         snapped, fixture = self.arm.snapped, self.arm.fixture
         if (
