@@ -569,12 +569,19 @@ class SimBox:
         """Rope tensions (n,) for the tension board: the arm state is recomputed at most
         every ``max_age_s`` (the rope inverse costs ~1-2 ms; at 100 Hz that would take a
         large share of the box's CPU), and at once after a rope snaps; with the arm's
-        physics at most every :data:`PHYSICS_PERIOD_S` (each state continues the last)."""
+        physics at most every :data:`PHYSICS_PERIOD_S` (each state continues the last), a
+        snapped rope reading 0 at once and the rest at the next refresh (the frames do not
+        wait for the equilibrium's new solve)."""
         now = self.clock()
-        if self.arm.physics is not None:
-            max_age_s = min(max_age_s, PHYSICS_PERIOD_S)
         cached = self._tension_cache
         snapped, fixture = self.arm.snapped, self.arm.fixture
+        if self.arm.physics is not None:
+            max_age_s = min(max_age_s, PHYSICS_PERIOD_S)
+            if cached is not None and cached[2] != snapped and cached[3] == fixture:
+                tension = cached[1].copy()
+                tension[list(snapped)] = 0.0
+                cached = (cached[0], tension, snapped, fixture)
+                self._tension_cache = cached
         if (
             cached is None
             or now - cached[0] > max_age_s
