@@ -77,8 +77,8 @@ log = logging.getLogger("sim_bus.box")
 
 #: with the arm's physics, how often the tension board's refresh steps the arm (s): as
 #: often as the arm without physics is refreshed (an equilibrium costs about what the rope
-#: inverse does, 1-4 ms of CPU on the shared machine; every 10 ms that alone would take
-#: 0.1-0.4 of a core, beyond the box's budget with its drives)
+#: inverse does, a median of 1-2.6 ms of CPU on the loaded machine; every 10 ms that alone
+#: would take 0.1-0.26 of a core, beyond the box's budget with its drives)
 PHYSICS_PERIOD_S = 0.05
 
 #: Receive buffer asked for on socket-based buses (udp_multicast, socketcan): a Python
