@@ -282,6 +282,8 @@ def simulated_box_process(
             extra += ["--truth", str(Path(folder, "truth.toml"))]
         if arm.initial_counts is not None:
             extra += ["--initial-counts", ",".join(str(int(c)) for c in arm.initial_counts)]
+        if arm.physics is not None:
+            extra += ["--physics", arm.physics.describe()]
         if box.fixture:
             extra.append("--fixture")
         if box.tracker:

@@ -46,6 +46,7 @@ if TYPE_CHECKING:
     from hrm_ctrl.ropes.actuation import Actuation
     from hrm_ctrl.runtime.arm import Arm
     from sim_bus.box import SimBox
+    from sim_bus.physics import Physics
     from sim_bus.truth import TrueArm
 
 # the tolerances and why: sim_bus/in_process.py
@@ -82,6 +83,7 @@ def start_in_process_sim(
     tracker: bool = False,
     fixture: bool = False,
     initial_counts: np.ndarray | None = None,
+    physics: Physics | None = None,
 ) -> tuple[BoxConfig, SimBox]:
     """Return the configuration rewritten onto in-process buses and the started box.
 
@@ -92,7 +94,8 @@ def start_in_process_sim(
     ``initial_counts`` (n motor counts, the rope layer's order) is where the simulated
     motors stand at power-on (default 0): a simulated box remembers nothing between
     processes, so a command that follows a calibration starts it where the calibration
-    left the motors (:func:`calibration_counts`).
+    left the motors (:func:`calibration_counts`).  ``physics``: the arm's physics
+    (``sim_bus.physics``; None: none).
 
     The simulated drives and tension board run in this interpreter and share its CPU,
     so their TPDOs get ``SIM_MISSING_TPDO_CYCLES`` cycles before the host calls them
@@ -111,7 +114,9 @@ def start_in_process_sim(
     config = config.with_bus_kwargs(
         [{"interface": wire, "channel": f"hrm-sim-{tag}-{b.name}"} for b in config.buses]
     )
-    sim = SimBox(config, actuation=actuation, truth=truth, initial_counts=initial_counts)
+    sim = SimBox(
+        config, actuation=actuation, truth=truth, initial_counts=initial_counts, physics=physics
+    )
     if fixture:
         sim.set_straight_fixture(True)
     # the box's threads inherit the policy of the thread that starts them
@@ -199,11 +204,14 @@ def sim_listen(simulated: bool) -> dict[str, float]:
 class SimulatedArm:
     """What a simulated box simulates: the ``physical`` rope layer (the robot
     description's), how the arm differs from it (``truth``; None: it does not) and where
-    its motors stand at power-on (``initial_counts``; None: 0)."""
+    its motors stand at power-on (``initial_counts``; None: 0), and its ``physics``
+    (:class:`sim_bus.physics.Physics`; None: none, the arm goes where its ropes' lengths
+    put it)."""
 
     physical: Actuation
     truth: TrueArm | None = None
     initial_counts: np.ndarray | None = None
+    physics: Physics | None = None
 
 
 def simulated_arm(
@@ -260,6 +268,7 @@ def start_simulated_box(config: BoxConfig, box: SimulatedBox, prog: str = "hrm")
         tracker=box.tracker,
         fixture=box.fixture,
         initial_counts=a.initial_counts,
+        physics=a.physics,
     )
     return RunningSim(new, sim)
 
