@@ -62,6 +62,7 @@ The whole tree, each class with the module that defines it::
      |    |    +-- WireConfigError          sim_bus.wire
      |    |    +-- FaultSpecError           sim_bus.faults
      |    |    +-- TruthFileError           sim_bus.truth
+     |    |    +-- PhysicsSpecError         sim_bus.physics
      |    +-- CalibrationError              hrm_ctrl.errors
      |         +-- CalibrationDataError     hrm_ctrl.errors
      |         +-- UnobservableError        hrm_ctrl.errors
