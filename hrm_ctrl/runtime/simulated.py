@@ -27,7 +27,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from hrm_ctrl.errors import DriverError
 from sim_bus.in_process import (
@@ -238,18 +238,77 @@ class SimulatedBox:
     fixture: bool = False
 
 
+class SimControl(Protocol):
+    """A running simulated box as the entry points command it, in this interpreter
+    (:class:`InProcessSim`) or in its own process
+    (:class:`~hrm_ctrl.runtime.process_box.BoxProcess`, over its control commands)."""
+
+    def set_straight_fixture(self, on: bool) -> None:
+        """Lay the arm into its zero fixture (``on``) or take it out."""
+        ...
+
+    def record_trace(self, enabled: bool = True) -> None:
+        """Start (clearing) or stop recording every drive's position at each SYNC."""
+        ...
+
+    def trace(self) -> tuple[np.ndarray, np.ndarray]:
+        """The recorded SYNC times (k,) and motor positions (k, n), the rope layer's order."""
+        ...
+
+    def fault(self, spec: str) -> str:
+        """Apply the fault ``spec`` (``sim_bus.faults``) now; what was applied."""
+        ...
+
+    def stop(self) -> None:
+        """Stop the box (its drives, tension board and tracker)."""
+        ...
+
+
+@dataclass(frozen=True)
+class InProcessSim:
+    """The controls of a simulated box in this interpreter (``box``: the
+    :class:`sim_bus.box.SimBox` itself, for what a test inspects)."""
+
+    box: SimBox
+
+    def set_straight_fixture(self, on: bool) -> None:
+        self.box.set_straight_fixture(on)
+
+    def record_trace(self, enabled: bool = True) -> None:
+        self.box.record_trace(enabled)
+
+    def trace(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.box.trace()
+
+    def fault(self, spec: str) -> str:
+        from sim_bus.faults import apply_fault, parse_fault
+
+        return apply_fault(parse_fault(spec), self.box, self.box.tension_board)
+
+    def stop(self) -> None:
+        self.box.stop()
+
+
 @dataclass(frozen=True)
 class RunningSim:
-    """A started in-process box: the configuration rewritten onto its buses, and the box."""
+    """A started simulated box: the configuration rewritten onto its buses, and the box's
+    controls (in this interpreter, or a box process)."""
 
     config: BoxConfig
-    sim: SimBox
+    sim: SimControl
 
 
 def start_simulated_box(config: BoxConfig, box: SimulatedBox, prog: str = "hrm") -> RunningSim:
-    """Start the in-process simulated box of ``box`` (its ``wire`` one of
-    :data:`SIM_WIRES`) on ``config``'s buses (rewritten); the caller stops it
-    (``.sim.stop()``; :func:`in_process_box` does for a block)."""
+    """Start the simulated box of ``box`` on ``config``'s buses (rewritten): in its own
+    process (``wire`` :data:`PROCESS_WIRE`,
+    :func:`hrm_ctrl.runtime.process_box.start_box_process`) or in this interpreter (one of
+    :data:`SIM_WIRES`); the caller stops it (``.sim.stop()``; :func:`running_box` does
+    for a block)."""
+    if box.wire == PROCESS_WIRE:
+        from hrm_ctrl.runtime.process_box import start_box_process
+
+        new, process = start_box_process(config, box, prog)
+        return RunningSim(new, process)
     a = box.arm
     new, sim = start_in_process_sim(
         config,
@@ -261,13 +320,14 @@ def start_simulated_box(config: BoxConfig, box: SimulatedBox, prog: str = "hrm")
         fixture=box.fixture,
         initial_counts=a.initial_counts,
     )
-    return RunningSim(new, sim)
+    return RunningSim(new, InProcessSim(sim))
 
 
 @contextmanager
-def in_process_box(config: BoxConfig, box: SimulatedBox, prog: str = "hrm") -> Iterator[RunningSim]:
-    """The in-process simulated box of ``box`` on ``config``'s buses (rewritten), started;
-    stopped on leaving, whatever ends the block."""
+def running_box(config: BoxConfig, box: SimulatedBox, prog: str = "hrm") -> Iterator[RunningSim]:
+    """The simulated box of ``box`` on ``config``'s buses (rewritten), started (in its own
+    process or this one, :func:`start_simulated_box`); stopped on leaving, whatever ends
+    the block."""
     running = start_simulated_box(config, box, prog)
     try:
         yield running
