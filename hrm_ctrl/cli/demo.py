@@ -155,6 +155,7 @@ def calibrate_on_box(
     from drivers.tension_sensor import TensionSensorReader
     from drivers.tracker import TrackerReader
     from hrm_ctrl.cli.calibrate import format_fit
+    from hrm_ctrl.runtime.simulated import sim_thread_scheduling
 
     out: Path = args.out
     config, sim = running.config, running.sim
@@ -176,13 +177,22 @@ def calibrate_on_box(
             f"simulated truth at most {err.max():.0f} counts; saved as v{v_zero:04d}"
         )
 
+    @contextlib.contextmanager
+    def tension_reader() -> Iterator[TensionSensorReader]:
+        # its thread scheduled as the session's (beside CPU burners a reader of normal
+        # priority fell more than the staleness limit behind the board)
+        with sim_thread_scheduling(config):
+            opened = TensionSensorReader(
+                t.port, len(config.motor_ids), baudrate=t.baudrate, stale_after_s=t.stale_s
+            ).open()
+        with contextlib.closing(opened) as reader:
+            yield reader
+
     done = zero_then_kinematic(
         description,
         store,
         open_session,
-        lambda: TensionSensorReader(
-            t.port, len(config.motor_ids), baudrate=t.baudrate, stale_after_s=t.stale_s
-        ),
+        tension_reader,
         lambda: TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate),
         leave_fixture=lambda: sim.set_straight_fixture(False),
         poses=args.poses,

@@ -24,7 +24,7 @@ from __future__ import annotations
 import sys
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -175,6 +175,17 @@ def sim_realtime_priority(config: BoxConfig) -> int:
 
     priority = config.control.realtime_priority
     return priority if priority and realtime_permitted(priority) else 0
+
+
+def sim_thread_scheduling(config: BoxConfig) -> AbstractContextManager[Any]:
+    """A context in which the caller starts a thread that works beside a session on the
+    simulated box before that session exists (a sensor's reader opened first): the
+    scheduling the session's threads get there (``SCHED_FIFO`` at
+    :func:`sim_realtime_priority` where the process may); the caller's own back on
+    leaving."""
+    from drivers.realtime import process_settings
+
+    return process_settings(switch_interval_s=None, realtime_priority=sim_realtime_priority(config))
 
 
 def calibration_counts(calibration: Calibration | None, actuation: Actuation) -> np.ndarray | None:

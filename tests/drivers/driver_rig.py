@@ -23,6 +23,7 @@ from drivers.safety.subset import ActuationSubset
 from drivers.session import DriveSession
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
+from hrm_ctrl.runtime.process_box import BoxProcess
 from sim_bus.box import SimBox
 from sim_bus.in_process import IN_PROCESS_MISSING_TPDO_CYCLES
 
@@ -232,3 +233,25 @@ def wait_until(pred: Callable[[], bool], timeout_s: float = 2.0) -> bool:
 
 
 __all__ = ["Rig", "Sniffer", "first_time", "make_config", "np", "rpdo_targets_per_sync"]
+
+
+@dataclass(frozen=True)
+class BoxView:
+    """What a test reads of a simulated box in its own process
+    (:class:`~hrm_ctrl.runtime.process_box.BoxProcess`, over its ``state`` and ``fault``
+    control commands), under the names :class:`sim_bus.box.SimBox` gives them."""
+
+    process: BoxProcess
+
+    def counts(self) -> np.ndarray:
+        """Every drive's actual position, the rope layer's order."""
+        return np.asarray(self.process.command("state", "state")["counts"], dtype=np.int64)
+
+    def statuswords(self) -> dict[str, int]:
+        """Every drive's statusword, by motor."""
+        words = self.process.command("state", "state")["statuswords"]
+        return {m: int(sw) for m, sw in words.items()}
+
+    def snap_rope(self, motor: str) -> None:
+        """Snap ``motor``'s rope (the ``rope-snap`` fault)."""
+        self.process.fault(f"rope-snap:{motor}")
