@@ -3,7 +3,8 @@
 The simulated box starts with a *perturbed* true arm (``--perturb SEED``: link lengths
 ±2 mm, joint zero offsets ±1°, rope EA ±20 %, motor zeros ±5000 counts; see
 ``sim_bus/truth.py``), as a real arm differs from its drawing.  The demo then does what a
-technician and an operator would, on one simulated box:
+technician and an operator would, on one simulated box (in its own process, as ``--sim``
+starts it: ``--wire hrm_ipc``, the default; ``virtual`` or ``hrm_sim``: in this one):
 
 1. **pretension and zero** (``calibration.zero``): the arm lies in its straight parking
    tube; every rope is brought to its pretension on the tension sensors and each motor's
@@ -155,7 +156,7 @@ def calibrate_on_box(
     from drivers.tension_sensor import TensionSensorReader
     from drivers.tracker import TrackerReader
     from hrm_ctrl.cli.calibrate import format_fit
-    from hrm_ctrl.runtime.simulated import sim_thread_scheduling
+    from hrm_ctrl.runtime.simulated import ScheduledPoints, sim_thread_scheduling
 
     out: Path = args.out
     config, sim = running.config, running.sim
@@ -188,12 +189,18 @@ def calibrate_on_box(
         with contextlib.closing(opened) as reader:
             yield reader
 
+    @contextlib.contextmanager
+    def tracker_reader() -> Iterator[ScheduledPoints]:
+        # each reply read under the session's scheduling (ScheduledPoints)
+        with TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate) as reader:
+            yield ScheduledPoints(reader, lambda: sim_thread_scheduling(config))
+
     done = zero_then_kinematic(
         description,
         store,
         open_session,
         tension_reader,
-        lambda: TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate),
+        tracker_reader,
         leave_fixture=lambda: sim.set_straight_fixture(False),
         poses=args.poses,
         period_s=config.control.period_s,

@@ -1,4 +1,6 @@
-"""The simulated box in this process (``--sim``), and the physical arm it simulates.
+"""The simulated box (``--sim``): the physical arm it simulates, the box in this process,
+and what the entry points do with a running box, wherever it runs (:class:`SimControl`;
+:func:`start_simulated_box` starts it in its own process, the default, or in this one).
 
 The drivers only ever see buses: here the configured interfaces are replaced by
 in-process buses (python-can ``virtual``, or ``hrm_sim``, the simulated wire at the
@@ -23,7 +25,7 @@ from __future__ import annotations
 
 import sys
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +43,7 @@ from sim_bus.in_process import (
 if TYPE_CHECKING:
     import numpy as np
 
+    from calibration.collect import PointReader
     from calibration.store import Calibration
     from drivers.config import BoxConfig
     from hrm_ctrl.ropes.actuation import Actuation
@@ -186,6 +189,24 @@ def sim_thread_scheduling(config: BoxConfig) -> AbstractContextManager[Any]:
     from drivers.realtime import process_settings
 
     return process_settings(switch_interval_s=None, realtime_priority=sim_realtime_priority(config))
+
+
+@dataclass(frozen=True)
+class ScheduledPoints:
+    """A point reader (``measure(n)``, as :class:`calibration.collect.PointReader`: the
+    laser tracker's) whose every reading runs in ``scheduling()``: the scheduling of the
+    session's threads (``DriveSession.thread_scheduling``, or :func:`sim_thread_scheduling`
+    before the session opens; normal scheduling on a real box as shipped).  The reader
+    reads its reply in the caller's thread: under normal scheduling beside two CPU burners
+    (load 9-33) the tracker's reply came "incomplete after 1 s", the reply's deadline
+    passing while the thread waited for a CPU."""
+
+    reader: PointReader
+    scheduling: Callable[[], AbstractContextManager[Any]]
+
+    def measure(self, n: int) -> Any:
+        with self.scheduling():
+            return self.reader.measure(n)
 
 
 def calibration_counts(calibration: Calibration | None, actuation: Actuation) -> np.ndarray | None:
