@@ -10,6 +10,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -233,6 +234,41 @@ def wait_until(pred: Callable[[], bool], timeout_s: float = 2.0) -> bool:
 
 
 __all__ = ["Rig", "Sniffer", "first_time", "make_config", "np", "rpdo_targets_per_sync"]
+
+
+def send_from_outside(rig: Rig, bus: int, msg: can.Message) -> None:
+    """A frame from another device on bus ``bus`` (its own python-can bus object)."""
+    other = can.Bus(**rig.config.buses[bus].bus_kwargs())
+    try:
+        other.send(msg)
+    finally:
+        other.shutdown()
+
+
+@contextmanager
+def sending_from_outside(
+    rig: Rig, bus: int, msg: can.Message, period_s: float
+) -> Iterator[threading.Thread]:
+    """Another device on bus ``bus`` (its own python-can bus object) sending ``msg`` every
+    ``period_s`` for the length of the block; stopped (and its bus shut down) on leaving."""
+    stop = threading.Event()
+
+    def send() -> None:
+        other = can.Bus(**rig.config.buses[bus].bus_kwargs())
+        try:
+            while not stop.is_set():
+                other.send(msg)
+                stop.wait(period_s)
+        finally:
+            other.shutdown()
+
+    thread = threading.Thread(target=send, name="outside-sender", daemon=True)
+    thread.start()
+    try:
+        yield thread
+    finally:
+        stop.set()
+        thread.join(2.0)
 
 
 @dataclass(frozen=True)
