@@ -25,6 +25,7 @@ True
 
 from __future__ import annotations
 
+import contextlib
 import math
 import re
 import shlex
@@ -204,6 +205,19 @@ def check_needs(ctx: ConsoleContext, cmd: Command) -> None:
         raise ConsoleError(f"the drives are not enabled (session {state}; enable first)")
 
 
+def command_scheduling(ctx: ConsoleContext) -> contextlib.AbstractContextManager[object]:
+    """The scheduling a command runs at: with a session open, its threads'
+    (``DriveSession.thread_scheduling``: ``SCHED_FIFO`` where it got it, as with ``--sim``),
+    else the console's own.  The session's threads share this thread's GIL: a command
+    computing at normal priority (``run`` preparing a plan, with the watches running) and
+    preempted by the machine's other work holds the GIL while it waits, and the watches'
+    FIFO reader fell behind the tension board (beside two CPU burners, at load 14-24: a
+    frame 583 and 826 ms old, the limit 500 ms)."""
+    if ctx.session is None:
+        return contextlib.nullcontext()
+    return ctx.session.thread_scheduling()  # type: ignore[no-any-return]
+
+
 def run_words(ctx: ConsoleContext, words: list[str]) -> None:
     """Run one command line already split into words (empty: nothing).  Errors propagate
     as :class:`~hrm_ctrl.errors.HrmError` with the command's name in front."""
@@ -212,7 +226,8 @@ def run_words(ctx: ConsoleContext, words: list[str]) -> None:
     cmd = find(words[0])
     try:
         check_needs(ctx, cmd)
-        cmd.handler(ctx, words[1:])
+        with command_scheduling(ctx):
+            cmd.handler(ctx, words[1:])
     except ConsoleError as exc:
         raise ConsoleError(f"{cmd.name}: {exc}") from None
     except HrmError as exc:
