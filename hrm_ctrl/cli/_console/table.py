@@ -206,16 +206,21 @@ def check_needs(ctx: ConsoleContext, cmd: Command) -> None:
 
 
 def command_scheduling(ctx: ConsoleContext) -> contextlib.AbstractContextManager[object]:
-    """The scheduling a command runs at: with a session open, its threads'
-    (``DriveSession.thread_scheduling``: ``SCHED_FIFO`` where it got it, as with ``--sim``),
+    """The scheduling a command runs at: with a session open whose threads run under
+    ``SCHED_FIFO`` (as with ``--sim`` where permitted), ``SCHED_FIFO`` one below theirs,
     else the console's own.  The session's threads share this thread's GIL: a command
-    computing at normal priority (``run`` preparing a plan, with the watches running) and
+    computing at normal priority (``run`` preparing a plan while the watches run) and
     preempted by the machine's other work holds the GIL while it waits, and the watches'
-    FIFO reader fell behind the tension board (beside two CPU burners, at load 14-24: a
-    frame 583 and 826 ms old, the limit 500 ms)."""
-    if ctx.session is None:
+    reader fell behind the tension board (beside two CPU burners, at load 14-24: a frame
+    583 and 826 ms old, the limit 500 ms).  One below, not at theirs: a session's thread
+    woken by a frame preempts the command's computing (at the same priority it would
+    wait for a CPU until the command blocked)."""
+    from drivers.realtime import process_settings
+
+    priority = 0 if ctx.session is None else ctx.session.scheduling.granted_priority - 1
+    if priority < 1:
         return contextlib.nullcontext()
-    return ctx.session.thread_scheduling()  # type: ignore[no-any-return]
+    return process_settings(switch_interval_s=None, realtime_priority=priority)
 
 
 def run_words(ctx: ConsoleContext, words: list[str]) -> None:
