@@ -126,8 +126,15 @@ def _session(
 ) -> Iterator[Any]:  # fmt: skip
     """A drive session on the running simulated box, brought up (and its feedback watches
     running when ``watch``: tension, and rope consistency unless not ``ropes``); finished
-    and closed on leaving."""
-    from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, WatchOptions, open_box
+    and closed on leaving.  The block runs at ``caller_scheduling`` (what it computes
+    between moves and the tracker's replies it reads: beside the session's threads)."""
+    from hrm_ctrl.runtime.box import (
+        NO_WATCHES,
+        SessionOptions,
+        WatchOptions,
+        caller_scheduling,
+        open_box,
+    )
 
     options = SessionOptions(
         log_dir=out,
@@ -138,7 +145,8 @@ def _session(
     )
     watches = WatchOptions(ropes=ropes) if watch else NO_WATCHES
     with open_box(running.config, actuation, options, sim=running, watches=watches) as box:
-        yield box.session
+        with caller_scheduling(box.session):
+            yield box.session
 
 
 def calibrate_on_box(
@@ -156,7 +164,7 @@ def calibrate_on_box(
     from drivers.tension_sensor import TensionSensorReader
     from drivers.tracker import TrackerReader
     from hrm_ctrl.cli.calibrate import format_fit
-    from hrm_ctrl.runtime.simulated import ScheduledPoints, sim_thread_scheduling
+    from hrm_ctrl.runtime.simulated import sim_thread_scheduling
 
     out: Path = args.out
     config, sim = running.config, running.sim
@@ -189,18 +197,12 @@ def calibrate_on_box(
         with contextlib.closing(opened) as reader:
             yield reader
 
-    @contextlib.contextmanager
-    def tracker_reader() -> Iterator[ScheduledPoints]:
-        # each reply read under the session's scheduling (ScheduledPoints)
-        with TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate) as reader:
-            yield ScheduledPoints(reader, lambda: sim_thread_scheduling(config))
-
     done = zero_then_kinematic(
         description,
         store,
         open_session,
         tension_reader,
-        tracker_reader,
+        lambda: TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate),
         leave_fixture=lambda: sim.set_straight_fixture(False),
         poses=args.poses,
         period_s=config.control.period_s,

@@ -117,6 +117,25 @@ class OpenBox:
         self.watches.start()
 
 
+def caller_scheduling(session: DriveSession) -> contextlib.AbstractContextManager[object]:
+    """The scheduling of the thread that works with an open ``session`` (computing between
+    its moves, reading an instrument): with the session's threads under ``SCHED_FIFO`` (as
+    with ``--sim`` where permitted), ``SCHED_FIFO`` one below theirs; else as it is.
+
+    The session's threads share this thread's GIL: computing at normal priority while the
+    watches ran and preempted by the machine's other work, it held the GIL while it
+    waited, and the watches' reader fell behind the tension board (the console's ``run``
+    beside two CPU burners at load 14-24: frames 583 and 826 ms old, the limit 500 ms).
+    One below, not at theirs: a session's thread woken by a frame preempts it (at the same
+    priority it would wait for a CPU until this thread blocked)."""
+    from drivers.realtime import process_settings
+
+    priority = session.scheduling.granted_priority - 1
+    if priority < 1:
+        return contextlib.nullcontext()
+    return process_settings(switch_interval_s=None, realtime_priority=priority)
+
+
 def identify_box(config: BoxConfig, actuation: LimitChecker, *, prog: str = "hrm") -> BoxIdentity:
     """The identity of the box of ``config`` (real buses, or a box behind them): its
     drives configured (NMT reset, identity objects read, SDO configuration), never

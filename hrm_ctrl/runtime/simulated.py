@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import sys
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +43,6 @@ from sim_bus.in_process import (
 if TYPE_CHECKING:
     import numpy as np
 
-    from calibration.collect import PointReader
     from calibration.store import Calibration
     from drivers.config import BoxConfig
     from hrm_ctrl.ropes.actuation import Actuation
@@ -189,24 +188,6 @@ def sim_thread_scheduling(config: BoxConfig) -> AbstractContextManager[Any]:
     from drivers.realtime import process_settings
 
     return process_settings(switch_interval_s=None, realtime_priority=sim_realtime_priority(config))
-
-
-@dataclass(frozen=True)
-class ScheduledPoints:
-    """A point reader (``measure(n)``, as :class:`calibration.collect.PointReader`: the
-    laser tracker's) whose every reading runs in ``scheduling()``: the scheduling of the
-    session's threads (``DriveSession.thread_scheduling``, or :func:`sim_thread_scheduling`
-    before the session opens; normal scheduling on a real box as shipped).  The reader
-    reads its reply in the caller's thread: under normal scheduling beside two CPU burners
-    (load 9-33) the tracker's reply came "incomplete after 1 s", the reply's deadline
-    passing while the thread waited for a CPU."""
-
-    reader: PointReader
-    scheduling: Callable[[], AbstractContextManager[Any]]
-
-    def measure(self, n: int) -> Any:
-        with self.scheduling():
-            return self.reader.measure(n)
 
 
 def calibration_counts(calibration: Calibration | None, actuation: Actuation) -> np.ndarray | None:

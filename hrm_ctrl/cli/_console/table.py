@@ -206,21 +206,14 @@ def check_needs(ctx: ConsoleContext, cmd: Command) -> None:
 
 
 def command_scheduling(ctx: ConsoleContext) -> contextlib.AbstractContextManager[object]:
-    """The scheduling a command runs at: with a session open whose threads run under
-    ``SCHED_FIFO`` (as with ``--sim`` where permitted), ``SCHED_FIFO`` one below theirs,
-    else the console's own.  The session's threads share this thread's GIL: a command
-    computing at normal priority (``run`` preparing a plan while the watches run) and
-    preempted by the machine's other work holds the GIL while it waits, and the watches'
-    reader fell behind the tension board (beside two CPU burners, at load 14-24: a frame
-    583 and 826 ms old, the limit 500 ms).  One below, not at theirs: a session's thread
-    woken by a frame preempts the command's computing (at the same priority it would
-    wait for a CPU until the command blocked)."""
-    from drivers.realtime import process_settings
+    """The scheduling a command runs at: with a session open,
+    :func:`hrm_ctrl.runtime.box.caller_scheduling` (one below the session's threads when
+    they run under ``SCHED_FIFO``), else the console's own."""
+    from hrm_ctrl.runtime.box import caller_scheduling
 
-    priority = 0 if ctx.session is None else ctx.session.scheduling.granted_priority - 1
-    if priority < 1:
+    if ctx.session is None:
         return contextlib.nullcontext()
-    return process_settings(switch_interval_s=None, realtime_priority=priority)
+    return caller_scheduling(ctx.session)
 
 
 def run_words(ctx: ConsoleContext, words: list[str]) -> None:
