@@ -1,4 +1,4 @@
-"""Benchmark: what the simulated arm's physics does to today's stack, before compensation.
+"""Benchmark: what the simulated arm's physics does to today's stack, and the compensation.
 
 The demo's motion (issue 38 item 2): the reference scenario planned with the robot
 description's values (``hrm demo --no-calibrate``: the host's model is the arm's), at the
@@ -7,7 +7,10 @@ exactly where the host commands them (the drives reach a setpoint within one cyc
 their lag is not the subject), after a lead-in from the straight arm (2 s, straight in
 counts) and a 1 s hold, and the arm's physics (``sim_bus.physics``) is stepped through
 every cycle in time order (``SimArm.state``, as the box's tension board does at 100 Hz).
-Once with no physics, once with every effect, once with each effect alone.
+Once with no physics, once with every effect, once with each effect alone; each of those
+once with the counts as planned and once with the feed-forward compensation
+(``hrm_ctrl.ropes.feedforward``: every term on, the description's ``[physics]``; the host
+does not know which effects the box has).
 
 Per run: the true end point's distance to the scenario's path (what ``hrm demo`` reports
 as ``end_point_vs_path``) max and rms, there (up to the plan's turning point) and back;
@@ -15,8 +18,8 @@ its distance from the planned end point (the FK of the commanded configuration: 
 physics alone moves it by) max and rms; where it ends after returning; the arm state's
 CPU (``time.thread_time``) per cycle, median and p99.
 
-Run: ``python benchmarks/bench_physics.py [--scenario bent-pipe] [--effects all,gravity]``;
-prints JSON.
+Run: ``python benchmarks/bench_physics.py [--scenario bent-pipe] [--effects all,gravity]
+[--counts plain,compensated]``; prints JSON (``feedforward_s``: the compensation's CPU).
 """
 
 from __future__ import annotations
@@ -52,9 +55,11 @@ HOLD_CYCLES = 100
 VARIANTS = ("none", "all", *(e.value for e in Effect))
 
 
-def motion(name: str, speed: float) -> tuple[Any, np.ndarray, np.ndarray, int]:
+def motion(
+    name: str, speed: float, compensate: bool = False
+) -> tuple[Any, np.ndarray, np.ndarray, int, float]:
     """(the scenario, every cycle's counts (lead-in, hold, plan), the planned end point
-    of each plan row, the index of the plan's first row)."""
+    of each plan row, the index of the plan's first row, the compensation's CPU s)."""
     robot = default_robot()
     act = load_actuation(robot)
     sc = scenario(name)
@@ -66,7 +71,13 @@ def motion(name: str, speed: float) -> tuple[Any, np.ndarray, np.ndarray, int]:
         environment=sc.environment,
     )
     doc = PlanDoc.from_dict(plan.to_dict(), sc.name)
+    t0 = time.process_time()
     sp = setpoints_of_plan(doc, act, period_s=PERIOD_S, speed_mm_per_s=speed)
+    cpu = -(time.process_time() - t0)  # the compensation's: the difference of the two
+    if compensate:
+        t0 = time.process_time()
+        sp = setpoints_of_plan(doc, act, period_s=PERIOD_S, speed_mm_per_s=speed, compensate=True)
+        cpu += time.process_time() - t0
     a, t = sp.row_angles()
     planned_tip = joint_centres(robot, a, t)[:, -1]
     straight = act.counts_from_angles(np.zeros(12), np.zeros(12)).astype(float)
@@ -75,19 +86,24 @@ def motion(name: str, speed: float) -> tuple[Any, np.ndarray, np.ndarray, int]:
     lead = np.rint(straight + f * (first - straight)).astype(np.int64)
     hold = np.repeat(sp.counts[:1], HOLD_CYCLES, axis=0)
     counts = np.vstack([lead, hold, sp.counts])
-    return sc, counts, planned_tip, LEAD_IN_CYCLES + HOLD_CYCLES
+    return sc, counts, planned_tip, LEAD_IN_CYCLES + HOLD_CYCLES, cpu
 
 
-def run(variant: str, sc: Any, counts: np.ndarray, planned: np.ndarray, start: int) -> dict:
+def run(
+    variant: str, sc: Any, counts: np.ndarray, planned: np.ndarray, start: int
+) -> dict[str, Any]:
     act = load_actuation(default_robot())
     physics = Physics.of(variant)
     arm = SimArm(act, physics=physics)
     tips = np.empty((len(counts), 3))
     cpu = np.empty(len(counts))
+    tensions = np.empty((len(counts), len(counts[0])))
     for i, c in enumerate(counts):
         t0 = time.thread_time()
-        tips[i] = arm.state(c, i * PERIOD_S).centres[-1]
+        s = arm.state(c, i * PERIOD_S)
         cpu[i] = time.thread_time() - t0
+        tips[i], tensions[i] = s.centres[-1], s.tension_N
+    tensions = tensions[start:]
     body = tips[start:]
     to_path = np.asarray(sc.path.distance_to(body), dtype=float)
     to_plan = np.linalg.norm(body - planned, axis=1)
@@ -99,6 +115,7 @@ def run(variant: str, sc: Any, counts: np.ndarray, planned: np.ndarray, start: i
 
     return {
         "physics": physics.describe(),
+        "tension_min_max_N": [mm(tensions.min()), mm(tensions.max())],
         "path_there_max_mm": mm(there.max()),
         "path_back_max_mm": mm(back.max()),
         "path_rms_mm": mm(np.sqrt(np.mean(to_path**2))),
@@ -118,11 +135,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--effects", default=",".join(VARIANTS), help="variants, comma-separated (none, all, ...)"
     )
+    ap.add_argument(
+        "--counts", default="plain,compensated", help="plain, compensated or both, comma-separated"
+    )
     args = ap.parse_args(argv)
     variants = [v.strip() for v in args.effects.split(",") if v.strip()]
+    modes = [v.strip() for v in args.counts.split(",") if v.strip()]
+    rows = []
     with process_settings():
-        sc, counts, planned, start = motion(args.scenario, args.speed)
-        rows = [run(v, sc, counts, planned, start) for v in variants]
+        for mode in modes:
+            sc, counts, planned, start, ff_s = motion(
+                args.scenario, args.speed, mode == "compensated"
+            )
+            for v in variants:
+                rows.append({"counts": mode, **run(v, sc, counts, planned, start)})
+                if mode == "compensated":
+                    rows[-1]["feedforward_s"] = round(ff_s, 3)
     out = {
         "benchmark": "physics",
         "machine": machine(),

@@ -51,6 +51,7 @@ TABLE_KEYS: Mapping[str, frozenset[str] | None] = {
     "base": frozenset({"position_mm", "yaw_deg", "pitch_deg", "fiducials_mm"}),
     "ropes": None,  # keys checked by hrm_ctrl.ropes.routing when the rope layer is built
     "motors": None,  # keys checked by hrm_ctrl.ropes.motor_map when the rope layer is built
+    "physics": None,  # keys checked by hrm_ctrl.ropes.feedforward when it is built
 }
 """Tables of a robot description and the keys each may hold (``None``: its owner, the
 rope layer, checks them).  Any other table or key is refused by :func:`robot_from_dict`."""
@@ -72,8 +73,8 @@ class RobotModel:
         base_fiducials: (k, 3) the base plate's reference nests in the base frame (mm):
             where an instrument (the laser tracker) measures the base to find its own frame.
         source: where the description came from (file path or resource name).
-        tables: the raw TOML tables the planner does not interpret (``ropes``
-            and ``motors``, when present), read by the layers that own them.
+        tables: the raw TOML tables the planner does not interpret (``ropes``,
+            ``motors`` and ``physics``, when present), read by the layers that own them.
     """
 
     name: str
@@ -291,7 +292,7 @@ def robot_from_dict(doc: Mapping[str, Any], source: str) -> RobotModel:
                 f"{where}: base.fiducials_mm lie on one line: they cannot fix a frame"
             )
 
-    tables = {k: doc[k] for k in ("ropes", "motors") if k in doc}
+    tables = {k: doc[k] for k in ("ropes", "motors", "physics") if k in doc}
     for arr in (links, od, pos, fid):
         arr.setflags(write=False)
     R = base_rotation_from(math.radians(yaw), math.radians(pitch))

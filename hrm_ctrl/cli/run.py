@@ -33,8 +33,8 @@ unless ``--allow-collision`` (then a stderr line says so).
 >>> p = argparse.ArgumentParser(prog="hrm run")
 >>> register(p)
 >>> a = p.parse_args(["plan.json", "--sim", "--speed", "50"])
->>> str(a.plan), a.sim, a.speed
-('plan.json', True, 50.0)
+>>> str(a.plan), a.sim, a.speed, a.compensate
+('plan.json', True, 50.0, False)
 """
 
 from __future__ import annotations
@@ -93,6 +93,12 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--jog", default=None, metavar="MOTOR:COUNTS_PER_S:S",
         help="move one rope motor at a constant speed, e.g. j01r0:20000:0.2",
     )  # fmt: skip
+    parser.add_argument(
+        "--compensate", action="store_true",
+        help="feed-forward: command the rope lengths that hold each planned pose against "
+        "gravity, rope stretch, capstan friction and joint play (the description's "
+        "[physics]; off by default: an arm without those loads is bent by it)",
+    )  # fmt: skip
     add_json(parser, "the summary")
 
 
@@ -114,6 +120,7 @@ def _playback(
         speed_mm_per_s=args.speed,
         allow_collision=args.allow_collision,
         progress=progress,
+        compensate=args.compensate,
     )
 
 

@@ -39,6 +39,7 @@ hrm_ctrl.errors.RopeError: plan step 2 (travel 1.0 mm): travel goes back from 2.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -48,6 +49,7 @@ import numpy as np
 
 from hrm_ctrl.errors import RopeError
 from hrm_ctrl.ropes.actuation import Actuation, RopeLimitError
+from hrm_ctrl.ropes.feedforward import Feedforward
 from hrm_ctrl.ropes.trajectory import StepPath, step_path, time_parameterise
 
 MAX_PLAN_DURATION_S = 3600.0  # default longest playback (bounds the table's memory)
@@ -62,6 +64,13 @@ DEFAULT_TIP_SPEED_MM_PER_S = 50.0
 MAX_PLAYBACK_ROWS = 400_000
 _BLOCK_ROWS = 32_768
 PHASES = ("in", "return")
+# With a feed-forward (hrm_ctrl.ropes.feedforward) the time law uses this share of every
+# motor's speed, acceleration and jerk limit, leaving the rest to the compensation, whose
+# change along the rows is smoothed over this time (a moving average three times over,
+# centred: where the friction turns at a reversal the compensation changes by up to a
+# millimetre of rope within a few rows, more than a motor may accelerate).
+FEEDFORWARD_LIMIT_SHARE = 0.8
+FEEDFORWARD_SMOOTHING_S = 0.2
 _ON_STEP_S = 1e-9  # a control slot this close to a step's time is on that step
 
 
@@ -211,6 +220,7 @@ def plan_setpoints(
     max_duration_s: float = MAX_PLAN_DURATION_S,
     where: str | None = None,
     progress: Callable[[float], None] | None = None,
+    feedforward: Feedforward | None = None,
 ) -> PlanSetpoints:
     """The plan's (cycles, motors) counts at the control period ``period_s``, played as
     fast as the motors' speed and acceleration limits allow with the arm's tip at most
@@ -218,6 +228,10 @@ def plan_setpoints(
 
     ``travel_mm`` (S,), ``alpha_rad`` / ``theta_rad`` (S, 12); ``phase`` (S,) ``in`` /
     ``return`` (default all ``in``).  ``where`` (e.g. the plan file) starts every message.
+    ``feedforward`` (:class:`~hrm_ctrl.ropes.feedforward.Feedforward`; None: off) replaces
+    every row's and step's counts by those that hold its configuration against the
+    arm's loads (gravity, rope stretch, capstan friction along the rows' rope travel,
+    joint play) before the limits are checked.
     Raises :class:`RopeError` for bad arguments, travel that goes the wrong way or repeats
     within a phase, or a playback longer than ``max_duration_s``, and
     :class:`RopeLimitError` for a joint, drum-travel, motor-speed or -acceleration limit,
@@ -268,7 +282,7 @@ def plan_setpoints(
                     where)  # fmt: skip
     try:
         traj = time_parameterise(
-            actuation,
+            actuation if feedforward is None else _limits_share(actuation, FEEDFORWARD_LIMIT_SHARE),
             path,
             period_s=period_s,
             tip_speed_mm_per_s=speed_mm_per_s,
@@ -279,6 +293,11 @@ def plan_setpoints(
         raise type(exc)(_prefixed(where, str(exc))) from None
     _check_duration(traj.duration_s, speed_mm_per_s, max_duration_s, period_s, where)
     counts, step_of_row, t = traj.counts, traj.step_of_row, traj.time_s
+    if feedforward is not None:
+        counts, step_counts = _compensated(
+            feedforward, path, traj.sigma_mm, counts, t, traj.step_time_s, period_s
+        )
+        _check_positions(actuation, step_counts, lambda k: _step_label(travel, k), where)
 
     def row_label(r: int) -> str:
         return _step_label(travel, int(step_of_row[r]))
@@ -302,6 +321,56 @@ def plan_setpoints(
         path=path,
         law_duration_s=traj.law_duration_s,
     )
+
+
+def _limits_share(act: Actuation, share: float) -> Actuation:
+    """``act`` with ``share`` of every motor's speed, acceleration and jerk limit."""
+    return dataclasses.replace(
+        act,
+        max_rate_counts_per_s=act.max_rate_counts_per_s * share,
+        max_accel_counts_per_s2=act.max_accel_counts_per_s2 * share,
+        max_jerk_counts_per_s3=act.max_jerk_counts_per_s3 * share,
+    )
+
+
+def smoothed_rows(rows: np.ndarray, width: int, passes: int = 3) -> np.ndarray:
+    """Every column of ``rows`` (rows, m) averaged over ``width`` rows centred on each,
+    ``passes`` times (the ends held: the table starts and ends at rest).
+
+    >>> smoothed_rows(np.array([[0.0], [0.0], [3.0], [0.0], [0.0]]), 3, 1)[:, 0].tolist()
+    [0.0, 1.0, 1.0, 1.0, 0.0]
+    """
+    out = np.asarray(rows, dtype=np.float64)
+    if width <= 1 or out.shape[0] < 2:
+        return out.copy()
+    half = width // 2
+    for _ in range(passes):
+        padded = np.concatenate([np.repeat(out[:1], half, 0), out, np.repeat(out[-1:], half, 0)])
+        c = np.cumsum(np.concatenate([np.zeros((1, out.shape[1])), padded]), axis=0)
+        out = (c[2 * half + 1 :] - c[: -2 * half - 1]) / (2 * half + 1)
+    return out
+
+
+def _compensated(
+    ff: Feedforward,
+    path: StepPath,
+    sigma: np.ndarray,
+    counts: np.ndarray,
+    t: np.ndarray,
+    step_t: np.ndarray,
+    period_s: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The rows' counts with the feed-forward added (its change along the rows smoothed
+    over :data:`FEEDFORWARD_SMOOTHING_S`; in time order: the friction's direction is the
+    rows' rope travel) and every step's (the row at the step's time)."""
+    a, th = path.angles_at(sigma)
+    offset = ff.counts(a, th) - counts
+    width = max(1, round(FEEDFORWARD_SMOOTHING_S / period_s))
+    out = counts + np.rint(smoothed_rows(offset, width)).astype(np.int64)
+    at = np.clip(np.searchsorted(t, np.asarray(step_t) - _ON_STEP_S), 0, len(t) - 1)
+    steps = out[at]
+    out.setflags(write=False)
+    return out, steps
 
 
 def _check_duration(

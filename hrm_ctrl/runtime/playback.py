@@ -42,11 +42,15 @@ def setpoints_of_plan(
     speed_mm_per_s: float,
     max_duration_s: float | None = None,
     progress: Callable[[float], None] | None = None,
+    compensate: bool = False,
 ) -> PlanSetpoints:
     """The plan's checked counts at the control rate for this arm: what ``hrm ropes``
     reports and ``hrm run`` plays (``max_duration_s`` None:
     :data:`hrm_ctrl.ropes.setpoints.MAX_PLAN_DURATION_S`).  Refuses a plan made for other
-    link lengths; every message starts with the plan file."""
+    link lengths; every message starts with the plan file.  ``compensate``: the counts
+    that hold each configuration against the arm's loads
+    (:class:`hrm_ctrl.ropes.feedforward.Feedforward` of the description's ``[physics]``)."""
+    from hrm_ctrl.ropes.feedforward import Feedforward
     from hrm_ctrl.ropes.setpoints import MAX_PLAN_DURATION_S, plan_setpoints
 
     if max_duration_s is None:
@@ -64,6 +68,7 @@ def setpoints_of_plan(
         max_duration_s=max_duration_s,
         where=doc.source,
         progress=progress,
+        feedforward=Feedforward.of(act) if compensate else None,
     )
 
 
@@ -201,6 +206,7 @@ def setpoint_source(
     speed_mm_per_s: float,
     allow_collision: bool = False,
     progress: Callable[[float], None] | None = None,
+    compensate: bool = False,
 ) -> Playback:
     """The setpoint source of exactly one of ``plan``, ``hold_s``, ``jog`` (else one line).
     A plan goes through the rope layer's one plan -> counts path (as in ``hrm ropes``) at
@@ -234,11 +240,13 @@ def setpoint_source(
         speed_mm_per_s=speed_mm_per_s,
         max_duration_s=MAX_SOURCE_DURATION_S,
         progress=progress,
+        compensate=compensate,
     )
     info = {
         "plan": str(plan),
         "steps": sp.n_steps,
         "speed_mm_per_s": sp.speed_mm_per_s,
         "duration_s": sp.duration_s,
+        "compensated": compensate,
     }
     return Playback(CountsSource.of_plan(actuation, sp, info=info), None, record, sp)
