@@ -19,7 +19,8 @@ physics alone moves it by) max and rms; where it ends after returning; the arm s
 CPU (``time.thread_time``) per cycle, median and p99.
 
 Run: ``python benchmarks/bench_physics.py [--scenario bent-pipe] [--effects all,gravity]
-[--counts plain,compensated]``; prints JSON (``feedforward_s``: the compensation's CPU).
+[--counts plain,compensated] [--terms gravity,capstan,backlash]``; prints JSON
+(``feedforward_s``: the compensation's CPU, planning without it subtracted).
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ from hrm_ctrl.model import default_robot
 from hrm_ctrl.planning.planner import PlanOptions, plan_path
 from hrm_ctrl.planning.scenarios import scenario
 from hrm_ctrl.ropes.actuation import load_actuation
-from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S
+from hrm_ctrl.ropes.feedforward import Feedforward
+from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S, plan_setpoints
 from hrm_ctrl.runtime.playback import setpoints_of_plan
 from sim_bus.arm import SimArm
 from sim_bus.physics import Effect, Physics
@@ -53,13 +55,15 @@ PERIOD_S = 0.01
 LEAD_IN_CYCLES = 200
 HOLD_CYCLES = 100
 VARIANTS = ("none", "all", *(e.value for e in Effect))
+TERMS = ("gravity", "capstan", "backlash")  # the feed-forward's (hrm_ctrl.ropes.feedforward)
 
 
 def motion(
-    name: str, speed: float, compensate: bool = False
+    name: str, speed: float, terms: frozenset[str] | None = None
 ) -> tuple[Any, np.ndarray, np.ndarray, int, float]:
     """(the scenario, every cycle's counts (lead-in, hold, plan), the planned end point
-    of each plan row, the index of the plan's first row, the compensation's CPU s)."""
+    of each plan row, the index of the plan's first row, the compensation's CPU s);
+    ``terms``: the feed-forward's terms (None: no compensation)."""
     robot = default_robot()
     act = load_actuation(robot)
     sc = scenario(name)
@@ -74,9 +78,11 @@ def motion(
     t0 = time.process_time()
     sp = setpoints_of_plan(doc, act, period_s=PERIOD_S, speed_mm_per_s=speed)
     cpu = -(time.process_time() - t0)  # the compensation's: the difference of the two
-    if compensate:
+    if terms is not None:
         t0 = time.process_time()
-        sp = setpoints_of_plan(doc, act, period_s=PERIOD_S, speed_mm_per_s=speed, compensate=True)
+        ff = Feedforward.of(act, **{t: t in terms for t in TERMS})
+        sp = plan_setpoints(act, doc.travel_mm, doc.alpha_rad, doc.theta_rad, phase=doc.phase,
+                            period_s=PERIOD_S, speed_mm_per_s=speed, feedforward=ff)  # fmt: skip
         cpu += time.process_time() - t0
     a, t = sp.row_angles()
     planned_tip = joint_centres(robot, a, t)[:, -1]
@@ -93,7 +99,7 @@ def run(
     variant: str, sc: Any, counts: np.ndarray, planned: np.ndarray, start: int
 ) -> dict[str, Any]:
     act = load_actuation(default_robot())
-    physics = Physics.of(variant)
+    physics = Physics.of(variant.replace("+", ","))
     arm = SimArm(act, physics=physics)
     tips = np.empty((len(counts), 3))
     cpu = np.empty(len(counts))
@@ -133,10 +139,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default="bent-pipe")
     ap.add_argument("--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S)
     ap.add_argument(
-        "--effects", default=",".join(VARIANTS), help="variants, comma-separated (none, all, ...)"
+        "--effects",
+        default=",".join(VARIANTS),
+        help="variants, comma-separated (none, all, gravity+capstan, ...)",
     )
     ap.add_argument(
         "--counts", default="plain,compensated", help="plain, compensated or both, comma-separated"
+    )
+    ap.add_argument(
+        "--terms", default=",".join(TERMS), help="the feed-forward's terms, comma-separated"
     )
     args = ap.parse_args(argv)
     variants = [v.strip() for v in args.effects.split(",") if v.strip()]
@@ -144,12 +155,14 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with process_settings():
         for mode in modes:
+            terms = frozenset(t.strip() for t in args.terms.split(",") if t.strip())
             sc, counts, planned, start, ff_s = motion(
-                args.scenario, args.speed, mode == "compensated"
+                args.scenario, args.speed, terms if mode == "compensated" else None
             )
             for v in variants:
                 rows.append({"counts": mode, **run(v, sc, counts, planned, start)})
                 if mode == "compensated":
+                    rows[-1]["feedforward_terms"] = ",".join(t for t in TERMS if t in terms)
                     rows[-1]["feedforward_s"] = round(ff_s, 3)
     out = {
         "benchmark": "physics",

@@ -12,7 +12,7 @@ for every planned pose ``q`` (true angles):
   link's middle) and the tip payload (:func:`gravity_forces`);
 * each rope's friction factors where it bends through the joints' holes (the capstan law,
   ``T_out = T_in e^(-mu beta)``, the sign from the direction the rope travels along the
-  commanded sequence, static above kinetic from rest and on a reversal:
+  planned sequence, static above kinetic from rest and on a reversal:
   :func:`friction_mobilisation`, :func:`tension_factors`);
 * the drum tensions ``T`` (n,) that hold the pose, the joints carrying the moments of the
   pretension itself (the design's balance: with the loads gone the arm stands where its
@@ -297,7 +297,7 @@ def tension_factors(
     >>> a = np.zeros(12); a[11] = 0.5
     >>> w = wrap_angles(h, a, np.zeros(12))
     >>> c, mean = tension_factors(-np.ones(36), np.full(12, 0.1), w, h, rt.box_length)
-    >>> round(float(c[11, 33]), 6), round(np.exp(-0.1 * float(w[0][11, 33])), 6)
+    >>> round(float(c[11, 33]), 6), round(float(np.exp(-0.1 * w[0][11, 33])), 6)
     (0.97531, 0.97531)
     """
     beta_p, beta_d, s = wraps
@@ -402,7 +402,6 @@ class Feedforward:
     gravity: bool = True
     capstan: bool = True
     backlash: bool = True
-    passes: int = 1
 
     @classmethod
     def of(
@@ -477,20 +476,22 @@ class Feedforward:
 
     def unstretched(self, alpha: np.ndarray, theta: np.ndarray) -> Holding:
         """What holds a commanded sequence of true poses (rows, 12) each, in time order:
-        the friction's direction from the compensated lengths' own travel (evaluated
-        ``passes`` times, first from the lengths at the pretension)."""
+        the friction mobilised as the planned rope travel says (:func:`friction_mobilisation`
+        of the lengths at the pretension).  Not of the compensated lengths' own travel:
+        where a rope nearly stops or reverses, the compensation's own change decides its
+        direction, and the friction it then foresees changes that change by up to a
+        millimetre; evaluated again and again it does not settle (measured on the bent
+        pipe), nor row by row (a sticking rope's tension follows its sub-micrometre travel:
+        the commanded counts chatter past the motors' acceleration limit)."""
         act = self.actuation
         a = np.atleast_2d(np.asarray(alpha, dtype=float))
         t = np.atleast_2d(np.asarray(theta, dtype=float))
-        h = self.holding(a, t, None)
-        if not (self.capstan and self.physics.mu_kinetic.any()):
-            return h
+        ph = self.physics
+        if not (self.capstan and ph.mu_kinetic.any()):
+            return self.holding(a, t, None)
         u = act.motors.unstretched_from_counts(act.counts_from_angles(a, t, check=False))
-        for _ in range(max(1, self.passes)):
-            nu = friction_mobilisation(u, self.physics.presliding_mm, self.physics.static_ratio)
-            h = self.holding(a, t, nu)
-            u = h.unstretched_mm
-        return h
+        nu = friction_mobilisation(u, ph.presliding_mm, ph.static_ratio)
+        return self.holding(a, t, nu)
 
     def counts(self, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """Motor counts (rows, n) int64 that hold the commanded sequence of true poses
