@@ -103,8 +103,7 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
-    line = vcan_guest.summary_line(terminalreporter.config)
-    if line is not None:
+    for line in vcan_guest.summary_lines(terminalreporter.config):
         terminalreporter.write_line(line)
 
 

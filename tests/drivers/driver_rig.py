@@ -25,11 +25,17 @@ from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.box import SimBox
 from sim_bus.in_process import IN_PROCESS_MISSING_TPDO_CYCLES
+from tests.vcan_guest import in_vcan_guest
 
 # The rig's drives are fresh simulators (pre-operational, no other master): a short
 # listen before the first reset keeps the suite fast; tests of the listen set their own.
 RIG_LISTEN_S = 0.1
 SMALL_BUSES: tuple[dict[str, int], ...] = ({"j01r0": 1, "j01r1": 2}, {"j07r0": 3})
+#: In the vcan guest (``tools/vcan-guest``: one CPU shared by the rig's drives and host,
+#: 30-40 us per system call) a simulated drive's SDO answer came later than the production
+#: 0.5 s during a bring-up (``No SDO response received``): over SocketCAN there the rigs
+#: wait this long for one unless the test sets its own; the SDO timeout is no watchdog.
+GUEST_SDO_TIMEOUT_S = 2.0
 
 
 @pytest.fixture(scope="session")
@@ -143,6 +149,8 @@ def rig_factory(
         **control: Any,
     ) -> Rig:
         kwargs = [bus_backend() for _ in buses]
+        if in_vcan_guest() and kwargs[0]["interface"] == "socketcan":
+            control.setdefault("sdo_timeout_s", GUEST_SDO_TIMEOUT_S)
         config = make_config(kwargs, buses, **control)
         sim_cfg = make_config(kwargs, sim_buses or buses, **control)
         initial = np.zeros(actuation.n_motors, dtype=np.int64)
