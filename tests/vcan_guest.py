@@ -40,6 +40,8 @@ from typing import IO, Any
 
 import pytest
 
+from drivers.realtime import SWITCH_INTERVAL_ENV
+
 REPO = Path(__file__).resolve().parents[1]
 RUNNER = REPO / "tools" / "vcan-guest" / "run-in-vcan-vm.sh"
 UML_KERNEL = Path(os.environ.get("VCANVM_UML", "/usr/bin/linux.uml"))
@@ -51,6 +53,9 @@ VCAN_PARAMS = ("can_backend", "wire_kind", "hrm_bus_kind")
 #: SCHED_FIFO priority of the guest (the runner's ``VCANVM_RT``): under host load a guest
 #: at normal priority misses 100 Hz cycles by tens of ms (tools/vcan-guest/README.md)
 GUEST_RT_PRIORITY = 10
+#: the GIL switch interval of every stack process in the guest (``HRM_SWITCH_INTERVAL_S``):
+#: at the hosts' 0.2 ms a session's hand-overs took the CPU from the drives' box process
+GUEST_SWITCH_INTERVAL_S = 1e-3
 #: a guest's whole run at most, boot included (the runner's ``VCANVM_TIMEOUT``)
 GUEST_TIMEOUT_S = 900
 #: after a guest's timeout this session stops waiting for its runner, whatever it does
@@ -233,6 +238,9 @@ class GuestRun:
         env.setdefault("VCANVM_RT", str(GUEST_RT_PRIORITY))
         env["VCANVM_TIMEOUT"] = f"{self.timeout_s:g}"
         env["VCANVM_NO_INSTALL"] = "1"  # guest_unavailable() has checked the packages
+        # the guest's system calls cost 30-40 us: its processes hand the interpreter lock
+        # over less often (drivers.realtime.machine_switch_interval)
+        env.setdefault(SWITCH_INTERVAL_ENV, f"{GUEST_SWITCH_INTERVAL_S:g}")
         env["VCANVM_RW"] = ":".join(filter(None, [env.get("VCANVM_RW"), str(self.workdir)]))
         env["VCANVM_IFACES"] = " ".join(VCAN_INTERFACES)
         self.report_path.touch()
