@@ -118,12 +118,13 @@ def make_config(
 
 
 @pytest.fixture(params=["shared", "hrm_sim"])
-def bus_backend(
-    request: pytest.FixtureRequest, can_backend: Callable[[], dict[str, Any]]
-) -> Callable[[], dict[str, Any]]:
+def bus_backend(request: pytest.FixtureRequest) -> Callable[[], dict[str, Any]]:
     """The shared ``can_backend`` (virtual, udp_multicast, socketcan) plus the project's
     own ``hrm_sim`` interface: a simulated wire at 1 Mbit/s that delivers frames after
-    their wire time, in identifier order (so frame ordering and bus time are real)."""
+    their wire time, in identifier order (so frame ordering and bus time are real).
+    ``can_backend`` is set up only for ``shared``: an ``hrm_sim`` item of another
+    ``can_backend`` skips for that reason, not for want of that backend (``rig_factory``
+    names ``can_backend`` after this fixture, which parametrises its items over it)."""
     if request.param == "hrm_sim":
         if request.node.callspec.params.get("can_backend") != "virtual":
             pytest.skip("hrm_sim runs once (with the virtual parametrisation)")
@@ -132,12 +133,15 @@ def bus_backend(
             "channel": f"hrm-drv-{uuid.uuid4().hex[:12]}",
             "bitrate": 1_000_000,
         }
-    return can_backend
+    factory: Callable[[], dict[str, Any]] = request.getfixturevalue("can_backend")
+    return factory
 
 
 @pytest.fixture
 def rig_factory(
-    bus_backend: Callable[[], dict[str, Any]], actuation: Actuation
+    bus_backend: Callable[[], dict[str, Any]],
+    can_backend: Callable[[], dict[str, Any]],
+    actuation: Actuation,
 ) -> Iterator[Callable[..., Rig]]:
     rigs: list[Rig] = []
     opened: list[Any] = []

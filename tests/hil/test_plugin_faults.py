@@ -220,9 +220,6 @@ TPDO_FAULTS = [
 ]
 
 
-@pytest.mark.parametrize(
-    ("spec", "bus", "nodes", "names"), TPDO_FAULTS, ids=[f[0] for f in TPDO_FAULTS]
-)
 def guest_rate_limits(request: pytest.FixtureRequest, spec: str) -> None:
     """The delay fault in the vcan guest's 25 Hz run (:data:`GUEST_CONTROL`) is a strict
     xfail: its 400 ms delay is no longer than the quick stop's 10 periods there."""
@@ -236,6 +233,9 @@ def guest_rate_limits(request: pytest.FixtureRequest, spec: str) -> None:
         )
 
 
+@pytest.mark.parametrize(
+    ("spec", "bus", "nodes", "names"), TPDO_FAULTS, ids=[f[0] for f in TPDO_FAULTS]
+)
 def test_missing_tpdos_detected_after_the_production_cycles(
     request: pytest.FixtureRequest,
     hrm_host: HilHost,
