@@ -59,7 +59,7 @@ GUEST_RT_PRIORITY = 10
 #: at the hosts' 0.2 ms a session's hand-overs took the CPU from the drives' box process
 GUEST_SWITCH_INTERVAL_S = 1e-3
 #: a guest's whole run at most, boot included (the runner's ``VCANVM_TIMEOUT``)
-GUEST_TIMEOUT_S = 900
+GUEST_TIMEOUT_S = 600
 #: after a guest's timeout this session stops waiting for its runner, whatever it does
 DEADLINE_MARGIN_S = 30.0
 #: the environment variable pytest in the guest writes its reports to (one JSON a line)
