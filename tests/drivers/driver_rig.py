@@ -143,6 +143,10 @@ def rig_factory(
     can_backend: Callable[[], dict[str, Any]],
     actuation: Actuation,
 ) -> Iterator[Callable[..., Rig]]:
+    """``make(buses, sim_buses, sim_counts, guest_control, **control)``: a rig of simulated
+    drives on ``buses`` (``[control]`` keys ``control``); over SocketCAN in the vcan guest
+    ``guest_control`` overrides them (a rig sized for the guest) and the SDO timeout is
+    :data:`GUEST_SDO_TIMEOUT_S` unless set."""
     rigs: list[Rig] = []
     opened: list[Any] = []
 
@@ -150,10 +154,13 @@ def rig_factory(
         buses: tuple[dict[str, int], ...] = SMALL_BUSES,
         sim_buses: tuple[dict[str, int], ...] | None = None,
         sim_counts: dict[str, int] | None = None,
+        guest_control: dict[str, Any] | None = None,
         **control: Any,
     ) -> Rig:
         kwargs = [bus_backend() for _ in buses]
         if in_vcan_guest() and kwargs[0]["interface"] == "socketcan":
+            # a test sized for the guest says why beside its ``guest_control``
+            control = {**control, **(guest_control or {})}
             control.setdefault("sdo_timeout_s", GUEST_SDO_TIMEOUT_S)
         config = make_config(kwargs, buses, **control)
         sim_cfg = make_config(kwargs, sim_buses or buses, **control)
