@@ -22,11 +22,12 @@ names needed in messages) and explicit settings; none keeps state.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import canopen
 
+from drivers.config import ExpectedIdentity, SdoWrite
 from drivers.protocol import cia301, cia402
 from hrm_ctrl.errors import DriverError, HrmError
 
@@ -62,9 +63,68 @@ class DriveLink:
         return f"{self.motor} (bus {self.bus} node {self.node_id})"
 
 
+class IdentityMismatchError(DriverError):
+    """A drive answered another identity (0x1018) than the box configuration expects."""
+
+
+@dataclass(frozen=True)
+class DriveSetup:
+    """What the bring-up writes and checks on one drive beyond :class:`DriveSettings`, from
+    its device file and the box configuration (:meth:`drivers.device_check.NodeCheck.setup`):
+    0x60C2 (value, index) in the drive's own encoding (None: hrm's,
+    :func:`cia402.interpolation_time_period`), the SDO overlay (written first, in order) and
+    the identity the drive must answer (checked before anything is written)."""
+
+    interpolation: tuple[int, int] | None = None
+    sdo: tuple[SdoWrite, ...] = ()
+    identity: ExpectedIdentity = field(default_factory=ExpectedIdentity)
+
+
+#: 0x1018 sub-index -> name, as the identity check names them
+IDENTITY_NAMES = {1: "vendor-ID", 2: "product code", 3: "revision", 4: "serial number"}
+
+
+def identity_mismatches(
+    expected: ExpectedIdentity, found: tuple[int, int, int, int], simulated: bool
+) -> list[str]:
+    """``0x1018:02 (product code) expected 0x00000011, found 0x65510000`` for each value
+    the drive answered differently from ``expected``; on a simulated box (``simulated``)
+    the vendor-ID and serial number are not compared (a simulated drive answers vendor 0
+    and its simulated arm's serial), the product code and revision are (its device file's).
+
+    >>> identity_mismatches(ExpectedIdentity(product_code=0x11), (0x26C, 0x12, 1, 2), False)
+    ['0x1018:02 (product code) expected 0x00000011, found 0x00000012']
+    >>> identity_mismatches(ExpectedIdentity(vendor_id=0x26C), (0, 0x11, 1, 2), True)
+    []
+    """
+    out = []
+    for sub, (want, got) in enumerate(zip(expected.values(), found, strict=True), start=1):
+        if want is None or (simulated and sub in (1, 4)):
+            continue
+        if want != got:
+            out.append(
+                f"0x1018:{sub:02X} ({IDENTITY_NAMES[sub]}) expected 0x{want:08X}, found 0x{got:08X}"
+            )
+    return out
+
+
+def check_identity(
+    link: DriveLink, expected: ExpectedIdentity, found: tuple[int, int, int, int], simulated: bool
+) -> None:
+    """:class:`IdentityMismatchError` naming the drive and the first mismatch (and how many
+    more) when the drive is not the one expected (:func:`identity_mismatches`)."""
+    problems = identity_mismatches(expected, found, simulated)
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise IdentityMismatchError(
+            f"{link.label}: identity {problems[0]}{more}: not the drive the box configuration "
+            "names; nothing written"
+        )
+
+
 @dataclass(frozen=True)
 class DriveSettings:
-    """Values written to every drive during configuration."""
+    """Values written to every drive during configuration (``setup``: this drive's own)."""
 
     period_s: float
     host_node_id: int
@@ -74,6 +134,7 @@ class DriveSettings:
     counts_max: int
     following_error_window_counts: int
     quick_stop_option_code: int
+    setup: DriveSetup = DriveSetup()
 
 
 def sdo_write(link: DriveLink, index: int, subindex: int, value: Any) -> None:
@@ -168,9 +229,12 @@ def _map_pdo(
 
 
 def configure_drive(link: DriveLink, s: DriveSettings) -> None:
-    """SDO configuration (node pre-operational): PDO mappings, heartbeats, limits,
-    interpolation period, quick stop option, mode CSP (checked on 0x6061)."""
+    """SDO configuration (node pre-operational): the box configuration's SDO overlay for
+    this drive (in order), then PDO mappings, heartbeats, limits, interpolation period (in
+    the drive's encoding), quick stop option, mode CSP (checked on 0x6061)."""
     nid = link.node_id
+    for w in s.setup.sdo:
+        sdo_write(link, w.index, w.sub, w.value)
     sdo_write(link, cia301.OD_PRODUCER_HEARTBEAT_TIME, 0, s.node_heartbeat_ms)
     sdo_write(
         link,
@@ -194,7 +258,7 @@ def configure_drive(link: DriveLink, s: DriveSettings) -> None:
     )
     sdo_write(link, cia402.OD_SOFTWARE_POSITION_LIMIT, 1, int(s.counts_min))
     sdo_write(link, cia402.OD_SOFTWARE_POSITION_LIMIT, 2, int(s.counts_max))
-    value, index = cia402.interpolation_time_period(s.period_s)
+    value, index = s.setup.interpolation or cia402.interpolation_time_period(s.period_s)
     sdo_write(link, cia402.OD_INTERPOLATION_TIME_PERIOD, 1, value)
     sdo_write(link, cia402.OD_INTERPOLATION_TIME_PERIOD, 2, index)
     sdo_write(link, cia402.OD_FOLLOWING_ERROR_WINDOW, 0, int(s.following_error_window_counts))

@@ -8,10 +8,10 @@ node id; an optional ``[tension]`` table names the tension-sensor board's serial
 and its stop thresholds (:class:`TensionConfig`; no table: the box has no board); an
 optional ``[tracker]`` table names the laser tracker's serial port and the wait for each of
 its replies (:class:`TrackerConfig`; no table: no tracker); an optional ``[drives]`` table
-names each drive's CiA 306 device file, EDS or DCF (:class:`DrivesConfig`: ``device_file``
-for every drive, ``[drives.MOTOR]`` ``device_file`` for one; no table: hrm's own
-``drivers/data/hrm_drive.eds``), which ``hrm box check`` and every bring-up check first
-(:mod:`drivers.device_check`).
+names each drive's CiA 306 device file, EDS or DCF, an SDO overlay and the identity it must
+answer (:class:`DrivesConfig`: ``device_file``, ``sdo``, ``identity`` for every drive,
+``[drives.MOTOR]`` the same for one; no table: hrm's own ``drivers/data/hrm_drive.eds``),
+which ``hrm box check`` and every bring-up check first (:mod:`drivers.device_check`).
 The interface is configuration, never code: any name python-can knows (built-in or
 registered under the ``can.interface`` entry point) is accepted.  A bus table without an
 ``interface`` takes python-can's own configuration (:func:`can.util.load_config` with the
@@ -346,39 +346,154 @@ class TrackerConfig:
     # fmt: on
 
 
-DRIVE_KEYS = frozenset({"device_file"})
+DRIVE_KEYS = frozenset({"device_file", "sdo", "identity"})
 """The keys of ``[drives]`` (for every drive) and of ``[drives.MOTOR]`` (for one)."""
+
+MAX_SDO_OVERLAY = 64
+"""Most SDO writes one overlay (``sdo = {...}``) gives."""
+
+IDENTITY_KEYS = ("vendor_id", "product_code", "revision", "serial")
+"""The keys of an ``identity`` table: 0x1018 sub-indices 1..4, in that order."""
+
+#: Objects hrm's bring-up writes itself (drivers.bringup.configure_drive): an overlay of
+#: one of them would be overwritten, so it is refused.  (index, sub or None: every sub)
+BRINGUP_OBJECTS: tuple[tuple[int, int | None], ...] = (
+    (0x1016, None), (0x1017, None), (0x1400, None), (0x1600, None), (0x1800, None),
+    (0x1A00, None), (0x6040, None), (0x6060, None), (0x607A, None), (0x607D, None),
+    (0x6065, None), (0x605A, None), (0x60C2, None),
+)  # fmt: skip
+
+_SDO_KEY = re.compile(r"0x([0-9A-Fa-f]{4})(?::([0-9A-Fa-f]{1,2}))?")
+
+
+@dataclass(frozen=True)
+class SdoWrite:
+    """One SDO write of an overlay: object (index, sub-index) and integer value.
+
+    >>> SdoWrite(0x60A8, 0, 0x00B50000).label
+    '0x60A8:00'
+    """
+
+    index: int
+    sub: int
+    value: int
+
+    @property
+    def label(self) -> str:
+        return f"0x{self.index:04X}:{self.sub:02X}"
+
+
+@dataclass(frozen=True)
+class ExpectedIdentity:
+    """The identity (0x1018) a drive must answer at boot; None: not checked.
+
+    >>> ExpectedIdentity(vendor_id=0xFB).over(ExpectedIdentity(serial=7))
+    ExpectedIdentity(vendor_id=251, product_code=None, revision=None, serial=7)
+    """
+
+    vendor_id: int | None = None
+    product_code: int | None = None
+    revision: int | None = None
+    serial: int | None = None
+
+    def over(self, base: ExpectedIdentity) -> ExpectedIdentity:
+        """These values, and ``base``'s where these give none."""
+        return ExpectedIdentity(
+            *(
+                mine if mine is not None else theirs
+                for mine, theirs in zip(self.values(), base.values(), strict=True)
+            )
+        )
+
+    def values(self) -> tuple[int | None, ...]:
+        """(vendor_id, product_code, revision, serial): 0x1018 sub-indices 1..4."""
+        return (self.vendor_id, self.product_code, self.revision, self.serial)
+
+    def to_dict(self) -> dict[str, int]:
+        return {k: v for k, v in zip(IDENTITY_KEYS, self.values(), strict=True) if v is not None}
+
+
+@dataclass(frozen=True)
+class DriveSpec:
+    """What the box configuration says of one drive: its device file (None: the default),
+    its SDO overlay and its expected identity."""
+
+    device_file: Path | None = None
+    sdo: tuple[SdoWrite, ...] = ()
+    identity: ExpectedIdentity = ExpectedIdentity()
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if self.device_file is not None:
+            out["device_file"] = str(self.device_file)
+        if self.sdo:
+            out["sdo"] = {w.label: w.value for w in self.sdo}
+        if ident := self.identity.to_dict():
+            out["identity"] = ident
+        return out
 
 
 @dataclass(frozen=True)
 class DrivesConfig:
-    """Each drive's device file (the optional ``[drives]`` table): ``device_file`` for every
-    drive (``default_file``), ``[drives.MOTOR]`` ``device_file`` for one rope motor's
-    (``motor_files``); a relative path is taken from the box file's folder; none given:
-    hrm's own EDS (:func:`drivers.eds_path`).
+    """Each drive's device file, SDO overlay and expected identity (the optional
+    ``[drives]`` table): ``device_file``, ``sdo`` and ``identity`` for every drive
+    (``default``), the same keys in ``[drives.MOTOR]`` for one rope motor's (``motors``);
+    a relative path is taken from the box file's folder; no file given: hrm's own EDS
+    (:func:`drivers.eds_path`).  A motor's table that names its own device file starts
+    afresh (the ``[drives]`` overlay and identity are the default device's); one that does
+    not adds its overlay and identity to the default's (its own values win).
 
     >>> d = DrivesConfig(motor_files={"j01r0": Path("/x/epos4.dcf")})
     >>> d.device_file("j01r0").name, d.device_file("j01r1").name
     ('epos4.dcf', 'hrm_drive.eds')
+    >>> d = DrivesConfig(
+    ...     default=DriveSpec(sdo=(SdoWrite(0x60A8, 0, 0xB50000),)),
+    ...     motors={"j01r0": DriveSpec(sdo=(SdoWrite(0x6091, 1, 2),))},
+    ... )
+    >>> [w.label for w in d.sdo_overlay("j01r0")], [w.label for w in d.sdo_overlay("j01r1")]
+    (['0x60A8:00', '0x6091:01'], ['0x60A8:00'])
     """
 
     default_file: Path | None = None
     motor_files: Mapping[str, Path] = field(default_factory=dict)
+    default: DriveSpec = DriveSpec()
+    motors: Mapping[str, DriveSpec] = field(default_factory=dict)
 
     def device_file(self, motor_id: str) -> Path:
-        """The device file of rope motor ``motor_id``'s drive."""
-        own = self.motor_files.get(motor_id)
+        """The device file of rope motor ``motor_id``'s drive (``motor_files`` or the
+        motor's :class:`DriveSpec`, else ``default_file`` or the default's, else hrm's)."""
+        own = self.motor_files.get(motor_id) or self.motors.get(motor_id, DriveSpec()).device_file
         if own is not None:
             return own
-        return eds_path() if self.default_file is None else self.default_file
+        default = self.default_file or self.default.device_file
+        return eds_path() if default is None else default
+
+    def _inherits(self, motor_id: str) -> bool:
+        own = self.motor_files.get(motor_id) or self.motors.get(motor_id, DriveSpec()).device_file
+        return own is None
+
+    def sdo_overlay(self, motor_id: str) -> tuple[SdoWrite, ...]:
+        """The SDO writes of ``motor_id``'s overlay, in the file's order (the motor's
+        own after the default's, one write per object)."""
+        own = self.motors.get(motor_id, DriveSpec()).sdo
+        base = self.default.sdo if self._inherits(motor_id) else ()
+        keys = {(w.index, w.sub) for w in own}
+        return tuple(w for w in base if (w.index, w.sub) not in keys) + own
+
+    def expected_identity(self, motor_id: str) -> ExpectedIdentity:
+        """The identity ``motor_id``'s drive must answer (every value None: unchecked)."""
+        own = self.motors.get(motor_id, DriveSpec()).identity
+        return own.over(self.default.identity) if self._inherits(motor_id) else own
 
     def to_dict(self) -> dict[str, Any]:
         """The ``[drives]`` table (absolute paths; empty when every drive is hrm's own)."""
-        out: dict[str, Any] = {}
-        if self.default_file is not None:
-            out["device_file"] = str(self.default_file)
-        for motor, path in self.motor_files.items():
-            out[motor] = {"device_file": str(path)}
+        out = replace(
+            self.default, device_file=self.default_file or self.default.device_file
+        ).to_dict()
+        for motor in {**self.motor_files, **self.motors}:
+            spec = self.motors.get(motor, DriveSpec())
+            own = self.motor_files.get(motor) or spec.device_file
+            out[motor] = replace(spec, device_file=own).to_dict()
         return out
 
 
@@ -724,35 +839,105 @@ def _device_file_path(value: Any, where: str, base_dir: Path | None) -> Path:
     return path.absolute()
 
 
+def _u32(value: Any, where: str) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= 0xFFFFFFFF:
+        raise BusConfigError(f"{where}: expected an integer 0..0xFFFFFFFF, got {value!r}")
+    return value
+
+
+def _sdo_overlay(doc: Any, where: str) -> tuple[SdoWrite, ...]:
+    """An ``sdo`` table: ``"0xIIII" = value`` or ``"0xIIII:SS" = value`` (sub-index hex)."""
+    if not isinstance(doc, Mapping):
+        raise BusConfigError(f'{where}: must be a table ("0x60A8" = 0x00B50000, ...)')
+    if len(doc) > MAX_SDO_OVERLAY:
+        raise BusConfigError(f"{where}: more than {MAX_SDO_OVERLAY} writes")
+    out: list[SdoWrite] = []
+    seen: set[tuple[int, int]] = set()
+    for key, value in doc.items():
+        m = _SDO_KEY.fullmatch(str(key))
+        w = f"{where}.{key}"
+        if m is None:
+            raise BusConfigError(
+                f'{w}: expected an object "0xIIII" or "0xIIII:SS" (index and sub-index in hex)'
+            )
+        index, sub = int(m.group(1), 16), int(m.group(2) or "0", 16)
+        if index < 0x1000:
+            raise BusConfigError(f"{w}: 0x{index:04X} is not an object (data types below 0x1000)")
+        if (index, sub) in seen:
+            raise BusConfigError(f"{w}: object given twice")
+        for bi, bs in BRINGUP_OBJECTS:
+            if index == bi and bs in (None, sub):
+                raise BusConfigError(
+                    f"{w}: hrm's bring-up writes 0x{index:04X} itself (from [control] and "
+                    "the rope layer's limits)"
+                )
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise BusConfigError(f"{w}: expected an integer value, got {value!r}")
+        if not -(2**63) <= value < 2**64:
+            raise BusConfigError(f"{w}: {value} outside 64 bits")
+        seen.add((index, sub))
+        out.append(SdoWrite(index, sub, value))
+    return tuple(out)
+
+
+def _identity(doc: Any, where: str) -> ExpectedIdentity:
+    if not isinstance(doc, Mapping):
+        raise BusConfigError(f"{where}: must be a table (vendor_id = 0x..., serial = ...)")
+    for key in doc:
+        if key not in IDENTITY_KEYS:
+            hint = unknown_key(str(key), frozenset(IDENTITY_KEYS))
+            raise BusConfigError(f"{where}.{key}: unknown key{hint}")
+    return ExpectedIdentity(
+        *(None if k not in doc else _u32(doc[k], f"{where}.{k}") for k in IDENTITY_KEYS)
+    )
+
+
+def _drive_spec(doc: Mapping[str, Any], where: str, base_dir: Path | None) -> DriveSpec:
+    """The keys of ``[drives]`` or of ``[drives.MOTOR]`` (``where``: that table's name)."""
+    return DriveSpec(
+        device_file=None
+        if "device_file" not in doc
+        else _device_file_path(doc["device_file"], f"{where}.device_file", base_dir),
+        sdo=() if "sdo" not in doc else _sdo_overlay(doc["sdo"], f"{where}.sdo"),
+        identity=ExpectedIdentity()
+        if "identity" not in doc
+        else _identity(doc["identity"], f"{where}.identity"),
+    )
+
+
 def _drives_from(
     doc: Any, where: str, motors: Mapping[str, Any], base_dir: Path | None
 ) -> DrivesConfig:
-    """The ``[drives]`` table: ``device_file`` for every drive, ``[drives.MOTOR]`` tables
-    (one per rope motor of the buses) for one."""
+    """The ``[drives]`` table: ``device_file``, ``sdo`` and ``identity`` for every drive,
+    ``[drives.MOTOR]`` tables (one per rope motor of the buses) for one."""
     if not isinstance(doc, Mapping):
         raise BusConfigError(f"{where}: [drives] must be a table")
-    default: Path | None = None
-    own: dict[str, Path] = {}
+    default = _drive_spec(
+        {k: v for k, v in doc.items() if k in DRIVE_KEYS}, f"{where}: drives", base_dir
+    )
+    own: dict[str, DriveSpec] = {}
     for key, value in doc.items():
         if key in DRIVE_KEYS:
-            default = _device_file_path(value, f"{where}: drives.{key}", base_dir)
-        elif key in motors:
+            continue
+        if key in motors:
             if not isinstance(value, Mapping):
                 raise BusConfigError(f"{where}: drives.{key}: must be a table (device_file = ...)")
             for sub in value:
                 if sub not in DRIVE_KEYS:
                     hint = unknown_key(str(sub), DRIVE_KEYS)
                     raise BusConfigError(f"{where}: drives.{key}.{sub}: unknown key{hint}")
-            if "device_file" in value:
-                own[str(key)] = _device_file_path(
-                    value["device_file"], f"{where}: drives.{key}.device_file", base_dir
-                )
+            own[str(key)] = _drive_spec(value, f"{where}: drives.{key}", base_dir)
         else:
             raise BusConfigError(
                 f"{where}: drives.{key}: neither a key of [drives] "
                 f"({', '.join(sorted(DRIVE_KEYS))}) nor a rope motor of the buses"
             )
-    return DrivesConfig(default_file=default, motor_files=own)
+    return DrivesConfig(
+        default_file=default.device_file,
+        motor_files={m: s.device_file for m, s in own.items() if s.device_file is not None},
+        default=default,
+        motors=own,
+    )
 
 
 def box_config_from_dict(

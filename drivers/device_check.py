@@ -35,11 +35,13 @@ heartbeat consumer 0x1016
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from drivers.bringup import DriveSetup
+from drivers.config import ExpectedIdentity, SdoWrite
 from drivers.protocol import cia301, cia402
 from drivers.protocol.cia306 import DeviceFile, ODEntry, read_device_file
 from drivers.protocol.pdo import PdoLayout
@@ -338,15 +340,25 @@ def _pdo_problems(f: DeviceFile, use: PdoUse, count: int) -> list[str]:
     return out
 
 
-def _unit_problem(f: DeviceFile) -> str | None:
+def _unit_problem(f: DeviceFile, overlay: Sequence[SdoWrite]) -> str | None:
+    """Why the drive's position unit (0x60A8, the file's or the overlay's value) is not
+    increments, or None."""
     e = f.entry(OD_SI_UNIT_POSITION)
-    value = f.value(OD_SI_UNIT_POSITION)
+    written = [w.value for w in overlay if (w.index, w.sub) == (OD_SI_UNIT_POSITION, 0)]
+    value = written[-1] if written else f.value(OD_SI_UNIT_POSITION)
     if e is None or not isinstance(value, int) or value == 0:
         return None
     if (value >> 16) & 0xFF == SI_INCREMENTS and (value >> 24) & 0xFF == 0:
         return None
+    if written:
+        return (
+            f"position unit 0x60A8 = 0x{value:08X} ({unit_text(value)}) in the SDO overlay, "
+            "not increments: hrm sends encoder counts"
+        )
     settable = (
-        "writable, but box.toml has no SDO overlay yet" if e.access.writable else "not writable"
+        'writable: an SDO overlay sets it, sdo = { "0x60A8" = 0x00B50000 }'
+        if e.access.writable
+        else "not writable"
     )
     return (
         f"position unit 0x60A8 = 0x{value:08X} ({unit_text(value)}), not increments: hrm sends "
@@ -354,9 +366,45 @@ def _unit_problem(f: DeviceFile) -> str | None:
     )
 
 
-def check_device(f: DeviceFile, period_s: float) -> DeviceVerdict:
-    """What device file ``f`` allows against what hrm needs at SYNC period ``period_s``."""
-    refusals: list[str] = _mode_problems(f)
+def overlay_problems(f: DeviceFile, overlay: Sequence[SdoWrite]) -> list[str]:
+    """Why the drive cannot take an SDO overlay's writes, by its file: an object it does
+    not have, not writable, not an integer, a value outside its type or its limits.
+
+    >>> from drivers import eds_path
+    >>> from drivers.config import SdoWrite
+    >>> from drivers.protocol.cia306 import read_device_file
+    >>> f = read_device_file(eds_path())
+    >>> for line in overlay_problems(f, (SdoWrite(0x6085, 0, -1), SdoWrite(0x1018, 1, 5))):
+    ...     print(line)
+    SDO overlay 0x6085:00 = -1: outside UNSIGNED32 (0..4294967295)
+    SDO overlay 0x1018:01 = 5: not writable (AccessType=ro)
+    """
+    out = []
+    for w in overlay:
+        what = f"SDO overlay {w.label} = {w.value}"
+        e = f.entry(w.index, w.sub)
+        if e is None:
+            out.append(f"{what}: no such object in the file")
+        elif not e.access.writable:
+            out.append(f"{what}: not writable (AccessType={e.access.value})")
+        elif not e.data_type.is_integer:
+            out.append(f"{what}: {e.data_type.name}, not an integer")
+        else:
+            lo, hi = e.data_type.int_range()
+            if not lo <= w.value <= hi:
+                out.append(f"{what}: outside {e.data_type.name} ({lo}..{hi})")
+            elif (e.low is not None and w.value < e.low) or (
+                e.high is not None and w.value > e.high
+            ):
+                out.append(f"{what}: outside the file's LowLimit..HighLimit ({e.low}..{e.high})")
+    return out
+
+
+def check_device(f: DeviceFile, period_s: float, overlay: Sequence[SdoWrite] = ()) -> DeviceVerdict:
+    """What device file ``f`` allows against what hrm needs at SYNC period ``period_s``,
+    with the SDO ``overlay`` the box configuration writes to it first."""
+    refusals: list[str] = overlay_problems(f, overlay)
+    refusals += _mode_problems(f)
     setting = interpolation_setting(f, period_s)
     if isinstance(setting, str):
         refusals.append(setting)
@@ -375,7 +423,7 @@ def check_device(f: DeviceFile, period_s: float) -> DeviceVerdict:
         problem = _writable_problem(f, index, sub)
         if problem:
             refusals.append(problem)
-    unit = _unit_problem(f)
+    unit = _unit_problem(f, overlay)
     if unit:
         refusals.append(unit)
     modes = f.value(cia402.OD_SUPPORTED_DRIVE_MODES)
@@ -413,15 +461,25 @@ class NodeCheck:
     node_id: int
     path: Path
     verdict: DeviceVerdict
+    overlay: tuple[SdoWrite, ...] = ()
+    identity: ExpectedIdentity = field(default_factory=ExpectedIdentity)
 
     @property
     def file(self) -> str:
         return self.path.name
 
+    @property
+    def setup(self) -> DriveSetup:
+        """What the bring-up writes and checks on this drive beyond the common settings:
+        the overlay, 0x60C2 in the drive's encoding, the identity it must answer."""
+        return DriveSetup(self.verdict.interpolation, self.overlay, self.identity)
+
     def lines(self) -> list[str]:
-        """One line per refusal, or one ``ok`` line with the layout hrm will use."""
+        """One line per refusal, or one ``ok`` line with the layout hrm will use (and the
+        SDO overlay's writes)."""
         if not self.verdict.refusals:
-            return [f"{self.motor}: {self.file}: ok: {self.verdict.ok_text()}"]
+            overlay = "".join(f"; {w.label} = {_hex(w.value)}" for w in self.overlay)
+            return [f"{self.motor}: {self.file}: ok: {self.verdict.ok_text()}{overlay}"]
         return [f"{self.motor}: {self.file}: {r}" for r in self.verdict.refusals]
 
     def to_dict(self) -> dict[str, Any]:
@@ -435,6 +493,8 @@ class NodeCheck:
             "refusals": list(v.refusals),
             "pdos": [p.to_dict() for p in v.pdos],
             "interpolation_time_period": None if v.interpolation is None else list(v.interpolation),
+            "sdo_overlay": {w.label: w.value for w in self.overlay},
+            "identity": self.identity.to_dict(),
             "file": dict(v.facts),
         }
 
@@ -463,6 +523,10 @@ class BoxCheck:
             "nodes": [n.to_dict() for n in self.nodes],
         }
 
+    def setups(self) -> dict[str, DriveSetup]:
+        """Each motor's :class:`drivers.bringup.DriveSetup` (for the bring-up)."""
+        return {n.motor: n.setup for n in self.nodes}
+
     def raise_if_refused(self) -> None:
         """:class:`DeviceCheckError` with the first refusal and the count, if any."""
         refusals = self.refusal_lines()
@@ -478,12 +542,28 @@ class BoxCheck:
 def check_box(config: BoxConfig) -> BoxCheck:
     """Every drive of ``config`` against its device file (each file read once);
     :class:`drivers.protocol.cia306.DeviceFileError` on a file that cannot be read."""
-    files: dict[Path, DeviceVerdict] = {}
+    files: dict[Path, DeviceFile] = {}
+    verdicts: dict[tuple[Path, tuple[SdoWrite, ...]], DeviceVerdict] = {}
     nodes = []
     for bus in config.buses:
         for motor, node_id in bus.nodes.items():
             path = config.drives.device_file(motor)
+            overlay = config.drives.sdo_overlay(motor)
             if path not in files:
-                files[path] = check_device(read_device_file(path), config.control.period_s)
-            nodes.append(NodeCheck(motor, bus.name, node_id, path, files[path]))
+                files[path] = read_device_file(path)
+            if (path, overlay) not in verdicts:
+                verdicts[(path, overlay)] = check_device(
+                    files[path], config.control.period_s, overlay
+                )
+            nodes.append(
+                NodeCheck(
+                    motor,
+                    bus.name,
+                    node_id,
+                    path,
+                    verdicts[(path, overlay)],
+                    overlay,
+                    config.drives.expected_identity(motor),
+                )
+            )
     return BoxCheck(config.source, tuple(nodes))

@@ -23,7 +23,7 @@ failure is raised as itself (its class and fields kept), logged in the event log
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import TypeVar
 
 import numpy as np
@@ -33,6 +33,8 @@ from drivers.bringup import (
     BootupError,
     DriveLink,
     DriveSettings,
+    DriveSetup,
+    check_identity,
     configure_drive,
     disable_unless_faulty,
     enable_operation,
@@ -44,6 +46,7 @@ from drivers.bringup import (
 )
 from drivers.config import ControlConfig
 from drivers.cycle import EventLog
+from drivers.identity import BoxIdentity
 from drivers.other_master import duplicate_boot_text
 from drivers.parallel import budget_s, run_parallel, sdo_transfer_s
 from drivers.protocol import cia402
@@ -80,7 +83,9 @@ class DriveGroup:
         control: ControlConfig,
         monitor: NodeMonitor,
         events: EventLog,
+        setups: Mapping[str, DriveSetup] | None = None,
     ) -> None:
+        self.setups = {} if setups is None else dict(setups)  # per motor, from its device file
         self.links = links
         self.slots = slots
         self.actuation = actuation
@@ -126,7 +131,22 @@ class DriveGroup:
             counts_max=int(act.counts_max[slot]),
             following_error_window_counts=ctl.following_error_window_counts,
             quick_stop_option_code=ctl.quick_stop_option_code,
+            setup=self.setups.get(link.motor, DriveSetup()),
         )
+
+    def check_identities(self, box: BoxIdentity) -> None:
+        """Every drive's identity (read at boot, ``box``) against the one its box
+        configuration expects (:func:`check_identity`), before anything is written; the
+        first mismatch raised (and logged)."""
+        for link in self.links:
+            expected = self.setups.get(link.motor, DriveSetup()).identity
+            found = box.drives[link.motor]
+            values = (found.vendor_id, found.product_code, found.revision, found.serial)
+            try:
+                check_identity(link, expected, values, box.simulated)
+            except DriverError as exc:
+                self.events.add("error", str(exc))
+                raise
 
     # ------------------------------------------------------------------ bring-up
     def await_bootup(self, reset_at: float, t_start: float) -> None:

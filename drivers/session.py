@@ -59,6 +59,7 @@ from drivers.bus import BusPort
 from drivers.busload import BusLoad, check_bus_load
 from drivers.config import BoxConfig
 from drivers.cycle import EventLog, StreamResult
+from drivers.device_check import check_box
 from drivers.drive_group import DriveGroup
 from drivers.identity import BoxIdentity, identify_box
 from drivers.interrupts import deferred_interrupts
@@ -144,6 +145,9 @@ class DriveSession:
         self.control = config.control
         self.events = EventLog()
         self.loads: list[BusLoad] = check_bus_load(config)
+        # each drive's overlay, 0x60C2 encoding and identity, from its device file (read
+        # before anything opens: open_box has checked them)
+        setups = check_box(config).setups()
         self.run_name = run_name or dt.datetime.now(dt.UTC).strftime("run-%Y%m%dT%H%M%S-%f")
         self.log_dir = None if log_dir is None else Path(log_dir)
         self.log_suffix = log_suffix
@@ -200,7 +204,9 @@ class DriveSession:
                 clock=clock,
             )
             self.supervisor.start()
-        self.drives = DriveGroup(self.wiring.links, self.slots, actuation, ctl, mon, self.events)
+        self.drives = DriveGroup(
+            self.wiring.links, self.slots, actuation, ctl, mon, self.events, setups
+        )
         self.realtime_granted = self.scheduling.realtime_granted
         self.cpu_latency = self.scheduling.hold_cpu_latency()  # while the session is open
         self._state = SessionState.CONNECTED
@@ -347,6 +353,7 @@ class DriveSession:
             self.drives.refuse_duplicate_nodes()
             raise
         self.record_extra["box"] = self.box_identity.to_dict()
+        self.drives.check_identities(self.box_identity)  # the configuration's, before any write
         self.drives.configure()
         self.send_nmt(cia301.NMT_START_REMOTE_NODE)
         self.events.add("nmt", "NMT start remote node sent on every bus")

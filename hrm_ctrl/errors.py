@@ -19,6 +19,7 @@ The whole tree, each class with the module that defines it::
      |    |    +-- SceneFileError           hrm_ctrl.formats.scene
      |    |    +-- PointCloudError          hrm_ctrl.formats.pointcloud
      |    |    +-- ScanFitError             hrm_ctrl.planning.scan
+     |    |    +-- DriveError               hrm_ctrl.drive.command
      |    +-- PlanFileError                 hrm_ctrl.errors
      |    +-- OverwriteInputError           hrm_ctrl.errors
      |    +-- PlotError                     hrm_ctrl.formats.plots

@@ -65,7 +65,7 @@ import enum
 import math
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -707,3 +707,99 @@ def canopen_dictionary(f: DeviceFile, node_id: int | None = None) -> canopen.Obj
         elif 0 in obj.entries:
             od.add_object(variable(obj.entries[0], obj.name))
     return od
+
+
+# ---------------------------------------------------------------- writing
+def _written(e: ODEntry, value: Value | None) -> str:
+    """A value as an EDS writes it: unsigned integers in hex, signed in decimal, a node-id
+    relative one as ``$NODEID+0x…``, reals and strings as they are."""
+    if value is None:
+        return ""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, float):
+        return repr(value)
+    if e.node_relative:
+        return f"$NODEID+0x{value:X}"
+    return str(value) if e.data_type.signed or value < 0 else f"0x{value:X}"
+
+
+def _entry_lines(e: ODEntry, name: str) -> list[str]:
+    lines = [
+        f"ParameterName={name}",
+        "ObjectType=0x7",
+        f"DataType=0x{int(e.data_type):04X}",
+        f"AccessType={e.access.value}",
+    ]
+    if e.low is not None:
+        lines.append(f"LowLimit={_written(replace(e, node_relative=False), e.low)}")
+    if e.high is not None:
+        lines.append(f"HighLimit={_written(replace(e, node_relative=False), e.high)}")
+    lines += [f"DefaultValue={_written(e, e.value)}", f"PDOMapping={int(e.pdo_mappable)}"]
+    return lines
+
+
+def format_device_file(f: DeviceFile, file_name: str) -> str:
+    """``f`` written out again as a plain CiA 306 EDS named ``file_name``: what this reader
+    took (a DCF's ``ParameterValue`` as the default, INTEGER8 ``0xFD`` as -3, hex
+    ``SupportedObjects`` in decimal, the object lists rebuilt, tool sections and
+    descriptions without a value left out), for a tool stricter than the standard (Lely's
+    ``dcfgen``).  Read back, it gives the same objects.
+
+    >>> from drivers import eds_path
+    >>> f = read_device_file(eds_path())
+    >>> again = parse_device_file(format_device_file(f, "hrm.eds"), "hrm.eds")
+    >>> again.objects == f.objects, again.device == f.device
+    (True, True)
+    """
+    d = f.device
+    info = [
+        ("VendorName", d.vendor_name), ("VendorNumber", d.vendor_number),
+        ("ProductName", d.product_name), ("ProductNumber", d.product_number),
+        ("RevisionNumber", d.revision_number), ("NrOfRxPDO", d.nr_of_rxpdo),
+        ("NrOfTxPDO", d.nr_of_txpdo), ("Granularity", d.granularity),
+    ]  # fmt: skip
+    lines = [
+        "[FileInfo]",
+        f"FileName={file_name}",
+        "FileVersion=1",
+        "FileRevision=0",
+        "EDSVersion=4.0",
+        f"Description={d.vendor_name} {d.product_name} (from {f.name})".replace("\n", " "),
+        "",
+        "[DeviceInfo]",
+        *(
+            f"{key}={f'0x{v:X}' if isinstance(v, int) and key.endswith('Number') else v}"
+            for key, v in info
+            if v is not None and v != ""
+        ),
+        "",
+    ]
+    objects = [o for i, o in sorted(f.objects.items()) if o.entries]
+    mandatory = [o.index for o in objects if o.index in (0x1000, 0x1001, 0x1018)]
+    manufacturer = [
+        o.index for o in objects if MANUFACTURER_INDICES[0] <= o.index <= MANUFACTURER_INDICES[1]
+    ]
+    optional = [o.index for o in objects if o.index not in {*mandatory, *manufacturer}]
+    for section, indices in (
+        ("MandatoryObjects", mandatory),
+        ("OptionalObjects", optional),
+        ("ManufacturerObjects", manufacturer),
+    ):
+        lines += [f"[{section}]", f"SupportedObjects={len(indices)}"]
+        lines += [f"{k}=0x{index:04X}" for k, index in enumerate(indices, start=1)]
+        lines.append("")
+    for obj in objects:
+        if obj.object_type in (ObjectType.ARRAY, ObjectType.RECORD):
+            lines += [
+                f"[{obj.index:04X}]",
+                f"ParameterName={obj.name}",
+                f"ObjectType=0x{int(obj.object_type):X}",
+                f"SubNumber={len(obj.entries)}",
+                "",
+            ]
+            for sub, e in sorted(obj.entries.items()):
+                lines += [f"[{obj.index:04X}sub{sub:X}]", *_entry_lines(e, e.name), ""]
+        else:
+            lines += [f"[{obj.index:04X}]", *_entry_lines(obj.entries[0], obj.name), ""]
+    return "\n".join(lines)

@@ -1,4 +1,6 @@
-"""``hrm box check``: every drive's device file against what hrm needs, before any bus opens.
+"""``hrm box check``: every drive's device file against what hrm needs, before any bus opens;
+``hrm box export --lely DIR``: the box as Lely ``dcfgen`` configurations
+(:mod:`drivers.lely_export`).
 
 One line per drive: ``MOTOR: FILE: ok: ...`` with the PDO layout hrm will use, or one
 line per refusal naming the object (``j03r1: 605.3150.68-B-EK-2-60.eds: no cyclic
@@ -12,17 +14,23 @@ that opens a box run it first (:func:`hrm_ctrl.runtime.box.open_box`).
 >>> args = p.parse_args(["check", "--json"])
 >>> args.action, args.json, args.config
 ('check', True, None)
+>>> p.parse_args(["export", "--lely", "out"]).lely
+PosixPath('out')
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 from hrm_ctrl.cli._common import load_box
 from hrm_ctrl.cli._options import add_bus, add_json
 
-HELP = "check every drive's device file (EDS/DCF) against what hrm needs, offline"
+HELP = (
+    "check every drive's device file (EDS/DCF) against what hrm needs, offline; export the "
+    "box for Lely's dcfgen"
+)
 
 EXIT_REFUSED = 2
 
@@ -36,11 +44,27 @@ def register(parser: argparse.ArgumentParser) -> None:
     )
     add_bus(check, overrides=False)  # --config
     add_json(check, "every drive's verdict")
+    export = actions.add_parser(
+        "export",
+        help="write the box as Lely dcfgen configurations: DIR/BUS/bus.yml and the device "
+        "files they name (a box hrm box check refuses is not exported)",
+    )
+    add_bus(export, overrides=False)  # --config
+    export.add_argument(
+        "--lely", type=Path, required=True, metavar="DIR", help="the folder to write into"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """Exit 0 when every drive's device file offers what hrm needs, 2 otherwise."""
     from drivers.device_check import check_box
+
+    if args.action == "export":
+        from drivers.lely_export import export_lely
+
+        for path in export_lely(load_box(args), args.lely):
+            print(path)
+        return 0
 
     report = check_box(load_box(args))
     if args.json:

@@ -14,7 +14,6 @@ from hrm_ctrl.errors import PathFileError
 from hrm_ctrl.files import write_atomic
 
 if TYPE_CHECKING:
-    from hrm_ctrl.planning.known_path import KnownPath
     from hrm_ctrl.planning.scan import ScanFit
 
 HELP = (
@@ -31,20 +30,6 @@ def register(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     add_robot(p)  # the path starts at the end nearest the robot's base
     add_json(p, "the fit")
-
-
-def path_csv(path: KnownPath) -> str:
-    """A path file (``x,y,z`` header, one point a line, mm) that ``load_path_csv`` reads.
-
-    >>> import numpy as np
-    >>> from hrm_ctrl.planning.known_path import KnownPath
-    >>> print(path_csv(KnownPath.from_points(np.array([[0, 0, 0], [1.5, 0, 2]], float))), end="")
-    x,y,z
-    0,0,0
-    1.5,0,2
-    """
-    rows = ["x,y,z", *(",".join(f"{v:.10g}" for v in p) for p in path.points)]
-    return "\n".join(rows) + "\n"
 
 
 def format_fit(fit: ScanFit, name: str) -> str:
@@ -68,6 +53,7 @@ def format_fit(fit: ScanFit, name: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from hrm_ctrl.model import load_robot
+    from hrm_ctrl.planning.known_path import path_csv
     from hrm_ctrl.planning.scan import read_scan
 
     refuse_overwriting_inputs(

@@ -255,3 +255,15 @@ def load_path_csv(path: str | Path) -> KnownPath:
             vals.append(v)
         pts.append(vals)
     return KnownPath.from_points(np.array(pts), source=str(p))
+
+
+def path_csv(path: KnownPath) -> str:
+    """A path file (``x,y,z`` header, one point a line, mm) that :func:`load_path_csv` reads.
+
+    >>> print(path_csv(KnownPath.from_points(np.array([[0, 0, 0], [1.5, 0, 2]], float))), end="")
+    x,y,z
+    0,0,0
+    1.5,0,2
+    """
+    rows = ["x,y,z", *(",".join(f"{v:.10g}" for v in p) for p in path.points)]
+    return "\n".join(rows) + "\n"

@@ -313,6 +313,9 @@ class _StepObjective:
         return (float(c.min()) if c is not None else 0.0) + mu * min(m, m_goal)
 
 
+StepObjective = _StepObjective  # the online planner's one step (hrm_ctrl/drive/online.py)
+
+
 def zoomed_link_minima(
     environment: FreeSpace, O: np.ndarray, t: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -376,8 +379,6 @@ def refine_step(
     """
     mu = opt.margin_weight_mm_per_deg * 180.0 / math.pi
     m_goal = math.radians(opt.margin_goal_deg)
-    band = opt.band_mm
-    nq = len(q0)
     q = np.clip(q0, lo, hi)
     tip, Jtip, c, Jc = f.evaluate(q)
     phi = f.score(c, q, mu, m_goal)
@@ -385,41 +386,14 @@ def refine_step(
     it = 0
     while it < opt.max_iterations:
         it += 1
-        rows: list[np.ndarray] = []
-        rhs: list[np.ndarray] = []
-        if c is not None and Jc is not None:
-            tau = min(float(c.min()) + band, f.cap)
-            act = c < tau
-            rows.append(Jc[act])
-            rhs.append(tau - c[act])
-            if opt.centring_weight > 0.0:  # the next lowest, gently: room for later steps
-                comfort = min(float(c.min()) + opt.comfort_mm, f.cap)
-                rest = ~act & (c < comfort)
-                rows.append(opt.centring_weight * Jc[rest])
-                rhs.append(opt.centring_weight * (comfort - c[rest]))
-        m = f.lim - np.abs(q)
-        low = m < m_goal + 1e-3
-        if low.any():
-            s = np.sign(q[low])
-            R = np.zeros((int(low.sum()), nq))
-            R[np.arange(len(s)), np.flatnonzero(low)] = -s * mu
-            rows.append(R)
-            rhs.append(mu * (m_goal + 1e-3 - m[low]))
-        if not rows:
+        normal = linearised_objective(f, q, c, Jc, opt)
+        if normal is None:
             break
-        A = np.vstack(rows)
-        b = np.concatenate(rhs)
-        H = A.T @ A
-        g = A.T @ b
+        H, g = normal
         e = target - tip
         improved = False
         for _ in range(opt.trials if it <= opt.patient_iterations else 1):
-            K = np.zeros((nq + 3, nq + 3))
-            K[:nq, :nq] = H + lam * np.eye(nq)
-            K[:nq, nq:] = Jtip.T
-            K[nq:, :nq] = Jtip
-            sol = np.linalg.solve(K, np.r_[g, e])
-            q_new = np.clip(q + sol[:nq], lo, hi)
+            q_new = kkt_step(H, g, Jtip, e, lam, q, lo, hi)
             tip_n, Jtip_n, c_n, Jc_n = f.evaluate(q_new)
             phi_n = f.score(c_n, q_new, mu, m_goal)
             if phi_n > phi + 1e-9:
@@ -433,6 +407,70 @@ def refine_step(
             break
     f.last = (q.copy(), c)
     return q, it
+
+
+def linearised_objective(
+    f: _StepObjective,
+    q: np.ndarray,
+    c: np.ndarray | None,
+    Jc: np.ndarray | None,
+    opt: RefineOptions,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The normal equations ``(A^T A, A^T b)`` of one Gauss-Newton iteration of
+    :func:`refine_step` at ``q``: the clearances within ``band_mm`` of the worst pushed to
+    worst + band (and, with ``centring_weight``, the next lowest gently to ``comfort_mm``),
+    the margins below the goal pushed to the goal, weighted by mu; None when nothing is
+    to be gained."""
+    mu = opt.margin_weight_mm_per_deg * 180.0 / math.pi
+    m_goal = math.radians(opt.margin_goal_deg)
+    nq = len(q)
+    rows: list[np.ndarray] = []
+    rhs: list[np.ndarray] = []
+    if c is not None and Jc is not None:
+        tau = min(float(c.min()) + opt.band_mm, f.cap)
+        act = c < tau
+        rows.append(Jc[act])
+        rhs.append(tau - c[act])
+        if opt.centring_weight > 0.0:  # the next lowest, gently: room for later steps
+            comfort = min(float(c.min()) + opt.comfort_mm, f.cap)
+            rest = ~act & (c < comfort)
+            rows.append(opt.centring_weight * Jc[rest])
+            rhs.append(opt.centring_weight * (comfort - c[rest]))
+    m = f.lim - np.abs(q)
+    low = m < m_goal + 1e-3
+    if low.any():
+        s = np.sign(q[low])
+        R = np.zeros((int(low.sum()), nq))
+        R[np.arange(len(s)), np.flatnonzero(low)] = -s * mu
+        rows.append(R)
+        rhs.append(mu * (m_goal + 1e-3 - m[low]))
+    if not rows:
+        return None
+    A = np.vstack(rows)
+    b = np.concatenate(rhs)
+    return A.T @ A, A.T @ b
+
+
+def kkt_step(
+    H: np.ndarray,
+    g: np.ndarray,
+    Jtip: np.ndarray,
+    e: np.ndarray,
+    lam: float,
+    q: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+) -> np.ndarray:
+    """The damped least-squares step of :func:`linearised_objective`'s problem subject to
+    ``Jtip dq = e`` (the tip onto its target, a KKT system of 24 + 3), clipped to
+    [lo, hi]."""
+    nq = len(q)
+    K = np.zeros((nq + 3, nq + 3))
+    K[:nq, :nq] = H + lam * np.eye(nq)
+    K[:nq, nq:] = Jtip.T
+    K[nq:, :nq] = Jtip
+    sol = np.linalg.solve(K, np.r_[g, e])
+    return np.clip(q + sol[:nq], lo, hi)
 
 
 def refine_angles(

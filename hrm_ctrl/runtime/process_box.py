@@ -204,7 +204,13 @@ def box_toml(config: BoxConfig) -> str:
     >>> own = box_config_from_dict({**cfg.to_dict(), "drives": drives}, "x")
     >>> box_config_from_dict(tomllib.loads(box_toml(own)), "again").drives == own.drives
     True
+    >>> drives = {"sdo": {"0x60A8": 0xB50000}, "j01r0": {"identity": {"serial": 7}}}
+    >>> own = box_config_from_dict({**cfg.to_dict(), "drives": drives}, "x")
+    >>> box_config_from_dict(tomllib.loads(box_toml(own)), "again").drives == own.drives
+    True
     """
+    from drivers.config import DRIVE_KEYS
+
     doc = config.to_dict()
     lines = ["[control]"]
     lines += [f"{k} = {json.dumps(v)}" for k, v in doc["control"].items() if v is not None]
@@ -216,15 +222,24 @@ def box_toml(config: BoxConfig) -> str:
             lines += [f"{k} = {json.dumps(v)}" for k, v in b["options"].items()]
         lines += [f"[buses.{name}.nodes]"]
         lines += [f"{k} = {v}" for k, v in b["nodes"].items()]
-    drives = doc.get("drives", {})  # each drive's device file (absolute paths)
+    drives = doc.get("drives", {})  # each drive's device file (absolute paths), overlay, identity
     if drives:
         lines += ["[drives]"]
-        lines += [f"{k} = {json.dumps(v)}" for k, v in drives.items() if not isinstance(v, dict)]
+        lines += [f"{k} = {_toml_value(v)}" for k, v in drives.items() if k in DRIVE_KEYS]
         for motor, table in drives.items():
-            if isinstance(table, dict):
+            if motor not in DRIVE_KEYS:
                 lines += [f"[drives.{motor}]"]
-                lines += [f"{k} = {json.dumps(v)}" for k, v in table.items()]
+                lines += [f"{k} = {_toml_value(v)}" for k, v in table.items()]
     return "\n".join(lines) + "\n"
+
+
+def _toml_value(value: Any) -> str:
+    """A TOML value: a table inline (``{ "0x60A8" = 11862016 }``), else as JSON writes it."""
+    if isinstance(value, dict):
+        return (
+            "{ " + ", ".join(f"{json.dumps(k)} = {_toml_value(v)}" for k, v in value.items()) + " }"
+        )
+    return json.dumps(value)
 
 
 @contextmanager

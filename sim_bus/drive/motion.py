@@ -5,7 +5,8 @@ On each SYNC the applied target (clamped to the software position limits
 period (0x60C2) with the drive's velocity and acceleration limits; quick stop
 and fault reaction ramp down with the quick-stop deceleration, and every other
 state holds the motor (brake).  A following error beyond 0x6065 faults the
-drive with EMCY 0x8611.  Mode 8 (CSP) is the only motion mode (0x6502).
+drive with EMCY 0x8611.  Mode 8 (CSP) is the only motion mode; 0x6060 takes the modes the
+device file declares in 0x6502 (the others: abort 0x06090030, as a real drive answers).
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ if TYPE_CHECKING:
 
 State = cia402.State402
 
-SUPPORTED_MODES = (0, cia402.MODE_CSP)
 FOLLOWING_ERROR_WINDOW_OFF = 0xFFFFFFFF  # 0x6065 = UNSIGNED32 max: no following error check
 DEFAULT_INTERPOLATION_PERIOD_S = 0.01  # used while 0x60C2 holds no positive period
 
@@ -145,5 +145,17 @@ class CspMotion:
 
     # ---------------------------------------------------------------- objects
     def check_write(self, index: int, sub: int, value: int) -> None:
-        if index == cia402.OD_MODES_OF_OPERATION and value not in SUPPORTED_MODES:
+        if index == cia402.OD_MODES_OF_OPERATION and not self.mode_supported(value):
             raise SdoAbort(cia301.SDO_ABORT_INVALID_VALUE)
+
+    def mode_supported(self, mode: int) -> bool:
+        """Whether the drive takes mode of operation ``mode``: no mode (0), or one its device
+        file declares in 0x6502 (bit n: mode n + 1; a file without 0x6502: CSP only).  The
+        simulated motor moves in CSP only; in another declared mode it holds."""
+        return mode == 0 or (1 <= mode <= 32 and self._declared_modes() >> (mode - 1) & 1 == 1)
+
+    def _declared_modes(self) -> int:
+        values = self._od.values
+        key = (cia402.OD_SUPPORTED_DRIVE_MODES, 0)
+        declared = values.get(key)
+        return int(declared) if isinstance(declared, int) else 1 << (cia402.MODE_CSP - 1)

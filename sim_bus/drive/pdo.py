@@ -209,7 +209,8 @@ class PdoService:
             if not od.int_value(comm, 1) & cia301.PDO_COB_ID_INVALID:
                 raise SdoAbort(cia301.SDO_ABORT_UNSUPPORTED_ACCESS)
             if sub == 0:
-                if value > MAX_MAPPED_OBJECTS:
+                entries = sum(1 for i, k in od.objects if i == index and k >= 1)
+                if value > min(MAX_MAPPED_OBJECTS, entries):  # the device file's entries
                     raise SdoAbort(cia301.SDO_ABORT_PDO_LENGTH)
                 total = 0
                 for k in range(1, value + 1):

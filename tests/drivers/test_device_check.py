@@ -25,7 +25,7 @@ PINNED: dict[str | None, list[str]] = {
     "epos4_50_15_can_ec90flat_gp52c_mile800_node1.dcf": [OK],
     "C5-E-2-09.eds": [
         "position unit 0x60A8 = 0xFF410000 (10^-1 degree), not increments: hrm sends encoder "
-        "counts (writable, but box.toml has no SDO overlay yet)"
+        'counts (writable: an SDO overlay sets it, sdo = { "0x60A8" = 0x00B50000 })'
     ],
     "epos2_347717.eds": [
         "0x6502 (supported drive modes) has no value in the file: cyclic synchronous position "
@@ -138,3 +138,97 @@ def test_hostile_device_file_named_in_the_box_is_one_line(tmp_path: Path) -> Non
     assert str(info.value) == f"{tmp_path / 'bad.eds'}: [6502] DataType: unknown data type 0x0099"
     with pytest.raises(DeviceFileError, match=r"none\.eds: device file not found"):
         check_box(load_box_config(_box(tmp_path, '[drives]\ndevice_file = "none.eds"\n')))
+
+
+C5E = VENDOR / "C5-E-2-09.eds"
+EPOS4 = VENDOR / "epos4_50_15_can_ec90flat_gp52c_mile800_node1.dcf"
+
+
+def test_an_sdo_overlay_setting_increments_makes_the_c5e_ok(tmp_path: Path) -> None:
+    box = _box(tmp_path, f'[drives]\ndevice_file = "{C5E}"\nsdo = {{ "0x60A8" = 0x00B50000 }}\n')
+    report = check_box(load_box_config(box))
+    assert not report.refused
+    assert report.lines()[0] == f"j01r0: C5-E-2-09.eds: {OK}; 0x60A8:00 = 0xB50000"
+    setup = report.setups()["j01r0"]
+    assert [(w.index, w.sub, w.value) for w in setup.sdo] == [(0x60A8, 0, 0x00B50000)]
+    assert setup.interpolation == (10, -3)
+    node = report.to_dict()["nodes"][0]
+    assert node["sdo_overlay"] == {"0x60A8:00": 0x00B50000} and node["identity"] == {}
+
+
+@pytest.mark.parametrize(
+    ("sdo", "expected"),
+    [
+        (
+            '{ "0x60A8" = 0x00410000 }',
+            "position unit 0x60A8 = 0x00410000 (degree) in the SDO overlay, not increments: "
+            "hrm sends encoder counts",
+        ),
+        ('{ "0x2FFF:3" = 1 }', "SDO overlay 0x2FFF:03 = 1: no such object in the file"),
+        ('{ "0x1018:1" = 1 }', "SDO overlay 0x1018:01 = 1: not writable (AccessType=ro)"),
+        ('{ "0x6085" = -5 }', "SDO overlay 0x6085:00 = -5: outside UNSIGNED32 (0..4294967295)"),
+    ],
+)
+def test_an_overlay_the_file_does_not_allow_is_refused(
+    tmp_path: Path, sdo: str, expected: str
+) -> None:
+    box = _box(tmp_path, f'[drives]\ndevice_file = "{C5E}"\nsdo = {sdo}\n')
+    lines = check_box(load_box_config(box)).refusal_lines()
+    assert f"j01r0: C5-E-2-09.eds: {expected}" in lines, lines
+
+
+def test_overlay_and_identity_per_device_and_per_node(tmp_path: Path) -> None:
+    box = _box(
+        tmp_path,
+        f'[drives]\ndevice_file = "{C5E}"\n'
+        'sdo = { "0x60A8" = 0x00B50000, "0x6091:1" = 1 }\n'
+        "identity = { vendor_id = 0x26C, product_code = 17 }\n"
+        '[drives.j01r1]\nsdo = { "0x6091:01" = 2 }\nidentity = { serial = 0x1234 }\n',
+    )
+    drives = load_box_config(box).drives
+    assert [(w.label, w.value) for w in drives.sdo_overlay("j01r0")] == [
+        ("0x60A8:00", 0xB50000), ("0x6091:01", 1)
+    ]  # fmt: skip
+    assert [(w.label, w.value) for w in drives.sdo_overlay("j01r1")] == [
+        ("0x60A8:00", 0xB50000), ("0x6091:01", 2)
+    ]  # fmt: skip
+    assert drives.expected_identity("j01r1").values() == (0x26C, 17, None, 0x1234)
+    assert drives.expected_identity("j01r0").values() == (0x26C, 17, None, None)
+    cfg = load_box_config(box)
+    assert cfg.with_control(rate_hz=200).drives == cfg.drives  # through to_dict and back
+
+
+def test_a_node_with_its_own_device_file_does_not_take_the_default_overlay(
+    tmp_path: Path,
+) -> None:
+    box = _box(
+        tmp_path,
+        f'[drives]\ndevice_file = "{C5E}"\nsdo = {{ "0x60A8" = 0x00B50000 }}\n'
+        "identity = { product_code = 17 }\n"
+        f'[drives.j01r1]\ndevice_file = "{EPOS4}"\n',
+    )
+    drives = load_box_config(box).drives
+    assert drives.sdo_overlay("j01r1") == () and drives.expected_identity("j01r1").values() == (
+        None, None, None, None
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("drives", "expected"),
+    [
+        ("[drives]\nsdo = 1\n", 'drives.sdo: must be a table ("0x60A8" = 0x00B50000, ...)'),
+        ('[drives]\nsdo = { "60A8" = 1 }\n', 'drives.sdo.60A8: expected an object "0xIIII"'),
+        ('[drives]\nsdo = { "0x0007" = 1 }\n', "drives.sdo.0x0007: 0x0007 is not an object"),
+        ('[drives]\nsdo = { "0x6085" = "fast" }\n', "drives.sdo.0x6085: expected an integer"),
+        ('[drives]\nsdo = { "0x6085" = 1, "0x6085:0" = 2 }\n', "0x6085:0: object given twice"),
+        ('[drives]\nsdo = { "0x60C2:1" = 1 }\n', "hrm's bring-up writes 0x60C2 itself"),
+        ('[drives]\nsdo = { "0x1600:1" = 1 }\n', "hrm's bring-up writes 0x1600 itself"),
+        ("[drives]\nidentity = { vendor = 1 }\n", "drives.identity.vendor: unknown key"),
+        ("[drives]\nidentity = { serial = -1 }\n", "drives.identity.serial: expected an integer"),
+        ("[drives.j01r0]\nidentity = 3\n", "drives.j01r0.identity: must be a table"),
+    ],
+)
+def test_bad_overlay_or_identity_one_line(tmp_path: Path, drives: str, expected: str) -> None:
+    with pytest.raises(BusConfigError) as info:
+        load_box_config(_box(tmp_path, drives))
+    assert expected in str(info.value) and "\n" not in str(info.value)

@@ -1,0 +1,205 @@
+"""Boxes of vendor drives on the simulator: each simulated drive has its device file's
+object dictionary; the bring-up writes the SDO overlay first, remaps the PDOs in CiA 301's
+order within the file's limits, writes 0x60C2 in the drive's encoding and refuses a drive
+whose identity is not the configuration's before anything is written; a jog streams."""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+
+from drivers.bringup import IdentityMismatchError
+from drivers.config import BoxConfig, box_config_from_dict
+from drivers.protocol import cia301
+from drivers.safety.subset import ActuationSubset
+from drivers.session import DriveSession
+from drivers.sources import JogSource
+from hrm_ctrl.ropes.actuation import Actuation
+from sim_bus.box import SimBox
+from sim_bus.drive import DriveSim
+from sim_bus.in_process import IN_PROCESS_MISSING_TPDO_CYCLES
+from tests.drivers.driver_rig import RIG_LISTEN_S, Sniffer
+
+VENDOR = Path(__file__).parent / "vendor_eds"
+EPOS4 = VENDOR / "epos4_50_15_can_ec90flat_gp52c_mile800_node1.dcf"
+C5E = VENDOR / "C5-E-2-09.eds"
+FAULHABER = VENDOR / "605.3150.68-B-EK-2-60.eds"
+NODES = {"j01r0": 1, "j01r1": 2, "j01r2": 3}
+UNIT_INCREMENTS = {"sdo": {"0x60A8": 0x00B50000}}  # the C5-E counts in 0.1 deg by default
+
+#: The CSP-capable files: (device file, the rest of the [drives] table)
+CSP_BOXES: dict[str, dict[str, Any]] = {
+    "hrm_drive.eds": {},
+    "epos4": {"device_file": str(EPOS4)},
+    "c5-e": {"device_file": str(C5E), **UNIT_INCREMENTS},
+}
+
+
+@dataclass
+class VendorRig:
+    config: BoxConfig
+    sim: SimBox
+    sniffer: Sniffer
+    limits: ActuationSubset
+
+    def session(self) -> DriveSession:
+        return DriveSession(
+            self.config, self.limits, listen_s=RIG_LISTEN_S, allow_uncalibrated=True
+        )
+
+    def sdo_downloads(self, node: int) -> list[tuple[int, int, int]]:
+        """(index, sub, value) of every expedited SDO download request to ``node``."""
+        return [
+            (m.data[1] | m.data[2] << 8, m.data[3], int.from_bytes(m.data[4:8], "little"))
+            for m in self.sniffer.snapshot()
+            if m.arbitration_id == cia301.COB_SDO_RX + node and m.data[0] & 0xE0 == 0x20
+        ]
+
+
+@pytest.fixture
+def vendor_rig(actuation: Actuation) -> Iterator[Any]:
+    opened: list[Any] = []
+
+    def make(drives: dict[str, Any]) -> VendorRig:
+        channel = f"hrm-vendor-{uuid.uuid4().hex[:12]}"
+        doc: dict[str, Any] = {
+            "control": {
+                "bootup_timeout_s": 2.0,
+                "missing_tpdo_cycles": IN_PROCESS_MISSING_TPDO_CYCLES,
+            },
+            "buses": {
+                "bus0": {
+                    "interface": "virtual",
+                    "channel": channel,
+                    "bitrate": 1_000_000,
+                    "nodes": dict(NODES),
+                }
+            },
+        }
+        if drives:
+            doc["drives"] = drives
+        config = box_config_from_dict(doc, "<vendor rig>")
+        sim = SimBox(config, actuation=actuation)
+        sim.start()
+        opened.append(sim.stop)
+        bus = can.Bus(interface="virtual", channel=channel)
+        sniffer = Sniffer()
+        notifier = can.Notifier(bus, [sniffer], 0.05)
+        opened.extend([bus.shutdown, lambda: notifier.stop(1.0)])
+        return VendorRig(config, sim, sniffer, ActuationSubset(actuation, tuple(NODES)))
+
+    yield make
+    for fn in reversed(opened):
+        fn()
+
+
+def _remap(comm: int, cob: int, entries: tuple[int, ...]) -> list[tuple[int, int, int]]:
+    """CiA 301's remapping sequence: COB-ID invalid, transmission type, number of entries
+    0, the entries, their number, COB-ID valid."""
+    mapping = comm + 0x200
+    return [
+        (comm, 1, cob | 0x80000000), (comm, 2, 1), (mapping, 0, 0),
+        *[(mapping, k, e) for k, e in enumerate(entries, start=1)],
+        (mapping, 0, len(entries)), (comm, 1, cob),
+    ]  # fmt: skip
+
+
+@pytest.mark.parametrize("name", list(CSP_BOXES))
+def test_a_box_of_csp_drives_brings_up_by_its_file_and_streams(vendor_rig: Any, name: str) -> None:
+    rig: VendorRig = vendor_rig(CSP_BOXES[name])
+    drive: DriveSim = rig.sim.drives["j01r1"]
+    start = drive.position_counts
+    with rig.session() as box:
+        box.bring_up()  # configured and enabled
+        result = box.stream(JogSource(rig.limits, "j01r1", 20_000.0, 0.2))
+        assert result.completed
+        box.finish()
+    assert drive.position_counts - start == pytest.approx(4000, abs=200)  # 20000/s x 0.2 s
+    writes = rig.sdo_downloads(2)
+    overlay = [(0x60A8, 0, 0x00B50000)] if name == "c5-e" else []
+    assert writes[: len(overlay)] == overlay  # the overlay first
+    pdo = [w for w in writes if w[0] in (0x1400, 0x1600, 0x1800, 0x1A00)]
+    assert pdo == _remap(0x1400, 0x202, (0x60400010, 0x607A0020)) + _remap(
+        0x1800, 0x182, (0x60410010, 0x60640020)
+    )
+    assert [w for w in writes if w[0] == 0x60C2] == [(0x60C2, 1, 10), (0x60C2, 2, 0xFD)]
+    assert drive.interpolation_period_s == pytest.approx(0.01)
+
+
+def test_0x60c2_is_written_in_the_encoding_the_device_file_allows(vendor_rig: Any) -> None:
+    """The bring-up writes the setup's 0x60C2 (the check's, from the drive's limits), not
+    hrm's own encoding: 1 x 10^-2 s here, which the simulated drive reads as 10 ms."""
+    rig: VendorRig = vendor_rig({"device_file": str(EPOS4)})
+    with rig.session() as box:
+        box.drives.setups = {
+            m: replace(s, interpolation=(1, -2)) for m, s in box.drives.setups.items()
+        }
+        box.bring_up()
+    assert [w for w in rig.sdo_downloads(1) if w[0] == 0x60C2] == [
+        (0x60C2, 1, 1), (0x60C2, 2, 0xFE)
+    ]  # fmt: skip
+    assert rig.sim.drives["j01r0"].interpolation_period_s == pytest.approx(0.01)
+
+
+@pytest.mark.parametrize(
+    ("identity", "expected"),
+    [
+        ({"product_code": 0x12345678}, "0x1018:02 (product code) expected 0x12345678, found"),
+        ({"revision": 1}, "0x1018:03 (revision) expected 0x00000001, found 0x07F70000"),
+    ],
+)
+def test_an_identity_other_than_the_configuration_is_refused_before_any_write(
+    vendor_rig: Any, identity: dict[str, int], expected: str
+) -> None:
+    rig: VendorRig = vendor_rig({"device_file": str(C5E), **UNIT_INCREMENTS, "identity": identity})
+    with rig.session() as box, pytest.raises(IdentityMismatchError) as info:
+        box.bring_up()
+    text = str(info.value)
+    assert text.startswith("j01r0 (bus bus0 node 1): identity ") and expected in text
+    assert text.endswith(": not the drive the box configuration names; nothing written")
+    assert all(rig.sdo_downloads(n) == [] for n in NODES.values())  # no SDO write at all
+
+
+def test_the_identity_the_file_gives_passes(vendor_rig: Any) -> None:
+    """The C5-E's product code and revision (the simulated drive answers its file's); the
+    vendor-ID is not compared on a simulated box (its drives answer 0)."""
+    identity = {"vendor_id": 0x26C, "product_code": 17, "revision": 133627904}
+    rig: VendorRig = vendor_rig({"device_file": str(C5E), **UNIT_INCREMENTS, "identity": identity})
+    with rig.session() as box:
+        box.bring_up()
+    assert rig.sdo_downloads(1)[0] == (0x60A8, 0, 0x00B50000)
+
+
+def test_a_simulated_drive_refuses_the_modes_its_file_does_not_declare() -> None:
+    from sim_bus.drive.objects import SdoAbort
+
+    faulhaber = DriveSim(5, lambda m: None, eds=FAULHABER)
+    with pytest.raises(SdoAbort) as info:
+        faulhaber.check_write(0x6060, 0, 8)  # CSP: not in its 0x6502 (PP, PV, HM)
+    assert info.value.code == cia301.SDO_ABORT_INVALID_VALUE
+    faulhaber.check_write(0x6060, 0, 1)  # PP: declared
+    epos4 = DriveSim(5, lambda m: None, eds=EPOS4)
+    epos4.check_write(0x6060, 0, 8)
+    with pytest.raises(SdoAbort):
+        epos4.check_write(0x6060, 0, 7)  # IP: the EPOS4 declares PP, PV, HM, CSP, CSV, CST
+
+
+def test_a_simulated_drive_maps_no_more_entries_than_its_file_has() -> None:
+    from sim_bus.drive.objects import SdoAbort
+
+    faulhaber = DriveSim(5, lambda m: None, eds=FAULHABER)  # 4 entries a PDO
+    faulhaber.od.write((0x1400, 1), 0x80000205)
+    for k in range(1, 5):
+        faulhaber.od.write((0x1600, k), 0x60400010)
+    faulhaber.od.write((0x1600, 0), 0)
+    with pytest.raises(SdoAbort) as info:
+        faulhaber.check_write(0x1600, 0, 5)
+    assert info.value.code == cia301.SDO_ABORT_PDO_LENGTH
+    with pytest.raises(SdoAbort):
+        faulhaber.od.lookup(0x1600, 5)
