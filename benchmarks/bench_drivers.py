@@ -211,12 +211,17 @@ class BoxProcess:
     its ``ready`` line, told ``quit`` at the end (killed if it does not go)."""
 
     def __init__(
-        self, config_path: Path, rt_priority: int = 0, cpus: frozenset[int] | None = None
+        self,
+        config_path: Path,
+        rt_priority: int = 0,
+        cpus: frozenset[int] | None = None,
+        physics: str | None = None,
     ) -> None:
         # the whole box under SCHED_FIFO (every thread of it: what holds its interpreter
         # lock too) with ``chrt``, as a drive's firmware runs in real time; 0: normal
         chrt = ["chrt", "-f", str(rt_priority)] if rt_priority > 0 else []
         on = [] if cpus is None else ["--cpus", cpu_list(cpus)]
+        on += [] if physics is None else ["--physics", physics]  # the arm's (sim_bus.physics)
         self.proc = subprocess.Popen(
             [*chrt, sys.executable, "-m", "hrm_ctrl.cli", "sim", "--config", str(config_path),
              "--control", *on],
@@ -285,6 +290,7 @@ def run(
     cpus: tuple[frozenset[int], frozenset[int]] | str | None = "auto",
     stall_probe: bool = False,
     cpu_latency_us: int | None = None,
+    box_physics: str | None = None,
 ) -> dict[str, Any]:
     """One benchmark run (what ``main`` prints; the soak test asserts on it).  ``cpus``:
     (host, box) CPU sets for a box process (the host's session threads and the box kept
@@ -297,7 +303,9 @@ def run(
     work = Path(tempfile.mkdtemp(prefix="bench_drivers_")) if work is None else work
     if box_process:
         kwargs = wire_config(work / f"box_{wire}.toml", cfg, wire)
-        box_ctx: Any = BoxProcess(work / f"box_{wire}.toml", box_rt_priority, box_cpus)
+        box_ctx: Any = BoxProcess(
+            work / f"box_{wire}.toml", box_rt_priority, box_cpus, physics=box_physics
+        )
     else:
         from sim_bus.box import SimBox
 
@@ -410,6 +418,7 @@ def run(
         "machine": machine(),
         "loadavg": Path("/proc/loadavg").read_text().split()[:3],
         "setup": {
+            "box_physics": box_physics,
             "drives": len(act.motor_ids),
             "buses": len(cfg.buses),
             "box": f"own process (hrm sim), wire {wire}"
@@ -770,6 +779,12 @@ def main() -> None:
     )
     ap.add_argument("--wire", choices=WIRES, default="ipc", help="with --box-process (ipc)")
     ap.add_argument(
+        "--box-physics",
+        default=None,
+        metavar="EFFECTS",
+        help="with --box-process: the simulated arm's physics (hrm sim --physics; default none)",
+    )
+    ap.add_argument(
         "--sim-process", action="store_true", help="= --box-process --wire udp_multicast"
     )
     ap.add_argument("--no-reference", action="store_true", help="skip the canopen reference cycle")
@@ -853,6 +868,7 @@ def _run_from(args: argparse.Namespace, duration: float) -> dict[str, Any]:
         cpus=_cpus_arg(args.cpus),
         stall_probe=args.stall_probe or args.soak,
         cpu_latency_us=args.cpu_latency_us,
+        box_physics=args.box_physics,
     )
 
 

@@ -42,6 +42,7 @@ The whole tree, each class with the module that defines it::
      |    |    +-- SdoError                 drivers.bringup
      |    |    +-- StateTimeoutError        drivers.bringup
      |    |    +-- BootupError              drivers.bringup
+     |    |    +-- IdentityMismatchError    drivers.bringup
      |    |    +-- SetpointError            drivers.safety.limits
      |    |    +-- SupervisorModeError      drivers.safety.supervisor
      |    |    +-- SessionStateError        drivers.lifecycle
@@ -61,6 +62,7 @@ The whole tree, each class with the module that defines it::
      |    |    +-- WireConfigError          sim_bus.wire
      |    |    +-- FaultSpecError           sim_bus.faults
      |    |    +-- TruthFileError           sim_bus.truth
+     |    |    +-- PhysicsSpecError         sim_bus.physics
      |    +-- CalibrationError              hrm_ctrl.errors
      |         +-- CalibrationDataError     hrm_ctrl.errors
      |         +-- UnobservableError        hrm_ctrl.errors

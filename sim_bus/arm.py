@@ -41,6 +41,17 @@ explains.)
 A snapped rope carries no tension and its joint drifts away from it (the other ropes of
 the joint pull it) at ``snap_drift_rad_per_s`` until the joint limit (not in the fixture).
 
+With ``physics`` (:class:`sim_bus.physics.Physics`, any effect on) the arm is instead the
+quasi-static equilibrium of its elastic ropes and its loads at every state
+(``sim_bus.statics``): gravity on the link masses and the payload (``sim_bus.gravity``),
+capstan friction where the ropes bend through the joints (``sim_bus.capstan``), rope creep
+(``sim_bus.creep``), play in the joints (``sim_bus.backlash``) and the tension sensors'
+offset drift (``sim_bus.sensor_drift``), each switchable.  Those effects have memory (the
+friction's direction, the creep, the play): each state continues from the previous one,
+so states are asked for in time order (the box does, at the tension board's rate).  A
+snapped rope then pulls nothing and its joint turns away from it as the equilibrium
+says.  ``physics=None`` (the default) is the arm above, unchanged.
+
 >>> import numpy as np
 >>> from hrm_ctrl.model import default_robot
 >>> from hrm_ctrl.ropes.actuation import load_actuation
@@ -61,6 +72,7 @@ True
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,7 +81,17 @@ from hrm_ctrl.errors import SimError
 from hrm_ctrl.kinematics import joint_centres
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from hrm_ctrl.ropes.inverse import load_fallback_solver
+from sim_bus.backlash import backlash_update
+from sim_bus.capstan import friction_update, hole_geometry
+from sim_bus.creep import creep_update
+from sim_bus.gravity import gravity_forces
+from sim_bus.physics import Effect, Physics
+from sim_bus.sensor_drift import drift_update
+from sim_bus.statics import LoadedPose, Loads, solve_equilibrium
 from sim_bus.truth import TrueArm
+
+FIRST_ITERATIONS = 60  # Newton steps of the first physical state (from the rope inverse)
+STEP_ITERATIONS = 4  # of every later one (warm: 2-4 converge; a jump goes on converging)
 
 
 @dataclass(frozen=True)
@@ -86,6 +108,28 @@ class ArmState:
     rope_alpha: np.ndarray | None = None  # (12,) rope-geometric angles phi (alpha - offset)
     rope_theta: np.ndarray | None = None
     fixture: bool = False  # the arm was held straight by the fixture
+    anchor_tension_N: np.ndarray | None = None  # (n,) at each rope's anchor (physics only)
+
+
+@dataclass
+class PhysicsState:
+    """What the arm's physics remembers from one state to the next (``SimArm.physics_state``):
+    time, drum lengths (n,) mm, rope-geometric angles (12,) each, friction mobilisation and
+    sliding (n,), creep (n,) mm, play (24,) rad, sensor offsets (n,) N, drum tensions (n,) N
+    and the Newton steps of the last solve."""
+
+    t: float
+    u_mm: np.ndarray
+    alpha: np.ndarray
+    theta: np.ndarray
+    nu: np.ndarray
+    sliding: np.ndarray
+    creep_mm: np.ndarray
+    play_rad: np.ndarray
+    drift_N: np.ndarray
+    tension_N: np.ndarray
+    iterations: int = 0
+    loaded: LoadedPose | None = None  # the loads of the last solve (reused within 1e-3 rad)
 
 
 class SimArm:
@@ -107,6 +151,7 @@ class SimArm:
         noise_N: float = 0.05,
         snap_drift_rad_per_s: float = 0.2,
         seed: int = 0,
+        physics: Physics | None = None,
     ) -> None:
         self.actuation = actuation
         if truth is None:
@@ -153,6 +198,13 @@ class SimArm:
         self._rho = stretch / (1.0 + self.pretension_N / ea_desc)
         self._u_ref = np.asarray(rope.motors.u_ref, dtype=float)
         self._rope_zero = np.asarray(rope.motors.zero_offsets_counts, dtype=float)
+        self.physics = physics if physics is not None and physics.active else None
+        self.physics_state: PhysicsState | None = None
+        self._physics_lock = threading.Lock()
+        if self.physics is not None:
+            self._holes = hole_geometry(routing, self.model.links)
+            self._physics_rng = np.random.default_rng(self.physics.seed)
+            self._backlash24 = np.repeat(self.physics.backlash_rad, 2)
 
     # ---- faults and the fixture -----------------------------------------------------------
 
@@ -219,6 +271,9 @@ class SimArm:
             warm = self._warm
             snapped = dict(self._snapped)
             fixture = self._fixture
+        if self.physics is not None:
+            with self._physics_lock:
+                return self._physical_state(c, now, snapped, fixture, warm)
         cache = self._cache
         if cache is not None and cache[1] == fixture and np.array_equal(cache[0], c):
             phi_a, phi_t, res, tension = (v.copy() for v in cache[2])  # motors did not move
@@ -286,3 +341,114 @@ class SimArm:
         a_new = float(np.clip(alpha[joint] + step * ga / norm, -lim_a, lim_a))
         t_new = float(np.clip(theta[joint] + step * gt / norm, -lim_t, lim_t))
         return a_new, t_new
+
+    # ---- the physics ----------------------------------------------------------------------
+
+    def _physical_state(
+        self,
+        c: np.ndarray,
+        now: float,
+        snapped: dict[int, float],
+        fixture: bool,
+        warm: tuple[np.ndarray, np.ndarray] | None,
+    ) -> ArmState:
+        """The arm with its physics (module docstring), continuing from the last state."""
+        ph = self.physics
+        assert ph is not None
+        n = self.rope.n_motors
+        prev = self.physics_state
+        u = self.unstretched_mm(c)
+        t0 = self.pretension_N
+        if prev is None:
+            prev = PhysicsState(
+                now, u, np.zeros(12), np.zeros(12), np.zeros(n), np.zeros(n, dtype=bool),
+                np.zeros(n), np.zeros(24), np.zeros(n), t0.copy(),
+            )  # fmt: skip
+            first = True
+        else:
+            first = False
+        dt = max(0.0, now - prev.t)
+        nu, sliding = prev.nu, prev.sliding
+        if ph.on(Effect.CAPSTAN):
+            nu, sliding = friction_update(
+                nu, sliding, u - prev.u_mm, ph.presliding_mm, ph.static_ratio
+            )
+        creep = prev.creep_mm
+        if ph.on(Effect.CREEP):
+            creep = creep_update(
+                creep, prev.tension_N, float(t0[0]), u, self.stiffness_EA_N,
+                ph.creep_fraction, ph.creep_time_s, dt,
+            )  # fmt: skip
+        drift = prev.drift_N
+        if ph.on(Effect.SENSOR):
+            drift = drift_update(drift, ph.sensor_drift_N_per_sqrt_s, dt, self._physics_rng)
+        w = u + self.slack_mm + creep
+        taut = np.ones(n, dtype=bool)
+        taut[list(snapped)] = False
+        play = prev.play_rad
+        iterations = 0
+        loaded = None
+        if fixture:
+            phi_a, phi_t = np.zeros(12), np.zeros(12)
+            free = self.required_free_mm
+            tension = np.where(taut, self._tension(free, w), 0.0)
+            anchor = tension.copy()
+            res = w * (1.0 + tension / self.stiffness_EA_N) - free
+        else:
+            if first:
+                a0, t0_ = warm if warm is not None else (None, None)
+                a_start, t_start, _res = self.rope.angles_from_counts(
+                    self._equivalent_counts(w), self.pretension_N, a0, t0_
+                )
+                a_start = np.asarray(a_start, dtype=float)
+                t_start = np.asarray(t_start, dtype=float)
+            else:
+                a_start, t_start = prev.alpha, prev.theta
+            loads = Loads(
+                self._gravity(play) if ph.on(Effect.GRAVITY) else None,
+                nu if ph.on(Effect.CAPSTAN) else None,
+                np.asarray(ph.mu_kinetic) if ph.on(Effect.CAPSTAN) else None,
+                taut,
+                float(t0[0]),
+            )
+            eq = solve_equilibrium(
+                self.rope, self._holes, w, self.stiffness_EA_N, a_start, t_start, loads,
+                max_iter=FIRST_ITERATIONS if first else STEP_ITERATIONS,
+                loaded=None if first else prev.loaded,
+            )  # fmt: skip
+            phi_a, phi_t, iterations, loaded = eq.alpha, eq.theta, eq.iterations, eq.loaded
+            tension, anchor, res = eq.tension_N, eq.anchor_N, -eq.residual_mm
+            if ph.on(Effect.BACKLASH):
+                turned = np.empty(24)
+                turned[0::2], turned[1::2] = phi_a - prev.alpha, phi_t - prev.theta
+                if first:
+                    turned[:] = 0.0
+                play = backlash_update(
+                    play, turned, eq.gravity_Nmm, self._backlash24, ph.backlash_torque_Nmm
+                )
+        self.physics_state = PhysicsState(
+            now, u, phi_a, phi_t, nu, sliding, creep, play, drift, tension, iterations, loaded
+        )
+        reading = tension + drift
+        if self.noise_N > 0:
+            reading = reading + self._rng.normal(0.0, self.noise_N, reading.shape)
+        reading = np.where(taut, np.maximum(reading, 0.0), 0.0)
+        alpha = phi_a + self.offset_alpha + (0.0 if fixture else play[0::2])
+        theta = phi_t + self.offset_theta + (0.0 if fixture else play[1::2])
+        centres = joint_centres(self.model, alpha, theta)
+        return ArmState(now, c, alpha, theta, centres, reading, res, phi_a, phi_t, fixture, anchor)
+
+    def _gravity(self, play: np.ndarray) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        """The gravity forces (24,) at rope-geometric angles, the physical ones being
+        those plus the joint offsets and the play ``play`` (24,)."""
+        ph = self.physics
+        assert ph is not None
+        off_a = self.offset_alpha + play[0::2]
+        off_t = self.offset_theta + play[1::2]
+        masses = np.asarray(ph.link_mass_kg)
+        g = ph.gravity_N_per_kg
+
+        def forces(a: np.ndarray, t: np.ndarray) -> np.ndarray:
+            return gravity_forces(self.model, a + off_a, t + off_t, masses, ph.payload_kg, g)
+
+        return forces

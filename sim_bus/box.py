@@ -67,12 +67,19 @@ from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
 from sim_bus.arm import ArmState, SimArm
 from sim_bus.drive import DriveParams, DriveSim
+from sim_bus.physics import Physics
 from sim_bus.tension_board import TensionBoard
 from sim_bus.tracker import Tracker
 from sim_bus.truth import TrueArm, drive_serials
 from sim_bus.wire import FrameMatch, SimWireBus
 
 log = logging.getLogger("sim_bus.box")
+
+#: with the arm's physics, how often the tension board's refresh steps the arm (s): as
+#: often as the arm without physics is refreshed (an equilibrium costs about what the rope
+#: inverse does, a median of 1-2.6 ms of CPU on the loaded machine; every 10 ms that alone
+#: would take 0.1-0.26 of a core, beyond the box's budget with its drives)
+PHYSICS_PERIOD_S = 0.05
 
 #: Receive buffer asked for on socket-based buses (udp_multicast, socketcan): a Python
 #: process that stalls for 50-100 ms on a loaded machine must not lose frames in the kernel.
@@ -184,6 +191,9 @@ class SimBox:
         truth: how the simulated arm differs from its description (``None``: it does not;
             :class:`sim_bus.truth.TrueArm`), also the tracker's frame and noise.
         seed: the seed of the box's noise (tension sensor, tracker).
+        physics: the arm's physics (:class:`sim_bus.physics.Physics`; ``None``, the
+            default: none, the arm goes where its ropes' lengths put it).  With physics the
+            tension board's refresh steps the arm every :data:`PHYSICS_PERIOD_S`.
     """
 
     def __init__(
@@ -201,6 +211,7 @@ class SimBox:
         clock: Callable[[], float] = time.monotonic,
         truth: TrueArm | None = None,
         seed: int = 0,
+        physics: Physics | None = None,
     ) -> None:
         self.config = config
         self.actuation = actuation if actuation is not None else load_actuation(default_robot())
@@ -228,6 +239,7 @@ class SimBox:
             noise_N=tension_noise_N,
             snap_drift_rad_per_s=snap_drift_rad_per_s,
             seed=seed,
+            physics=physics,
         )
         self.truth: TrueArm = self.arm.truth
         self._seed = int(seed)
@@ -556,10 +568,20 @@ class SimBox:
     def tension_N(self, max_age_s: float = 0.05) -> np.ndarray:
         """Rope tensions (n,) for the tension board: the arm state is recomputed at most
         every ``max_age_s`` (the rope inverse costs ~1-2 ms; at 100 Hz that would take a
-        large share of the box's CPU), and at once after a rope snaps."""
+        large share of the box's CPU), and at once after a rope snaps; with the arm's
+        physics at most every :data:`PHYSICS_PERIOD_S` (each state continues the last), a
+        snapped rope reading 0 at once and the rest at the next refresh (the frames do not
+        wait for the equilibrium's new solve)."""
         now = self.clock()
         cached = self._tension_cache
         snapped, fixture = self.arm.snapped, self.arm.fixture
+        if self.arm.physics is not None:
+            max_age_s = min(max_age_s, PHYSICS_PERIOD_S)
+            if cached is not None and cached[2] != snapped and cached[3] == fixture:
+                tension = cached[1].copy()
+                tension[list(snapped)] = 0.0
+                cached = (cached[0], tension, snapped, fixture)
+                self._tension_cache = cached
         if (
             cached is None
             or now - cached[0] > max_age_s

@@ -38,6 +38,7 @@ from hrm_ctrl.errors import HrmError
 from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.box import SimBox
 from sim_bus.faults import Fault, apply_fault, parse_fault
+from sim_bus.physics import Physics
 from sim_bus.tension_board import TensionBoard
 from sim_bus.truth import TrueArm
 from sim_bus.wire import SimWireBus
@@ -93,6 +94,7 @@ def run_box_process(
     fixture: bool = False,
     tracker: bool = False,
     initial_counts: Sequence[int] | None = None,
+    physics: Physics | None = None,
 ) -> int:
     """Run the box until ``duration_s``, ``quit``, end of stdin (with ``control``) or
     SIGTERM/SIGINT.  ``initial_counts``: where the motors stand at power-on (the rope
@@ -102,7 +104,13 @@ def run_box_process(
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
-    box = SimBox(config, actuation=actuation, truth=truth, initial_counts=initial_counts)
+    box = SimBox(
+        config,
+        actuation=actuation,
+        truth=truth,
+        initial_counts=initial_counts,
+        physics=physics,
+    )
     if fixture:
         box.set_straight_fixture(True)
     board = TensionBoard(box.tension_N, tension_rate_hz)
@@ -128,6 +136,7 @@ def run_box_process(
                 **extra,
                 "truth": box.truth.source,
                 "fixture": box.arm.fixture,
+                "physics": "none" if physics is None else physics.describe(),
             },
         )
         if control:

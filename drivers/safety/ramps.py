@@ -12,7 +12,14 @@ Two laws, chosen by what stopped the box (:func:`is_controlled_stop`):
   motors) longer than a fault stop.
 
 Both work on the integers that are sent (counts per period, per period squared and
-cubed), with NumPy over the motors and no loop.
+cubed), with NumPy over the motors and no loop.  A fault stop is the one motion the box
+sends that does not keep the motors' jerk limit, by design (the shortest stop first).
+
+:func:`jerk_window` is the same law for a source that follows a path (a pause of a
+plan's playback): the setpoints each motor may take next so that its third difference
+keeps the jerk limit, its second the acceleration limit, and its speed can still be
+eased off before the speed limit (a history from which :func:`eased` stops within the
+jerk limit too).
 
 >>> pos, vel, acc = np.array([0]), np.array([40]), np.array([0])
 >>> seq = []
@@ -64,6 +71,58 @@ def _lost_easing_off(b: np.ndarray, J: np.ndarray) -> np.ndarray:
     return n * b + J * n * (n + 1) / 2
 
 
+def jerk_window(
+    prev: np.ndarray,
+    before: np.ndarray,
+    before2: np.ndarray,
+    V: np.ndarray,
+    A: np.ndarray,
+    J: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest and highest next setpoint of each motor (whole counts) after ``before2``,
+    ``before``, ``prev``: its acceleration (second difference) within ``J`` of the last
+    one and within ``A``, its speed within ``V`` and still able to ease its acceleration
+    off at ``J`` a period before it passes ``V`` either way (``V``, ``A``, ``J`` in counts
+    per period, squared, cubed).  Never empty after a history that keeps these (the
+    acceleration eased off at ``J`` is always in it).
+
+    >>> z = np.array([0])
+    >>> jerk_window(z, z, z, np.array([100]), np.array([20]), np.array([5]))
+    (array([-5]), array([5]))
+    >>> jerk_window(np.array([95]), np.array([0]), np.array([-90]), np.array([100]),
+    ...             np.array([20]), np.array([5]))   # at 95 a period, speeding up by 5
+    (array([190]), array([195]))
+    """
+    vel = prev - before
+    acc = vel - (before - before2)
+    lo = np.maximum(np.maximum(acc - J, -A), -_eased_within(V + vel, J))
+    hi = np.minimum(np.minimum(acc + J, A), _eased_within(V - vel, J))
+    stuck = lo > hi  # not a history within the limits: the acceleration eased off
+    eased_off = np.clip(0, acc - J, acc + J)
+    base = 2 * prev - before
+    return base + np.where(stuck, eased_off, lo), base + np.where(stuck, eased_off, hi)
+
+
+def _eased_within(room: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """The largest acceleration ``a`` (whole counts per period squared) after which the
+    speed gains at most ``room`` more, the acceleration then eased off at ``J`` a period
+    (``a + (a - J) + (a - 2J) + ...`` while positive): with ``k`` whole steps of ``J``
+    below it (the largest ``k`` with ``J k (k + 1) / 2 <= room``), ``a <= (room +
+    J k (k + 1) / 2) / (k + 1)``.
+
+    >>> _eased_within(np.array([5, 9, 10, 14, 15, -3]), np.array([5, 5, 5, 5, 5, 5])).tolist()
+    [5, 7, 7, 9, 10, -3]
+    """
+    room = np.asarray(room, dtype=np.int64)
+    J = np.asarray(J, dtype=np.int64)
+    r = np.maximum(room, 0)
+    k = np.floor((np.sqrt(1.0 + 8.0 * r / J) - 1.0) / 2.0).astype(np.int64)
+    k = np.where(J * k * (k + 1) // 2 > r, k - 1, k)  # float rounding, either way
+    k = np.where(J * (k + 1) * (k + 2) // 2 <= r, k + 1, k)
+    k = np.maximum(k, 0)
+    return np.where(room < 0, room, (r + J * k * (k + 1) // 2) // (k + 1))
+
+
 def eased(
     pos: np.ndarray,
     vel: np.ndarray,
@@ -103,4 +162,4 @@ def eased(
     return pos + vel_new, vel_new, acc_new
 
 
-__all__ = ["CONTROLLED_STOPS", "braked", "eased", "is_controlled_stop"]
+__all__ = ["CONTROLLED_STOPS", "braked", "eased", "is_controlled_stop", "jerk_window"]

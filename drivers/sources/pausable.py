@@ -11,6 +11,7 @@ import numpy as np
 
 from drivers.rope_model import MotorLimits
 from drivers.safety.limits import SetpointError, accel_limits, jerk_limits, jerk_limits_of
+from drivers.safety.ramps import jerk_window
 from drivers.sources.moves import cubic_at, slowed_table
 from drivers.sources.table import TabledSource
 
@@ -18,9 +19,43 @@ PAUSE_RAMP_S = 0.5  # a pause or a resume changes the playback rate by 1 in abou
 MAX_PAUSE_S = 600.0  # a run paused longer in all than this is aborted (at rest: at once)
 MAX_PLAYED_ROWS = 360_000  # setpoints a pausable source keeps for a way back (1 h at 100 Hz)
 MAX_OFF_PATH_COUNTS = 2.0  # a setpoint may leave the interpolated path by this much (rounding)
-# the share of a motor's jerk a change of the playback rate's own change may take (the
-# fastest row of the table times the change of the rate per cycle, per cycle)
-JERK_RATE_SHARE = 0.5
+# a third difference of rounded setpoints is off the path's by at most this (counts)
+ROUNDING_JERK_COUNTS = 4
+
+
+def whole_counts(limit: np.ndarray, period_s: float, power: int) -> np.ndarray:
+    """A limit in counts per second (squared, cubed: ``power``) as the largest whole
+    counts per period (squared, cubed) that, divided back, does not exceed it.
+
+    >>> whole_counts(np.array([4.096e7]), 0.01, 3).tolist()
+    [40]
+    """
+    t = period_s**power
+    c = np.floor(np.asarray(limit, np.float64) * t).astype(np.int64)
+    return c - (c.astype(np.float64) / t > limit).astype(np.int64)
+
+
+def rate_limits(table: np.ndarray, jerk_counts: np.ndarray, dr: float) -> tuple[float, float]:
+    """How fast the playback rate ``r`` of ``table`` (rows per period) may change (``dr``
+    at most, a period) and its change change (the second return, a period) so that the
+    third difference of the played setpoints keeps each motor's jerk ``jerk_counts``
+    (whole counts per period cubed).  Played at ``s(t)``, a motor's third difference is
+    about ``q3 r^3 + 3 q2 r dr + q1 ddr`` (``q1, q2, q3`` the table's first, second, third
+    differences): the table's own (``r <= 1``) and the rounding's take their share, the
+    rest is split evenly between the rate's change and its change's change.
+
+    >>> t = np.cumsum(np.cumsum(np.r_[0, 0, 2, 2, 0, -2, -2, 0, 0])).reshape(-1, 1) * 10
+    >>> dr, ddr = rate_limits(t, np.array([40]), 0.05)
+    >>> round(dr, 4), round(ddr, 5)
+    (0.05, 0.2)
+    """
+    rows = np.asarray(table, dtype=np.int64)
+    d1 = np.abs(np.diff(rows, axis=0)).max(axis=0)
+    d2 = np.abs(np.diff(rows, n=2, axis=0)).max(axis=0)
+    d3 = np.abs(np.diff(rows, n=3, axis=0)).max(axis=0)
+    share = np.maximum(np.asarray(jerk_counts) - d3 - ROUNDING_JERK_COUNTS, 1) / 2.0
+    dr = min(dr, float(np.min(share / (3.0 * np.maximum(d2, 1)))))
+    return dr, float(np.min(share / np.maximum(d1, 1)))
 
 
 class PlayState(Enum):
@@ -53,13 +88,20 @@ class PausableSource:
     by at most ``period_s / ramp_s`` a cycle, by less (or not at all that cycle) where
     that would leave the path further, so a pause waits for a point of the table that
     lets it slow down.  At rate 1 on whole rows the setpoints are the inner table's rows.
-    With jerk limits, on a table fast enough to need it, the rate's own change also
-    changes by at most ``JERK_RATE_SHARE`` of the smallest jerk limit over the table's
-    largest row step a cycle (braked in time to reach its target), the path between rows
-    is a cubic (:func:`~drivers.sources.moves.cubic_at`, no kink at a row) and the rate is
-    not capped below 1 off whole rows; this eases the jerk without a window of its own
-    (at a tenth of the motors' speed every third difference keeps the limit; at 90 % of
-    their speed and acceleration it can reach about 1.5 times it).
+    With jerk limits the window also keeps every motor's third difference and a speed
+    from which its acceleration can be eased off in time
+    (:func:`~drivers.safety.ramps.jerk_window`), the path between rows is a cubic
+    (:func:`~drivers.sources.moves.cubic_at`, no kink at a row), the rate is not capped
+    below 1 off whole rows, and the rate's change and its change's change are bounded by
+    what the table's own differences leave of the jerk (:func:`rate_limits`; the change
+    braked in time to reach its target): a pause of a fast table takes longer than
+    ``ramp_s`` (:attr:`ramp_cycles`).  Where no rate keeps both the path and the jerk
+    window (a table at the motors' acceleration limit and near their jerk limit), the
+    setpoint keeps the path within speed and acceleration, with the least jerk, and the
+    cycle is counted (:attr:`jerk_relaxed_cycles`): at a tenth of the motors' speed, and
+    along the bent pipe at up to 500 mm/s, every third difference keeps the limit; at
+    90 % of their speed, at their acceleration limit and 80 % of their jerk, it reached
+    1.32 times it.
 
     >>> from drivers.safety.subset import ActuationSubset
     >>> from drivers.sources.counts import CountsSource
@@ -118,6 +160,7 @@ class PausableSource:
         self.position = 0.0  # fractional row of the inner table (read by the console)
         self.rate = 1.0
         self.held_cycles = 0  # cycles the rate could not move toward its target
+        self.jerk_relaxed_cycles = 0  # cycles sent within speed and acceleration alone
         self._table = np.zeros((0, 0), dtype=np.int64)
         self._k = -1
         self._out: np.ndarray | None = None
@@ -172,13 +215,24 @@ class PausableSource:
         jerk = jerk_limits_of(self.limits)
         self._j = None if jerk is None else np.asarray(jerk, np.float64)
         self._ddr = math.inf
-        if self._j is not None and self._table.shape[0] > 1:
-            step = float(np.max(np.abs(np.diff(self._table, axis=0))))
-            ddr = JERK_RATE_SHARE * float(np.min(self._j)) * period_s**3 / max(step, 1.0)
-            self._ddr = ddr if ddr < 2.0 * self._dr else math.inf
         self._drate = 0.0
+        # the window's limits in whole counts per period (squared, cubed), each within the
+        # supervisor's check in its own terms (counts/s, counts/s^2, counts/s^3)
+        self._vc = whole_counts(self._v, period_s, 1)
+        self._ac = None if self._a is None else whole_counts(self._a, period_s, 2)
+        self._jc = None
+        if self._j is not None:
+            self._jc = whole_counts(self._j, period_s, 3)
+            if self._ac is None:
+                self._ac = whole_counts(np.asarray(accel_limits(self.limits)), period_s, 2)
+        if self._jc is not None and self._table.shape[0] > 3:
+            self._dr, ddr = rate_limits(self._table, self._jc, self._dr)
+            self._ddr = ddr if ddr < 2.0 * self._dr else math.inf
+        self._cmin = np.asarray(self.limits.counts_min, dtype=np.int64)
+        self._cmax = np.asarray(self.limits.counts_max, dtype=np.int64)
         self.position, self.rate, self._k, self._out = 0.0, 1.0, -1, None
-        self._prev = self._before = self._actual
+        self._prev = self._before = self._before2 = self._actual
+        self.held_cycles = self.jerk_relaxed_cycles = 0
         self._played = [self._actual.astype(np.int32)]
         self.played_complete = True
 
@@ -188,8 +242,17 @@ class PausableSource:
         session's wait for the stream's end allows for)."""
         rows = int(self._table.shape[0]) if self._table.size else self.inner.n_cycles
         period_s = self._period_s if math.isfinite(self._period_s) else 0.01  # not started
-        extra = (self.max_pause_s + 2 * self.ramp_s) / period_s
-        return rows + math.ceil(extra)
+        return rows + math.ceil(self.max_pause_s / period_s) + 2 * self.ramp_cycles
+
+    @property
+    def ramp_cycles(self) -> int:
+        """Cycles a pause or a resume takes from full rate to rest (or back), on a table
+        that lets the rate change all along: ``ramp_s`` unless the table's own speed,
+        acceleration and jerk leave the rate less room (:func:`rate_limits`)."""
+        if not math.isfinite(self._period_s):  # not started
+            return math.ceil(self.ramp_s / 0.01)
+        ease = self._dr / self._ddr if math.isfinite(self._ddr) else 0.0
+        return math.ceil(1.0 / self._dr + ease) + 1
 
     @property
     def paused_s(self) -> float:
@@ -221,7 +284,7 @@ class PausableSource:
         else:
             out = self._advance(n)
         if out is not None:
-            self._before, self._prev = self._prev, out
+            self._before2, self._before, self._prev = self._before, self._prev, out
             if len(self._played) < MAX_PLAYED_ROWS:
                 self._played.append(np.asarray(out, dtype=np.int32))
             else:
@@ -285,7 +348,7 @@ class PausableSource:
             elif r0 - dr <= snap <= min(1.0, r0 + dr):
                 first.insert(0, snap)
         rest = np.concatenate([r0 + np.linspace(-w, w, 33) for w in (dr, dr / 16, dr / 256)])
-        rest = rest[(rest >= 0.0) & (rest <= self._cap)]
+        rest = rest[(rest >= 0.0) & (rest <= cap)]
         if whole and r0 == 1.0:
             rest = np.concatenate([[1.0], rest])
         return len(first), np.concatenate([np.array(first), rest])
@@ -305,23 +368,12 @@ class PausableSource:
             x = self._table[min(int(pos) + 1, n - 1)]
             lo, hi = self._window()
             rates, c = np.array([1.0]), 0
-            if not ((x >= lo) & (x <= hi)).all():  # cannot happen for a checked table
-                raise SetpointError(f"{self.name}: row {int(pos) + 1} outside the limits")
+            if not ((x >= lo) & (x <= hi)).all():
+                # the last setpoints are not the table's rows (a pause left the path by a
+                # count or two): the row is a candidate like any other
+                rates, x, c = self._search(target, end, n)
         else:
-            n_first, rates = self._candidates(target)
-            # the first choices alone first (most cycles: one row of the table)
-            xs, over = self._try(rates[:n_first], end, n)
-            ok = np.flatnonzero(over <= 0.0)
-            if ok.size:
-                c = int(ok[0])
-            else:
-                xs, over = self._try(rates, end, n)
-                ok = np.flatnonzero(over <= 0.0)
-                if ok.size == 0:
-                    c = int(np.argmin(over))
-                else:  # the feasible rate nearest to the nominal step
-                    c = int(ok[np.argmin(np.abs(rates[ok] - rates[n_first - 1]))])
-            x = xs[c]
+            rates, x, c = self._search(target, end, n)
         r = float(rates[c])
         if r == self.rate and r != target:
             self.held_cycles += 1
@@ -343,7 +395,42 @@ class PausableSource:
             self.state = PlayState.RESUMING
         return x
 
-    def _try(self, rates: np.ndarray, end: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    def _search(self, target: float, end: float, n: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """The rates tried this cycle, the setpoint chosen and its index: the first choices
+        alone first (most cycles: one row of the table), then every candidate, within the
+        jerk window; where none of them stays on the path within it (a table at the
+        motors' acceleration limit that a rate change cannot follow in jerk), within the
+        supervisor's window of speed and acceleration alone (counted in
+        :attr:`jerk_relaxed_cycles`)."""
+        n_first, rates = self._candidates(target)
+        xs, over = self._try(rates[:n_first], end, n)
+        ok = np.flatnonzero(over <= 0.0)
+        if ok.size:
+            return rates, xs[int(ok[0])], int(ok[0])
+        xs, over = self._try(rates, end, n)
+        if self._jc is not None and not (over <= 0.0).any():
+            xs_free, over_free = self._try(rates, end, n, jerk=False)
+            ok = np.flatnonzero(over_free <= 0.0)
+            if ok.size:  # of those on the path, the one with the least jerk
+                self.jerk_relaxed_cycles += 1
+                d3 = xs_free[ok] - 3 * self._prev + 3 * self._before - self._before2
+                c = int(ok[np.argmin(np.max(np.abs(d3) / self._jc, axis=1))])
+                return rates, xs_free[c], c
+        c = self._choose(rates, over, n_first)
+        return rates, xs[c], c
+
+    @staticmethod
+    def _choose(rates: np.ndarray, over: np.ndarray, n_first: int) -> int:
+        """The feasible rate (``over <= 0``) nearest to the nominal step (the last first
+        choice); none feasible: the one that leaves the path least."""
+        ok = np.flatnonzero(over <= 0.0)
+        if ok.size == 0:
+            return int(np.argmin(over))
+        return int(ok[np.argmin(np.abs(rates[ok] - rates[n_first - 1]))])
+
+    def _try(
+        self, rates: np.ndarray, end: float, n: int, jerk: bool = True
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Candidate setpoints at ``rates`` (the path interpolated, rounded, kept within
         the supervisor's window) and how far each had to leave the path beyond
         :data:`MAX_OFF_PATH_COUNTS` (<= 0: acceptable)."""
@@ -356,29 +443,29 @@ class PausableSource:
             path = t[i] + f * (t[j] - t[i]).astype(np.float64)
         else:  # a cubic: no kink at a row for a third difference to see
             path = cubic_at(t, s_new)
-        lo, hi = self._window()
+        lo, hi = self._window(jerk)
         xs = np.clip(np.rint(path).astype(np.int64), lo, hi)
         over = np.max(np.abs(xs - path), axis=1) - MAX_OFF_PATH_COUNTS
         if not (lo <= hi).all():  # no setpoint within the limits at all (not for a table)
             over[:] = np.inf
         return xs, over
 
-    def _window(self) -> tuple[np.ndarray, np.ndarray]:
+    def _window(self, jerk: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """The integer setpoints of each motor the supervisor accepts next: the speed from
         the last setpoint and the second difference within the motors' limits (checked in
-        the supervisor's own terms, counts/s and counts/s^2)."""
-        T = self._period_s
+        the supervisor's own terms, counts/s and counts/s^2); with jerk limits also the
+        third difference, the speed kept where the acceleration can still be eased off
+        before the speed limit (:func:`~drivers.safety.ramps.jerk_window`)."""
         prev, before = self._prev, self._before
-        v = np.floor(self._v * T).astype(np.int64)
-        v -= (v.astype(np.float64) / T > self._v).astype(np.int64)
-        lo, hi = prev - v, prev + v
-        if self._a is not None:
-            A = np.floor(self._a * T**2).astype(np.int64)
-            A -= (A.astype(np.float64) / T**2 > self._a).astype(np.int64)
-            mid = 2 * prev - before
-            lo, hi = np.maximum(lo, mid - A), np.minimum(hi, mid + A)
-        lo = np.maximum(lo, np.asarray(self.limits.counts_min, dtype=np.int64))
-        hi = np.minimum(hi, np.asarray(self.limits.counts_max, dtype=np.int64))
+        if jerk and self._jc is not None and self._ac is not None:
+            lo, hi = jerk_window(prev, before, self._before2, self._vc, self._ac, self._jc)
+        else:
+            lo, hi = prev - self._vc, prev + self._vc
+            if self._ac is not None:
+                mid = 2 * prev - before
+                lo, hi = np.maximum(lo, mid - self._ac), np.minimum(hi, mid + self._ac)
+        lo = np.maximum(lo, self._cmin)
+        hi = np.minimum(hi, self._cmax)
         return lo, hi
 
     def describe(self) -> dict[str, Any]:

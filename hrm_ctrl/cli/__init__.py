@@ -177,12 +177,12 @@ def _stdout_to_devnull() -> None:
 
 def _switch_interval_s(args: argparse.Namespace) -> float:
     """The GIL switch interval of this command: the simulated box in this interpreter
-    (``hrm demo``, ``--sim`` with an in-process ``--wire``) gets the longer one of
+    (``hrm demo`` or ``--sim`` with an in-process ``--wire``) gets the longer one of
     ``_simwire``."""
     if args.command == "demo" or getattr(args, "sim", False):  # else no simulator imported
         from hrm_ctrl.cli._simwire import PROCESS_WIRE, SIM_SWITCH_INTERVAL_S
 
-        if args.command == "demo" or getattr(args, "wire", PROCESS_WIRE) != PROCESS_WIRE:
+        if getattr(args, "wire", PROCESS_WIRE) != PROCESS_WIRE:
             return SIM_SWITCH_INTERVAL_S
     from drivers.realtime import SWITCH_INTERVAL_S
 

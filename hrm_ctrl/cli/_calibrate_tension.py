@@ -137,7 +137,7 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
     from drivers.tension_sensor import TensionSensorReader
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.runtime.arm import Arm
-    from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, open_box
+    from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, caller_scheduling, open_box
     from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
 
     store = CalibrationStore(calibrations_folder(args.calibrations))
@@ -211,7 +211,8 @@ def _session_run(args: argparse.Namespace, prog: str, routine: Any) -> tuple[Any
             ).open()
         with contextlib.closing(opened) as reader:
             box.bring_up()
-            result = routine(box.session, reader, actuation)
+            with caller_scheduling(box.session):  # what the routine computes between moves
+                result = routine(box.session, reader, actuation)
     return result, base, store, description, box.session.box_identity
 
 

@@ -366,7 +366,7 @@ def add_console_box(parser: argparse.ArgumentParser) -> None:
     (``--wire``) or ``--config`` (``--bus``), ``--robot``, the calibration store, where the
     runs go, ``--take-over``."""
     add_bus(parser)
-    add_sim(parser, wire=True, arm=SimArm.NONE)
+    add_sim(parser, wire=True, arm=SimArm.NONE, process=True)
     add_robot(parser)
     add_calibration(parser, Uncalibrated.DRIVES)
     add_log(parser, what="where each session's CAN logs and run record go")

@@ -536,7 +536,7 @@ def _collect_rest(
     from hrm_ctrl.cli._progress import ProgressBar, bring_up_with_progress, wanted
     from hrm_ctrl.files import write_atomic
     from hrm_ctrl.runtime.arm import Arm
-    from hrm_ctrl.runtime.box import SessionOptions, WatchOptions, open_box
+    from hrm_ctrl.runtime.box import SessionOptions, WatchOptions, caller_scheduling, open_box
     from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
 
     prog = "hrm calibrate kinematic"
@@ -585,7 +585,10 @@ def _collect_rest(
     ):
         tracker = box.config.tracker  # the simulated box's, or the configured one
         session = box.session
-        with TrackerReader(tracker.port, tracker.timeout_s, baudrate=tracker.baudrate) as reader:
+        with (
+            TrackerReader(tracker.port, tracker.timeout_s, baudrate=tracker.baudrate) as reader,
+            caller_scheduling(session),  # the poses' moves computed, the tracker read
+        ):
             show = wanted(getattr(args, "json", False))
             box.bring_up(lambda s: bring_up_with_progress(s, enabled=show))
             with ProgressBar("calibration poses", enabled=show) as bar:

@@ -3,7 +3,8 @@
 The simulated box starts with a *perturbed* true arm (``--perturb SEED``: link lengths
 ±2 mm, joint zero offsets ±1°, rope EA ±20 %, motor zeros ±5000 counts; see
 ``sim_bus/truth.py``), as a real arm differs from its drawing.  The demo then does what a
-technician and an operator would, on one simulated box:
+technician and an operator would, on one simulated box (in its own process, as ``--sim``
+starts it: ``--wire hrm_ipc``, the default; ``virtual`` or ``hrm_sim``: in this one):
 
 1. **pretension and zero** (``calibration.zero``): the arm lies in its straight parking
    tube; every rope is brought to its pretension on the tension sensors and each motor's
@@ -107,7 +108,7 @@ def register(p: argparse.ArgumentParser) -> None:
         "--no-calibrate", dest="calibrate", action="store_false",
         help="an unperturbed arm, no calibration: plan and play with the description's values",
     )  # fmt: skip
-    add_wire(p, when=None)
+    add_wire(p, when=None, process=True)
     add_out(
         p, metavar="DIR", what="where everything is written (default out/demo)",
         default=Path("out/demo"),
@@ -125,8 +126,15 @@ def _session(
 ) -> Iterator[Any]:  # fmt: skip
     """A drive session on the running simulated box, brought up (and its feedback watches
     running when ``watch``: tension, and rope consistency unless not ``ropes``); finished
-    and closed on leaving."""
-    from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, WatchOptions, open_box
+    and closed on leaving.  The block runs at ``caller_scheduling`` (what it computes
+    between moves and the tracker's replies it reads: beside the session's threads)."""
+    from hrm_ctrl.runtime.box import (
+        NO_WATCHES,
+        SessionOptions,
+        WatchOptions,
+        caller_scheduling,
+        open_box,
+    )
 
     options = SessionOptions(
         log_dir=out,
@@ -137,15 +145,18 @@ def _session(
     )
     watches = WatchOptions(ropes=ropes) if watch else NO_WATCHES
     with open_box(running.config, actuation, options, sim=running, watches=watches) as box:
-        yield box.session
+        with caller_scheduling(box.session):
+            yield box.session
 
 
 def calibrate_on_box(
-    args: argparse.Namespace, description: Any, running: Any, store: Any
+    args: argparse.Namespace, description: Any, running: Any, truth: Any, store: Any
 ) -> tuple[Any, int, dict[str, Any]]:
     """Pretension and zero in the fixture, then the kinematic calibration out of it
-    (:func:`calibration.workflows.zero_then_kinematic`); each saved as a version of
-    ``store``.  Returns the calibration, its version and a summary."""
+    (:func:`calibration.workflows.zero_then_kinematic`) on the ``running`` simulated box
+    (:class:`~hrm_ctrl.runtime.simulated.RunningSim`) of the arm ``truth``
+    (:class:`sim_bus.truth.TrueArm`); each saved as a version of ``store``.  Returns the
+    calibration, its version and a summary."""
     import numpy as np
 
     from calibration.kinematic import format_pose_csv
@@ -153,6 +164,7 @@ def calibrate_on_box(
     from drivers.tension_sensor import TensionSensorReader
     from drivers.tracker import TrackerReader
     from hrm_ctrl.cli.calibrate import format_fit
+    from hrm_ctrl.runtime.simulated import sim_thread_scheduling
 
     out: Path = args.out
     config, sim = running.config, running.sim
@@ -162,7 +174,7 @@ def calibrate_on_box(
         # the rope-consistency watch left out while collecting, as hrm calibrate kinematic
         return _session(running, act, out, f"demo-{name}", ref, watch=watch, ropes=False)
 
-    true_zero = np.asarray(sim.truth.motor_zero_counts, dtype=float)
+    true_zero = np.asarray(truth.motor_zero_counts, dtype=float)
     zero_err: list[float] = []
 
     def on_zero(zr: Any, v_zero: int, t_zero: float) -> None:
@@ -174,13 +186,22 @@ def calibrate_on_box(
             f"simulated truth at most {err.max():.0f} counts; saved as v{v_zero:04d}"
         )
 
+    @contextlib.contextmanager
+    def tension_reader() -> Iterator[TensionSensorReader]:
+        # its thread scheduled as the session's (beside CPU burners a reader of normal
+        # priority fell more than the staleness limit behind the board)
+        with sim_thread_scheduling(config):
+            opened = TensionSensorReader(
+                t.port, len(config.motor_ids), baudrate=t.baudrate, stale_after_s=t.stale_s
+            ).open()
+        with contextlib.closing(opened) as reader:
+            yield reader
+
     done = zero_then_kinematic(
         description,
         store,
         open_session,
-        lambda: TensionSensorReader(
-            t.port, len(config.motor_ids), baudrate=t.baudrate, stale_after_s=t.stale_s
-        ),
+        tension_reader,
         lambda: TrackerReader(tr.port, tr.timeout_s, baudrate=tr.baudrate),
         leave_fixture=lambda: sim.set_straight_fixture(False),
         poses=args.poses,
@@ -194,7 +215,7 @@ def calibrate_on_box(
     )
     data, fit, cal = done.poses, done.fit, done.calibration
     write_atomic(out / POSES_CSV, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
-    link_err = np.abs(np.asarray(cal.links_mm) - np.asarray(sim.truth.links_mm))
+    link_err = np.abs(np.asarray(cal.links_mm) - np.asarray(truth.links_mm))
     _say(format_fit(fit).splitlines()[0])
     _say(
         f"  kinematic calibration in {done.kinematic_s:.1f} s: link lengths within "
@@ -221,12 +242,13 @@ def calibrate_on_box(
     return cal, done.version, summary
 
 
-def end_point_errors(sim: Any, counts: np.ndarray, path: Any) -> np.ndarray:
+def end_point_errors(arm: Any, counts: np.ndarray, path: Any) -> np.ndarray:
     """Distance (mm) from the simulated arm's true end point to ``path`` for each row of
-    motor ``counts`` (the arm's physics of ``sim_bus.arm``, the box stopped)."""
+    motor ``counts`` (``arm``: the simulated arm's physics, a :class:`sim_bus.arm.SimArm`
+    of the box's truth, out of its fixture)."""
     import numpy as np
 
-    tips = np.array([sim.arm.state(c, 0.0).centres[-1] for c in counts])
+    tips = np.array([arm.state(c, 0.0).centres[-1] for c in counts])
     return np.asarray(path.distance_to(tips), dtype=float)
 
 
@@ -292,7 +314,8 @@ def run(args: argparse.Namespace) -> int:
     from hrm_ctrl.planning.scenarios import scenario
     from hrm_ctrl.ropes.actuation import load_actuation
     from hrm_ctrl.runtime.playback import setpoints_of_plan
-    from hrm_ctrl.runtime.simulated import SimulatedArm, SimulatedBox, in_process_box
+    from hrm_ctrl.runtime.simulated import SimulatedArm, SimulatedBox, running_box
+    from sim_bus.arm import SimArm
     from sim_bus.tracking import tracking_error
     from sim_bus.truth import TrueArm
 
@@ -329,8 +352,9 @@ def run(args: argparse.Namespace) -> int:
     )
     stop: SafetyStopError | None = None
     calib: dict[str, Any] | None = None
-    with in_process_box(config, simulated, prog="hrm demo") as running:
-        sim = running.sim
+    # the box in its own process (--wire hrm_ipc, the default) or in this one
+    with running_box(config, simulated, prog="hrm demo") as running:
+        config, sim = running.config, running.sim
         if args.calibrate:
             _say(
                 f"simulated arm: seed {args.perturb}: links up to "
@@ -340,7 +364,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{100 * (np.abs(truth.rope_EA_N / nominal.routing.stiffness_EA_N - 1)).max():.0f} %"  # noqa: E501
             )
             store = CalibrationStore(out / CALIBRATIONS_DIR)
-            cal, version, calib = calibrate_on_box(args, description, running, store)
+            cal, version, calib = calibrate_on_box(args, description, running, truth, store)
             robot = calibrated_model(description, cal)
             actuation = calibrated_actuation(description, cal)
             ref = calibration_ref(store, version)
@@ -389,14 +413,16 @@ def run(args: argparse.Namespace) -> int:
     tr = tracking_error(actuation, source.table, lead, planned, counts, cols)
 
     # the end point against the path: with the calibration (what was played, at every plan
-    # step) and without it (the same scenario with the description's values)
+    # step) and without it (the same scenario with the description's values), through the
+    # simulated arm's physics (the box's truth, here: the box has stopped)
+    physics = SimArm(nominal, truth=truth)
     steps_cal = actuation.counts_from_angles(plan.alpha, plan.theta)
-    err_cal = end_point_errors(sim, steps_cal, sc.path)
+    err_cal = end_point_errors(physics, steps_cal, sc.path)
     played = counts[lead:]  # the trace after the lead-in: the plan itself
     played = played[:: max(1, len(played) // 400)]
-    err_run = end_point_errors(sim, played, sc.path) if len(played) else np.zeros(0)
+    err_run = end_point_errors(physics, played, sc.path) if len(played) else np.zeros(0)
     steps_nom = nominal.counts_from_angles(plan_nominal.alpha, plan_nominal.theta)
-    err_nom = end_point_errors(sim, steps_nom, sc.path)
+    err_nom = end_point_errors(physics, steps_nom, sc.path)
     end_point = {
         "calibrated_steps_max_mm": float(err_cal.max()),
         "calibrated_steps_rms_mm": float(np.sqrt(np.mean(err_cal**2))),

@@ -6,6 +6,14 @@ every cycle is the online step of :mod:`hrm_ctrl.drive.online` through
 :class:`hrm_ctrl.drive.driver.Driver`.  The status line goes to stderr when it changes
 (a refusal, a hold) and every second; the summary to stdout.  The trail can be saved
 as a path file (``--save-trail``) that ``hrm plan --path`` plans.
+
+``--sim`` drives the simulated box (opened as every entry point opens it:
+:func:`hrm_ctrl.runtime.box.open_box`, in its own process unless ``--wire`` says
+otherwise): the online step of every control cycle goes to the drives through
+:class:`hrm_ctrl.drive.stream.DriveSource` (a lead-in to the trail's first configuration
+as a plan's, the rope layer's checked counts, jerk-limited shaping; a refusal stops the
+motors within their limits and the drive ends holding there).  The control period is the
+box's; the CAN logs and the run record go into ``--log-dir``.
 """
 
 from __future__ import annotations
@@ -15,9 +23,27 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import Any
 
-from hrm_ctrl.cli._common import Input, Output, refuse_overwriting_inputs, robot_input
-from hrm_ctrl.cli._options import add_json, add_robot
+from hrm_ctrl.cli._common import (
+    Input,
+    Output,
+    arm_from_args,
+    calibrations_input,
+    config_input,
+    load_box,
+    refuse_overwriting_inputs,
+    robot_input,
+)
+from hrm_ctrl.cli._options import (
+    SimArm,
+    add_bus,
+    add_calibration,
+    add_json,
+    add_log,
+    add_robot,
+    add_sim,
+)
 
 HELP = "steer the arm's tip by keys; the body follows the trail the tip draws"
 
@@ -39,7 +65,10 @@ def register(p: argparse.ArgumentParser) -> None:
         "yaw_right, pitch_up, pitch_down; 'T_S end' ends the drive)",
     )  # fmt: skip
     p.add_argument("--save-trail", type=Path, metavar="FILE", help="write the trail (path file)")
-    p.add_argument("--speed", type=float, default=20.0, help="advance cap, mm/s (default 20)")
+    p.add_argument(
+        "--advance-speed", type=float, default=20.0, metavar="MM_S",
+        help="advance cap of the tip, mm/s (default 20)",
+    )  # fmt: skip
     p.add_argument(
         "--turn-rate", type=float, default=11.4592, metavar="DEG_S",
         help="yaw and pitch rate cap at full speed, deg/s (default 11.46: a radius of "
@@ -48,6 +77,10 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--accel", type=float, default=40.0, help="advance ramp, mm/s^2 (40)")
     p.add_argument("--period", type=float, default=0.01, help="control period, s (0.01)")
     add_robot(p)
+    add_sim(p, wire=True, arm=SimArm.NONE, process=True)
+    add_bus(p, overrides=False)
+    add_calibration(p)
+    add_log(p, when="with --sim")
     add_json(p, "the summary")
 
 
@@ -62,19 +95,29 @@ def run(args: argparse.Namespace) -> int:
     from hrm_ctrl.planning.known_path import load_path_csv
     from hrm_ctrl.planning.scenarios import scenario
 
-    refuse_overwriting_inputs(
-        [Output("--save-trail", args.save_trail)],
-        [
-            Input("key script", args.keys),
-            Input("path file", args.path),
-            Input("scene file", args.scene),
-            robot_input(args.robot),
-        ],
-    )
+    outputs = [Output("--save-trail", args.save_trail)]
+    inputs = [
+        Input("key script", args.keys),
+        Input("path file", args.path),
+        Input("scene file", args.scene),
+        robot_input(args.robot),
+    ]
+    if args.sim:
+        outputs.append(Output("--log-dir", args.log_dir, folder=True))
+        inputs += [config_input(args.config), calibrations_input(args)]
+    refuse_overwriting_inputs(outputs, inputs)
     rate = math.radians(args.turn_rate) if math.isfinite(args.turn_rate) else args.turn_rate
-    limits = SteerLimits(rate, rate, args.speed, args.accel)
+    limits = SteerLimits(rate, rate, args.advance_speed, args.accel)
     keys = KeyScript.read(args.keys)
     robot = load_robot(args.robot)
+    arm = None
+    period_s = args.period
+    if args.sim:
+        config = load_box(args)
+        arm = arm_from_args(args, robot, prog="hrm drive", simulated=True)
+        config.check_motors(arm.actuation.motor_ids)
+        robot = arm.actuation.robot
+        period_s = config.control.period_s
     env = read_scene(args.scene) if args.scene is not None else None
     if args.scenario:
         sc = scenario(args.scenario)
@@ -84,7 +127,10 @@ def run(args: argparse.Namespace) -> int:
     else:
         trail = Trail.from_path(load_path_csv(args.path))
     planner = OnlinePlanner(robot, trail, env)
-    driver = Driver(planner, limits, args.period)
+    driver = Driver(planner, limits, period_s)
+    end = keys.end_s if math.isfinite(keys.end_s) else (keys.events[-1].t_s if keys.events else 0)
+    if arm is not None:
+        return _drive_box(args, config, arm, driver, keys, limits, float(end), trail)
     every = max(1, round(1.0 / args.period))
     last: list[str | None] = [None]
 
@@ -94,7 +140,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"hrm drive: t {k * args.period:7.2f} s  {s.line()}", file=sys.stderr)
         last[0] = text
 
-    end = keys.end_s if math.isfinite(keys.end_s) else (keys.events[-1].t_s if keys.events else 0)
     summary = run_scripted(driver, lambda t: keys.command_at(t, limits), float(end), on_status=show)
     if args.save_trail is not None:
         trail.save(args.save_trail)
@@ -110,3 +155,77 @@ def run(args: argparse.Namespace) -> int:
         if args.save_trail is not None:
             print(f"trail written to {args.save_trail}")
     return 0
+
+
+def _drive_box(
+    args: argparse.Namespace,
+    config: Any,
+    arm: Any,
+    driver: Any,
+    keys: Any,
+    limits: Any,
+    end_s: float,
+    trail: Any,
+) -> int:
+    """``--sim``: the drive streamed to the simulated box; the summary with the run's
+    outcome, its run record and CAN logs."""
+    from drivers.bus import ensure_log_dir
+    from drivers.session import SafetyStopError
+    from hrm_ctrl.drive.stream import DriveSource
+    from hrm_ctrl.runtime.box import SessionOptions, open_box
+    from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
+
+    source = DriveSource(driver, arm.actuation, lambda t: keys.command_at(t, limits), end_s)
+    source.precheck(config.control.period_s)  # before any bus opens
+    ensure_log_dir(args.log_dir)
+    arm.say_calibration("hrm drive")
+    options = SessionOptions(
+        log_dir=args.log_dir,
+        log_suffix=f".{args.log_format}",
+        calibration=arm.calibration_ref(),
+        allow_uncalibrated=True,
+        record_extra={"source": "DriveSource", "simulated_box": True},
+    )
+    sim = SimulatedBox(simulated_arm(arm, perturb=None, truth_file=None), args.wire)
+    stop: SafetyStopError | None = None
+    with open_box(config, arm.actuation, options, sim=sim, prog="hrm drive") as opened:
+        box = opened.session
+        try:
+            result = box.stream(source)
+        except SafetyStopError as exc:
+            stop, result = exc, exc.result
+        box.record_extra["setpoints"] = source.describe()
+    record = box.record()
+    log_errors = [str(e) for e in record["can_log_errors"]]
+    if args.save_trail is not None:
+        trail.save(args.save_trail)
+    d = source.summary().to_dict()
+    d.update(
+        outcome="stopped" if stop is not None else "completed",
+        completed=result.completed,
+        box_cycles=result.cycles,
+        lead_in_cycles=source.n_lead_in,
+        stop_reason=source.stop_reason,
+        shaping_lag_counts=source.shaping_lag_counts,
+        causes=[x.text for x in result.causes],
+        run_record=str(box.record_path),
+        can_logs=record["can_logs"],
+        can_log_errors=log_errors,
+    )
+    if args.json:
+        print(json.dumps(d, indent=1))
+    else:
+        print(
+            f"drove the box {d['cycles']} cycles: travel {d['travel_mm']:.1f} mm, "
+            f"{len(d['refusals'])} refusal(s); run record: {d['run_record']}"
+        )
+    status = 0
+    if stop is not None:
+        print(f"hrm drive: {stop}", file=sys.stderr)
+        status = 2
+    if source.stop_reason is not None:
+        print(f"hrm drive: held: {source.stop_reason}", file=sys.stderr)
+    if log_errors:
+        print(f"hrm drive: error: CAN log incomplete: {log_errors[0]}", file=sys.stderr)
+        status = 2
+    return status

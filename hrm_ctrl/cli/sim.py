@@ -66,6 +66,13 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
     )
     parser.add_argument(
+        "--physics",
+        default=None,
+        metavar="EFFECTS",
+        help="the arm's physics: all, none or effects joined by commas (gravity, capstan, "
+        "creep, backlash, sensor; defaults in docs/sim.md); default none",
+    )
+    parser.add_argument(
         "--tension-rate",
         type=float,
         default=100.0,
@@ -133,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.faults import parse_fault
+    from sim_bus.physics import Physics
     from sim_bus.runner import run_box_process
     from sim_bus.truth import TRUTH_SLACK_MAX_MM, TrueArm, read_truth, write_truth
 
@@ -149,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
             f"--rt-priority must be in 0..{REALTIME_PRIORITY_SAFE_MAX}, got {args.rt_priority}"
         )
     faults = [parse_fault(f) for f in args.fault]
+    physics = None if args.physics is None else Physics.of(args.physics)
     initial_counts = None if args.initial_counts is None else parse_counts(args.initial_counts)
     if args.max_slack and args.perturb is None:
         raise SimError("--max-slack needs --perturb SEED (a truth file says its own slack)")
@@ -200,6 +209,7 @@ def run(args: argparse.Namespace) -> int:
             fixture=args.fixture,
             tracker=args.tracker,
             initial_counts=initial_counts,
+            physics=physics,
         )
 
 

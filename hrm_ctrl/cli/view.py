@@ -10,8 +10,9 @@ no environment known).  It serves until Ctrl-C (exit 0).
 --sim``), plays the plan on it (or, without one, holds the arm) and shows the arm as the
 host estimates it from the drives' feedback (``hrm_ctrl/cli/_live.py``: counts -> joint
 angles by the rope layer, 20 poses a second), the planned arm at the slider's step beside
-it.  ``--hold S`` holds the arm S seconds after the plan (without a plan: until Ctrl-C,
-at most 1 h).  The run writes its CAN logs and run record into ``--log-dir`` like ``hrm
+it, and the tip camera's frames in the panel (rendered by the page from the tip's pose).
+``--hold S`` holds the arm S seconds after the plan (without a plan: until Ctrl-C, at most
+1 h).  The run writes its CAN logs and run record into ``--log-dir`` like ``hrm
 run``.  The live view of real drives is the console's ``view`` command.
 
 >>> import argparse
@@ -207,6 +208,10 @@ def _live(args: argparse.Namespace) -> int:
         print(
             f"live view: {live.shown} poses shown at {live.rate_hz():.1f} Hz, "
             f"{live.skipped} skipped"
+        )
+        print(
+            f"tip camera: {live.view.tip_frames} frames at {live.view.tip_rate_hz():.1f} Hz "
+            f"(rendered by the page; none without one)"
         )
     if stop is not None:
         print(f"hrm view: {stop}", file=sys.stderr)

@@ -8,8 +8,8 @@ their arguments into explicit parameters and call this layer; it wires the layer
   description, calibrated model and rope layer, the active calibration);
 * :mod:`hrm_ctrl.runtime.playback`: a plan to checked setpoints and a setpoint source,
   and the collision gate;
-* :mod:`hrm_ctrl.runtime.simulated`: the in-process simulated box and the physical arm it
-  simulates;
+* :mod:`hrm_ctrl.runtime.simulated`: the simulated box (its controls, wherever it runs; the
+  box in this process) and the physical arm it simulates;
 * :mod:`hrm_ctrl.runtime.watches`: the feedback watches of a drive session;
 * :mod:`hrm_ctrl.runtime.box`: :func:`~.box.open_box`, the one way to open a box (real
   buses, the in-process simulated box, or a box in its own process) with its session,

@@ -4,7 +4,7 @@
 :class:`~drivers.config.BoxConfig`, a box in its own process whose buses the configuration
 names, or a simulated box: :class:`~hrm_ctrl.runtime.simulated.SimulatedBox` to start one
 for this block, in its own process by default or in this one,
-:class:`~hrm_ctrl.runtime.simulated.RunningSim` for an in-process one that outlives it),
+:class:`~hrm_ctrl.runtime.simulated.RunningSim` for one that outlives it),
 with its :class:`~drivers.session.DriveSession` (CAN logs, run record) and its feedback
 watches (:mod:`hrm_ctrl.runtime.watches`), and brings the drives up.  Before anything
 opens, every drive's device file is checked against what hrm needs
@@ -39,8 +39,9 @@ from hrm_ctrl.runtime.simulated import (
     PROCESS_WIRE,
     SIM_LISTEN_S,
     RunningSim,
+    SimControl,
     SimulatedBox,
-    in_process_box,
+    running_box,
 )
 
 if TYPE_CHECKING:
@@ -50,7 +51,6 @@ if TYPE_CHECKING:
     from drivers.safety.watches import FeedbackWatches
     from drivers.session import CalibrationRef, DriveSession
     from hrm_ctrl.ropes.actuation import Actuation
-    from sim_bus.box import SimBox
 
 
 @dataclass(frozen=True)
@@ -92,23 +92,48 @@ NO_WATCHES = WatchOptions(tension=False, ropes=False)
 class OpenBox:
     """An open box: its ``session``, its ``watches`` (started by :meth:`bring_up`), the
     ``config`` the session runs on (rewritten onto the simulated box's buses with one)
-    and the simulated box started or used for it (``sim``: the in-process
-    :class:`~sim_bus.box.SimBox`, or the :class:`~hrm_ctrl.runtime.process_box.BoxProcess`;
-    None on real buses)."""
+    and the simulated box started or used for it (``sim``: its controls,
+    :class:`~hrm_ctrl.runtime.simulated.SimControl`: a
+    :class:`~hrm_ctrl.runtime.process_box.BoxProcess` for a box in its own process; None
+    on real buses)."""
 
     session: DriveSession
     watches: FeedbackWatches
     config: BoxConfig
-    sim: SimBox | BoxProcess | None = None
+    sim: SimControl | BoxProcess | None = None
 
     def bring_up(self, bring_up: Callable[[DriveSession], object] | None = None) -> None:
         """Bring the drives up (``bring_up(session)``; default
-        :meth:`DriveSession.bring_up`), then start the watches."""
-        if bring_up is None:
-            self.session.bring_up()
-        else:
-            bring_up(self.session)
+        :meth:`DriveSession.bring_up`), then start the watches.  The bring-up runs at the
+        scheduling of the session's threads (``SCHED_FIFO`` where it got it, as with
+        ``--sim``), and so do the threads it starts (its SDO transfers in parallel): at
+        normal priority beside two CPU burners (load 16-28) 15 drives' SDO answers went
+        unread for the 1 s SDO timeout."""
+        with self.session.thread_scheduling():
+            if bring_up is None:
+                self.session.bring_up()
+            else:
+                bring_up(self.session)
         self.watches.start()
+
+
+def caller_scheduling(session: DriveSession) -> contextlib.AbstractContextManager[object]:
+    """The scheduling of the thread that works with an open ``session`` (computing between
+    its moves, reading an instrument): with the session's threads under ``SCHED_FIFO`` (as
+    with ``--sim`` where permitted), ``SCHED_FIFO`` one below theirs; else as it is.
+
+    The session's threads share this thread's GIL: computing at normal priority while the
+    watches ran and preempted by the machine's other work, it held the GIL while it
+    waited, and the watches' reader fell behind the tension board (the console's ``run``
+    beside two CPU burners at load 14-24: frames 583 and 826 ms old, the limit 500 ms).
+    One below, not at theirs: a session's thread woken by a frame preempts it (at the same
+    priority it would wait for a CPU until this thread blocked)."""
+    from drivers.realtime import process_settings
+
+    priority = session.scheduling.granted_priority - 1
+    if priority < 1:
+        return contextlib.nullcontext()
+    return process_settings(switch_interval_s=None, realtime_priority=priority)
 
 
 def identify_box(config: BoxConfig, actuation: LimitChecker, *, prog: str = "hrm") -> BoxIdentity:
@@ -150,13 +175,13 @@ def open_box(
     # every drive's device file offers what hrm needs (hrm box check), before anything opens
     check_box(config).raise_if_refused()
     with contextlib.ExitStack() as stack:
-        simbox: SimBox | BoxProcess | None = None
+        simbox: SimControl | BoxProcess | None = None
         listen_s = options.listen_s
         host_cpus = None
         if isinstance(sim, SimulatedBox) and sim.wire == PROCESS_WIRE:
             config, simbox = stack.enter_context(simulated_box_process(config, sim, prog))
         elif isinstance(sim, SimulatedBox):
-            running = stack.enter_context(in_process_box(config, sim, prog))
+            running = stack.enter_context(running_box(config, sim, prog))
             config, simbox = running.config, running.sim
         elif isinstance(sim, RunningSim):
             config, simbox = sim.config, sim.sim

@@ -36,11 +36,14 @@ from hrm_ctrl.runtime.simulated import PROCESS_WIRE
 from sim_bus.faults import has_control_character
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from drivers.config import BoxConfig
     from hrm_ctrl.runtime.simulated import SimulatedBox
 
 READY_TIMEOUT_S = 20.0  # the box process: start-up to its "ready" line (36 drives booted)
 REPLY_TIMEOUT_S = 5.0  # one control command's reply
+TRACE_TIMEOUT_S = 60.0  # the trace's reply: a run's positions at every SYNC, as JSON
 
 
 @dataclass(frozen=True)
@@ -169,6 +172,35 @@ class BoxProcess:
             self.proc.stdin.flush()
             return self.wait(reply, timeout_s)
 
+    # the running simulated box's controls (``hrm_ctrl.runtime.simulated.SimControl``):
+    # the control commands of ``sim_bus.runner``, answered by the box process
+
+    def set_straight_fixture(self, on: bool) -> None:
+        """Lay the arm into its zero fixture (``on``) or take it out."""
+        self.command(f"fixture {'on' if on else 'off'}", "fixture")
+
+    def record_trace(self, enabled: bool = True) -> None:
+        """Start (clearing) or stop recording every drive's position at each SYNC."""
+        self.command(f"trace {'on' if enabled else 'off'}", "trace")
+
+    def trace(self) -> tuple[np.ndarray, np.ndarray]:
+        """The recorded SYNC times (k,) and motor positions (k, n), as
+        :meth:`sim_bus.box.SimBox.trace` gives them in the box process."""
+        import numpy as np
+
+        reply = self.command("trace", "trace", timeout_s=TRACE_TIMEOUT_S)
+        times = np.asarray(reply["t_s"], dtype=float)
+        n = int(self.ready["motors"])
+        return times, np.asarray(reply["counts"], dtype=np.int64).reshape(len(times), n)
+
+    def fault(self, spec: str) -> str:
+        """Apply the fault ``spec`` now (``sim_bus.faults``); what was applied, in a line."""
+        return str(self.command(f"fault {spec}", "fault")["fault"])
+
+    def stop(self) -> None:
+        """Stop the box (:meth:`close`)."""
+        self.close()
+
     def close(self) -> None:
         try:
             if self.proc.poll() is None and self.proc.stdin is not None:
@@ -242,14 +274,13 @@ def _toml_value(value: Any) -> str:
     return json.dumps(value)
 
 
-@contextmanager
-def simulated_box_process(
+def start_box_process(
     config: BoxConfig, box: SimulatedBox, prog: str = "hrm"
-) -> Iterator[tuple[BoxConfig, BoxProcess]]:
-    """The simulated box of ``box`` in its own process (``hrm sim --control`` on
-    :data:`PROCESS_WIRE` buses of fresh channels): ``config`` rewritten onto its buses, its
-    tension board (and tracker) as ports, and the process; closed on leaving, whatever
-    ends the block.
+) -> tuple[BoxConfig, BoxProcess]:
+    """Start the simulated box of ``box`` in its own process (``hrm sim --control`` on
+    :data:`PROCESS_WIRE` buses of fresh channels): ``config`` rewritten onto its buses,
+    with its tension board (and tracker) as ports, and the process, which the caller
+    stops (:meth:`BoxProcess.stop`; :func:`simulated_box_process` does for a block).
 
     The box simulates ``box.arm``: the robot description ``box.arm.physical`` was read from,
     its truth (passed as a truth file), its motors at ``box.arm.initial_counts``.  The
@@ -270,6 +301,7 @@ def simulated_box_process(
     )
     remove_stale_channels(SIM_CHANNEL_PREFIX)  # of earlier runs killed before their end
     arm = box.arm
+    # the box's files are read as it starts: gone once it is ready
     with tempfile.TemporaryDirectory(prefix="hrm-sim-") as folder:
         path = Path(folder, "box.toml")
         path.write_text(box_toml(config))
@@ -282,6 +314,8 @@ def simulated_box_process(
             extra += ["--truth", str(Path(folder, "truth.toml"))]
         if arm.initial_counts is not None:
             extra += ["--initial-counts", ",".join(str(int(c)) for c in arm.initial_counts)]
+        if arm.physics is not None:
+            extra += ["--physics", arm.physics.describe()]
         if box.fixture:
             extra.append("--fixture")
         if box.tracker:
@@ -293,19 +327,33 @@ def simulated_box_process(
             rt_priority=sim_realtime_priority(config),
             ready_timeout_s=SIM_READY_TIMEOUT_S,
         )
-        try:
-            motors = tuple(process.ready.get("motor_ids", ()))
-            if motors != tuple(arm.physical.motor_ids):
-                raise SimError(f"box process {path}: motors {motors[:3]}... are not the arm's")
-            config = config.with_tension(port=str(process.ready["tension_port"]), **tension)
-            if box.tracker:
-                config = config.with_tracker(port=str(process.ready["tracker_port"]))
-            if raised:
-                print(
-                    f"{prog}: --sim: {', '.join(raised)} (the simulated box, in its own "
-                    "process, shares this machine's CPUs)",
-                    file=sys.stderr,
-                )
-            yield config, process
-        finally:
-            process.close()
+    try:
+        motors = tuple(process.ready.get("motor_ids", ()))
+        if motors != tuple(arm.physical.motor_ids):
+            raise SimError(f"box process {path}: motors {motors[:3]}... are not the arm's")
+        config = config.with_tension(port=str(process.ready["tension_port"]), **tension)
+        if box.tracker:
+            config = config.with_tracker(port=str(process.ready["tracker_port"]))
+    except BaseException:
+        process.close()
+        raise
+    if raised:
+        print(
+            f"{prog}: --sim: {', '.join(raised)} (the simulated box, in its own "
+            "process, shares this machine's CPUs)",
+            file=sys.stderr,
+        )
+    return config, process
+
+
+@contextmanager
+def simulated_box_process(
+    config: BoxConfig, box: SimulatedBox, prog: str = "hrm"
+) -> Iterator[tuple[BoxConfig, BoxProcess]]:
+    """The simulated box of ``box`` in its own process (:func:`start_box_process`) for
+    the block: closed on leaving, whatever ends the block."""
+    config, process = start_box_process(config, box, prog)
+    try:
+        yield config, process
+    finally:
+        process.close()

@@ -1,4 +1,6 @@
-"""The simulated box in this process (``--sim``), and the physical arm it simulates.
+"""The simulated box (``--sim``): the physical arm it simulates, the box in this process,
+and what the entry points do with a running box, wherever it runs (:class:`SimControl`;
+:func:`start_simulated_box` starts it in its own process, the default, or in this one).
 
 The drivers only ever see buses: here the configured interfaces are replaced by
 in-process buses (python-can ``virtual``, or ``hrm_sim``, the simulated wire at the
@@ -24,10 +26,10 @@ from __future__ import annotations
 import sys
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from hrm_ctrl.errors import DriverError
 from sim_bus.in_process import (
@@ -46,6 +48,7 @@ if TYPE_CHECKING:
     from hrm_ctrl.ropes.actuation import Actuation
     from hrm_ctrl.runtime.arm import Arm
     from sim_bus.box import SimBox
+    from sim_bus.physics import Physics
     from sim_bus.truth import TrueArm
 
 # the tolerances and why: sim_bus/in_process.py
@@ -82,6 +85,7 @@ def start_in_process_sim(
     tracker: bool = False,
     fixture: bool = False,
     initial_counts: np.ndarray | None = None,
+    physics: Physics | None = None,
 ) -> tuple[BoxConfig, SimBox]:
     """Return the configuration rewritten onto in-process buses and the started box.
 
@@ -92,7 +96,8 @@ def start_in_process_sim(
     ``initial_counts`` (n motor counts, the rope layer's order) is where the simulated
     motors stand at power-on (default 0): a simulated box remembers nothing between
     processes, so a command that follows a calibration starts it where the calibration
-    left the motors (:func:`calibration_counts`).
+    left the motors (:func:`calibration_counts`).  ``physics``: the arm's physics
+    (``sim_bus.physics``; None: none).
 
     The simulated drives and tension board run in this interpreter and share its CPU,
     so their TPDOs get ``SIM_MISSING_TPDO_CYCLES`` cycles before the host calls them
@@ -111,7 +116,9 @@ def start_in_process_sim(
     config = config.with_bus_kwargs(
         [{"interface": wire, "channel": f"hrm-sim-{tag}-{b.name}"} for b in config.buses]
     )
-    sim = SimBox(config, actuation=actuation, truth=truth, initial_counts=initial_counts)
+    sim = SimBox(
+        config, actuation=actuation, truth=truth, initial_counts=initial_counts, physics=physics
+    )
     if fixture:
         sim.set_straight_fixture(True)
     # the box's threads inherit the policy of the thread that starts them
@@ -177,6 +184,17 @@ def sim_realtime_priority(config: BoxConfig) -> int:
     return priority if priority and realtime_permitted(priority) else 0
 
 
+def sim_thread_scheduling(config: BoxConfig) -> AbstractContextManager[Any]:
+    """A context in which the caller starts a thread that works beside a session on the
+    simulated box before that session exists (a sensor's reader opened first): the
+    scheduling the session's threads get there (``SCHED_FIFO`` at
+    :func:`sim_realtime_priority` where the process may); the caller's own back on
+    leaving."""
+    from drivers.realtime import process_settings
+
+    return process_settings(switch_interval_s=None, realtime_priority=sim_realtime_priority(config))
+
+
 def calibration_counts(calibration: Calibration | None, actuation: Actuation) -> np.ndarray | None:
     """The motor zero counts of a calibration (``calibration.store.Calibration``, or None:
     all 0) in ``actuation``'s motor order: where the motors of a box a calibration has just
@@ -199,11 +217,14 @@ def sim_listen(simulated: bool) -> dict[str, float]:
 class SimulatedArm:
     """What a simulated box simulates: the ``physical`` rope layer (the robot
     description's), how the arm differs from it (``truth``; None: it does not) and where
-    its motors stand at power-on (``initial_counts``; None: 0)."""
+    its motors stand at power-on (``initial_counts``; None: 0), and its ``physics``
+    (:class:`sim_bus.physics.Physics`; None: none, the arm goes where its ropes' lengths
+    put it)."""
 
     physical: Actuation
     truth: TrueArm | None = None
     initial_counts: np.ndarray | None = None
+    physics: Physics | None = None
 
 
 def simulated_arm(
@@ -238,18 +259,77 @@ class SimulatedBox:
     fixture: bool = False
 
 
+class SimControl(Protocol):
+    """A running simulated box as the entry points command it, in this interpreter
+    (:class:`InProcessSim`) or in its own process
+    (:class:`~hrm_ctrl.runtime.process_box.BoxProcess`, over its control commands)."""
+
+    def set_straight_fixture(self, on: bool) -> None:
+        """Lay the arm into its zero fixture (``on``) or take it out."""
+        ...
+
+    def record_trace(self, enabled: bool = True) -> None:
+        """Start (clearing) or stop recording every drive's position at each SYNC."""
+        ...
+
+    def trace(self) -> tuple[np.ndarray, np.ndarray]:
+        """The recorded SYNC times (k,) and motor positions (k, n), the rope layer's order."""
+        ...
+
+    def fault(self, spec: str) -> str:
+        """Apply the fault ``spec`` (``sim_bus.faults``) now; what was applied."""
+        ...
+
+    def stop(self) -> None:
+        """Stop the box (its drives, tension board and tracker)."""
+        ...
+
+
+@dataclass(frozen=True)
+class InProcessSim:
+    """The controls of a simulated box in this interpreter (``box``: the
+    :class:`sim_bus.box.SimBox` itself, for what a test inspects)."""
+
+    box: SimBox
+
+    def set_straight_fixture(self, on: bool) -> None:
+        self.box.set_straight_fixture(on)
+
+    def record_trace(self, enabled: bool = True) -> None:
+        self.box.record_trace(enabled)
+
+    def trace(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.box.trace()
+
+    def fault(self, spec: str) -> str:
+        from sim_bus.faults import apply_fault, parse_fault
+
+        return apply_fault(parse_fault(spec), self.box, self.box.tension_board)
+
+    def stop(self) -> None:
+        self.box.stop()
+
+
 @dataclass(frozen=True)
 class RunningSim:
-    """A started in-process box: the configuration rewritten onto its buses, and the box."""
+    """A started simulated box: the configuration rewritten onto its buses, and the box's
+    controls (in this interpreter, or a box process)."""
 
     config: BoxConfig
-    sim: SimBox
+    sim: SimControl
 
 
 def start_simulated_box(config: BoxConfig, box: SimulatedBox, prog: str = "hrm") -> RunningSim:
-    """Start the in-process simulated box of ``box`` (its ``wire`` one of
-    :data:`SIM_WIRES`) on ``config``'s buses (rewritten); the caller stops it
-    (``.sim.stop()``; :func:`in_process_box` does for a block)."""
+    """Start the simulated box of ``box`` on ``config``'s buses (rewritten): in its own
+    process (``wire`` :data:`PROCESS_WIRE`,
+    :func:`hrm_ctrl.runtime.process_box.start_box_process`) or in this interpreter (one of
+    :data:`SIM_WIRES`); the caller stops it (``.sim.stop()``; :func:`running_box` does
+    for a block)."""
+    if box.wire == PROCESS_WIRE:
+        from hrm_ctrl.runtime.process_box import start_box_process
+
+        new, process = start_box_process(config, box, prog)
+        return RunningSim(new, process)
     a = box.arm
     new, sim = start_in_process_sim(
         config,
@@ -260,14 +340,16 @@ def start_simulated_box(config: BoxConfig, box: SimulatedBox, prog: str = "hrm")
         tracker=box.tracker,
         fixture=box.fixture,
         initial_counts=a.initial_counts,
+        physics=a.physics,
     )
-    return RunningSim(new, sim)
+    return RunningSim(new, InProcessSim(sim))
 
 
 @contextmanager
-def in_process_box(config: BoxConfig, box: SimulatedBox, prog: str = "hrm") -> Iterator[RunningSim]:
-    """The in-process simulated box of ``box`` on ``config``'s buses (rewritten), started;
-    stopped on leaving, whatever ends the block."""
+def running_box(config: BoxConfig, box: SimulatedBox, prog: str = "hrm") -> Iterator[RunningSim]:
+    """The simulated box of ``box`` on ``config``'s buses (rewritten), started (in its own
+    process or this one, :func:`start_simulated_box`); stopped on leaving, whatever ends
+    the block."""
     running = start_simulated_box(config, box, prog)
     try:
         yield running

@@ -1,5 +1,6 @@
 """What the live view draws, as plain arrays (no viewer library): link cylinders, the
-clearance colour of every link, the environment as triangle meshes and lines.
+clearance colour of every link, the environment as triangle meshes and lines, the
+trail the tip has drawn, the pose of the camera at the tip.
 
 Lengths here are mm (the stack's unit); :mod:`hrm_ctrl.view.server` scales them to the
 viewer's metres.
@@ -47,6 +48,9 @@ PLANNED_ARM_RGB = (100, 100, 120)
 PIPE_RING_SPACING_MM = 20.0
 PIPE_SEGMENTS = 32
 MAX_PIPE_RINGS = 2000  # a pipe's mesh stays bounded whatever its length
+TRAIL_RGB = (230, 120, 20)
+MAX_TRAIL_POINTS = 2000  # a trail drawn is thinned to this many points
+TIP_CAMERA_AHEAD_MM = 1.0  # the tip camera sits this far out of the last link's end face
 
 
 def clearance_band(clearance_mm: float) -> ClearanceBand:
@@ -181,13 +185,15 @@ def polyline_segments(points: np.ndarray) -> np.ndarray:
     return np.stack([p[:-1], p[1:]], axis=1)
 
 
-def box_wxyz(b: Box) -> np.ndarray:
-    """A box's world-from-box rotation as a unit quaternion ``wxyz``.
+def rotation_wxyz(R: np.ndarray) -> np.ndarray:
+    """A rotation matrix (3, 3) as a unit quaternion ``wxyz`` (Shepperd's method).
 
-    >>> box_wxyz(Box(np.zeros(3), np.ones(3))).tolist()
+    >>> rotation_wxyz(np.eye(3)).tolist()
     [1.0, 0.0, 0.0, 0.0]
+    >>> (rotation_wxyz(np.diag([1.0, -1.0, -1.0])) + 0.0).tolist()  # half a turn about x
+    [0.0, 1.0, 0.0, 0.0]
     """
-    R = b.rotation
+    R = np.asarray(R, dtype=float)
     tr = float(np.trace(R))
     if tr > 0.0:
         s = 2.0 * np.sqrt(tr + 1.0)
@@ -203,6 +209,67 @@ def box_wxyz(b: Box) -> np.ndarray:
         q[1 + k] = (R[k, i] + R[i, k]) / s
     out = np.array(q, dtype=float)
     return out / np.linalg.norm(out)
+
+
+def box_wxyz(b: Box) -> np.ndarray:
+    """A box's world-from-box rotation as a unit quaternion ``wxyz``.
+
+    >>> box_wxyz(Box(np.zeros(3), np.ones(3))).tolist()
+    [1.0, 0.0, 0.0, 0.0]
+    """
+    return rotation_wxyz(b.rotation)
+
+
+def tip_camera_pose(
+    R_tip: np.ndarray, O_tip: np.ndarray, ahead_mm: float = TIP_CAMERA_AHEAD_MM
+) -> tuple[np.ndarray, np.ndarray]:
+    """The tip camera's pose from the tip frame: rotation ``R_tip`` (3, 3, world from
+    tip; its z axis along the last link, out of the arm) and the end point ``O_tip``
+    (3,) mm -> the camera's position (3,) mm, ``ahead_mm`` out along the tip's z (clear of
+    the last link's end face), and its orientation ``wxyz``.
+
+    The camera follows the OpenCV convention the viewer's cameras use (+z forward, +x
+    right, +y down in the image): it looks along the tip's z axis, the tip's x axis to the
+    right of the image and its y axis down.
+
+    >>> from hrm_ctrl.kinematics import frames
+    >>> from hrm_ctrl.model import default_robot
+    >>> R, O = frames(default_robot(), np.zeros(12), np.zeros(12))
+    >>> p, q = tip_camera_pose(R[-1], O[-1], ahead_mm=2.0)
+    >>> p.round(9).tolist()  # the straight arm's end point (2007 mm along +x) plus 2 mm
+    [2009.0, 0.0, 0.0]
+    >>> forward = quaternion_rotate(q, np.array([0.0, 0.0, 1.0]))
+    >>> (forward.round(9) + 0.0).tolist()  # the camera looks out along +x, as the tip
+    [1.0, 0.0, 0.0]
+    """
+    R = np.asarray(R_tip, dtype=float)
+    return np.asarray(O_tip, dtype=float) + ahead_mm * R[:, 2], rotation_wxyz(R)
+
+
+def quaternion_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The vector ``v`` (3,) turned by the unit quaternion ``q`` (``wxyz``).
+
+    >>> half_turn_x = np.array([0.0, 1.0, 0.0, 0.0])
+    >>> (quaternion_rotate(half_turn_x, np.array([0.0, 1.0, 0.0])) + 0.0).tolist()
+    [0.0, -1.0, 0.0]
+    """
+    w, x, y, z = (float(c) for c in q)
+    u = np.array([x, y, z])
+    v = np.asarray(v, dtype=float)
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def trail_points(points: np.ndarray, max_points: int = MAX_TRAIL_POINTS) -> np.ndarray:
+    """A trail (P, 3) thinned to at most ``max_points`` (evenly by index, both ends
+    kept): what the view draws of a long trail.
+
+    >>> trail_points(np.arange(30.0).reshape(10, 3), 4)[:, 0].tolist()
+    [0.0, 9.0, 18.0, 27.0]
+    """
+    p = np.asarray(points, dtype=float)
+    if len(p) <= max_points:
+        return p
+    return p[np.unique(np.linspace(0, len(p) - 1, max_points).round().astype(int))]
 
 
 def obstacles(env: Environment | None) -> tuple[Pipe | Wall | Box, ...]:

@@ -11,9 +11,23 @@ unit is the metre (the stack's millimetres scaled by :data:`M_PER_MM`).
 
 Scene names (a test or a tool finds the objects by them in viser's scene tree):
 ``/env/...``, ``/plan/path``, ``/plan/backbone``, ``/plan/arm/linkNN`` (the planned arm
-at the slider's step) and ``/arm/linkNN`` (the arm shown: the planned one, or with
-``live`` the estimated one, hidden until the first :meth:`ArmView.update`).
-"""
+at the slider's step), ``/arm/linkNN`` (the arm shown: the planned one, or with
+``live`` the estimated one, hidden until the first :meth:`ArmView.update`),
+``/tip/camera`` (the tip camera's frustum) and ``/live/trail`` (the trail the tip has
+drawn, from :meth:`ArmView.show_trail`).
+
+The tip camera (a ``live`` view's): a virtual camera at the end effector looking along
+the tip's axis (:func:`hrm_ctrl.view.geometry.tip_camera_pose`), shown in the panel as
+the image "tip camera", off until its checkbox is ticked (a page without a GPU renders
+its frames in software, slowly, and would take the CPU the live feed needs).  The browser
+draws it: a thread asks a connected page to render the scene from the tip's pose
+(viser's ``get_render``) whenever the tip has moved, the trail has changed or a page has
+connected, at most :data:`TIP_CAMERA_RATE_HZ` times a second and with the page rendering
+for the camera at most :data:`TIP_CAMERA_DUTY` of the time (it stays responsive; a page
+slower than that still gets a request every :data:`TIP_CAMERA_MAX_WAIT_S`), and shows
+the frame in the panel; no page connected, no frame (``tip_frames`` counts the frames
+shown).  Its rate is the page's renderer's: a software renderer on a busy machine gives
+far fewer frames than a GPU."""
 
 from __future__ import annotations
 
@@ -29,7 +43,7 @@ import numpy as np
 
 from hrm_ctrl.errors import HrmError
 from hrm_ctrl.formats.planfile import PlanDoc
-from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.kinematics import frames, joint_centres
 from hrm_ctrl.model import RobotModel
 from hrm_ctrl.planning.environment import (
     DISPLAY_GOLDEN_ITERATIONS,
@@ -51,6 +65,15 @@ SAME_POSE_MM = 0.01  # a pose within this of the one shown is not sent again
 CLEARANCE_REUSE_MM = 0.25  # the clearance shown may be this much off (see ArmView._push),
 # and as much again from its search (DISPLAY_GOLDEN_ITERATIONS)
 PLANNED_OPACITY = 0.35
+TIP_CAMERA_WIDTH, TIP_CAMERA_HEIGHT = 256, 192  # pixels of the tip camera's frame
+TIP_CAMERA_FOV_RAD = math.radians(70.0)  # vertical field of view
+TIP_CAMERA_RATE_HZ = 15.0  # frames a second at most (the tip moving)
+TIP_CAMERA_DUTY = 0.25  # the share of the page's time its frames may take at most
+TIP_CAMERA_MAX_WAIT_S = 2.0  # but a slow page's next frame is asked for within this
+TIP_RENDER_TIMEOUT_S = 60.0  # longest wait for a page's frame (one asked for at a time)
+TRAIL_MIN_INTERVAL_S = 0.2  # a growing trail is sent at most this often (it is whole each time)
+TIP_FRUSTUM_M = 0.03  # the frustum drawn at the tip (m)
+TIP_FRUSTUM_RGB = (250, 210, 40)
 ENV_OPACITY = 0.18
 
 
@@ -143,6 +166,17 @@ class ArmView:
         self._clearance = np.zeros(0)
         self._names: list[str] = []
         self._sent: dict[int, dict[tuple[str, int], Any]] = {}
+        self.tip_pose_mm: tuple[np.ndarray, np.ndarray] | None = None  # position, wxyz
+        self._tip_version = 0  # bumped whenever the tip pose or the trail changes
+        self._trail: Any = None
+        self.trail_mm: np.ndarray | None = None  # the trail drawn (thinned)
+        self._trail_t = -math.inf
+        self.tip_frames = 0  # tip camera frames shown
+        self.tip_failures = 0  # renders a page did not deliver
+        self.tip_error: str | None = None
+        self._tip_t: list[float] = []  # times of the first and the last frame shown
+        self._tip_stop = threading.Event()
+        self._tip_thread: threading.Thread | None = None
         try:
             with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: we print the URL
                 self.server = viser.ViserServer(host=HOST, port=port, verbose=False)
@@ -165,6 +199,12 @@ class ArmView:
         except BaseException:
             self.close()
             raise
+        if live:
+            self.server.on_client_connect(self._new_page)
+            self._tip_thread = threading.Thread(
+                target=self._tip_camera_loop, name="hrm-view-tip-camera", daemon=True
+            )
+            self._tip_thread.start()
 
     # ------------------------------------------------------------------ origin
     def _guard_origin(self) -> None:
@@ -218,6 +258,26 @@ class ArmView:
         ]
         self._planned: list[Any] = []
         self._backbone = None
+        self._tipcam = self._add(
+            "add_camera_frustum",
+            "/tip/camera",
+            fov=TIP_CAMERA_FOV_RAD,
+            aspect=TIP_CAMERA_WIDTH / TIP_CAMERA_HEIGHT,
+            scale=TIP_FRUSTUM_M,
+            thickness=1.5,
+            thickness_units="screen",
+            color=TIP_FRUSTUM_RGB,
+            visible=False,
+            cast_shadow=False,
+            receive_shadow=False,
+        )
+        if self.live:
+            self._tip_on = gui.add_checkbox("tip camera", initial_value=False)
+            self._tip_image = gui.add_image(
+                np.zeros((TIP_CAMERA_HEIGHT, TIP_CAMERA_WIDTH, 3), dtype=np.uint8),
+                label="tip camera",
+                format="jpeg",
+            )
         gui.add_text(
             "arm shown",
             initial_value="estimated from drive feedback" if self.live else "the plan's",
@@ -387,6 +447,8 @@ class ArmView:
                 c = self.clearance_mm(O)
                 self._place(self._arm, O, g.clearance_colours(c))
                 self._show_clearance(c)
+                R = frames(self.model, p.alpha_rad[step], p.theta_rad[step])[0]
+                self._place_tip(R[-1], O[-1])
             self._step_text.value = f"{p.travel_mm[step]:.1f} mm ({p.phase[step].value})"
             bb = p.backbones_mm.get(step)
             if bb is not None:
@@ -448,7 +510,7 @@ class ArmView:
             return True
 
     def _push(self, a: np.ndarray, t: np.ndarray) -> None:
-        O = joint_centres(self.model, a, t)
+        R, O = frames(self.model, a, t)
         moved = math.inf if self._pushed_O is None else float(np.abs(O - self._pushed_O).max())
         if moved < SAME_POSE_MM:  # a held arm: nothing to send
             return
@@ -463,8 +525,109 @@ class ArmView:
         with self.server.atomic():
             self._place(self._arm, O, g.clearance_colours(c))
             self._show_clearance(c)
+            self._place_tip(R[-1], O[-1])
         self._pushed_O = O
         self.pushes += 1
+
+    def _place_tip(self, R_tip: np.ndarray, O_tip: np.ndarray) -> None:
+        """Put the tip camera (its frustum, the pose its frames are rendered from) on the
+        tip frame ``R_tip``, ``O_tip`` (mm)."""
+        pos, wxyz = g.tip_camera_pose(R_tip, O_tip)
+        self._tipcam.position = tuple(pos * M_PER_MM)
+        self._tipcam.wxyz = tuple(wxyz)
+        if not self._tipcam.visible:
+            self._tipcam.visible = True
+        self.tip_pose_mm = (pos, wxyz)
+        self._tip_version += 1
+
+    def show_trail(self, points_mm: np.ndarray) -> bool:
+        """Draw the trail the tip has drawn (``/live/trail``): points (P, 3) mm, P >= 2,
+        thinned to :data:`~hrm_ctrl.view.geometry.MAX_TRAIL_POINTS`; thread-safe.  A
+        trail within :data:`SAME_POSE_MM` of the one drawn, or one given sooner than
+        :data:`TRAIL_MIN_INTERVAL_S` after the last one drawn, sends nothing (False: the
+        caller gives it again, as the live feed does every tick)."""
+        p = np.asarray(points_mm, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 3 or len(p) < 2 or not np.isfinite(p).all():
+            raise ViewError(f"trail: expected (P >= 2, 3) finite points in mm, got {p.shape}")
+        p = g.trail_points(p)
+        with self._lock:
+            if self._closed:
+                return False
+            old = self.trail_mm
+            if old is not None and old.shape == p.shape and np.abs(old - p).max() < SAME_POSE_MM:
+                return False
+            now = self._clock()
+            if now - self._trail_t < TRAIL_MIN_INTERVAL_S:
+                return False
+            self._trail_t = now
+            seg = g.polyline_segments(p) * M_PER_MM
+            if self._trail is None:
+                self._trail = self._add(
+                    "add_line_segments",
+                    "/live/trail",
+                    seg,
+                    g.TRAIL_RGB,
+                    thickness=3.0,
+                    thickness_units="screen",
+                )
+            else:
+                self._trail.points = seg
+            self.trail_mm = p
+            self._tip_version += 1
+            return True
+
+    # ------------------------------------------------------------------ tip camera
+    def _new_page(self, _client: Any) -> None:
+        """A page connected: render the tip camera again (the frame shown may predate
+        the scene it now has)."""
+        with self._lock:
+            self._tip_version += 1
+
+    def _tip_camera_loop(self) -> None:
+        """Render the tip camera's frames in a connected page and show them (module doc)."""
+        period_s = 1.0 / TIP_CAMERA_RATE_HZ
+        shown_version = -1
+        wait_s = period_s
+        while not self._tip_stop.wait(wait_s):
+            wait_s = period_s
+            pose, version = self.tip_pose_mm, self._tip_version
+            if pose is None or version == shown_version or not self._tip_on.value:
+                continue
+            clients = self.server.get_clients()
+            if not clients:
+                continue
+            client = clients[min(clients)]
+            pos, wxyz = pose
+            t0 = time.monotonic()
+            try:
+                img = client.get_render(
+                    TIP_CAMERA_HEIGHT,
+                    TIP_CAMERA_WIDTH,
+                    wxyz=tuple(float(v) for v in wxyz),
+                    position=tuple(float(v) * M_PER_MM for v in pos),
+                    fov=TIP_CAMERA_FOV_RAD,
+                    timeout=TIP_RENDER_TIMEOUT_S,
+                )
+            except (RuntimeError, TimeoutError, OSError) as exc:  # the page left, or hung
+                self.tip_failures += 1
+                self.tip_error = str(exc)
+                continue
+            finally:  # the page's time rendering for the camera: at most TIP_CAMERA_DUTY
+                took_s = time.monotonic() - t0
+                wait_s = max(period_s - took_s, took_s * (1.0 / TIP_CAMERA_DUTY - 1.0))
+                wait_s = min(wait_s, TIP_CAMERA_MAX_WAIT_S)
+            if self._tip_stop.is_set():
+                break
+            self._tip_image.image = np.ascontiguousarray(img[..., :3])
+            shown_version, now = version, time.monotonic()
+            self.tip_frames += 1
+            self._tip_t = [self._tip_t[0] if self._tip_t else now, now]
+
+    def tip_rate_hz(self) -> float:
+        """Tip camera frames shown a second so far (0 before two were shown)."""
+        if self.tip_frames < 2 or len(self._tip_t) < 2 or self._tip_t[1] <= self._tip_t[0]:
+            return 0.0
+        return (self.tip_frames - 1) / (self._tip_t[1] - self._tip_t[0])
 
     @property
     def arm_links(self) -> tuple[Any, ...]:
@@ -483,8 +646,11 @@ class ArmView:
             if self._closed:
                 return
             self._closed = True
+        self._tip_stop.set()
         with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
-            self.server.stop()
+            self.server.stop()  # a frame still asked for fails with its page gone
+        if self._tip_thread is not None and self._tip_thread is not threading.current_thread():
+            self._tip_thread.join(TIP_RENDER_TIMEOUT_S + 1.0)
 
     def __enter__(self) -> ArmView:
         return self

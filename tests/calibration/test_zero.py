@@ -1,8 +1,9 @@
-"""Pretension and zero (``calibration.zero``) on the in-process simulated box with its arm
-in the straight fixture: a seeded perturbed arm's motor zeros recovered within 50 counts,
-final tensions within the tolerance, refusals naming the rope (slack beyond the travel
-limit, a snapped rope, invalid or saturated sensor channels, a tension over its limit),
-the drives left where the routine says and disabled cleanly by the session's finish.
+"""Pretension and zero (``calibration.zero``) on the simulated box (in its own process, as
+``--sim`` runs it) with its arm in the straight fixture: a seeded perturbed arm's motor
+zeros recovered within 50 counts, final tensions within the tolerance, refusals naming the
+rope (slack beyond the travel limit, a snapped rope, invalid or saturated sensor channels,
+a tension over its limit), the drives left where the routine says and disabled cleanly by
+the session's finish.
 
 Why 50 counts holds (``calibration.zero``'s docstring): one count is at least 0.0047 N of
 tension (joint 12's 2395 mm ropes, EA 20 % below the description); the mean of 10 frames
@@ -20,9 +21,8 @@ depends on its own rope's motor only.
 from __future__ import annotations
 
 import time
-import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,19 +44,15 @@ from calibration.zero import (
 )
 from drivers.config import load_box_config
 from drivers.protocol import cia402
-from drivers.realtime import process_settings
 from drivers.session import DriveSession, SessionState
 from drivers.tension_sensor import TensionSample, TensionSensorReader
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
-from sim_bus.box import SimBox
-from sim_bus.in_process import (
-    IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
-    IN_PROCESS_MISSING_TPDO_CYCLES,
-    IN_PROCESS_SWITCH_INTERVAL_S,
-    IN_PROCESS_TENSION_STALE_S,
-)
+from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, open_box
+from hrm_ctrl.runtime.process_box import BoxProcess
+from hrm_ctrl.runtime.simulated import SimulatedArm, SimulatedBox
 from sim_bus.truth import TrueArm
+from tests.drivers.driver_rig import BoxView
 from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT
 
 SEED = 11
@@ -66,7 +62,7 @@ ZEROED_JOINTS = (0, 11)  # 0-based: the shortest and the longest ropes (module d
 
 @dataclass
 class Rig:
-    sim: SimBox
+    sim: BoxView
     session: DriveSession
     reader: TensionSensorReader
     actuation: Actuation
@@ -77,41 +73,31 @@ class Rig:
 def fixture_rig(
     seed: int = SEED, host: Actuation | None = None, **truth_changes: Any
 ) -> Iterator[Rig]:
-    """The simulated box (36 drives on virtual buses, its tension board) with a perturbed
-    arm lying in its straight fixture, and a drive session brought up on it with the rope
-    layer ``host`` (default the description's)."""
+    """The simulated box (36 drives, its tension board) in its own process, as ``--sim``
+    starts it (``open_box``), with a perturbed arm lying in its straight fixture, and a
+    drive session brought up on it with the rope layer ``host`` (default the
+    description's)."""
     act = load_actuation(default_robot())
     truth = TrueArm.perturbed(act, seed)
     if truth_changes:
         truth = truth.replace(**truth_changes)
-    tag = uuid.uuid4().hex[:8]
-    cfg = load_box_config(None)
-    cfg = cfg.with_bus_kwargs(
-        [{"interface": "virtual", "channel": f"zero-{tag}-{b.name}"} for b in cfg.buses]
-    ).with_control(
-        # the box shares this interpreter: the tolerances hrm --sim runs with (with both
-        # cores busy heartbeats came 374-428 ms apart and TPDOs 10 cycles late).  The
-        # production watches themselves: tests/drivers/safety/test_supervisor_stops.py, tests/hil
-        missing_tpdo_cycles=IN_PROCESS_MISSING_TPDO_CYCLES,
-        heartbeat_timeout_ms=IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
-    )
-    sim = SimBox(cfg, actuation=act, truth=truth)
-    sim.set_straight_fixture(True)
-    sim.start()
-    try:
-        board = sim.start_tension_board()
-        with (
-            # and the switch interval of a process that runs the box (hrm --sim)
-            process_settings(switch_interval_s=IN_PROCESS_SWITCH_INTERVAL_S),
-            TensionSensorReader(
-                board.port, act.n_motors, stale_after_s=IN_PROCESS_TENSION_STALE_S
-            ) as reader,
-            DriveSession(cfg, host or act, allow_uncalibrated=True, listen_s=0.2) as session,
-        ):
-            session.bring_up()
-            yield Rig(sim, session, reader, host or act, truth)
-    finally:
-        sim.stop()
+    # the simulated box's tolerances and hrm_ipc buses of fresh channels, as hrm --sim runs
+    # it; the production watches themselves: tests/drivers/safety/test_supervisor_stops.py,
+    # tests/hil
+    box = SimulatedBox(SimulatedArm(act, truth), fixture=True)
+    options = SessionOptions(allow_uncalibrated=True)
+    with open_box(
+        load_box_config(None), host or act, options, sim=box, watches=NO_WATCHES, bring_up=False
+    ) as b:
+        assert isinstance(b.sim, BoxProcess) and b.config.tension is not None
+        t = b.config.tension
+        # the board read from before the bring-up, by a thread of the session's scheduling
+        # (SCHED_FIFO where permitted), as hrm calibrate zero does
+        with b.session.thread_scheduling():
+            opened = TensionSensorReader(t.port, act.n_motors, stale_after_s=t.stale_s).open()
+        with closing(opened) as reader:
+            b.bring_up()
+            yield Rig(BoxView(b.sim), b.session, reader, host or act, truth)
 
 
 def assert_disabled_after_finish(rig: Rig) -> None:

@@ -10,6 +10,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ from drivers.safety.subset import ActuationSubset
 from drivers.session import DriveSession
 from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import Actuation, load_actuation
+from hrm_ctrl.runtime.process_box import BoxProcess
 from sim_bus.box import SimBox
 from sim_bus.in_process import IN_PROCESS_MISSING_TPDO_CYCLES
 from tests.vcan_guest import in_vcan_guest
@@ -263,3 +265,60 @@ def wait_until(pred: Callable[[], bool], timeout_s: float = 2.0) -> bool:
 
 
 __all__ = ["Rig", "Sniffer", "first_time", "make_config", "np", "rpdo_targets_per_sync"]
+
+
+def send_from_outside(rig: Rig, bus: int, msg: can.Message) -> None:
+    """A frame from another device on bus ``bus`` (its own python-can bus object)."""
+    other = can.Bus(**rig.config.buses[bus].bus_kwargs())
+    try:
+        other.send(msg)
+    finally:
+        other.shutdown()
+
+
+@contextmanager
+def sending_from_outside(
+    rig: Rig, bus: int, msg: can.Message, period_s: float
+) -> Iterator[threading.Thread]:
+    """Another device on bus ``bus`` (its own python-can bus object) sending ``msg`` every
+    ``period_s`` for the length of the block; stopped (and its bus shut down) on leaving."""
+    stop = threading.Event()
+
+    def send() -> None:
+        other = can.Bus(**rig.config.buses[bus].bus_kwargs())
+        try:
+            while not stop.is_set():
+                other.send(msg)
+                stop.wait(period_s)
+        finally:
+            other.shutdown()
+
+    thread = threading.Thread(target=send, name="outside-sender", daemon=True)
+    thread.start()
+    try:
+        yield thread
+    finally:
+        stop.set()
+        thread.join(2.0)
+
+
+@dataclass(frozen=True)
+class BoxView:
+    """What a test reads of a simulated box in its own process
+    (:class:`~hrm_ctrl.runtime.process_box.BoxProcess`, over its ``state`` and ``fault``
+    control commands), under the names :class:`sim_bus.box.SimBox` gives them."""
+
+    process: BoxProcess
+
+    def counts(self) -> np.ndarray:
+        """Every drive's actual position, the rope layer's order."""
+        return np.asarray(self.process.command("state", "state")["counts"], dtype=np.int64)
+
+    def statuswords(self) -> dict[str, int]:
+        """Every drive's statusword, by motor."""
+        words = self.process.command("state", "state")["statuswords"]
+        return {m: int(sw) for m, sw in words.items()}
+
+    def snap_rope(self, motor: str) -> None:
+        """Snap ``motor``'s rope (the ``rope-snap`` fault)."""
+        self.process.fault(f"rope-snap:{motor}")

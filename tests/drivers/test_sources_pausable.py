@@ -1,6 +1,7 @@
-"""PausableSource (drivers/sources.py): pause, resume and abort along the path, never a
-setpoint beyond a motor's speed or acceleration limit (checked as the supervisor checks);
-the jerk of a pause at a tenth of the speed, and the way back, within the jerk limit."""
+"""PausableSource (drivers/sources/pausable.py): pause, resume and abort along the path,
+never a setpoint beyond a motor's speed or acceleration limit (checked as the supervisor
+checks); the jerk of a pause at a tenth of the speed, and the way back, within the jerk
+limit; on a table at 90 % of the speed and at the acceleration limit, bounded."""
 
 from __future__ import annotations
 
@@ -63,22 +64,16 @@ def _check_like_supervisor(act, actual, out):
     assert first_too_hard(act, out, T, previous=actual) is None  # from rest, too
 
 
-@pytest.mark.xfail(strict=True, reason="a pause at the first row: a setpoint over the limits")
-def test_a_pause_at_the_first_row_stays_within_limits(act):
-    """Found by Hypothesis, not fixed yet (issue 39): a pause at row 1 held 35 cycles with
-    a 0.5 s ramp sends a row outside the motors' limits (the supervisor refuses it)."""
-    test_pause_resume_within_limits.hypothesis.inner_test(act, 1, 35, 0.5, False)
-
-
-# derandomized: the examples CI runs are the ones run here (a pause at the first row breaks
-# the limits: the strict xfail above)
 @settings(max_examples=20, deadline=None, suppress_health_check=FIXTURE, derandomize=True)
 @given(
-    pause_at=st.integers(2, 150),
+    pause_at=st.integers(1, 150),
     paused_for=st.integers(0, 80),
     ramp_s=st.sampled_from([0.05, 0.2, 0.5]),
     second=st.booleans(),
 )
+# a pause at the first row, resumed into the table's acceleration at the limit: the rates
+# below full rate were filtered out there (none left, a setpoint far off the path)
+@example(pause_at=1, paused_for=35, ramp_s=0.5, second=False)
 def test_pause_resume_within_limits(act, pause_at, paused_for, ramp_s, second):
     body = _bang_bang_body(act)
     actual = body[0].copy()
@@ -134,7 +129,8 @@ def test_long_pause_aborts(act):
     assert src.state is PlayState.ABORTED
     assert src.abort_reason == "paused longer than 0.3 s"
     assert src.describe()["play_state"] == "aborted"
-    assert 30 + 40 <= len(out) <= 30 + 50 + 31 + 3  # the ramp (0.5 s: 50 cycles), 0.3 s at rest
+    # the ramp (on this table about 2 s: ramp_cycles), then 0.3 s at rest
+    assert 30 + 0.9 * src.ramp_cycles + 31 <= len(out) <= 30 + src.ramp_cycles + 31 + 3
 
 
 def test_bad_ramp_refused(act):
@@ -175,43 +171,78 @@ def _eased_body(act, peak: float = 400.0, rows: int = 300) -> np.ndarray:
     return np.rint(np.cumsum(speed)[:, None] * sign[None, :]).astype(np.int64)
 
 
-#: what a pause's jerk reaches at 10 % of the motors' speed, over the limit (measured: up to
-#: 1.27 on sweeps of 4,300 pause and resume times; the limit itself is not kept yet, see
-#: test_a_pause_keeps_the_jerk_limit)
-PAUSE_JERK_OVER = 1.5
+#: what a pause's jerk reaches on a table at 90 % of the motors' speed and at their
+#: acceleration limit, over the limit (measured: 1.32 at most over 300 random pauses, 27
+#: of them with cycles where no rate kept both the path and the jerk, and the path was
+#: kept: ``jerk_relaxed_cycles``; the table's own jerk at 80 % of the limit leaves the
+#: rate's change 4 counts a cycle cubed)
+FAST_TABLE_JERK_OVER = 1.5
 
 
-def _pause_at_a_tenth(act, pause_at, paused_for, ramp_s):
+def _pause_at_a_tenth(act, events, ramp_s):
+    """The third differences of a playback of the 10 % table with ``events``, over the
+    motors' jerk limits, from rest to rest (speed and acceleration checked), and the
+    source."""
     body = _eased_body(act)
     src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act, ramp_s=ramp_s)
-    out = _play(src, body[0].copy(), {pause_at: "pause", pause_at + paused_for: "resume"})
+    out = _play(src, body[0].copy(), events)
     _check_like_supervisor(act, body[0], out)
     assert np.array_equal(out[-1], body[-1])
     seq = np.concatenate([body[:1]] * 3 + [out] + [out[-1:]] * 2)
-    return np.abs(np.diff(seq, n=3, axis=0)) / (act.max_jerk_counts_per_s3 * T**3)
+    return np.abs(np.diff(seq, n=3, axis=0)) / (act.max_jerk_counts_per_s3 * T**3), src
 
 
-@settings(max_examples=15, deadline=None, suppress_health_check=FIXTURE, derandomize=True)
+@settings(max_examples=25, deadline=None, suppress_health_check=FIXTURE, derandomize=True)
 @given(
     pause_at=st.integers(1, 250),
     paused_for=st.integers(0, 80),
-    ramp_s=st.sampled_from([0.2, 0.5]),
+    ramp_s=st.sampled_from([0.05, 0.2, 0.5]),
+    second=st.booleans(),
 )
-@example(pause_at=1, paused_for=13, ramp_s=0.2)
-@example(pause_at=12, paused_for=5, ramp_s=0.2)
-@example(pause_at=232, paused_for=8, ramp_s=0.2)  # 1.27
-def test_a_pause_at_a_tenth_of_the_speed_bounds_its_jerk(act, pause_at, paused_for, ramp_s):
-    """A pause and a resume of a playback at 10 % of the motors' speed: speed and
-    acceleration within the limits, every third difference within
-    :data:`PAUSE_JERK_OVER` of the motors' jerk (the rate's own change eased, a cubic
-    between rows)."""
-    assert _pause_at_a_tenth(act, pause_at, paused_for, ramp_s).max() <= PAUSE_JERK_OVER
+@example(pause_at=1, paused_for=13, ramp_s=0.2, second=False)
+@example(pause_at=12, paused_for=5, ramp_s=0.2, second=False)  # 1.17: the snap to a row
+@example(pause_at=232, paused_for=8, ramp_s=0.2, second=False)  # 1.27 before the window
+@example(pause_at=217, paused_for=1, ramp_s=0.05, second=True)
+def test_a_pause_keeps_the_jerk_limit(act, pause_at, paused_for, ramp_s, second):
+    """A pause and a resume (and a second pause while it speeds up again) of a playback
+    at 10 % of the motors' speed: speed and acceleration within the limits, every third
+    difference within the motors' jerk limit, from rest to rest (issue 39)."""
+    events = {pause_at: "pause", pause_at + paused_for: "resume"}
+    if second:
+        events[pause_at + paused_for + 3] = "pause"
+        events[pause_at + paused_for + 40] = "resume"
+    jerk, src = _pause_at_a_tenth(act, events, ramp_s)
+    assert jerk.max() <= 1.0
+    assert src.jerk_relaxed_cycles == 0
 
 
-@pytest.mark.xfail(strict=True, reason="a pause's jerk reaches up to 1.27 of the limit")
-def test_a_pause_keeps_the_jerk_limit(act):
-    """Issue 39's goal, not met yet: a pause keeps the motors' jerk limit itself."""
-    assert _pause_at_a_tenth(act, 12, 5, 0.2).max() <= 1.0
+@settings(max_examples=12, deadline=None, suppress_health_check=FIXTURE, derandomize=True)
+@given(
+    pause_at=st.integers(1, 150),
+    paused_for=st.integers(0, 80),
+    ramp_s=st.sampled_from([0.05, 0.2, 0.5]),
+    second=st.booleans(),
+)
+@example(pause_at=11, paused_for=74, ramp_s=0.2, second=False)  # 1.12
+@example(pause_at=39, paused_for=37, ramp_s=0.05, second=False)  # 1.32
+@example(pause_at=131, paused_for=10, ramp_s=0.2, second=True)  # 4.05 at the full ramp
+def test_a_pause_of_a_fast_table_bounds_its_jerk(act, pause_at, paused_for, ramp_s, second):
+    """A table at 90 % of the motors' speed and at their acceleration limit, its own
+    jerk at 80 % of the limit: the rate changes within what the table leaves (a pause
+    takes ``ramp_cycles``, about 2 s, not ``ramp_s``), the jerk within
+    :data:`FAST_TABLE_JERK_OVER` of the limit."""
+    body = _bang_bang_body(act)
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act, ramp_s=ramp_s)
+    events = {pause_at: "pause", pause_at + paused_for: "resume"}
+    if second:
+        events[pause_at + paused_for + 3] = "pause"
+        events[pause_at + paused_for + 60] = "resume"
+    out = _play(src, body[0].copy(), events)
+    _check_like_supervisor(act, body[0], out)
+    assert np.array_equal(out[-1], body[-1])
+    seq = np.concatenate([body[:1]] * 3 + [out] + [out[-1:]] * 2)
+    jerk = np.abs(np.diff(seq, n=3, axis=0)) / (act.max_jerk_counts_per_s3 * T**3)
+    assert jerk.max() <= FAST_TABLE_JERK_OVER
 
 
 def test_way_back_of_a_jerk_limited_playback_is_its_reverse(act):
@@ -250,7 +281,7 @@ def test_abort_while_paused_and_resume_while_pausing(act):
     src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act, ramp_s=0.1)
     src.start(body[0].copy(), T)
     src.pause()
-    for k in range(200):
+    for k in range(2 * src.ramp_cycles):
         src.setpoint(k)
     assert src.state is PlayState.PAUSED and src.requested == "pause"
     src.abort()  # at rest: ends at once (next cycle)
@@ -258,3 +289,47 @@ def test_abort_while_paused_and_resume_while_pausing(act):
     assert src.setpoint(201) is None
     src.resume()  # too late: stays aborted
     assert src.requested == "abort" and src.setpoint(202) is None
+
+
+@pytest.fixture(scope="module")
+def pipe_table(act):
+    """The bent pipe there and back (5 mm steps, the default fit) at 500 mm/s: a table at
+    97 % of the motors' jerk limit."""
+    from hrm_ctrl.planning.planner import PlanOptions, plan_path
+    from hrm_ctrl.planning.scenarios import scenario
+    from hrm_ctrl.ropes.setpoints import plan_setpoints
+
+    sc = scenario("bent-pipe")
+    opts = PlanOptions(step=5.0, return_to_start=True)
+    plan = plan_path(act.robot, sc.path, opts, sc)
+    sp = plan_setpoints(act, plan.travel, plan.alpha, plan.theta, phase=list(plan.phase),
+                        period_s=T, speed_mm_per_s=500.0)  # fmt: skip
+    return np.asarray(sp.counts, dtype=np.int64)
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=FIXTURE, derandomize=True)
+@given(
+    pause_at=st.integers(1, 360),
+    paused_for=st.sampled_from([3, 5, 30, 80]),
+    second=st.booleans(),
+)
+@example(pause_at=218, paused_for=30, second=False)  # 1.20 times the jerk before
+def test_a_pause_of_the_bent_pipe_at_500_keeps_the_jerk_limit(
+    act, pipe_table, pause_at, paused_for, second
+):
+    """A pause (and a second one) of the bent pipe played at 500 mm/s, its own jerk at
+    97 % of the limit: every third difference within the motors' jerk limit, speed and
+    acceleration as the supervisor checks them (issue 39)."""
+    body = pipe_table
+    src = PausableSource(CountsSource(act, body, T, hold_s=0.0), act)
+    events = {pause_at: "pause", pause_at + paused_for: "resume"}
+    if second:
+        events[pause_at + paused_for + 5] = "pause"
+        events[pause_at + paused_for + 50] = "resume"
+    out = _play(src, body[0].copy(), events)
+    _check_like_supervisor(act, body[0], out)
+    assert np.array_equal(out[-1], src.inner.table[-1])
+    seq = np.concatenate([body[:1]] * 3 + [out] + [out[-1:]] * 2)
+    jerk = np.abs(np.diff(seq, n=3, axis=0)) / (act.max_jerk_counts_per_s3 * T**3)
+    assert jerk.max() <= 1.0
+    assert src.jerk_relaxed_cycles == 0

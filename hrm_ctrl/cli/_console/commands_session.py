@@ -335,10 +335,10 @@ def _complete_sim(ctx: ConsoleContext, words: list[str]) -> list[str]:
          "(docs/sim.md), or undo every fault", "sim fault SPEC | sim reset",
          complete=_complete_sim)  # fmt: skip
 def _sim(ctx: ConsoleContext, args: list[str]) -> None:
-    from sim_bus.faults import apply_fault, parse_fault
+    from sim_bus.faults import parse_fault
 
     if ctx.sim is None:
-        raise ConsoleError("only with --sim (the in-process simulated box)")
+        raise ConsoleError("only with --sim (the simulated box)")
     if args == ["reset"]:
         args = ["fault", "reset"]
     if len(args) != 2 or args[0] != "fault":
@@ -346,5 +346,4 @@ def _sim(ctx: ConsoleContext, args: list[str]) -> None:
     fault = parse_fault(args[1])
     if fault.at_s is not None:
         raise ConsoleError(f"{args[1]}: a delayed fault (@T) is for hrm sim --fault")
-    text = apply_fault(fault, ctx.sim, ctx.sim.tension_board)
-    ctx.out(f"sim: {text}")
+    ctx.out(f"sim: {ctx.sim.fault(args[1])}")

@@ -2,7 +2,7 @@
 
 One context per console process: the bus configuration, the arm (robot model with the
 calibration's links, its rope layer, the calibration used), the live drive session once
-``connect`` has opened it (None before), the in-process simulated box with ``--sim``, the
+``connect`` has opened it (None before), the simulated box's controls with ``--sim``, the
 output functions, and where runs and their CAN logs go.
 
 >>> lines = []
@@ -28,14 +28,16 @@ Writer = Callable[[str], None]
 @dataclass
 class ConsoleContext:
     """The console's state.  ``config`` is the :class:`drivers.config.BoxConfig` (rewritten
-    onto in-process buses with ``--sim``), ``description`` the robot description as loaded,
+    onto the simulated box's buses with ``--sim``), ``description`` the robot description as loaded,
     ``model`` the robot model with the calibration's links, ``actuation`` its rope layer,
     ``calibration`` the :class:`drivers.session.CalibrationRef` used (None: the
     description's values), ``active`` the ``calibration.apply.ActiveCalibration`` (or None).
     ``session`` is the :class:`drivers.session.DriveSession` after ``connect`` (None
-    before and after ``disconnect``), ``sim`` the in-process ``sim_bus.box.SimBox`` with
-    ``--sim``.  ``out``/``err`` print one line each.  ``runs_dir`` is where each session's
-    CAN logs and run record go, ``last_run`` the last run record written (or None).
+    before and after ``disconnect``), ``sim`` the simulated box's controls with ``--sim``
+    (``hrm_ctrl.runtime.simulated.SimControl``: the box in its own process, or with an
+    in-process ``--wire`` an ``InProcessSim``).  ``out``/``err`` print one line each.
+    ``runs_dir`` is where each session's CAN logs and run record go, ``last_run`` the
+    last run record written (or None).
     ``stop_requested`` is set (by another thread: a progress display's ``stop``) to end a
     move early (:func:`hrm_ctrl.cli._console.streaming.play` stops every axis).
     ``extra`` keeps commands' own state by key (``tension_reader``: the tension board's

@@ -25,6 +25,7 @@ True
 
 from __future__ import annotations
 
+import contextlib
 import math
 import re
 import shlex
@@ -204,6 +205,17 @@ def check_needs(ctx: ConsoleContext, cmd: Command) -> None:
         raise ConsoleError(f"the drives are not enabled (session {state}; enable first)")
 
 
+def command_scheduling(ctx: ConsoleContext) -> contextlib.AbstractContextManager[object]:
+    """The scheduling a command runs at: with a session open,
+    :func:`hrm_ctrl.runtime.box.caller_scheduling` (one below the session's threads when
+    they run under ``SCHED_FIFO``), else the console's own."""
+    from hrm_ctrl.runtime.box import caller_scheduling
+
+    if ctx.session is None:
+        return contextlib.nullcontext()
+    return caller_scheduling(ctx.session)
+
+
 def run_words(ctx: ConsoleContext, words: list[str]) -> None:
     """Run one command line already split into words (empty: nothing).  Errors propagate
     as :class:`~hrm_ctrl.errors.HrmError` with the command's name in front."""
@@ -212,7 +224,8 @@ def run_words(ctx: ConsoleContext, words: list[str]) -> None:
     cmd = find(words[0])
     try:
         check_needs(ctx, cmd)
-        cmd.handler(ctx, words[1:])
+        with command_scheduling(ctx):
+            cmd.handler(ctx, words[1:])
     except ConsoleError as exc:
         raise ConsoleError(f"{cmd.name}: {exc}") from None
     except HrmError as exc:

@@ -17,7 +17,7 @@ from drivers.safety.causes import StopKind
 from drivers.session import OtherMasterError, SessionState, SessionStateError
 from drivers.sources import HoldSource
 from hrm_ctrl.errors import SignalInterrupt
-from tests.drivers.driver_rig import Rig, wait_until
+from tests.drivers.driver_rig import Rig, sending_from_outside, wait_until
 
 
 def quick_stops(rig: Rig) -> list[can.Message]:
@@ -123,28 +123,12 @@ def test_a_master_heard_only_by_its_pdos_is_not_reset(rig_factory: Callable[...,
     """Another master drives node 1 with SYNCs on its own bus object: its TPDOs (and the
     SYNCs) are heard while listening; nothing is reset."""
     rig = rig_factory()
-    stop = threading.Event()
-
-    def other_master() -> None:
-        bus = can.Bus(**rig.config.buses[0].bus_kwargs())
-        try:
-            while not stop.is_set():
-                bus.send(can.Message(arbitration_id=0x181,
-                                     data=cia402.TPDO_FEEDBACK_LAYOUT.pack(0x1237, 0),
-                                     is_extended_id=False))  # fmt: skip
-                stop.wait(0.01)
-        finally:
-            bus.shutdown()
-
-    thread = threading.Thread(target=other_master, daemon=True)
-    thread.start()
-    try:
+    tpdo = can.Message(arbitration_id=0x181, data=cia402.TPDO_FEEDBACK_LAYOUT.pack(0x1237, 0),
+                       is_extended_id=False)  # fmt: skip
+    with sending_from_outside(rig, 0, tpdo, 0.01):  # the other master
         box = rig.open_box(listen_s=0.3)
         with pytest.raises(OtherMasterError, match=r"PDOs from 1 node\(s\) \(1\)"):
             box.configure()
-    finally:
-        stop.set()
-        thread.join(2.0)
     resets = [
         m
         for sn in rig.sniffers

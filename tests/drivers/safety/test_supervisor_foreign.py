@@ -17,18 +17,9 @@ from drivers.protocol import cia301, cia402
 from drivers.safety.causes import StopKind
 from drivers.session import OtherMasterError, SafetyStopError, SessionState
 from drivers.sources import HoldSource
-from tests.drivers.driver_rig import Rig, wait_until
+from tests.drivers.driver_rig import Rig, send_from_outside, sending_from_outside, wait_until
 
 T = 0.01
-
-
-def send_from_outside(rig: Rig, bus: int, msg: can.Message) -> None:
-    """A frame from another device on bus ``bus`` (its own python-can bus object)."""
-    other = can.Bus(**rig.config.buses[bus].bus_kwargs())
-    try:
-        other.send(msg)
-    finally:
-        other.shutdown()
 
 
 def frames(rig: Rig, bus: int) -> list[can.Message]:
@@ -140,26 +131,10 @@ def test_a_29_bit_frame_is_never_taken_for_a_tpdo(rig_factory: Callable[..., Rig
     rig.sim.drop_frames(
         "bus0", lambda m: m.arbitration_id == 0x181 and not m.is_extended_id, count=None
     )
-    stop = threading.Event()
-
-    def impostor() -> None:
-        other = can.Bus(**rig.config.buses[0].bus_kwargs())
-        try:
-            while not stop.is_set():
-                other.send(can.Message(arbitration_id=0x181, data=b"\x37\x02\x00\x00\x00\x00",
-                                       is_extended_id=True))  # fmt: skip
-                stop.wait(0.005)
-        finally:
-            other.shutdown()
-
-    thread = threading.Thread(target=impostor, daemon=True)
-    thread.start()
-    try:
-        with pytest.raises(SafetyStopError) as info:
-            box.stream(HoldSource(n_cycles=300))
-    finally:
-        stop.set()
-        thread.join(2.0)
+    impostor = can.Message(arbitration_id=0x181, data=b"\x37\x02\x00\x00\x00\x00",
+                           is_extended_id=True)  # fmt: skip
+    with sending_from_outside(rig, 0, impostor, 0.005), pytest.raises(SafetyStopError) as info:
+        box.stream(HoldSource(n_cycles=300))
     missing = [x for x in info.value.causes if x.kind is StopKind.TPDO_MISSING]
     assert missing and "j01r0" in missing[0].text
     traffic = box.record()["bus_traffic"][0]

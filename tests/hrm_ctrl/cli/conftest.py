@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import can
@@ -19,3 +20,12 @@ def no_bus(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
 
     monkeypatch.setattr(can, "Bus", refuse)
     return opened
+
+
+@pytest.fixture
+def store_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A temporary store as the default (``$HRM_CALIBRATIONS``), HOME elsewhere."""
+    folder = tmp_path / "calibrations"
+    monkeypatch.setenv("HRM_CALIBRATIONS", str(folder))
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    return folder

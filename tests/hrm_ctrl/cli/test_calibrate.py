@@ -45,15 +45,6 @@ OFFSET_TOL_RAD = math.radians(0.02)
 K_SIGMA = 4.0
 
 
-@pytest.fixture
-def store_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    """A temporary store as the default (``$HRM_CALIBRATIONS``), HOME elsewhere."""
-    folder = tmp_path / "calibrations"
-    monkeypatch.setenv("HRM_CALIBRATIONS", str(folder))
-    monkeypatch.setenv("HOME", str(tmp_path / "home"))
-    return folder
-
-
 @pytest.fixture(scope="module")
 def model():
     return default_robot()

@@ -36,15 +36,6 @@ from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT, small_plan
 REAL_VENDOR_ID = 0x0000009A  # any vendor but the simulator's
 
 
-@pytest.fixture
-def store_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    """A temporary store as the default (``$HRM_CALIBRATIONS``), HOME elsewhere."""
-    folder = tmp_path / "calibrations"
-    monkeypatch.setenv("HRM_CALIBRATIONS", str(folder))
-    monkeypatch.setenv("HOME", str(tmp_path / "home"))
-    return folder
-
-
 def _virtual_box(tmp_path: Path) -> Path:
     """The shipped box on private virtual buses (channels of this test alone)."""
     tag = uuid.uuid4().hex[:8]

@@ -184,8 +184,10 @@ def test_bad_log_format_or_bus_is_one_line_exit_2(
         (["run", "plan.json", "--sim", "--wire", "virtual"], True),
         (["run", "plan.json", "--sim"], False),  # the box in its own process (hrm_ipc)
         (["calibrate", "kinematic", "--collect", "5", "--sim"], False),
-        (["demo"], True),
-        (["status", "--sim"], True),
+        (["demo"], False),  # the box in its own process (hrm_ipc)
+        (["demo", "--wire", "virtual"], True),
+        (["status", "--sim"], False),
+        (["console", "--sim", "--wire", "hrm_sim"], True),
         (["run", "plan.json"], False),
         (["sim", "--config", "box.toml"], False),  # the box in its own process
         (["plan", "--scenario", "bent-pipe"], False),

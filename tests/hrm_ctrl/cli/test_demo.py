@@ -1,6 +1,7 @@
-"""``hrm demo``: the whole stack on the in-process simulated box: a perturbed arm
-calibrated (zero in the fixture, kinematic from the tracker), the scenario planned with the
-calibrated model and played there and back."""
+"""``hrm demo``: the whole stack on the simulated box (in its own process by default; in
+this one with ``--wire hrm_sim``): a perturbed arm calibrated (zero in the fixture,
+kinematic from the tracker), the scenario planned with the calibrated model and played
+there and back."""
 
 from __future__ import annotations
 

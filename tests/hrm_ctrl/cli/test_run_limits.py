@@ -1,6 +1,7 @@
 """End to end: ``hrm run --sim`` plays a plan whose first step is away from where the
-drives are; the CAN log's RPDO targets (what every drive was told, per SYNC) keep every
-motor within its speed and acceleration limit in every control cycle, lead-in included."""
+drives are (and pauses it); the CAN log's RPDO targets (what every drive was told, per
+SYNC) keep every motor within its speed, acceleration and jerk limit in every control
+cycle, lead-in and pause included."""
 
 from __future__ import annotations
 
@@ -57,30 +58,51 @@ def targets_per_sync(log: Path, nodes: dict[str, int]) -> tuple[np.ndarray, np.n
     return np.array(rows, dtype=np.int64), np.array(stops)
 
 
+@pytest.mark.parametrize(
+    "controls",
+    [[], ["--pause-at", "40%", "--resume-after", "0.3s"]],
+    ids=["plain", "paused"],
+)
 def test_playback_within_speed_acceleration_and_jerk_in_every_cycle(
-    tmp_path: Path, capsys: pytest.CaptureFixture
+    tmp_path: Path, capsys: pytest.CaptureFixture, controls: list[str]
 ) -> None:
+    """Lead-in, body, stop (and a pause: the ramp to rest, 0.3 s at rest, the ramp back,
+    issue 39) within every motor's speed, acceleration and jerk, from the CAN log."""
     plan = tmp_path / "plan.json"
     write_plan(plan, bent_start_plan())
     logs = tmp_path / "runs"
-    rc = main(["run", str(plan), "--sim", "--log-dir", str(logs), "--speed", "50", "--json"])
+    args = ["run", str(plan), "--sim", "--log-dir", str(logs), "--speed", "50", "--json"]
+    rc = main(args + controls)
     out = capsys.readouterr()
     assert rc == 0, out.err
     summary = json.loads(out.out)
     assert summary["completed"] is True
     record = json.loads(Path(summary["run_record"]).read_text())
+    if controls:  # it paused, stood and went on to the end
+        assert [a["action"] for a in record["run_control"]] == ["pause", "resume"]
+        assert record["setpoints"]["play_state"] == "done"
+        assert record["setpoints"]["paused_s"] >= 0.25
     assert record["setpoints"]["lead_in_cycles"] >= 5
     # what the jerk bound cost the plan's body, in the record: one jerk window (a few
     # hundredths of a second) on this short plan's one leg
     cost = record["setpoints"]["jerk_bound_cost_s"]
     assert 0.0 < cost < 0.2 and record["setpoints"]["duration_without_jerk_bound_s"] > 0.0
+    first_moved = _wire_within_limits(logs, summary["cycles"])
+    assert first_moved < record["setpoints"]["lead_in_cycles"]  # the lead-in moved them
+
+
+def _wire_within_limits(logs: Path, cycles: int) -> int:
+    """Every motor's targets on the wire (the CAN logs in ``logs``) within its speed,
+    acceleration and jerk limit in every cycle, from rest at 0 counts (the straight arm,
+    where the simulated drives start); returns the first cycle a target moved 1000 counts
+    from there."""
     act = load_actuation(default_robot())
     config = load_box_config(None)
-    checked = 0
+    checked, moved = 0, cycles
     for bus in config.buses:
         (log,) = logs.glob(f"*_{bus.name}.blf")
         targets, _stops = targets_per_sync(log, bus.nodes)
-        assert targets.shape[0] >= summary["cycles"] - 1
+        assert targets.shape[0] >= cycles - 1
         cols = [act.motor_ids.index(m) for m in bus.nodes]
         v_max = act.max_rate_counts_per_s[cols] * T
         a_max = act.max_accel_counts_per_s2[cols] * T**2
@@ -93,10 +115,35 @@ def test_playback_within_speed_acceleration_and_jerk_in_every_cycle(
         assert np.all(speed <= v_max), speed.max()
         assert np.all(accel <= a_max), (accel / a_max).max()
         assert np.all(jerk <= j_max), (jerk / j_max).max()
-        lead = record["setpoints"]["lead_in_cycles"]
-        assert np.abs(targets[lead]).max() > 1000  # the lead-in moved the motors there
+        far = np.flatnonzero(np.abs(targets).max(axis=1) > 1000)
+        moved = min(moved, int(far[0]) if far.size else cycles)
         checked += len(cols)
     assert checked == act.n_motors
+    return moved
+
+
+@pytest.mark.slow
+def test_a_pause_of_a_fast_plan_keeps_the_jerk_on_the_wire(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """The bent pipe there and back at 500 mm/s, its table at 97 % of the jerk limit,
+    paused halfway and resumed after 0.3 s (issue 39): every target on the wire within
+    speed, acceleration and jerk (before, a pause there reached 1.2 times the jerk)."""
+    plan = tmp_path / "pipe.json"
+    rc = main(["plan", "--scenario", "bent-pipe", "--return", "--out", str(plan)])
+    assert rc == 0, capsys.readouterr().err
+    capsys.readouterr()
+    logs = tmp_path / "runs"
+    rc = main(["run", str(plan), "--sim", "--log-dir", str(logs), "--speed", "500", "--json",
+               "--pause-at", "50%", "--resume-after", "0.3s", "--allow-collision"])  # fmt: skip
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    summary = json.loads(out.out)
+    assert summary["completed"] is True
+    record = json.loads(Path(summary["run_record"]).read_text())
+    assert [a["action"] for a in record["run_control"]] == ["pause", "resume"]
+    assert record["setpoints"]["play_state"] == "done"
+    _wire_within_limits(logs, summary["cycles"])
 
 
 def test_a_lead_in_far_from_the_straight_arm_keeps_the_ropes_at_their_pretension(

@@ -356,3 +356,70 @@ def test_live_feed_shows_the_estimate_of_the_counts_and_stops_with_the_session(a
     finally:
         live.close()
     assert not live.running
+
+
+def test_live_feed_draws_the_trail_as_it_grows(act: Any) -> None:
+    model = act.robot
+    a, t = np.zeros(12), np.zeros(12)
+    session = _Session(np.asarray(act.counts_from_angles(a, t), dtype=np.int64))
+    tip = joint_centres(model, a, t)[-1]
+    back, ahead = np.array([-100.0, 0.0, 0.0]), np.array([5.0, 1.0, 0.0])
+    trail = {"points": None}  # what the planner holds, grown from another thread
+
+    live = start_live_view(
+        session, act, model, None, 0, rate_hz=50.0, trail=lambda: trail["points"]
+    )
+    try:
+        view = live.view
+        _until(lambda: live.shown >= 3, "the first poses")
+        assert view.trail_mm is None  # no trail yet: nothing drawn
+        trail["points"] = np.array([tip + back, tip])
+        _until(lambda: view.trail_mm is not None and len(view.trail_mm) == 2, "the trail drawn")
+        trail["points"] = np.array([tip + back, tip, tip + ahead])
+        _until(lambda: view.trail_mm is not None and len(view.trail_mm) == 3, "the trail grown")
+        assert np.allclose(view._trail.points[-1], np.array([tip, tip + ahead]) * M_PER_MM)
+        trail["points"] = np.full((3, 3), np.nan)  # a malformed trail: said, not drawn
+        _until(lambda: (live.last_error or "").startswith("trail: expected"), "the bad trail said")
+        assert len(view.trail_mm) == 3
+        live.set_trail(lambda: np.array([tip + back, tip + ahead]))  # the console's drive
+        _until(lambda: view.trail_mm is not None and len(view.trail_mm) == 2, "the new trail")
+    finally:
+        live.close()
+
+
+TIP_FRAME_WAIT_S = 180.0  # the first frame of a software renderer on a busy machine
+
+
+@needs_browser
+def test_the_page_draws_the_trail_and_renders_the_tip_camera(browser: Any) -> None:
+    from hrm_ctrl.view.server import ArmView
+
+    a = np.full(12, 0.04)
+    O = joint_centres(MODEL, a, np.zeros(12))
+    with ArmView(MODEL, None, None, live=True) as view:
+        page = _page(browser, view.url)
+        view.update(a, np.zeros(12))
+        view.show_trail(O[:, :])  # the trail under the arm, ending at its tip
+        n_segments = len(O) - 1
+        read_trail = """(n) => {
+          for (const sc of window.__hrmScenes) {
+            let found = false;
+            sc.traverse((o) => {
+              const g = o.geometry;
+              if (g && g.attributes && g.attributes.instanceStart &&
+                  g.attributes.instanceStart.count === n) found = true;
+            });
+            if (found) return true;
+          }
+          return false;
+        }"""
+        end = time.monotonic() + WAIT_S
+        while not page.evaluate(read_trail, n_segments) and time.monotonic() < end:
+            time.sleep(0.1)
+        assert page.evaluate(read_trail, n_segments), "the page never showed the trail"
+        view._tip_on.value = True  # off until ticked (the module's doc)
+        end = time.monotonic() + TIP_FRAME_WAIT_S
+        while view.tip_frames == 0 and time.monotonic() < end:
+            time.sleep(0.1)
+        assert view.tip_frames >= 1, f"no tip camera frame: {view.tip_error}"
+        page.close()

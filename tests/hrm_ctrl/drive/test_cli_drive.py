@@ -62,7 +62,7 @@ def test_a_refusal_is_one_status_line_when_it_begins(
     [
         ("0 jump down\n", [], "keys.txt:1: unknown key 'jump'"),
         ("1 advance down\n0 advance up\n", [], "keys.txt:2: time 0 s goes back"),
-        ("0 advance down\n", ["--speed", "-1"], "advance_mm_s: expected a number > 0"),
+        ("0 advance down\n", ["--advance-speed", "-1"], "advance_mm_s: expected a number > 0"),
         ("0 advance down\n", ["--save-trail", "KEYS"], "--save-trail"),
     ],
 )

@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from hrm_ctrl.errors import UnreachableError
@@ -120,9 +120,15 @@ def test_a_path_beyond_the_arm_is_refused_naming_where() -> None:
     pitch=st.floats(200.0, 600.0),  # a helix's pitch (mm)
     radius=st.floats(80.0, 150.0),  # a helix's radius (mm)
 )
+@example(kind="corner", angle=110.0, side=90.0, pitch=200.0, radius=80.0)  # 6.0 deg
+@example(kind="corner", angle=80.0, side=0.0, pitch=200.0, radius=80.0)  # 6.0 deg
+@example(kind="helix", angle=20.0, side=0.0, pitch=200.0, radius=80.0)  # 6.0 deg
 def test_margin_by_default_on_generated_paths(kind, angle, side, pitch, radius) -> None:
     """The default fit (``hrm plan``'s: CLEARANCE) finds >= 3 deg of joint-limit margin
-    on one-corner and helix paths the arm can follow, or its report says why not."""
+    on one-corner and helix paths within these ranges, all of which the arm can follow
+    (measured on a grid of 12 corners and 6 helices: 6.0 deg at least), and says so; the
+    report's statement when none exists: ``test_refine``'s
+    ``test_report_says_when_no_plan_with_3_deg_margin_exists``."""
     if kind == "corner":
         a, s = math.radians(angle), math.radians(side)
         B = A + np.array([200.0, 0.0, 0.0])
@@ -135,9 +141,6 @@ def test_margin_by_default_on_generated_paths(kind, angle, side, pitch, radius) 
     plan = plan_path(MODEL, path, PlanOptions(step=10.0, fit=FitMode.CLEARANCE))
     m = plan.report["joint_limit_margin_deg"]
     statement = plan.report["margin_statement"]
-    if m >= SAFE_MARGIN_DEG:
-        assert statement.startswith("joint-limit margin")
-    else:  # names the joint and what binds it
-        assert statement.startswith("no plan with >= 3 deg")
-        assert "binds" in statement or "forces" in statement
+    assert m >= SAFE_MARGIN_DEG, statement
+    assert statement.startswith("joint-limit margin")
     assert tip_error(plan) <= 0.01

@@ -223,3 +223,100 @@ def test_a_foreign_origin_gets_nothing_of_the_scene() -> None:
             got, code = _received_bytes(view.url, origin)
             assert code is None and got > 1_000, (origin, got)
         assert len(view.refused_origins) == 3
+
+
+def test_the_trail_is_served_thinned_and_not_resent_unchanged() -> None:
+    from hrm_ctrl.view.server import TRAIL_MIN_INTERVAL_S
+
+    now = [0.0]
+    with ArmView(MODEL, None, None, live=True, clock=lambda: now[0]) as view:
+        assert "/live/trail" not in view.scene_names()
+        trail = np.stack([np.linspace(0.0, 2500.0, 6001), np.zeros(6001), np.zeros(6001)], 1)
+        assert view.show_trail(trail[:2000])
+        assert "/live/trail" in view.scene_names()
+        seg = view._trail.points  # what the page is sent (m)
+        assert seg.shape == (1999, 2, 3)
+        assert np.allclose(seg, g.polyline_segments(trail[:2000]) * M_PER_MM, atol=1e-7)
+        now[0] += 0.5 * TRAIL_MIN_INTERVAL_S
+        assert not view.show_trail(trail)  # grown, but too soon after the last one sent
+        now[0] += 0.5 * TRAIL_MIN_INTERVAL_S
+        assert not view.show_trail(trail[:2000] + 0.001)  # within SAME_POSE_MM: not resent
+        assert view.show_trail(trail)  # the trail grew: thinned to MAX_TRAIL_POINTS
+        assert view.trail_mm is not None and len(view.trail_mm) == g.MAX_TRAIL_POINTS
+        assert np.array_equal(view.trail_mm[[0, -1]], trail[[0, -1]])
+        assert view._trail.points.shape == (g.MAX_TRAIL_POINTS - 1, 2, 3)
+        assert view.scene_names().count("/live/trail") == 1
+        for bad in (np.zeros((1, 3)), np.zeros((4, 2)), np.full((3, 3), np.nan)):
+            with pytest.raises(ViewError, match="trail: expected"):
+                view.show_trail(bad)
+
+
+def test_the_tip_camera_sits_on_the_tip_frame_looking_along_the_last_link() -> None:
+    from hrm_ctrl.kinematics import frames
+
+    a = np.linspace(-0.2, 0.25, 12)
+    t = np.linspace(0.15, -0.1, 12)
+    with ArmView(MODEL, None, None, live=True) as view:
+        assert view.tip_pose_mm is None and not view._tipcam.visible
+        assert view.update(a, t)
+        R, O = frames(MODEL, a, t)
+        pos, wxyz = view.tip_pose_mm
+        link12 = (O[12] - O[11]) / np.linalg.norm(O[12] - O[11])
+        assert np.allclose(pos, O[12] + g.TIP_CAMERA_AHEAD_MM * link12, atol=1e-9)
+        assert np.allclose(g.quaternion_rotate(wxyz, np.array([0.0, 0.0, 1.0])), link12)
+        assert np.allclose(g.quaternion_rotate(wxyz, np.array([1.0, 0.0, 0.0])), R[11][:, 0])
+        assert view._tipcam.visible
+        assert np.allclose(view._tipcam.position, pos * M_PER_MM)
+        assert np.allclose(view._tipcam.wxyz, wxyz)
+
+
+class _Page:
+    """A connected page as the tip camera sees it: renders on request."""
+
+    def __init__(self) -> None:
+        self.requests: list[dict[str, Any]] = []
+
+    def get_render(self, height: int, width: int, **kw: Any) -> np.ndarray:
+        self.requests.append(dict(kw, height=height, width=width))
+        return np.full((height, width, 3), len(self.requests) % 256, dtype=np.uint8)
+
+
+def test_the_tip_camera_renders_in_a_page_when_the_tip_moves(monkeypatch: Any) -> None:
+    import time
+
+    from hrm_ctrl.view import server as srv
+
+    page = _Page()
+    with ArmView(MODEL, None, None, live=True) as view:
+        time.sleep(0.3)
+        assert view.tip_frames == 0  # no pose, no page: nothing rendered
+        monkeypatch.setattr(view.server, "get_clients", lambda: {7: page})
+        view.update(np.full(12, 0.1), np.zeros(12))
+        time.sleep(0.3)
+        assert view.tip_frames == 0  # off until its checkbox is ticked
+        view._tip_on.value = True
+        end = time.monotonic() + 30.0
+        while view.tip_frames == 0 and time.monotonic() < end:
+            time.sleep(0.02)
+        assert view.tip_frames >= 1
+        req = page.requests[0]
+        assert (req["height"], req["width"]) == (srv.TIP_CAMERA_HEIGHT, srv.TIP_CAMERA_WIDTH)
+        assert np.allclose(req["position"], view.tip_pose_mm[0] * M_PER_MM)
+        assert np.allclose(req["wxyz"], view.tip_pose_mm[1])
+        assert req["fov"] == srv.TIP_CAMERA_FOV_RAD
+        shown = view._tip_image.image
+        assert shown.shape == (srv.TIP_CAMERA_HEIGHT, srv.TIP_CAMERA_WIDTH, 3)
+        n = len(page.requests)
+        time.sleep(0.5)  # a still tip is not rendered again
+        assert len(page.requests) == n
+
+        def fails(*_a: Any, **_k: Any) -> np.ndarray:
+            raise TimeoutError("Render request timed out")
+
+        monkeypatch.setattr(page, "get_render", fails)
+        view.update(np.full(12, -0.1), np.zeros(12))
+        end = time.monotonic() + 30.0
+        while view.tip_failures == 0 and time.monotonic() < end:
+            time.sleep(0.02)
+        assert view.tip_failures >= 1 and view.tip_error == "Render request timed out"
+    assert not view._tip_thread.is_alive()  # closed with the view

@@ -23,12 +23,15 @@ def isolated_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 
 def console_args(tmp_path: Path, *extra: str) -> argparse.Namespace:
-    """The parsed arguments of ``hrm console --sim --log-dir TMP/runs EXTRA...``."""
+    """The parsed arguments of ``hrm console --sim --wire virtual --log-dir TMP/runs
+    EXTRA...``: the box in this interpreter, whose drives the tests look into
+    (``ctx.sim.box``; ``hrm console --sim`` runs it in its own process by default)."""
     from hrm_ctrl.cli import console
 
     p = argparse.ArgumentParser()
     console.register(p)
-    return p.parse_args(["--sim", "--log-dir", str(tmp_path / "runs"), *extra])
+    argv = ["--sim", "--wire", "virtual", "--log-dir", str(tmp_path / "runs"), *extra]
+    return p.parse_args(argv)
 
 
 @pytest.fixture

@@ -32,7 +32,7 @@ def test_bad_options_and_states_are_refused_before_anything_moves(make_ctx) -> N
         with pytest.raises(ConsoleError, match=match):
             run(ctx, line)
     run(ctx, "connect")
-    before = ctx.sim.counts().copy()
+    before = ctx.sim.box.counts().copy()
     with pytest.raises(ConsoleError, match=r"enable the drives first"):
         run(ctx, "calibrate stiffness")
     run(ctx, "enable")
@@ -43,7 +43,7 @@ def test_bad_options_and_states_are_refused_before_anything_moves(make_ctx) -> N
             run(ctx, "calibrate zero")
     finally:
         ctx.sim = sim
-    assert np.array_equal(ctx.sim.counts(), before)
+    assert np.array_equal(ctx.sim.box.counts(), before)
     assert ctx.session.results == []  # nothing was streamed
 
 
@@ -55,7 +55,7 @@ def test_zero_saves_a_version_that_the_next_connect_drives_with(make_ctx, tmp_pa
     assert summary["motors"] == 36 and summary["version"] == 1
     assert summary["max_abs_tension_error_N"] <= summary["tol_N"]
     assert any("lies in its zero fixture" in line for line in ctx.lines)
-    assert not ctx.sim.arm.fixture  # taken out again
+    assert not ctx.sim.box.arm.fixture  # taken out again
     assert ctx.watches is not None  # the watches run again on the enabled drives
     store = CalibrationStore(tmp_path / "calibrations")
     assert store.active() == 1

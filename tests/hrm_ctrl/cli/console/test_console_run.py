@@ -41,7 +41,7 @@ def plan(tmp_path: Path) -> Path:
 
 
 def _positions(ctx: object) -> np.ndarray:
-    return np.array([ctx.sim.drives[m].position_counts for m in ctx.actuation.motor_ids])
+    return np.array([ctx.sim.box.drives[m].position_counts for m in ctx.actuation.motor_ids])
 
 
 @pytest.mark.slow

@@ -25,7 +25,7 @@ ENABLED = State402.OPERATION_ENABLED
 
 def states(ctx: object) -> set[State402]:
     """The CiA 402 states of every simulated drive (the box's own view)."""
-    return {State402(decode_state(sw)) for sw in ctx.sim.statuswords().values()}
+    return {State402(decode_state(sw)) for sw in ctx.sim.box.statuswords().values()}
 
 
 def run(ctx: object, *lines: str) -> None:
@@ -34,7 +34,7 @@ def run(ctx: object, *lines: str) -> None:
 
 def test_nothing_is_sent_before_connect_and_nothing_moves_before_enable(make_ctx) -> None:
     ctx = make_ctx()
-    before = {m: d.position_counts for m, d in ctx.sim.drives.items()}
+    before = {m: d.position_counts for m, d in ctx.sim.box.drives.items()}
     with pytest.raises(ConsoleError, match=r"test:1: status: not connected"):
         run(ctx, "status")
     run(ctx, "connect")
@@ -44,7 +44,7 @@ def test_nothing_is_sent_before_connect_and_nothing_moves_before_enable(make_ctx
         run(ctx, "jog 5 theta +2")
     with pytest.raises(ConsoleError, match=r"home: the drives are not enabled"):
         run(ctx, "home")
-    assert {m: d.position_counts for m, d in ctx.sim.drives.items()} == before
+    assert {m: d.position_counts for m, d in ctx.sim.box.drives.items()} == before
     assert ctx.session.results == []  # no stream was started
 
 
@@ -103,7 +103,7 @@ def test_motor_jog_moves_one_motor_by_its_counts(make_ctx) -> None:
     held = ctx.session.supervisor.targets
     assert int(held[i]) == -800
     assert int(np.count_nonzero(held)) == 1
-    assert ctx.sim.drives["j05r1"].position_counts == pytest.approx(-800, abs=5)
+    assert ctx.sim.box.drives["j05r1"].position_counts == pytest.approx(-800, abs=5)
 
 
 @pytest.mark.parametrize(
@@ -205,7 +205,7 @@ def test_reset_fault_after_an_injected_drive_fault(make_ctx) -> None:
     assert ctx.session.state.name == "READY"
     assert State402.FAULT not in states(ctx)
     run(ctx, "enable", "jog j05r1 100")
-    assert ctx.sim.drives["j05r1"].position_counts == pytest.approx(100, abs=5)
+    assert ctx.sim.box.drives["j05r1"].position_counts == pytest.approx(100, abs=5)
 
 
 def test_quit_leaves_every_drive_disabled_and_writes_the_run_record(make_ctx) -> None:
@@ -334,7 +334,7 @@ def test_a_signal_while_enabled_quick_stops_with_its_cause_then_disables(make_ct
     import json
 
     ctx = make_ctx()
-    sim = ctx.sim  # the finish stops it
+    sim = ctx.sim.box  # the finish stops it
     with pytest.raises(SignalInterrupt):
         run_console(ctx, SignalledScript("connect\nenable\n"))
     assert {State402(decode_state(sw)) for sw in sim.statuswords().values()} <= {

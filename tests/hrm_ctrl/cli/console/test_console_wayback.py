@@ -39,7 +39,7 @@ def cabins(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _positions(ctx: object) -> np.ndarray:
-    return np.array([ctx.sim.drives[m].position_counts for m in ctx.actuation.motor_ids])
+    return np.array([ctx.sim.box.drives[m].position_counts for m in ctx.actuation.motor_ids])
 
 
 class _WhenMoving:

@@ -1,0 +1,139 @@
+"""Benchmark: what the simulated arm's physics does to today's stack, before compensation.
+
+The demo's motion (issue 38 item 2): the reference scenario planned with the robot
+description's values (``hrm demo --no-calibrate``: the host's model is the arm's), at the
+demo's tip speed and the control period of 10 ms, with return.  The motors are taken
+exactly where the host commands them (the drives reach a setpoint within one cycle:
+their lag is not the subject), after a lead-in from the straight arm (2 s, straight in
+counts) and a 1 s hold, and the arm's physics (``sim_bus.physics``) is stepped through
+every cycle in time order (``SimArm.state``, as the box's tension board does at 100 Hz).
+Once with no physics, once with every effect, once with each effect alone.
+
+Per run: the true end point's distance to the scenario's path (what ``hrm demo`` reports
+as ``end_point_vs_path``) max and rms, there (up to the plan's turning point) and back;
+its distance from the planned end point (the FK of the commanded configuration: what the
+physics alone moves it by) max and rms; where it ends after returning; the arm state's
+CPU (``time.thread_time``) per cycle, median and p99.
+
+Run: ``python benchmarks/bench_physics.py [--scenario bent-pipe] [--effects all,gravity]``;
+prints JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import machine
+
+from drivers.realtime import process_settings
+from hrm_ctrl.formats.planfile import PlanDoc
+from hrm_ctrl.kinematics import joint_centres
+from hrm_ctrl.model import default_robot
+from hrm_ctrl.planning.planner import PlanOptions, plan_path
+from hrm_ctrl.planning.scenarios import scenario
+from hrm_ctrl.ropes.actuation import load_actuation
+from hrm_ctrl.ropes.setpoints import DEFAULT_TIP_SPEED_MM_PER_S
+from hrm_ctrl.runtime.playback import setpoints_of_plan
+from sim_bus.arm import SimArm
+from sim_bus.physics import Effect, Physics
+
+PERIOD_S = 0.01
+LEAD_IN_CYCLES = 200
+HOLD_CYCLES = 100
+VARIANTS = ("none", "all", *(e.value for e in Effect))
+
+
+def motion(name: str, speed: float) -> tuple[Any, np.ndarray, np.ndarray, int]:
+    """(the scenario, every cycle's counts (lead-in, hold, plan), the planned end point
+    of each plan row, the index of the plan's first row)."""
+    robot = default_robot()
+    act = load_actuation(robot)
+    sc = scenario(name)
+    plan = plan_path(
+        robot,
+        sc.path,
+        PlanOptions(step=5.0, return_to_start=True),
+        scenario=sc,
+        environment=sc.environment,
+    )
+    doc = PlanDoc.from_dict(plan.to_dict(), sc.name)
+    sp = setpoints_of_plan(doc, act, period_s=PERIOD_S, speed_mm_per_s=speed)
+    a, t = sp.row_angles()
+    planned_tip = joint_centres(robot, a, t)[:, -1]
+    straight = act.counts_from_angles(np.zeros(12), np.zeros(12)).astype(float)
+    first = sp.counts[0].astype(float)
+    f = np.linspace(0.0, 1.0, LEAD_IN_CYCLES)[:, None]
+    lead = np.rint(straight + f * (first - straight)).astype(np.int64)
+    hold = np.repeat(sp.counts[:1], HOLD_CYCLES, axis=0)
+    counts = np.vstack([lead, hold, sp.counts])
+    return sc, counts, planned_tip, LEAD_IN_CYCLES + HOLD_CYCLES
+
+
+def run(variant: str, sc: Any, counts: np.ndarray, planned: np.ndarray, start: int) -> dict:
+    act = load_actuation(default_robot())
+    physics = Physics.of(variant)
+    arm = SimArm(act, physics=physics)
+    tips = np.empty((len(counts), 3))
+    cpu = np.empty(len(counts))
+    for i, c in enumerate(counts):
+        t0 = time.thread_time()
+        tips[i] = arm.state(c, i * PERIOD_S).centres[-1]
+        cpu[i] = time.thread_time() - t0
+    body = tips[start:]
+    to_path = np.asarray(sc.path.distance_to(body), dtype=float)
+    to_plan = np.linalg.norm(body - planned, axis=1)
+    turn = int(np.argmax(np.linalg.norm(planned - planned[0], axis=1)))  # farthest along
+    there, back = to_path[: turn + 1], to_path[turn:]
+
+    def mm(x: np.ndarray | float) -> float:
+        return round(float(x), 3)
+
+    return {
+        "physics": physics.describe(),
+        "path_there_max_mm": mm(there.max()),
+        "path_back_max_mm": mm(back.max()),
+        "path_rms_mm": mm(np.sqrt(np.mean(to_path**2))),
+        "from_plan_max_mm": mm(to_plan.max()),
+        "from_plan_rms_mm": mm(np.sqrt(np.mean(to_plan**2))),
+        "end_after_return_mm": mm(to_plan[-1]),
+        "sag_at_start_mm": mm(planned[0, 2] - body[0, 2]),
+        "state_cpu_median_ms": mm(1e3 * np.median(cpu[start:])),
+        "state_cpu_p99_ms": mm(1e3 * np.percentile(cpu[start:], 99)),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="bent-pipe")
+    ap.add_argument("--speed", type=float, default=DEFAULT_TIP_SPEED_MM_PER_S)
+    ap.add_argument(
+        "--effects", default=",".join(VARIANTS), help="variants, comma-separated (none, all, ...)"
+    )
+    args = ap.parse_args(argv)
+    variants = [v.strip() for v in args.effects.split(",") if v.strip()]
+    with process_settings():
+        sc, counts, planned, start = motion(args.scenario, args.speed)
+        rows = [run(v, sc, counts, planned, start) for v in variants]
+    out = {
+        "benchmark": "physics",
+        "machine": machine(),
+        "scenario": args.scenario,
+        "speed_mm_per_s": args.speed,
+        "cycles": int(len(counts) - start),
+        "runs": rows,
+    }
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
