@@ -123,7 +123,8 @@ def test_lost_heartbeat_stops_every_node(rig_factory: Callable[..., Rig]) -> Non
 # (a true missing-feedback stop): such a run is rerun only when the stall probe saw it.
 @pytest.mark.stall_tolerant(window_s=2 * PERIOD_S, watchdog="2 cycles without a TPDO")
 def test_missing_tpdo_stops_every_node(rig_factory: Callable[..., Rig]) -> None:
-    rig = rig_factory(missing_tpdo_cycles=2)
+    # in the vcan guest (no stall probe there) at 25 Hz: 2 cycles are 80 ms
+    rig = rig_factory(missing_tpdo_cycles=2, guest_control={"rate_hz": 25})
     sim = rig.sim
     err = stream_with(
         rig,
