@@ -12,8 +12,10 @@ once with the counts as planned and once with the feed-forward compensation
 (``hrm_ctrl.ropes.feedforward``: every term on, the description's ``[physics]``; the host
 does not know which effects the box has).
 
-Per run: the true end point's distance to the scenario's path (what ``hrm demo`` reports
-as ``end_point_vs_path``) max and rms, there (up to the plan's turning point) and back;
+Per run: the rows (of the plan) at which a sensor reads outside the shipped tension
+watch's band, 5-150 N (the watch would stop the run at the first); the true end point's
+distance to the scenario's path (what ``hrm demo`` reports as ``end_point_vs_path``) max
+and rms, there (up to the plan's turning point) and back;
 its distance from the planned end point (the FK of the commanded configuration: what the
 physics alone moves it by) max and rms; where it ends after returning; the arm state's
 CPU (``time.thread_time``) per cycle, median and p99.
@@ -55,6 +57,7 @@ PERIOD_S = 0.01
 LEAD_IN_CYCLES = 200
 HOLD_CYCLES = 100
 VARIANTS = ("none", "all", *(e.value for e in Effect))
+WATCH_N = (5.0, 150.0)  # the shipped tension watch (drivers/data/box.toml [tension])
 TERMS = ("gravity", "capstan", "backlash")  # the feed-forward's (hrm_ctrl.ropes.feedforward)
 
 
@@ -122,6 +125,9 @@ def run(
     return {
         "physics": physics.describe(),
         "tension_min_max_N": [mm(tensions.min()), mm(tensions.max())],
+        "rows_outside_watch": int(
+            ((tensions.min(axis=1) < WATCH_N[0]) | (tensions.max(axis=1) > WATCH_N[1])).sum()
+        ),
         "path_there_max_mm": mm(there.max()),
         "path_back_max_mm": mm(back.max()),
         "path_rms_mm": mm(np.sqrt(np.mean(to_path**2))),

@@ -33,6 +33,7 @@ The whole tree, each class with the module that defines it::
      |    |    +-- RopeInverseError         hrm_ctrl.ropes.inverse
      |    |    +-- RopeLimitError           hrm_ctrl.ropes.actuation
      |    |    +-- JogError                 hrm_ctrl.ropes.jog
+     |    |    +-- FeedforwardError         hrm_ctrl.ropes.feedforward
      |    +-- DriverError                   hrm_ctrl.errors
      |    |    +-- FrameError               drivers.protocol.cia301
      |    |    +-- TransitionError          drivers.protocol.cia402

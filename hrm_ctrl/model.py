@@ -51,7 +51,21 @@ TABLE_KEYS: Mapping[str, frozenset[str] | None] = {
     "base": frozenset({"position_mm", "yaw_deg", "pitch_deg", "fiducials_mm"}),
     "ropes": None,  # keys checked by hrm_ctrl.ropes.routing when the rope layer is built
     "motors": None,  # keys checked by hrm_ctrl.ropes.motor_map when the rope layer is built
-    "physics": None,  # keys checked by hrm_ctrl.ropes.feedforward when it is built
+    # optional, for the feed-forward compensation; values checked by
+    # hrm_ctrl.ropes.feedforward when it is built (commented out in the shipped file: the
+    # shipped description's content, and the calibrations made for it, stay as they were)
+    "physics": frozenset(
+        {
+            "link_mass_kg",
+            "payload_kg",
+            "gravity_dir",
+            "mu_kinetic",
+            "static_ratio",
+            "presliding_mm",
+            "backlash_deg",
+            "backlash_torque_Nmm",
+        }
+    ),
 }
 """Tables of a robot description and the keys each may hold (``None``: its owner, the
 rope layer, checks them).  Any other table or key is refused by :func:`robot_from_dict`."""

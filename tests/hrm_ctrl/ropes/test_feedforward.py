@@ -77,6 +77,29 @@ def test_the_tensions_hold_the_pose_within_the_command_band() -> None:
     assert np.abs(moments - h.gravity_Nmm).max() < 0.05  # N mm: the equilibrium holds
 
 
+def test_a_misspelt_physics_key_is_refused_when_the_description_loads(tmp_path: Any) -> None:
+    from hrm_ctrl.errors import RobotDescriptionError
+    from hrm_ctrl.model import load_robot
+
+    p = tmp_path / "robot.toml"
+    text = (
+        resources_text()
+        .replace("# [physics]", "[physics]")
+        .replace("# payload_kg = 0.020", "payload_kgs = 0.020")
+    )
+    p.write_text(text)
+    with pytest.raises(RobotDescriptionError, match=r"\[physics\]: unknown key 'payload_kgs'"):
+        load_robot(p)
+    p.write_text(text.replace("payload_kgs", "payload_kg"))
+    assert arm_physics(load_robot(p)).payload_kg == 0.02  # the shipped comment, as a table
+
+
+def resources_text() -> str:
+    from importlib import resources
+
+    return resources.files("hrm_ctrl.data").joinpath("robot.toml").read_text()
+
+
 def test_a_bad_physics_table_is_one_line_naming_the_key() -> None:
     with pytest.raises(FeedforwardError, match=r"\[physics\]: mu_kinetic must be"):
         arm_physics(robot_with({"mu_kinetic": [0.1] * 5}))
