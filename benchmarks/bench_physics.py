@@ -65,7 +65,8 @@ def motion(
     name: str, speed: float, terms: frozenset[str] | None = None
 ) -> tuple[Any, np.ndarray, np.ndarray, int, float]:
     """(the scenario, every cycle's counts (lead-in, hold, plan), the planned end point
-    of each plan row, the index of the plan's first row, the compensation's CPU s);
+    of each plan row, the index of the plan's first row (after a feed-forward's ramp-in),
+    the compensation's CPU s);
     ``terms``: the feed-forward's terms (None: no compensation)."""
     robot = default_robot()
     act = load_actuation(robot)
@@ -95,7 +96,8 @@ def motion(
     lead = np.rint(straight + f * (first - straight)).astype(np.int64)
     hold = np.repeat(sp.counts[:1], HOLD_CYCLES, axis=0)
     counts = np.vstack([lead, hold, sp.counts])
-    return sc, counts, planned_tip, LEAD_IN_CYCLES + HOLD_CYCLES, cpu
+    ramp = sp.ramp_rows  # the feed-forward's ramp-in at rest: measured from its end
+    return sc, counts, planned_tip[ramp:], LEAD_IN_CYCLES + HOLD_CYCLES + ramp, cpu
 
 
 def run(

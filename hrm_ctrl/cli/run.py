@@ -97,7 +97,8 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--compensate", action="store_true",
         help="feed-forward: command the rope lengths that hold each planned pose against "
         "gravity, rope stretch, capstan friction and joint play (the description's "
-        "[physics]; off by default: an arm without those loads is bent by it)",
+        "[physics]; off by default: an arm without those loads is bent by it; the "
+        "rope-consistency watch then checks nothing)",
     )  # fmt: skip
     add_json(parser, "the summary")
 
@@ -188,6 +189,13 @@ def run(args: argparse.Namespace) -> int:
     arm.say_calibration(
         "hrm run"
     )  # --sim or --uncalibrated without a calibration: said once all checks passed
+    if args.compensate and setpoints is not None:
+        print(
+            "hrm run: --compensate: the rope-consistency watch cannot check compensated "
+            "setpoints (they fit no configuration at the pretension) and skips them; the "
+            "tension watch runs",
+            file=sys.stderr,
+        )
     options = SessionOptions(
         log_dir=args.log_dir,
         log_suffix=f".{args.log_format}",

@@ -71,6 +71,10 @@ PHASES = ("in", "return")
 # millimetre of rope within a few rows, more than a motor may accelerate).
 FEEDFORWARD_LIMIT_SHARE = 0.8
 FEEDFORWARD_SMOOTHING_S = 0.2
+# ... and it comes in over this time at the first step, at rest, from the counts at the
+# pretension (a lead-in goes to those: the rope model's tensions along a lead-in stay in
+# its command band; a compensated target's hold a sagging arm up, beyond that band's reach)
+FEEDFORWARD_RAMP_S = 1.0
 _ON_STEP_S = 1e-9  # a control slot this close to a step's time is on that step
 
 
@@ -121,6 +125,8 @@ class PlanSetpoints:
     path: StepPath
     #: the playback without the jerk bound (TOPP-RA's laws, whole periods; s)
     law_duration_s: float = 0.0
+    #: rows at the first step, at rest, that bring a feed-forward in (0 without one)
+    ramp_rows: int = 0
 
     @property
     def n_cycles(self) -> int:
@@ -231,7 +237,8 @@ def plan_setpoints(
     ``feedforward`` (:class:`~hrm_ctrl.ropes.feedforward.Feedforward`; None: off) replaces
     every row's and step's counts by those that hold its configuration against the
     arm's loads (gravity, rope stretch, capstan friction along the rows' rope travel,
-    joint play) before the limits are checked.
+    joint play) before the limits are checked, brought in at the first step over
+    :data:`FEEDFORWARD_RAMP_S` (``ramp_rows`` more rows at the start).
     Raises :class:`RopeError` for bad arguments, travel that goes the wrong way or repeats
     within a phase, or a playback longer than ``max_duration_s``, and
     :class:`RopeLimitError` for a joint, drum-travel, motor-speed or -acceleration limit,
@@ -293,17 +300,27 @@ def plan_setpoints(
         raise type(exc)(_prefixed(where, str(exc))) from None
     _check_duration(traj.duration_s, speed_mm_per_s, max_duration_s, period_s, where)
     counts, step_of_row, t = traj.counts, traj.step_of_row, traj.time_s
+    sigma, step_t, ramp = traj.sigma_mm, traj.step_time_s, 0
     if feedforward is not None:
-        counts, step_counts = _compensated(
-            feedforward, path, traj.sigma_mm, counts, t, traj.step_time_s, period_s
-        )
+        counts, step_counts = _compensated(feedforward, path, sigma, counts, t, step_t, period_s)
         _check_positions(actuation, step_counts, lambda k: _step_label(travel, k), where)
+        ramp = max(1, round(FEEDFORWARD_RAMP_S / period_s))
+        plain_first = actuation.counts_from_angles(alpha[0], theta[0], check=False)
+        s = np.arange(ramp, dtype=np.float64)[:, None] / ramp
+        blend = s**3 * (10.0 - 15.0 * s + 6.0 * s**2)  # smootherstep: from and to rest
+        ramp_rows = np.rint(plain_first + blend * (counts[0] - plain_first)).astype(np.int64)
+        counts = np.concatenate([ramp_rows, counts])
+        counts.setflags(write=False)
+        step_of_row = np.concatenate([np.zeros(ramp, step_of_row.dtype), step_of_row])
+        t = np.concatenate([np.arange(ramp) * period_s, t + ramp * period_s])
+        sigma = np.concatenate([np.full(ramp, sigma[0]), sigma])
+        step_t = step_t + ramp * period_s
 
     def row_label(r: int) -> str:
         return _step_label(travel, int(step_of_row[r]))
 
     _check_positions(actuation, counts, row_label, where)
-    _check_rates(actuation, counts, period_s, travel, step_of_row, t, traj.step_time_s, where)
+    _check_rates(actuation, counts, period_s, travel, step_of_row, t, step_t, where)
     for arr in (step_counts, travel, alpha, theta):
         arr.setflags(write=False)
     return PlanSetpoints(
@@ -311,15 +328,16 @@ def plan_setpoints(
         step_of_row=step_of_row,
         time_s=t,
         step_counts=step_counts,
-        step_time_s=traj.step_time_s,
+        step_time_s=step_t,
         travel_mm=travel,
         alpha_rad=alpha,
         theta_rad=theta,
         period_s=float(period_s),
         speed_mm_per_s=float(speed_mm_per_s),
-        sigma_mm=traj.sigma_mm,
+        sigma_mm=sigma,
         path=path,
-        law_duration_s=traj.law_duration_s,
+        law_duration_s=traj.law_duration_s + ramp * period_s,
+        ramp_rows=ramp,
     )
 
 

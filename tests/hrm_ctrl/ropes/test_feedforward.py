@@ -124,7 +124,8 @@ def test_no_compensation_unless_asked() -> None:
     comp = out_and_back(act, Feedforward.of(act))
     ca, ct = comp.row_angles()
     assert np.abs(comp.counts - act.counts_from_angles(ca, ct)).max() > 500  # it does act
-    assert comp.n_cycles > plain.n_cycles  # the time law leaves it a share of the limits
+    assert comp.n_cycles > plain.n_cycles + 100  # a share of the limits and a 1 s ramp-in
+    assert np.array_equal(comp.counts[0], plain.counts[0])  # a lead-in goes to the plain
     assert np.abs(np.concatenate([ca[0] - a[0], ct[0] - t[0]])).max() == 0.0
 
 
@@ -165,7 +166,7 @@ def test_the_compensated_bent_pipe_on_the_physical_arm() -> None:
         planned = joint_centres(robot, a, t)[:, -1]
         arm = SimArm(act, physics=physics, noise_N=0.0)
         arm.state(sp.counts[0], 0.0)
-        for k in range(100):  # settle at the first row (the lead-in's end), 1 s
+        for k in range(100):  # settle at the first row (the lead-in's end: plain), 1 s
             arm.state(sp.counts[0], 0.01 * k)
         err = np.empty(sp.n_cycles)
         tmin = np.empty(sp.n_cycles)
@@ -173,7 +174,8 @@ def test_the_compensated_bent_pipe_on_the_physical_arm() -> None:
             s = arm.state(c, 1.0 + 0.01 * i)
             err[i] = np.linalg.norm(s.centres[-1] - planned[i])
             tmin[i] = s.tension_N.min()
-        return err, tmin
+        assert sp.ramp_rows == 100  # the feed-forward comes in over 1 s at rest
+        return err[sp.ramp_rows :], tmin[sp.ramp_rows :]
 
     sp = setpoints_of_plan(doc, act, period_s=0.01, speed_mm_per_s=50.0, compensate=True)
     err, tmin = errors(sp, Physics.of("all"))
