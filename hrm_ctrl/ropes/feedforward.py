@@ -313,14 +313,18 @@ def tension_factors(
 
 
 def friction_mobilisation(
-    unstretched_mm: np.ndarray, presliding_mm: float, static_ratio: float
+    unstretched_mm: np.ndarray,
+    presliding_mm: float,
+    static_ratio: float,
+    first: np.ndarray | None = None,
 ) -> np.ndarray:
     """The friction's mobilisation (rows, n) along a sequence of drum lengths (rows, n):
     a rope sliding one way (paid out: +1, wound in: -1) keeps it; from rest or on a
     reversal it sticks, and the mobilisation follows the travel by ``travel /
     presliding_mm`` up to the static ``static_ratio``, where it breaks away to the kinetic
-    1; at rest it keeps what it had.  The first row is taken as sliding the way each rope
-    first travels (it came from a lead-in).
+    1; at rest it keeps what it had.  At the first row each rope slides the way ``first``
+    (n,) says (+1, -1; 0: at rest, no friction mobilised), by default the way it first
+    travels.
 
     >>> u = np.array([[0.0], [0.01], [0.02], [0.5], [0.49], [0.40]])
     >>> friction_mobilisation(u, 0.05, 1.5)[:, 0].round(3).tolist()
@@ -330,7 +334,10 @@ def friction_mobilisation(
     rows, n = u.shape
     travel = np.diff(u, axis=0)
     moving = np.abs(travel) > TRAVEL_AT_REST_MM
-    first = np.where(moving.any(axis=0), np.sign(travel[moving.argmax(axis=0), np.arange(n)]), 0.0)
+    if first is None:
+        ahead = np.sign(travel[moving.argmax(axis=0), np.arange(n)]) if rows > 1 else 0.0
+        first = np.where(moving.any(axis=0), ahead, 0.0)
+    first = np.asarray(first, dtype=float)
     out = np.empty_like(u)
     nu = first.copy()
     sliding = first != 0.0
@@ -474,10 +481,13 @@ class Feedforward:
             arr.setflags(write=False)
         return Holding(T, mean, Qg, u, np.asarray(ca), np.asarray(ct))
 
-    def unstretched(self, alpha: np.ndarray, theta: np.ndarray) -> Holding:
+    def unstretched(
+        self, alpha: np.ndarray, theta: np.ndarray, first: np.ndarray | None = None
+    ) -> Holding:
         """What holds a commanded sequence of true poses (rows, 12) each, in time order:
         the friction mobilised as the planned rope travel says (:func:`friction_mobilisation`
-        of the lengths at the pretension).  Not of the compensated lengths' own travel:
+        of the lengths at the pretension; ``first``: how each rope arrived at the first
+        row).  Not of the compensated lengths' own travel:
         where a rope nearly stops or reverses, the compensation's own change decides its
         direction, and the friction it then foresees changes that change by up to a
         millimetre; evaluated again and again it does not settle (measured on the bent
@@ -490,14 +500,17 @@ class Feedforward:
         if not (self.capstan and ph.mu_kinetic.any()):
             return self.holding(a, t, None)
         u = act.motors.unstretched_from_counts(act.counts_from_angles(a, t, check=False))
-        nu = friction_mobilisation(u, ph.presliding_mm, ph.static_ratio)
+        nu = friction_mobilisation(u, ph.presliding_mm, ph.static_ratio, first)
         return self.holding(a, t, nu)
 
-    def counts(self, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    def counts(
+        self, alpha: np.ndarray, theta: np.ndarray, first: np.ndarray | None = None
+    ) -> np.ndarray:
         """Motor counts (rows, n) int64 that hold the commanded sequence of true poses
         (rows, 12) each (:meth:`unstretched`), checked against the drum travel."""
         act = self.actuation
-        c = act.motors.counts_from_unstretched(self.unstretched(alpha, theta).unstretched_mm)
+        held = self.unstretched(alpha, theta, first).unstretched_mm
+        c = act.motors.counts_from_unstretched(held)
         if not ((c >= act.counts_min).all() and (c <= act.counts_max).all()):
             act.check_counts(c)
         return c

@@ -380,9 +380,17 @@ def _compensated(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The rows' counts with the feed-forward added (its change along the rows smoothed
     over :data:`FEEDFORWARD_SMOOTHING_S`; in time order: the friction's direction is the
-    rows' rope travel) and every step's (the row at the step's time)."""
+    rows' rope travel, at the first row the ramp-in's, from the counts at the
+    pretension) and every step's (the row at the step's time)."""
     a, th = path.angles_at(sigma)
-    offset = ff.counts(a, th) - counts
+    held = ff.counts(a, th)
+    motors = ff.actuation.motors
+    ramp = motors.unstretched_from_counts(held[0]) - motors.unstretched_from_counts(counts[0])
+    beyond = ff.physics.presliding_mm * ff.physics.static_ratio  # the ramp slides the rope
+    if (np.abs(ramp) > beyond).any():
+        first = np.where(np.abs(ramp) > beyond, np.sign(ramp), 0.0)
+        held = ff.counts(a, th, first)
+    offset = held - counts
     width = max(1, round(FEEDFORWARD_SMOOTHING_S / period_s))
     out = counts + np.rint(smoothed_rows(offset, width)).astype(np.int64)
     at = np.clip(np.searchsorted(t, np.asarray(step_t) - _ON_STEP_S), 0, len(t) - 1)
