@@ -323,8 +323,8 @@ def friction_mobilisation(
     reversal it sticks, and the mobilisation follows the travel by ``travel /
     presliding_mm`` up to the static ``static_ratio``, where it breaks away to the kinetic
     1; at rest it keeps what it had.  At the first row each rope slides the way ``first``
-    (n,) says (+1, -1; 0: at rest, no friction mobilised), by default the way it first
-    travels.
+    (n,) says (+1, -1; 0: at rest, no friction mobilised), by default (None, NaN) the way
+    it first travels.
 
     >>> u = np.array([[0.0], [0.01], [0.02], [0.5], [0.49], [0.40]])
     >>> friction_mobilisation(u, 0.05, 1.5)[:, 0].round(3).tolist()
@@ -334,10 +334,9 @@ def friction_mobilisation(
     rows, n = u.shape
     travel = np.diff(u, axis=0)
     moving = np.abs(travel) > TRAVEL_AT_REST_MM
-    if first is None:
-        ahead = np.sign(travel[moving.argmax(axis=0), np.arange(n)]) if rows > 1 else 0.0
-        first = np.where(moving.any(axis=0), ahead, 0.0)
-    first = np.asarray(first, dtype=float)
+    ahead = np.sign(travel[moving.argmax(axis=0), np.arange(n)]) if rows > 1 else 0.0
+    default = np.where(moving.any(axis=0), ahead, 0.0)
+    first = default if first is None else np.where(np.isnan(first), default, first)
     out = np.empty_like(u)
     nu = first.copy()
     sliding = first != 0.0

@@ -70,7 +70,7 @@ PHASES = ("in", "return")
 # centred: where the friction turns at a reversal the compensation changes by up to a
 # millimetre of rope within a few rows, more than a motor may accelerate).
 FEEDFORWARD_LIMIT_SHARE = 0.8
-FEEDFORWARD_SMOOTHING_S = 0.2
+FEEDFORWARD_SMOOTHING_S = 0.4
 # ... and it comes in over this time at the first step, at rest, from the counts at the
 # pretension (a lead-in goes to those: the rope model's tensions along a lead-in stay in
 # its command band; a compensated target's hold a sagging arm up, beyond that band's reach)
@@ -388,7 +388,7 @@ def _compensated(
     ramp = motors.unstretched_from_counts(held[0]) - motors.unstretched_from_counts(counts[0])
     beyond = ff.physics.presliding_mm * ff.physics.static_ratio  # the ramp slides the rope
     if (np.abs(ramp) > beyond).any():
-        first = np.where(np.abs(ramp) > beyond, np.sign(ramp), 0.0)
+        first = np.where(np.abs(ramp) > beyond, np.sign(ramp), np.nan)  # else: as planned
         held = ff.counts(a, th, first)
     offset = held - counts
     width = max(1, round(FEEDFORWARD_SMOOTHING_S / period_s))
