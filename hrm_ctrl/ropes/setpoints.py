@@ -71,6 +71,9 @@ PHASES = ("in", "return")
 # millimetre of rope within a few rows, more than a motor may accelerate).
 FEEDFORWARD_LIMIT_SHARE = 0.8
 FEEDFORWARD_SMOOTHING_S = 0.4
+# ... its other terms' (gravity, stretch, play: smooth in the pose but for the play taken
+# up, a step of a few tens of counts) over this time
+FEEDFORWARD_SMOOTHING_LOADS_S = 0.1
 # ... and it comes in over this time at the first step, at rest, from the counts at the
 # pretension (a lead-in goes to those: the rope model's tensions along a lead-in stay in
 # its command band; a compensated target's hold a sagging arm up, beyond that band's reach)
@@ -378,8 +381,9 @@ def _compensated(
     step_t: np.ndarray,
     period_s: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The rows' counts with the feed-forward added (its change along the rows smoothed
-    over :data:`FEEDFORWARD_SMOOTHING_S`; in time order: the friction's direction is the
+    """The rows' counts with the feed-forward added (its change along the rows smoothed:
+    the friction's share over :data:`FEEDFORWARD_SMOOTHING_S`, the rest over
+    :data:`FEEDFORWARD_SMOOTHING_LOADS_S`; in time order: the friction's direction is the
     rows' rope travel, at the first row the ramp-in's, from the counts at the
     pretension) and every step's (the row at the step's time)."""
     a, th = path.angles_at(sigma)
@@ -390,9 +394,14 @@ def _compensated(
     if (np.abs(ramp) > beyond).any():
         first = np.where(np.abs(ramp) > beyond, np.sign(ramp), np.nan)  # else: as planned
         held = ff.counts(a, th, first)
-    offset = held - counts
-    width = max(1, round(FEEDFORWARD_SMOOTHING_S / period_s))
-    out = counts + np.rint(smoothed_rows(offset, width)).astype(np.int64)
+    short = max(1, round(FEEDFORWARD_SMOOTHING_LOADS_S / period_s))
+    if ff.capstan:  # the friction's share smoothed over the longer time, the rest less
+        loads = dataclasses.replace(ff, capstan=False).counts(a, th)
+        width = max(1, round(FEEDFORWARD_SMOOTHING_S / period_s))
+        offset = smoothed_rows(loads - counts, short) + smoothed_rows(held - loads, width)
+    else:
+        offset = smoothed_rows(held - counts, short)
+    out = counts + np.rint(offset).astype(np.int64)
     at = np.clip(np.searchsorted(t, np.asarray(step_t) - _ON_STEP_S), 0, len(t) - 1)
     steps = out[at]
     out.setflags(write=False)
