@@ -144,9 +144,9 @@ def test_hrm_run_compensates_only_with_the_flag(tmp_path: Any) -> None:
 def test_the_compensated_bent_pipe_on_the_physical_arm() -> None:
     """The bent pipe there and back (the demo's motion, description's values) through the
     simulated arm with every physical effect, each cycle in time order on the simulated
-    clock: the compensation brings the end point within the bound (measured 21-22 mm,
-    BENCHMARKS.md) from 234 mm, and within 1 mm with gravity alone and its own term;
-    no rope leaves the tension board's watch band by more than the friction's misfit."""
+    clock: the compensation brings the end point within the bound (measured 32 mm,
+    BENCHMARKS.md; the issue's goal of 2 mm is not reached) from 234 mm, and within 1 mm
+    with gravity alone and its own term (measured 0.3 mm), no rope slack."""
     from hrm_ctrl.formats.planfile import PlanDoc
     from hrm_ctrl.planning.planner import PlanOptions, plan_path
     from hrm_ctrl.planning.scenarios import scenario
