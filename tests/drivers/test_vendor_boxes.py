@@ -40,6 +40,15 @@ CSP_BOXES: dict[str, dict[str, Any]] = {
     "c5-e": {"device_file": str(C5E), **UNIT_INCREMENTS},
 }
 
+#: 0x6085 units per count/s^2 on each: hrm's EDS counts; the C5-E's acceleration is its
+#: velocity unit (rpm) per second at 2000 counts a revolution (0x608F); the EPOS4's 0x60AA
+#: unit is not converted (not written)
+QUICK_STOP_PER_COUNT_S2: dict[str, float | None] = {
+    "hrm_drive.eds": 1.0,
+    "epos4": None,
+    "c5-e": 60 / 2000,
+}
+
 
 @dataclass
 class VendorRig:
@@ -130,6 +139,14 @@ def test_a_box_of_csp_drives_brings_up_by_its_file_and_streams(vendor_rig: Any, 
     )
     assert [w for w in writes if w[0] == 0x60C2] == [(0x60C2, 1, 10), (0x60C2, 2, 0xFD)]
     assert drive.interpolation_period_s == pytest.approx(0.01)
+    # 0x6085 from the motor's acceleration limit, in the drive's unit, after 0x605A
+    accel = float(rig.limits.max_accel_counts_per_s2[1])
+    per_count_s2 = QUICK_STOP_PER_COUNT_S2[name]
+    expected = [] if per_count_s2 is None else [(0x6085, 0, round(accel * per_count_s2))]
+    assert [w for w in writes if w[0] == 0x6085] == expected
+    if expected:
+        indices = [w[0] for w in writes]
+        assert indices.index(0x6085) == indices.index(0x605A) + 1
 
 
 def test_0x60c2_is_written_in_the_encoding_the_device_file_allows(vendor_rig: Any) -> None:
