@@ -13,8 +13,8 @@ object, e.g. ``j03r1: 605.3150.68-B-EK-2-60.eds: no cyclic synchronous position 
 - CSP: bit 7 of 0x6502 (supported drive modes); 0x6060 writable, 0x6061 readable;
 - 0x60C2 (interpolation time period) settable to the SYNC period within its limits;
 - a heartbeat consumer 0x1016 (sub-index 1 writable) and producer 0x1017: the drive
-  watches the host's heartbeat, the host the drive's (node guarding, 0x100C/0x100D,
-  is named when a drive offers only that: hrm's bring-up does not guard nodes);
+  watches the host's heartbeat, the host the drive's; or, on a drive without 0x1016, node
+  guarding (0x100C/0x100D writable): the host guards the drive, the drive its life time;
 - RPDO1 and TPDO1 (0x1400/0x1600, 0x1800/0x1A00) with writable COB-ID, transmission type
   and two mapping entries, the four objects PDO-mappable;
 - writable software position limits 0x607D, following-error window 0x6065, quick-stop
@@ -49,7 +49,7 @@ from drivers.protocol.pdo import PdoLayout
 from hrm_ctrl.errors import DriverError
 
 if TYPE_CHECKING:
-    from drivers.config import BoxConfig
+    from drivers.config import BoxConfig, ControlConfig
 
 
 class DeviceCheckError(DriverError):
@@ -72,8 +72,10 @@ SI_INCREMENTS = 0xB5
 OD_SI_UNIT_POSITION = 0x60A8
 OD_QUICK_STOP_DECELERATION = cia402.OD_QUICK_STOP_DECELERATION
 OD_MAX_PROFILE_VELOCITY = 0x607F
-OD_GUARD_TIME = 0x100C
-OD_LIFE_TIME_FACTOR = 0x100D
+OD_GUARD_TIME = cia301.OD_GUARD_TIME
+OD_LIFE_TIME_FACTOR = cia301.OD_LIFE_TIME_FACTOR
+#: how a drive without a heartbeat consumer watches the host: the host guards it
+GUARDING = "node guarding 0x100C/0x100D"
 OD_SI_UNIT_VELOCITY = 0x60A9
 OD_SI_UNIT_ACCELERATION = 0x60AA
 OD_POSITION_ENCODER_RESOLUTION = 0x608F
@@ -108,6 +110,8 @@ _NAMES = {
     OD_QUICK_STOP_DECELERATION: "quick stop deceleration",
     OD_MAX_PROFILE_VELOCITY: "max profile velocity",
     cia301.OD_PRODUCER_HEARTBEAT_TIME: "producer heartbeat time",
+    OD_GUARD_TIME: "guard time",
+    OD_LIFE_TIME_FACTOR: "life time factor",
     cia402.OD_CONTROLWORD: "controlword",
     cia402.OD_TARGET_POSITION: "target position",
     cia402.OD_STATUSWORD: "statusword",
@@ -292,17 +296,19 @@ def _heartbeat(f: DeviceFile) -> tuple[str, list[str]]:
             f"(AccessType={consumer.access.value})"
         )
     elif guarding:
-        how = "node guarding 0x100C/0x100D"
-        problems.append(
-            "no heartbeat consumer 0x1016 (node guarding 0x100C/0x100D only: hrm's bring-up "
-            "watches the host by heartbeat)"
-        )
+        how = GUARDING
+        for index in (OD_GUARD_TIME, OD_LIFE_TIME_FACTOR):
+            problem = _writable_problem(f, index)
+            if problem:
+                problems.append(problem)
     else:
         how = "none"
         problems.append("no heartbeat consumer 0x1016 nor node guarding 0x100C/0x100D")
-    producer = _writable_problem(f, cia301.OD_PRODUCER_HEARTBEAT_TIME)
-    if producer:
-        problems.append(producer)
+    # a guarded drive produces no heartbeat (0x1017 written 0 where it has one)
+    if how != GUARDING or f.entry(cia301.OD_PRODUCER_HEARTBEAT_TIME) is not None:
+        producer = _writable_problem(f, cia301.OD_PRODUCER_HEARTBEAT_TIME)
+        if producer:
+            problems.append(producer)
     return how, problems
 
 
@@ -595,11 +601,16 @@ class NodeCheck:
     def file(self) -> str:
         return self.path.name
 
+    guarding: tuple[int, int] | None = None
+
     @property
     def setup(self) -> DriveSetup:
         """What the bring-up writes and checks on this drive beyond the common settings:
-        the overlay, 0x60C2 in the drive's encoding, the identity it must answer."""
-        return DriveSetup(self.verdict.interpolation, self.overlay, self.identity)
+        the overlay, 0x60C2 in the drive's encoding, the identity it must answer, and the
+        node guarding (guard time ms, life time factor) of a drive the host guards."""
+        return DriveSetup(
+            self.verdict.interpolation, self.overlay, self.identity, guarding=self.guarding
+        )
 
     def lines(self) -> list[str]:
         """One line per refusal, or one ``ok`` line with the layout hrm will use (and the
@@ -689,6 +700,20 @@ class BoxCheck:
             raise DeviceCheckError(f"{self.source}: {refusals[0]}{more}")
 
 
+def guarding_setting(control: ControlConfig) -> tuple[int, int]:
+    """(guard time 0x100C in ms, life time factor 0x100D) of a drive the host guards: a
+    guarding request every host heartbeat period (the host's watch of the drive is its
+    heartbeat timeout on the answers), the drive's life time the whole periods within the
+    heartbeat timeout (at least 3: ``[control]``'s relations).
+
+    >>> from drivers.config import ControlConfig
+    >>> guarding_setting(ControlConfig(host_heartbeat_ms=100, heartbeat_timeout_ms=350))
+    (100, 3)
+    """
+    factor = control.heartbeat_timeout_ms // control.host_heartbeat_ms
+    return control.host_heartbeat_ms, max(1, min(255, factor))
+
+
 def check_box(config: BoxConfig) -> BoxCheck:
     """Every drive of ``config`` against its device file (each file read once);
     :class:`drivers.protocol.cia306.DeviceFileError` on a file that cannot be read."""
@@ -705,15 +730,17 @@ def check_box(config: BoxConfig) -> BoxCheck:
                 verdicts[(path, overlay)] = check_device(
                     files[path], config.control.period_s, overlay
                 )
+            verdict = verdicts[(path, overlay)]
             nodes.append(
                 NodeCheck(
                     motor,
                     bus.name,
                     node_id,
                     path,
-                    verdicts[(path, overlay)],
+                    verdict,
                     overlay,
                     config.drives.expected_identity(motor),
+                    guarding_setting(config.control) if verdict.heartbeat == GUARDING else None,
                 )
             )
     return BoxCheck(config.source, tuple(nodes))

@@ -181,6 +181,8 @@ class DriveSession:
             ctl.heartbeat_timeout_ms / 1000.0,
             clock=clock,
         )
+        # drives without a heartbeat consumer: the host guards them (node guarding)
+        mon.guard([self.slots.slot[m] for m, s in setups.items() if s.guarding is not None])
         log_dir = self.log_dir
         with self.scheduling.starting_threads():  # (SCHED_FIFO if granted)
             with deferred_interrupts():  # the buses and logs open whole, or close again
@@ -206,6 +208,10 @@ class DriveSession:
                 # refused once: the threads run under normal scheduling, not asked again
                 realtime_priority=self.scheduling.granted_priority,
                 clock=clock,
+                guarded_nodes=[
+                    [nid for m, nid in b.nodes.items() if setups[m].guarding is not None]
+                    for b in config.buses
+                ],
             )
             self.supervisor.start()
         self.drives = DriveGroup(

@@ -53,9 +53,7 @@ PINNED: dict[str | None, list[str]] = {
     ],
     "technosoft.eds": [
         "no cyclic synchronous position mode (0x6502 = 0x1F0065: PP, PV, HM, IP)",
-        "no heartbeat consumer 0x1016 (node guarding 0x100C/0x100D only: hrm's bring-up "
-        "watches the host by heartbeat)",
-        "no 0x607F (max profile velocity)",
+        "no 0x607F (max profile velocity)",  # node guarding instead of 0x1016: taken
     ],
     "prbt_0_1.dcf": [
         "no cyclic synchronous position mode (0x6502 = 0x43: PP, VL, IP)",
@@ -284,3 +282,17 @@ def test_quick_stop_deceleration_outside_the_object_is_one_line(tmp_path: Path) 
     setups = report.setups({"j01r0": 32000.0, "j01r1": 1000.4})
     assert [setups[m].quick_stop_deceleration for m in ("j01r0", "j01r1")] == [32000, 1000]
     assert report.setups()["j01r0"].quick_stop_deceleration is None  # no limits: not written
+
+
+def test_a_drive_with_node_guarding_and_no_heartbeat_consumer_is_guarded(tmp_path: Path) -> None:
+    from tests.drivers.test_vendor_boxes import guarded_eds
+
+    path = guarded_eds(tmp_path)
+    report = check_box(load_box_config(_box(tmp_path, f'[drives]\ndevice_file = "{path}"\n')))
+    assert report.lines()[0] == "j01r0: guarded.eds: " + OK_COUNTS.replace(
+        "heartbeat consumer 0x1016", "node guarding 0x100C/0x100D"
+    )
+    assert report.setups()["j01r0"].guarding == (100, 3)  # host heartbeat period, 350 // 100
+    assert report.to_dict()["nodes"][0]["file"]["watches_host_by"] == "node guarding 0x100C/0x100D"
+    hrm = check_box(load_box_config(None))
+    assert hrm.setups()["j01r0"].guarding is None  # a heartbeat consumer: heartbeats
