@@ -16,9 +16,12 @@ bus; :mod:`drivers.lely_export` writes what this reads):
     (read, not used: hrm always watches the drives).
 every other key: a slave, named by its rope motor
     ``node_id`` (required), ``dcf`` (required: the device file), ``heartbeat_producer``
-    (``node_heartbeat_ms``, the same on every slave), ``heartbeat_consumer`` (read, not
-    used: hrm's drives always watch the host), ``vendor_id``, ``product_code``,
-    ``revision_number``, ``serial_number`` (the expected identity), ``sdo`` (a list of
+    (``node_heartbeat_ms``, the same on every slave; 0: none, a guarded drive),
+    ``heartbeat_consumer`` (read, not used: hrm's drives always watch the host),
+    ``vendor_id``, ``product_code``,
+    ``revision_number``, ``serial_number`` (the expected identity), ``guard_time`` (of a
+    drive the host guards: ``host_heartbeat_ms``; ``life_time_factor`` read, not used: hrm
+    derives it from the heartbeat timeout), ``sdo`` (a list of
     ``{index, sub_index, value}``: the drive's SDO overlay; of the objects hrm's bring-up
     writes itself, 0x60C2 must give the SYNC period, 0x6060 CSP (8), and 0x6065 and 0x605A
     become ``[control]``'s ``following_error_window_counts`` and
@@ -77,7 +80,8 @@ MASTER_KEYS = frozenset(
 )  # fmt: skip
 SLAVE_KEYS = frozenset(
     {"node_id", "dcf", "heartbeat_producer", "heartbeat_consumer", "vendor_id", "product_code",
-     "revision_number", "serial_number", "sdo", "rpdo", "tpdo", "driver", "package"}
+     "revision_number", "serial_number", "sdo", "rpdo", "tpdo", "driver", "package",
+     "guard_time", "life_time_factor"}
 )  # fmt: skip
 SDO_KEYS = frozenset({"index", "sub_index", "value"})
 #: slave key -> box.toml identity key
@@ -291,8 +295,13 @@ def load_lely_buses(paths: Sequence[str | Path]) -> BoxConfig:
             if "heartbeat_consumer" in slave and not isinstance(slave["heartbeat_consumer"], bool):
                 raise BusConfigError(f"{ws}.heartbeat_consumer: expected true or false")
             spec: dict[str, Any] = {"device_file": str(path.parent / slave["dcf"])}
-            if "heartbeat_producer" in slave:
-                hb = _int(slave["heartbeat_producer"], f"{ws}.heartbeat_producer", 1, 65535)
+            if "guard_time" in slave:  # node guarding: at the host heartbeat's period
+                guard = _int(slave["guard_time"], f"{ws}.guard_time", 1, 65535)
+                control.set("host_heartbeat_ms", guard, f"{ws}.guard_time")
+            if "life_time_factor" in slave:
+                _int(slave["life_time_factor"], f"{ws}.life_time_factor", 0, 255)
+            hb = _int(slave.get("heartbeat_producer", 0), f"{ws}.heartbeat_producer", 0, 65535)
+            if hb:  # 0: no heartbeat (a guarded drive)
                 control.set("node_heartbeat_ms", hb, f"{ws}.heartbeat_producer")
                 if "heartbeat_multiplier" in options:
                     factor = _number(

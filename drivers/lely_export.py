@@ -12,9 +12,10 @@ at boot.  One master drives one bus, so the export writes one folder per bus of 
     us, ``heartbeat_producer`` = ``host_heartbeat_ms``, its ``heartbeat_multiplier``:
     ``heartbeat_timeout_ms`` / ``host_heartbeat_ms``, each drive's watch of it), then one
     slave per rope motor: ``node_id``, ``dcf``, ``heartbeat_producer``
-    (``node_heartbeat_ms``), ``heartbeat_consumer: true``, the expected vendor-ID,
-    product code, revision and serial number where the box configuration gives them, RPDO1
-    and TPDO1 as hrm maps them (on SYNC, ``cob_id: auto``: 0x200/0x180 + node), and
+    (``node_heartbeat_ms``), ``heartbeat_consumer: true`` (a drive the host guards:
+    ``heartbeat_producer: 0``, ``guard_time`` and ``life_time_factor``), the expected
+    vendor-ID, product code, revision and serial number where the box configuration gives
+    them, RPDO1 and TPDO1 as hrm maps them (on SYNC, ``cob_id: auto``: 0x200/0x180 + node), and
     ``sdo``: the box configuration's SDO overlay, then what hrm's bring-up writes from
     ``[control]`` (0x60C2 in the drive's encoding, 0x6065, 0x605A, 0x6060 = 8).  The
     software position limits 0x607D and the quick-stop deceleration 0x6085 come from the
@@ -98,12 +99,13 @@ class Hex(int):
 def _slave(node: NodeCheck, config: BoxConfig, dcf: str) -> dict[str, Any]:
     ctl = config.control
     setup = node.setup
-    slave: dict[str, Any] = {
-        "node_id": node.node_id,
-        "dcf": dcf,
-        "heartbeat_producer": ctl.node_heartbeat_ms,
-        "heartbeat_consumer": True,
-    }
+    slave: dict[str, Any] = {"node_id": node.node_id, "dcf": dcf}
+    if setup.guarding is None:
+        slave["heartbeat_producer"] = ctl.node_heartbeat_ms
+        slave["heartbeat_consumer"] = True
+    else:  # no heartbeat consumer: the master guards the drive (dcfgen writes 0x100C/0x100D)
+        slave["heartbeat_producer"] = 0
+        slave["guard_time"], slave["life_time_factor"] = setup.guarding
     for key, value in zip(
         ("vendor_id", "product_code", "revision_number", "serial_number"),
         setup.identity.values(),

@@ -22,6 +22,8 @@ from drivers.config import (
 from drivers.device_check import BoxCheck, check_box
 from drivers.lely_bus import load_lely_buses, parse_bus_yml
 from drivers.lely_export import export_lely
+from tests.drivers.test_lely_export import _tool
+from tests.drivers.test_vendor_boxes import guarded_eds
 from tests.hrm_ctrl.cli.cli_helpers import run_cli
 
 VENDOR = Path(__file__).parent / "vendor_eds"
@@ -37,17 +39,22 @@ def _verdicts(report: BoxCheck) -> list[tuple[Any, ...]]:
     ]  # fmt: skip
 
 
-@pytest.mark.parametrize("c5e", [False, True], ids=["hrm_drive.eds", "c5-e"])
-def test_the_export_read_back_gives_the_same_verdicts(tmp_path: Path, c5e: bool) -> None:
+@pytest.mark.parametrize("drive", ["hrm_drive.eds", "c5-e", "guarded"])
+def test_the_export_read_back_gives_the_same_verdicts(tmp_path: Path, drive: str) -> None:
+    """hrm's drive; C5-Es with an overlay and an identity; drives the host guards (no
+    0x1016: guard_time, life_time_factor, no heartbeat from them)."""
     cfg = load_box_config(None).with_control(
         rate_hz=200, heartbeat_timeout_ms=400, following_error_window_counts=1234
     )
-    if c5e:
+    if drive == "c5-e":
         spec = DriveSpec(
             sdo=(SdoWrite(0x60A8, 0, 0x00B50000), SdoWrite(0x608F, 1, 4096)),
             identity=ExpectedIdentity(vendor_id=0x26C, product_code=17, serial=5),
         )
         cfg = replace(cfg, drives=DrivesConfig(default_file=C5E, default=spec))
+    elif drive == "guarded":
+        (tmp_path / "eds").mkdir()
+        cfg = replace(cfg, drives=DrivesConfig(default_file=guarded_eds(tmp_path / "eds")))
     export_lely(cfg, tmp_path)
     back = load_lely_buses([tmp_path / "can0" / "bus.yml", tmp_path / "can1" / "bus.yml"])
     assert [(b.name, b.bitrate, dict(b.nodes)) for b in back.buses] == [
@@ -57,10 +64,30 @@ def test_the_export_read_back_gives_the_same_verdicts(tmp_path: Path, c5e: bool)
     assert (again.rate_hz, again.host_node_id, again.host_heartbeat_ms) == (
         ctl.rate_hz, ctl.host_node_id, ctl.host_heartbeat_ms
     )  # fmt: skip
-    assert (again.node_heartbeat_ms, again.heartbeat_timeout_ms) == (100, 400)
+    assert again.heartbeat_timeout_ms == 400 and again.node_heartbeat_ms == 100
+    guarding = [n.setup.guarding for n in check_box(back).nodes]
+    assert guarding == [(100, 4) if drive == "guarded" else None] * 36
     assert again.following_error_window_counts == 1234
     assert again.quick_stop_option_code == ctl.quick_stop_option_code
     assert _verdicts(check_box(back)) == _verdicts(check_box(cfg))
+
+
+def test_dcfgen_takes_a_guarded_drive(tmp_path: Path) -> None:
+    """A drive the host guards is exported with guard_time and life_time_factor and no
+    heartbeat: dcfgen writes 0x100C/0x100D and nothing to the 0x1016 it lacks."""
+    import subprocess
+
+    cfg = replace(load_box_config(None), drives=DrivesConfig(default_file=guarded_eds(tmp_path)))
+    export_lely(cfg, tmp_path / "out")
+    done = subprocess.run(
+        [_tool("dcfgen"), "-v", "bus.yml"], cwd=tmp_path / "out" / "can0", capture_output=True,
+        text=True,
+    )  # fmt: skip
+    assert done.returncode == 0 and "Warning" not in done.stderr, done.stderr
+    node1 = [line for line in done.stdout.splitlines() if line.startswith("j01r0: ")]
+    assert "j01r0: writing 2 bytes to 0x100C/0: 64 00" in node1  # 100 ms
+    assert "j01r0: writing 1 bytes to 0x100D/0: 03" in node1
+    assert not any("0x1016" in line for line in node1)
 
 
 def test_the_cli_checks_a_bus_yml(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
