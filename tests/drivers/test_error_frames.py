@@ -133,15 +133,13 @@ def test_an_error_frame_reads_back_from_the_can_log_as_one(tmp_path: Path, fmt: 
 
 
 def test_a_bus_off_error_frame_stops_every_axis_and_is_in_the_can_log(
-    rig_factory: Callable[..., Rig], tmp_path: Path, request: pytest.FixtureRequest
+    rig_factory: Callable[..., Rig], tmp_path: Path
 ) -> None:
     """A bus-off error frame on bus1 (from another socket on the bus: what a SocketCAN
     adapter's driver hands every socket with the error filter set, python-can's default)
     while streaming: every node of both buses quick-stopped within a period of it, the
     cause naming the bus and the class, the frame in bus1's CAN log.  Over SocketCAN in
     the vcan guest at 25 Hz (as the other stop tests there)."""
-    if request.node.callspec.params.get("can_backend") == "udp_multicast":
-        pytest.skip("the same receive path as virtual; udp_multicast runs the stop tests")
     rig = rig_factory(guest_control=GUEST_CONTROL)
     period_s = 1.0 / rig.config.control.rate_hz
     box = rig.open_box(log_dir=tmp_path, run_name="err")
