@@ -17,6 +17,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from drivers.canlog import TrafficLog, log_formats
+from drivers.lifecycle import SessionStateError
 from drivers.protocol import can_error as ce
 from drivers.safety.causes import StopKind
 from drivers.session import SafetyStopError
@@ -173,3 +174,24 @@ def stream_err(rig: Rig, box: Any, action: Callable[[], Any]) -> SafetyStopError
     finally:
         timer.cancel()
     return info.value
+
+
+@pytest.mark.parametrize("can_backend", ["virtual"], indirect=True)
+def test_an_error_passive_frame_while_idle_refuses_the_next_enable(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """Drives configured, not enabled: an error-passive frame stops nothing (nothing
+    moves) but the enable after it is refused naming the bus and the class, until a
+    reset-fault (as an EMCY since the configuration)."""
+    rig = rig_factory()
+    box = rig.open_box()
+    box.configure()
+    send_from_outside(rig, 0, TX_PASSIVE)
+    assert wait_until(lambda: box._receivers[0].traffic.error_frames == 1)
+    with pytest.raises(SessionStateError, match=r"enable refused: bus bus0: CAN error frame "
+                       r"0x004: controller: tx error-passive .*reset-fault clears it"):  # fmt: skip
+        box.enable()
+    assert box.state.name == "READY"
+    box.reset_fault()
+    box.enable()  # the cause was taken: enabled now
+    assert box.state.name == "ENABLED"
