@@ -115,6 +115,11 @@ def run(args: argparse.Namespace) -> int:
     period_s = args.period
     if args.physics is not None and not args.sim:
         raise DriveError("--physics goes with --sim")
+    physics = None
+    if args.physics is not None:
+        from sim_bus.physics import Physics
+
+        physics = Physics.of(args.physics)  # a bad one refused before any bus opens
     if args.sim:
         config = load_box(args)
         arm = arm_from_args(args, robot, prog="hrm drive", simulated=True)
@@ -126,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
     trail = driver.planner.trail
     end = keys.end_s if math.isfinite(keys.end_s) else (keys.events[-1].t_s if keys.events else 0)
     if arm is not None:
-        return _drive_box(args, config, arm, driver, keys, limits, float(end), trail)
+        return _drive_box(args, config, arm, driver, keys, limits, float(end), trail, physics)
     every = max(1, round(1.0 / args.period))
     last: list[str | None] = [None]
 
@@ -162,6 +167,7 @@ def _drive_box(
     limits: Any,
     end_s: float,
     trail: Any,
+    physics: Any,
 ) -> int:
     """``--sim``: the drive streamed to the simulated box; the summary with the run's
     outcome, its run record and CAN logs."""
@@ -173,9 +179,6 @@ def _drive_box(
     from hrm_ctrl.drive.stream import DriveSource
     from hrm_ctrl.runtime.box import SessionOptions, open_box
     from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
-    from sim_bus.physics import Physics
-
-    physics = None if args.physics is None else Physics.of(args.physics)
 
     source = DriveSource(driver, arm.actuation, lambda t: keys.command_at(t, limits), end_s)
     source.precheck(config.control.period_s)  # before any bus opens
