@@ -8,10 +8,11 @@ rope model); then, every control slot, it runs one :meth:`Driver.cycle
 <hrm_ctrl.drive.driver.Driver.cycle>` under the operator's command and turns the arm's
 angles into motor counts through the rope layer's checked mapping
 (:meth:`~hrm_ctrl.ropes.actuation.Actuation.counts_from_angles`: joint limits, drum
-travel), then checks them as the supervisor will (:class:`drivers.safety.limits.CycleLimits`:
-position, speed, acceleration) and against the motors' jerk.  A refused step (the
-planner's refusal, a rope or motor limit) is not sent: the motors stop from the speed
-they have, jerk-limited within their limits (:func:`drivers.sources.stop_table`), and
+travel), and shapes them within every motor's speed, acceleration and jerk
+(:class:`Shaper`: smoothed alike for every motor, jerk-limited where the smoothing is not
+enough; the session's supervisor checks every setpoint again).  A refused step (the
+planner's refusal, a rope or motor limit) is not sent: the motors stop from the speed they
+have, jerk-limited within their limits (:func:`drivers.sources.stop_table`), and
 hold there until the drive ends.  With ``go_on`` (the console's ``drive``) a refusal of
 the planner holds the arm instead at the last step it accepted (the motors brought to rest
 there, jerk-limited, as the shaping brings them to any step) and the drive goes on: the
@@ -43,19 +44,25 @@ from hrm_ctrl.errors import HrmError
 from hrm_ctrl.ropes.actuation import Actuation
 
 SHAPER_SCALE_COUNTS = 1000.0  # Ruckig's unit of the shaping (its tolerances are absolute)
+SMOOTH_STAGES = 3  # the shaping's moving averages in cascade
+SMOOTH_CYCLES = 4  # each over this many control cycles: 4.5 cycles' delay in all
 
 
 class Shaper:
-    """The time shaping of online setpoints: every cycle a jerk-limited step (Ruckig's
-    online update) from the motors' commanded position, speed and acceleration toward the
-    online step's counts and speed, within the motors' speed, acceleration and jerk
-    (:func:`drivers.sources.moves.move_limits`: the rounded counts keep them); :meth:`stop`
-    brakes to rest the same way (velocity interface, target 0).  The motors are shaped to
-    reach the step together (Ruckig's time synchronisation; each on its own where that
-    finds no trajectory, counted in :attr:`unsynchronised`): each on its own they lag the
-    step by different times, and the arm their counts make leaves the trail (on the bent
-    pipe by its keys, the rope inverse of the setpoints put the tip up to 4.3 mm off the
-    trail each on its own, 2.2 mm together).
+    """The time shaping of online setpoints.  Every cycle the online step's counts go
+    through a smoothing every motor shares (three moving averages of :data:`SMOOTH_CYCLES`
+    each, in cascade: the same delay for every motor, so the counts stay one
+    configuration of the arm, 4.5 cycles behind the step, and the step-to-step jitter of
+    the online fit, up to 20 times a motor's jerk limit, is filtered out); the smoothed
+    counts, rounded, are the setpoint when they keep every motor within its speed,
+    acceleration and jerk (:func:`drivers.sources.moves.move_limits`, with the margins
+    for whole counts) from the setpoints before, else a jerk-limited step toward them
+    (Ruckig's online update from the motors' position, speed and acceleration, the motors
+    time-synchronised; each on its own where that finds no trajectory, counted in
+    :attr:`unsynchronised`).  :meth:`stop` brakes to rest the same way (velocity
+    interface, target 0).  (Ruckig alone, each motor chasing the raw step, lagged each by
+    its own time and put the tip of the arm the counts make up to 4.3 mm off the trail on
+    the bent pipe by its keys, 2.2 mm time-synchronised; smoothed, 0.04 mm.)
 
     >>> sh = Shaper(np.zeros(1, np.int64), 0.01, np.full(1, 4e5), np.full(1, 2e6),
     ...             np.full(1, 4e7))
@@ -73,6 +80,8 @@ class Shaper:
         n = rest.shape[0]
         v, a, j = move_limits(v_max, a_max, j_max, period_s, None)
         self._v = v
+        self._T = float(period_s)
+        self._per_cycle = (v * period_s, a * period_s**2, j * period_s**3)
         self._otg = Ruckig(n, period_s)
         self._inp = InputParameter(n)
         self._out = OutputParameter(n)
@@ -87,6 +96,16 @@ class Shaper:
         self._inp.synchronization = Synchronization.Time
         self._n = n
         self.unsynchronised = 0  # updates the motors could not finish together
+        self.limited = 0  # cycles the smoothed counts needed Ruckig's step
+        # the smoothing: STAGES moving averages of SMOOTH_CYCLES, as running sums
+        m = SMOOTH_CYCLES
+        self._ring = np.repeat(self._origin[None, None, :], SMOOTH_STAGES, axis=0)
+        self._ring = np.repeat(self._ring, m, axis=1)  # (stages, m, n)
+        self._sum = self._ring.sum(axis=1)  # (stages, n)
+        self._slot = 0
+        self._x = np.empty(n)
+        self._sent = np.repeat(rest[None, :].astype(np.int64), 3, axis=0)  # the last 3
+        self._d = np.empty(n, dtype=np.int64)
 
     def _update(self) -> np.ndarray:
         from ruckig import Result, Synchronization
@@ -101,15 +120,57 @@ class Shaper:
             raise SetpointError(f"drive: no jerk-limited step within the limits ({result})")
         self._out.pass_to_input(self._inp)
         x = np.asarray(self._out.new_position) * self._scale + self._origin
-        return np.rint(x).astype(np.int64)
+        return self._sent_row(np.rint(x).astype(np.int64))
+
+    def _sent_row(self, row: np.ndarray) -> np.ndarray:
+        self._sent[2] = self._sent[1]
+        self._sent[1] = self._sent[0]
+        self._sent[0] = row
+        return row
+
+    def _smoothed(self, counts: np.ndarray) -> np.ndarray:
+        """The counts through the smoothing (one cycle's input)."""
+        x = self._x
+        x[:] = counts
+        k = self._slot
+        m = SMOOTH_CYCLES
+        for st in range(SMOOTH_STAGES):
+            self._sum[st] += x - self._ring[st, k]
+            self._ring[st, k] = x
+            np.divide(self._sum[st], m, out=x)
+        self._slot = (k + 1) % m
+        return x
+
+    def _within(self, row: np.ndarray) -> bool:
+        """Whether ``row`` after the last three setpoints keeps every motor's limits."""
+        p1, p2, p3 = self._sent
+        v, a, j = self._per_cycle
+        d = self._d
+        np.subtract(row, p1, out=d)
+        if np.any(np.abs(d) > v):
+            return False
+        d -= p1 - p2
+        if np.any(np.abs(d) > a):
+            return False
+        d -= (p1 - p2) - (p2 - p3)
+        return not np.any(np.abs(d) > j)
 
     def toward(self, counts: np.ndarray, rate_counts_per_s: np.ndarray) -> np.ndarray:
         """The next setpoint toward ``counts`` moving at ``rate_counts_per_s``."""
         from ruckig import ControlInterface
 
+        smooth = self._smoothed(counts)
+        row = np.rint(smooth).astype(np.int64)
+        s, T = self._scale, self._T
+        if self._within(row):  # the smoothed counts as they are; Ruckig's state follows
+            p1, p2 = self._sent[0], self._sent[1]
+            self._inp.current_position = ((row - self._origin) / s).tolist()
+            self._inp.current_velocity = ((row - p1) / (T * s)).tolist()
+            self._inp.current_acceleration = ((row - 2 * p1 + p2) / (T * T * s)).tolist()
+            return self._sent_row(row)
+        self.limited += 1
         self._inp.control_interface = ControlInterface.Position
-        s = self._scale
-        self._inp.target_position = ((counts - self._origin) / s).tolist()
+        self._inp.target_position = ((smooth - self._origin) / s).tolist()
         self._inp.target_velocity = (np.clip(rate_counts_per_s, -self._v, self._v) / s).tolist()
         self._inp.target_acceleration = [0.0] * counts.shape[0]
         return self._update()
@@ -339,5 +400,6 @@ class DriveSource:
             "refusals": [{"cycle": j, "text": t} for j, t in self.refusals],
             "shaping_lag_counts": self.shaping_lag_counts,
             "unsynchronised_updates": 0 if self._shaper is None else self._shaper.unsynchronised,
+            "ruckig_cycles": 0 if self._shaper is None else self._shaper.limited,
             "last_setpoint": self.last_setpoint.tolist(),
         }
