@@ -95,6 +95,8 @@ def frames(
         )
     Rj = joint_rotation(alpha, theta)  # (..., 12, 3, 3)
     batch = alpha.shape[:-1]
+    if not batch:
+        return _frames_one(model, Rj)
     R = np.empty((*batch, n, 3, 3))
     O = np.empty((*batch, n + 1, 3))
     prev = np.broadcast_to(model.base_rotation @ R_BASE_PAPER, (*batch, 3, 3))
@@ -103,6 +105,26 @@ def frames(
         np.matmul(prev, Rj[..., i, :, :], out=R[..., i, :, :])
         prev = R[..., i, :, :]
         np.add(O[..., i, :], prev[..., :, 2] * model.links[i], out=O[..., i + 1, :])
+    return R, O
+
+
+def _frames_one(model: RobotModel, Rj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`frames` of one configuration from its joint rotations (n, 3, 3): the
+    products ``B Rj_1 ... Rj_i`` as a prefix product (Hillis-Steele: log2(n) batched
+    products instead of n single ones; the same rotations to rounding), the origins as the
+    cumulative sum of the links along each frame's z axis."""
+    n = model.n_joints
+    R = Rj
+    R[0] = (model.base_rotation @ R_BASE_PAPER) @ Rj[0]
+    s = 1
+    while s < n:
+        nxt = R.copy()
+        np.matmul(R[:-s], R[s:], out=nxt[s:])
+        R, s = nxt, 2 * s
+    O = np.empty((n + 1, 3))
+    O[0] = model.base_position
+    np.cumsum(R[:, :, 2] * model.links[:, None], axis=0, out=O[1:])
+    O[1:] += model.base_position
     return R, O
 
 

@@ -81,6 +81,7 @@ from hrm_ctrl.planning.refine import (
     kkt_step,
     linearised_objective,
     project_tip,
+    project_tip_centres,
     refine_step,
 )
 
@@ -483,8 +484,7 @@ class OnlinePlanner:
         normal = linearised_objective(f, guess, c, Jc, ro)
         if normal is not None:
             q = kkt_step(normal[0], normal[1], Jtip, target - tip, ro.damping, guess, lo, hi)
-        q = project_tip(self.model, q, target, lo, hi, tol=1e-4, iterations=3)
-        O = joint_axes(self.model, q)[0]
+        q, O = project_tip_centres(self.model, q, target, lo, hi, tol=1e-4, iterations=3)
         err = float(np.linalg.norm(O[-1] - target))
         if err > self.opt.tip_tolerance_mm:
             return Refusal(

@@ -171,7 +171,10 @@ def joint_axes(model: RobotModel, q: np.ndarray) -> tuple[np.ndarray, np.ndarray
     W[0] = (model.base_rotation @ R_BASE_PAPER)[:, 1]
     W[1:n] = R[:-1, :, 1]
     W[n:] = R[:, :, 0]
-    return O, W, O[np.r_[0:n, 0:n]]
+    C = np.empty((2 * n, 3))
+    C[:n] = O[:n]
+    C[n:] = O[:n]
+    return O, W, C
 
 
 def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -187,10 +190,14 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def _after_mask(n: int) -> np.ndarray:
-    """(n links, 2n angles): angle k (alpha_k or theta_k) moves link j iff k <= j."""
+def _after_mask(n: int, per_link: int = 1) -> np.ndarray:
+    """(n links x per_link points, 2n angles): angle k (alpha_k or theta_k) moves link
+    j's points iff k <= j (read-only)."""
     joint_of = np.r_[0:n, 0:n]
-    return (joint_of[None, :] <= np.arange(n)[:, None]).astype(float)
+    mask = (joint_of[None, :] <= np.arange(n)[:, None]).astype(float)
+    mask = np.repeat(mask, per_link, axis=0)
+    mask.setflags(write=False)
+    return mask
 
 
 def angle_margin(model: RobotModel, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -225,15 +232,44 @@ def project_tip(
     >>> float(np.linalg.norm(joint_axes(m, q)[0][-1] - X)) < 1e-6
     True
     """
+    return _projected(model, q, target, lo, hi, tol, iterations)[0]
+
+
+def project_tip_centres(
+    model: RobotModel,
+    q: np.ndarray,
+    target: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    tol: float = 1e-7,
+    iterations: int = 12,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`project_tip` and the joint centres (13, 3) of the angles it returns (those
+    of its last evaluation where it stopped within ``tol``)."""
+    q, O = _projected(model, q, target, lo, hi, tol, iterations)
+    return q, (joint_axes(model, q)[0] if O is None else O)
+
+
+def _projected(
+    model: RobotModel,
+    q: np.ndarray,
+    target: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    tol: float,
+    iterations: int,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`project_tip`, with the centres of the returned angles where it evaluated
+    them (else None)."""
     q = np.clip(q, lo, hi)
     free = np.ones(len(q), dtype=bool)
     for _ in range(iterations):
         O, W, C = joint_axes(model, q)
         e = target - O[-1]
         if float(np.linalg.norm(e)) < tol:
-            break
+            return q, O
         if not free.any():
-            break
+            return q, O
         J = cross3(W, O[-1] - C).T[:, free]
         JJ = J @ J.T
         dq = J.T @ np.linalg.solve(JJ + (1e-12 * float(np.trace(JJ)) + 1e-12) * np.eye(3), e)
@@ -242,7 +278,7 @@ def project_tip(
         new = np.clip(q + step, lo, hi)
         free &= new == q + step
         q = new
-    return q
+    return q, None
 
 
 class _StepObjective:
@@ -296,7 +332,7 @@ class _StepObjective:
         g = np.where(near[..., None], g, 0.0)
         Pf, gf = P.reshape(-1, 3), g.reshape(-1, 3)
         Jc = cross3(Pf, gf) @ W.T - gf @ WC.T  # (M, 24)
-        Jc *= np.repeat(_after_mask(n), P.shape[1], axis=0)
+        Jc *= _after_mask(n, P.shape[1])
         self.split["kinematics_and_jacobians"] += time.perf_counter() - t2
         return O[-1], Jtip, c.reshape(-1), Jc
 
@@ -333,32 +369,34 @@ def zoomed_link_minima(
     >>> P[0, 0, -1].tolist(), float(d[0, 0, -1])          # the point nearest the box
     ([0.0, 0.0, 0.0], 8.0)
     """
+    N, L, S = O.shape[0], O.shape[1] - 1, len(t)
     base, D = O[:, :-1], O[:, 1:] - O[:, :-1]
-    P = base[:, :, None, :] + t[None, None, :, None] * D[:, :, None, :]
-    d, g = environment.free_distance_and_gradient(P)
-    d, g = np.asarray(d, dtype=float), np.asarray(g, dtype=float)
-    k = np.argmin(d, axis=2)  # (N, L)
+    P = np.empty((N, L, S + 1, 3))  # the samples, then the lowest point
+    d = np.empty((N, L, S + 1))
+    g = np.empty((N, L, S + 1, 3))
+    Ps = P[:, :, :S]
+    np.multiply(t[None, None, :, None], D[:, :, None, :], out=Ps)
+    Ps += base[:, :, None, :]
+    ds, gs = environment.free_distance_and_gradient(Ps)
+    d[:, :, :S], g[:, :, :S] = ds, gs
+    n_i, l_i = np.ogrid[:N, :L]
+    k = np.argmin(d[:, :, :S], axis=2)  # (N, L)
     h = float(t[1] - t[0])
-    tc = np.clip(t[k][..., None] + h * np.array([-0.5, -0.25, 0.25, 0.5]), 0.0, 1.0)
+    tc = np.clip(t[k][..., None] + h * _ZOOM, 0.0, 1.0)
     Pc = base[:, :, None, :] + tc[..., None] * D[:, :, None, :]
     dc, gc = environment.free_distance_and_gradient(Pc)
-    # the lowest sample itself is a candidate too
-    Pc = np.concatenate((Pc, np.take_along_axis(P, k[..., None, None], axis=2)), axis=2)
-    dc = np.concatenate(
-        (np.asarray(dc, dtype=float), np.take_along_axis(d, k[..., None], axis=2)), axis=2
-    )
-    gc = np.concatenate(
-        (np.asarray(gc, dtype=float), np.take_along_axis(g, k[..., None, None], axis=2)), axis=2
-    )
-    j = np.argmin(dc, axis=2)[..., None]
-    Pb = np.take_along_axis(Pc, j[..., None], axis=2)
-    db = np.take_along_axis(dc, j, axis=2)
-    gb = np.take_along_axis(gc, j[..., None], axis=2)
-    return (
-        np.concatenate((P, Pb), axis=2),
-        np.concatenate((d, db), axis=2),
-        np.concatenate((g, gb), axis=2),
-    )
+    dc, gc = np.asarray(dc, dtype=float), np.asarray(gc, dtype=float)
+    # the lowest of the four points and of the lowest sample (the first on a tie, the
+    # lowest sample last)
+    j = np.argmin(dc, axis=2)
+    zoom = dc[n_i, l_i, j] <= d[n_i, l_i, k]
+    P[:, :, S] = np.where(zoom[..., None], Pc[n_i, l_i, j], P[n_i, l_i, k])
+    d[:, :, S] = np.where(zoom, dc[n_i, l_i, j], d[n_i, l_i, k])
+    g[:, :, S] = np.where(zoom[..., None], gc[n_i, l_i, j], g[n_i, l_i, k])
+    return P, d, g
+
+
+_ZOOM = np.array([-0.5, -0.25, 0.25, 0.5])  # zoomed_link_minima's points, in sample spacings
 
 
 def refine_step(
