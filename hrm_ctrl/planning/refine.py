@@ -357,10 +357,13 @@ def zoomed_link_minima(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points (N, L, S + 1, 3) of every link of ``O`` (N, L + 1, 3) where the free
     distance is measured, the distances (N, L, S + 1) and their gradients: the S
-    samples at fractions ``t`` and, last, the lowest of the lowest sample and four more
-    points at a quarter and a half sample spacing either side of it (a link crossing a
-    wall's opening has a sharp minimum between samples).  Two calls of the
-    environment for any N.
+    samples at the evenly spaced fractions ``t`` and, last, the lowest of the lowest
+    sample and four more points at a quarter and a half sample spacing either side of it
+    (a link crossing a wall's opening has a sharp minimum between samples).
+
+    One call of the environment for any N: every link on the grid of quarter sample
+    spacings (4 (S - 1) + 1 points), the samples every fourth point of it (an environment
+    call costs more than the points it is asked for).
 
     >>> from hrm_ctrl.planning.environment import Box, Environment
     >>> env = Environment((Box(np.array([0.0, 10, 0]), np.array([4.0, 4, 4])),))
@@ -370,33 +373,33 @@ def zoomed_link_minima(
     ([0.0, 0.0, 0.0], 8.0)
     """
     N, L, S = O.shape[0], O.shape[1] - 1, len(t)
+    F = 4 * (S - 1) + 1
+    tf = np.linspace(float(t[0]), float(t[-1]), F)  # tf[4 k] = t[k]
     base, D = O[:, :-1], O[:, 1:] - O[:, :-1]
+    Pf = tf[None, None, :, None] * D[:, :, None, :]
+    Pf += base[:, :, None, :]
+    df, gf = environment.free_distance_and_gradient(Pf)
+    df, gf = np.asarray(df, dtype=float), np.asarray(gf, dtype=float)
     P = np.empty((N, L, S + 1, 3))  # the samples, then the lowest point
     d = np.empty((N, L, S + 1))
     g = np.empty((N, L, S + 1, 3))
-    Ps = P[:, :, :S]
-    np.multiply(t[None, None, :, None], D[:, :, None, :], out=Ps)
-    Ps += base[:, :, None, :]
-    ds, gs = environment.free_distance_and_gradient(Ps)
-    d[:, :, :S], g[:, :, :S] = ds, gs
+    P[:, :, :S], d[:, :, :S], g[:, :, :S] = Pf[:, :, ::4], df[:, :, ::4], gf[:, :, ::4]
     n_i, l_i = np.ogrid[:N, :L]
-    k = np.argmin(d[:, :, :S], axis=2)  # (N, L)
-    h = float(t[1] - t[0])
-    tc = np.clip(t[k][..., None] + h * _ZOOM, 0.0, 1.0)
-    Pc = base[:, :, None, :] + tc[..., None] * D[:, :, None, :]
-    dc, gc = environment.free_distance_and_gradient(Pc)
-    dc, gc = np.asarray(dc, dtype=float), np.asarray(gc, dtype=float)
+    k = 4 * np.argmin(d[:, :, :S], axis=2)  # (N, L): the lowest sample on the fine grid
+    zi = np.clip(k[..., None] + _ZOOM, 0, F - 1)  # (N, L, 4)
+    dz = df[n_i[..., None], l_i[..., None], zi]
+    j = zi[n_i, l_i, np.argmin(dz, axis=2)]
     # the lowest of the four points and of the lowest sample (the first on a tie, the
     # lowest sample last)
-    j = np.argmin(dc, axis=2)
-    zoom = dc[n_i, l_i, j] <= d[n_i, l_i, k]
-    P[:, :, S] = np.where(zoom[..., None], Pc[n_i, l_i, j], P[n_i, l_i, k])
-    d[:, :, S] = np.where(zoom, dc[n_i, l_i, j], d[n_i, l_i, k])
-    g[:, :, S] = np.where(zoom[..., None], gc[n_i, l_i, j], g[n_i, l_i, k])
+    zoom = df[n_i, l_i, j] <= df[n_i, l_i, k]
+    best = np.where(zoom, j, k)
+    P[:, :, S] = Pf[n_i, l_i, best]
+    d[:, :, S] = df[n_i, l_i, best]
+    g[:, :, S] = gf[n_i, l_i, best]
     return P, d, g
 
 
-_ZOOM = np.array([-0.5, -0.25, 0.25, 0.5])  # zoomed_link_minima's points, in sample spacings
+_ZOOM = np.array([-2, -1, 1, 2])  # zoomed_link_minima's points about the lowest sample
 
 
 def refine_step(
