@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from hrm_ctrl.kinematics import R_BASE_PAPER, joint_rotation
+from hrm_ctrl.kinematics import R_BASE_PAPER, base_rows, joint_rotation, turned_by_joint
 from hrm_ctrl.model import RobotModel
 
 
@@ -53,15 +53,13 @@ def joint_angles_from_centres(model: RobotModel, O: np.ndarray) -> tuple[np.ndar
 
 def _angles_one(model: RobotModel, O: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`joint_angles_from_centres` of one configuration (n + 1, 3): the same
-    recursion on scalars (a dozen 3x3 products: a NumPy call each costs more than the
-    product itself)."""
+    recursion on floats (:func:`~hrm_ctrl.kinematics.turned_by_joint`)."""
     links = np.diff(O, axis=0)
     dirs = (links / np.linalg.norm(links, axis=-1, keepdims=True)).tolist()
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = (
-        model.base_rotation @ R_BASE_PAPER
-    ).tolist()
+    r = base_rows(model)
     alpha, theta = [], []
     for dx, dy, dz in dirs:
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
         vx = r00 * dx + r10 * dy + r20 * dz  # R^T d
         vy = r01 * dx + r11 * dy + r21 * dz
         vz = r02 * dx + r12 * dy + r22 * dz
@@ -69,23 +67,5 @@ def _angles_one(model: RobotModel, O: np.ndarray) -> tuple[np.ndarray, np.ndarra
         a = math.atan2(vx, vz)
         alpha.append(a)
         theta.append(t)
-        ca, sa, ct, st = math.cos(a), math.sin(a), math.cos(t), math.sin(t)
-        # R <- R Rot_y(a) Rot_x(t), Rot_y(a) Rot_x(t) = [[ca, sa st, sa ct], [0, ct, -st],
-        # [-sa, ca st, ca ct]] (:func:`hrm_ctrl.kinematics.joint_rotation`)
-        sst, sct, cst, cct = sa * st, sa * ct, ca * st, ca * ct
-        r00, r01, r02 = (
-            r00 * ca - r02 * sa,
-            r00 * sst + r01 * ct + r02 * cst,
-            r00 * sct - r01 * st + r02 * cct,
-        )
-        r10, r11, r12 = (
-            r10 * ca - r12 * sa,
-            r10 * sst + r11 * ct + r12 * cst,
-            r10 * sct - r11 * st + r12 * cct,
-        )
-        r20, r21, r22 = (
-            r20 * ca - r22 * sa,
-            r20 * sst + r21 * ct + r22 * cst,
-            r20 * sct - r21 * st + r22 * cct,
-        )
+        r = turned_by_joint(r, math.cos(a), math.sin(a), math.cos(t), math.sin(t))
     return np.array(alpha), np.array(theta)

@@ -48,6 +48,7 @@ import numpy as np
 from hrm_ctrl.errors import PlanningError
 from hrm_ctrl.kinematics import R_BASE_PAPER, frames
 from hrm_ctrl.model import RobotModel
+from hrm_ctrl.planning.backbone import solve3
 
 
 class FreeSpace(Protocol):
@@ -184,9 +185,10 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     >>> cross3(np.array([1.0, 0, 0]), np.array([0.0, 1, 0])).tolist()
     [0.0, 0.0, 1.0]
     """
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), axis=-1)
+    return a[..., _YZX] * b[..., _ZXY] - a[..., _ZXY] * b[..., _YZX]
+
+
+_YZX, _ZXY = np.array([1, 2, 0]), np.array([2, 0, 1])  # cross3's component orders
 
 
 @lru_cache(maxsize=8)
@@ -261,22 +263,22 @@ def _projected(
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`project_tip`, with the centres of the returned angles where it evaluated
     them (else None)."""
-    q = np.clip(q, lo, hi)
+    q = np.minimum(np.maximum(q, lo), hi)
     free = np.ones(len(q), dtype=bool)
     for _ in range(iterations):
         O, W, C = joint_axes(model, q)
         e = target - O[-1]
-        if float(np.linalg.norm(e)) < tol:
+        if math.sqrt(e @ e) < tol:
             return q, O
         if not free.any():
             return q, O
         J = cross3(W, O[-1] - C).T[:, free]
         JJ = J @ J.T
-        dq = J.T @ np.linalg.solve(JJ + (1e-12 * float(np.trace(JJ)) + 1e-12) * np.eye(3), e)
-        step = np.zeros_like(q)
-        step[free] = dq
-        new = np.clip(q + step, lo, hi)
-        free &= new == q + step
+        JJ.flat[::4] += 1e-12 * float(JJ.trace()) + 1e-12
+        moved = q.copy()
+        moved[free] += J.T @ solve3(JJ, e)
+        new = np.minimum(np.maximum(moved, lo), hi)
+        free &= new == moved
         q = new
     return q, None
 
