@@ -7,9 +7,9 @@ bound to that port) and SocketCAN (the kernel's ``vcan0``, ``vcan1``: a test's
 first bus is ``vcan0``, its second ``vcan1``).
 
 Where the kernel has no vcan (as on the development machine and in CI) the SocketCAN
-tests skip, naming the reason, or with ``HRM_VCAN_GUEST=on`` run at the end of the
-session in a User-Mode-Linux guest that has it, their results reported here
-(``tests/vcan_guest.py``, ``tools/vcan-guest/``).
+tests run at the end of the session in User-Mode-Linux guests that have it, their results
+reported here (``tests/vcan_guest.py``, ``tools/vcan-guest/``); without the guest's
+packages, or with ``HRM_VCAN_GUEST=off``, they skip, naming the reason.
 
 Note: a udp_multicast socket also receives the frames it sent itself; code
 under test must tolerate its own frames coming back.
@@ -103,8 +103,7 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
-    line = vcan_guest.summary_line(terminalreporter.config)
-    if line is not None:
+    for line in vcan_guest.summary_lines(terminalreporter.config):
         terminalreporter.write_line(line)
 
 
@@ -122,7 +121,7 @@ def can_backend(request: pytest.FixtureRequest) -> BusFactory:
     kind = request.param
     if kind == "socketcan":
         if not vcan_available():
-            why = vcan_guest.guest_unavailable()
+            why = vcan_guest.guest_unavailable() or "this test is not one the guest runs"
             pytest.skip(
                 "SocketCAN: no vcan0 on this kernel (modprobe vcan; ip link add vcan0 type"
                 f" vcan), no vcan guest: {why}"

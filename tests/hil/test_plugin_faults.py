@@ -22,9 +22,10 @@ import pytest
 import drivers.protocol.cia402 as cia
 from drivers.safety.causes import StopKind
 from drivers.sources import HoldSource
-from hrm_ctrl.hil.rig import HilHost, HostRun
+from hrm_ctrl.hil.rig import BusKind, HilHost, HostRun
 from hrm_ctrl.hil.wirelog import EMCY_BASE, HEARTBEAT_BASE, TPDO1_BASE, WireLog
 from tests.hrm_ctrl.cli.cli_helpers import STALL_TOLERANT_PRODUCTION
+from tests.vcan_guest import in_vcan_guest
 
 # over the cross-process bus and udp_multicast (both hold at production settings here),
 # SocketCAN where the kernel has vcan0/vcan1; --hrm-bus on the command line overrides
@@ -52,9 +53,29 @@ CONFIRM_PERIODS = 10
 FIGURES = os.environ.get("HRM_HIL_FIGURES")  # a file: append each fault's measured times
 
 
+#: In the vcan guest (``tools/vcan-guest``: one CPU for box and host, 30-40 us per system
+#: call) the bring-up's SDO answers came later than 0.5 s, and at 100 Hz (and at 50 and
+#: 40 Hz in most runs) the box's TPDOs went missing 3 cycles before the fault: over
+#: SocketCAN there the box runs at 25 Hz (the watchdogs in cycles and the bounds in
+#: periods as at production settings), the host waits 2 s for an SDO answer and runs its
+#: threads under ``SCHED_FIFO`` 20.  The production-rate fault runs are the ``ipc`` ones.
+#: At 25 Hz the quick stop's 10 periods are as long as the delay fault's 400 ms: the
+#: delayed node's late TPDO falls inside them and counts as its confirmation, 0.5 s after
+#: the stop (a strict xfail there: :func:`guest_rate_limits`).
+GUEST_CONTROL: dict[str, Any] = {"rate_hz": 25, "sdo_timeout_s": 2.0, "realtime_priority": 20}
+
+
 @pytest.fixture(scope="module")
 def hrm_box_nodes() -> tuple[dict[str, int], ...]:
     return FAULT_NODES
+
+
+@pytest.fixture(scope="module")
+def hrm_control(hrm_bus_kind: BusKind) -> dict[str, Any]:
+    """Production settings; over SocketCAN in the vcan guest :data:`GUEST_CONTROL`."""
+    if hrm_bus_kind is BusKind.SOCKETCAN and in_vcan_guest():
+        return dict(GUEST_CONTROL)
+    return {}
 
 
 @dataclass
@@ -199,12 +220,31 @@ TPDO_FAULTS = [
 ]
 
 
+def guest_rate_limits(request: pytest.FixtureRequest, spec: str) -> None:
+    """The delay fault in the vcan guest's 25 Hz run (:data:`GUEST_CONTROL`) is a strict
+    xfail: its 400 ms delay is no longer than the quick stop's 10 periods there."""
+    if spec.startswith("delay") and in_vcan_guest():
+        request.applymarker(
+            pytest.mark.xfail(
+                strict=True,
+                reason="vcan guest at 25 Hz: the delayed node's TPDO inside the quick "
+                "stop's 10 periods confirms it late (a 400 ms delay is sized for 100 Hz)",
+            )
+        )
+
+
 @pytest.mark.parametrize(
     ("spec", "bus", "nodes", "names"), TPDO_FAULTS, ids=[f[0] for f in TPDO_FAULTS]
 )
 def test_missing_tpdos_detected_after_the_production_cycles(
-    hrm_host: HilHost, spec: str, bus: str, nodes: list[int], names: str
+    request: pytest.FixtureRequest,
+    hrm_host: HilHost,
+    spec: str,
+    bus: str,
+    nodes: list[int],
+    names: str,
 ) -> None:
+    guest_rate_limits(request, spec)
     kinds = ("tpdo_missing", "heartbeat") if spec.startswith("bus-off") else ("tpdo_missing",)
     # the faults that silence their nodes (all but the delay): none answers after the stop
     silenced = None if spec.startswith("delay") else (bus, nodes)

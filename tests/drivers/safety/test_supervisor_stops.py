@@ -25,6 +25,10 @@ PERIOD_S = 0.01
 # detection to the quick-stop SYNC) is asserted strictly against one period.
 RECEIVE_SLACK_S = 0.010
 NODES = ([1, 2], [3])
+#: over SocketCAN in the vcan guest (one CPU, system calls of 33-41 us) the timing tests run
+#: at 25 Hz: at 100 Hz the host's reaction there took up to 23 ms beside other work
+#: (tools/vcan-guest/README.md); the stop is still asserted within one period
+GUEST_CONTROL: dict[str, Any] = {"rate_hz": 25, "missing_tpdo_cycles": 6}
 
 
 def quick_stop_sync_time(rig: Rig) -> float:
@@ -76,7 +80,8 @@ def all_left_operation_enabled(rig: Rig) -> bool:
 
 
 def test_emcy_and_fault_stop_every_node_within_one_cycle(rig_factory: Callable[..., Rig]) -> None:
-    rig = rig_factory()
+    rig = rig_factory(guest_control=GUEST_CONTROL)
+    period_s = 1.0 / rig.config.control.rate_hz
     err = stream_with(rig, lambda: rig.sim.fault_drive("j07r0"))
     kinds = {x.kind for x in err.causes}
     assert "emcy" in kinds, err.causes
@@ -86,15 +91,16 @@ def test_emcy_and_fault_stop_every_node_within_one_cycle(rig_factory: Callable[.
     t_stop = quick_stop_sync_time(rig)
     # Host side (EMCY callback -> quick-stop SYNC sent) strictly within one period; on the
     # wire (EMCY frame -> quick-stop SYNC frame) also the receive thread's latency counts.
-    assert err.result.stop_latency_s is not None and err.result.stop_latency_s <= PERIOD_S
+    assert err.result.stop_latency_s is not None and err.result.stop_latency_s <= period_s
     assert err.result.stop_syncs_after_detection in (0, 1)
-    assert 0.0 < t_stop - t_emcy <= PERIOD_S + 2 * RECEIVE_SLACK_S, t_stop - t_emcy
+    assert 0.0 < t_stop - t_emcy <= period_s + 2 * RECEIVE_SLACK_S, t_stop - t_emcy
     assert wait_until(lambda: all_left_operation_enabled(rig))
     assert any(e["kind"] == "quick_stop" for e in rig.box.events.to_list())
 
 
 def test_lost_heartbeat_stops_every_node(rig_factory: Callable[..., Rig]) -> None:
-    rig = rig_factory()
+    rig = rig_factory(guest_control=GUEST_CONTROL)
+    period_s = 1.0 / rig.config.control.rate_hz
     err = stream_with(rig, lambda: rig.sim.stop_heartbeat("j01r1"))
     assert [x.kind for x in err.causes] == ["heartbeat"], err.causes
     assert "j01r1" in err.causes[0].text
@@ -102,14 +108,14 @@ def test_lost_heartbeat_stops_every_node(rig_factory: Callable[..., Rig]) -> Non
     # latency), and the quick stop was on its way within one period of detection.
     last_hb = float(rig.box.monitor.hb_time[1])
     detected = err.causes[0].time_s
-    assert 0.350 <= detected - last_hb <= 0.350 + PERIOD_S + RECEIVE_SLACK_S
-    assert err.result.stop_latency_s is not None and err.result.stop_latency_s <= PERIOD_S
+    assert 0.350 <= detected - last_hb <= 0.350 + period_s + RECEIVE_SLACK_S
+    assert err.result.stop_latency_s is not None and err.result.stop_latency_s <= period_s
     assert err.result.stop_syncs_after_detection in (0, 1)
     # On the wire: the quick-stop SYNC follows the last heartbeat frame by about the timeout.
     frames = rig.sniffers[0].snapshot()
     hb = [m.timestamp for m in frames if m.arbitration_id == 0x702]
     t_stop = quick_stop_sync_time(rig)
-    assert 0.350 <= t_stop - hb[-1] <= 0.350 + 2 * PERIOD_S + 3 * RECEIVE_SLACK_S
+    assert 0.350 <= t_stop - hb[-1] <= 0.350 + 2 * period_s + 3 * RECEIVE_SLACK_S
     assert wait_until(lambda: all_left_operation_enabled(rig))
 
 
@@ -117,7 +123,8 @@ def test_lost_heartbeat_stops_every_node(rig_factory: Callable[..., Rig]) -> Non
 # (a true missing-feedback stop): such a run is rerun only when the stall probe saw it.
 @pytest.mark.stall_tolerant(window_s=2 * PERIOD_S, watchdog="2 cycles without a TPDO")
 def test_missing_tpdo_stops_every_node(rig_factory: Callable[..., Rig]) -> None:
-    rig = rig_factory(missing_tpdo_cycles=2)
+    # in the vcan guest (no stall probe there) at 25 Hz: 2 cycles are 80 ms
+    rig = rig_factory(missing_tpdo_cycles=2, guest_control={"rate_hz": 25})
     sim = rig.sim
     err = stream_with(
         rig,
