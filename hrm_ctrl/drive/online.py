@@ -81,7 +81,6 @@ from hrm_ctrl.planning.refine import (
     kkt_step,
     linearised_objective,
     project_tip,
-    project_tip_centres,
     refine_step,
 )
 
@@ -217,6 +216,7 @@ class OnlinePlanner:
         # work buffers: the backbone (modal curve + trail), its size grows with the trail
         self._curve = np.empty((self.opt.Q + 1 + 1024, 3))
         self._tip_target = np.empty(3)
+        self._centres = np.empty((model.n_joints + 1, 3))  # the refined step's joint centres
         self.times = StepTimes()
         self._env_s = self._projection_s = 0.0  # of the last refinement
         self.steps = 0
@@ -496,7 +496,8 @@ class OnlinePlanner:
         if normal is not None:
             q = kkt_step(normal[0], normal[1], Jtip, target - tip, ro.damping, guess, lo, hi)
         t0 = time.perf_counter()
-        q, O = project_tip_centres(self.model, q, target, lo, hi, tol=1e-4, iterations=3)
+        O = self._centres
+        q = project_tip(self.model, q, target, lo, hi, tol=1e-4, iterations=3, centres=O)
         self._projection_s = time.perf_counter() - t0
         err = float(np.linalg.norm(O[-1] - target))
         if err > self.opt.tip_tolerance_mm:

@@ -137,8 +137,8 @@ def fit_joint_centres_on_segments(
     (-1 for O_2, which lies on the circle of Step 4, not on the curve).
 
     ``curve`` (m, 3) runs from the base (O_1 = curve[0]) to the tip
-    (O_{n+1} = curve[-1]); ``links`` are l_1..l_n.  Joints n..3 by bisection and
-    the exact sphere-segment intersection, joint 2 on the circle of Step 4.
+    (O_{n+1} = curve[-1]); ``links`` are l_1..l_n.  Joints n..3 by the bracket (the
+    module's) and the exact sphere-segment intersection, joint 2 on the circle of Step 4.
 
     Raises :class:`PlanningError` when the curve is too short for the arm or
     too long for joint 2 to close the chain.

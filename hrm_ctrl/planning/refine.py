@@ -223,55 +223,31 @@ def project_tip(
     hi: np.ndarray,
     tol: float = 1e-7,
     iterations: int = 12,
+    centres: np.ndarray | None = None,
 ) -> np.ndarray:
     """Gauss-Newton steps of least norm that bring the tip onto ``target``, the angles
-    kept within [lo, hi] (a clipped angle is frozen for the next step).
+    kept within [lo, hi] (a clipped angle is frozen for the next step).  With
+    ``centres`` (13, 3) the joint centres of the returned angles are written there (those
+    of the last evaluation where it stopped within ``tol``).
 
     >>> from hrm_ctrl.model import default_robot
     >>> m = default_robot()
     >>> X = np.array([2000.0, 20.0, 60.0])
-    >>> q = project_tip(m, np.zeros(24), X, -np.ones(24), np.ones(24))
-    >>> float(np.linalg.norm(joint_axes(m, q)[0][-1] - X)) < 1e-6
-    True
+    >>> O = np.empty((13, 3))
+    >>> q = project_tip(m, np.zeros(24), X, -np.ones(24), np.ones(24), centres=O)
+    >>> tip = joint_axes(m, q)[0][-1]
+    >>> float(np.linalg.norm(tip - X)) < 1e-6, bool((O[-1] == tip).all())
+    (True, True)
     """
-    return _projected(model, q, target, lo, hi, tol, iterations)[0]
-
-
-def project_tip_centres(
-    model: RobotModel,
-    q: np.ndarray,
-    target: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    tol: float = 1e-7,
-    iterations: int = 12,
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`project_tip` and the joint centres (13, 3) of the angles it returns (those
-    of its last evaluation where it stopped within ``tol``)."""
-    q, O = _projected(model, q, target, lo, hi, tol, iterations)
-    return q, (joint_axes(model, q)[0] if O is None else O)
-
-
-def _projected(
-    model: RobotModel,
-    q: np.ndarray,
-    target: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    tol: float,
-    iterations: int,
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """:func:`project_tip`, with the centres of the returned angles where it evaluated
-    them (else None)."""
     q = np.minimum(np.maximum(q, lo), hi)
     free = np.ones(len(q), dtype=bool)
     for _ in range(iterations):
         O, W, C = joint_axes(model, q)
         e = target - O[-1]
-        if math.sqrt(e @ e) < tol:
-            return q, O
-        if not free.any():
-            return q, O
+        if math.sqrt(e @ e) < tol or not free.any():
+            if centres is not None:
+                centres[:] = O
+            return q
         J = cross3(W, O[-1] - C).T[:, free]
         JJ = J @ J.T
         JJ.flat[::4] += 1e-12 * float(JJ.trace()) + 1e-12
@@ -280,7 +256,9 @@ def _projected(
         new = np.minimum(np.maximum(moved, lo), hi)
         free &= new == moved
         q = new
-    return q, None
+    if centres is not None:
+        centres[:] = joint_axes(model, q)[0]
+    return q
 
 
 class _StepObjective:
