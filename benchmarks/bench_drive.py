@@ -5,7 +5,9 @@ Steers the tip through the paper's bent pipe by its key sequence
 (:func:`hrm_ctrl.drive.script.bent_pipe_keys`, 20 mm/s, 100 Hz: 0.2 mm a step) with the
 pipe as the environment, and times every online step (``OnlinePlanner.step``: modal
 solve, paper fit, clearance refinement, checks) in wall time and in the CPU time of the
-thread; prints JSON with the percentiles, where the time goes (the mean of each part) and,
+thread; prints JSON with the percentiles, where the time goes (the mean of each part of
+:class:`~hrm_ctrl.drive.online.StepTimes`; the environment's free distances and the tip's
+projection are parts of the refinement) and,
 in the same run, the offline planner's per-step figure (``plan_path`` of the same pipe at
 lambda = 5 mm, paper fit and refined) and the 1-minute load.
 
@@ -35,6 +37,8 @@ from hrm_ctrl.planning.planner import FitMode, PlanOptions, plan_path
 from hrm_ctrl.planning.scenarios import scenario
 
 PERIOD_S = 0.01
+# StepTimes' parts; environment and projection are parts of refine
+PARTS = ("modal", "fit", "refine", "checks", "environment", "projection")
 
 
 def drive_once(clearance: bool) -> dict[str, list[float]]:
@@ -47,9 +51,7 @@ def drive_once(clearance: bool) -> dict[str, list[float]]:
     trail = Trail.starting_at(P[0], P[1] - P[0])
     planner = OnlinePlanner(model, trail, sc.environment if clearance else None)
     drv = Driver(planner, limits, PERIOD_S)
-    out: dict[str, list[float]] = {
-        k: [] for k in ("wall", "cpu", "modal", "fit", "refine", "checks", "clearance")
-    }
+    out: dict[str, list[float]] = {k: [] for k in ("wall", "cpu", *PARTS, "clearance")}
     step = planner.step
 
     def timed(d: float) -> object:  # the planner's own step, timed
@@ -59,7 +61,7 @@ def drive_once(clearance: bool) -> dict[str, list[float]]:
         out["wall"].append((t1 - t0) * 1e3)
         out["cpu"].append((c1 - c0) * 1e3)
         tm = planner.times
-        for k in ("modal", "fit", "refine", "checks"):
+        for k in PARTS:
             out[k].append(getattr(tm, k) * 1e3)
         out["clearance"].append(planner.clearance_mm)
         return r
@@ -113,10 +115,7 @@ def main() -> None:
                 "steps": len(merged["wall"]),
                 "step_wall_ms": percentiles(merged["wall"]),
                 "step_cpu_ms": percentiles(merged["cpu"]),
-                "mean_parts_wall_ms": {
-                    k: round(float(np.mean(merged[k])), 3)
-                    for k in ("modal", "fit", "refine", "checks")
-                },
+                "mean_parts_wall_ms": {k: round(float(np.mean(merged[k])), 3) for k in PARTS},
                 "worst_clearance_mm": round(float(np.min(merged["clearance"])), 3),
                 "offline_planner": offline_per_step(),
                 "load_1min_before": load_before,

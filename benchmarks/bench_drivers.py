@@ -3,8 +3,13 @@
 The default box configuration (36 rope motors, 2 buses) against the simulated box
 (36 CiA 402 drive simulators), either in this interpreter on python-can ``virtual`` buses
 (the default) or, with ``--box-process``, in a process of its own (``hrm sim``) over
-``--wire ipc`` (``hrm_ipc``: Unix-domain datagrams, one per peer per batch) or ``--wire
-udp_multicast`` (hop_limit 0).  Measured:
+``--wire ipc`` (``hrm_ipc``: Unix-domain datagrams, one per peer per batch), ``--wire
+udp_multicast`` (hop_limit 0) or ``--wire socketcan`` (``--bus`` is the same option:
+SocketCAN on ``vcan0`` and ``vcan1``; on a kernel without vcan in the vcan guest,
+``tools/vcan-guest``).  ``--drives N`` runs the first N drives of the box (in turn from
+each bus), the sine on their motors only: a machine that carries fewer frames than the
+36 drives send (the vcan guest) is measured at the production rate with as many as it
+carries.  Measured:
 
 * bring-up of all drives (NMT reset → boot-ups → SDO configuration → CiA 402 to
   operation enabled), ``--bringups`` times;
@@ -35,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -72,7 +78,8 @@ from hrm_ctrl.model import default_robot
 from hrm_ctrl.ropes.actuation import load_actuation
 from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, open_box
 
-WIRES = ("ipc", "udp_multicast")
+WIRES = ("ipc", "udp_multicast", "socketcan")
+VCAN_CHANNELS = ("vcan0", "vcan1")  # --wire socketcan: one per bus
 RSS_SAMPLE_S = 10.0
 BOX_READY_TIMEOUT_S = 30.0
 
@@ -84,12 +91,14 @@ def sine_table(
     duration_s: float,
     amplitude_deg: float = 5.0,
     freq_hz: float = 0.5,
+    columns: np.ndarray | None = None,
 ) -> np.ndarray:
     """The arm from where it stands along a joint-space wave: joint j's angles
     ``A cos(phase_j) (1 - cos wt)`` and ``A sin(phase_j) (1 - cos wt)`` (from rest, at most
     2A), through the rope layer to every motor's counts, so the ropes stay consistent with
     one arm configuration as in a real plan (a wave per motor would strain the simulated
     arm's ropes against each other and make its rope inverse take the slow path).
+    ``columns``: the rope layer's indices of the motors driven (``--drives``; None: all).
 
     >>> from hrm_ctrl.model import default_robot
     >>> from hrm_ctrl.ropes.actuation import load_actuation
@@ -106,6 +115,8 @@ def sine_table(
     alpha, theta = A * np.cos(phase) * ramp, A * np.sin(phase) * ramp
     zero = actuation.counts_from_angles(np.zeros(12), np.zeros(12), check=False)
     counts = actuation.counts_from_angles(alpha, theta, check=False) - zero[None, :]
+    if columns is not None:
+        counts = counts[:, columns]
     return (actual_counts[None, :] + counts).astype(np.int64)
 
 
@@ -114,14 +125,19 @@ class SineSource(TableSource):
 
     name = "sine"
 
-    def __init__(self, actuation: Any, duration_s: float) -> None:
+    def __init__(
+        self, actuation: Any, duration_s: float, columns: np.ndarray | None = None
+    ) -> None:
         super().__init__()
         self.actuation = actuation
         self.duration_s = duration_s
+        self.columns = columns
         self.rss_after_table_mb: float | None = None
 
     def start(self, actual_counts: np.ndarray, period_s: float) -> None:
-        self.table = sine_table(self.actuation, actual_counts, period_s, self.duration_s)
+        self.table = sine_table(
+            self.actuation, actual_counts, period_s, self.duration_s, columns=self.columns
+        )
         # the run's own data (60 000 x 36 counts for a soak, and what building them took)
         # is in the process from here on: "memory flat" is measured from this point
         self.rss_after_table_mb = rss_mb()
@@ -193,6 +209,11 @@ def wire_config(path: Path, cfg: BoxConfig, wire: str) -> list[dict[str, Any]]:
             lines += [f"[buses.{b.name}]", 'interface = "udp_multicast"', f'channel = "{group}"']
             lines += [f"bitrate = {b.bitrate}", f"[buses.{b.name}.options]", f"port = {port}"]
             lines += ["hop_limit = 0"]
+        elif wire == "socketcan":
+            channel = VCAN_CHANNELS[k]
+            kwargs.append({"interface": "socketcan", "channel": channel})
+            lines += [f"[buses.{b.name}]", 'interface = "socketcan"', f'channel = "{channel}"']
+            lines += [f"bitrate = {b.bitrate}"]
         elif wire == "ipc":
             channel = f"bench-{tag}-{b.name}"
             kwargs.append({"interface": "hrm_ipc", "channel": channel})
@@ -269,6 +290,33 @@ class BoxProcess:
             self.proc.wait(timeout=10)
 
 
+def first_drives(cfg: BoxConfig, n: int) -> BoxConfig:
+    """``cfg`` with its first ``n`` drives only, taken in turn from each bus (each bus's in
+    its own order); a one-line SystemExit when ``n`` is out of 1..all.
+
+    >>> cfg = first_drives(load_box_config(None), 5)
+    >>> [len(b.nodes) for b in cfg.buses]
+    [3, 2]
+    """
+    total = sum(len(b.nodes) for b in cfg.buses)
+    if not 1 <= n <= total:
+        raise SystemExit(f"bench_drivers: --drives must be in 1..{total}, got {n}")
+    per_bus = [list(b.nodes.items()) for b in cfg.buses]
+    keep: list[list[tuple[str, int]]] = [[] for _ in per_bus]
+    k = 0
+    while sum(len(x) for x in keep) < n:
+        bus = k % len(per_bus)
+        if len(keep[bus]) < len(per_bus[bus]):
+            keep[bus].append(per_bus[bus][len(keep[bus])])
+        k += 1
+    buses = tuple(
+        dataclasses.replace(b, nodes=dict(nodes))
+        for b, nodes in zip(cfg.buses, keep, strict=True)
+        if nodes
+    )
+    return dataclasses.replace(cfg, buses=buses)
+
+
 def ms(v: Any) -> Any:
     return None if v is None else round(float(v) * 1000.0, 3)
 
@@ -291,6 +339,8 @@ def run(
     stall_probe: bool = False,
     cpu_latency_us: int | None = None,
     box_physics: str | None = None,
+    drives: int | None = None,
+    rate_hz: float | None = None,
 ) -> dict[str, Any]:
     """One benchmark run (what ``main`` prints; the soak test asserts on it).  ``cpus``:
     (host, box) CPU sets for a box process (the host's session threads and the box kept
@@ -300,6 +350,17 @@ def run(
     host_cpus, box_cpus = (None, None) if not isinstance(split, tuple) else split
     act = load_actuation(default_robot())
     cfg = load_box_config(None)
+    rope: Any = act
+    columns = None
+    if drives is not None:
+        from drivers.safety.subset import ActuationSubset
+
+        cfg = first_drives(cfg, drives)
+        motors = [m for b in cfg.buses for m in b.nodes]
+        rope = ActuationSubset(act, motors)
+        columns = np.array([act.motor_ids.index(m) for m in motors], dtype=np.int64)
+    if rate_hz is not None:  # a machine too slow for the production rate (the vcan guest)
+        cfg = cfg.with_control(rate_hz=rate_hz)
     work = Path(tempfile.mkdtemp(prefix="bench_drivers_")) if work is None else work
     if box_process:
         kwargs = wire_config(work / f"box_{wire}.toml", cfg, wire)
@@ -319,6 +380,7 @@ def run(
         relaxed["heartbeat_timeout_ms"] = heartbeat_timeout_ms
     if cpu_latency_us is not None:  # not a watchdog: still the production settings
         relaxed["cpu_wakeup_latency_us"] = cpu_latency_us
+
     cfg = cfg.with_bus_kwargs(kwargs).with_control(realtime_priority=rt_priority, **relaxed)
     if box_ctx is None:
         box_ctx = SimBox(cfg, actuation=act)
@@ -333,7 +395,7 @@ def run(
             with contextlib.ExitStack() as opened:
                 with process_settings(switch_interval_s=None, cpus=host_cpus):  # its threads
                     session = opened.enter_context(
-                        open_box(cfg, act, options, watches=NO_WATCHES, bring_up=False)
+                        open_box(cfg, rope, options, watches=NO_WATCHES, bring_up=False)
                     ).session
                 cpu_latency_held = session.cpu_latency.max_us if session.cpu_latency.held else None
                 t = time.perf_counter()
@@ -363,7 +425,7 @@ def run(
                 box_cpu0 = proc_cpu_s(box_pid) if box_pid is not None else box.cpu_s
                 wall0 = time.monotonic()
                 probe = StallProbe(sorted(available_cpus()) if stall_probe else [])
-                source = SineSource(act, duration_s)
+                source = SineSource(act, duration_s, columns)
                 with probe:
                     result = session.stream(source, raise_on_stop=False)
                 wall = time.monotonic() - wall0
@@ -384,7 +446,10 @@ def run(
 
             ref_box0 = proc_cpu_s(box_pid) if box_pid is not None else 0.0
             ref = run_reference(
-                cfg, act, duration_s, lambda a, p: sine_table(act, a, p, duration_s)
+                cfg,
+                rope,
+                duration_s,
+                lambda a, p: sine_table(act, a, p, duration_s, columns=columns),
             )
             if box_pid is not None and ref["wall_s"] > 0:
                 ref["box_core_fraction"] = round(
@@ -419,7 +484,7 @@ def run(
         "loadavg": Path("/proc/loadavg").read_text().split()[:3],
         "setup": {
             "box_physics": box_physics,
-            "drives": len(act.motor_ids),
+            "drives": sum(len(b.nodes) for b in cfg.buses),
             "buses": len(cfg.buses),
             "box": f"own process (hrm sim), wire {wire}"
             if box_process
@@ -777,7 +842,18 @@ def main() -> None:
     ap.add_argument(
         "--box-process", action="store_true", help="the simulated box in its own process"
     )
-    ap.add_argument("--wire", choices=WIRES, default="ipc", help="with --box-process (ipc)")
+    ap.add_argument(
+        "--wire", "--bus", dest="wire", choices=WIRES, default="ipc",
+        help="with --box-process (ipc); socketcan: vcan0 and vcan1 (implies --box-process)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--rate-hz", type=float, default=None, metavar="HZ",
+        help="the control rate (default: box.toml's production value, 100)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--drives", type=int, default=None, metavar="N",
+        help="the first N drives of the box only, in turn from each bus (default: all 36)",
+    )  # fmt: skip
     ap.add_argument(
         "--box-physics",
         default=None,
@@ -815,7 +891,7 @@ def main() -> None:
         return
     if args.sim_process:
         args.box_process, args.wire = True, "udp_multicast"
-    if args.soak:
+    if args.soak or args.wire == "socketcan":
         args.box_process = True
     duration = args.duration if args.duration is not None else (600.0 if args.soak else 60.0)
     for flag, prio in (
@@ -869,6 +945,8 @@ def _run_from(args: argparse.Namespace, duration: float) -> dict[str, Any]:
         stall_probe=args.stall_probe or args.soak,
         cpu_latency_us=args.cpu_latency_us,
         box_physics=args.box_physics,
+        drives=args.drives,
+        rate_hz=args.rate_hz,
     )
 
 

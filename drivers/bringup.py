@@ -72,12 +72,18 @@ class DriveSetup:
     """What the bring-up writes and checks on one drive beyond :class:`DriveSettings`, from
     its device file and the box configuration (:meth:`drivers.device_check.NodeCheck.setup`):
     0x60C2 (value, index) in the drive's own encoding (None: hrm's,
-    :func:`cia402.interpolation_time_period`), the SDO overlay (written first, in order) and
-    the identity the drive must answer (checked before anything is written)."""
+    :func:`cia402.interpolation_time_period`), the SDO overlay (written first, in order),
+    the identity the drive must answer (checked before anything is written) and the
+    quick-stop deceleration 0x6085 in the drive's unit (None: not written;
+    :meth:`drivers.device_check.BoxCheck.setups`), and for a drive without a heartbeat
+    consumer the node guarding the host does (guard time 0x100C in ms, life time factor
+    0x100D; None: heartbeats)."""
 
     interpolation: tuple[int, int] | None = None
     sdo: tuple[SdoWrite, ...] = ()
     identity: ExpectedIdentity = field(default_factory=ExpectedIdentity)
+    quick_stop_deceleration: int | None = None
+    guarding: tuple[int, int] | None = None
 
 
 #: 0x1018 sub-index -> name, as the identity check names them
@@ -230,18 +236,28 @@ def _map_pdo(
 
 def configure_drive(link: DriveLink, s: DriveSettings) -> None:
     """SDO configuration (node pre-operational): the box configuration's SDO overlay for
-    this drive (in order), then PDO mappings, heartbeats, limits, interpolation period (in
-    the drive's encoding), quick stop option, mode CSP (checked on 0x6061)."""
+    this drive (in order), then heartbeats (or the node guarding), PDO mappings, limits,
+    interpolation period (in the drive's encoding), quick stop option, quick-stop
+    deceleration (where the setup gives one), mode CSP (checked on 0x6061)."""
     nid = link.node_id
     for w in s.setup.sdo:
         sdo_write(link, w.index, w.sub, w.value)
-    sdo_write(link, cia301.OD_PRODUCER_HEARTBEAT_TIME, 0, s.node_heartbeat_ms)
-    sdo_write(
-        link,
-        cia301.OD_CONSUMER_HEARTBEAT_TIME,
-        1,
-        cia301.consumer_heartbeat_entry(s.host_node_id, s.host_heartbeat_timeout_ms),
-    )
+    if s.setup.guarding is not None:
+        # the host guards the drive (no heartbeat consumer): no heartbeat from it (CiA 301:
+        # a producer time other than 0 would switch guarding off), its life time set
+        if cia301.OD_PRODUCER_HEARTBEAT_TIME in link.node.object_dictionary:
+            sdo_write(link, cia301.OD_PRODUCER_HEARTBEAT_TIME, 0, 0)
+        guard_ms, factor = s.setup.guarding
+        sdo_write(link, cia301.OD_GUARD_TIME, 0, guard_ms)
+        sdo_write(link, cia301.OD_LIFE_TIME_FACTOR, 0, factor)
+    else:
+        sdo_write(link, cia301.OD_PRODUCER_HEARTBEAT_TIME, 0, s.node_heartbeat_ms)
+        sdo_write(
+            link,
+            cia301.OD_CONSUMER_HEARTBEAT_TIME,
+            1,
+            cia301.consumer_heartbeat_entry(s.host_node_id, s.host_heartbeat_timeout_ms),
+        )
     _map_pdo(
         link,
         cia301.OD_RPDO1_COMMUNICATION,
@@ -263,6 +279,8 @@ def configure_drive(link: DriveLink, s: DriveSettings) -> None:
     sdo_write(link, cia402.OD_INTERPOLATION_TIME_PERIOD, 2, index)
     sdo_write(link, cia402.OD_FOLLOWING_ERROR_WINDOW, 0, int(s.following_error_window_counts))
     sdo_write(link, cia402.OD_QUICK_STOP_OPTION_CODE, 0, int(s.quick_stop_option_code))
+    if s.setup.quick_stop_deceleration is not None:
+        sdo_write(link, cia402.OD_QUICK_STOP_DECELERATION, 0, int(s.setup.quick_stop_deceleration))
     sdo_write(link, cia402.OD_MODES_OF_OPERATION, 0, cia402.MODE_CSP)
     shown = sdo_read(link, cia402.OD_MODES_OF_OPERATION_DISPLAY)
     if shown != cia402.MODE_CSP:

@@ -13,8 +13,8 @@ object, e.g. ``j03r1: 605.3150.68-B-EK-2-60.eds: no cyclic synchronous position 
 - CSP: bit 7 of 0x6502 (supported drive modes); 0x6060 writable, 0x6061 readable;
 - 0x60C2 (interpolation time period) settable to the SYNC period within its limits;
 - a heartbeat consumer 0x1016 (sub-index 1 writable) and producer 0x1017: the drive
-  watches the host's heartbeat, the host the drive's (node guarding, 0x100C/0x100D,
-  is named when a drive offers only that: hrm's bring-up does not guard nodes);
+  watches the host's heartbeat, the host the drive's; or, on a drive without 0x1016, node
+  guarding (0x100C/0x100D writable): the host guards the drive, the drive its life time;
 - RPDO1 and TPDO1 (0x1400/0x1600, 0x1800/0x1A00) with writable COB-ID, transmission type
   and two mapping entries, the four objects PDO-mappable;
 - writable software position limits 0x607D, following-error window 0x6065, quick-stop
@@ -30,13 +30,14 @@ object, e.g. ``j03r1: 605.3150.68-B-EK-2-60.eds: no cyclic synchronous position 
 j01r0: hrm_drive.eds: ok: RPDO1 = 0x6040, 0x607A;
 TPDO1 = 0x6041, 0x6064 on SYNC (type 1);
 0x60C2 = 10 x 10^-3 s;
-heartbeat consumer 0x1016
+heartbeat consumer 0x1016;
+0x6085 from the motors' acceleration limit in counts/s^2
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -48,7 +49,7 @@ from drivers.protocol.pdo import PdoLayout
 from hrm_ctrl.errors import DriverError
 
 if TYPE_CHECKING:
-    from drivers.config import BoxConfig
+    from drivers.config import BoxConfig, ControlConfig
 
 
 class DeviceCheckError(DriverError):
@@ -69,10 +70,20 @@ SI_UNITS: Mapping[int, str] = {
 }  # fmt: skip
 SI_INCREMENTS = 0xB5
 OD_SI_UNIT_POSITION = 0x60A8
-OD_QUICK_STOP_DECELERATION = 0x6085
+OD_QUICK_STOP_DECELERATION = cia402.OD_QUICK_STOP_DECELERATION
 OD_MAX_PROFILE_VELOCITY = 0x607F
-OD_GUARD_TIME = 0x100C
-OD_LIFE_TIME_FACTOR = 0x100D
+OD_GUARD_TIME = cia301.OD_GUARD_TIME
+OD_LIFE_TIME_FACTOR = cia301.OD_LIFE_TIME_FACTOR
+#: how a drive without a heartbeat consumer watches the host: the host guards it
+GUARDING = "node guarding 0x100C/0x100D"
+OD_SI_UNIT_VELOCITY = 0x60A9
+OD_SI_UNIT_ACCELERATION = 0x60AA
+OD_POSITION_ENCODER_RESOLUTION = 0x608F
+OD_GEAR_RATIO = 0x6091
+OD_ACCELERATION_FACTOR = 0x6097
+#: 0x60A9 time codes (byte 1): the denominator of the velocity unit, in seconds
+TIME_UNITS_S: Mapping[int, float] = {0x03: 1.0, 0x47: 60.0}
+SI_REVOLUTION = 0xB4
 
 #: What hrm needs from a drive, for the docs' table: (object, what for)
 NEEDS: tuple[tuple[str, str], ...] = (
@@ -99,6 +110,8 @@ _NAMES = {
     OD_QUICK_STOP_DECELERATION: "quick stop deceleration",
     OD_MAX_PROFILE_VELOCITY: "max profile velocity",
     cia301.OD_PRODUCER_HEARTBEAT_TIME: "producer heartbeat time",
+    OD_GUARD_TIME: "guard time",
+    OD_LIFE_TIME_FACTOR: "life time factor",
     cia402.OD_CONTROLWORD: "controlword",
     cia402.OD_TARGET_POSITION: "target position",
     cia402.OD_STATUSWORD: "statusword",
@@ -173,6 +186,7 @@ class DeviceVerdict:
     interpolation: tuple[int, int] | None
     heartbeat: str
     facts: Mapping[str, Any] = field(default_factory=dict)
+    quick_stop: QuickStopScale | str = "0x6085 not written"
 
     def ok_text(self) -> str:
         pdos = "; ".join(p.text() for p in self.pdos)
@@ -181,7 +195,8 @@ class DeviceVerdict:
             if self.interpolation is None
             else (f"; 0x60C2 = {self.interpolation[0]} x 10^{self.interpolation[1]} s")
         )
-        return f"{pdos} on SYNC (type 1){period}; {self.heartbeat}"
+        qs = self.quick_stop if isinstance(self.quick_stop, str) else self.quick_stop.text()
+        return f"{pdos} on SYNC (type 1){period}; {self.heartbeat}; {qs}"
 
 
 def _hex(value: Any) -> str:
@@ -281,17 +296,19 @@ def _heartbeat(f: DeviceFile) -> tuple[str, list[str]]:
             f"(AccessType={consumer.access.value})"
         )
     elif guarding:
-        how = "node guarding 0x100C/0x100D"
-        problems.append(
-            "no heartbeat consumer 0x1016 (node guarding 0x100C/0x100D only: hrm's bring-up "
-            "watches the host by heartbeat)"
-        )
+        how = GUARDING
+        for index in (OD_GUARD_TIME, OD_LIFE_TIME_FACTOR):
+            problem = _writable_problem(f, index)
+            if problem:
+                problems.append(problem)
     else:
         how = "none"
         problems.append("no heartbeat consumer 0x1016 nor node guarding 0x100C/0x100D")
-    producer = _writable_problem(f, cia301.OD_PRODUCER_HEARTBEAT_TIME)
-    if producer:
-        problems.append(producer)
+    # a guarded drive produces no heartbeat (0x1017 written 0 where it has one)
+    if how != GUARDING or f.entry(cia301.OD_PRODUCER_HEARTBEAT_TIME) is not None:
+        producer = _writable_problem(f, cia301.OD_PRODUCER_HEARTBEAT_TIME)
+        if producer:
+            problems.append(producer)
     return how, problems
 
 
@@ -366,6 +383,116 @@ def _unit_problem(f: DeviceFile, overlay: Sequence[SdoWrite]) -> str | None:
     )
 
 
+@dataclass(frozen=True)
+class QuickStopScale:
+    """How the bring-up writes the quick-stop deceleration 0x6085 on a drive: the drive's
+    acceleration ``unit``, how many of it one count/s^2 is (``per_count_s2``), and the
+    values the object takes (its type within the file's ``LowLimit``..``HighLimit``, at
+    least 1: a zero deceleration would not stop).
+
+    >>> QuickStopScale("counts/s^2", 1.0, 1, 2**32 - 1).value(2.048e6)
+    2048000
+    >>> QuickStopScale("rpm/s", 60 / 2000, 1, 32000).value(2.048e6) is None
+    True
+    """
+
+    unit: str
+    per_count_s2: float
+    low: int
+    high: int
+
+    def value(self, accel_counts_per_s2: float) -> int | None:
+        """0x6085 for an acceleration limit of ``accel_counts_per_s2``, or None when it
+        is outside :attr:`low`..:attr:`high`."""
+        v = round(float(accel_counts_per_s2) * self.per_count_s2)
+        return v if self.low <= v <= self.high else None
+
+    def text(self) -> str:
+        return f"0x6085 from the motors' acceleration limit in {self.unit}"
+
+
+def _written_or_file(f: DeviceFile, overlay: Sequence[SdoWrite], index: int, sub: int = 0) -> Any:
+    """The value ``(index, sub)`` has after the overlay: its last write, else the file's."""
+    written = [w.value for w in overlay if (w.index, w.sub) == (index, sub)]
+    return written[-1] if written else f.value(index, sub)
+
+
+def _ratio_problem(f: DeviceFile, overlay: Sequence[SdoWrite], index: int, name: str) -> str | None:
+    """Why the factor ``index`` (sub 1 / sub 2, where the file has it) is not 1:1, or None."""
+    if f.entry(index, 1) is None:
+        return None
+    num, den = (_written_or_file(f, overlay, index, s) for s in (1, 2))
+    if not (isinstance(num, int) and isinstance(den, int)):
+        return f"{name} 0x{index:04X} has no value in the file"
+    if num == den and num != 0:
+        return None
+    return f"{name} 0x{index:04X} = {num}:{den}, not 1:1"
+
+
+def quick_stop_scale(f: DeviceFile, overlay: Sequence[SdoWrite] = ()) -> QuickStopScale | str:
+    """How 0x6085 is written on the drive of file ``f`` (after the ``overlay``), or why hrm
+    does not write it (the drive keeps its own value).
+
+    The acceleration unit is the drive's 0x60AA (SI unit acceleration) where it has one
+    (not converted by hrm), else the velocity unit 0x60A9 per second, else the position
+    unit per second squared (0x60A8, which the check requires to be increments: hrm's
+    counts).  A velocity unit in increments per second or minute converts directly; one in
+    revolutions needs the drive's counts per revolution, 0x608F (position encoder
+    resolution: increments / motor revolutions).  A gear ratio 0x6091 or acceleration
+    factor 0x6097 other than 1:1 is not converted.  An SDO overlay that writes 0x6085
+    itself wins.
+
+    >>> from drivers import eds_path
+    >>> from drivers.protocol.cia306 import read_device_file
+    >>> quick_stop_scale(read_device_file(eds_path()))
+    QuickStopScale(unit='counts/s^2', per_count_s2=1.0, low=1, high=4294967295)
+    """
+    e = f.entry(OD_QUICK_STOP_DECELERATION)
+    if e is None or not e.access.writable or not e.data_type.is_integer:
+        return "0x6085 not writable"
+    if any((w.index, w.sub) == (OD_QUICK_STOP_DECELERATION, 0) for w in overlay):
+        return "0x6085 by the SDO overlay"
+    lo, hi = _limits(e)
+    lo = max(lo, 1)
+    for index, name in (
+        (OD_GEAR_RATIO, "gear ratio"),
+        (OD_ACCELERATION_FACTOR, "acceleration factor"),
+    ):
+        problem = _ratio_problem(f, overlay, index, name)
+        if problem:
+            return f"0x6085 the drive's own ({problem})"
+    accel = _written_or_file(f, overlay, OD_SI_UNIT_ACCELERATION)
+    if f.entry(OD_SI_UNIT_ACCELERATION) is not None and isinstance(accel, int) and accel:
+        return f"0x6085 the drive's own (acceleration unit 0x60AA = 0x{accel:08X}: not converted)"
+    velocity = _written_or_file(f, overlay, OD_SI_UNIT_VELOCITY)
+    if f.entry(OD_SI_UNIT_VELOCITY) is None or not isinstance(velocity, int) or not velocity:
+        return QuickStopScale("counts/s^2", 1.0, lo, hi)
+    prefix = (velocity >> 24) & 0xFF
+    exponent = prefix - 256 if prefix > 127 else prefix
+    unit, time_code = (velocity >> 16) & 0xFF, (velocity >> 8) & 0xFF
+    per_s = TIME_UNITS_S.get(time_code)
+    if per_s is None or unit not in (SI_INCREMENTS, SI_REVOLUTION):
+        return f"0x6085 the drive's own (velocity unit 0x60A9 = 0x{velocity:08X}: not converted)"
+    scale = per_s / 10.0**exponent  # drive units per (increment or revolution)/s^2
+    shown = f"{'' if exponent == 0 else f'10^{exponent} '}"
+    if unit == SI_INCREMENTS:
+        name = "increments/s" if per_s == 1.0 else "increments/min"
+        return QuickStopScale(f"{shown}{name} per s", scale, lo, hi)
+    counts, revs = (_written_or_file(f, overlay, OD_POSITION_ENCODER_RESOLUTION, s) for s in (1, 2))
+    if not (isinstance(counts, int) and isinstance(revs, int) and counts > 0 and revs > 0):
+        return (
+            "0x6085 the drive's own (velocity unit 0x60A9 in revolutions, counts per "
+            "revolution 0x608F not in the file)"
+        )
+    name = "rpm/s" if per_s == 60.0 else "revolutions/s^2"
+    return QuickStopScale(
+        f"{shown}{name} ({counts / revs:g} counts a revolution, 0x608F)",
+        scale * revs / counts,
+        lo,
+        hi,
+    )
+
+
 def overlay_problems(f: DeviceFile, overlay: Sequence[SdoWrite]) -> list[str]:
     """Why the drive cannot take an SDO overlay's writes, by its file: an object it does
     not have, not writable, not an integer, a value outside its type or its limits.
@@ -428,6 +555,7 @@ def check_device(f: DeviceFile, period_s: float, overlay: Sequence[SdoWrite] = (
         refusals.append(unit)
     modes = f.value(cia402.OD_SUPPORTED_DRIVE_MODES)
     unit_value = f.value(OD_SI_UNIT_POSITION)
+    quick_stop = quick_stop_scale(f, overlay)
     facts = {
         "device": f"{f.device.vendor_name} {f.device.product_name}".strip(),
         "dcf": f.is_dcf,
@@ -441,14 +569,19 @@ def check_device(f: DeviceFile, period_s: float, overlay: Sequence[SdoWrite] = (
         if isinstance(unit_value, int) and unit_value
         else None,
         "watches_host_by": how,
+        "quick_stop_deceleration": quick_stop
+        if isinstance(quick_stop, str)
+        else {"unit": quick_stop.unit, "per_count_s2": quick_stop.per_count_s2,
+              "range": [quick_stop.low, quick_stop.high]},
         "quirks": list(f.quirks),
-    }
+    }  # fmt: skip
     return DeviceVerdict(
         refusals=tuple(refusals),
         pdos=(RPDO_USE, TPDO_USE),
         interpolation=None if isinstance(setting, str) else setting,
         heartbeat=how,
         facts=facts,
+        quick_stop=quick_stop,
     )
 
 
@@ -468,11 +601,16 @@ class NodeCheck:
     def file(self) -> str:
         return self.path.name
 
+    guarding: tuple[int, int] | None = None
+
     @property
     def setup(self) -> DriveSetup:
         """What the bring-up writes and checks on this drive beyond the common settings:
-        the overlay, 0x60C2 in the drive's encoding, the identity it must answer."""
-        return DriveSetup(self.verdict.interpolation, self.overlay, self.identity)
+        the overlay, 0x60C2 in the drive's encoding, the identity it must answer, and the
+        node guarding (guard time ms, life time factor) of a drive the host guards."""
+        return DriveSetup(
+            self.verdict.interpolation, self.overlay, self.identity, guarding=self.guarding
+        )
 
     def lines(self) -> list[str]:
         """One line per refusal, or one ``ok`` line with the layout hrm will use (and the
@@ -523,9 +661,32 @@ class BoxCheck:
             "nodes": [n.to_dict() for n in self.nodes],
         }
 
-    def setups(self) -> dict[str, DriveSetup]:
-        """Each motor's :class:`drivers.bringup.DriveSetup` (for the bring-up)."""
-        return {n.motor: n.setup for n in self.nodes}
+    def setups(
+        self, accel_counts_per_s2: Mapping[str, float] | None = None
+    ) -> dict[str, DriveSetup]:
+        """Each motor's :class:`drivers.bringup.DriveSetup` (for the bring-up), with the
+        quick-stop deceleration 0x6085 from each motor's acceleration limit
+        (``accel_counts_per_s2``, counts/s^2, per motor; none: 0x6085 not written) in its
+        drive's unit (:func:`quick_stop_scale`).  A value outside what the drive's 0x6085
+        takes is :class:`DeviceCheckError` (one line naming motor, file, value and range),
+        before anything is sent."""
+        out = {}
+        for n in self.nodes:
+            setup = n.setup
+            scale = n.verdict.quick_stop
+            accel = None if accel_counts_per_s2 is None else accel_counts_per_s2.get(n.motor)
+            if accel is not None and isinstance(scale, QuickStopScale):
+                value = scale.value(accel)
+                if value is None:
+                    raise DeviceCheckError(
+                        f"{self.source}: {n.motor}: {n.file}: quick-stop deceleration 0x6085: "
+                        f"the motor's acceleration limit {accel:g} counts/s^2 is "
+                        f"{accel * scale.per_count_s2:g} {scale.unit}, outside "
+                        f"{scale.low}..{scale.high} (the object's type and limits)"
+                    )
+                setup = replace(setup, quick_stop_deceleration=value)
+            out[n.motor] = setup
+        return out
 
     def raise_if_refused(self) -> None:
         """:class:`DeviceCheckError` with the first refusal and the count, if any."""
@@ -537,6 +698,20 @@ class BoxCheck:
                 else ""
             )
             raise DeviceCheckError(f"{self.source}: {refusals[0]}{more}")
+
+
+def guarding_setting(control: ControlConfig) -> tuple[int, int]:
+    """(guard time 0x100C in ms, life time factor 0x100D) of a drive the host guards: a
+    guarding request every host heartbeat period (the host's watch of the drive is its
+    heartbeat timeout on the answers), the drive's life time the whole periods within the
+    heartbeat timeout (at least 3: ``[control]``'s relations).
+
+    >>> from drivers.config import ControlConfig
+    >>> guarding_setting(ControlConfig(host_heartbeat_ms=100, heartbeat_timeout_ms=350))
+    (100, 3)
+    """
+    factor = control.heartbeat_timeout_ms // control.host_heartbeat_ms
+    return control.host_heartbeat_ms, max(1, min(255, factor))
 
 
 def check_box(config: BoxConfig) -> BoxCheck:
@@ -555,15 +730,17 @@ def check_box(config: BoxConfig) -> BoxCheck:
                 verdicts[(path, overlay)] = check_device(
                     files[path], config.control.period_s, overlay
                 )
+            verdict = verdicts[(path, overlay)]
             nodes.append(
                 NodeCheck(
                     motor,
                     bus.name,
                     node_id,
                     path,
-                    verdicts[(path, overlay)],
+                    verdict,
                     overlay,
                     config.drives.expected_identity(motor),
+                    guarding_setting(config.control) if verdict.heartbeat == GUARDING else None,
                 )
             )
     return BoxCheck(config.source, tuple(nodes))

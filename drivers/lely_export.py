@@ -12,18 +12,22 @@ at boot.  One master drives one bus, so the export writes one folder per bus of 
     us, ``heartbeat_producer`` = ``host_heartbeat_ms``, its ``heartbeat_multiplier``:
     ``heartbeat_timeout_ms`` / ``host_heartbeat_ms``, each drive's watch of it), then one
     slave per rope motor: ``node_id``, ``dcf``, ``heartbeat_producer``
-    (``node_heartbeat_ms``), ``heartbeat_consumer: true``, the expected revision and
-    serial number where the box configuration gives them, RPDO1 and TPDO1 as hrm maps them
-    (on SYNC, ``cob_id: auto``: 0x200/0x180 + node), and ``sdo``: the box configuration's
-    SDO overlay, then what hrm's bring-up writes from ``[control]`` (0x60C2 in the drive's
-    encoding, 0x6065, 0x605A, 0x6060 = 8).  The software position limits 0x607D are the
-    rope layer's (``hrm run`` writes them at every bring-up); they are not in the export.
+    (``node_heartbeat_ms``), ``heartbeat_consumer: true`` (a drive the host guards:
+    ``heartbeat_producer: 0``, ``guard_time`` and ``life_time_factor``), the expected
+    vendor-ID, product code, revision and serial number where the box configuration gives
+    them, RPDO1 and TPDO1 as hrm maps them (on SYNC, ``cob_id: auto``: 0x200/0x180 + node), and
+    ``sdo``: the box configuration's SDO overlay, then what hrm's bring-up writes from
+    ``[control]`` (0x60C2 in the drive's encoding, 0x6065, 0x605A, 0x6060 = 8).  The
+    software position limits 0x607D and the quick-stop deceleration 0x6085 come from the
+    rope layer's limits (``hrm run`` writes them at every bring-up); they are not in the
+    export.
 ``DIR/BUS/NAME.eds``
     each device file the bus uses, written again by :func:`cia306.format_device_file`
     (``dcfgen`` in strict mode refuses four of the six vendor files as their vendors ship
     them: a ``[ToolInfos]`` section, INTEGER8 ``0xFD``, ``SupportedObjects`` in hex).
 
 Only a box ``hrm box check`` passes is exported (:class:`DeviceCheckError` otherwise).
+:mod:`drivers.lely_bus` reads such a ``bus.yml`` back (``hrm box check --lely-bus``).
 
 >>> from drivers.config import load_box_config
 >>> text = bus_yml(load_box_config(None), "can0")
@@ -95,16 +99,20 @@ class Hex(int):
 def _slave(node: NodeCheck, config: BoxConfig, dcf: str) -> dict[str, Any]:
     ctl = config.control
     setup = node.setup
-    slave: dict[str, Any] = {
-        "node_id": node.node_id,
-        "dcf": dcf,
-        "heartbeat_producer": ctl.node_heartbeat_ms,
-        "heartbeat_consumer": True,
-    }
-    if setup.identity.revision is not None:
-        slave["revision_number"] = setup.identity.revision
-    if setup.identity.serial is not None:
-        slave["serial_number"] = setup.identity.serial
+    slave: dict[str, Any] = {"node_id": node.node_id, "dcf": dcf}
+    if setup.guarding is None:
+        slave["heartbeat_producer"] = ctl.node_heartbeat_ms
+        slave["heartbeat_consumer"] = True
+    else:  # no heartbeat consumer: the master guards the drive (dcfgen writes 0x100C/0x100D)
+        slave["heartbeat_producer"] = 0
+        slave["guard_time"], slave["life_time_factor"] = setup.guarding
+    for key, value in zip(
+        ("vendor_id", "product_code", "revision_number", "serial_number"),
+        setup.identity.values(),
+        strict=True,
+    ):
+        if value is not None:
+            slave[key] = value
     for kind, use in (("rpdo", node.verdict.pdos[0]), ("tpdo", node.verdict.pdos[1])):
         slave[kind] = {
             1: {

@@ -17,7 +17,10 @@ frame to the bus's :class:`BusReceiver`.  For each frame:
 2. everything else goes into the bus's CAN log: drives' frames, other masters' frames,
    error frames, remote frames, 29-bit frames;
 3. error frames, remote frames and 29-bit frames are counted (CANopen is 11-bit: a
-   29-bit 0x181 is never node 1's TPDO);
+   29-bit 0x181 is never node 1's TPDO); an error frame (SocketCAN's ``CAN_ERR_*``
+   classes, :mod:`drivers.protocol.can_error`) reporting bus-off or error-passive is a
+   stop cause (:attr:`StopKind.BUS_ERROR`) naming the bus and the class; any other class
+   is logged once per class and counted;
 4. a configured node's TPDO goes straight to the monitor (the hot path);
 5. a frame in the host's direction (NMT, SYNC, RPDO, SDO request, the host's
    heartbeat) that we did not send is another master's: counted by COB-ID, and when it
@@ -48,6 +51,7 @@ import numpy as np
 from drivers.bus import BusPort, TrafficLog, is_host_frame
 from drivers.protocol import cia301
 from drivers.protocol.batch import to_messages
+from drivers.protocol.can_error import error_frame_verdict
 from drivers.protocol.cia402 import TPDO_FEEDBACK_SIZE
 from drivers.safety.causes import StopKind
 from hrm_ctrl.errors import DriverError
@@ -164,6 +168,7 @@ class BusTraffic:
     listening: bool = False
     remote_frames: int = 0
     error_frames: int = 0
+    error_classes: dict[int, int] = field(default_factory=dict)  # CAN_ERR_* bits: frames
     echoes_dropped: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -219,6 +224,9 @@ class BusTraffic:
                 "extended_id_frames": {f"0x{k:08X}": v for k, v in sorted(self.extended.items())},
                 "remote_frames": self.remote_frames,
                 "error_frames": self.error_frames,
+                "error_frame_classes": {
+                    f"0x{k:03X}": v for k, v in sorted(self.error_classes.items())
+                },
                 "echoes_dropped": self.echoes_dropped,
             }
 
@@ -373,7 +381,7 @@ class BusReceiver(can.Listener):
         if log_ is not None:
             log_.on_message_received(msg)
         if msg.is_error_frame:
-            self.traffic.error_frames += 1
+            self._error_frame(msg)
             return
         cid = msg.arbitration_id
         if msg.is_extended_id:
@@ -414,6 +422,22 @@ class BusReceiver(can.Listener):
                 f"{self.node_labels[nid]}: malformed {service_of(cid)} frame 0x{cid:03X} "
                 f"[{bytes(msg.data).hex()}] ({type(exc).__name__}: {exc})",
             )
+
+    def _error_frame(self, msg: can.Message) -> None:
+        """An error frame (logged already): counted by its classes; bus-off and
+        error-passive are a stop cause naming the bus and the class, any other class is
+        logged once per bus and class combination (bus errors may flood)."""
+        verdict = error_frame_verdict(msg.arbitration_id, msg.data)
+        traffic = self.traffic
+        traffic.error_frames += 1
+        first = verdict.classes not in traffic.error_classes
+        traffic.count(traffic.error_classes, verdict.classes)
+        text = f"bus {self.port.name}: CAN error frame 0x{verdict.classes:03X}: {verdict.text}"
+        if verdict.stops:
+            log.error("%s", text)
+            self.report(StopKind.BUS_ERROR, text)
+        elif first:
+            log.warning("%s (logged once per class; every one counted and in the CAN log)", text)
 
     def _note_operational(self, cid: int, nid: int, data: bytes | bytearray) -> None:
         if (

@@ -84,7 +84,7 @@ from drivers.run_record import (
     write_run_record,
 )
 from drivers.safety.causes import StopCause, StopKind
-from drivers.safety.limits import MAX_SOURCE_DURATION_S
+from drivers.safety.limits import MAX_SOURCE_DURATION_S, accel_limits
 from drivers.safety.monitor import NodeMonitor
 from drivers.safety.stops import SafetyStopError, stopped_refusal, stream_stop_error
 from drivers.safety.supervisor import Mode, StopRecord, Supervisor, SupervisorModeError
@@ -147,7 +147,11 @@ class DriveSession:
         self.loads: list[BusLoad] = check_bus_load(config)
         # each drive's overlay, 0x60C2 encoding and identity, from its device file (read
         # before anything opens: open_box has checked them)
-        setups = check_box(config).setups()
+        # and 0x6085 from the motors' acceleration limits (checked here, before anything opens)
+        accel = accel_limits(actuation)
+        setups = check_box(config).setups(
+            None if accel is None else dict(zip(actuation.motor_ids, accel.tolist(), strict=True))
+        )
         self.run_name = run_name or dt.datetime.now(dt.UTC).strftime("run-%Y%m%dT%H%M%S-%f")
         self.log_dir = None if log_dir is None else Path(log_dir)
         self.log_suffix = log_suffix
@@ -177,6 +181,8 @@ class DriveSession:
             ctl.heartbeat_timeout_ms / 1000.0,
             clock=clock,
         )
+        # drives without a heartbeat consumer: the host guards them (node guarding)
+        mon.guard([self.slots.slot[m] for m, s in setups.items() if s.guarding is not None])
         log_dir = self.log_dir
         with self.scheduling.starting_threads():  # (SCHED_FIFO if granted)
             with deferred_interrupts():  # the buses and logs open whole, or close again
@@ -202,6 +208,10 @@ class DriveSession:
                 # refused once: the threads run under normal scheduling, not asked again
                 realtime_priority=self.scheduling.granted_priority,
                 clock=clock,
+                guarded_nodes=[
+                    [nid for m, nid in b.nodes.items() if setups[m].guarding is not None]
+                    for b in config.buses
+                ],
             )
             self.supervisor.start()
         self.drives = DriveGroup(

@@ -7,7 +7,8 @@ TPDOs while they do), the position the host holds or commands (the following err
 the difference), the rope's tension from the tension-sensor board (when one is read),
 how old its last heartbeat is and its last EMCY.  Per bus: the worst-case load at the
 control rate, frames sent, error frames and frames of another master heard, frames the
-CAN log could not take.  And the session's state with the causes of its last stop.
+CAN log could not take, and a SocketCAN bus's link state (``ip -details link``:
+:mod:`drivers.link_state`).  And the session's state with the causes of its last stop.
 
 >>> n = NodeStatus("j01r0", "bus0", 1, "OPERATIONAL", "OPERATION_ENABLED", 0x0637, 10, 12,
 ...                 31.5, 0.05, None)
@@ -27,6 +28,7 @@ from typing import TYPE_CHECKING
 import can
 import numpy as np
 
+from drivers.link_state import link_status_line
 from drivers.protocol.cia301 import NMT_STATE_NAMES, FrameError, parse_emcy
 from drivers.protocol.cia402 import SW_FAULT, State402, decode_state
 
@@ -86,6 +88,9 @@ class BusStatus:
     foreign_frames: int
     log_frames_lost: int
     state: str | None  # python-can's bus state (ACTIVE, PASSIVE, ERROR) where it knows it
+    #: a SocketCAN bus: its interface's link state from ``ip -details link`` in a line
+    #: (:func:`drivers.link_state.link_status_line`), or why it could not be read
+    link: str | None = None
 
 
 @dataclass(frozen=True)
@@ -209,7 +214,8 @@ def bus_statuses(
     logs: Sequence[TrafficLog],
 ) -> tuple[BusStatus, ...]:
     """One :class:`BusStatus` per configured bus (a bus without its port, receiver or
-    log yet shows zeros; python-can's bus state where the interface knows it)."""
+    log yet shows zeros; python-can's bus state where the interface knows it; a SocketCAN
+    bus's link state, ``ip`` run once per bus)."""
     out = []
     for k, b in enumerate(buses):
         port = ports[k] if k < len(ports) else None
@@ -232,6 +238,7 @@ def bus_statuses(
                 foreign_frames=0 if traffic is None else int(sum(traffic.foreign.values())),
                 log_frames_lost=0 if log_ is None else int(log_.n_lost),
                 state=state,
+                link=link_status_line(str(b.channel)) if b.interface == "socketcan" else None,
             )
         )
     return tuple(out)

@@ -54,6 +54,7 @@ The whole tree, each class with the module that defines it::
      |    |    +-- DeviceFileError          drivers.protocol.cia306
      |    |    +-- DeviceCheckError         drivers.device_check
      |    |    +-- BoxIdentityError         drivers.identity
+     |    |    +-- LinkStateError           drivers.link_state
      |    |    +-- TrackerError             drivers.tracker
      |    |    |    +-- TrackerTargetLostError drivers.tracker
      |    |    +-- TensionSensorError       drivers.tension_sensor

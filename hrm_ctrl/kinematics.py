@@ -93,8 +93,10 @@ def frames(
         raise ValueError(
             f"alpha and theta must have shape (..., {n}), got {alpha.shape}, {theta.shape}"
         )
-    Rj = joint_rotation(alpha, theta)  # (..., 12, 3, 3)
     batch = alpha.shape[:-1]
+    if not batch:
+        return _frames_one(model, alpha, theta)
+    Rj = joint_rotation(alpha, theta)  # (..., 12, 3, 3)
     R = np.empty((*batch, n, 3, 3))
     O = np.empty((*batch, n + 1, 3))
     prev = np.broadcast_to(model.base_rotation @ R_BASE_PAPER, (*batch, 3, 3))
@@ -104,6 +106,60 @@ def frames(
         prev = R[..., i, :, :]
         np.add(O[..., i, :], prev[..., :, 2] * model.links[i], out=O[..., i + 1, :])
     return R, O
+
+
+Rows9 = tuple[float, float, float, float, float, float, float, float, float]
+
+
+def turned_by_joint(r: Rows9, c_a: float, s_a: float, c_t: float, s_t: float) -> Rows9:
+    """``R Rot_y(alpha) Rot_x(theta)`` (:func:`joint_rotation`) for a rotation ``R`` given
+    as its 9 entries row by row and the cosines and sines of the angles, on floats: one
+    link of the chain for a single configuration, cheaper than a NumPy call.
+
+    >>> R = turned_by_joint((1.0, 0, 0, 0, 1, 0, 0, 0, 1), np.cos(0.3), np.sin(0.3), 1.0, 0.0)
+    >>> bool(np.allclose(np.reshape(R, (3, 3)), joint_rotation(np.array(0.3), np.array(0.0))))
+    True
+    """
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    sst, sct, cst, cct = s_a * s_t, s_a * c_t, c_a * s_t, c_a * c_t
+    return (
+        r00 * c_a - r02 * s_a,
+        r00 * sst + r01 * c_t + r02 * cst,
+        r00 * sct - r01 * s_t + r02 * cct,
+        r10 * c_a - r12 * s_a,
+        r10 * sst + r11 * c_t + r12 * cst,
+        r10 * sct - r11 * s_t + r12 * cct,
+        r20 * c_a - r22 * s_a,
+        r20 * sst + r21 * c_t + r22 * cst,
+        r20 * sct - r21 * s_t + r22 * cct,
+    )
+
+
+def base_rows(model: RobotModel) -> Rows9:
+    """The rotation before joint 1's (the base mounting, then Eq. 2's fixed part) as
+    :func:`turned_by_joint`'s 9 floats."""
+    r = (model.base_rotation @ R_BASE_PAPER).ravel().tolist()
+    return (r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8])
+
+
+def _frames_one(
+    model: RobotModel, alpha: np.ndarray, theta: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`frames` of one configuration: the chain of Eq. (3) on floats
+    (:func:`turned_by_joint`), as the online step evaluates a configuration a few times
+    each control cycle."""
+    ca, sa = np.cos(alpha).tolist(), np.sin(alpha).tolist()
+    ct, st = np.cos(theta).tolist(), np.sin(theta).tolist()
+    r = base_rows(model)
+    ox, oy, oz = model.base_position.tolist()
+    R: list[Rows9] = []
+    O = [(ox, oy, oz)]
+    for c_a, s_a, c_t, s_t, length in zip(ca, sa, ct, st, model.links.tolist(), strict=True):
+        r = turned_by_joint(r, c_a, s_a, c_t, s_t)
+        R.append(r)
+        ox, oy, oz = ox + r[2] * length, oy + r[5] * length, oz + r[8] * length
+        O.append((ox, oy, oz))
+    return np.array(R).reshape(-1, 3, 3), np.array(O)
 
 
 def joint_centres(model: RobotModel, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:

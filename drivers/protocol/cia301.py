@@ -153,6 +153,8 @@ OD_DEVICE_TYPE = 0x1000
 OD_ERROR_REGISTER = 0x1001
 OD_COB_ID_SYNC = 0x1005
 OD_MANUFACTURER_DEVICE_NAME = 0x1008
+OD_GUARD_TIME = 0x100C
+OD_LIFE_TIME_FACTOR = 0x100D
 OD_COB_ID_EMCY = 0x1014
 OD_CONSUMER_HEARTBEAT_TIME = 0x1016
 OD_PRODUCER_HEARTBEAT_TIME = 0x1017
@@ -276,6 +278,42 @@ def make_heartbeat(node_id: int, nmt_state: int) -> can.Message:
     if nmt_state not in NMT_STATE_NAMES:
         raise FrameError(f"unknown NMT state 0x{nmt_state:02X}")
     return data_frame(COB_NMT_ERROR_CONTROL + node_id, bytes((nmt_state,)))
+
+
+def make_guarding_request(node_id: int) -> can.Message:
+    """Node-guarding request of the NMT master (CiA 301 7.2.8.3.1): a remote frame on
+    0x700 + node id, 1 byte asked for.
+
+    >>> m = make_guarding_request(3)
+    >>> hex(m.arbitration_id), m.is_remote_frame, m.dlc
+    ('0x703', True, 1)
+    """
+    check_node_id(node_id)
+    return can.Message(
+        arbitration_id=COB_NMT_ERROR_CONTROL + node_id,
+        is_remote_frame=True,
+        dlc=1,
+        is_extended_id=False,
+    )
+
+
+def parse_guarding_answer(data: bytes | bytearray) -> tuple[int, int]:
+    """(NMT state, toggle bit) of a node-guarding answer (CiA 301 7.2.8.3.1: bit 7 the
+    toggle, bits 0..6 the state: stopped, operational or pre-operational).
+
+    >>> parse_guarding_answer(b'\\x85'), parse_guarding_answer(b'\\x7f')
+    ((5, 1), (127, 0))
+    >>> parse_guarding_answer(b'\\x80')
+    Traceback (most recent call last):
+    ...
+    drivers.protocol.cia301.FrameError: node-guarding answer 0x80 names no NMT state
+    """
+    if len(data) != 1:
+        raise FrameError(f"node-guarding answer must carry 1 byte, got {len(data)}")
+    state, toggle = int(data[0]) & 0x7F, int(data[0]) >> 7
+    if state not in NMT_STATE_NAMES or state == NMT_STATE_BOOTUP:
+        raise FrameError(f"node-guarding answer 0x{data[0]:02X} names no NMT state")
+    return state, toggle
 
 
 def parse_heartbeat(data: bytes | bytearray) -> int:

@@ -62,8 +62,11 @@ drivers.protocol.cia306.DeviceFileError: y: [6502] DefaultValue: 0x1FFFFFFFF out
 from __future__ import annotations
 
 import enum
+import hashlib
 import math
 import re
+import threading
+from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -662,7 +665,48 @@ def read_device_file(path: str | Path, source: str | None = None) -> DeviceFile:
     """
     name = str(path) if source is None else source
     text = read_text_file(path, DeviceFileError, "device file", name, max_bytes=MAX_FILE_BYTES)
-    return parse_device_file(text, name)
+    return _PARSED.get(text, name)
+
+
+class _ParsedFiles:
+    """The device files this process has parsed, by the SHA-256 of their text and their
+    ``source``: a command that reads the same file again (the box check, the session, the
+    wiring, the simulated box) reads its bytes again but parses them once; a changed file
+    is a new text, hence parsed anew.  Errors are not kept (the file is parsed again and
+    raises again).  At most :attr:`SIZE` files, the least recently used forgotten first;
+    a :class:`DeviceFile` is immutable, so one is shared safely.
+
+    >>> cache = _ParsedFiles()
+    >>> text = "[DeviceInfo]\\nProductName=x\\n"
+    >>> cache.get(text, "a.eds") is cache.get(text, "a.eds")
+    True
+    >>> cache.get(text, "a.eds") is cache.get(text + "\\n", "a.eds")
+    False
+    """
+
+    SIZE = 16
+
+    def __init__(self) -> None:
+        self._files: OrderedDict[tuple[bytes, str], DeviceFile] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, text: str, source: str) -> DeviceFile:
+        """The :func:`parse_device_file` of ``text``, parsed once."""
+        key = (hashlib.sha256(text.encode("utf-8", "surrogatepass")).digest(), source)
+        with self._lock:
+            found = self._files.get(key)
+            if found is not None:
+                self._files.move_to_end(key)
+                return found
+        parsed = parse_device_file(text, source)
+        with self._lock:
+            self._files[key] = parsed
+            while len(self._files) > self.SIZE:
+                self._files.popitem(last=False)
+        return parsed
+
+
+_PARSED = _ParsedFiles()
 
 
 def canopen_dictionary(f: DeviceFile, node_id: int | None = None) -> canopen.ObjectDictionary:

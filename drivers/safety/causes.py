@@ -34,6 +34,7 @@ class StopKind(StrEnum):
     SIGNAL = "signal"  # SIGTERM / SIGHUP / SIGINT
     SEND = "send"  # a frame could not be sent
     RECEIVE = "receive"  # a bus's receive thread failed
+    BUS_ERROR = "bus_error"  # an error frame: a bus's controller bus-off or error-passive
     OPERATOR = "operator"  # stop requested (console, Ctrl-C)
     INTERNAL = "internal"  # the control loop itself failed (a bug)
 

@@ -21,7 +21,7 @@ import os
 import select
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from drivers.protocol.cia301 import (
     Emergency,
     FrameError,
     parse_emcy,
+    parse_guarding_answer,
     parse_heartbeat,
 )
 from drivers.protocol.cia402 import (
@@ -167,6 +168,10 @@ class NodeMonitor:
         self.hb_state = np.full(n, -1, dtype=np.int64)
         # the last malformed heartbeat of each node: when, and what was wrong with it
         self.hb_bad: list[tuple[float, str] | None] = [None] * n
+        # nodes the host guards (node guarding, no heartbeat consumer): their frames on
+        # 0x700 + id are answers, and the toggle bit each node's next answer must carry
+        self.guarded = np.zeros(n, dtype=bool)
+        self.guard_toggle = np.zeros(n, dtype=np.int64)
         self.booted = np.zeros(n, dtype=bool)
         # boot-up frames per node since :meth:`reset_boot`: more than one after one reset
         # is two devices answering as that node (a second box on the bus, a node-id clash)
@@ -297,8 +302,17 @@ class NodeMonitor:
                     f"statusword 0x{int(sw[k]):04X} has the fault bit set",
                 )
 
+    def guard(self, slots: Sequence[int]) -> None:
+        """The nodes in ``slots`` are guarded (node guarding instead of heartbeats): their
+        frames on 0x700 + node id are answers with a toggle bit (a boot-up aside)."""
+        self.guarded[np.asarray(slots, dtype=np.int64)] = True
+
     def on_heartbeat(self, idx: int, data: bytes | bytearray) -> None:
-        """Heartbeat or boot-up frame from the node in slot ``idx``."""
+        """Heartbeat or boot-up frame from the node in slot ``idx`` (of a guarded node:
+        its node-guarding answer, :meth:`on_guarding_answer`)."""
+        if self.guarded[idx] and bytes(data) != bytes((NMT_STATE_BOOTUP,)):
+            self.on_guarding_answer(idx, data)
+            return
         try:
             state = parse_heartbeat(data)
         except FrameError as exc:
@@ -308,6 +322,7 @@ class NodeMonitor:
         self.hb_time[idx] = self.clock()
         self.hb_state[idx] = state
         if state == NMT_STATE_BOOTUP:
+            self.guard_toggle[idx] = 0  # the first answer after a reset: toggle 0
             self.booted[idx] = True
             self.bootups[idx] += 1
             self.rebooted[idx] = True
@@ -320,6 +335,43 @@ class NodeMonitor:
         elif self.armed and state != NMT_STATE_OPERATIONAL:
             name = NMT_STATE_NAMES.get(state, f"0x{state:02X}")
             self._async_cause(StopKind.HEARTBEAT, idx, f"heartbeat reports NMT state {name}")
+
+    def on_guarding_answer(self, idx: int, data: bytes | bytearray) -> None:
+        """A guarded node's answer to a guarding request: taken as its heartbeat (its
+        state, and its time for the heartbeat timeout: no answer within it is a lost
+        heartbeat), its toggle bit checked: 0 after a boot-up, then alternating; a toggle
+        other than expected (an answer lost, or one answered twice) is a stop cause while
+        armed, like a lost heartbeat.
+
+        >>> mon = NodeMonitor(["m0"], missing_tpdo_cycles=1, heartbeat_timeout_s=0.3)
+        >>> mon.guard([0]); mon.armed = True
+        >>> for byte in (0x05, 0x85, 0x85):
+        ...     mon.on_guarding_answer(0, bytes([byte]))
+        >>> [c.text for c in mon.check(now=0.0, last_seq=-1, heartbeats_armed_at=None)]
+        ['m0: node-guarding answer with toggle bit 1, expected 0 (an answer lost or repeated)']
+        """
+        try:
+            state, toggle = parse_guarding_answer(data)
+        except FrameError as exc:
+            self.hb_bad[idx] = (self.clock(), str(exc))
+            self._async_cause(StopKind.BAD_FRAME, idx, str(exc))
+            return
+        self.hb_time[idx] = self.clock()
+        self.hb_state[idx] = state
+        expected = int(self.guard_toggle[idx])
+        self.guard_toggle[idx] = toggle ^ 1
+        if not self.armed:
+            return
+        if toggle != expected:
+            self._async_cause(
+                StopKind.HEARTBEAT,
+                idx,
+                f"node-guarding answer with toggle bit {toggle}, expected {expected} "
+                "(an answer lost or repeated)",
+            )
+        elif state != NMT_STATE_OPERATIONAL:
+            name = NMT_STATE_NAMES.get(state, f"0x{state:02X}")
+            self._async_cause(StopKind.HEARTBEAT, idx, f"node guarding reports NMT state {name}")
 
     def on_emcy(self, idx: int, node_id: int, data: bytes | bytearray) -> None:
         """EMCY frame: a fault, except error code 0x0000 ('error reset / no error') with

@@ -208,8 +208,14 @@ class Supervisor:
         realtime_priority: int = NORMAL_PRIORITY,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
+        guarded_nodes: Sequence[Sequence[int]] = (),
     ) -> None:
         self.layouts = list(layouts)
+        # per layout, the node-guarding requests sent with each host heartbeat (the nodes
+        # the host guards: drives without a heartbeat consumer)
+        self._guarding_requests = [
+            [cia301.make_guarding_request(nid) for nid in nodes] for nodes in guarded_nodes
+        ] + [[] for _ in range(len(self.layouts) - len(guarded_nodes))]
         self.monitor = monitor
         self.limits = limits
         self.period_s = float(period_s)
@@ -703,9 +709,11 @@ class Supervisor:
         if self._hb_next < now:  # fell behind by more than a heartbeat period
             self._hb_next = now + self.heartbeat_period_s
         msg_args = (self.host_node_id, cia301.NMT_STATE_OPERATIONAL)
-        for layout in self.layouts:
+        for layout, requests in zip(self.layouts, self._guarding_requests, strict=True):
             try:
                 layout.port.send(cia301.make_heartbeat(*msg_args))
+                for request in requests:  # node guarding, at the host heartbeat's period
+                    layout.port.send(request)
             except BusSendError as exc:
                 self.events.add("error", f"host heartbeat: {exc}")
                 self.monitor.report(StopKind.SEND, f"host heartbeat not sent ({exc})")

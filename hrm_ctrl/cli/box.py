@@ -1,6 +1,7 @@
 """``hrm box check``: every drive's device file against what hrm needs, before any bus opens;
 ``hrm box export --lely DIR``: the box as Lely ``dcfgen`` configurations
-(:mod:`drivers.lely_export`).
+(:mod:`drivers.lely_export`); ``hrm box check --lely-bus BUS.yml``: such a configuration
+read back (:mod:`drivers.lely_bus`).
 
 One line per drive: ``MOTOR: FILE: ok: ...`` with the PDO layout hrm will use, or one
 line per refusal naming the object (``j03r1: 605.3150.68-B-EK-2-60.eds: no cyclic
@@ -12,8 +13,8 @@ that opens a box run it first (:func:`hrm_ctrl.runtime.box.open_box`).
 >>> p = argparse.ArgumentParser(prog="hrm box")
 >>> register(p)
 >>> args = p.parse_args(["check", "--json"])
->>> args.action, args.json, args.config
-('check', True, None)
+>>> args.action, args.json, args.config, args.lely_bus
+('check', True, None, [])
 >>> p.parse_args(["export", "--lely", "out"]).lely
 PosixPath('out')
 """
@@ -43,6 +44,11 @@ def register(parser: argparse.ArgumentParser) -> None:
         "layout hrm will use (exit 2 when a drive is refused)",
     )
     add_bus(check, overrides=False)  # --config
+    check.add_argument(
+        "--lely-bus", action="append", type=Path, default=[], metavar="BUS.yml",
+        help="check a Lely dcfgen bus.yml (one bus; repeatable) instead of --config: its "
+        "nodes, device files (dcf), node ids, heartbeats, SDO writes and sync_period",
+    )  # fmt: skip
     add_json(check, "every drive's verdict")
     export = actions.add_parser(
         "export",
@@ -57,6 +63,7 @@ def register(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Exit 0 when every drive's device file offers what hrm needs, 2 otherwise."""
+    from drivers.config import BusConfigError
     from drivers.device_check import check_box
 
     if args.action == "export":
@@ -66,7 +73,15 @@ def run(args: argparse.Namespace) -> int:
             print(path)
         return 0
 
-    report = check_box(load_box(args))
+    if args.lely_bus:
+        if args.config is not None:
+            raise BusConfigError("give --config or --lely-bus, not both")
+        from drivers.lely_bus import load_lely_buses
+
+        config = load_lely_buses(args.lely_bus)
+    else:
+        config = load_box(args)
+    report = check_box(config)
     if args.json:
         print(json.dumps(report.to_dict(), indent=1))
     else:

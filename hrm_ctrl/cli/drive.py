@@ -80,20 +80,21 @@ def register(p: argparse.ArgumentParser) -> None:
     add_sim(p, wire=True, arm=SimArm.NONE, process=True)
     add_bus(p, overrides=False)
     add_calibration(p)
+    p.add_argument(
+        "--physics", default=None, metavar="EFFECTS",
+        help="with --sim: the simulated arm's physics, as hrm sim --physics (all, none or "
+        "effects joined by commas: gravity, capstan, creep, backlash, sensor); default none",
+    )  # fmt: skip
     add_log(p, when="with --sim")
     add_json(p, "the summary")
 
 
 def run(args: argparse.Namespace) -> int:
-    from hrm_ctrl.drive.command import SteerLimits
-    from hrm_ctrl.drive.driver import CycleStatus, Driver, run_scripted
-    from hrm_ctrl.drive.online import OnlinePlanner
+    from hrm_ctrl.drive.command import DriveError, SteerLimits
+    from hrm_ctrl.drive.driver import CycleStatus, run_scripted
     from hrm_ctrl.drive.script import KeyScript
-    from hrm_ctrl.drive.trail import Trail
-    from hrm_ctrl.formats.scene import read_scene
+    from hrm_ctrl.drive.start import DriveStart, start_driver
     from hrm_ctrl.model import load_robot
-    from hrm_ctrl.planning.known_path import load_path_csv
-    from hrm_ctrl.planning.scenarios import scenario
 
     outputs = [Output("--save-trail", args.save_trail)]
     inputs = [
@@ -112,25 +113,25 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     arm = None
     period_s = args.period
+    if args.physics is not None and not args.sim:
+        raise DriveError("--physics goes with --sim")
+    physics = None
+    if args.physics is not None:
+        from sim_bus.physics import Physics
+
+        physics = Physics.of(args.physics)  # a bad one refused before any bus opens
     if args.sim:
         config = load_box(args)
         arm = arm_from_args(args, robot, prog="hrm drive", simulated=True)
         config.check_motors(arm.actuation.motor_ids)
         robot = arm.actuation.robot
         period_s = config.control.period_s
-    env = read_scene(args.scene) if args.scene is not None else None
-    if args.scenario:
-        sc = scenario(args.scenario)
-        env = env if env is not None else sc.environment
-        P = sc.path.points
-        trail = Trail.starting_at(P[0], P[1] - P[0])
-    else:
-        trail = Trail.from_path(load_path_csv(args.path))
-    planner = OnlinePlanner(robot, trail, env)
-    driver = Driver(planner, limits, period_s)
+    start = DriveStart(scenario=args.scenario, path=args.path, scene=args.scene)
+    driver = start_driver(robot, start, limits, period_s)
+    trail = driver.planner.trail
     end = keys.end_s if math.isfinite(keys.end_s) else (keys.events[-1].t_s if keys.events else 0)
     if arm is not None:
-        return _drive_box(args, config, arm, driver, keys, limits, float(end), trail)
+        return _drive_box(args, config, arm, driver, keys, limits, float(end), trail, physics)
     every = max(1, round(1.0 / args.period))
     last: list[str | None] = [None]
 
@@ -166,11 +167,15 @@ def _drive_box(
     limits: Any,
     end_s: float,
     trail: Any,
+    physics: Any,
 ) -> int:
     """``--sim``: the drive streamed to the simulated box; the summary with the run's
     outcome, its run record and CAN logs."""
+    from dataclasses import replace
+
     from drivers.bus import ensure_log_dir
     from drivers.session import SafetyStopError
+    from hrm_ctrl.drive.shape import ShapeFeedback, ShapeWatch, box_feedback, drive_plan
     from hrm_ctrl.drive.stream import DriveSource
     from hrm_ctrl.runtime.box import SessionOptions, open_box
     from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
@@ -186,15 +191,23 @@ def _drive_box(
         allow_uncalibrated=True,
         record_extra={"source": "DriveSource", "simulated_box": True},
     )
-    sim = SimulatedBox(simulated_arm(arm, perturb=None, truth_file=None), args.wire)
+    sim_arm = replace(simulated_arm(arm, perturb=None, truth_file=None), physics=physics)
+    sim = SimulatedBox(sim_arm, args.wire)
     stop: SafetyStopError | None = None
     with open_box(config, arm.actuation, options, sim=sim, prog="hrm drive") as opened:
         box = opened.session
+        shape = ShapeWatch(
+            box_feedback(box, opened.watches), drive_plan(source), ShapeFeedback(arm.actuation)
+        )
+        shape.start()
         try:
             result = box.stream(source)
         except SafetyStopError as exc:
             stop, result = exc, exc.result
+        finally:
+            shape.stop()
         box.record_extra["setpoints"] = source.describe()
+        box.record_extra["shape"] = shape.summary()
     record = box.record()
     log_errors = [str(e) for e in record["can_log_errors"]]
     if args.save_trail is not None:
@@ -207,6 +220,7 @@ def _drive_box(
         lead_in_cycles=source.n_lead_in,
         stop_reason=source.stop_reason,
         shaping_lag_counts=source.shaping_lag_counts,
+        shape=shape.summary(),
         causes=[x.text for x in result.causes],
         run_record=str(box.record_path),
         can_logs=record["can_logs"],
@@ -219,6 +233,14 @@ def _drive_box(
             f"drove the box {d['cycles']} cycles: travel {d['travel_mm']:.1f} mm, "
             f"{len(d['refusals'])} refusal(s); run record: {d['run_record']}"
         )
+        sh = d["shape"]
+        if sh["samples"]:
+            print(
+                f"shape feedback ({sh['samples']} samples, the rope estimator"
+                f"{' with tensions' if sh['tensions'] else ''}): tip off the trail at most "
+                f"{sh['tip_from_trail_mm']['max']:.2f} mm, the arm off the plan at most "
+                f"{sh['shape_mm']['max']:.2f} mm"
+            )
     status = 0
     if stop is not None:
         print(f"hrm drive: {stop}", file=sys.stderr)

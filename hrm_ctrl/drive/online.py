@@ -150,12 +150,18 @@ class OnlineOptions:
 
 @dataclass
 class StepTimes:
-    """Seconds spent per part of the last step (where the time goes)."""
+    """Seconds spent per part of the last step (where the time goes): the modal solve,
+    the paper's fit (backbone, joint centres, angles, the conditioning rule), the
+    refinement and the checks; of the refinement, the environment's free distances at the
+    link samples (``environment``) and the projection of the tip back onto the trail
+    (``projection``)."""
 
     modal: float = 0.0
     fit: float = 0.0
     refine: float = 0.0
     checks: float = 0.0
+    environment: float = 0.0
+    projection: float = 0.0
 
     @property
     def total(self) -> float:
@@ -187,6 +193,7 @@ class OnlinePlanner:
         self.basis = ModalBasis(self.opt.Q)
         self.X0 = np.asarray(model.base_position, dtype=float)
         self.A = trail.start
+        self._gap = float(np.linalg.norm(self.A - self.X0))  # base to the trail's start
         b1k, b1t = tangent_angles(model.base_direction)
         b2k, b2t = tangent_angles(trail.start_tangent())
         self.boundary = Boundary(b1k, b1t, b2k, b2t)
@@ -209,7 +216,9 @@ class OnlinePlanner:
         # work buffers: the backbone (modal curve + trail), its size grows with the trail
         self._curve = np.empty((self.opt.Q + 1 + 1024, 3))
         self._tip_target = np.empty(3)
+        self._centres = np.empty((model.n_joints + 1, 3))  # the refined step's joint centres
         self.times = StepTimes()
+        self._env_s = self._projection_s = 0.0  # of the last refinement
         self.steps = 0
         # the start: travel_mm, the paper's fit, refined with a wide box where an
         # environment is known
@@ -298,7 +307,7 @@ class OnlinePlanner:
                 self.travel,
             )
         L_m = self.model.length - d
-        gap = float(np.linalg.norm(self.A - self.X0))
+        gap = self._gap
         if L_m <= gap + self.opt.length_margin_mm:
             return self._end_of_length(d, L_m, gap)
         guess = predict_modal_factors(self.a_hist)
@@ -337,7 +346,7 @@ class OnlinePlanner:
             q, clearance = refined
         refusal = self._limits(d, q, clearance)
         t4 = time.perf_counter()
-        self.times = StepTimes(t1 - t0, t2 - t1, t3 - t2, t4 - t3)
+        self.times = StepTimes(t1 - t0, t2 - t1, t3 - t2, t4 - t3, self._env_s, self._projection_s)
         if refusal is not None:
             return refusal
         # commit
@@ -374,7 +383,8 @@ class OnlinePlanner:
         D = self._hist_d[: self._hist_n]
         j = min(max(int(np.searchsorted(D, d, side="right")) - 1, 0), self._hist_n - 2)
         w = (d - D[j]) / (D[j + 1] - D[j])
-        row = (1.0 - w) * self._hist_q[j] + w * self._hist_q[j + 1]
+        # the angles and modal factors (the clearance, inf without an environment, apart)
+        row = (1.0 - w) * self._hist_q[j, :-1] + w * self._hist_q[j + 1, :-1]
         n2 = 2 * self.n
         self.travel = d
         self.q = row[:n2].copy()
@@ -392,7 +402,7 @@ class OnlinePlanner:
 
     # parts
     def _solve_cold(self, L_m: float, d: float) -> Refusal | object:
-        gap = float(np.linalg.norm(self.A - self.X0))
+        gap = self._gap
         if L_m <= gap * (1.0 + 1e-6):
             return self._end_of_length(d, L_m, gap)
         try:
@@ -478,13 +488,17 @@ class OnlinePlanner:
         hi = np.minimum(self.q + bound, self.box)
         target = self.trail.point_at(d, out=self._tip_target)
         guess = np.clip(self.q + (q_paper - self.q_paper), lo, hi)
+        env_s = self._split["environment"]
         tip, Jtip, c, Jc = f.evaluate(guess)
+        self._env_s = self._split["environment"] - env_s
         q = guess
         normal = linearised_objective(f, guess, c, Jc, ro)
         if normal is not None:
             q = kkt_step(normal[0], normal[1], Jtip, target - tip, ro.damping, guess, lo, hi)
-        q = project_tip(self.model, q, target, lo, hi, tol=1e-4, iterations=3)
-        O = joint_axes(self.model, q)[0]
+        t0 = time.perf_counter()
+        O = self._centres
+        q = project_tip(self.model, q, target, lo, hi, tol=1e-4, iterations=3, centres=O)
+        self._projection_s = time.perf_counter() - t0
         err = float(np.linalg.norm(O[-1] - target))
         if err > self.opt.tip_tolerance_mm:
             return Refusal(

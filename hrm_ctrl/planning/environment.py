@@ -194,18 +194,20 @@ class Pipe:
         axis points C (P, 3), q - C (P, 3) and |q - C| (P,): the segments on either side of
         the samples (four per point) projected in one batch."""
         A_s, AB_s, L2_s = self._segments
-        segs = np.clip(np.concatenate((v - 1, v), axis=1), 0, len(self._dense[0]) - 2)  # (P, 4)
-        A, AB = A_s[segs], AB_s[segs]
-        t = np.einsum("pkj,pkj->pk", q[:, None, :] - A, AB)
+        segs = np.concatenate((v - 1, v), axis=1)  # (P, 4)
+        np.clip(segs, 0, len(self._dense[0]) - 2, out=segs)
+        AB = AB_s[segs]
+        rel = q[:, None, :] - A_s[segs]  # from each segment's start ...
+        t = np.einsum("pkj,pkj->pk", rel, AB)
         t /= L2_s[segs]
         np.clip(t, 0.0, 1.0, out=t)
-        C = t[..., None] * AB
-        C += A
-        rel = q[:, None, :] - C
+        AB *= t[..., None]
+        rel -= AB  # ... then from its nearest point
         dist = np.sqrt(np.einsum("pkj,pkj->pk", rel, rel))
         best = np.argmin(dist, axis=1)
         i = np.arange(len(q))
-        return C[i, best], rel[i, best], dist[i, best]
+        relb = rel[i, best]
+        return q - relb, relb, dist[i, best]
 
     def _inside_distance_and_gradient(
         self, q: np.ndarray, v: np.ndarray

@@ -1,18 +1,20 @@
 """Fitting the arm's joint centres onto the backbone, Sec. 3.3.
 
 From the tip towards the base, each joint centre ``O_i`` is the point of the
-backbone polyline at distance ``l_i`` from ``O_{i+1}`` (Steps 1-3): a bisection
-over the polyline's points brackets the crossing between two neighbouring
-points P_{j-1}, P_j, and the exact intersection of the sphere of radius l_i
-with segment P_{j-1}P_j is taken (Fig. 7).  Joint 2 (Step 4) lies on the circle
-where the spheres about O_1 (radius l_1) and O_3 (radius l_2) meet; of its points
-we take the one nearest the backbone point at arc length l_1, which keeps
+backbone polyline at distance ``l_i`` from ``O_{i+1}`` (Steps 1-3): the last
+polyline point (towards the tip) still at least ``l_i`` from ``O_{i+1}`` brackets the
+crossing between two neighbouring points P_{j-1}, P_j, and the exact intersection of
+the sphere of radius l_i with segment P_{j-1}P_j is taken (Fig. 7).  Joint 2 (Step 4)
+lies on the circle where the spheres about O_1 (radius l_1) and O_3 (radius l_2) meet;
+of its points we take the one nearest the backbone point at arc length l_1, which keeps
 joints 1-3 close to the backbone and moves continuously from step to step.
 
-Bisection needs the distance from O_{i+1} to grow monotonically towards the
-base over the bracket; when the polyline folds back (it never does on the
-reference scenarios) the bracket falls back to the nearest crossing along the
-curve, which is what bisection finds whenever it applies.
+The bracket is what the paper's bisection finds where the distance from O_{i+1} grows
+monotonically towards the base, and the nearest crossing along the curve where the
+polyline folds back (it never does on the reference scenarios).  It is searched
+backwards from the last point at least ``l_i`` before O_{i+1} along the curve (a chord
+is no longer than its arc, so no point after it can be ``l_i`` away): a few points per
+joint, however long the curve (a trail drawn at 0.2 mm a step has thousands).
 
 >>> import numpy as np
 >>> line = np.array([[0.0, 0, 0], [10.0, 0, 0]])
@@ -23,6 +25,7 @@ curve, which is what bisection finds whenever it applies.
 
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
@@ -37,34 +40,38 @@ def sphere_segment_intersection(C: np.ndarray, P: np.ndarray, Q: np.ndarray, r: 
     >>> sphere_segment_intersection(np.zeros(3), np.array([2.0, 0, 0]), np.zeros(3), 1.0)
     0.5
     """
-    D = Q - P
-    E = P - C
-    a = float(D @ D)
-    b = float(E @ D)
-    c = float(E @ E) - r * r
+    D = (Q - P).tolist()
+    E = (P - C).tolist()
+    return _crossing(E, D, r)
+
+
+def _crossing(E: list[float], D: list[float], r: float) -> float:
+    """:func:`sphere_segment_intersection` of E = P - C and D = Q - P (3 floats each)."""
+    a = D[0] * D[0] + D[1] * D[1] + D[2] * D[2]
+    b = E[0] * D[0] + E[1] * D[1] + E[2] * D[2]
+    c = E[0] * E[0] + E[1] * E[1] + E[2] * E[2] - r * r
     disc = max(b * b - a * c, 0.0)
     t = (-b - math.sqrt(disc)) / a
     return min(max(t, 0.0), 1.0)
 
 
-def _bracket(d: np.ndarray, r: float) -> int:
-    """Largest k with d[k] >= r, found by bisection when d decreases monotonically
-    towards the end of the array; otherwise by a scan (the nearest crossing)."""
-    n = len(d)
-    if n == 0 or d[0] < r:
+def _last_at_least(
+    curve: np.ndarray, cum: list[float], P: list[float], r: float, k: int, slack: float
+) -> int:
+    """Largest k' <= k with ``|curve[k'] - P| >= r``; -1 if none or the first point is
+    within r of P (the bisection's bracket needs it at least r away).
+
+    Walked backwards by arc length: a point ``delta`` before one at distance d along the
+    curve is at most ``d + delta`` from P, so the points less than ``r - d`` before it are
+    skipped (``cum``: the arc length at each point)."""
+    if math.dist(curve[0].tolist(), P) < r:
         return -1
-    if n > 2 and np.all(np.diff(d) <= 1e-12):
-        lo, hi = 0, n - 1  # d[lo] >= r; find the last such index
-        if d[hi] >= r:
-            return hi
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if d[mid] >= r:
-                lo = mid
-            else:
-                hi = mid
-        return lo
-    return int(np.flatnonzero(d >= r)[-1])
+    while k >= 0:
+        d = math.dist(curve[k].tolist(), P)
+        if d >= r:
+            return k
+        k = min(bisect.bisect_right(cum, cum[k] - (r - d) + slack) - 1, k - 1)
+    return -1
 
 
 def circle_point_nearest(
@@ -100,11 +107,19 @@ def circle_point_nearest(
 
 def point_at_arc(curve: np.ndarray, s: float) -> np.ndarray:
     """Point of a polyline at arc length s from its first point (clamped)."""
-    seg = np.linalg.norm(np.diff(curve, axis=0), axis=1)
-    cum = np.concatenate(([0.0], np.cumsum(seg)))
+    return _point_at_arc(curve, _arc_lengths(curve), s)
+
+
+def _arc_lengths(curve: np.ndarray) -> np.ndarray:
+    """Arc length (m,) of a polyline (m, 3) at each of its points."""
+    return np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(curve, axis=0), axis=1))))
+
+
+def _point_at_arc(curve: np.ndarray, cum: np.ndarray, s: float) -> np.ndarray:
     s = min(max(s, 0.0), float(cum[-1]))
-    j = min(int(np.searchsorted(cum, s, side="right")) - 1, len(seg) - 1)
-    t = (s - cum[j]) / seg[j] if seg[j] > 0 else 0.0
+    j = min(int(np.searchsorted(cum, s, side="right")) - 1, len(cum) - 2)
+    seg = float(np.linalg.norm(np.diff(curve[j : j + 2], axis=0), axis=1)[0])
+    t = (s - cum[j]) / seg if seg > 0 else 0.0
     return curve[j] + t * (curve[j + 1] - curve[j])
 
 
@@ -122,8 +137,8 @@ def fit_joint_centres_on_segments(
     (-1 for O_2, which lies on the circle of Step 4, not on the curve).
 
     ``curve`` (m, 3) runs from the base (O_1 = curve[0]) to the tip
-    (O_{n+1} = curve[-1]); ``links`` are l_1..l_n.  Joints n..3 by bisection and
-    the exact sphere-segment intersection, joint 2 on the circle of Step 4.
+    (O_{n+1} = curve[-1]); ``links`` are l_1..l_n.  Joints n..3 by the bracket (the
+    module's) and the exact sphere-segment intersection, joint 2 on the circle of Step 4.
 
     Raises :class:`PlanningError` when the curve is too short for the arm or
     too long for joint 2 to close the chain.
@@ -134,24 +149,33 @@ def fit_joint_centres_on_segments(
     seg[n] = len(curve) - 2
     O[n] = curve[-1]
     O[0] = curve[0]
-    P = curve[-1]
+    cum_a = _arc_lengths(curve)
+    cum = cum_a.tolist()
+    # a point nearer P along the curve than r is nearer than r (chord <= arc): the
+    # crossing is searched backwards from the last point at least r before P
+    slack = 1e-9 * (1.0 + cum[-1])
+    P = curve[-1].tolist()
+    s_P = cum[-1]
     j = len(curve) - 2  # P lies on segment [curve[j], curve[j + 1]]
     for i in range(n - 1, 1, -1):  # O_{i+1} (0-based index i) from O_{i+2}
         r = float(links[i])
-        d = np.linalg.norm(curve[: j + 1] - P, axis=1)
-        k = _bracket(d, r)
+        k0 = min(bisect.bisect_right(cum, s_P - r + slack) - 1, j)
+        k = _last_at_least(curve, cum, P, r, k0, slack)
         if k < 0:
             raise PlanningError(
                 f"backbone too short: no place for joint {i + 1} at {r:.1f} mm from joint {i + 2}"
             )
-        nxt = curve[k + 1] if k + 1 <= j else P
-        t = sphere_segment_intersection(P, curve[k], nxt, r)
-        P = curve[k] + t * (nxt - curve[k])
+        A = curve[k].tolist()
+        B = curve[k + 1].tolist() if k + 1 <= j else P
+        D = [B[0] - A[0], B[1] - A[1], B[2] - A[2]]
+        t = _crossing([A[0] - P[0], A[1] - P[1], A[2] - P[2]], D, r)
+        P = [A[0] + t * D[0], A[1] + t * D[1], A[2] + t * D[2]]
+        s_P = cum[k] + t * math.hypot(*D)
         O[i] = P
         seg[i] = k
         j = k
     if n >= 2:
-        ref = point_at_arc(curve, float(links[0]))
+        ref = _point_at_arc(curve, cum_a, float(links[0]))
         O[1] = circle_point_nearest(O[0], O[2], float(links[0]), float(links[1]), ref)
         seg[1] = -1
     return O, seg

@@ -20,9 +20,11 @@ True
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from hrm_ctrl.kinematics import R_BASE_PAPER, joint_rotation
+from hrm_ctrl.kinematics import R_BASE_PAPER, base_rows, joint_rotation, turned_by_joint
 from hrm_ctrl.model import RobotModel
 
 
@@ -32,6 +34,8 @@ def joint_angles_from_centres(model: RobotModel, O: np.ndarray) -> tuple[np.ndar
     O = np.asarray(O, dtype=float)
     n = model.n_joints
     batch = O.shape[:-2]
+    if not batch:
+        return _angles_one(model, O)
     alpha = np.empty((*batch, n))
     theta = np.empty((*batch, n))
     R = np.broadcast_to(model.base_rotation @ R_BASE_PAPER, (*batch, 3, 3))
@@ -45,3 +49,23 @@ def joint_angles_from_centres(model: RobotModel, O: np.ndarray) -> tuple[np.ndar
         theta[..., i] = t
         R = R @ joint_rotation(a, t)
     return alpha, theta
+
+
+def _angles_one(model: RobotModel, O: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`joint_angles_from_centres` of one configuration (n + 1, 3): the same
+    recursion on floats (:func:`~hrm_ctrl.kinematics.turned_by_joint`)."""
+    links = np.diff(O, axis=0)
+    dirs = (links / np.linalg.norm(links, axis=-1, keepdims=True)).tolist()
+    r = base_rows(model)
+    alpha, theta = [], []
+    for dx, dy, dz in dirs:
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+        vx = r00 * dx + r10 * dy + r20 * dz  # R^T d
+        vy = r01 * dx + r11 * dy + r21 * dz
+        vz = r02 * dx + r12 * dy + r22 * dz
+        t = -math.asin(min(max(vy, -1.0), 1.0))
+        a = math.atan2(vx, vz)
+        alpha.append(a)
+        theta.append(t)
+        r = turned_by_joint(r, math.cos(a), math.sin(a), math.cos(t), math.sin(t))
+    return np.array(alpha), np.array(theta)

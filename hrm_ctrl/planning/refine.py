@@ -48,6 +48,7 @@ import numpy as np
 from hrm_ctrl.errors import PlanningError
 from hrm_ctrl.kinematics import R_BASE_PAPER, frames
 from hrm_ctrl.model import RobotModel
+from hrm_ctrl.planning.backbone import solve3
 
 
 class FreeSpace(Protocol):
@@ -171,7 +172,10 @@ def joint_axes(model: RobotModel, q: np.ndarray) -> tuple[np.ndarray, np.ndarray
     W[0] = (model.base_rotation @ R_BASE_PAPER)[:, 1]
     W[1:n] = R[:-1, :, 1]
     W[n:] = R[:, :, 0]
-    return O, W, O[np.r_[0:n, 0:n]]
+    C = np.empty((2 * n, 3))
+    C[:n] = O[:n]
+    C[n:] = O[:n]
+    return O, W, C
 
 
 def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -181,16 +185,21 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     >>> cross3(np.array([1.0, 0, 0]), np.array([0.0, 1, 0])).tolist()
     [0.0, 0.0, 1.0]
     """
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), axis=-1)
+    return a[..., _YZX] * b[..., _ZXY] - a[..., _ZXY] * b[..., _YZX]
+
+
+_YZX, _ZXY = np.array([1, 2, 0]), np.array([2, 0, 1])  # cross3's component orders
 
 
 @lru_cache(maxsize=8)
-def _after_mask(n: int) -> np.ndarray:
-    """(n links, 2n angles): angle k (alpha_k or theta_k) moves link j iff k <= j."""
+def _after_mask(n: int, per_link: int = 1) -> np.ndarray:
+    """(n links x per_link points, 2n angles): angle k (alpha_k or theta_k) moves link
+    j's points iff k <= j (read-only)."""
     joint_of = np.r_[0:n, 0:n]
-    return (joint_of[None, :] <= np.arange(n)[:, None]).astype(float)
+    mask = (joint_of[None, :] <= np.arange(n)[:, None]).astype(float)
+    mask = np.repeat(mask, per_link, axis=0)
+    mask.setflags(write=False)
+    return mask
 
 
 def angle_margin(model: RobotModel, alpha: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -214,34 +223,41 @@ def project_tip(
     hi: np.ndarray,
     tol: float = 1e-7,
     iterations: int = 12,
+    centres: np.ndarray | None = None,
 ) -> np.ndarray:
     """Gauss-Newton steps of least norm that bring the tip onto ``target``, the angles
-    kept within [lo, hi] (a clipped angle is frozen for the next step).
+    kept within [lo, hi] (a clipped angle is frozen for the next step).  With
+    ``centres`` (13, 3) the joint centres of the returned angles are written there (those
+    of the last evaluation where it stopped within ``tol``).
 
     >>> from hrm_ctrl.model import default_robot
     >>> m = default_robot()
     >>> X = np.array([2000.0, 20.0, 60.0])
-    >>> q = project_tip(m, np.zeros(24), X, -np.ones(24), np.ones(24))
-    >>> float(np.linalg.norm(joint_axes(m, q)[0][-1] - X)) < 1e-6
-    True
+    >>> O = np.empty((13, 3))
+    >>> q = project_tip(m, np.zeros(24), X, -np.ones(24), np.ones(24), centres=O)
+    >>> tip = joint_axes(m, q)[0][-1]
+    >>> float(np.linalg.norm(tip - X)) < 1e-6, bool((O[-1] == tip).all())
+    (True, True)
     """
-    q = np.clip(q, lo, hi)
+    q = np.minimum(np.maximum(q, lo), hi)
     free = np.ones(len(q), dtype=bool)
     for _ in range(iterations):
         O, W, C = joint_axes(model, q)
         e = target - O[-1]
-        if float(np.linalg.norm(e)) < tol:
-            break
-        if not free.any():
-            break
+        if math.sqrt(e @ e) < tol or not free.any():
+            if centres is not None:
+                centres[:] = O
+            return q
         J = cross3(W, O[-1] - C).T[:, free]
         JJ = J @ J.T
-        dq = J.T @ np.linalg.solve(JJ + (1e-12 * float(np.trace(JJ)) + 1e-12) * np.eye(3), e)
-        step = np.zeros_like(q)
-        step[free] = dq
-        new = np.clip(q + step, lo, hi)
-        free &= new == q + step
+        JJ.flat[::4] += 1e-12 * float(JJ.trace()) + 1e-12
+        moved = q.copy()
+        moved[free] += J.T @ solve3(JJ, e)
+        new = np.minimum(np.maximum(moved, lo), hi)
+        free &= new == moved
         q = new
+    if centres is not None:
+        centres[:] = joint_axes(model, q)[0]
     return q
 
 
@@ -296,7 +312,7 @@ class _StepObjective:
         g = np.where(near[..., None], g, 0.0)
         Pf, gf = P.reshape(-1, 3), g.reshape(-1, 3)
         Jc = cross3(Pf, gf) @ W.T - gf @ WC.T  # (M, 24)
-        Jc *= np.repeat(_after_mask(n), P.shape[1], axis=0)
+        Jc *= _after_mask(n, P.shape[1])
         self.split["kinematics_and_jacobians"] += time.perf_counter() - t2
         return O[-1], Jtip, c.reshape(-1), Jc
 
@@ -321,10 +337,13 @@ def zoomed_link_minima(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points (N, L, S + 1, 3) of every link of ``O`` (N, L + 1, 3) where the free
     distance is measured, the distances (N, L, S + 1) and their gradients: the S
-    samples at fractions ``t`` and, last, the lowest of the lowest sample and four more
-    points at a quarter and a half sample spacing either side of it (a link crossing a
-    wall's opening has a sharp minimum between samples).  Two calls of the
-    environment for any N.
+    samples at the evenly spaced fractions ``t`` and, last, the lowest of the lowest
+    sample and four more points at a quarter and a half sample spacing either side of it
+    (a link crossing a wall's opening has a sharp minimum between samples).
+
+    One call of the environment for any N: every link on the grid of quarter sample
+    spacings (4 (S - 1) + 1 points), the samples every fourth point of it (an environment
+    call costs more than the points it is asked for).
 
     >>> from hrm_ctrl.planning.environment import Box, Environment
     >>> env = Environment((Box(np.array([0.0, 10, 0]), np.array([4.0, 4, 4])),))
@@ -333,32 +352,34 @@ def zoomed_link_minima(
     >>> P[0, 0, -1].tolist(), float(d[0, 0, -1])          # the point nearest the box
     ([0.0, 0.0, 0.0], 8.0)
     """
+    N, L, S = O.shape[0], O.shape[1] - 1, len(t)
+    F = 4 * (S - 1) + 1
+    tf = np.linspace(float(t[0]), float(t[-1]), F)  # tf[4 k] = t[k]
     base, D = O[:, :-1], O[:, 1:] - O[:, :-1]
-    P = base[:, :, None, :] + t[None, None, :, None] * D[:, :, None, :]
-    d, g = environment.free_distance_and_gradient(P)
-    d, g = np.asarray(d, dtype=float), np.asarray(g, dtype=float)
-    k = np.argmin(d, axis=2)  # (N, L)
-    h = float(t[1] - t[0])
-    tc = np.clip(t[k][..., None] + h * np.array([-0.5, -0.25, 0.25, 0.5]), 0.0, 1.0)
-    Pc = base[:, :, None, :] + tc[..., None] * D[:, :, None, :]
-    dc, gc = environment.free_distance_and_gradient(Pc)
-    # the lowest sample itself is a candidate too
-    Pc = np.concatenate((Pc, np.take_along_axis(P, k[..., None, None], axis=2)), axis=2)
-    dc = np.concatenate(
-        (np.asarray(dc, dtype=float), np.take_along_axis(d, k[..., None], axis=2)), axis=2
-    )
-    gc = np.concatenate(
-        (np.asarray(gc, dtype=float), np.take_along_axis(g, k[..., None, None], axis=2)), axis=2
-    )
-    j = np.argmin(dc, axis=2)[..., None]
-    Pb = np.take_along_axis(Pc, j[..., None], axis=2)
-    db = np.take_along_axis(dc, j, axis=2)
-    gb = np.take_along_axis(gc, j[..., None], axis=2)
-    return (
-        np.concatenate((P, Pb), axis=2),
-        np.concatenate((d, db), axis=2),
-        np.concatenate((g, gb), axis=2),
-    )
+    Pf = tf[None, None, :, None] * D[:, :, None, :]
+    Pf += base[:, :, None, :]
+    df, gf = environment.free_distance_and_gradient(Pf)
+    df, gf = np.asarray(df, dtype=float), np.asarray(gf, dtype=float)
+    P = np.empty((N, L, S + 1, 3))  # the samples, then the lowest point
+    d = np.empty((N, L, S + 1))
+    g = np.empty((N, L, S + 1, 3))
+    P[:, :, :S], d[:, :, :S], g[:, :, :S] = Pf[:, :, ::4], df[:, :, ::4], gf[:, :, ::4]
+    n_i, l_i = np.ogrid[:N, :L]
+    k = 4 * np.argmin(d[:, :, :S], axis=2)  # (N, L): the lowest sample on the fine grid
+    zi = np.clip(k[..., None] + _ZOOM, 0, F - 1)  # (N, L, 4)
+    dz = df[n_i[..., None], l_i[..., None], zi]
+    j = zi[n_i, l_i, np.argmin(dz, axis=2)]
+    # the lowest of the four points and of the lowest sample (the first on a tie, the
+    # lowest sample last)
+    zoom = df[n_i, l_i, j] <= df[n_i, l_i, k]
+    best = np.where(zoom, j, k)
+    P[:, :, S] = Pf[n_i, l_i, best]
+    d[:, :, S] = df[n_i, l_i, best]
+    g[:, :, S] = gf[n_i, l_i, best]
+    return P, d, g
+
+
+_ZOOM = np.array([-2, -1, 1, 2])  # zoomed_link_minima's points about the lowest sample
 
 
 def refine_step(

@@ -245,11 +245,17 @@ class DriveSim:
         if rpdo is not None:
             ids.add(rpdo)
         ids.update(cia301.COB_NMT_ERROR_CONTROL + n for n in self.nmt.monitored())
+        if self.nmt.guardable:  # node-guarding requests
+            ids.add(cia301.COB_NMT_ERROR_CONTROL + self.node_id)
         return ids
 
     def handle(self, msg: can.Message, now: float) -> None:
         """Process one received frame (never raises on bad frames)."""
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+        if msg.is_error_frame or msg.is_extended_id:
+            return
+        if msg.is_remote_frame:
+            if msg.arbitration_id == cia301.COB_NMT_ERROR_CONTROL + self.node_id:
+                self.nmt.on_guarding_request(now)
             return
         cob = msg.arbitration_id
         data = bytes(msg.data)

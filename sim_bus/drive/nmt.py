@@ -6,12 +6,21 @@ the boot-up frame, the heartbeat producer (0x1017) and the heartbeat consumer
 its time raises EMCY 0x8130 (error register bits 0 and 4, statusword warning)
 and a quick stop; the next heartbeat clears it (EMCY 0x0000).  Leaving NMT
 operational while operation is enabled quick-stops the drive too.
+
+Node guarding (CiA 301 7.2.8.3.1), on a drive whose file has 0x100C (guard time) and
+0x100D (life time factor): a remote frame on 0x700 + node id is answered with one byte,
+the NMT state and the toggle bit (bit 7: 0 in the first answer after a reset of
+communication, then alternating); once guarded (the first request), no request within
+guard time x life time factor is a life-guarding event, raised as a lost heartbeat
+(EMCY 0x8130, quick stop) and cleared by the next request.
 """
 
 from __future__ import annotations
 
 import math
 from typing import TYPE_CHECKING
+
+import can
 
 from drivers.protocol import cia301, cia402
 from sim_bus.drive.objects import SdoAbort
@@ -20,6 +29,8 @@ if TYPE_CHECKING:
     from sim_bus.drive import DriveSim
 
 State = cia402.State402
+OD_GUARD_TIME = 0x100C
+OD_LIFE_TIME_FACTOR = 0x100D
 
 
 class NmtSlave:
@@ -35,6 +46,22 @@ class NmtSlave:
         self._hb_lost: set[int] = set()
         self._monitored: dict[int, float] = {}
         self._monitored_at = -1  # the OD generation _monitored was read at
+        self.guarding_enabled = True  # fault injection: False: requests heard, not answered
+        self._toggle = 0  # the toggle bit of the next node-guarding answer
+        self._guarded_at: float | None = None  # the last guarding request (None: not guarded)
+        self._life_lost = False
+
+    @property
+    def guardable(self) -> bool:
+        """Whether the drive's file offers node guarding (0x100C and 0x100D)."""
+        values = self._od.values
+        return (OD_GUARD_TIME, 0) in values and (OD_LIFE_TIME_FACTOR, 0) in values
+
+    def life_time_s(self) -> float:
+        """Guard time x life time factor (0: life guarding off)."""
+        if not self.guardable:
+            return 0.0
+        return self._od.int_value(OD_GUARD_TIME) * self._od.int_value(OD_LIFE_TIME_FACTOR) / 1e3
 
     @property
     def operational(self) -> bool:
@@ -55,6 +82,9 @@ class NmtSlave:
         self._hb_next = now
         self._hb_seen = {}
         self._hb_lost = set()
+        self._toggle = 0
+        self._guarded_at = None
+        self._life_lost = False
         self._drive.transmit(cia301.make_heartbeat(self._drive.node_id, cia301.NMT_STATE_BOOTUP))
         self.schedule_heartbeat(now)
 
@@ -116,14 +146,49 @@ class NmtSlave:
         self._hb_seen[node] = now
         if node in self._hb_lost:
             self._hb_lost.discard(node)
-            if not self._hb_lost:
-                drive = self._drive
-                drive.warning = False
-                drive.error_register &= ~cia301.ERR_REG_COMMUNICATION
-                if drive.state_machine.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-                    if drive.error_register == cia301.ERR_REG_GENERIC:  # no error left
-                        drive.error_register = 0
-                    drive.emcy(cia301.EMCY_NO_ERROR)
+            self._clear_loss()
+
+    def on_guarding_request(self, now: float) -> None:
+        """A node-guarding request (remote frame on 0x700 + node id): the answer, NMT state
+        and toggle bit; restarts the life guarding, clears a life-guarding event."""
+        if not self.guardable:
+            return
+        drive = self._drive
+        if self.guarding_enabled:
+            drive.transmit(
+                can.Message(
+                    arbitration_id=cia301.COB_NMT_ERROR_CONTROL + drive.node_id,
+                    data=bytes((self.state & 0x7F | self._toggle << 7,)),
+                    is_extended_id=False,
+                )
+            )
+            self._toggle ^= 1
+        self._guarded_at = now
+        if self._life_lost:
+            self._life_lost = False
+            self._clear_loss()
+
+    def _clear_loss(self) -> None:
+        """The last watch lost is back: warning and communication error cleared (EMCY 0)."""
+        if self._hb_lost or self._life_lost:
+            return
+        drive = self._drive
+        drive.warning = False
+        drive.error_register &= ~cia301.ERR_REG_COMMUNICATION
+        if drive.state_machine.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            if drive.error_register == cia301.ERR_REG_GENERIC:  # no error left
+                drive.error_register = 0
+            drive.emcy(cia301.EMCY_NO_ERROR)
+
+    def _lose(self, now: float, why: str, node: int) -> None:
+        drive = self._drive
+        drive.warning = True
+        drive.error_register |= cia301.ERR_REG_COMMUNICATION | cia301.ERR_REG_GENERIC
+        drive.error_code = cia301.EMCY_HEARTBEAT
+        drive.log(f"{why}: quick stop")
+        drive.emcy(cia301.EMCY_HEARTBEAT, bytes((node,)))
+        if drive.state_machine.state == State.OPERATION_ENABLED:
+            drive.state_machine.quick_stop(now)
 
     # ---------------------------------------------------------------- timers
     def tick(self, now: float, heartbeat_early_s: float = 0.0) -> None:
@@ -146,13 +211,15 @@ class NmtSlave:
                 continue
             if node not in self._hb_lost and now - last > timeout:
                 self._hb_lost.add(node)
-                drive.warning = True
-                drive.error_register |= cia301.ERR_REG_COMMUNICATION | cia301.ERR_REG_GENERIC
-                drive.error_code = cia301.EMCY_HEARTBEAT
-                drive.log(f"heartbeat of node {node} lost ({timeout * 1000:.0f} ms): quick stop")
-                drive.emcy(cia301.EMCY_HEARTBEAT, bytes((node,)))
-                if drive.state_machine.state == State.OPERATION_ENABLED:
-                    drive.state_machine.quick_stop(now)
+                self._lose(now, f"heartbeat of node {node} lost ({timeout * 1000:.0f} ms)", node)
+        life_s = self._life_time_if_guarded()
+        if life_s and not self._life_lost and now - self._guarded_at > life_s:  # type: ignore[operator]
+            self._life_lost = True
+            self._lose(now, f"life guarding: no guarding request in {life_s * 1000:.0f} ms", 0)
+
+    def _life_time_if_guarded(self) -> float:
+        """The life time while guarded (a request seen), else 0."""
+        return 0.0 if self._guarded_at is None else self.life_time_s()
 
     def deadline(self) -> float:
         """Earliest time :meth:`tick` has something to do."""
@@ -161,6 +228,9 @@ class NmtSlave:
         for node, last in self._hb_seen.items():
             if node in monitored and node not in self._hb_lost:
                 t = min(t, last + monitored[node] + 1e-4)
+        life_s = self._life_time_if_guarded()
+        if life_s and not self._life_lost and self._guarded_at is not None:
+            t = min(t, self._guarded_at + life_s + 1e-4)
         return t
 
     # ---------------------------------------------------------------- objects

@@ -8,21 +8,32 @@ from pathlib import Path
 
 import pytest
 
-from drivers.config import BusConfigError, DrivesConfig, load_box_config
-from drivers.device_check import DeviceCheckError, check_box, interpolation_setting
+from drivers.config import BusConfigError, DrivesConfig, SdoWrite, load_box_config
+from drivers.device_check import (
+    DeviceCheckError,
+    QuickStopScale,
+    check_box,
+    interpolation_setting,
+    quick_stop_scale,
+)
 from drivers.protocol.cia306 import DeviceFileError, read_device_file
 
 VENDOR = Path(__file__).parent / "vendor_eds"
 
 OK = (
     "ok: RPDO1 = 0x6040, 0x607A; TPDO1 = 0x6041, 0x6064 on SYNC (type 1); "
-    "0x60C2 = 10 x 10^-3 s; heartbeat consumer 0x1016"
+    "0x60C2 = 10 x 10^-3 s; heartbeat consumer 0x1016; "
+)
+OK_COUNTS = OK + "0x6085 from the motors' acceleration limit in counts/s^2"
+OK_EPOS4 = OK + "0x6085 the drive's own (acceleration unit 0x60AA = 0x00C00300: not converted)"
+OK_C5E = (
+    OK + "0x6085 from the motors' acceleration limit in rpm/s (2000 counts a revolution, 0x608F)"
 )
 
 #: What ``hrm box check`` says of each file at 100 Hz (the shipped box.toml's rate)
 PINNED: dict[str | None, list[str]] = {
-    None: [OK],  # hrm's own EDS
-    "epos4_50_15_can_ec90flat_gp52c_mile800_node1.dcf": [OK],
+    None: [OK_COUNTS],  # hrm's own EDS
+    "epos4_50_15_can_ec90flat_gp52c_mile800_node1.dcf": [OK_EPOS4],
     "C5-E-2-09.eds": [
         "position unit 0x60A8 = 0xFF410000 (10^-1 degree), not increments: hrm sends encoder "
         'counts (writable: an SDO overlay sets it, sdo = { "0x60A8" = 0x00B50000 })'
@@ -42,9 +53,7 @@ PINNED: dict[str | None, list[str]] = {
     ],
     "technosoft.eds": [
         "no cyclic synchronous position mode (0x6502 = 0x1F0065: PP, PV, HM, IP)",
-        "no heartbeat consumer 0x1016 (node guarding 0x100C/0x100D only: hrm's bring-up "
-        "watches the host by heartbeat)",
-        "no 0x607F (max profile velocity)",
+        "no 0x607F (max profile velocity)",  # node guarding instead of 0x1016: taken
     ],
     "prbt_0_1.dcf": [
         "no cyclic synchronous position mode (0x6502 = 0x43: PP, VL, IP)",
@@ -64,7 +73,7 @@ def test_box_check_pinned_per_device_file(name: str | None) -> None:
     assert len(report.nodes) == 36
     first = [line for line in report.lines() if line.startswith("j01r0: ")]
     assert first == [f"j01r0: {shown}: {text}" for text in PINNED[name]]
-    assert report.refused == (PINNED[name] != [OK])
+    assert report.refused == (not PINNED[name][0].startswith(OK))
     assert len(report.lines()) == 36 * len(PINNED[name])  # every node, one line each
 
 
@@ -148,7 +157,7 @@ def test_an_sdo_overlay_setting_increments_makes_the_c5e_ok(tmp_path: Path) -> N
     box = _box(tmp_path, f'[drives]\ndevice_file = "{C5E}"\nsdo = {{ "0x60A8" = 0x00B50000 }}\n')
     report = check_box(load_box_config(box))
     assert not report.refused
-    assert report.lines()[0] == f"j01r0: C5-E-2-09.eds: {OK}; 0x60A8:00 = 0xB50000"
+    assert report.lines()[0] == f"j01r0: C5-E-2-09.eds: {OK_C5E}; 0x60A8:00 = 0xB50000"
     setup = report.setups()["j01r0"]
     assert [(w.index, w.sub, w.value) for w in setup.sdo] == [(0x60A8, 0, 0x00B50000)]
     assert setup.interpolation == (10, -3)
@@ -232,3 +241,58 @@ def test_bad_overlay_or_identity_one_line(tmp_path: Path, drives: str, expected:
     with pytest.raises(BusConfigError) as info:
         load_box_config(_box(tmp_path, drives))
     assert expected in str(info.value) and "\n" not in str(info.value)
+
+
+def test_quick_stop_deceleration_in_the_drive_s_unit() -> None:
+    """0x6085 from counts/s^2: hrm's EDS in counts; the C5-E in rpm/s by its 0x608F (an
+    overlay's encoder resolution counts); not converted through a gear ratio other than
+    1:1, an acceleration unit 0x60AA, or when the overlay writes 0x6085 itself."""
+    c5e = read_device_file(C5E)
+    unit = (SdoWrite(0x60A8, 0, 0x00B50000),)
+    scale = quick_stop_scale(c5e, unit)
+    assert isinstance(scale, QuickStopScale) and scale.per_count_s2 == pytest.approx(0.03)
+    assert scale.value(2_048_000) == 61_440  # rpm/s at 2000 counts a revolution
+    resolution = (*unit, SdoWrite(0x608F, 1, 4096))
+    scale = quick_stop_scale(c5e, resolution)
+    assert isinstance(scale, QuickStopScale) and scale.value(2_048_000) == 30_000
+    assert quick_stop_scale(c5e, (*unit, SdoWrite(0x6091, 1, 2))) == (
+        "0x6085 the drive's own (gear ratio 0x6091 = 2:1, not 1:1)"
+    )
+    assert quick_stop_scale(c5e, (*unit, SdoWrite(0x6085, 0, 9000))) == (
+        "0x6085 by the SDO overlay"
+    )
+    assert quick_stop_scale(read_device_file(EPOS4)) == (
+        "0x6085 the drive's own (acceleration unit 0x60AA = 0x00C00300: not converted)"
+    )
+    assert QuickStopScale("counts/s^2", 1.0, 1, 10).value(0.2) is None  # 0 stops nothing
+
+
+def test_quick_stop_deceleration_outside_the_object_is_one_line(tmp_path: Path) -> None:
+    """The Faulhaber's 0x6085 takes 0..32000: a motor limit beyond it is refused with one
+    line when the setups are made (before any bus opens); within it, the value is set."""
+    faulhaber = VENDOR / "605.3150.68-B-EK-2-60.eds"
+    report = check_box(load_box_config(_box(tmp_path, f'[drives]\ndevice_file = "{faulhaber}"\n')))
+    with pytest.raises(DeviceCheckError) as info:
+        report.setups({"j01r0": 2.048e6, "j01r1": 1000.0})
+    assert str(info.value) == (
+        f"{tmp_path / 'box.toml'}: j01r0: 605.3150.68-B-EK-2-60.eds: quick-stop deceleration "
+        "0x6085: the motor's acceleration limit 2.048e+06 counts/s^2 is 2.048e+06 counts/s^2, "
+        "outside 1..32000 (the object's type and limits)"
+    )
+    setups = report.setups({"j01r0": 32000.0, "j01r1": 1000.4})
+    assert [setups[m].quick_stop_deceleration for m in ("j01r0", "j01r1")] == [32000, 1000]
+    assert report.setups()["j01r0"].quick_stop_deceleration is None  # no limits: not written
+
+
+def test_a_drive_with_node_guarding_and_no_heartbeat_consumer_is_guarded(tmp_path: Path) -> None:
+    from tests.drivers.test_vendor_boxes import guarded_eds
+
+    path = guarded_eds(tmp_path)
+    report = check_box(load_box_config(_box(tmp_path, f'[drives]\ndevice_file = "{path}"\n')))
+    assert report.lines()[0] == "j01r0: guarded.eds: " + OK_COUNTS.replace(
+        "heartbeat consumer 0x1016", "node guarding 0x100C/0x100D"
+    )
+    assert report.setups()["j01r0"].guarding == (100, 3)  # host heartbeat period, 350 // 100
+    assert report.to_dict()["nodes"][0]["file"]["watches_host_by"] == "node guarding 0x100C/0x100D"
+    hrm = check_box(load_box_config(None))
+    assert hrm.setups()["j01r0"].guarding is None  # a heartbeat consumer: heartbeats

@@ -12,7 +12,13 @@ from pathlib import Path
 
 import pytest
 
-from drivers.config import DrivesConfig, DriveSpec, SdoWrite, load_box_config
+from drivers.config import (
+    DrivesConfig,
+    DriveSpec,
+    ExpectedIdentity,
+    SdoWrite,
+    load_box_config,
+)
 from drivers.device_check import DeviceCheckError
 from drivers.lely_export import bus_yml, export_lely
 from drivers.protocol.cia306 import format_device_file, parse_device_file, read_device_file
@@ -57,9 +63,18 @@ def test_dcfchk_takes_every_file_written_again(path: Path, tmp_path: Path) -> No
     assert done.returncode == 0 and "Warning" not in done.stderr, done.stderr
 
 
-def _config(device: Path | None, sdo: tuple[SdoWrite, ...] = ()) -> object:
+def _config(
+    device: Path | None,
+    sdo: tuple[SdoWrite, ...] = (),
+    identity: ExpectedIdentity | None = None,
+) -> object:
     cfg = load_box_config(None)
-    return replace(cfg, drives=DrivesConfig(default_file=device, default=DriveSpec(sdo=sdo)))
+    spec = DriveSpec(sdo=sdo, identity=identity or ExpectedIdentity())
+    return replace(cfg, drives=DrivesConfig(default_file=device, default=spec))
+
+
+#: the C5-E's vendor-ID and product code (its file's)
+C5E_IDENTITY = ExpectedIdentity(vendor_id=0x26C, product_code=17)
 
 
 @pytest.mark.parametrize(
@@ -70,7 +85,7 @@ def _config(device: Path | None, sdo: tuple[SdoWrite, ...] = ()) -> object:
 def test_dcfgen_accepts_the_export(
     tmp_path: Path, device: Path | None, sdo: tuple[SdoWrite, ...]
 ) -> None:
-    cfg = _config(device, sdo)
+    cfg = _config(device, sdo, C5E_IDENTITY if device == C5E else ExpectedIdentity())
     written = export_lely(cfg, tmp_path)  # type: ignore[arg-type]
     name = "hrm_drive.eds" if device is None else f"{device.stem}.eds"
     assert sorted(p.relative_to(tmp_path).as_posix() for p in written) == sorted(
@@ -101,12 +116,13 @@ def test_a_refused_box_is_not_exported(tmp_path: Path) -> None:
 def test_bus_yml_names_the_expected_identity(tmp_path: Path) -> None:
     box = tmp_path / "box.toml"
     box.write_text(
-        "[drives]\nidentity = { revision = 0x10000, serial = 7 }\n[buses.can0]\ninterface = "
+        "[drives]\nidentity = { vendor_id = 9, revision = 0x10000, serial = 7 }\n"
+        "[buses.can0]\ninterface = "
         '"virtual"\nchannel = "x"\nbitrate = 500000\n[buses.can0.nodes]\nj01r0 = 1\n'
     )
     text = bus_yml(load_box_config(box), "can0")
     assert "  baudrate: 500\n" in text
-    assert "  revision_number: 65536\n  serial_number: 7\n" in text
+    assert "  vendor_id: 9\n  revision_number: 65536\n  serial_number: 7\n" in text
 
 
 def test_the_cli_writes_and_refuses(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -19,7 +19,7 @@ from drivers.config import BoxConfig, box_config_from_dict
 from drivers.protocol import cia301
 from drivers.safety.subset import ActuationSubset
 from drivers.session import DriveSession
-from drivers.sources import JogSource
+from drivers.sources import HoldSource, JogSource
 from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.box import SimBox
 from sim_bus.drive import DriveSim
@@ -38,6 +38,15 @@ CSP_BOXES: dict[str, dict[str, Any]] = {
     "hrm_drive.eds": {},
     "epos4": {"device_file": str(EPOS4)},
     "c5-e": {"device_file": str(C5E), **UNIT_INCREMENTS},
+}
+
+#: 0x6085 units per count/s^2 on each: hrm's EDS counts; the C5-E's acceleration is its
+#: velocity unit (rpm) per second at 2000 counts a revolution (0x608F); the EPOS4's 0x60AA
+#: unit is not converted (not written)
+QUICK_STOP_PER_COUNT_S2: dict[str, float | None] = {
+    "hrm_drive.eds": 1.0,
+    "epos4": None,
+    "c5-e": 60 / 2000,
 }
 
 
@@ -130,6 +139,14 @@ def test_a_box_of_csp_drives_brings_up_by_its_file_and_streams(vendor_rig: Any, 
     )
     assert [w for w in writes if w[0] == 0x60C2] == [(0x60C2, 1, 10), (0x60C2, 2, 0xFD)]
     assert drive.interpolation_period_s == pytest.approx(0.01)
+    # 0x6085 from the motor's acceleration limit, in the drive's unit, after 0x605A
+    accel = float(rig.limits.max_accel_counts_per_s2[1])
+    per_count_s2 = QUICK_STOP_PER_COUNT_S2[name]
+    expected = [] if per_count_s2 is None else [(0x6085, 0, round(accel * per_count_s2))]
+    assert [w for w in writes if w[0] == 0x6085] == expected
+    if expected:
+        indices = [w[0] for w in writes]
+        assert indices.index(0x6085) == indices.index(0x605A) + 1
 
 
 def test_0x60c2_is_written_in_the_encoding_the_device_file_allows(vendor_rig: Any) -> None:
@@ -203,3 +220,91 @@ def test_a_simulated_drive_maps_no_more_entries_than_its_file_has() -> None:
     assert info.value.code == cia301.SDO_ABORT_PDO_LENGTH
     with pytest.raises(SdoAbort):
         faulhaber.od.lookup(0x1600, 5)
+
+
+def guarded_eds(folder: Path) -> Path:
+    """hrm's EDS without a heartbeat consumer 0x1016, with node guarding 0x100C/0x100D (as
+    the Technosoft iPOS offers, which hrm refuses anyway for want of CSP)."""
+    from drivers import eds_path
+
+    text = eds_path().read_text()
+    start, end = text.index("[1016]\n"), text.index("[1017]\n")
+    guarding = (
+        "[100C]\nParameterName=Guard time\nObjectType=0x7\nDataType=0x0006\nAccessType=rw\n"
+        "DefaultValue=0\nPDOMapping=0\n\n[100D]\nParameterName=Life time factor\n"
+        "ObjectType=0x7\nDataType=0x0005\nAccessType=rw\nDefaultValue=0\nPDOMapping=0\n\n"
+    )
+    text = text[:start] + guarding + text[end:]
+    text = text.replace("4=0x1016\n", "4=0x100C\n").replace("23=0x6085\n", "23=0x6085\n24=0x100D\n")
+    text = text.replace(
+        "[OptionalObjects]\nSupportedObjects=23", "[OptionalObjects]\nSupportedObjects=24"
+    )
+    path = folder / "guarded.eds"
+    path.write_text(text)
+    return path
+
+
+def test_a_drive_without_heartbeat_consumer_is_guarded_by_the_host(
+    vendor_rig: Any, tmp_path: Path
+) -> None:
+    """No 0x1016: the bring-up writes the guard time and life time factor (0x1017 = 0, no
+    0x1016); the host sends a guarding request to each drive with every host heartbeat,
+    each drive answers its NMT state with the toggle bit alternating from 0; a jog
+    streams; then a drive whose answers stop is a lost heartbeat that stops every axis."""
+    from drivers.safety.stops import SafetyStopError
+
+    rig: VendorRig = vendor_rig({"device_file": str(guarded_eds(tmp_path))})
+    with rig.session() as box:
+        box.bring_up()
+        result = box.stream(JogSource(rig.limits, "j01r1", 20_000.0, 0.3))
+        assert result.completed
+        rig.sim.drives["j01r2"].nmt.guarding_enabled = False  # answers stop
+        with pytest.raises(SafetyStopError) as info:
+            box.stream(HoldSource(n_cycles=300))  # 3 s
+        assert str(info.value).startswith("stopped: j01r2 (bus bus0 node 3): heartbeat lost")
+    writes = rig.sdo_downloads(2)
+    assert [w for w in writes if w[0] in (0x1016, 0x1017, 0x100C, 0x100D)] == [
+        (0x1017, 0, 0), (0x100C, 0, 100), (0x100D, 0, 3)
+    ]  # fmt: skip
+    frames = rig.sniffer.snapshot()
+    requests = [m for m in frames if m.arbitration_id == 0x702 and m.is_remote_frame]
+    answers = [m.data[0] for m in frames if m.arbitration_id == 0x702 and not m.is_remote_frame]
+    boot = answers.index(0x00)  # the boot-up after the NMT reset, then the answers
+    assert len(requests) >= 3 and all(a != 0x00 for a in answers[boot + 1 :])
+    toggles = [a >> 7 for a in answers[boot + 1 :]]
+    assert toggles == [k % 2 for k in range(len(toggles))] and len(toggles) >= 3
+    assert {a & 0x7F for a in answers[boot + 1 :]} <= {0x05, 0x7F}  # operational, pre-op
+
+
+def test_a_simulated_drive_answers_guarding_as_cia_301_says(tmp_path: Path) -> None:
+    """A remote frame on 0x700 + node id: one byte, the NMT state with the toggle bit, 0
+    first after a reset of communication, then alternating; once guarded, no request
+    within guard time x life time factor: EMCY 0x8130 (life guarding), cleared (EMCY 0)
+    by the next request.  A drive with a heartbeat consumer (hrm's EDS) does not guard."""
+    sent: list[can.Message] = []
+    drive = DriveSim(5, sent.append, eds=guarded_eds(tmp_path), now=0.0)
+    assert 0x705 in drive.cob_ids()
+    drive.od.write((0x100C, 0), 100)
+    drive.od.write((0x100D, 0), 3)
+    request = cia301.make_guarding_request(5)
+    sent.clear()
+    for k in range(3):
+        drive.handle(request, 0.1 * k)
+    assert [(m.arbitration_id, m.data[0]) for m in sent] == [
+        (0x705, 0x7F),
+        (0x705, 0xFF),
+        (0x705, 0x7F),
+    ]
+    sent.clear()
+    drive.tick(0.2 + 0.29)
+    assert sent == []  # within the life time (300 ms)
+    drive.tick(0.2 + 0.31)
+    assert [(m.arbitration_id, m.data[:2].hex()) for m in sent] == [(0x85, "3081")]  # 0x8130
+    sent.clear()
+    drive.handle(request, 0.6)
+    assert [(m.arbitration_id, m.data[:2].hex()) for m in sent] == [(0x705, "ff"), (0x85, "0000")]
+    drive.reset_communication(1.0)
+    sent.clear()
+    drive.handle(request, 1.1)
+    assert [m.data[0] for m in sent] == [0x7F]  # toggle 0 again
+    assert 0x705 not in DriveSim(5, sent.append, now=0.0).cob_ids()

@@ -188,6 +188,7 @@ def format_status(st: object, actuation: object) -> list[str]:
             f"{100 * b.load_limit:.0f} %), sent {b.frames_sent}, error frames {b.error_frames}, "
             f"foreign frames {b.foreign_frames}, log lost {b.log_frames_lost}"
             + (f", {b.state}" if b.state else "")
+            + (f"; link {b.link}" if b.link else "")
         )
     faulted = [n.motor for n in st.faulted]
     if faulted:

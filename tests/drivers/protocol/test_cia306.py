@@ -272,3 +272,26 @@ def test_a_file_read_and_written_again_reads_the_same(text: str) -> None:
     ]
     assert facts[0] == facts[1]
     assert again.device == f.device
+
+
+def test_a_file_read_again_is_parsed_once_unless_its_text_changed(tmp_path: Path) -> None:
+    """The same text is parsed once a process (the box check, the session and the wiring
+    each read a box's files); a file rewritten in place with the same size and times is a
+    new text, hence read anew (the parse is keyed by the text's digest, not by its stat)."""
+    import os
+
+    path = tmp_path / "d.eds"
+    path.write_text(eds_path().read_text())
+    first = read_device_file(path)
+    assert read_device_file(path) is first
+    stat = path.stat()
+    text = path.read_text().replace("HRM rope drive", "HRM rope drivE")
+    path.write_text(text)
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert path.stat().st_size == stat.st_size and path.stat().st_mtime_ns == stat.st_mtime_ns
+    again = read_device_file(path)
+    assert again is not first and again.device.product_name == "HRM rope drivE"
+    path.write_text(text.replace("[6502]", "[6502]\nDataType=0x0099", 1))
+    for _ in range(2):  # an error is not kept: raised again
+        with pytest.raises(DeviceFileError, match=r"\[6502\] DataType"):
+            read_device_file(path)

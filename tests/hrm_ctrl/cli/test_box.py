@@ -138,7 +138,7 @@ REFUSED_FILES = {
     FAULHABER.name: ("no cyclic synchronous position mode (0x6502 = 0x25: PP, PV, HM)", 3),
     "technosoft.eds": (
         "no cyclic synchronous position mode (0x6502 = 0x1F0065: PP, PV, HM, IP)",
-        2,
+        1,
     ),
     "prbt_0_1.dcf": ("no cyclic synchronous position mode (0x6502 = 0x43: PP, VL, IP)", 3),
 }

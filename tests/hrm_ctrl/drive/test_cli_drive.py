@@ -64,6 +64,8 @@ def test_a_refusal_is_one_status_line_when_it_begins(
         ("1 advance down\n0 advance up\n", [], "keys.txt:2: time 0 s goes back"),
         ("0 advance down\n", ["--advance-speed", "-1"], "advance_mm_s: expected a number > 0"),
         ("0 advance down\n", ["--save-trail", "KEYS"], "--save-trail"),
+        ("0 advance down\n", ["--physics", "gravity"], "--physics goes with --sim"),
+        ("0 advance down\n", ["--sim", "--physics", "gravty"], "unknown effect 'gravty'"),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(

@@ -2,7 +2,8 @@
 (in its own process, opened by ``open_box``).  The CAN log's RPDO targets (one row a
 SYNC: a control cycle) are the drive's setpoints: every motor within its speed,
 acceleration and jerk limits in every cycle, and after the advance key is released the
-motion stops within the time the deceleration allows."""
+motion stops within the time the deceleration allows; the shape feedback sees the arm on
+the trail at rest."""
 
 from __future__ import annotations
 
@@ -40,6 +41,12 @@ def test_drive_into_the_bent_pipe_on_the_simulated_box(
     # 0.5 s ramp to 20 mm/s, 4.5 s at it, 0.5 s ramp down: 100 mm into the pipe
     assert s["travel_mm"] == pytest.approx(100.0, abs=0.01)
     assert s["worst_clearance_mm"] > 0.0
+    # shape feedback: the rope estimator on the drives' feedback and the tension board
+    sh = s["shape"]
+    assert sh["samples"] >= 10 and sh["tensions"] is True and sh["error"] is None
+    assert sh["tip_from_trail_mm"]["last"] < 0.5  # at rest: on the trail
+    # moving, the shaping's lag puts the arm off the trail by a few mm (docs/planner.md)
+    assert sh["tip_from_trail_mm"]["max"] < 5.0
     record = json.loads(Path(s["run_record"]).read_text())
     lead = record["setpoints"]["lead_in_cycles"]
     last = np.array(record["setpoints"]["last_setpoint"])

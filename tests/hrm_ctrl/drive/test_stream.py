@@ -68,3 +68,32 @@ def test_a_driver_for_another_period_is_refused_before_anything_is_sent() -> Non
     src = DriveSource(drv, act, lambda t: SteerCommand(), 1.0)
     with pytest.raises(SetpointError, match=r"driver's period is 0\.05 s"):
         src.precheck(T)
+
+
+def test_the_setpoints_keep_the_tip_on_the_trail_through_the_first_bend() -> None:
+    """The shaping smooths every motor alike: the arm the setpoints make (the rope
+    inverse of each setpoint) has its tip on the trail, every motor within its limits.
+    (Ruckig alone, each motor chasing the online step, put it up to 4.3 mm off.)"""
+    from hrm_ctrl.drive.script import KeyScript, bent_pipe_keys
+    from hrm_ctrl.drive.shape import point_to_polyline
+    from hrm_ctrl.drive.start import DriveStart, start_driver
+    from hrm_ctrl.kinematics import end_point
+
+    act = load_actuation(default_robot())
+    limits = SteerLimits(pitch_rate_rad_s=0.2)
+    keys = KeyScript.parse(bent_pipe_keys(limits), "bent pipe keys")
+    drv = start_driver(act.robot, DriveStart(scenario="bent-pipe"), limits, T)
+    end_s = 14.0  # 270 mm: the first bend and some of the straight after it
+    src = DriveSource(drv, act, lambda t: keys.command_at(t, limits), end_s)
+    rows = played(src, act.counts_from_angles(np.zeros(12), np.zeros(12)))
+    assert src.refusals == [] and drv.planner.travel > 250.0
+    body = rows[src.n_lead_in :: 5].astype(np.float64)
+    alpha, theta, _ = act.angles_from_counts(body)
+    tips = end_point(act.robot, alpha, theta)
+    trail = np.array(drv.planner.trail.points)
+    off = max(point_to_polyline(p, trail) for p in tips)
+    assert off < 0.1, off
+    seq = rows.astype(np.float64)
+    assert np.all(np.abs(np.diff(seq, axis=0)) <= act.max_rate_counts_per_s * T)
+    assert np.all(np.abs(np.diff(seq, n=2, axis=0)) <= act.max_accel_counts_per_s2 * T**2)
+    assert np.all(np.abs(np.diff(seq, n=3, axis=0)) <= act.max_jerk_counts_per_s3 * T**3)

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from hrm_ctrl.errors import PlanningError
 from hrm_ctrl.kinematics import joint_centres
 from hrm_ctrl.model import default_robot
+from hrm_ctrl.planning import fitting
 from hrm_ctrl.planning.fitting import (
     fit_joint_centres,
     fit_joint_centres_batch,
@@ -86,3 +87,52 @@ def test_joint_two_sits_on_its_circle_nearest_the_curve() -> None:
     O = fit_joint_centres(curve, MODEL.links)
     assert np.linalg.norm(O[1] - O[0]) == pytest.approx(MODEL.links[0])
     assert np.linalg.norm(O[2] - O[1]) == pytest.approx(MODEL.links[1])
+
+
+def fit_by_full_scan(curve: np.ndarray, links: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Joints n..3 as Sec. 3.3 states them, every curve point looked at: the last point
+    (towards the tip) at least l_i from the joint after it, the curve's first point at least
+    that far, and the sphere's crossing of the segment after it."""
+    n = len(links)
+    O = np.empty((n + 1, 3))
+    seg = np.full(n + 1, len(curve) - 2)
+    O[n], O[0] = curve[-1], curve[0]
+    P, j = curve[-1], len(curve) - 2
+    for i in range(n - 1, 1, -1):
+        r = float(links[i])
+        d = np.linalg.norm(curve[: j + 1] - P, axis=1)
+        far = np.flatnonzero(d >= r)
+        if d[0] < r or not len(far):
+            raise PlanningError("too short")
+        k = int(far[-1])
+        nxt = curve[k + 1] if k + 1 <= j else P
+        P = curve[k] + sphere_segment_intersection(P, curve[k], nxt, r) * (nxt - curve[k])
+        O[i], seg[i], j = P, k, k
+    return O, seg
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_the_fit_walked_back_by_arc_length_is_the_full_scan(seed: int) -> None:
+    """Random curves of uneven spacing, some folding back: joints 3..13 and their segments
+    as looking at every point finds them (or the same refusal); joint 2, on its circle,
+    is left out (a curve too long for it is refused after joints 3..13 are placed)."""
+    rng = np.random.default_rng(seed)
+    k = int(rng.integers(30, 3000))
+    turn = rng.uniform(0.0, 0.5) * 20 / np.sqrt(k)
+    h = np.cumsum(rng.normal(size=(k, 3)) * turn, axis=0) + np.array([3.0, 0, 0])
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    ds = rng.uniform(0.1, 1.0, size=k)
+    ds *= rng.uniform(1900.0, 2150.0) / ds.sum()
+    curve = np.vstack((np.zeros(3), np.cumsum(h * ds[:, None], axis=0)))
+    with pytest.MonkeyPatch.context() as mp:  # joint 2 anywhere: joints 3..13 compared
+        mp.setattr(fitting, "circle_point_nearest", lambda O1, O3, l1, l2, ref: O1)
+        try:
+            want = fit_by_full_scan(curve, MODEL.links)
+        except PlanningError:
+            with pytest.raises(PlanningError, match="too short"):
+                fitting.fit_joint_centres_on_segments(curve, MODEL.links)
+            return
+        O, seg = fitting.fit_joint_centres_on_segments(curve, MODEL.links)
+    np.testing.assert_allclose(O[2:], want[0][2:], atol=1e-9)
+    assert (seg[2:] == want[1][2:]).all()
