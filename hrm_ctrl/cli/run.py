@@ -97,8 +97,8 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--compensate", action="store_true",
         help="feed-forward: command the rope lengths that hold each planned pose against "
         "gravity, rope stretch, capstan friction and joint play (the description's "
-        "[physics]; off by default: an arm without those loads is bent by it; the "
-        "rope-consistency watch then checks nothing)",
+        "[physics]; off by default: an arm without those loads is bent by it; with --sim "
+        "only: the rope-consistency watch then checks nothing)",
     )  # fmt: skip
     add_json(parser, "the summary")
 
@@ -152,6 +152,11 @@ def run(args: argparse.Namespace) -> int:
         raise DriverError(f"--speed must be > 0 mm/s, got {args.speed}")
     if not args.sim and (args.perturb is not None or args.truth is not None):
         raise DriverError("--perturb and --truth describe the simulated arm: they go with --sim")
+    if args.compensate and not args.sim:
+        raise DriverError(
+            "--compensate goes with --sim: the rope-consistency watch cannot yet check "
+            "compensated setpoints, and a real box is not run without it"
+        )
     refuse_overwriting_inputs(  # before anything is read or written
         [Output("--log-dir", args.log_dir, folder=True)],
         [
