@@ -3,16 +3,18 @@
 A test needs vcan when one of its bus parameters (:data:`VCAN_PARAMS`) is ``"socketcan"``
 (the ``can_backend`` fixture, ``test_canlog_durability``'s ``wire_kind``, the HIL plugin's
 ``hrm_bus_kind``).  Where the kernel has ``vcan0`` and ``vcan1`` they run here like every
-other test.  Where it has not and ``tools/vcan-guest/run-in-vcan-vm.sh`` can boot its guest
-(Debian's ``user-mode-linux``, ``kmod`` and ``iproute2`` installed), the session moves them
+other test.  Where it has not, ``HRM_VCAN_GUEST=on`` is set and
+``tools/vcan-guest/run-in-vcan-vm.sh`` can boot its guest (Debian's ``user-mode-linux``,
+``kmod`` and ``iproute2`` installed), the session moves them
 to its end and runs them in :func:`guest_count` guests side by side (a guest has one CPU),
 each a pytest process with the same node ids over whole test modules (a module's fixtures
 stay in one guest), and each test's reports (setup, call, teardown, stall reruns) come back
 to this session as its own: the terminal, the summary and the exit status count them as if
 they had run here, a failure with its traceback and captured output.  A test a guest gave
 no report for (the guest did not boot, timed out, pytest in it ended early) fails, naming
-why, with the tail of that guest's output.  ``HRM_VCAN_GUEST=off``, or a guest that cannot
-be installed here, skips them, naming the reason.
+why, with the tail of that guest's output.  Without ``HRM_VCAN_GUEST=on`` (the default, and
+so in CI: ``docs/hil.md`` says why), or with a guest that cannot be installed here, they
+skip, naming the reason.
 
 Each guest runs at ``SCHED_FIFO`` priority :data:`GUEST_RT_PRIORITY` unless ``VCANVM_RT``
 is set (root only: elsewhere the runner says it runs at normal priority), and is stopped
@@ -64,7 +66,7 @@ GUEST_TIMEOUT_S = 600
 DEADLINE_MARGIN_S = 30.0
 #: the environment variable pytest in the guest writes its reports to (one JSON a line)
 REPORT_ENV = "HRM_VCAN_GUEST_REPORT"
-#: ``off``: the SocketCAN tests skip where the kernel has no vcan (default: a guest runs them)
+#: ``on``: a guest runs the SocketCAN tests where the kernel has no vcan (default: they skip)
 SWITCH_ENV = "HRM_VCAN_GUEST"
 #: how many guests run side by side (default :func:`guest_count`)
 COUNT_ENV = "HRM_VCAN_GUESTS"
@@ -116,8 +118,8 @@ def _has_tool(name: str) -> bool:
 
 def guest_unavailable() -> str | None:
     """Why the SocketCAN tests cannot run in a guest here (None: they can)."""
-    if os.environ.get(SWITCH_ENV, "").lower() == "off":
-        return f"{SWITCH_ENV}=off (unset it to run them in a User-Mode-Linux guest)"
+    if os.environ.get(SWITCH_ENV, "").lower() != "on":
+        return f"{SWITCH_ENV}=on runs them in a User-Mode-Linux guest (off by default: docs/hil.md)"
     if not sys.platform.startswith("linux"):
         return "the vcan guest is a Linux (User-Mode-Linux) guest"
     missing = [
