@@ -429,7 +429,6 @@ class BusReceiver(can.Listener):
         logged once per bus and class combination (bus errors may flood)."""
         verdict = error_frame_verdict(msg.arbitration_id, msg.data)
         traffic = self.traffic
-        traffic.error_frames += 1
         first = verdict.classes not in traffic.error_classes
         traffic.count(traffic.error_classes, verdict.classes)
         text = f"bus {self.port.name}: CAN error frame 0x{verdict.classes:03X}: {verdict.text}"
@@ -438,6 +437,7 @@ class BusReceiver(can.Listener):
             self.report(StopKind.BUS_ERROR, text)
         elif first:
             log.warning("%s (logged once per class; every one counted and in the CAN log)", text)
+        traffic.error_frames += 1  # counted once handled: a stop cause is queued by then
 
     def _note_operational(self, cid: int, nid: int, data: bytes | bytearray) -> None:
         if (
