@@ -85,10 +85,10 @@ def test_calls():
     # printed at once, and listed in the summary: which CPU, when, how long, which window
     res.stdout.fnmatch_lines(
         [
-            "*test_it: attempt 1 failed; CPU 0 stalled 45.0 ms from * s into the failed phase "
+            "*test_it: attempt 1 failed; CPU ? stalled * ms from * s into the failed phase "
             "(monotonic * s), covering the 30 ms window of 3 cycles without a TPDO: rerun",
             "*stall reruns*",
-            "*test_inner.py::test_it: attempt 1 failed; CPU 0 stalled 45.0 ms*",
+            "*test_inner.py::test_it: attempt 1 failed; CPU ? stalled * ms*",
         ]
     )
     assert out.count("attempt 1 failed") == 2, out
@@ -158,7 +158,7 @@ def test_calls():
 """,
     )
     assert outcomes(res) == {"passed": 2, "rerun": 1}
-    res.stdout.fnmatch_lines(["*test_it: attempt 1 failed; CPU 0 stalled 45.0 ms*: rerun"])
+    res.stdout.fnmatch_lines(["*test_it: attempt 1 failed; CPU ? stalled * ms*: rerun"])
 
 
 def test_reruns_end_at_the_markers_count(pytester: pytest.Pytester) -> None:
