@@ -170,18 +170,19 @@ class Pipe:
         return radii[0], radii[1]
 
     @cached_property
-    def _segments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per segment of the resampled axis: its start A (S, 3), A -> B (S, 3) and |AB|^2
-        (S,), 1 where 0 (the constants of :meth:`_nearest`)."""
+    def _segments(self) -> np.ndarray:
+        """Per segment of the resampled axis one row (S, 7): its start A, A -> B and |AB|^2
+        (1 where 0), the constants of :meth:`_nearest`, gathered in one indexing."""
         dense = self._dense[0]
         if len(dense) < 2:  # segs are clipped to -1 then: the one sample, a point
-            return dense, np.zeros_like(dense), np.ones(len(dense))
-        A = dense[:-1]
-        AB = dense[1:] - A
-        L2 = np.einsum("sj,sj->s", AB, AB)
-        for a in (A, AB, L2):
-            a.setflags(write=False)
-        return A, AB, np.where(L2 > 0, L2, 1.0)
+            table = np.hstack((dense, np.zeros_like(dense), np.ones((len(dense), 1))))
+        else:
+            A = dense[:-1]
+            AB = dense[1:] - A
+            L2 = np.einsum("sj,sj->s", AB, AB)
+            table = np.hstack((A, AB, np.where(L2 > 0, L2, 1.0)[:, None]))
+        table.setflags(write=False)
+        return table
 
     def _samples(self, q: np.ndarray) -> np.ndarray:
         """(P, 3) points -> (P, k) indices of their nearest (k = 2) axis samples, nearest first."""
@@ -189,31 +190,30 @@ class Pipe:
         _, v = tree.query(q, k=min(2, len(dense)))
         return np.asarray(v).reshape(len(q), -1)
 
-    def _nearest(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(P, 3) points and their nearest samples ``v`` (:meth:`_samples`) -> the nearest
-        axis points C (P, 3), q - C (P, 3) and |q - C| (P,): the segments on either side of
-        the samples (four per point) projected in one batch."""
-        A_s, AB_s, L2_s = self._segments
+    def _nearest(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(P, 3) points and their nearest samples ``v`` (:meth:`_samples`) -> q - C (P, 3)
+        and |q - C| (P,), C the nearest axis points: the segments on either side of the
+        samples (four per point) projected in one batch."""
         segs = np.concatenate((v - 1, v), axis=1)  # (P, 4)
-        np.clip(segs, 0, len(self._dense[0]) - 2, out=segs)
-        AB = AB_s[segs]
-        rel = q[:, None, :] - A_s[segs]  # from each segment's start ...
+        np.minimum(np.maximum(segs, 0, out=segs), len(self._segments) - 1, out=segs)
+        seg = self._segments[segs]  # (P, 4, 7)
+        AB = seg[..., 3:6]
+        rel = q[:, None, :] - seg[..., :3]  # from each segment's start ...
         t = np.einsum("pkj,pkj->pk", rel, AB)
-        t /= L2_s[segs]
-        np.clip(t, 0.0, 1.0, out=t)
+        t /= seg[..., 6]
+        np.minimum(np.maximum(t, 0.0, out=t), 1.0, out=t)
         AB *= t[..., None]
         rel -= AB  # ... then from its nearest point
         dist = np.sqrt(np.einsum("pkj,pkj->pk", rel, rel))
         best = np.argmin(dist, axis=1)
         i = np.arange(len(q))
-        relb = rel[i, best]
-        return q - relb, relb, dist[i, best]
+        return rel[i, best], dist[i, best]
 
     def _inside_distance_and_gradient(
         self, q: np.ndarray, v: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """(P, 3) points of the pipe, their nearest samples -> ``r - |q - C|``, its gradient."""
-        _, rel, dist = self._nearest(q, v)
+        rel, dist = self._nearest(q, v)
         g = rel / np.where(dist > _EPS, -dist, -1.0)[:, None]  # = -(q - C) / |q - C|
         return self.inner_radius - dist, g
 
@@ -224,8 +224,8 @@ class Pipe:
         their distance to the end's rim circle and its gradient."""
         radial = rel - h[:, None] * n
         nr = _norm(radial)
-        u = radial / np.where(nr > _EPS, nr, 1.0)[:, None]
         flat = nr <= _EPS  # on the axis line: any rim point
+        u = radial / np.where(flat, 1.0, nr)[:, None]
         if flat.any():
             e = np.eye(3)[int(np.argmin(np.abs(n)))]
             u[flat] = _safe_unit(e - (e @ n) * n)
@@ -236,50 +236,44 @@ class Pipe:
     def free_distance_and_gradient(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(P, 3) points -> distance (P,) to the pipe's material and its gradient (P, 3)."""
         r = self.inner_radius
-        d = np.empty(len(q))
-        g = np.zeros_like(q)
         if not len(q):
-            return d, g
+            return np.empty(0), np.zeros_like(q)
         (A, nA), (B, nB) = self._ends
         relA, relB = q - A, q - B
         hA = relA @ nA  # > 0: past the start plane
         hB = relB @ nB  # > 0: before the end plane
-        inside = (hA >= 0.0) & (hB >= 0.0)
-        if inside.all():  # no masks
+        beyond_A, beyond_B = hA < 0.0, hB < 0.0
+        if not (beyond_A.any() or beyond_B.any()):  # all inside: no masks
             return self._inside_distance_and_gradient(q, self._samples(q))
         # beyond a plane: open space only where that end is the nearest axis sample (a
         # folded axis's other leg may run behind the plane); surely so within _open_radii
         # of the end's axis line, else looked up (with the samples of the inside points)
         rA, rB = self._open_radii
-        near_A, near_B = hA < 0.0, hB < 0.0
-        if near_A.any():
-            near_A &= np.einsum("ij,ij->i", relA, relA) - hA * hA < rA * rA
-        if near_B.any():
-            near_B &= np.einsum("ij,ij->i", relB, relB) - hB * hB < rB * rB
-        look = ~(inside | near_A | near_B)
-        cand = np.flatnonzero(inside | look)
-        out = near_A | near_B
+        out = beyond_A & (np.einsum("ij,ij->i", relA, relA) - hA * hA < rA * rA)
+        if beyond_B.any():
+            out |= beyond_B & (np.einsum("ij,ij->i", relB, relB) - hB * hB < rB * rB)
+        d = np.empty(len(q))
+        g = np.empty_like(q)
+        cand = np.flatnonzero(~out)  # inside, or beyond a plane and looked up
         if len(cand):
             v = self._samples(q[cand])
-            v0, lc = v[:, 0], look[cand]
-            at_end = lc & (
-                ((v0 == 0) & (hA[cand] < 0.0))
-                | ((v0 == len(self._dense[0]) - 1) & (hB[cand] < 0.0))
-            )
-            out[cand[at_end]] = True
-            keep = ~at_end
-            i = cand[keep]
-            d[i], g[i] = self._inside_distance_and_gradient(q[i], v[keep])
-        if out.any():  # to the start's rim, then the end's where nearer
-            dw, gw = self._rim_distance_and_gradient(relA[out], hA[out], nA)
-            seen = dw < math.inf
-            best, bg = dw, gw
-            if not seen.all():
-                best = np.where(seen, dw, math.inf)
-                bg = np.where(seen[:, None], gw, 0.0)
+            at_end = (v[:, 0] == 0) & beyond_A[cand]
+            if beyond_B.any():
+                at_end |= (v[:, 0] == len(self._dense[0]) - 1) & beyond_B[cand]
+            if at_end.any():
+                out[cand[at_end]] = True
+                keep = ~at_end
+                cand, v = cand[keep], v[keep]
+            d[cand], g[cand] = self._inside_distance_and_gradient(q[cand], v)
+        if len(cand) < len(q):  # to the start's rim, then the end's where nearer
+            best, bg = self._rim_distance_and_gradient(relA[out], hA[out], nA)
+            seen = best < math.inf
+            if not seen.all():  # a point at infinity (or NaN): no gradient
+                best = np.where(seen, best, math.inf)
+                bg = np.where(seen[:, None], bg, 0.0)
             relB = relB[out]
             # |q - B| - r is a lower bound of the distance to the end's rim: skip it where
-            # that is surely no nearer (the margin covers rounding)
+            # that is surely no nearer (the margin covers rounding; NaN compares false)
             if not np.all(_norm(relB) - (r + 1e-6) >= best):
                 dw, gw = self._rim_distance_and_gradient(relB, hB[out], nB)
                 better = dw < best

@@ -169,13 +169,18 @@ def joint_axes(model: RobotModel, q: np.ndarray) -> tuple[np.ndarray, np.ndarray
     n = model.n_joints
     R, O = frames(model, q[:n], q[n:])
     W = np.empty((2 * n, 3))
-    W[0] = (model.base_rotation @ R_BASE_PAPER)[:, 1]
+    W[0] = _first_axis(model)
     W[1:n] = R[:-1, :, 1]
     W[n:] = R[:, :, 0]
-    C = np.empty((2 * n, 3))
-    C[:n] = O[:n]
-    C[n:] = O[:n]
-    return O, W, C
+    return O, W, np.concatenate((O[:n], O[:n]))
+
+
+@lru_cache(maxsize=8)
+def _first_axis(model: RobotModel) -> np.ndarray:
+    """alpha_1's world axis (3,): the y axis of the frame before joint 1 (read-only)."""
+    w = (model.base_rotation @ R_BASE_PAPER)[:, 1].copy()
+    w.setflags(write=False)
+    return w
 
 
 def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -240,21 +245,28 @@ def project_tip(
     (True, True)
     """
     q = np.minimum(np.maximum(q, lo), hi)
-    free = np.ones(len(q), dtype=bool)
+    free: np.ndarray | None = None  # None: every angle free (no indexing)
     for _ in range(iterations):
         O, W, C = joint_axes(model, q)
         e = target - O[-1]
-        if math.sqrt(e @ e) < tol or not free.any():
+        if math.sqrt(e @ e) < tol or (free is not None and not free.any()):
             if centres is not None:
                 centres[:] = O
             return q
-        J = cross3(W, O[-1] - C).T[:, free]
+        J = cross3(W, O[-1] - C).T
+        if free is not None:
+            J = J[:, free]
         JJ = J @ J.T
         JJ.flat[::4] += 1e-12 * float(JJ.trace()) + 1e-12
-        moved = q.copy()
-        moved[free] += J.T @ solve3(JJ, e)
+        if free is None:
+            moved = q + J.T @ solve3(JJ, e)
+        else:
+            moved = q.copy()
+            moved[free] += J.T @ solve3(JJ, e)
         new = np.minimum(np.maximum(moved, lo), hi)
-        free &= new == moved
+        clipped = new != moved
+        if clipped.any():
+            free = ~clipped if free is None else free & ~clipped
         q = new
     if centres is not None:
         centres[:] = joint_axes(model, q)[0]
@@ -353,30 +365,36 @@ def zoomed_link_minima(
     ([0.0, 0.0, 0.0], 8.0)
     """
     N, L, S = O.shape[0], O.shape[1] - 1, len(t)
-    F = 4 * (S - 1) + 1
-    tf = np.linspace(float(t[0]), float(t[-1]), F)  # tf[4 k] = t[k]
+    F, M = 4 * (S - 1) + 1, O.shape[0] * (O.shape[1] - 1)
+    tf = _fine_fractions(float(t[0]), float(t[-1]), F)  # tf[4 k] = t[k]
     base, D = O[:, :-1], O[:, 1:] - O[:, :-1]
     Pf = tf[None, None, :, None] * D[:, :, None, :]
     Pf += base[:, :, None, :]
     df, gf = environment.free_distance_and_gradient(Pf)
-    df, gf = np.asarray(df, dtype=float), np.asarray(gf, dtype=float)
-    P = np.empty((N, L, S + 1, 3))  # the samples, then the lowest point
-    d = np.empty((N, L, S + 1))
-    g = np.empty((N, L, S + 1, 3))
-    P[:, :, :S], d[:, :, :S], g[:, :, :S] = Pf[:, :, ::4], df[:, :, ::4], gf[:, :, ::4]
-    n_i, l_i = np.ogrid[:N, :L]
-    k = 4 * np.argmin(d[:, :, :S], axis=2)  # (N, L): the lowest sample on the fine grid
-    zi = np.clip(k[..., None] + _ZOOM, 0, F - 1)  # (N, L, 4)
-    dz = df[n_i[..., None], l_i[..., None], zi]
-    j = zi[n_i, l_i, np.argmin(dz, axis=2)]
+    # every link of every configuration a row (M = N L) of the fine grid
+    Pf = Pf.reshape(M, F, 3)
+    df = np.asarray(df, dtype=float).reshape(M, F)
+    gf = np.asarray(gf, dtype=float).reshape(M, F, 3)
+    rows = np.arange(M)
+    k = 4 * np.argmin(df[:, ::4], axis=1)  # (M,): the lowest sample on the fine grid
+    zi = k[:, None] + _ZOOM  # (M, 4)
+    np.minimum(np.maximum(zi, 0, out=zi), F - 1, out=zi)
+    j = zi[rows, np.argmin(df[rows[:, None], zi], axis=1)]
     # the lowest of the four points and of the lowest sample (the first on a tie, the
     # lowest sample last)
-    zoom = df[n_i, l_i, j] <= df[n_i, l_i, k]
-    best = np.where(zoom, j, k)
-    P[:, :, S] = Pf[n_i, l_i, best]
-    d[:, :, S] = df[n_i, l_i, best]
-    g[:, :, S] = gf[n_i, l_i, best]
-    return P, d, g
+    best = np.where(df[rows, j] <= df[rows, k], j, k)
+    P = np.concatenate((Pf[:, ::4], Pf[rows, best][:, None]), axis=1)
+    d = np.concatenate((df[:, ::4], df[rows, best][:, None]), axis=1)
+    g = np.concatenate((gf[:, ::4], gf[rows, best][:, None]), axis=1)
+    return P.reshape(N, L, S + 1, 3), d.reshape(N, L, S + 1), g.reshape(N, L, S + 1, 3)
+
+
+@lru_cache(maxsize=8)
+def _fine_fractions(t0: float, t1: float, F: int) -> np.ndarray:
+    """:func:`zoomed_link_minima`'s grid: ``F`` evenly spaced fractions (read-only)."""
+    tf = np.linspace(t0, t1, F)
+    tf.setflags(write=False)
+    return tf
 
 
 _ZOOM = np.array([-2, -1, 1, 2])  # zoomed_link_minima's points about the lowest sample
@@ -487,11 +505,12 @@ def kkt_step(
     [lo, hi]."""
     nq = len(q)
     K = np.zeros((nq + 3, nq + 3))
-    K[:nq, :nq] = H + lam * np.eye(nq)
+    K[:nq, :nq] = H
+    K.flat[: nq * (nq + 4) : nq + 4] += lam  # H + lam I
     K[:nq, nq:] = Jtip.T
     K[nq:, :nq] = Jtip
-    sol = np.linalg.solve(K, np.r_[g, e])
-    return np.clip(q + sol[:nq], lo, hi)
+    sol = np.linalg.solve(K, np.concatenate((g, e)))
+    return np.minimum(np.maximum(q + sol[:nq], lo), hi)
 
 
 def refine_angles(
