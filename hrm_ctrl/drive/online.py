@@ -487,7 +487,7 @@ class OnlinePlanner:
         lo = np.maximum(self.q - bound, -self.box)
         hi = np.minimum(self.q + bound, self.box)
         target = self.trail.point_at(d, out=self._tip_target)
-        guess = np.clip(self.q + (q_paper - self.q_paper), lo, hi)
+        guess = np.minimum(np.maximum(self.q + (q_paper - self.q_paper), lo), hi)
         env_s = self._split["environment"]
         tip, Jtip, c, Jc = f.evaluate(guess)
         self._env_s = self._split["environment"] - env_s
@@ -499,7 +499,8 @@ class OnlinePlanner:
         O = self._centres
         q = project_tip(self.model, q, target, lo, hi, tol=1e-4, iterations=3, centres=O)
         self._projection_s = time.perf_counter() - t0
-        err = float(np.linalg.norm(O[-1] - target))
+        e = O[-1] - target
+        err = math.sqrt(e @ e)
         if err > self.opt.tip_tolerance_mm:
             return Refusal(
                 RefusalKind.FIT,
