@@ -9,8 +9,11 @@ with the frame rate one core would sustain at the median (1 / CPU per frame).
 Run: ``python benchmarks/bench_tip_camera.py [--step 5] [--width W --height H] [--browser S]``;
 prints JSON.  The rate the browser shows is measured by the browser test
 (``tests/hrm_ctrl/cli/test_view.py``) and by ``--browser`` here: headless Chromium
-loads the live view while the tip moves along the bent pipe at 100 mm/s, and the
-frames the page shows a second are counted on the page.
+loads the live view while the tip moves along the bent pipe (``--speed``, 50 mm/s), and the
+frames the page shows a second are counted on the page, with its animation frames (it
+draws its 3D scene and drains the server's messages in them); ``--lighting`` adds runs with
+the tip camera off and the scene lit as the view lights it, and with viser's default
+shadows (and environment map) put back.
 """
 
 from __future__ import annotations
@@ -18,8 +21,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -111,10 +116,31 @@ document.addEventListener('load', (e) => {
 """
 
 
-def browser(seconds: float, speed_mm_s: float) -> dict[str, Any]:
+# the page's own animation frames (its 3D scene and the messages it drains are drawn in them)
+COUNT_ANIMATION_FRAMES = """
+window.__animationFrames = 0;
+const __count = () => { window.__animationFrames++; requestAnimationFrame(__count); };
+requestAnimationFrame(__count);
+"""
+
+
+class Lighting(StrEnum):
+    """How the 3D scene is lit in a browser run: the view's own (no shadows, no
+    environment map), or viser's defaults put back (shadows, and with them the
+    environment map)."""
+
+    VIEW = "view"
+    SHADOWS = "shadows"
+    SHADOWS_AND_MAP = "shadows+map"
+
+
+def browser(
+    seconds: float, speed_mm_s: float, camera: bool = True, lighting: Lighting = Lighting.VIEW
+) -> dict[str, Any]:
     """The live view of the bent pipe in headless Chromium, the arm's pose stepped along
-    the paper's plan at ``speed_mm_s`` (poses at 30 Hz, as the live feed's update rate
-    bound): frames sent by the host and frames the page showed, a second."""
+    the paper's plan at ``speed_mm_s`` (poses at 30 Hz, as the view's update rate bound):
+    frames sent by the host, frames the page showed and the page's animation frames, a
+    second; ``camera`` False: the tip camera unticked."""
     import threading
 
     from playwright.sync_api import sync_playwright
@@ -131,8 +157,14 @@ def browser(seconds: float, speed_mm_s: float) -> dict[str, Any]:
         b = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS)
         try:
             with ArmView(model, sc.environment, None, live=True) as view:
+                scene = view.server.scene
+                if lighting != Lighting.VIEW:
+                    scene.configure_default_lights(enabled=True, cast_shadow=True)
+                if lighting == Lighting.SHADOWS_AND_MAP:
+                    scene.configure_environment_map("warehouse")
+                view._tip_on.value = camera
                 page = b.new_page(viewport={"width": 480, "height": 360})
-                page.add_init_script(COUNT_FRAMES)
+                page.add_init_script(COUNT_FRAMES + COUNT_ANIMATION_FRAMES)
                 page.goto(view.url, timeout=90_000)
 
                 def feed() -> None:
@@ -145,13 +177,19 @@ def browser(seconds: float, speed_mm_s: float) -> dict[str, Any]:
                 th = threading.Thread(target=feed, daemon=True)
                 th.start()
                 end = time.monotonic() + 90.0
-                while page.evaluate("window.__tipFrames.length") < 3 and time.monotonic() < end:
+                while (
+                    camera
+                    and page.evaluate("window.__tipFrames.length") < 3
+                    and time.monotonic() < end
+                ):
                     time.sleep(0.1)
-                n0, f0, c0 = page.evaluate("window.__tipFrames.length"), view.tip_frames, None
-                c0 = time.process_time()
-                w0 = time.monotonic()
+                time.sleep(1.0)
+                n0, f0 = page.evaluate("window.__tipFrames.length"), view.tip_frames
+                a0 = page.evaluate("window.__animationFrames")
+                c0, w0 = time.process_time(), time.monotonic()
                 time.sleep(seconds)
                 frames = page.evaluate("window.__tipFrames")
+                a1 = page.evaluate("window.__animationFrames")
                 f1, w1, c1 = view.tip_frames, time.monotonic(), time.process_time()
                 stop.set()
                 th.join(5.0)
@@ -160,12 +198,16 @@ def browser(seconds: float, speed_mm_s: float) -> dict[str, Any]:
                     (len(shown) - 1) / ((shown[-1] - shown[0]) * 1e-3) if len(shown) > 1 else 0.0
                 )
                 return {
+                    "camera": camera,
+                    "lighting": lighting.value,
                     "seconds": round(w1 - w0, 2),
                     "host_frames_a_second": round((f1 - f0) / (w1 - w0), 1),
                     "page_frames_a_second": round(page_rate, 1),
                     "page_frames": len(shown),
+                    "page_animation_frames_a_second": round((a1 - a0) / (w1 - w0), 1),
                     "tip_thread_cpu_ms_median": round(view.tip_cpu_ms(), 2),
                     "view_process_cpu_share": round((c1 - c0) / (w1 - w0), 2),
+                    "load_1min": round(os.getloadavg()[0], 2),
                 }
         finally:
             b.close()
@@ -181,6 +223,11 @@ def main() -> int:
         help="also count the frames headless Chromium shows over S seconds (0: not)",
     )  # fmt: skip
     ap.add_argument("--speed", type=float, default=50.0, help="mm/s of the tip (--browser)")
+    ap.add_argument(
+        "--lighting", action="store_true",
+        help="with --browser: also the page's animation frames with the tip camera off, lit "
+        "as the view lights it and with viser's shadows (and environment map) put back",
+    )  # fmt: skip
     args = ap.parse_args()
     cam = TipCamera(args.width, args.height, TIP_CAMERA_FOV_RAD)
     load0 = machine()["load_1min"]
@@ -191,6 +238,10 @@ def main() -> int:
     }
     if args.browser > 0:
         out["browser"] = browser(args.browser, args.speed)
+        if args.lighting:
+            out["browser_camera_off"] = [
+                browser(args.browser, args.speed, camera=False, lighting=lit) for lit in Lighting
+            ]
     out["machine"] = machine()
     out["machine"]["load_1min_before"] = load0
     print(json.dumps(out, indent=1))
