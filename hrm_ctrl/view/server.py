@@ -244,7 +244,8 @@ class ArmView:
     def _build(self) -> None:
         gui = self.server.gui
         # No shadows, no environment map: a page without a GPU (WebGL in software) draws
-        # the moving arm 30-60 times faster without them (benchmarks/bench_tip_camera.py).
+        # the moving arm several times faster without them, and it shows the tip camera's
+        # frames in the same loop (benchmarks/bench_tip_camera.py --lighting).
         self.server.scene.configure_default_lights(enabled=True, cast_shadow=False)
         self.server.scene.configure_environment_map(None)
         n = self.model.n_joints
