@@ -20,8 +20,8 @@ The tip camera (a ``live`` view's): a virtual camera at the end effector looking
 the tip's axis (:func:`hrm_ctrl.view.geometry.tip_camera_pose`), shown in the panel as
 the image "tip camera" (on from the start; its checkbox turns it off).  The host renders
 it (:mod:`hrm_ctrl.view.tip_camera`: a ray cast in NumPy of the known environment, the
-trail drawn in) and sends the frame as a JPEG image; the page only shows it, so a page
-without a GPU costs it nothing.  A thread renders a frame whenever the tip has moved,
+trail drawn in) and sends the frame as a JPEG image; the page only decodes and shows it
+(it needs no GPU for it).  A thread renders a frame whenever the tip has moved,
 the trail has changed or a page has connected, at most :data:`TIP_CAMERA_RATE_HZ` times a
 second, and only while a page is connected (``tip_frames`` counts the frames sent,
 :meth:`ArmView.tip_rate_hz` their rate, :meth:`ArmView.tip_cpu_ms` the thread's CPU per
@@ -650,11 +650,11 @@ class ArmView:
             if self._closed:
                 return
             self._closed = True
-        self._tip_stop.set()
-        with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
-            self.server.stop()
+        self._tip_stop.set()  # a frame being rendered is sent before the server stops
         if self._tip_thread is not None and self._tip_thread is not threading.current_thread():
             self._tip_thread.join(TIP_THREAD_JOIN_S)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
+            self.server.stop()
 
     def __enter__(self) -> ArmView:
         return self
