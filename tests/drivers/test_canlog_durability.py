@@ -71,6 +71,20 @@ GUEST_CONTROL = {
     "sdo_timeout_s": 2.0,
     "realtime_priority": 20,
 }
+#: The simulated drives' threads there under ``SCHED_FIFO`` above ``hrm run``'s (real drives
+#: are hardware of their own): at normal scheduling, beside ``hrm run`` at 20 on the one CPU,
+#: their TPDOs went missing 5 cycles in 2 of 6 runs with no pause of the guest the stall
+#: probe saw (longest 54 ms).
+GUEST_BOX_RT_PRIORITY = 30
+
+#: The kill test's shortest watchdog window, its TPDOs missing (25 cycles at 100 Hz; in the
+#: vcan guest 5 at 10 Hz): ``hrm run`` stopping on its own before the kill is rerun only when
+#: the stall probe saw the machine (the guest) paused that long (hrm_ctrl.hil.stall_reruns).
+KILL_TEST_WINDOW_S = (
+    GUEST_CONTROL["missing_tpdo_cycles"] / GUEST_CONTROL["rate_hz"]
+    if in_vcan_guest()
+    else KILL_TEST_CONTROL["missing_tpdo_cycles"] / 100
+)
 
 
 def _write_box_toml(path: Path, kind: str) -> Path:
@@ -123,6 +137,7 @@ def wire_kind(request: pytest.FixtureRequest) -> str:
     return str(request.param)
 
 
+@pytest.mark.stall_tolerant(window_s=KILL_TEST_WINDOW_S, watchdog="TPDOs missing (hrm run)")
 @pytest.mark.parametrize("fmt", ["blf", "asc"])
 def test_kill_9_leaves_readable_logs_with_their_start_and_all_but_the_last_quarter_second(
     tmp_path: Path, wire_kind: str, fmt: str
@@ -131,7 +146,8 @@ def test_kill_9_leaves_readable_logs_with_their_start_and_all_but_the_last_quart
     logs = tmp_path / "runs"
     sniffers: list[Sniffer] = []
     closers: list[Callable[[], None]] = []
-    box = BoxProcess(config)
+    guest = wire_kind == "socketcan" and in_vcan_guest()
+    box = BoxProcess(config, rt_priority=GUEST_BOX_RT_PRIORITY if guest else 0)
     closers.append(box.close)
     err = tempfile.TemporaryFile("w+")
     closers.append(err.close)

@@ -1,0 +1,44 @@
+"""The vcan guest's switch and command (``tests/vcan_guest.py``): on unless
+``HRM_VCAN_GUEST=off``, and its pytest runs the stall probe at the guest's period."""
+
+from __future__ import annotations
+
+import pytest
+
+from hrm_ctrl.hil.stall_reruns import PERIOD_OPTION
+from tests import vcan_guest
+
+
+@pytest.mark.parametrize("value", [None, "on", "ON", ""])
+def test_the_guest_is_on_unless_switched_off(
+    monkeypatch: pytest.MonkeyPatch, value: str | None
+) -> None:
+    if value is None:
+        monkeypatch.delenv(vcan_guest.SWITCH_ENV, raising=False)
+    else:
+        monkeypatch.setenv(vcan_guest.SWITCH_ENV, value)
+    why = vcan_guest.guest_unavailable()
+    # on: only a missing package (or another platform) keeps it from running
+    assert why is None or "needs" in why or "Linux" in why, why
+
+
+def test_off_skips_the_guest_naming_the_switch(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(vcan_guest.SWITCH_ENV, "off")
+    assert vcan_guest.guest_unavailable() == (
+        "HRM_VCAN_GUEST=off (unset or on runs them in a User-Mode-Linux guest)"
+    )
+
+
+def test_another_switch_value_is_a_one_line_usage_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(vcan_guest.SWITCH_ENV, "yes")
+    with pytest.raises(pytest.UsageError, match=r"^HRM_VCAN_GUEST='yes': expected on or off$"):
+        vcan_guest.guest_unavailable()
+
+
+def test_the_guests_pytest_runs_the_stall_probe_at_the_guests_period() -> None:
+    args = vcan_guest.guest_args(["tests/a.py::t[socketcan]"], "")
+    assert f"{PERIOD_OPTION}={vcan_guest.GUEST_PROBE_PERIOD_S:g}" in args
+    assert not any(a.startswith("no:") and "stall" in a for a in args), args
+    # the guest's shortest window (the stop tests' 2 cycles at its rigs' rate) is longer than
+    # two of the probe's periods: a pause a period longer than it is caught however it falls
+    assert 2 / vcan_guest.GUEST_RATE_HZ > 2 * vcan_guest.GUEST_PROBE_PERIOD_S
