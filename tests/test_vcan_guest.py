@@ -1,5 +1,6 @@
-"""The vcan guest's switch and command (``tests/vcan_guest.py``): on unless
-``HRM_VCAN_GUEST=off``, and its pytest runs the stall probe at the guest's period."""
+"""The vcan guest's switch and command (``tests/vcan_guest.py``): on with
+``HRM_VCAN_GUEST=on`` (off by default), and its pytest runs the stall probe at the guest's
+period."""
 
 from __future__ import annotations
 
@@ -9,24 +10,28 @@ from hrm_ctrl.hil.stall_reruns import PERIOD_OPTION
 from tests import vcan_guest
 
 
-@pytest.mark.parametrize("value", [None, "on", "ON", ""])
-def test_the_guest_is_on_unless_switched_off(
-    monkeypatch: pytest.MonkeyPatch, value: str | None
+@pytest.mark.parametrize("value", ["on", "ON", " on "])
+def test_on_runs_the_guest_where_its_packages_are(
+    monkeypatch: pytest.MonkeyPatch, value: str
 ) -> None:
-    if value is None:
-        monkeypatch.delenv(vcan_guest.SWITCH_ENV, raising=False)
-    else:
-        monkeypatch.setenv(vcan_guest.SWITCH_ENV, value)
+    monkeypatch.setenv(vcan_guest.SWITCH_ENV, value)
     why = vcan_guest.guest_unavailable()
     # on: only a missing package (or another platform) keeps it from running
     assert why is None or "needs" in why or "Linux" in why, why
 
 
-def test_off_skips_the_guest_naming_the_switch(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv(vcan_guest.SWITCH_ENV, "off")
-    assert vcan_guest.guest_unavailable() == (
-        "HRM_VCAN_GUEST=off (unset or on runs them in a User-Mode-Linux guest)"
-    )
+@pytest.mark.parametrize("value", [None, "", "off", "OFF"])
+def test_unset_or_off_skips_the_guest_naming_the_switch_and_why(
+    monkeypatch: pytest.MonkeyPatch, value: str | None
+) -> None:
+    assert vcan_guest.SWITCH_DEFAULT == "off"
+    if value is None:
+        monkeypatch.delenv(vcan_guest.SWITCH_ENV, raising=False)
+    else:
+        monkeypatch.setenv(vcan_guest.SWITCH_ENV, value)
+    why = vcan_guest.guest_unavailable()
+    assert why is not None and why.startswith("HRM_VCAN_GUEST=on runs them"), why
+    assert "docs/hil.md" in why
 
 
 def test_another_switch_value_is_a_one_line_usage_error(monkeypatch: pytest.MonkeyPatch) -> None:

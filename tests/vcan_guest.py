@@ -3,7 +3,8 @@
 A test needs vcan when one of its bus parameters (:data:`VCAN_PARAMS`) is ``"socketcan"``
 (the ``can_backend`` fixture, ``test_canlog_durability``'s ``wire_kind``, the HIL plugin's
 ``hrm_bus_kind``).  Where the kernel has ``vcan0`` and ``vcan1`` they run here like every
-other test.  Where it has not and ``tools/vcan-guest/run-in-vcan-vm.sh`` can boot its guest
+other test.  Where it has not, ``HRM_VCAN_GUEST=on`` is set (off by default:
+:data:`SWITCH_DEFAULT`) and ``tools/vcan-guest/run-in-vcan-vm.sh`` can boot its guest
 (Debian's ``user-mode-linux``, ``kmod`` and ``iproute2`` installed), the session moves them
 to its end and runs them in :func:`guest_count` guests side by side (a guest has one CPU),
 each a pytest process with the same node ids over whole test modules (a module's fixtures
@@ -11,7 +12,7 @@ stay in one guest), and each test's reports (setup, call, teardown, stall reruns
 to this session as its own: the terminal, the summary and the exit status count them as if
 they had run here, a failure with its traceback and captured output.  A test a guest gave
 no report for (the guest did not boot, timed out, pytest in it ended early) fails, naming
-why, with the tail of that guest's output.  With ``HRM_VCAN_GUEST=off``, or with a guest
+why, with the tail of that guest's output.  Without ``HRM_VCAN_GUEST=on``, or with a guest
 that cannot be installed here, they skip, naming the reason.  A stall-tolerant test there is
 rerun only on a pause of the guest its stall probe saw (every :data:`GUEST_PROBE_PERIOD_S`).
 
@@ -74,9 +75,13 @@ GUEST_TIMEOUT_S = 600
 DEADLINE_MARGIN_S = 30.0
 #: the environment variable pytest in the guest writes its reports to (one JSON a line)
 REPORT_ENV = "HRM_VCAN_GUEST_REPORT"
-#: ``off``: the SocketCAN tests skip where the kernel has no vcan (default ``on``: a guest
-#: runs them)
+#: ``on``: a guest runs the SocketCAN tests where the kernel has no vcan; ``off``: they skip
 SWITCH_ENV = "HRM_VCAN_GUEST"
+#: the switch unset: off, because the kill test (``tests/drivers/test_canlog_durability.py``,
+#: ``hrm run`` on 36 drives at 10 Hz) failed in 5 of 10 of its runs in the guest with no
+#: pause of the guest its stall probe saw: the guest's one CPU was busy all through it
+#: (docs/hil.md); every other SocketCAN test passed in every run
+SWITCH_DEFAULT = "off"
 #: how many guests run side by side (default :func:`guest_count`)
 COUNT_ENV = "HRM_VCAN_GUESTS"
 #: a guest's measured wall time per test of a module (the rest: :data:`DEFAULT_COST_S`),
@@ -127,11 +132,14 @@ def _has_tool(name: str) -> bool:
 
 def guest_unavailable() -> str | None:
     """Why the SocketCAN tests cannot run in a guest here (None: they can)."""
-    switch = os.environ.get(SWITCH_ENV, "on").strip().lower() or "on"
+    switch = os.environ.get(SWITCH_ENV, "").strip().lower() or SWITCH_DEFAULT
     if switch not in ("on", "off"):
         raise pytest.UsageError(f"{SWITCH_ENV}={os.environ[SWITCH_ENV]!r}: expected on or off")
     if switch == "off":
-        return f"{SWITCH_ENV}=off (unset or on runs them in a User-Mode-Linux guest)"
+        return (
+            f"{SWITCH_ENV}=on runs them in a User-Mode-Linux guest (off by default: the kill"
+            " test's 36 drives saturate the guest's CPU; docs/hil.md)"
+        )
     if not sys.platform.startswith("linux"):
         return "the vcan guest is a Linux (User-Mode-Linux) guest"
     missing = [
