@@ -316,8 +316,7 @@ class NodeMonitor:
         try:
             state = parse_heartbeat(data)
         except FrameError as exc:
-            self.hb_bad[idx] = (self.clock(), str(exc))
-            self._async_cause(StopKind.BAD_FRAME, idx, str(exc))
+            self._bad_state_frame(idx, exc)
             return
         self.hb_time[idx] = self.clock()
         self.hb_state[idx] = state
@@ -332,9 +331,8 @@ class NodeMonitor:
                 self._async_cause(
                     StopKind.BOOTUP, idx, "node rebooted (boot-up frame) while enabled"
                 )
-        elif self.armed and state != NMT_STATE_OPERATIONAL:
-            name = NMT_STATE_NAMES.get(state, f"0x{state:02X}")
-            self._async_cause(StopKind.HEARTBEAT, idx, f"heartbeat reports NMT state {name}")
+        elif self.armed:
+            self._require_operational(idx, state, "heartbeat")
 
     def on_guarding_answer(self, idx: int, data: bytes | bytearray) -> None:
         """A guarded node's answer to a guarding request: taken as its heartbeat (its
@@ -353,8 +351,7 @@ class NodeMonitor:
         try:
             state, toggle = parse_guarding_answer(data)
         except FrameError as exc:
-            self.hb_bad[idx] = (self.clock(), str(exc))
-            self._async_cause(StopKind.BAD_FRAME, idx, str(exc))
+            self._bad_state_frame(idx, exc)
             return
         self.hb_time[idx] = self.clock()
         self.hb_state[idx] = state
@@ -369,9 +366,20 @@ class NodeMonitor:
                 f"node-guarding answer with toggle bit {toggle}, expected {expected} "
                 "(an answer lost or repeated)",
             )
-        elif state != NMT_STATE_OPERATIONAL:
+        else:
+            self._require_operational(idx, state, "node guarding")
+
+    def _bad_state_frame(self, idx: int, exc: FrameError) -> None:
+        """A malformed heartbeat or guarding answer: kept for the status, a stop cause."""
+        self.hb_bad[idx] = (self.clock(), str(exc))
+        self._async_cause(StopKind.BAD_FRAME, idx, str(exc))
+
+    def _require_operational(self, idx: int, state: int, source: str) -> None:
+        """While armed, an NMT state other than OPERATIONAL (from ``source``: the
+        heartbeat or the guarding answer) is a stop cause."""
+        if state != NMT_STATE_OPERATIONAL:
             name = NMT_STATE_NAMES.get(state, f"0x{state:02X}")
-            self._async_cause(StopKind.HEARTBEAT, idx, f"node guarding reports NMT state {name}")
+            self._async_cause(StopKind.HEARTBEAT, idx, f"{source} reports NMT state {name}")
 
     def on_emcy(self, idx: int, node_id: int, data: bytes | bytearray) -> None:
         """EMCY frame: a fault, except error code 0x0000 ('error reset / no error') with

@@ -74,8 +74,12 @@ def register(p: argparse.ArgumentParser) -> None:
         help="yaw and pitch rate cap at full speed, deg/s (default 11.46: a radius of "
         "100 mm at 20 mm/s)",
     )  # fmt: skip
-    p.add_argument("--accel", type=float, default=40.0, help="advance ramp, mm/s^2 (40)")
-    p.add_argument("--period", type=float, default=0.01, help="control period, s (0.01)")
+    p.add_argument(
+        "--accel", type=float, default=40.0, metavar="MM_S2", help="advance ramp, mm/s^2 (40)"
+    )
+    p.add_argument(
+        "--period", type=float, default=0.01, metavar="S", help="control period, s (0.01)"
+    )
     add_robot(p)
     add_sim(p, wire=True, arm=SimArm.NONE, process=True)
     add_bus(p, overrides=False)

@@ -28,7 +28,7 @@ SHARED = (
 
 
 # One name, two options: hrm plan's and hrm demo's --step MM (lambda, from _options.py) and
-# hrm view's --step I (the plan step shown first; the README's command table has both)
+# hrm view's --step I (the plan step shown first; docs/usage.md's command table has both)
 HOMONYMS = {"--step": ["_options.py", "view.py"]}
 
 
