@@ -31,8 +31,9 @@ def test_a_second_master_streaming_to_our_node_stops_every_axis(
     rig_factory: Callable[..., Rig],
 ) -> None:
     # over SocketCAN in the vcan guest at 25 Hz, as the stop tests there (at 100 Hz the
-    # quick stop took 16.2 ms on one bus there); the stop still within one period
-    rig = rig_factory(guest_control={"rate_hz": GUEST_RATE_HZ})
+    # quick stop took 16.2 ms on one bus there), the rig's TPDO tolerance at the same blind
+    # time (6 cycles, 240 ms); the stop still within one period
+    rig = rig_factory(guest_control={"rate_hz": GUEST_RATE_HZ, "missing_tpdo_cycles": 6})
     period = rig.config.control.period_s
     box = rig.open_box()
     actual = box.bring_up()
