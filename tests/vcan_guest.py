@@ -78,9 +78,9 @@ REPORT_ENV = "HRM_VCAN_GUEST_REPORT"
 #: ``on``: a guest runs the SocketCAN tests where the kernel has no vcan; ``off``: they skip
 SWITCH_ENV = "HRM_VCAN_GUEST"
 #: the switch unset: off, because the kill test (``tests/drivers/test_canlog_durability.py``,
-#: ``hrm run`` on 36 drives at 10 Hz) failed in 5 of 10 of its runs in the guest with no
+#: ``hrm run`` on 36 drives at 10 Hz) failed in 5 of 20 of its runs in the guest with no
 #: pause of the guest its stall probe saw: the guest's one CPU was busy all through it
-#: (docs/hil.md); every other SocketCAN test passed in every run
+#: (docs/hil.md)
 SWITCH_DEFAULT = "off"
 #: how many guests run side by side (default :func:`guest_count`)
 COUNT_ENV = "HRM_VCAN_GUESTS"
