@@ -19,7 +19,8 @@ hrm_ctrl.drive.command.DriveError: k.txt:1: unknown key 'jump' (keys: advance, .
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from bisect import bisect_right
+from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
 
@@ -68,11 +69,25 @@ class KeyEvent:
 
 @dataclass(frozen=True)
 class KeyScript:
-    """A parsed key sequence: its events in time order and its end (inf if none)."""
+    """A parsed key sequence: its events in time order and its end (inf if none).
+
+    The keys held after each event are kept with the events' times: the keys at a time
+    are a bisection away (a control cycle asks every period)."""
 
     events: tuple[KeyEvent, ...]
     end_s: float
     source: str
+    _times: tuple[float, ...] = field(init=False, repr=False, compare=False)
+    _held: tuple[frozenset[SteerKey], ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        held: set[SteerKey] = set()
+        after: list[frozenset[SteerKey]] = []
+        for e in self.events:
+            (held.add if e.down else held.discard)(e.key)
+            after.append(frozenset(held))
+        object.__setattr__(self, "_times", tuple(e.t_s for e in self.events))
+        object.__setattr__(self, "_held", tuple(after))
 
     @classmethod
     def read(cls, path: str | Path) -> KeyScript:
@@ -117,13 +132,14 @@ class KeyScript:
         return cls(tuple(events), end, source)
 
     def held_at(self, t_s: float) -> frozenset[SteerKey]:
-        """The keys held at ``t_s`` (events at or before it applied)."""
-        held: set[SteerKey] = set()
-        for e in self.events:
-            if e.t_s > t_s:
-                break
-            (held.add if e.down else held.discard)(e.key)
-        return frozenset(held)
+        """The keys held at ``t_s`` (events at or before it applied).
+
+        >>> ks = KeyScript.parse("1 advance down\\n1 yaw_left down\\n2 advance up\\n", "k")
+        >>> [sorted(k.value for k in ks.held_at(t)) for t in (0.5, 1.0, 2.0)]
+        [[], ['advance', 'yaw_left'], ['yaw_left']]
+        """
+        k = bisect_right(self._times, t_s)
+        return self._held[k - 1] if k else frozenset()
 
     def command_at(self, t_s: float, limits: SteerLimits) -> SteerCommand:
         return command_of_keys(self.held_at(t_s), limits)

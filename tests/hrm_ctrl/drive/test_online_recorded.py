@@ -11,7 +11,8 @@ land on the recorded angles.
 One step at a time: the refinement is greedy along the travel in the null space of the
 tip, so a rounding difference of 1e-13 rad drifts to tenths of a degree over a few
 hundred steps (the same quality of path, another path); from the same state a step must
-agree to rounding.
+agree to rounding.  The recording was made with the refinement's clearance cap at 40 mm
+(the online default is 15 mm): the planner is given the options it was recorded with.
 """
 
 from __future__ import annotations
@@ -22,14 +23,19 @@ import numpy as np
 
 from hrm_ctrl.drive.command import SteerLimits
 from hrm_ctrl.drive.driver import Driver
-from hrm_ctrl.drive.online import OnlinePlanner
+from hrm_ctrl.drive.online import OnlineOptions, OnlinePlanner
 from hrm_ctrl.drive.script import KeyScript, bent_pipe_keys
 from hrm_ctrl.drive.trail import Trail
 from hrm_ctrl.model import default_robot
+from hrm_ctrl.planning.refine import RefineOptions
 from hrm_ctrl.planning.scenarios import scenario
 
 RECORDED = Path(__file__).parent / "data" / "bent_pipe_online_steps.npz"
 PERIOD_S = 0.05
+# the online options the steps were recorded with
+RECORDED_OPTIONS = OnlineOptions(
+    refine=RefineOptions(max_iterations=1, trials=1, patient_iterations=0, clearance_cap_mm=40.0)
+)
 
 
 def test_each_recorded_step_gives_the_recorded_angles() -> None:
@@ -39,7 +45,8 @@ def test_each_recorded_step_gives_the_recorded_angles() -> None:
     limits = SteerLimits(pitch_rate_rad_s=0.2, yaw_rate_rad_s=0.2)
     keys = KeyScript.parse(bent_pipe_keys(limits, period_s=PERIOD_S), "bent-pipe keys")
     P = sc.path.points
-    planner = OnlinePlanner(default_robot(), Trail.starting_at(P[0], P[1] - P[0]), sc.environment)
+    trail = Trail.starting_at(P[0], P[1] - P[0])
+    planner = OnlinePlanner(default_robot(), trail, sc.environment, RECORDED_OPTIONS)
     drv = Driver(planner, limits, PERIOD_S)
     angle_err, clearance_err = [], []
     for k in range(int(rec["cycle"][-1]) + 1):
