@@ -89,6 +89,7 @@ def vcan_available(name: str = "vcan0") -> bool:
     return Path(f"/sys/class/net/{name}").exists()
 
 
+@pytest.hookimpl(trylast=True)  # after -k and -m deselect: the guests run only what is left
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     vcan_guest.split_for_guest(config, items)
 

@@ -10,7 +10,8 @@ no environment known).  It serves until Ctrl-C (exit 0).
 --sim``), plays the plan on it (or, without one, holds the arm) and shows the arm as the
 host estimates it from the drives' feedback (``hrm_ctrl/cli/_live.py``: counts -> joint
 angles by the rope layer, 20 poses a second), the planned arm at the slider's step beside
-it, and the tip camera's frames in the panel (rendered by the page from the tip's pose).
+it, and the tip camera's frames in the panel (rendered on the host from the tip's pose,
+``hrm_ctrl/view/tip_camera.py``).
 ``--hold S`` holds the arm S seconds after the plan (without a plan: until Ctrl-C, at most
 1 h).  The run writes its CAN logs and run record into ``--log-dir`` like ``hrm
 run``.  The live view of real drives is the console's ``view`` command.
@@ -209,9 +210,12 @@ def _live(args: argparse.Namespace) -> int:
             f"live view: {live.shown} poses shown at {live.rate_hz():.1f} Hz, "
             f"{live.skipped} skipped"
         )
+        v = live.view
+        cost = "" if v.tip_frames == 0 else f", {v.tip_cpu_ms():.1f} ms CPU a frame"
         print(
-            f"tip camera: {live.view.tip_frames} frames at {live.view.tip_rate_hz():.1f} Hz "
-            f"(rendered by the page; none without one)"
+            f"tip camera: {v.tip_frames} frames at {v.tip_rate_hz():.1f} Hz "
+            f"(rendered on the host{cost}; none without a page)"
+            + ("" if v.tip_error is None else f"; stopped: {v.tip_error}")
         )
     if stop is not None:
         print(f"hrm view: {stop}", file=sys.stderr)

@@ -16,6 +16,12 @@ its report says what the probe saw.
 ``W`` is the shortest watchdog window the test's run arms: a stall shorter than every
 window trips none of them.
 
+The probes wake every millisecond (:data:`~hrm_ctrl.hil.stalls.PROBE_PERIOD_S`) unless
+``--stall-probe-period SECONDS`` says otherwise: the vcan guest (one CPU, 30-60 us per
+system call) runs them at 20 ms (``tests/vcan_guest.py``).  A probe of period ``P`` records
+a pause of ``D`` at least ``D - P`` long, so a test's ``W`` must exceed ``P`` (a usage error
+otherwise), and only a pause of ``W + P`` or more is sure to be evidence.
+
 The fixture ``stall_probe`` is the probe of the running attempt (e.g. to add stalls in a
 test of this plugin).  Load the plugin with ``-p hrm_ctrl.hil.stall_reruns``.
 """
@@ -30,12 +36,14 @@ from dataclasses import dataclass
 import pytest
 from _pytest.runner import runtestprotocol
 
-from hrm_ctrl.hil.stalls import Stall, StallProbe, covering
+from hrm_ctrl.hil.stalls import PROBE_PERIOD_S, Stall, StallProbe, covering, probe_period_s
 
 MARKER = "stall_tolerant"
 DEFAULT_RERUNS = 2
 PROBE = pytest.StashKey[StallProbe]()
 RERUNS = pytest.StashKey[list[str]]()
+PERIOD = pytest.StashKey[float]()
+PERIOD_OPTION = "--stall-probe-period"
 
 
 @dataclass(frozen=True)
@@ -51,8 +59,9 @@ class Tolerance:
         return f"the {self.window_s * 1000:g} ms window of {self.watchdog}"
 
 
-def tolerance(item: pytest.Item) -> Tolerance | None:
-    """The item's marker read and checked; None for an unmarked test."""
+def tolerance(item: pytest.Item, period_s: float = PROBE_PERIOD_S) -> Tolerance | None:
+    """The item's marker read and checked against the probe's period; None for an unmarked
+    test."""
     mark = item.get_closest_marker(MARKER)
     if mark is None:
         return None
@@ -69,6 +78,11 @@ def tolerance(item: pytest.Item) -> Tolerance | None:
         raise pytest.UsageError(f"{item.nodeid}: {MARKER} needs watchdog= (what fires)")
     if not isinstance(reruns, int) or reruns < 0:
         raise pytest.UsageError(f"{item.nodeid}: {MARKER} reruns={reruns!r} is not >= 0")
+    if window_s <= period_s:
+        raise pytest.UsageError(
+            f"{item.nodeid}: {MARKER} window_s={window_s!r} is not longer than the stall "
+            f"probe's period ({PERIOD_OPTION}={period_s:g}): the probe could not see it"
+        )
     return Tolerance(float(window_s), watchdog, reruns)
 
 
@@ -98,8 +112,28 @@ def _verdict(probe: StallProbe, tol: Tolerance, lo_s: float, hi_s: float) -> lis
     longest = max((s.late_s for s in during), default=0.0)
     return (
         f"no machine stall covered {tol.window()} during the failed phase (probe on CPUs "
-        f"{','.join(map(str, probe.cpus))}: {len(during)} stalls, longest {longest * 1000:.1f} ms)"
+        f"{','.join(map(str, probe.cpus))}, every {probe.period_s * 1000:g} ms: "
+        f"{len(during)} stalls, longest {longest * 1000:.1f} ms)"
     )
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        PERIOD_OPTION,
+        default=None,
+        metavar="SECONDS",
+        help=f"the stall probes' period (default {PROBE_PERIOD_S:g}; the vcan guest: 0.02)",
+    )
+
+
+def _period_s(config: pytest.Config) -> float:
+    text = config.getoption(PERIOD_OPTION)
+    if text is None:
+        return PROBE_PERIOD_S
+    try:
+        return probe_period_s(str(text), PERIOD_OPTION)
+    except ValueError as exc:
+        raise pytest.UsageError(str(exc)) from None
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -110,11 +144,12 @@ def pytest_configure(config: pytest.Config) -> None:
         "(hrm_ctrl.hil.stall_reruns)",
     )
     config.stash[RERUNS] = []
+    config.stash[PERIOD] = _period_s(config)
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:  # a bad marker is a usage error before anything runs
-        tolerance(item)
+        tolerance(item, config.stash[PERIOD])
 
 
 @pytest.fixture
@@ -128,13 +163,14 @@ def stall_probe(request: pytest.FixtureRequest) -> StallProbe:
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> bool | None:
-    tol = tolerance(item)
+    period_s = item.config.stash[PERIOD]
+    tol = tolerance(item, period_s)
     if tol is None:
         return None
     item.ihook.pytest_runtest_logstart(nodeid=item.nodeid, location=item.location)
     mono_minus_wall = time.monotonic() - time.time()
     for attempt in range(tol.reruns + 1):
-        with StallProbe(os.sched_getaffinity(0)) as probe:
+        with StallProbe(os.sched_getaffinity(0), period_s) as probe:
             item.stash[PROBE] = probe
             reports = runtestprotocol(item, nextitem=nextitem, log=False)
         del item.stash[PROBE]

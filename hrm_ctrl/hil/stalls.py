@@ -5,9 +5,14 @@ lock, a kernel thread at the same priority) or the machine (a virtual machine's 
 descheduled by the hypervisor, an SMI, a frequency change).  Only the first is ours to fix.
 A :class:`StallProbe` tells them apart: one small process per CPU, pinned to it, under
 ``SCHED_FIFO`` at :data:`PROBE_PRIORITY` (above every priority a drive session may take,
-``realtime_priority`` 0..49), sleeps to a grid of :data:`PROBE_PERIOD_S` and records every
-wake-up more than :data:`STALL_THRESHOLD_S` late.  Only interrupts and the kernel's own
-higher-priority threads preempt it in the guest, so what it records is the machine's.
+``realtime_priority`` 0..49), sleeps to a grid of its period (:data:`PROBE_PERIOD_S`, or a
+coarser one where waking every millisecond costs too much: the vcan guest's one CPU) and
+records every wake-up more than :data:`STALL_THRESHOLD_S` late (:func:`next_wakeup`).  Only
+interrupts and the kernel's own higher-priority threads preempt it in the guest, so what
+it records is the machine's.  After a late wake-up it looks again :data:`FOLLOW_UP_S`
+later whatever its period, so a pause the machine breaks into pieces reads as one
+(:func:`merged`); a pause of ``D`` is recorded at least ``D - period`` long (it may begin
+just after a wake-up), never longer than it was.
 :func:`explained` then says which of a stream's late or missing-feedback cycles overlap a
 machine stall.
 
@@ -38,12 +43,18 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
-#: a stall of PROBE_PERIOD_S + STALL_THRESHOLD_S (1.5 ms) or more always covers a due
+#: the default period (the host's).  A stall of a period + STALL_THRESHOLD_S (here 1.5 ms)
+#: or more always covers a due
 #: wake-up by more than the threshold: caught, wherever it falls on the probe's grid (with
 #: 2 ms and 1 ms, stalls up to 3 ms could pass unseen between two wake-ups, and a cycle
 #: they made 2 ms late was blamed on the stack)
 PROBE_PERIOD_S = 0.001
 STALL_THRESHOLD_S = 0.0005  # a wake-up later than this is a stall
+#: after a late wake-up the probe looks again this soon, whatever its period: the next
+#: piece of a pause the machine broke up is seen within JOIN_GAP_S and joined to it
+FOLLOW_UP_S = 0.001
+#: the coarsest period a probe takes: a probe sleeping longer sees too little
+MAX_PERIOD_S = 1.0
 PROBE_PRIORITY = 60  # above a session's realtime_priority (0..49)
 MAX_STALLS = 100_000  # per probe: a 3-hour run stalling every 0.1 s
 MAX_PROBE_S = 3 * 3600.0  # a probe whose parent never says stop ends by itself
@@ -159,9 +170,9 @@ def shared(stalls: Sequence[Stall], over_s: float = 0.002) -> list[Stall]:
     return out
 
 
-#: two stalls of one CPU this close are one: the probe cannot see a gap shorter than its own
-#: period (it sleeps a period after each late wake-up)
-JOIN_GAP_S = PROBE_PERIOD_S + STALL_THRESHOLD_S
+#: two stalls of one CPU this close are one: the probe cannot see a gap shorter than the
+#: time it sleeps after a late wake-up (:data:`FOLLOW_UP_S`, whatever its period)
+JOIN_GAP_S = FOLLOW_UP_S + STALL_THRESHOLD_S
 
 
 def merged(stalls: Sequence[Stall]) -> list[Stall]:
@@ -203,8 +214,46 @@ def covering(stalls: Sequence[Stall], window_s: float, lo_s: float, hi_s: float)
     return [s for s in merged(stalls) if s.late_s >= window_s and s in overlapping([s], lo_s, hi_s)]
 
 
+def next_wakeup(due_s: float, now_s: float, period_s: float) -> tuple[Stall | None, float]:
+    """One wake-up of a probe due at ``due_s`` that woke at ``now_s``: the stall it records
+    (CPU 0; None when it was no more than :data:`STALL_THRESHOLD_S` late) and when it is
+    due next: a period on along its grid, or :data:`FOLLOW_UP_S` (at most a period) after a
+    late wake-up.
+
+    >>> next_wakeup(1.0, 1.0002, 0.02)
+    (None, 1.02)
+    >>> next_wakeup(1.0, 1.5, 0.02)
+    (Stall(cpu=0, at_s=1.0, late_s=0.5), 1.501)
+    """
+    late_s = now_s - due_s
+    if late_s > STALL_THRESHOLD_S:
+        return Stall(0, due_s, late_s), now_s + min(FOLLOW_UP_S, period_s)
+    due_s += period_s
+    return None, (due_s if due_s >= now_s else now_s + period_s)
+
+
+def probe_period_s(text: str, where: str) -> float:
+    """A probe period read from ``text`` (seconds), or :class:`ValueError` naming ``where``.
+
+    >>> probe_period_s("0.02", "--stall-probe-period")
+    0.02
+    >>> probe_period_s("0", "--stall-probe-period")
+    Traceback (most recent call last):
+    ...
+    ValueError: --stall-probe-period='0': expected seconds in (0, 1]
+    """
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 < value <= MAX_PERIOD_S:  # NaN fails too
+        raise ValueError(f"{where}={text!r}: expected seconds in (0, {MAX_PERIOD_S:g}]")
+    return value
+
+
 class StallProbe:
-    """One probe process per CPU in ``cpus`` while the context lasts; :attr:`stalls` after.
+    """One probe process per CPU in ``cpus``, waking every ``period_s``, while the context
+    lasts; :attr:`stalls` after.
 
     >>> with StallProbe([0]) as probe:   # doctest: +SKIP
     ...     run_the_stream()
@@ -212,8 +261,11 @@ class StallProbe:
     [Stall(cpu=0, at_s=13485.5983, late_s=0.02066)]
     """
 
-    def __init__(self, cpus: Iterable[int]) -> None:
+    def __init__(self, cpus: Iterable[int], period_s: float = PROBE_PERIOD_S) -> None:
+        if not 0.0 < period_s <= MAX_PERIOD_S:
+            raise ValueError(f"stall probe period {period_s!r} s: expected (0, {MAX_PERIOD_S:g}]")
         self.cpus = sorted(set(cpus))
+        self.period_s = period_s
         self.stalls: list[Stall] = []
         self.available = False
         self.refusal: str | None = None
@@ -221,10 +273,15 @@ class StallProbe:
         self._procs: list[subprocess.Popen[str]] = []
         self._t0 = 0.0
 
+    @property
+    def pids(self) -> list[int]:
+        """The probe processes' ids, one per CPU (e.g. to pause one in a test)."""
+        return [proc.pid for proc in self._procs]
+
     def __enter__(self) -> StallProbe:
         for cpu in self.cpus:
             proc = subprocess.Popen(
-                [sys.executable, "-m", "hrm_ctrl.hil.stalls", str(cpu)],
+                [sys.executable, "-m", "hrm_ctrl.hil.stalls", str(cpu), repr(self.period_s)],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
@@ -273,6 +330,7 @@ class StallProbe:
             "refusal": self.refusal,
             "cpus": self.cpus,
             "duration_s": round(self.duration_s, 1),
+            "period_ms": self.period_s * 1000,
             "threshold_ms": STALL_THRESHOLD_S * 1000,
             "stalls": len(self.stalls),
             f"stalls_over_{over_s * 1000:g}ms": sum(1 for s in self.stalls if s.late_s > over_s),
@@ -288,7 +346,7 @@ class StallProbe:
         }
 
 
-def _probe(cpu: int) -> int:
+def _probe(cpu: int, period_s: float) -> int:
     """The probe process: pinned, SCHED_FIFO, until "stop" (or EOF) on stdin."""
     try:
         os.sched_setaffinity(0, {cpu})
@@ -300,24 +358,31 @@ def _probe(cpu: int) -> int:
     stdin = sys.stdin.fileno()
     rows: list[tuple[int, float, float]] = []
     t_end = time.monotonic() + MAX_PROBE_S
-    due = time.monotonic() + PROBE_PERIOD_S
+    due = time.monotonic() + period_s
     while due < t_end:
         wait = due - time.monotonic()
         ready, _, _ = select.select([stdin], [], [], max(0.0, wait))
         if ready:  # "stop" or EOF
             break
-        now = time.monotonic()
-        if now - due > STALL_THRESHOLD_S and len(rows) < MAX_STALLS:
-            rows.append((cpu, round(due, 6), round(now - due, 6)))
-        due += PROBE_PERIOD_S
-        if due < now:  # after a stall: back on the grid from now
-            due = now + PROBE_PERIOD_S
+        stall, due = next_wakeup(due, time.monotonic(), period_s)
+        if stall is not None and len(rows) < MAX_STALLS:
+            rows.append((cpu, round(stall.at_s, 6), round(stall.late_s, 6)))
     print(json.dumps(rows), flush=True)
     return 0
 
 
+def _main(argv: list[str]) -> int:
+    usage = "usage: python -m hrm_ctrl.hil.stalls CPU [PERIOD_S]"
+    if not 1 <= len(argv) <= 2 or not argv[0].isdigit():
+        print(usage, file=sys.stderr)
+        return 2
+    try:
+        period_s = probe_period_s(argv[1], "PERIOD_S") if len(argv) == 2 else PROBE_PERIOD_S
+    except ValueError as exc:
+        print(f"{usage}: {exc}", file=sys.stderr)
+        return 2
+    return _probe(int(argv[0]), period_s)
+
+
 if __name__ == "__main__":
-    if len(sys.argv) != 2 or not sys.argv[1].isdigit():
-        print("usage: python -m hrm_ctrl.hil.stalls CPU", file=sys.stderr)
-        raise SystemExit(2)
-    raise SystemExit(_probe(int(sys.argv[1])))
+    raise SystemExit(_main(sys.argv[1:]))

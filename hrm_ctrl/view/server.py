@@ -18,16 +18,14 @@ drawn, from :meth:`ArmView.show_trail`).
 
 The tip camera (a ``live`` view's): a virtual camera at the end effector looking along
 the tip's axis (:func:`hrm_ctrl.view.geometry.tip_camera_pose`), shown in the panel as
-the image "tip camera", off until its checkbox is ticked (a page without a GPU renders
-its frames in software, slowly, and would take the CPU the live feed needs).  The browser
-draws it: a thread asks a connected page to render the scene from the tip's pose
-(viser's ``get_render``) whenever the tip has moved, the trail has changed or a page has
-connected, at most :data:`TIP_CAMERA_RATE_HZ` times a second and with the page rendering
-for the camera at most :data:`TIP_CAMERA_DUTY` of the time (it stays responsive; a page
-slower than that still gets a request every :data:`TIP_CAMERA_MAX_WAIT_S`), and shows
-the frame in the panel; no page connected, no frame (``tip_frames`` counts the frames
-shown).  Its rate is the page's renderer's: a software renderer on a busy machine gives
-far fewer frames than a GPU."""
+the image "tip camera" (on from the start; its checkbox turns it off).  The host renders
+it (:mod:`hrm_ctrl.view.tip_camera`: a ray cast in NumPy of the known environment, the
+trail drawn in) and sends the frame as a JPEG image; the page only decodes and shows it
+(it needs no GPU for it).  A thread renders a frame whenever the tip has moved,
+the trail has changed or a page has connected, at most :data:`TIP_CAMERA_RATE_HZ` times a
+second, and only while a page is connected (``tip_frames`` counts the frames sent,
+:meth:`ArmView.tip_rate_hz` their rate, :meth:`ArmView.tip_cpu_ms` the thread's CPU per
+frame)."""
 
 from __future__ import annotations
 
@@ -55,6 +53,8 @@ from hrm_ctrl.planning.environment import (
     link_clearance,
 )
 from hrm_ctrl.view import geometry as g
+from hrm_ctrl.view.tip_camera import TipCamera, TipScene
+from hrm_ctrl.view.tip_camera import render as render_tip_camera
 
 M_PER_MM = 1e-3
 HOST = "127.0.0.1"  # the view is served to this machine only
@@ -65,12 +65,11 @@ SAME_POSE_MM = 0.01  # a pose within this of the one shown is not sent again
 CLEARANCE_REUSE_MM = 0.25  # the clearance shown may be this much off (see ArmView._push),
 # and as much again from its search (DISPLAY_GOLDEN_ITERATIONS)
 PLANNED_OPACITY = 0.35
-TIP_CAMERA_WIDTH, TIP_CAMERA_HEIGHT = 256, 192  # pixels of the tip camera's frame
+TIP_CAMERA_WIDTH, TIP_CAMERA_HEIGHT = 192, 144  # pixels of the tip camera's frame
 TIP_CAMERA_FOV_RAD = math.radians(70.0)  # vertical field of view
 TIP_CAMERA_RATE_HZ = 15.0  # frames a second at most (the tip moving)
-TIP_CAMERA_DUTY = 0.25  # the share of the page's time its frames may take at most
-TIP_CAMERA_MAX_WAIT_S = 2.0  # but a slow page's next frame is asked for within this
-TIP_RENDER_TIMEOUT_S = 60.0  # longest wait for a page's frame (one asked for at a time)
+TIP_CAMERA_COSTS_KEPT = 512  # the CPU per frame of this many last frames is kept
+TIP_THREAD_JOIN_S = 30.0  # close() waits this long at most for a frame being rendered
 TRAIL_MIN_INTERVAL_S = 0.2  # a growing trail is sent at most this often (it is whole each time)
 TIP_FRUSTUM_M = 0.03  # the frustum drawn at the tip (m)
 TIP_FRUSTUM_RGB = (250, 210, 40)
@@ -171,10 +170,11 @@ class ArmView:
         self._trail: Any = None
         self.trail_mm: np.ndarray | None = None  # the trail drawn (thinned)
         self._trail_t = -math.inf
-        self.tip_frames = 0  # tip camera frames shown
-        self.tip_failures = 0  # renders a page did not deliver
-        self.tip_error: str | None = None
-        self._tip_t: list[float] = []  # times of the first and the last frame shown
+        self._tip_R: np.ndarray | None = None  # the tip camera's world-from-camera rotation
+        self.tip_frames = 0  # tip camera frames sent
+        self.tip_error: str | None = None  # why the tip camera stopped, if it did
+        self._tip_t: list[float] = []  # times of the first and the last frame sent
+        self._tip_cpu_s: list[float] = []  # the thread's CPU per frame (the last ones)
         self._tip_stop = threading.Event()
         self._tip_thread: threading.Thread | None = None
         try:
@@ -200,6 +200,8 @@ class ArmView:
             self.close()
             raise
         if live:
+            self._tip_camera = TipCamera(TIP_CAMERA_WIDTH, TIP_CAMERA_HEIGHT, TIP_CAMERA_FOV_RAD)
+            self._tip_scene = TipScene.of(environment)
             self.server.on_client_connect(self._new_page)
             self._tip_thread = threading.Thread(
                 target=self._tip_camera_loop, name="hrm-view-tip-camera", daemon=True
@@ -241,6 +243,11 @@ class ArmView:
     # ------------------------------------------------------------------ scene
     def _build(self) -> None:
         gui = self.server.gui
+        # No shadows, no environment map: a page without a GPU (WebGL in software) draws
+        # the moving arm several times faster without them, and it shows the tip camera's
+        # frames in the same loop (benchmarks/bench_tip_camera.py --lighting).
+        self.server.scene.configure_default_lights(enabled=True, cast_shadow=False)
+        self.server.scene.configure_environment_map(None)
         n = self.model.n_joints
         env_pts = self._draw_environment()
         self._arm = [
@@ -272,7 +279,7 @@ class ArmView:
             receive_shadow=False,
         )
         if self.live:
-            self._tip_on = gui.add_checkbox("tip camera", initial_value=False)
+            self._tip_on = gui.add_checkbox("tip camera", initial_value=True)
             self._tip_image = gui.add_image(
                 np.zeros((TIP_CAMERA_HEIGHT, TIP_CAMERA_WIDTH, 3), dtype=np.uint8),
                 label="tip camera",
@@ -538,6 +545,7 @@ class ArmView:
         if not self._tipcam.visible:
             self._tipcam.visible = True
         self.tip_pose_mm = (pos, wxyz)
+        self._tip_R = np.asarray(R_tip, dtype=float)
         self._tip_version += 1
 
     def show_trail(self, points_mm: np.ndarray) -> bool:
@@ -584,50 +592,46 @@ class ArmView:
             self._tip_version += 1
 
     def _tip_camera_loop(self) -> None:
-        """Render the tip camera's frames in a connected page and show them (module doc)."""
+        """Render the tip camera's frames on the host and send them (module doc)."""
         period_s = 1.0 / TIP_CAMERA_RATE_HZ
         shown_version = -1
-        wait_s = period_s
-        while not self._tip_stop.wait(wait_s):
-            wait_s = period_s
-            pose, version = self.tip_pose_mm, self._tip_version
-            if pose is None or version == shown_version or not self._tip_on.value:
+        due = time.monotonic()
+        while not self._tip_stop.wait(max(due - time.monotonic(), 0.0)):
+            due = max(due + period_s, time.monotonic())  # late: no burst to catch up
+            with self._lock:
+                pose, R, version = self.tip_pose_mm, self._tip_R, self._tip_version
+                trail = self.trail_mm
+            if pose is None or R is None or version == shown_version:
                 continue
-            clients = self.server.get_clients()
-            if not clients:
+            if not self._tip_on.value or not self.server.get_clients():
                 continue
-            client = clients[min(clients)]
-            pos, wxyz = pose
-            t0 = time.monotonic()
+            cpu0 = time.thread_time()
             try:
-                img = client.get_render(
-                    TIP_CAMERA_HEIGHT,
-                    TIP_CAMERA_WIDTH,
-                    wxyz=tuple(float(v) for v in wxyz),
-                    position=tuple(float(v) * M_PER_MM for v in pos),
-                    fov=TIP_CAMERA_FOV_RAD,
-                    timeout=TIP_RENDER_TIMEOUT_S,
+                img, _depth = render_tip_camera(
+                    self._tip_scene, self._tip_camera, pose[0], R, trail
                 )
-            except (RuntimeError, TimeoutError, OSError) as exc:  # the page left, or hung
-                self.tip_failures += 1
-                self.tip_error = str(exc)
-                continue
-            finally:  # the page's time rendering for the camera: at most TIP_CAMERA_DUTY
-                took_s = time.monotonic() - t0
-                wait_s = max(period_s - took_s, took_s * (1.0 / TIP_CAMERA_DUTY - 1.0))
-                wait_s = min(wait_s, TIP_CAMERA_MAX_WAIT_S)
-            if self._tip_stop.is_set():
-                break
-            self._tip_image.image = np.ascontiguousarray(img[..., :3])
-            shown_version, now = version, time.monotonic()
+                self._tip_image.image = img  # encoded (JPEG) and sent
+            except Exception as exc:  # a bug: said (tip_error), the camera stops
+                self.tip_error = f"{type(exc).__name__}: {exc}"
+                return
+            cost = time.thread_time() - cpu0
+            now = time.monotonic()
+            shown_version = version
             self.tip_frames += 1
             self._tip_t = [self._tip_t[0] if self._tip_t else now, now]
+            self._tip_cpu_s = [*self._tip_cpu_s[-(TIP_CAMERA_COSTS_KEPT - 1) :], cost]
 
     def tip_rate_hz(self) -> float:
-        """Tip camera frames shown a second so far (0 before two were shown)."""
+        """Tip camera frames sent a second so far (0 before two were sent)."""
         if self.tip_frames < 2 or len(self._tip_t) < 2 or self._tip_t[1] <= self._tip_t[0]:
             return 0.0
         return (self.tip_frames - 1) / (self._tip_t[1] - self._tip_t[0])
+
+    def tip_cpu_ms(self) -> float:
+        """The tip camera thread's median CPU time per frame (render and JPEG), ms, of
+        the last :data:`TIP_CAMERA_COSTS_KEPT` frames (NaN before the first)."""
+        costs = list(self._tip_cpu_s)
+        return 1e3 * float(np.median(costs)) if costs else math.nan
 
     @property
     def arm_links(self) -> tuple[Any, ...]:
@@ -646,11 +650,11 @@ class ArmView:
             if self._closed:
                 return
             self._closed = True
-        self._tip_stop.set()
-        with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
-            self.server.stop()  # a frame still asked for fails with its page gone
+        self._tip_stop.set()  # a frame being rendered is sent before the server stops
         if self._tip_thread is not None and self._tip_thread is not threading.current_thread():
-            self._tip_thread.join(TIP_RENDER_TIMEOUT_S + 1.0)
+            self._tip_thread.join(TIP_THREAD_JOIN_S)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped"
+            self.server.stop()
 
     def __enter__(self) -> ArmView:
         return self

@@ -193,3 +193,74 @@ def test_it():
         ["ERROR: test_inner.py::test_it: stall_tolerant window_s=None is not > 0 s"]
     )
     assert "Traceback" not in res.stderr.str() + res.stdout.str()
+
+
+def test_a_pause_the_coarse_probe_saw_is_evidence_and_a_shorter_one_is_not(
+    pytester: pytest.Pytester,
+) -> None:
+    """The vcan guest's probe (every 20 ms): the test's own probe process stopped for 300 ms
+    (as the host stops scheduling the guest) covers a 120 ms window; a 60 ms stop does not."""
+    pytester.makepyfile(
+        test_inner="""
+import os, signal, time
+import pytest
+
+CALLS = []
+GUEST = pytest.mark.stall_tolerant(window_s=0.12, watchdog="3 cycles of 40 ms without a TPDO")
+
+
+def pause(probe, s):
+    os.kill(probe.pids[0], signal.SIGSTOP)
+    time.sleep(s)
+    os.kill(probe.pids[0], signal.SIGCONT)
+    time.sleep(0.05)
+
+
+@GUEST
+def test_paused(stall_probe):
+    CALLS.append(1)
+    assert stall_probe.period_s == 0.02
+    if len(CALLS) == 1:
+        pause(stall_probe, 0.3)
+        assert False, "heartbeats 542 ms old"
+
+
+@GUEST
+def test_short(stall_probe):
+    pause(stall_probe, 0.06)
+    assert False, "heartbeats 542 ms old"
+"""
+    )
+    res = pytester.runpytest(
+        "-p", "hrm_ctrl.hil.stall_reruns", "-p", "no:cacheprovider", "-rA",
+        "--stall-probe-period=0.02",
+    )  # fmt: skip
+    assert outcomes(res) == {"passed": 1, "failed": 1, "rerun": 1}
+    res.stdout.fnmatch_lines(
+        [
+            "*test_paused: attempt 1 failed; CPU ? stalled * ms from * s into the failed phase "
+            "(monotonic * s), covering the 120 ms window of 3 cycles of 40 ms without a TPDO: "
+            "rerun",
+            "*no machine stall covered the 120 ms window * every 20 ms: * not rerun*",
+        ]
+    )
+
+
+@pytest.mark.parametrize(
+    ("period", "message"),
+    [
+        ("0.05", "*(--stall-probe-period=0.05): the probe could not see it"),
+        ("soon", "--stall-probe-period='soon': expected seconds in (0, 1]"),
+    ],
+)  # fmt: skip
+def test_a_probe_period_the_window_cannot_use_is_a_one_line_usage_error(
+    pytester: pytest.Pytester, period: str, message: str
+) -> None:
+    pytester.makepyfile(test_inner=HEADER + "\n@TOLERANT\ndef test_it():\n    pass\n")
+    res = pytester.runpytest(
+        "-p", "hrm_ctrl.hil.stall_reruns", "-p", "no:cacheprovider",
+        f"--stall-probe-period={period}",
+    )  # fmt: skip
+    assert res.ret == pytest.ExitCode.USAGE_ERROR
+    res.stderr.fnmatch_lines([f"ERROR: *{message}"])
+    assert "Traceback" not in res.stderr.str() + res.stdout.str()

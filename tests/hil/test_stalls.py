@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -22,6 +23,7 @@ from hrm_ctrl.hil.stalls import (
     covering,
     explained,
     merged,
+    next_wakeup,
     shared,
 )
 
@@ -147,6 +149,104 @@ def test_a_held_cycle_is_explained_only_through_the_cycle_before_it(
             assert ev[1] <= prev[1] + sync_delay_s - T + MARGIN_S
 
 
+def probed(period_s: float, pauses: list[tuple[float, float]], end_s: float) -> list[Stall]:
+    """What a probe of ``period_s`` records over ``[0, end_s]`` on a machine that runs it
+    the moment it is due, except through ``pauses`` (``[start, end)``: it wakes at the end)."""
+    stalls, due = [], period_s
+    while due < end_s:
+        now = due
+        for a, b in sorted(pauses):  # in order: a pause may end where the next begins
+            if a <= now < b:
+                now = b
+        stall, due = next_wakeup(due, now, period_s)
+        if stall is not None:
+            stalls.append(stall)
+    return stalls
+
+
+periods = st.sampled_from([0.0005, 0.001, 0.005, 0.02, 0.05])
+
+
+@st.composite
+def pause_lists(draw: st.DrawFn) -> list[tuple[float, float]]:
+    """Pauses of 0.1-800 ms in [0.1, 10] s, at least 0.1 s apart."""
+    out, t = [], 0.1
+    for _ in range(draw(st.integers(0, 6))):
+        t += draw(st.floats(0.1, 1.0))
+        length = draw(st.floats(0.0001, 0.8))
+        out.append((t, t + length))
+        t += length
+    return out
+
+
+@given(periods, pause_lists())
+@example(0.02, [(1.0, 1.5)])  # the guest's half-second pause, the guest's period
+@example(0.02, [(1.0, 1.14)])  # 120 ms window + 20 ms period: still evidence
+@example(0.001, [(1.0, 1.0015)])  # one period and the threshold: caught at 1 ms too
+def test_the_probe_records_every_pause_a_period_longer_than_the_window_and_nothing_else(
+    period_s: float, pauses: list[tuple[float, float]]
+) -> None:
+    """A pause of ``D`` is recorded at least ``D - period`` long (one stall, or pieces that
+    :func:`merged` joins) and never longer than it was, nor outside it: a pause of a watchdog
+    window + the period is evidence for that window (:func:`covering`), a pause shorter than
+    the window never is."""
+    stalls = probed(period_s, pauses, 12.0)
+    # nothing recorded outside a pause, nothing longer than its pause
+    assert all(
+        any(a <= s.at_s and s.at_s + s.late_s <= b + 1e-9 for a, b in pauses) for s in stalls
+    )
+    for a, b in pauses:
+        inside = [s for s in merged(stalls) if a <= s.at_s < b]
+        if b - a > period_s + STALL_THRESHOLD_S:
+            assert len(inside) == 1 and inside[0].late_s >= b - a - period_s - 1e-9, inside
+        for window_s in (0.03, 0.12):
+            found = covering(stalls, window_s, a, b)
+            if b - a >= window_s + period_s:
+                assert found, (a, b, window_s)
+            if b - a < window_s:
+                assert not found, (a, b, window_s, found)
+
+
+def fifo_allowed() -> bool:
+    return subprocess.run(["chrt", "-f", "1", "true"], capture_output=True).returncode == 0
+
+
+@pytest.mark.skipif(not fifo_allowed(), reason="SCHED_FIFO refused to this user (chrt -f 1)")
+@pytest.mark.parametrize("period_s", [0.001, 0.02])
+def test_a_probe_process_held_off_its_cpu_records_the_pause(period_s: float) -> None:
+    """The probe process stopped (SIGSTOP) for 300 ms, as the vcan guest's UML process is
+    when the host does not schedule it: one stall of it, at least 300 ms less a period."""
+    cpu = min(os.sched_getaffinity(0))
+    with StallProbe([cpu], period_s) as probe:
+        assert probe.available, probe.refusal
+        time.sleep(0.1)
+        t0 = time.monotonic()
+        os.kill(probe.pids[0], signal.SIGSTOP)
+        t_stopped = time.monotonic()
+        time.sleep(0.3)
+        os.kill(probe.pids[0], signal.SIGCONT)
+        t1 = time.monotonic()
+        time.sleep(0.1)
+    assert probe.summary()["period_ms"] == period_s * 1000
+    found = covering(probe.stalls, 0.3 - period_s - 0.01, t0, t1)
+    assert len(found) == 1, probe.stalls
+    # it began at the stop, a period at most after it (or earlier, the machine busy)
+    assert found[0].at_s <= t_stopped + period_s + MARGIN_S, (t0, t_stopped, found)
+
+
+def test_a_bad_probe_period_is_refused() -> None:
+    with pytest.raises(ValueError, match="expected"):
+        StallProbe([0], 0.0)
+    res = subprocess.run(
+        [sys.executable, "-m", "hrm_ctrl.hil.stalls", "0", "soon"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "PERIOD_S='soon': expected seconds in (0, 1]" in res.stderr
+
+
 def test_a_bad_cpu_argument_is_a_one_line_usage_error() -> None:
     res = subprocess.run(
         [sys.executable, "-m", "hrm_ctrl.hil.stalls", "zero"],
@@ -165,10 +265,6 @@ def test_a_probe_on_a_cpu_the_machine_lacks_reports_itself_unavailable() -> None
     assert not probe.available
     assert probe.refusal is not None and f"CPU {missing}" in probe.refusal
     assert probe.stalls == []
-
-
-def fifo_allowed() -> bool:
-    return subprocess.run(["chrt", "-f", "1", "true"], capture_output=True).returncode == 0
 
 
 @pytest.mark.skipif(not fifo_allowed(), reason="SCHED_FIFO refused to this user (chrt -f 1)")

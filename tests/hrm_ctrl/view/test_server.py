@@ -270,53 +270,44 @@ def test_the_tip_camera_sits_on_the_tip_frame_looking_along_the_last_link() -> N
         assert np.allclose(view._tipcam.wxyz, wxyz)
 
 
-class _Page:
-    """A connected page as the tip camera sees it: renders on request."""
-
-    def __init__(self) -> None:
-        self.requests: list[dict[str, Any]] = []
-
-    def get_render(self, height: int, width: int, **kw: Any) -> np.ndarray:
-        self.requests.append(dict(kw, height=height, width=width))
-        return np.full((height, width, 3), len(self.requests) % 256, dtype=np.uint8)
-
-
-def test_the_tip_camera_renders_in_a_page_when_the_tip_moves(monkeypatch: Any) -> None:
+def test_the_tip_camera_is_rendered_on_the_host_when_the_tip_moves(monkeypatch: Any) -> None:
     import time
 
+    from hrm_ctrl.kinematics import frames
     from hrm_ctrl.view import server as srv
+    from hrm_ctrl.view import tip_camera as tc
 
-    page = _Page()
-    with ArmView(MODEL, None, None, live=True) as view:
-        time.sleep(0.3)
-        assert view.tip_frames == 0  # no pose, no page: nothing rendered
-        monkeypatch.setattr(view.server, "get_clients", lambda: {7: page})
-        view.update(np.full(12, 0.1), np.zeros(12))
-        time.sleep(0.3)
-        assert view.tip_frames == 0  # off until its checkbox is ticked
-        view._tip_on.value = True
+    ahead = Box(np.array([2300.0, 0.0, 0.0]), np.full(3, 100.0))  # before the straight tip
+    env = Environment((ahead,))
+    a0, a1 = np.zeros(12), np.full(12, 0.002)
+
+    def wait(cond: Any, what: str) -> None:
         end = time.monotonic() + 30.0
-        while view.tip_frames == 0 and time.monotonic() < end:
+        while not cond() and time.monotonic() < end:
             time.sleep(0.02)
-        assert view.tip_frames >= 1
-        req = page.requests[0]
-        assert (req["height"], req["width"]) == (srv.TIP_CAMERA_HEIGHT, srv.TIP_CAMERA_WIDTH)
-        assert np.allclose(req["position"], view.tip_pose_mm[0] * M_PER_MM)
-        assert np.allclose(req["wxyz"], view.tip_pose_mm[1])
-        assert req["fov"] == srv.TIP_CAMERA_FOV_RAD
-        shown = view._tip_image.image
-        assert shown.shape == (srv.TIP_CAMERA_HEIGHT, srv.TIP_CAMERA_WIDTH, 3)
-        n = len(page.requests)
+        assert cond(), what
+
+    with ArmView(MODEL, env, None, live=True) as view:
+        assert view._tip_on.value  # on from the start
+        view.update(a0, np.zeros(12))
+        time.sleep(0.3)
+        assert view.tip_frames == 0  # no page connected: nothing rendered
+        monkeypatch.setattr(view.server, "get_clients", lambda: {7: object()})
+        wait(lambda: view.tip_frames >= 1, "a frame once a page is there")
+        R = frames(MODEL, a0, np.zeros(12))[0]
+        cam = tc.TipCamera(srv.TIP_CAMERA_WIDTH, srv.TIP_CAMERA_HEIGHT, srv.TIP_CAMERA_FOV_RAD)
+        want, depth = tc.render(tc.TipScene.of(env), cam, view.tip_pose_mm[0], R[-1])
+        assert np.array_equal(view._tip_image.image, want)  # the frame sent
+        assert np.isfinite(depth).sum() > 100  # it shows the box
+        assert view.tip_cpu_ms() > 0.0 and view.tip_error is None
+        n = view.tip_frames
         time.sleep(0.5)  # a still tip is not rendered again
-        assert len(page.requests) == n
-
-        def fails(*_a: Any, **_k: Any) -> np.ndarray:
-            raise TimeoutError("Render request timed out")
-
-        monkeypatch.setattr(page, "get_render", fails)
-        view.update(np.full(12, -0.1), np.zeros(12))
-        end = time.monotonic() + 30.0
-        while view.tip_failures == 0 and time.monotonic() < end:
-            time.sleep(0.02)
-        assert view.tip_failures >= 1 and view.tip_error == "Render request timed out"
+        assert view.tip_frames == n
+        view.update(a1, np.zeros(12))
+        wait(lambda: view.tip_frames > n, "a frame of the moved tip")
+        n = view.tip_frames
+        view._tip_on.value = False  # unticked: no frames
+        view.update(a0, np.zeros(12))
+        time.sleep(0.5)
+        assert view.tip_frames == n
     assert not view._tip_thread.is_alive()  # closed with the view
