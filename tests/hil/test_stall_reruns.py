@@ -199,7 +199,8 @@ def test_a_pause_the_coarse_probe_saw_is_evidence_and_a_shorter_one_is_not(
     pytester: pytest.Pytester,
 ) -> None:
     """The vcan guest's probe (every 20 ms): the test's own probe process stopped for 300 ms
-    (as the host stops scheduling the guest) covers a 120 ms window; a 60 ms stop does not."""
+    (as the host stops scheduling the guest) covers a 120 ms window; a 20 ms stop does not
+    (100 ms to spare for a late SIGCONT)."""
     pytester.makepyfile(
         test_inner="""
 import os, signal, time
@@ -227,7 +228,7 @@ def test_paused(stall_probe):
 
 @GUEST
 def test_short(stall_probe):
-    pause(stall_probe, 0.06)
+    pause(stall_probe, 0.02)
     assert False, "heartbeats 542 ms old"
 """
     )
