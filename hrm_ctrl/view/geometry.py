@@ -99,10 +99,19 @@ def link_cylinders(O: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return 0.5 * (O[1:] + O[:-1]), quaternion_z_to(d), np.linalg.norm(d, axis=-1)
 
 
-def _basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def perpendicular(n: np.ndarray) -> np.ndarray:
+    """A unit vector perpendicular to unit ``n`` (from the axis ``n`` is least along).
+
+    >>> perpendicular(np.array([0.0, 0.0, 1.0]))
+    array([1., 0., 0.])
+    """
     e = np.eye(3)[int(np.argmin(np.abs(n)))]
     u = e - (e @ n) * n
-    u /= np.linalg.norm(u)
+    return u / np.linalg.norm(u)
+
+
+def _basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    u = perpendicular(n)
     return u, np.cross(n, u)
 
 

@@ -43,6 +43,7 @@ from functools import cached_property
 import numpy as np
 
 from hrm_ctrl.planning.environment import Box, Environment, Pipe, RectOpening, Wall
+from hrm_ctrl.view.geometry import perpendicular
 
 AXIS_TOLERANCE_MM = 0.25  # a pipe's axis is simplified to within this (Douglas-Peucker)
 MAX_RANGE_MM = 3000.0  # rays end here: beyond, the background
@@ -139,11 +140,6 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def _perpendicular(n: np.ndarray) -> np.ndarray:
-    e = np.eye(3)[int(np.argmin(np.abs(n)))]
-    return _unit(e - (e @ n) * n)
-
-
 @dataclass(frozen=True, eq=False)
 class PipePieces:
     """Every pipe of a scene as mitred tube pieces, one a segment of its simplified
@@ -182,10 +178,10 @@ class PipePieces:
             n1 = np.vstack([mitre, u[-1:]])
             s0 = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(v, axis=0), axis=1))])
             e1 = np.empty_like(u)
-            e1[0] = _perpendicular(u[0])
+            e1[0] = perpendicular(u[0])
             for k in range(1, len(u)):  # parallel transport: the least turn onto u[k]
                 f = e1[k - 1] - (e1[k - 1] @ u[k]) * u[k]
-                e1[k] = _unit(f) if np.linalg.norm(f) > 1e-9 else _perpendicular(u[k])
+                e1[k] = _unit(f) if np.linalg.norm(f) > 1e-9 else perpendicular(u[k])
             r = np.full(len(u), p.inner_radius)
             for lst, x in zip(
                 parts[:10],
@@ -488,7 +484,7 @@ def _cast_wall(f: _Frame, w: Wall, o: np.ndarray, D: np.ndarray) -> None:
         material &= (p - q) @ m >= 0.0
     idx, t, p = idx[material], t[material], p[material]
     cos = dn[idx]
-    e1 = _perpendicular(n)
+    e1 = perpendicular(n)
     cos[_marks(p @ e1, WALL_GRID_MM) | _marks(p @ np.cross(n, e1), WALL_GRID_MM)] *= MARK_DARKEN
     f.take(idx, t, cos, Material.WALL)
 
