@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from hrm_ctrl.planning.environment import Box, Environment, RoundOpening, Wall
 from hrm_ctrl.planning.scenarios import scenario
 from hrm_ctrl.view import tip_camera as tc
+from hrm_ctrl.view.geometry import perpendicular
 
 CAM = tc.TipCamera(64, 48, math.radians(70.0))
 PIPE = scenario("bent-pipe")
@@ -27,7 +28,7 @@ ON_WALL_MM = tc.AXIS_TOLERANCE_MM + 0.05
 def _looking(z: np.ndarray, roll: float = 0.0) -> np.ndarray:
     """A world-from-camera rotation whose z axis is along ``z``."""
     z = z / np.linalg.norm(z)
-    x = tc._perpendicular(z)
+    x = perpendicular(z)
     y = np.cross(z, x)
     x, y = math.cos(roll) * x + math.sin(roll) * y, -math.sin(roll) * x + math.cos(roll) * y
     return np.stack([x, y, z], axis=1)
@@ -68,7 +69,7 @@ def test_every_pixel_in_the_bent_pipe_shows_its_wall(
 ) -> None:
     axis = PIPE.path
     c, tangent = axis.point_at(along), axis.tangent_at(along)
-    u = tc._perpendicular(tangent)
+    u = perpendicular(tangent)
     v = np.cross(tangent, u)
     side = math.cos(turn) * u + math.sin(turn) * v
     o = c + off * side
