@@ -279,6 +279,40 @@ def add_sim_arm(
         )  # fmt: skip
 
 
+def add_physics(parser: argparse.ArgumentParser, *, when: str | None = "with --sim") -> None:
+    """``--physics EFFECTS``: the simulated arm's physics, as :meth:`sim_bus.physics.Physics.of`
+    reads it (``when``: the condition it goes with; None: ``hrm sim``'s own arm)."""
+    parser.add_argument(
+        "--physics", default=None, metavar="EFFECTS",
+        help=when_prefix(
+            when, "the simulated arm's physics: all, none or effects joined by commas "
+            "(gravity, capstan, creep, backlash, sensor; defaults in docs/sim.md); default none",
+        ),
+    )  # fmt: skip
+
+
+def sim_physics(spec: str | None, sim: bool = True) -> Any:
+    """The :class:`sim_bus.physics.Physics` of ``--physics`` (None: not given); a bad
+    value, or one without ``--sim`` (``sim``), is one line
+    (:class:`~hrm_ctrl.errors.SimError`).
+
+    >>> sim_physics("gravity,capstan").describe(), sim_physics(None)
+    ('gravity,capstan', None)
+    >>> sim_physics("gravity", sim=False)
+    Traceback (most recent call last):
+    ...
+    hrm_ctrl.errors.SimError: --physics describes the simulated arm: it goes with --sim
+    """
+    from hrm_ctrl.errors import SimError
+    from sim_bus.physics import Physics
+
+    if spec is None:
+        return None
+    if not sim:
+        raise SimError("--physics describes the simulated arm: it goes with --sim")
+    return Physics.of(spec)
+
+
 # ------------------------------------------------------------------------ plans, runs
 def add_step(parser: argparse.ArgumentParser) -> None:
     """``--step MM``: the planner's lambda."""
@@ -367,6 +401,7 @@ def add_console_box(parser: argparse.ArgumentParser) -> None:
     runs go, ``--take-over``."""
     add_bus(parser)
     add_sim(parser, wire=True, arm=SimArm.NONE, process=True)
+    add_physics(parser)
     add_robot(parser)
     add_calibration(parser, Uncalibrated.DRIVES)
     add_log(parser, what="where each session's CAN logs and run record go")

@@ -65,9 +65,11 @@ from hrm_ctrl.cli._options import (
     add_calibration,
     add_json,
     add_log,
+    add_physics,
     add_robot,
     add_run_controls,
     add_sim,
+    sim_physics,
 )
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.runtime.playback import refuse_collision  # noqa: F401  (its old home)
@@ -83,6 +85,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_bus(parser, take_over=True)  # --config, --bus, --take-over
     add_robot(parser)
     add_sim(parser, wire=True, arm=SimArm.PERTURB_OR_TRUTH, process=True)  # --sim, --wire, ...
+    add_physics(parser)  # --physics EFFECTS, as hrm sim --physics
     add_calibration(parser, Uncalibrated.DRIVES)
     add_log(parser)  # --log-dir, --log-format
     add_run_controls(parser)  # --speed, --pause-at, --resume-after, --abort-at, --allow-collision
@@ -97,8 +100,7 @@ def register(parser: argparse.ArgumentParser) -> None:
         "--compensate", action="store_true",
         help="feed-forward: command the rope lengths that hold each planned pose against "
         "gravity, rope stretch, capstan friction and joint play (the description's "
-        "[physics]; off by default: an arm without those loads is bent by it; with --sim "
-        "only: the rope-consistency watch then checks nothing)",
+        "[physics]; off by default: an arm without those loads is bent by it)",
     )  # fmt: skip
     add_json(parser, "the summary")
 
@@ -145,18 +147,14 @@ def run(args: argparse.Namespace) -> int:
     from hrm_ctrl.cli._progress import wanted as progress_wanted
     from hrm_ctrl.cli._runcontrol import RunDisplay, RunDriver, RunScript, write_run_tensions
     from hrm_ctrl.model import load_robot
-    from hrm_ctrl.runtime.box import SessionOptions, open_box
+    from hrm_ctrl.runtime.box import SessionOptions, WatchOptions, open_box
     from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
 
     if not (math.isfinite(args.speed) and args.speed > 0):
         raise DriverError(f"--speed must be > 0 mm/s, got {args.speed}")
     if not args.sim and (args.perturb is not None or args.truth is not None):
         raise DriverError("--perturb and --truth describe the simulated arm: they go with --sim")
-    if args.compensate and not args.sim:
-        raise DriverError(
-            "--compensate goes with --sim: the rope-consistency watch cannot yet check "
-            "compensated setpoints, and a real box is not run without it"
-        )
+    physics = sim_physics(args.physics, args.sim)  # a bad one refused before anything is read
     refuse_overwriting_inputs(  # before anything is read or written
         [Output("--log-dir", args.log_dir, folder=True)],
         [
@@ -189,18 +187,12 @@ def run(args: argparse.Namespace) -> int:
     sim = None
     if args.sim:  # the simulated arm: the description's, or one that differs from it
         sim = SimulatedBox(
-            simulated_arm(arm, perturb=args.perturb, truth_file=args.truth), args.wire
+            simulated_arm(arm, perturb=args.perturb, truth_file=args.truth, physics=physics),
+            args.wire,
         )
     arm.say_calibration(
         "hrm run"
     )  # --sim or --uncalibrated without a calibration: said once all checks passed
-    if args.compensate and setpoints is not None:
-        print(
-            "hrm run: --compensate: the rope-consistency watch cannot check compensated "
-            "setpoints (they fit no configuration at the pretension) and skips them; the "
-            "tension watch runs",
-            file=sys.stderr,
-        )
     options = SessionOptions(
         log_dir=args.log_dir,
         log_suffix=f".{args.log_format}",
@@ -218,7 +210,11 @@ def run(args: argparse.Namespace) -> int:
     driver = None
     stop: SafetyStopError | None = None
     bring_up = lambda session: bring_up_with_progress(session, enabled=show)  # noqa: E731
-    with open_box(config, actuation, options, sim=sim, bring_up=bring_up, prog="hrm run") as opened:
+    # a compensated plan: the rope consistency watch takes what the feed-forward added off
+    watches = WatchOptions(compensation=playback.compensation)
+    with open_box(
+        config, actuation, options, sim=sim, watches=watches, bring_up=bring_up, prog="hrm run"
+    ) as opened:
         box = opened.session
         if isinstance(source, PausableSource):
             display = RunDisplay(source, setpoints, box, actuation.robot, opened.watches)

@@ -248,6 +248,79 @@ REFERENCE_ITERATIONS = 3  # Newton steps per reference solve, warm-started at th
 SETTLE_S = 0.05
 
 
+# A commanded row counts as on a compensated table's path within this distance (counts,
+# the whole arm's): a pausable playback's setpoints leave the rows' polyline by their
+# rounding (2 counts) and its cubic between rows (an eighth of a row's second difference:
+# 4 counts on the compensated bent pipe)
+ON_PATH_COUNTS = 8.0
+# Rows searched for a commanded row either side of the last one found (a playback moves at
+# most a row per control period: at 20 Hz, 5 rows a check; a pause or a way back less)
+SEARCH_ROWS = 64
+# Rows behind the commanded one (and ahead) searched for the feedback's place on the path:
+# the drives lag their targets by a period or two
+LAG_ROWS = 10
+LEAD_ROWS = 2
+
+
+@dataclass(frozen=True, eq=False)
+class Compensation:
+    """What a feed-forward (:mod:`hrm_ctrl.ropes.feedforward`) added to the rows of a
+    table the drives play: ``counts`` (rows, n) the commanded rows, ``added`` (rows, n)
+    what the compensation added to each (``counts - added``: the rows at the pretension,
+    each one configuration).  Its place along the rows (:meth:`locate`) tells what was
+    added to a setpoint between two rows, or to a feedback sample that lags them.
+
+    >>> rows = np.array([[0, 0], [10, 0], [20, 0]]); added = np.array([[0, 0], [2, 4], [4, 8]])
+    >>> comp = Compensation.of(rows, added)
+    >>> comp.locate(np.array([15, 1]), 0, 3)
+    (1, 0.5, 1.0)
+    >>> comp.added_at(1, 0.5).tolist()
+    [3.0, 6.0]
+    """
+
+    counts: np.ndarray
+    added: np.ndarray
+
+    @classmethod
+    def of(cls, counts: Any, added: Any) -> Compensation:
+        c = np.asarray(counts, dtype=np.int64)
+        a = np.asarray(added, dtype=np.int64)
+        if c.ndim != 2 or c.shape != a.shape or c.shape[0] < 1:
+            raise RopeError(
+                f"compensation: rows and what was added must be (rows, n) alike, got "
+                f"{c.shape} and {a.shape}"
+            )
+        return cls(c, a)
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.counts.shape[0])
+
+    def locate(self, counts: np.ndarray, lo: int, hi: int) -> tuple[int, float, float]:
+        """``(row, s, distance)``: the point of the rows' polyline nearest ``counts`` (n)
+        among the segments from rows ``lo`` .. ``hi - 1`` (clipped to the table), at ``s``
+        (0..1) of the way from ``row`` to the next, ``distance`` counts away."""
+        n = self.n_rows
+        lo = max(0, min(lo, n - 1))
+        hi = max(lo + 1, min(hi, n))
+        a = self.counts[lo:hi].astype(np.float64)
+        b = self.counts[lo + 1 : hi + 1].astype(np.float64)
+        if b.shape[0] < a.shape[0]:  # the last row: a segment of no length
+            b = np.vstack([b, a[-1:]])
+        d = b - a
+        x = np.asarray(counts, dtype=np.float64) - a
+        dd = np.einsum("rk,rk->r", d, d)
+        s = np.clip(np.einsum("rk,rk->r", x, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+        dist = np.sqrt(np.einsum("rk,rk->r", x - s[:, None] * d, x - s[:, None] * d))
+        k = int(np.argmin(dist))
+        return lo + k, float(s[k]), float(dist[k])
+
+    def added_at(self, row: int, s: float) -> np.ndarray:
+        """What was added at ``s`` of the way from ``row`` to the next (n, float)."""
+        nxt = min(row + 1, self.n_rows - 1)
+        return self.added[row] + s * (self.added[nxt] - self.added[row])
+
+
 class RopeConsistencyCheck:
     """The estimator's per-rope consistency flag as a watch on feedback samples.
 
@@ -262,6 +335,17 @@ class RopeConsistencyCheck:
     :attr:`gated`), nor are those of the next ``settle_s`` (the drives lag their
     targets), and the filter restarts from the next sample.  A rope fault shows in
     the feedback only: a slipped, broken or offset rope, or an encoder that is off.
+
+    A compensated playback (``compensation``, :class:`Compensation`: the feed-forward's
+    rows and what it added to each) fits no configuration at the pretension; what it
+    added is taken off first.  The reference is found on the rows' path near the last
+    one found (within :data:`ON_PATH_COUNTS`; off it, a lead-in, it is checked as it is:
+    counted in :attr:`off_path`) and the feedback where it stands on that path, up to
+    :data:`LAG_ROWS` behind (the drives lag their targets, and what was added changes
+    along the rows: taking the reference's row for a feedback a row behind read 4.8 on
+    the compensated bent pipe, two rows behind stopped it); each less what was added
+    there.  A rope that is off is off in the feedback either way and is caught as without
+    compensation.
 
     >>> from hrm_ctrl.model import default_robot
     >>> from hrm_ctrl.ropes.actuation import load_actuation
@@ -288,6 +372,7 @@ class RopeConsistencyCheck:
         *,
         gate_sigma: float = GATE_SIGMA,
         settle_s: float = SETTLE_S,
+        compensation: Compensation | None = None,
         **estimator_options: Any,
     ) -> None:
         if not (np.isfinite(gate_sigma) and gate_sigma > 0):
@@ -308,6 +393,10 @@ class RopeConsistencyCheck:
         self._ref: np.ndarray | None = None
         self._ref_ok = False
         self._warm: tuple[np.ndarray, np.ndarray] | None = None
+        self.compensation = compensation
+        self.compensated = 0  # samples with what the feed-forward added taken off
+        self.off_path = 0  # compensated playback, a reference not on its rows: as it is
+        self._row = 0  # the row the last reference was found at
 
     def reference_consistent(self, reference: Any) -> bool:
         """Whether commanded counts are one configuration (within ``gate_sigma``)."""
@@ -338,8 +427,32 @@ class RopeConsistencyCheck:
         self._ref_ok = bool(np.all(np.abs(zstd) <= self.gate_sigma))
         return self._ref_ok
 
+    def uncompensated(self, counts: Any, reference: Any) -> tuple[np.ndarray, np.ndarray]:
+        """A feedback sample and its reference less what the feed-forward added where each
+        stands on the compensated rows' path (as they are when the reference is off it)."""
+        comp = self.compensation
+        fb = np.asarray(counts, dtype=np.int64)
+        ref = np.asarray(reference, dtype=np.int64)
+        if comp is None:
+            return fb, ref
+        row, s, dist = comp.locate(ref, self._row, self._row + SEARCH_ROWS)
+        if dist > ON_PATH_COUNTS:  # not ahead: a pause, a way back
+            row, s, dist = comp.locate(ref, self._row - SEARCH_ROWS, self._row + 1)
+        if dist > ON_PATH_COUNTS:
+            self.off_path += 1
+            return fb, ref
+        self._row = row
+        f_row, f_s, _ = comp.locate(fb, row - LAG_ROWS, row + LEAD_ROWS + 1)
+        self.compensated += 1
+        return (
+            fb - np.rint(comp.added_at(f_row, f_s)).astype(np.int64),
+            ref - np.rint(comp.added_at(row, s)).astype(np.int64),
+        )
+
     def check(self, counts: Any, reference: Any = None) -> str | None:
         """One feedback sample: a one-line fault, or None (see the class docstring)."""
+        if reference is not None and self.compensation is not None:
+            counts, reference = self.uncompensated(counts, reference)
         if reference is not None and not self.reference_consistent(reference):
             self.gated += 1
             self._restart = True
@@ -381,4 +494,7 @@ class RopeConsistencyCheck:
             "gate_sigma": self.gate_sigma,
             "settle_samples": self.settle_samples,
             "rate_hz": 1.0 / self.estimator.dt_s,
+            "compensated": None
+            if self.compensation is None
+            else {"samples": self.compensated, "off_path": self.off_path},
         }

@@ -130,6 +130,10 @@ class PlanSetpoints:
     law_duration_s: float = 0.0
     #: rows at the first step, at rest, that bring a feed-forward in (0 without one)
     ramp_rows: int = 0
+    #: (cycles, motors) int64 what a feed-forward added to each row (None without one):
+    #: ``counts - compensation_counts`` are the rows' counts at the pretension, each one
+    #: configuration (what the rope-consistency watch checks a compensated run against)
+    compensation_counts: np.ndarray | None = None
 
     @property
     def n_cycles(self) -> int:
@@ -304,7 +308,9 @@ def plan_setpoints(
     _check_duration(traj.duration_s, speed_mm_per_s, max_duration_s, period_s, where)
     counts, step_of_row, t = traj.counts, traj.step_of_row, traj.time_s
     sigma, step_t, ramp = traj.sigma_mm, traj.step_time_s, 0
+    added: np.ndarray | None = None
     if feedforward is not None:
+        plain = counts
         counts, step_counts = _compensated(feedforward, path, sigma, counts, t, step_t, period_s)
         _check_positions(actuation, step_counts, lambda k: _step_label(travel, k), where)
         ramp = max(1, round(FEEDFORWARD_RAMP_S / period_s))
@@ -312,8 +318,11 @@ def plan_setpoints(
         s = np.arange(ramp, dtype=np.float64)[:, None] / ramp
         blend = s**3 * (10.0 - 15.0 * s + 6.0 * s**2)  # smootherstep: from and to rest
         ramp_rows = np.rint(plain_first + blend * (counts[0] - plain_first)).astype(np.int64)
+        plain = np.concatenate([np.repeat(plain_first[None, :], ramp, axis=0), plain])
         counts = np.concatenate([ramp_rows, counts])
         counts.setflags(write=False)
+        added = counts - plain
+        added.setflags(write=False)
         step_of_row = np.concatenate([np.zeros(ramp, step_of_row.dtype), step_of_row])
         t = np.concatenate([np.arange(ramp) * period_s, t + ramp * period_s])
         sigma = np.concatenate([np.full(ramp, sigma[0]), sigma])
@@ -341,6 +350,7 @@ def plan_setpoints(
         path=path,
         law_duration_s=traj.law_duration_s + ramp * period_s,
         ramp_rows=ramp,
+        compensation_counts=added,
     )
 
 

@@ -51,6 +51,7 @@ if TYPE_CHECKING:
     from drivers.safety.watches import FeedbackWatches
     from drivers.session import CalibrationRef, DriveSession
     from hrm_ctrl.ropes.actuation import Actuation
+    from hrm_ctrl.ropes.estimator import Compensation
 
 
 @dataclass(frozen=True)
@@ -77,12 +78,15 @@ class WatchOptions:
     """Which feedback watches run while the drives are enabled: the tension board's (when
     the configuration has a ``[tension]`` table) and the rope consistency check; the
     tension watch's ``grace_s`` for the board's first frame; the rope layer they watch
-    (``actuation``; None: the session's)."""
+    (``actuation``; None: the session's); what a feed-forward added to the rows played
+    (``compensation``, :class:`hrm_ctrl.ropes.estimator.Compensation`; None: nothing),
+    which the rope consistency check takes off."""
 
     tension: bool = True
     ropes: bool = True
     grace_s: float = 0.0
     actuation: Actuation | None = None
+    compensation: Compensation | None = None
 
 
 NO_WATCHES = WatchOptions(tension=False, ropes=False)
@@ -230,6 +234,7 @@ def open_box(
                             ropes=watches.ropes,
                             start=False,
                             grace_s=watches.grace_s,
+                            compensation=watches.compensation,
                         )
                     )
                 else:

@@ -31,6 +31,7 @@ if TYPE_CHECKING:
     from hrm_ctrl.formats.planfile import PlanDoc
     from hrm_ctrl.model import RobotModel
     from hrm_ctrl.ropes.actuation import Actuation
+    from hrm_ctrl.ropes.estimator import Compensation
     from hrm_ctrl.ropes.setpoints import PlanSetpoints
 
 
@@ -194,6 +195,17 @@ class Playback:
     hold_s: float | None
     plan_record: dict[str, Any]
     setpoints: PlanSetpoints | None = None
+
+    @property
+    def compensation(self) -> Compensation | None:
+        """What a feed-forward added to the plan's rows (None: nothing), for the rope
+        consistency watch (:class:`hrm_ctrl.runtime.box.WatchOptions`) to take off."""
+        from hrm_ctrl.ropes.estimator import Compensation
+
+        sp = self.setpoints
+        if sp is None or sp.compensation_counts is None:
+            return None
+        return Compensation.of(sp.counts, sp.compensation_counts)
 
 
 def setpoint_source(

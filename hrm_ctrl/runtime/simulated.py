@@ -228,12 +228,17 @@ class SimulatedArm:
 
 
 def simulated_arm(
-    arm: Arm, *, perturb: int | None = None, truth_file: Path | None = None
+    arm: Arm,
+    *,
+    perturb: int | None = None,
+    truth_file: Path | None = None,
+    physics: Physics | None = None,
 ) -> SimulatedArm:
     """The simulated arm under ``arm``: the robot description's (links too, not the
     calibration's), or one that differs from it (``perturb``: a seeded
     :meth:`sim_bus.truth.TrueArm.perturbed`; ``truth_file``: :func:`sim_bus.truth.read_truth`),
-    its motors at the active calibration's zeros (a box that calibration zeroed)."""
+    its motors at the active calibration's zeros (a box that calibration zeroed), with
+    ``physics`` (:class:`sim_bus.physics.Physics`; None: none)."""
     from hrm_ctrl.ropes.actuation import load_actuation
     from sim_bus.truth import TrueArm, read_truth
 
@@ -244,7 +249,7 @@ def simulated_arm(
     elif truth_file is not None:
         truth = read_truth(truth_file, physical)
     counts = calibration_counts(None if arm.active is None else arm.active.calibration, physical)
-    return SimulatedArm(physical, truth, counts)
+    return SimulatedArm(physical, truth, counts, physics)
 
 
 @dataclass(frozen=True)

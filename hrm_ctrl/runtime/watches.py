@@ -32,6 +32,7 @@ if TYPE_CHECKING:
     from drivers.run_record import CalibrationRef
     from drivers.session import DriveSession
     from drivers.tension_sensor import TensionSensorReader
+    from hrm_ctrl.ropes.estimator import Compensation
 
 SUSPECT_AFTER_ENABLE_S = 5.0  # "right after the enable": the drives have just taken hold
 
@@ -105,12 +106,15 @@ def watches_of(
     tension: bool = True,
     ropes: bool = True,
     grace_s: float = 0.0,
+    compensation: Compensation | None = None,
 ) -> FeedbackWatches:
     """The watches of ``session``, not started: the tension board's over ``reader`` (None:
     its port opened here, closed when the watches stop; a bad port is refused now) when
     the configuration has a ``[tension]`` table and ``tension``, and the rope consistency
     check when ``ropes``.  ``grace_s``: how long after its start the tension watch waits
-    for the board's first frame (0: the port has been open since before the bring-up)."""
+    for the board's first frame (0: the port has been open since before the bring-up).
+    ``compensation``: what a feed-forward added to the rows played, taken off before the
+    consistency check (:class:`~hrm_ctrl.ropes.estimator.RopeConsistencyCheck`)."""
     from drivers.safety.causes import StopKind
     from drivers.safety.watches import ROPE_EVERY_CYCLES, RopeWatch
     from drivers.tension_sensor import TensionSensorReader, TensionWatch
@@ -162,7 +166,7 @@ def watches_of(
         watches.add("tension", watch, close=close)
     if ropes:
         period_s = config.control.period_s * ROPE_EVERY_CYCLES
-        check = RopeConsistencyCheck(actuation, rate_hz=1.0 / period_s)
+        check = RopeConsistencyCheck(actuation, rate_hz=1.0 / period_s, compensation=compensation)
         watches.add(
             "rope_consistency",
             RopeWatch(monitor, check, lambda: session.supervisor.targets, period_s),
@@ -180,16 +184,25 @@ def feedback_watches(
     ropes: bool = True,
     start: bool = True,
     grace_s: float = 0.0,
+    compensation: Compensation | None = None,
 ) -> Iterator[FeedbackWatches]:
     """The watches of ``box`` (a :class:`drivers.session.DriveSession`,
     :func:`watches_of`): the tension board's port is opened at once (a bad port is
     refused before anything is sent), the watches start now (``start``) or when the
     caller calls ``.start()`` after the bring-up; on leaving they stop and their summaries
     go into the run record.  ``tension`` / ``ropes`` False leave a watch out (the
-    benchmark compares them)."""
+    benchmark compares them); ``compensation`` as for :func:`watches_of`."""
     watches = FeedbackWatches(scheduling=box.thread_scheduling)
     try:
-        watches = watches_of(config, actuation, box, tension=tension, ropes=ropes, grace_s=grace_s)
+        watches = watches_of(
+            config,
+            actuation,
+            box,
+            tension=tension,
+            ropes=ropes,
+            grace_s=grace_s,
+            compensation=compensation,
+        )
         if start:
             watches.start()
         yield watches

@@ -85,6 +85,7 @@ def build_context(args: argparse.Namespace, prog: str) -> ConsoleContext:
         robot_input,
         shipped_inputs,
     )
+    from hrm_ctrl.cli._options import sim_physics
     from hrm_ctrl.model import load_robot
     from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm, start_simulated_box
 
@@ -97,6 +98,7 @@ def build_context(args: argparse.Namespace, prog: str) -> ConsoleContext:
             *shipped_inputs(eds=True),
         ],
     )
+    physics = sim_physics(args.physics, args.sim)  # a bad one refused before anything
     config = load_box(args)  # --config with the --bus overrides
     arm = arm_from_args(args, load_robot(args.robot), prog=prog, simulated=args.sim)
     config.check_motors(arm.actuation.motor_ids)
@@ -104,7 +106,8 @@ def build_context(args: argparse.Namespace, prog: str) -> ConsoleContext:
     arm.say_note()
     sim = None
     if args.sim:  # the simulated arm: the description's (links too), not the calibration's
-        running = start_simulated_box(config, SimulatedBox(simulated_arm(arm), args.wire), prog)
+        box = SimulatedBox(simulated_arm(arm, physics=physics), args.wire)
+        running = start_simulated_box(config, box, prog)
         config, sim = running.config, running.sim
     ctx = ConsoleContext(
         config=config,
