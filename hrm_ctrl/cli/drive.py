@@ -41,6 +41,7 @@ from hrm_ctrl.cli._options import (
     add_calibration,
     add_json,
     add_log,
+    add_physics,
     add_robot,
     add_sim,
 )
@@ -84,11 +85,7 @@ def register(p: argparse.ArgumentParser) -> None:
     add_sim(p, wire=True, arm=SimArm.NONE, process=True)
     add_bus(p, overrides=False)
     add_calibration(p)
-    p.add_argument(
-        "--physics", default=None, metavar="EFFECTS",
-        help="with --sim: the simulated arm's physics, as hrm sim --physics (all, none or "
-        "effects joined by commas: gravity, capstan, creep, backlash, sensor); default none",
-    )  # fmt: skip
+    add_physics(p)  # --physics EFFECTS, as hrm sim --physics
     add_log(p, when="with --sim")
     add_json(p, "the summary")
 

@@ -40,7 +40,7 @@ from hrm_ctrl.cli._common import (
     refuse_overwriting_inputs,
     robot_input,
 )
-from hrm_ctrl.cli._options import SimArm, add_bus, add_robot, add_sim_arm
+from hrm_ctrl.cli._options import SimArm, add_bus, add_physics, add_robot, add_sim_arm
 from hrm_ctrl.errors import SimError
 
 HELP = "run the simulated manipulator box (CiA 402 drives, arm, tension board) on the buses"
@@ -65,13 +65,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
     )
-    parser.add_argument(
-        "--physics",
-        default=None,
-        metavar="EFFECTS",
-        help="the arm's physics: all, none or effects joined by commas (gravity, capstan, "
-        "creep, backlash, sensor; defaults in docs/sim.md); default none",
-    )
+    add_physics(parser, when=None)  # --physics EFFECTS
     parser.add_argument(
         "--tension-rate",
         type=float,

@@ -23,7 +23,7 @@ SHARED = (
     "--json", "--out", "--robot", "--calibrations", "--uncalibrated", "--config", "--bus",
     "--take-over", "--log-dir", "--log-format", "--sim", "--wire", "--perturb", "--truth",
     "--speed", "--pause-at", "--resume-after", "--abort-at", "--allow-collision",
-    "--target-N", "--tol-N", "--max-travel-counts", "--sweep-N", "--steps",
+    "--target-N", "--tol-N", "--max-travel-counts", "--sweep-N", "--steps", "--physics",
 )  # fmt: skip
 
 
