@@ -5,7 +5,9 @@ While the drives are enabled, two threads beside the supervisor watch the arm
 a ``[tension]`` table (the simulated box's board on ``--sim``), and the rope layer's
 consistency check (:class:`hrm_ctrl.ropes.estimator.RopeConsistencyCheck`, injected into
 the drivers' :class:`~drivers.safety.watches.RopeWatch`) on the feedback every
-``ROPE_EVERY_CYCLES`` control periods.  Either reports through the session's monitor,
+``ROPE_EVERY_CYCLES`` control periods (on a compensated plan less what the feed-forward
+added, :class:`~hrm_ctrl.ropes.estimator.Compensation`).  Either reports through the
+session's monitor,
 and the supervisor stops every axis; the run record keeps their summaries
 (``watches``).
 

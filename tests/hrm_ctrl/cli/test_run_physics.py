@@ -140,3 +140,37 @@ def test_the_bent_pipe_on_the_physical_arm_stops_in_its_lead_in(
     sp = record["setpoints"]
     assert sp["compensated"] is True
     assert sp["stopped_at_row"] < sp["lead_in_cycles"], sp  # measured: row 24 of 48
+
+
+def test_a_compensated_run_on_a_real_box_is_watched_with_its_compensation(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--compensate`` on real buses: the rope-consistency watch gets what the
+    feed-forward added to every row (it checks the compensated setpoints, so a real box
+    is no longer refused the compensation), as on the simulated box."""
+    import numpy as np
+
+    from hrm_ctrl.runtime import box as runtime_box
+
+    seen: dict[str, Any] = {}
+
+    class OpenedError(Exception):
+        pass
+
+    def fake_open_box(*args: Any, **kw: Any) -> Any:
+        seen.update(kw)
+        raise OpenedError
+
+    monkeypatch.setattr(runtime_box, "open_box", fake_open_box)
+    plan = tmp_path / "plan.json"
+    write_plan(plan, small_plan())
+    argv = ["run", str(plan), "--compensate", "--uncalibrated", "--log-dir", str(tmp_path / "r")]
+    with pytest.raises(OpenedError):
+        main(argv)
+    assert seen["sim"] is None  # the configured buses
+    comp = seen["watches"].compensation
+    assert comp is not None and comp.n_rows > 100  # the 1 s ramp-in and the plan
+    assert np.abs(comp.added).max() > 100  # it does add (the level arm's weight)
+    with pytest.raises(OpenedError):
+        main([*argv[:2], *argv[3:]])  # without --compensate: nothing to take off
+    assert seen["watches"].compensation is None

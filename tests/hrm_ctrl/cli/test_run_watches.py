@@ -178,3 +178,34 @@ def test_a_tension_threshold_outside_its_range_is_refused_before_any_bus_opens(
     assert rc == 2 and err.count("\n") == 1, err
     assert f"{box}: tension.slack_N must be in [0.5, 100] N, got 0.0" in err
     assert no_bus == [] and not logs.exists()
+
+
+@STALL_TOLERANT
+def test_a_shifted_encoder_stops_a_compensated_run_on_the_physical_arm(
+    tmp_path: Path, capsys: pytest.CaptureFixture, inject: Any
+) -> None:
+    """With every effect of the arm's physics on and the plan compensated, the
+    rope-consistency watch checks the compensated setpoints (it takes off what the
+    feed-forward added) and still catches an encoder 0.5 mm off."""
+    from hrm_ctrl.formats.planfile import write_plan
+    from tests.hrm_ctrl.cli.cli_helpers import small_plan
+
+    plan = tmp_path / "plan.json"
+    write_plan(plan, small_plan())
+    # 100 rows bring the compensation in (1 s at rest), then 15 mm of plan and its hold:
+    # 161 cycles in all.  The shift while the compensation comes in: the watch needs a few
+    # checks (its figure is averaged) and under load half its wakes find no snapshot of
+    # one SYNC (a shift at 110 was caught at 128 once and not before the end once)
+    inject(40, lambda box: box.shift_encoder("j05r1", 1075))
+    rc, (err, summary, record) = hrm_run(
+        [str(plan), "--physics", "all", "--compensate"], tmp_path, capsys
+    )
+    assert rc == 2, err
+    line = stop_line(err)
+    assert line.startswith("hrm run: stopped: rope consistency: joint 5, ropes "), line
+    assert "j05r1" in line and "lengths do not fit the other ropes" in line
+    assert_stopped(record, "rope", "joint 5")
+    assert 40 <= summary["cycles"] < 161
+    check = record["watches"]["rope_consistency"]["check"]
+    assert check["gated"] == 0 and check["compensated"]["samples"] == check["evaluations"]
+    assert record["watches"]["tension"]["fault"] is None

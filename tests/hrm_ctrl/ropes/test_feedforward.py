@@ -188,18 +188,3 @@ def test_the_compensated_bent_pipe_on_the_physical_arm() -> None:
     err, tmin = errors(gravity_only, Physics.of("gravity"))
     assert err.max() < 1.0, err.max()  # uncompensated: 181 mm
     assert tmin.min() > 5.0
-
-
-def test_hrm_run_refuses_compensation_on_a_real_box(
-    tmp_path: Any, capsys: pytest.CaptureFixture[str]
-) -> None:
-    """The rope-consistency watch skips compensated setpoints: a real box is not run so."""
-    from hrm_ctrl.formats.planfile import write_plan
-    from tests.hrm_ctrl.cli.cli_helpers import run_cli, small_plan
-
-    plan = tmp_path / "plan.json"
-    write_plan(plan, small_plan())
-    rc, out, err = run_cli(["run", str(plan), "--compensate", "--log-dir", str(tmp_path)], capsys)
-    assert rc == 2 and out == ""
-    assert err.count("\n") == 1 and "--compensate goes with --sim" in err, err
-    assert not list(tmp_path.glob("*.blf")) and not list(tmp_path.glob("*.log"))
