@@ -7,9 +7,8 @@ consistency check (:class:`hrm_ctrl.ropes.estimator.RopeConsistencyCheck`, injec
 the drivers' :class:`~drivers.safety.watches.RopeWatch`) on the feedback every
 ``ROPE_EVERY_CYCLES`` control periods (on a compensated plan less what the feed-forward
 added, :class:`~hrm_ctrl.ropes.estimator.Compensation`).  Either reports through the
-session's monitor,
-and the supervisor stops every axis; the run record keeps their summaries
-(``watches``).
+session's monitor, and the supervisor stops every axis; the run record keeps their
+summaries (``watches``).
 
 **The likely cause.**  When every rope of one joint is slack at once within
 :data:`SUSPECT_AFTER_ENABLE_S` of the enable while a calibration is in use, the tension
