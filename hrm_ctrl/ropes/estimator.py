@@ -257,8 +257,9 @@ ON_PATH_COUNTS = 8.0
 # most a row per control period: at 20 Hz, 5 rows a check; a pause or a way back less)
 SEARCH_ROWS = 64
 # Rows behind the commanded one (and ahead) searched for the feedback's place on the path:
-# the drives lag their targets by a period or two
-LAG_ROWS = 10
+# the drives lag their targets by a period or two; as far back as the session waits for a
+# missing TPDO on the simulated box (25 periods), so a slow drive is not misread as a rope
+LAG_ROWS = 25
 LEAD_ROWS = 2
 
 
