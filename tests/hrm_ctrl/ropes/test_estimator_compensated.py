@@ -78,7 +78,7 @@ def test_the_plain_check_skips_every_compensated_sample(bent_pipe: Played) -> No
     assert check.gated >= samples - 3 and check.evaluations <= 3, check.summary()
 
 
-@pytest.mark.parametrize("lag_rows", [0.0, 1.0, 1.5, 3.0])
+@pytest.mark.parametrize("lag_rows", [0.0, 1.0, 1.5, 3.0, 10.0])
 def test_with_what_was_added_every_compensated_sample_is_checked(
     bent_pipe: Played, lag_rows: float
 ) -> None:
