@@ -174,3 +174,22 @@ def test_a_compensated_run_on_a_real_box_is_watched_with_its_compensation(
     with pytest.raises(OpenedError):
         main([*argv[:2], *argv[3:]])  # without --compensate: nothing to take off
     assert seen["watches"].compensation is None
+
+
+def test_the_console_box_takes_the_physics(tmp_path: Path) -> None:
+    """``hrm status --sim --physics all`` (the console's ``connect`` and ``status`` once,
+    on the box the console starts): the level arm's weight on its ropes at power-on
+    (measured 17.6-54.1 N on joint 1's), 30 N each without physics."""
+    tensions = {}
+    for physics in ("all", "none"):
+        proc = subprocess.run(
+            [sys.executable, "-m", "hrm_ctrl.cli", "status", "--sim", "--physics", physics,
+             "--log-dir", str(tmp_path / physics), "--json"],
+            capture_output=True, text=True, timeout=280.0, stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        nodes = json.loads(proc.stdout)["nodes"]
+        tensions[physics] = [n["tension_N"] for n in nodes]
+    assert len(tensions["all"]) == 36
+    assert max(tensions["all"]) > 45.0 and min(tensions["all"]) < 20.0, tensions["all"]
+    assert all(abs(t - 30.0) < 1.0 for t in tensions["none"]), tensions["none"]
