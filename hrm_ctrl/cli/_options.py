@@ -301,7 +301,7 @@ def sim_physics(spec: str | None, sim: bool = True) -> Any:
     >>> sim_physics("gravity", sim=False)
     Traceback (most recent call last):
     ...
-    hrm_ctrl.errors.SimError: --physics describes the simulated arm: it goes with --sim
+    hrm_ctrl.errors.SimError: --physics goes with --sim
     """
     from hrm_ctrl.errors import SimError
     from sim_bus.physics import Physics
@@ -309,7 +309,7 @@ def sim_physics(spec: str | None, sim: bool = True) -> Any:
     if spec is None:
         return None
     if not sim:
-        raise SimError("--physics describes the simulated arm: it goes with --sim")
+        raise SimError("--physics goes with --sim")
     return Physics.of(spec)
 
 

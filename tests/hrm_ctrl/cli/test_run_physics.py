@@ -43,7 +43,7 @@ def bent_pipe_plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
         (["run", "--hold", "1", "--sim", "--physics", ""],
          "hrm run: error: physics '': name effects (all, none, gravity, ...)"),
         (["run", "--hold", "1", "--physics", "all"],
-         "hrm run: error: --physics describes the simulated arm: it goes with --sim"),
+         "hrm run: error: --physics goes with --sim"),
         (["console", "--sim", "--physics", "bogus"],
          f"hrm console: error: physics 'bogus': unknown effect 'bogus' {HAVE}"),
         (["sim", "--physics", "bogus"],
