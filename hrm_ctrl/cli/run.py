@@ -16,6 +16,11 @@ of the configuration elsewhere.
 (``hrm sim --control``; with ``--wire virtual`` or ``--wire hrm_sim`` in this process, on
 python-can virtual buses or the simulated wire at the configured bitrate) instead of
 opening the configured interfaces; nothing else changes (the drivers only see buses).
+``--physics EFFECTS`` gives the simulated arm the physics ``hrm sim --physics`` does
+(``all``, ``none``, ``gravity,capstan,...``; docs/sim.md).  ``--compensate`` plays the
+rope lengths that hold each planned pose against the arm's loads
+(``hrm_ctrl.ropes.feedforward``); the rope consistency check takes what that added off
+before it checks (``hrm_ctrl.ropes.estimator.Compensation``).
 
 Calibration (issue 12): the rope layer is built with the active calibration of the store
 (``--calibrations DIR``, default ``$HRM_CALIBRATIONS`` or
@@ -33,8 +38,8 @@ unless ``--allow-collision`` (then a stderr line says so).
 >>> p = argparse.ArgumentParser(prog="hrm run")
 >>> register(p)
 >>> a = p.parse_args(["plan.json", "--sim", "--speed", "50"])
->>> str(a.plan), a.sim, a.speed, a.compensate
-('plan.json', True, 50.0, False)
+>>> str(a.plan), a.sim, a.speed, a.compensate, a.physics
+('plan.json', True, 50.0, False, None)
 """
 
 from __future__ import annotations
