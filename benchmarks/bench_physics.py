@@ -20,9 +20,17 @@ its distance from the planned end point (the FK of the commanded configuration: 
 physics alone moves it by) max and rms; where it ends after returning; the arm state's
 CPU (``time.thread_time``) per cycle, median and p99.
 
+With ``--shape`` the compensated runs also read the arm's shape from the tension board
+every cycle (``hrm_ctrl.ropes.tension_shape``, the friction tracked from the commanded
+travel; its error against the simulated arm's rope-held angles max and median from the
+ramp-in on, and its CPU per cycle); with ``--loop-gain G,...`` they close the loop on it
+(each cycle the counts move by ``-G J dq`` of rope length, at most 0.01 mm per rope per
+cycle; 0: the estimate alone), one run per gain.
+
 Run: ``python benchmarks/bench_physics.py [--scenario bent-pipe] [--effects all,gravity]
-[--counts plain,compensated] [--terms gravity,capstan,backlash]``; prints JSON
-(``feedforward_s``: the compensation's CPU, planning without it subtracted).
+[--counts plain,compensated] [--terms gravity,capstan,backlash] [--shape]
+[--loop-gain 0,0.05]``; prints JSON (``feedforward_s``: the compensation's CPU, planning
+without it subtracted).
 """
 
 from __future__ import annotations
@@ -97,7 +105,8 @@ def motion(
         cpu += time.process_time() - t0
     a, t = sp.row_angles()
     planned_tip = joint_centres(robot, a, t)[:, -1]
-    ha, ht = Feedforward.of(act).held_angles(a, t)  # what the shape estimate aims at
+    on = {t: t in (terms or TERMS) for t in TERMS}
+    ha, ht = Feedforward.of(act, **on).held_angles(a, t)  # what the shape estimate aims at
     held = np.stack([ha, ht], axis=1)
     held = np.concatenate([np.repeat(held[:1], LEAD_IN_CYCLES + HOLD_CYCLES, 0), held])
     straight = act.counts_from_angles(np.zeros(12), np.zeros(12)).astype(float)
@@ -119,19 +128,22 @@ def run(
     held: np.ndarray | None = None,
     loop_gain: float = 0.0,
     loop_rate_mm: float = LOOP_RATE_MM,
+    terms: frozenset[str] = frozenset(TERMS),
 ) -> dict[str, Any]:
     """One run through the arm; with ``held`` (cycles, 2, 12) the tension-based shape
     estimate (:class:`TensionShape`) runs every cycle from the feed-forward's ramp-in
     (scored against the simulated arm's rope-held angles), and with ``loop_gain`` > 0
     each cycle's counts are corrected by ``-loop_gain J dq`` (rope lengths, at most
-    ``loop_rate_mm`` per rope per cycle) accumulated from its estimates."""
+    ``loop_rate_mm`` per rope per cycle) accumulated from its estimates; the estimate's
+    friction and play as the feed-forward's ``terms`` say."""
     act = load_actuation(default_robot())
     physics = Physics.of(variant.replace("+", ","))
     arm = SimArm(act, physics=physics)
     tips = np.empty((len(counts), 3))
     cpu = np.empty(len(counts))
     tensions = np.empty((len(counts), len(counts[0])))
-    shape = TensionShape(Feedforward.of(act)) if held is not None else None
+    on = {t: t in terms for t in TERMS}
+    shape = TensionShape(Feedforward.of(act, **on)) if held is not None else None
     est_err: list[float] = []
     est_cpu: list[float] = []
     du = np.zeros(act.n_motors)
@@ -242,7 +254,8 @@ def main(argv: list[str] | None = None) -> int:
             for v in variants:
                 for g in gains if mode == "compensated" and gains else [0.0]:
                     rows.append({"counts": mode, **run(v, sc, counts, planned, start,
-                                                       held if shape else None, g)})  # fmt: skip
+                                                       held if shape else None, g,
+                                                       terms=terms)})  # fmt: skip
                     if mode == "compensated":
                         rows[-1]["feedforward_terms"] = ",".join(t for t in TERMS if t in terms)
                         rows[-1]["feedforward_s"] = round(ff_s, 3)

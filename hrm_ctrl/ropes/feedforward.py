@@ -511,9 +511,7 @@ class Feedforward:
         )  # fmt: skip
         return self._held(a, t, Qg)
 
-    def _held(
-        self, a: np.ndarray, t: np.ndarray, Qg: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def _held(self, a: np.ndarray, t: np.ndarray, Qg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ph = self.physics
         if not (self.backlash and self.gravity and ph.backlash_rad.any()):
             return a, t
