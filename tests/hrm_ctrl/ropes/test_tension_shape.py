@@ -74,6 +74,6 @@ def test_the_shape_of_a_held_pose_with_every_effect() -> None:
 
 
 def test_the_shape_under_gravity_alone_without_noise() -> None:
-    est, mean, tip_mm = _held_pose("gravity", 0.0)
+    est, _mean, tip_mm = _held_pose("gravity", 0.0)
     assert est < 0.3, est
     assert tip_mm < 0.1, tip_mm
