@@ -77,10 +77,8 @@ DEADLINE_MARGIN_S = 30.0
 REPORT_ENV = "HRM_VCAN_GUEST_REPORT"
 #: ``on``: a guest runs the SocketCAN tests where the kernel has no vcan; ``off``: they skip
 SWITCH_ENV = "HRM_VCAN_GUEST"
-#: the switch unset: off, because the kill test (``tests/drivers/test_canlog_durability.py``,
-#: ``hrm run`` on 36 drives at 10 Hz) failed in 5 of 20 of its runs in the guest with no
-#: pause of the guest its stall probe saw: the guest's one CPU was busy all through it
-#: (docs/hil.md)
+#: the switch unset: off; two guests at ``SCHED_FIFO`` take a 2-core machine's CPUs for
+#: about two minutes (docs/hil.md)
 SWITCH_DEFAULT = "off"
 #: how many guests run side by side (default :func:`guest_count`)
 COUNT_ENV = "HRM_VCAN_GUESTS"
@@ -89,9 +87,14 @@ COUNT_ENV = "HRM_VCAN_GUESTS"
 MODULE_COST_S = {
     "tests/hil/test_plugin_plan.py": 60.0,
     "tests/hil/test_plugin_faults.py": 15.0,
-    "tests/drivers/test_canlog_durability.py": 40.0,
+    "tests/drivers/test_canlog_durability.py": 25.0,
 }
 DEFAULT_COST_S = 3.0
+#: modules a guest runs after its others: the fault tests (``tests/hil/test_plugin_faults.py``)
+#: run after the kill test in the same guest failed 8 of 8 there (the box's heartbeats and
+#: tension frames 1-2 s old when the host's stream began, no pause of the guest seen) and
+#: all 8 passed after the bus tests; the cause is not found (docs/hil.md)
+RUN_LAST = ("tests/drivers/test_canlog_durability.py",)
 POLL_S = 0.2
 SHUTDOWN_TIMEOUT_S = 30.0
 LOG_TAIL_LINES = 40
@@ -136,10 +139,7 @@ def guest_unavailable() -> str | None:
     if switch not in ("on", "off"):
         raise pytest.UsageError(f"{SWITCH_ENV}={os.environ[SWITCH_ENV]!r}: expected on or off")
     if switch == "off":
-        return (
-            f"{SWITCH_ENV}=on runs them in a User-Mode-Linux guest (off by default: the kill"
-            " test's 36 drives saturate the guest's CPU; docs/hil.md)"
-        )
+        return f"{SWITCH_ENV}=on runs them in User-Mode-Linux guests (off by default: docs/hil.md)"
     if not sys.platform.startswith("linux"):
         return "the vcan guest is a Linux (User-Mode-Linux) guest"
     missing = [
@@ -188,10 +188,12 @@ def module_of(nodeid: str) -> str:
 def share_out(nodeids: Sequence[str], n: int) -> list[list[str]]:
     """The node ids in at most ``n`` groups of whole modules, the modules' costs
     (:data:`MODULE_COST_S`) as even as the longest first onto the lightest group makes
-    them; each group in the session's order.
+    them; each group in the session's order, the modules of :data:`RUN_LAST` last.
 
     >>> share_out(["a.py::x", "b.py::y", "a.py::z"], 2)
     [['a.py::x', 'a.py::z'], ['b.py::y']]
+    >>> share_out([f"{RUN_LAST[0]}::k", "b.py::y"], 1)
+    [['b.py::y', 'tests/drivers/test_canlog_durability.py::k']]
     """
     order = {nodeid: k for k, nodeid in enumerate(nodeids)}
     modules: dict[str, list[str]] = {}
@@ -207,7 +209,11 @@ def share_out(nodeids: Sequence[str], n: int) -> list[list[str]]:
         k = loads.index(min(loads))
         groups[k] += modules[module]
         loads[k] += cost(module)
-    return [sorted(g, key=order.__getitem__) for g in groups if g]
+
+    def place(nodeid: str) -> tuple[bool, int]:
+        return module_of(nodeid) in RUN_LAST, order[nodeid]
+
+    return [sorted(g, key=place) for g in groups if g]
 
 
 def guest_args(nodeids: Sequence[str], markexpr: str) -> list[str]:
