@@ -65,8 +65,8 @@ def _hrm(*args: str) -> list[str]:
 #: lowest rate a configuration may have (about 1,100 frames/s), the guest's one CPU was
 #: busy all through the run (``/proc/stat`` every 0.5 s: ``hrm run`` 20-100 %, the box
 #: 5-50 %, the sniffers' process 3-40 %) and the box's TPDOs went missing 5 cycles in 5 of
-#: 20 runs, and in all 4 with the drives' heartbeats at 500 ms, the sniffers taking the
-#: host's frames only and the box's tension board at 1 Hz (docs/hil.md).  ``hrm run``
+#: 20 runs, and in all 4 with the drives' heartbeats at 500 ms and the sniffers taking the
+#: host's frames only (2 with the box's tension board at 1 Hz too; docs/hil.md).  ``hrm run``
 #: drives the whole arm (a node for each of the 36 ropes; a robot of 2 ropes a joint is
 #: singular), so over SocketCAN there the process killed is what ``hrm run`` runs its
 #: drives with, a :class:`drivers.session.DriveSession` writing the same CAN logs
