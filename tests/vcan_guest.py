@@ -3,10 +3,11 @@
 A test needs vcan when one of its bus parameters (:data:`VCAN_PARAMS`) is ``"socketcan"``
 (the ``can_backend`` fixture, ``test_canlog_durability``'s ``wire_kind``, the HIL plugin's
 ``hrm_bus_kind``).  Where the kernel has ``vcan0`` and ``vcan1`` they run here like every
-other test.  Where it has not, ``HRM_VCAN_GUEST=on`` is set (off by default:
-:data:`SWITCH_DEFAULT`) and ``tools/vcan-guest/run-in-vcan-vm.sh`` can boot its guest
-(Debian's ``user-mode-linux``, ``kmod`` and ``iproute2`` installed), the session moves them
-to its end and runs them in :func:`guest_count` guests side by side (a guest has one CPU),
+other test.  Where it has not, ``HRM_VCAN_GUEST=on`` is set (off by default,
+:data:`SWITCH_DEFAULT`; ``.ci/run`` sets it) and ``tools/vcan-guest/run-in-vcan-vm.sh``
+can boot its guest (Debian's ``user-mode-linux``, ``kmod`` and ``iproute2`` installed),
+the session moves them to its end and runs them in :func:`guest_count` guests side by side
+(a guest has one CPU),
 each a pytest process with the same node ids over whole test modules (a module's fixtures
 stay in one guest), and each test's reports (setup, call, teardown, stall reruns) come back
 to this session as its own: the terminal, the summary and the exit status count them as if
@@ -78,7 +79,7 @@ REPORT_ENV = "HRM_VCAN_GUEST_REPORT"
 #: ``on``: a guest runs the SocketCAN tests where the kernel has no vcan; ``off``: they skip
 SWITCH_ENV = "HRM_VCAN_GUEST"
 #: the switch unset: off; two guests at ``SCHED_FIFO`` take a 2-core machine's CPUs for
-#: about two minutes (docs/hil.md)
+#: about two minutes (docs/hil.md); ``.ci/run`` sets it on
 SWITCH_DEFAULT = "off"
 #: how many guests run side by side (default :func:`guest_count`)
 COUNT_ENV = "HRM_VCAN_GUESTS"
@@ -139,7 +140,10 @@ def guest_unavailable() -> str | None:
     if switch not in ("on", "off"):
         raise pytest.UsageError(f"{SWITCH_ENV}={os.environ[SWITCH_ENV]!r}: expected on or off")
     if switch == "off":
-        return f"{SWITCH_ENV}=on runs them in User-Mode-Linux guests (off by default: docs/hil.md)"
+        return (
+            f"{SWITCH_ENV}=on runs them in User-Mode-Linux guests (off by default, on in CI:"
+            " docs/hil.md)"
+        )
     if not sys.platform.startswith("linux"):
         return "the vcan guest is a Linux (User-Mode-Linux) guest"
     missing = [
