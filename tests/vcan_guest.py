@@ -3,8 +3,8 @@
 A test needs vcan when one of its bus parameters (:data:`VCAN_PARAMS`) is ``"socketcan"``
 (the ``can_backend`` fixture, ``test_canlog_durability``'s ``wire_kind``, the HIL plugin's
 ``hrm_bus_kind``).  Where the kernel has ``vcan0`` and ``vcan1`` they run here like every
-other test.  Where it has not, ``HRM_VCAN_GUEST=on`` is set (off by default,
-:data:`SWITCH_DEFAULT`; ``.ci/run`` sets it) and ``tools/vcan-guest/run-in-vcan-vm.sh``
+other test.  Where it has not, ``HRM_VCAN_GUEST`` is not ``off`` (on by default,
+:data:`SWITCH_DEFAULT`) and ``tools/vcan-guest/run-in-vcan-vm.sh``
 can boot its guest (Debian's ``user-mode-linux``, ``kmod`` and ``iproute2`` installed),
 the session moves them to its end and runs them in :func:`guest_count` guests side by side
 (a guest has one CPU),
@@ -13,7 +13,7 @@ stay in one guest), and each test's reports (setup, call, teardown, stall reruns
 to this session as its own: the terminal, the summary and the exit status count them as if
 they had run here, a failure with its traceback and captured output.  A test a guest gave
 no report for (the guest did not boot, timed out, pytest in it ended early) fails, naming
-why, with the tail of that guest's output.  Without ``HRM_VCAN_GUEST=on``, or with a guest
+why, with the tail of that guest's output.  With ``HRM_VCAN_GUEST=off``, or with a guest
 that cannot be installed here, they skip, naming the reason.  A stall-tolerant test there is
 rerun only on a pause of the guest its stall probe saw (every :data:`GUEST_PROBE_PERIOD_S`).
 
@@ -78,9 +78,10 @@ DEADLINE_MARGIN_S = 30.0
 REPORT_ENV = "HRM_VCAN_GUEST_REPORT"
 #: ``on``: a guest runs the SocketCAN tests where the kernel has no vcan; ``off``: they skip
 SWITCH_ENV = "HRM_VCAN_GUEST"
-#: the switch unset: off; two guests at ``SCHED_FIFO`` take a 2-core machine's CPUs for
-#: about two minutes (docs/hil.md); ``.ci/run`` sets it on
-SWITCH_DEFAULT = "off"
+#: the switch unset: on wherever the guest's packages are installed (``.ci/run`` installs
+#: them); two guests at ``SCHED_FIFO`` take a 2-core machine's CPUs for about two minutes
+#: (docs/hil.md), which ``off`` spares
+SWITCH_DEFAULT = "on"
 #: how many guests run side by side (default :func:`guest_count`)
 COUNT_ENV = "HRM_VCAN_GUESTS"
 #: a guest's measured wall time per test of a module (the rest: :data:`DEFAULT_COST_S`),
@@ -141,8 +142,7 @@ def guest_unavailable() -> str | None:
         raise pytest.UsageError(f"{SWITCH_ENV}={os.environ[SWITCH_ENV]!r}: expected on or off")
     if switch == "off":
         return (
-            f"{SWITCH_ENV}=on runs them in User-Mode-Linux guests (off by default, on in CI:"
-            " docs/hil.md)"
+            f"{SWITCH_ENV}=off: they run in User-Mode-Linux guests unless it is off (docs/hil.md)"
         )
     if not sys.platform.startswith("linux"):
         return "the vcan guest is a Linux (User-Mode-Linux) guest"
