@@ -83,7 +83,7 @@ def test_a_simulated_calibration_stays_with_its_simulated_arm(
     # the file names the box: simulated, its drives' identities those of truth 3
     assert cal.box is not None and cal.box.simulated
     assert cal.box == simulated_box_identity(model, perturb=3)
-    assert json.loads(store.path_of(1).read_text())["format"] == "hrm-calibration/2"
+    assert json.loads(store.path_of(1).read_text())["format"] == "hrm-calibration/3"
 
     # history and show print the box
     assert main(["calibrate", "history"]) == 0
