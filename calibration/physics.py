@@ -91,7 +91,7 @@ from hrm_ctrl.ropes.feedforward import (
 from hrm_ctrl.ropes.length import lengths_and_jacobian
 
 N_JOINTS = 12
-DEFAULT_HOLDS = 22
+DEFAULT_HOLDS = 20
 CURL_RAD = 0.06  # each pose's bend of every joint alike, at most: the arm curled
 JITTER_RAD = 0.05  # and each angle's own, at most
 BEND_RAD = 0.15  # and BENT_AXES angles of each pose bent this far
@@ -100,9 +100,9 @@ APPROACH_RAD = 0.05  # the last move into a hold, every angle
 MIN_TRAVEL_MM = 0.18  # each rope's travel into a hold, at least (it slides after 0.15 mm)
 APPROACH_TRIES = 200
 SETTLE_S = 0.35  # held before the board is read: the box's equilibrium settles
-READ_S = 1.0  # the board read over this long per hold (20 fresh samples at 20 Hz)
+READ_S = 0.8  # the board read over this long per hold (16 fresh samples at 20 Hz)
 RATE_FRACTION = 0.3  # of the motor limits, the moves between holds
-BOARD_FRAMES_PER_S = 100  # the tension board's frames (fresh samples every 50 ms)
+MIN_FRAMES = 3  # a reading window with fewer frames is refused (a board that stalled)
 SHAPE_ITERATIONS = 8
 SHAPE_TOL_RAD = 1e-9
 FIT_ITERATIONS = 30
@@ -530,16 +530,43 @@ def calibrate_physics(
     counts = np.empty((holds, actuation.n_motors), dtype=np.int64)
     T = np.empty((holds, actuation.n_motors))
     settling = np.empty_like(T)
-    frames = max(2, round(read_s * BOARD_FRAMES_PER_S / 2))  # each half of the hold
     clock = BoardClock()
     limits = np.full(actuation.n_motors, float(actuation.command_tension_N[1]))
     with TensionGuard(session, tension, limits):
-        _drive(session, tension, actuation, plan, here, period_s, settle_s, frames, clock,
+        _drive(session, tension, actuation, plan, here, period_s, settle_s, read_s, clock,
                rate_fraction, rows, at_hold, counts, T, settling, progress)  # fmt: skip
     nu = mobilisation_along(actuation, np.array(rows))[at_hold]
     data = PhysicsData(plan.alpha, plan.theta, counts, T, settling, nu)
     fit = fit_physics(actuation, data, payload_kg=payload_kg)
     return PhysicsResult(plan, data, fit, time.monotonic() - t0)
+
+
+def read_window(
+    reader: TensionReader, motor_ids: tuple[str, ...], seconds: float, clock: BoardClock
+) -> np.ndarray:
+    """The mean tensions (n,) of the board's distinct frames measured within the next
+    ``seconds`` (the board's own time stamps through ``clock``): however many frames a
+    loaded host receives in that time (at least :data:`MIN_FRAMES`), each channel valid
+    (:func:`calibration.zero.read_tensions` checks the first)."""
+    first = read_tensions(reader, motor_ids, n_samples=1, clock=clock)
+    start = time.monotonic()
+    end = start + seconds
+    rows = [first.tensions_N]
+    last = None
+    while time.monotonic() < end:
+        s = reader.latest()
+        if s.seq != last:
+            last = s.seq
+            if clock.measured_s(s) >= start:
+                rows.append(np.asarray(s.tensions_N, dtype=float))
+        time.sleep(0.002)
+    t = np.stack(rows)
+    if len(rows) < MIN_FRAMES or not np.isfinite(t).all():
+        raise CalibrationDataError(
+            f"tension sensor {reader.port}: {len(rows)} valid frames in {seconds:g} s "
+            f"(at least {MIN_FRAMES})"
+        )
+    return t.mean(axis=0)
 
 
 def _drive(
@@ -550,7 +577,7 @@ def _drive(
     here: tuple[np.ndarray, np.ndarray],
     period_s: float,
     settle_s: float,
-    frames: int,
+    read_s: float,
     clock: BoardClock,
     rate_fraction: float,
     rows: list[np.ndarray],
@@ -579,10 +606,10 @@ def _drive(
         rows.extend(table)
         at_hold.append(len(rows) - 1)
         counts[k] = session.actual_positions()
-        a = read_tensions(tension, ids, n_samples=frames, clock=clock)
-        b = read_tensions(tension, ids, n_samples=frames, clock=clock)
-        T[k] = 0.5 * (a.tensions_N + b.tensions_N)
-        settling[k] = b.tensions_N - a.tensions_N
+        a = read_window(tension, ids, 0.5 * read_s, clock)
+        b = read_window(tension, ids, 0.5 * read_s, clock)
+        T[k] = 0.5 * (a + b)
+        settling[k] = b - a
         here = target
         if progress is not None:
             progress(
@@ -603,5 +630,6 @@ __all__ = [
     "gravity_basis",
     "mobilisation_along",
     "physics_poses",
+    "read_window",
     "shape_from_ropes",
 ]

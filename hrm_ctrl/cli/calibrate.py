@@ -178,7 +178,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_bus(p)  # --config, --bus
     p.add_argument(
         "--holds", type=int, default=None, metavar="N",
-        help="held poses (default 22: about 55 s)",
+        help="held poses (default 20: about 45 s)",
     )  # fmt: skip
     p.add_argument(
         "--seed", type=int, default=0, metavar="SEED",
@@ -246,6 +246,14 @@ def format_calibration(cal: Any, description: Any, version: int, path: str) -> s
     for m in cal.motor_ids:
         ea = cal.rope_EA_N.get(m)
         lines.append(f"{m:>6} {cal.motor_zero_counts[m]:>12} {'' if ea is None else f'{ea:10.1f}'}")
+    ph = cal.physics
+    if ph is None:
+        lines.append("physics: none calibrated (the description's [physics] values)")
+    else:
+        lines.append(f"physics: payload {1000 * ph.payload_kg:.2f} g (given)")
+        lines.append(f"{'joint':>5} {'link mass g':>12} {'mu kinetic':>11}")
+        for j in range(len(ph.link_mass_kg)):
+            lines.append(f"{j + 1:>5} {1000 * ph.link_mass_kg[j]:>12.3f} {ph.mu_kinetic[j]:>11.4f}")
     res = ", ".join(f"{k} {v:.6g}" for k, v in cal.residuals.items()) or "none"
     lines.append(f"residuals: {res}")
     return "\n".join(lines)
