@@ -91,7 +91,7 @@ from hrm_ctrl.ropes.feedforward import (
 from hrm_ctrl.ropes.length import lengths_and_jacobian
 
 N_JOINTS = 12
-DEFAULT_HOLDS = 20
+DEFAULT_HOLDS = 12
 CURL_RAD = 0.06  # each pose's bend of every joint alike, at most: the arm curled
 JITTER_RAD = 0.05  # and each angle's own, at most
 BEND_RAD = 0.15  # and BENT_AXES angles of each pose bent this far
@@ -100,7 +100,7 @@ APPROACH_RAD = 0.05  # the last move into a hold, every angle
 MIN_TRAVEL_MM = 0.18  # each rope's travel into a hold, at least (it slides after 0.15 mm)
 APPROACH_TRIES = 200
 SETTLE_S = 0.35  # held before the board is read: the box's equilibrium settles
-READ_S = 0.8  # the board read over this long per hold (16 fresh samples at 20 Hz)
+READ_S = 2.5  # the board read over this long per hold (50 fresh samples at 20 Hz)
 RATE_FRACTION = 0.3  # of the motor limits, the moves between holds
 MIN_FRAMES = 3  # a reading window with fewer frames is refused (a board that stalled)
 SHAPE_ITERATIONS = 8

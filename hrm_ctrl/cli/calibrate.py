@@ -178,7 +178,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_bus(p)  # --config, --bus
     p.add_argument(
         "--holds", type=int, default=None, metavar="N",
-        help="held poses (default 20: about 45 s)",
+        help="held poses (default 12: about 50 s)",
     )  # fmt: skip
     p.add_argument(
         "--seed", type=int, default=0, metavar="SEED",
