@@ -180,12 +180,12 @@ def test_a_joint_slack_at_the_enable_names_the_calibration(
 
 
 def _old_file(store_dir: Path) -> None:
-    """Version 1 in the previous format (``hrm-calibration/1``: no box), active."""
+    """Version 1 in an old format (``hrm-calibration/1``: no box, no physics), active."""
     from calibration.apply import nominal_calibration
     from calibration.store import checksum, to_json
 
     doc = json.loads(to_json(nominal_calibration(default_robot()), 1))
-    del doc["box"]
+    del doc["box"], doc["physics"]
     doc["format"] = "hrm-calibration/1"
     doc["sha256"] = checksum(doc)
     store_dir.mkdir(parents=True)
