@@ -342,16 +342,38 @@ def friction_mobilisation(
     sliding = first != 0.0
     out[0] = nu
     for r in range(rows - 1):
-        du, mv = travel[r], moving[r]
-        d = np.sign(du)
-        keeps = sliding & mv & (d == np.sign(nu))
-        trial = nu + du / presliding_mm
-        breaks = ~keeps & mv & (np.abs(trial) >= static_ratio)
-        new = np.where(keeps | breaks, d, np.clip(trial, -static_ratio, static_ratio))
-        nu = np.where(mv, new, nu)
-        sliding = np.where(mv, keeps | breaks, sliding)
+        nu, sliding = friction_step(nu, sliding, travel[r], presliding_mm, static_ratio)
         out[r + 1] = nu
     return out
+
+
+def friction_step(
+    nu: np.ndarray,
+    sliding: np.ndarray,
+    travel_mm: np.ndarray,
+    presliding_mm: float,
+    static_ratio: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each rope's friction mobilisation and sliding flag (n,) each after a drum travel
+    ``travel_mm`` (n,; > 0 paid out): one step of :func:`friction_mobilisation`.  A rope
+    moved less than :data:`TRAVEL_AT_REST_MM` keeps its mobilisation and is at rest: it
+    sticks when it moves again, either way (the simulated box's law, ``sim_bus.capstan``).
+
+    >>> nu, s = friction_step(np.array([1.0, 1.0]), np.array([True, True]),
+    ...                       np.array([0.01, -0.01]), 0.05, 1.5)
+    >>> nu.round(3).tolist(), s.tolist()     # keeps sliding; reversed: sticks
+    ([1.0, 0.8], [True, False])
+    >>> nu, s = friction_step(nu, s, np.zeros(2), 0.05, 1.5)          # at rest
+    >>> friction_step(nu, s, np.array([0.01, 0.01]), 0.05, 1.5)[0].round(3).tolist()
+    [1.2, 1.0]
+    """
+    mv = np.abs(travel_mm) > TRAVEL_AT_REST_MM
+    d = np.sign(travel_mm)
+    keeps = sliding & mv & (d == np.sign(nu))
+    trial = nu + travel_mm / presliding_mm
+    breaks = ~keeps & mv & (np.abs(trial) >= static_ratio)
+    new = np.where(keeps | breaks, d, np.clip(trial, -static_ratio, static_ratio))
+    return np.where(mv, new, nu), keeps | breaks
 
 
 def play_taken_up(
@@ -449,12 +471,7 @@ class Feedforward:
             )  # fmt: skip
         else:
             Qg = np.zeros((rows, 2 * act.n_joints))
-        ca, ct = a, t
-        if self.backlash and self.gravity and ph.backlash_rad.any():
-            held = np.empty((rows, 2 * act.n_joints))
-            held[:, 0::2], held[:, 1::2] = a, t
-            play = play_taken_up(Qg, held, ph.backlash_rad, ph.backlash_torque_Nmm)
-            ca, ct = a - play[:, 0::2], t - play[:, 1::2]
+        ca, ct = self._held(a, t, Qg)
         geo_a, geo_t = act.commanded_angles(ca, ct)
         T = np.empty((rows, n))
         mean = np.ones((rows, n))
@@ -479,6 +496,29 @@ class Feedforward:
         for arr in (T, mean, Qg, u):
             arr.setflags(write=False)
         return Holding(T, mean, Qg, u, np.asarray(ca), np.asarray(ct))
+
+    def held_angles(self, alpha: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The rope-held (commanded) true angles (rows, 12) each of a planned sequence of
+        true poses (rows, 12), in time order: the play taken up as
+        :func:`play_taken_up` says (the poses themselves without the play term)."""
+        a = np.atleast_2d(np.asarray(alpha, dtype=float))
+        t = np.atleast_2d(np.asarray(theta, dtype=float))
+        if not (self.backlash and self.gravity and self.physics.backlash_rad.any()):
+            return a, t
+        Qg = np.concatenate(
+            [gravity_forces(self.actuation.robot, a[i : i + BLOCK_ROWS], t[i : i + BLOCK_ROWS],
+                            self.physics) for i in range(0, a.shape[0], BLOCK_ROWS)]
+        )  # fmt: skip
+        return self._held(a, t, Qg)
+
+    def _held(self, a: np.ndarray, t: np.ndarray, Qg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ph = self.physics
+        if not (self.backlash and self.gravity and ph.backlash_rad.any()):
+            return a, t
+        held = np.empty((a.shape[0], 2 * a.shape[1]))
+        held[:, 0::2], held[:, 1::2] = a, t
+        play = play_taken_up(Qg, held, ph.backlash_rad, ph.backlash_torque_Nmm)
+        return a - play[:, 0::2], t - play[:, 1::2]
 
     def unstretched(
         self, alpha: np.ndarray, theta: np.ndarray, first: np.ndarray | None = None
@@ -548,6 +588,7 @@ __all__ = [
     "Holding",
     "arm_physics",
     "friction_mobilisation",
+    "friction_step",
     "gravity_forces",
     "play_taken_up",
     "rope_holes",
