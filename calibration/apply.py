@@ -22,7 +22,9 @@ arm's perturbations (links +-2 mm, offsets +-1 deg, EA +-20 %, zeros +-5000 coun
 of rope) and its truth files' limits (10 mm, 5 deg, 0.5 .. 2 times, 50 000 counts) are well
 inside, with room for the routines' errors; 1e300 is far outside.
 
-**Applying.**  :func:`calibrated_model` replaces the link lengths; :func:`calibrated_actuation`
+**Applying.**  :func:`calibrated_model` replaces the link lengths (and, with a physics
+calibration, the ``[physics]`` table's link masses, payload and friction coefficients,
+which the feed-forward reads); :func:`calibrated_actuation`
 builds the rope layer from that model with the calibration's motor zero counts, per-rope
 axial rigidity and joint zero offsets (:func:`hrm_ctrl.ropes.actuation.load_actuation`:
 true angle = commanded angle + offset).
@@ -67,7 +69,15 @@ if TYPE_CHECKING:  # the rope layer is imported where one is built (slow to impo
     from hrm_ctrl.ropes.actuation import Actuation
 
 UPDATABLE = frozenset(
-    {"links_mm", "alpha_offset_rad", "theta_offset_rad", "motor_zero_counts", "rope_EA_N", "box"}
+    {
+        "links_mm",
+        "alpha_offset_rad",
+        "theta_offset_rad",
+        "motor_zero_counts",
+        "rope_EA_N",
+        "box",
+        "physics",
+    }
 )
 """The fields a routine may replace (:func:`updated`)."""
 
@@ -227,14 +237,31 @@ def check_ranges(model: RobotModel, cal: Calibration, where: str = "calibration"
 
 
 def calibrated_model(model: RobotModel, cal: Calibration) -> RobotModel:
-    """``model`` with the calibration's link lengths (everything else as described)."""
+    """``model`` with the calibration's link lengths and, where the calibration has a
+    physics calibration, its link masses, payload and friction coefficients in the
+    ``[physics]`` table (the rest of it, and everything else, as described): the
+    feed-forward (:meth:`hrm_ctrl.ropes.feedforward.Feedforward.of`) reads them there.
+
+    >>> from hrm_ctrl.model import default_robot
+    >>> from calibration.store import PhysicsConstants
+    >>> m = default_robot()
+    >>> ph = PhysicsConstants(np.full(12, 0.025), 0.03, np.full(12, 0.08))
+    >>> cal = updated(nominal_calibration(m), routine="physics", residuals={}, physics=ph)
+    >>> t = calibrated_model(m, cal).tables["physics"]
+    >>> t["payload_kg"], t["mu_kinetic"][0], "physics" in m.tables
+    (0.03, 0.08, False)
+    """
     if cal.links_mm.shape != model.links.shape:
         raise CalibrationFileError(
             f"calibration has {cal.links_mm.shape[0]} links, the description {model.n_joints}"
         )
     links = np.array(cal.links_mm, dtype=float)
     links.setflags(write=False)
-    return dataclasses.replace(model, links=links)
+    if cal.physics is None:
+        return dataclasses.replace(model, links=links)
+    raw = model.tables.get("physics", {})
+    table = {**(raw if isinstance(raw, Mapping) else {}), **cal.physics.to_dict()}
+    return dataclasses.replace(model, links=links, tables={**model.tables, "physics": table})
 
 
 def calibrated_actuation(model: RobotModel, cal: Calibration) -> Actuation:

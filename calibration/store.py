@@ -19,13 +19,13 @@ taken for a version; :meth:`~CalibrationStore.save` removes those older than an 
 (``hrm_ctrl.files.write_atomic`` fsyncs the file but not the folder, and replaces an
 existing file, hence the writer of its own here.)
 
-The file format ``hrm-calibration/2`` (JSON, UTF-8, at most :data:`MAX_FILE_BYTES`)::
+The file format ``hrm-calibration/3`` (JSON, UTF-8, at most :data:`MAX_FILE_BYTES`)::
 
     {
-      "format": "hrm-calibration/2",
+      "format": "hrm-calibration/3",
       "version": 3,                                 # the number in the file's name
       "created_utc": "2026-12-01T21:24:33.123456+00:00",
-      "routine": "kinematic",                       # zero | kinematic | stiffness | manual
+      "routine": "kinematic",       # zero | kinematic | stiffness | manual | physics
       "robot_sha256": "<64 hex digits>",            # the robot description it belongs to
       "links_mm": [12 numbers > 0],                 # link lengths, joint 1..12
       "alpha_offset_rad": [12 numbers],             # joint zero offsets: true angle =
@@ -36,13 +36,20 @@ The file format ``hrm-calibration/2`` (JSON, UTF-8, at most :data:`MAX_FILE_BYTE
       "box": {"simulated": false,                   # the box it was made on, or null:
               "drives": {"j01r1": {"vendor_id": 154, "product_code": 1026,
                                    "revision": 65536, "serial": 305419896}, ...}},
+      "physics": {"link_mass_kg": [12 numbers > 0],     # or null: the description's
+                  "payload_kg": 0.02,                   #   [physics] values
+                  "mu_kinetic": [12 numbers >= 0]},
       "sha256": "<64 hex digits>"
     }
 
 ``box`` names the box the calibration was made on: each drive's identity object (CiA 301
 0x1018, read at the bring-up; :mod:`drivers.identity`) per motor id, and whether the box
-was simulated; ``null`` when it is not known.  A file of the previous format
-``hrm-calibration/1`` (the same members but ``box``) is read with its box unknown; every
+was simulated; ``null`` when it is not known.  ``physics`` holds what the physics
+calibration measured (``calibration.physics``: link masses, the payload it was given, the
+joints' kinetic friction), ``null`` when none was made: the robot description's
+``[physics]`` values apply.  A file of the previous format ``hrm-calibration/2`` (the
+same members but ``physics``) is read with no physics calibration, one of
+``hrm-calibration/1`` (neither ``physics`` nor ``box``) with its box unknown too; every
 file is written in the present format.
 
 ``sha256`` is the SHA-256 (lower-case hex) of the UTF-8 bytes of the canonical form of
@@ -107,8 +114,9 @@ from hrm_ctrl.errors import CalibrationFileError
 from hrm_ctrl.files import parse_json, read_text_file
 from hrm_ctrl.ropes.motor_map import POSITION_COUNTS_MAX
 
-FORMAT = "hrm-calibration/2"
-FORMAT_1 = "hrm-calibration/1"  # read: no ``box`` member (box unknown)
+FORMAT = "hrm-calibration/3"
+FORMAT_2 = "hrm-calibration/2"  # read: no ``physics`` member (the description's values)
+FORMAT_1 = "hrm-calibration/1"  # read: no ``box`` member either (box unknown)
 N_JOINTS = 12
 MAX_FILE_BYTES = 256 * 1024  # 128 motors and ropes take about 12 kB
 MAX_MOTORS = 128  # the robot has 2..8 ropes per joint: 96 at most
@@ -135,7 +143,9 @@ _KEYS = (
     "rope_EA_N",
     "residuals",
     "box",
+    "physics",
 )
+_KEYS_OF = {FORMAT: _KEYS, FORMAT_2: _KEYS[:-1], FORMAT_1: _KEYS[:-2]}
 
 
 def _user(uid: int) -> str:
@@ -153,6 +163,7 @@ class Routine(enum.Enum):
     KINEMATIC = "kinematic"
     STIFFNESS = "stiffness"
     MANUAL = "manual"
+    PHYSICS = "physics"
 
 
 def _fail(name: str, why: str) -> CalibrationFileError:
@@ -230,6 +241,59 @@ def _positive(v: Any, what: str, name: str) -> float:
 
 
 @dataclass(frozen=True, eq=False)
+class PhysicsConstants:
+    """The arm's physical constants a physics calibration measured
+    (``calibration.physics``): each link's mass (12,) kg, > 0, the tip payload kg, >= 0
+    (the one the routine was given: statics cannot tell it from the links' masses), and
+    each joint's kinetic friction coefficient (12,), >= 0.  Arrays read-only float64."""
+
+    link_mass_kg: np.ndarray
+    payload_kg: float
+    mu_kinetic: np.ndarray
+
+    def __post_init__(self) -> None:
+        self._check("physics")
+
+    def _check(self, name: str) -> None:
+        put = object.__setattr__
+        what = "physics.link_mass_kg"
+        put(self, "link_mass_kg", _float_array(self.link_mass_kg, what, name, positive=True))
+        mu = _float_array(self.mu_kinetic, "physics.mu_kinetic", name)
+        low = np.flatnonzero(mu < 0.0)
+        if low.size:
+            j = int(low[0])
+            raise _fail(name, f"physics.mu_kinetic[{j}] is {mu[j]}, not >= 0")
+        put(self, "mu_kinetic", mu)
+        payload = _finite(self.payload_kg, "physics.payload_kg", name)
+        if payload < 0.0:
+            raise _fail(name, f"physics.payload_kg is {payload}, not >= 0")
+        put(self, "payload_kg", payload)
+
+    @classmethod
+    def from_dict(cls, doc: Any, name: str) -> PhysicsConstants:
+        """The ``physics`` member of a file (``name`` in messages)."""
+        keys = ("link_mass_kg", "payload_kg", "mu_kinetic")
+        if not isinstance(doc, Mapping):
+            raise _fail(name, "physics must be a table (link_mass_kg, payload_kg, mu_kinetic)")
+        missing = [k for k in keys if k not in doc]
+        extra = sorted(set(doc) - set(keys))
+        if missing or extra:
+            raise _fail(name, f"physics: members missing {missing}, unknown {extra}")
+        out = object.__new__(cls)
+        for k in keys:
+            object.__setattr__(out, k, doc[k])
+        out._check(name)
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "link_mass_kg": self.link_mass_kg.tolist(),
+            "payload_kg": self.payload_kg,
+            "mu_kinetic": self.mu_kinetic.tolist(),
+        }
+
+
+@dataclass(frozen=True, eq=False)
 class Calibration:
     """One calibration: what the routines estimate, for one robot description.
 
@@ -248,6 +312,7 @@ class Calibration:
     robot_sha256: str  # 64 lower-case hex digits: the robot description's
     residuals: Mapping[str, float] = field(default_factory=dict)
     box: BoxIdentity | None = None  # the box it was made on (None: unknown)
+    physics: PhysicsConstants | None = None  # masses, friction (None: the description's)
 
     def __post_init__(self) -> None:
         self._check("calibration")
@@ -285,6 +350,8 @@ class Calibration:
             raise _fail(name, "robot_sha256 is not 64 lower-case hex digits")
         if self.box is not None and not isinstance(self.box, BoxIdentity):
             put(self, "box", BoxIdentity.from_dict(self.box, lambda why: _fail(name, why)))
+        if self.physics is not None and not isinstance(self.physics, PhysicsConstants):
+            put(self, "physics", PhysicsConstants.from_dict(self.physics, name))
 
     @classmethod
     def nominal(
@@ -330,6 +397,7 @@ class Calibration:
             "rope_EA_N": dict(self.rope_EA_N),
             "residuals": dict(self.residuals),
             "box": None if self.box is None else self.box.to_dict(),
+            "physics": None if self.physics is None else self.physics.to_dict(),
         }
 
     def __eq__(self, other: object) -> bool:
@@ -369,7 +437,7 @@ def from_json(text: str, name: str, version: int | None = None) -> Calibration:
         raise CalibrationFileError(f"{exc} - truncated or damaged") from None
     if not isinstance(doc, dict):
         raise _fail(name, "not a calibration file (not a JSON object)")
-    if doc.get("format") not in (FORMAT, FORMAT_1):
+    if doc.get("format") not in _KEYS_OF:
         raise _fail(name, f"format is {doc.get('format')!r}, not {FORMAT!r}")
     recorded = doc.get("sha256")
     if not isinstance(recorded, str):
@@ -381,7 +449,7 @@ def from_json(text: str, name: str, version: int | None = None) -> Calibration:
             f"checksum mismatch (edited by hand or damaged): content {actual[:12]}…, "
             f"recorded {recorded[:12]}…",
         )
-    keys = _KEYS if doc["format"] == FORMAT else _KEYS[:-1]  # /1: no box
+    keys = _KEYS_OF[doc["format"]]  # /2: no physics, /1: no box either
     missing = [k for k in keys if k not in doc]
     extra = sorted(doc.keys() - {*keys, "sha256"})
     if missing or extra:

@@ -8,7 +8,8 @@ does; calibration imports neither it nor the simulator).
 
 * :func:`kinematic_calibration`: the next calibration with a kinematic fit's links and
   offsets; :func:`zero_calibration`, :func:`stiffness_calibration` the same for the
-  rope-tension routines' results;
+  rope-tension routines' results, :func:`physics_calibration` for the link masses and
+  friction (``calibration.physics``);
 * :func:`save_calibration`: into the store (made active when loading would accept it) or
   one file;
 * :func:`tracker_frame` and :func:`collect_in_base_frame`: the laser tracker's frame from
@@ -34,6 +35,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from calibration.kinematic import InstrumentFrame, KinematicFit, PoseData
+    from calibration.physics import PhysicsFit
     from calibration.stiffness import StiffnessResult
     from calibration.store import Calibration, CalibrationStore
     from calibration.zero import ZeroResult
@@ -126,6 +128,19 @@ def stiffness_calibration(
     ea = {m: float(v) for m, v in zip(result.motor_ids, result.EA_N, strict=True)}
     kept = result.residuals() if residuals is None else residuals
     return updated(base, routine=Routine.STIFFNESS, residuals=kept, rope_EA_N=ea)
+
+
+def physics_calibration(
+    base: Calibration, fit: PhysicsFit, residuals: dict[str, float] | None = None
+) -> Calibration:
+    """The next calibration from ``base`` with the physics routine's link masses, payload
+    (the one it was given) and friction coefficients."""
+    from calibration.apply import updated
+    from calibration.store import PhysicsConstants, Routine
+
+    constants = PhysicsConstants(fit.link_mass_kg, fit.payload_kg, fit.mu_kinetic)
+    kept = fit.residuals() if residuals is None else residuals
+    return updated(base, routine=Routine.PHYSICS, residuals=kept, physics=constants)
 
 
 class Saved(NamedTuple):

@@ -7,9 +7,10 @@ bound to that port) and SocketCAN (the kernel's ``vcan0``, ``vcan1``: a test's
 first bus is ``vcan0``, its second ``vcan1``).
 
 Where the kernel has no vcan (as on the development machine and in CI) the SocketCAN
-tests skip, naming the reason, or with ``HRM_VCAN_GUEST=on`` run at the end of the session
+tests run at the end of the session
 in User-Mode-Linux guests that have it, their results reported here
-(``tests/vcan_guest.py``, ``tools/vcan-guest/``; off by default: ``docs/hil.md``).
+(``tests/vcan_guest.py``, ``tools/vcan-guest/``), or skip, naming the reason, where the
+guest's packages are missing or ``HRM_VCAN_GUEST=off`` (``docs/hil.md``).
 
 Note: a udp_multicast socket also receives the frames it sent itself; code
 under test must tolerate its own frames coming back.

@@ -3,16 +3,17 @@
 A test needs vcan when one of its bus parameters (:data:`VCAN_PARAMS`) is ``"socketcan"``
 (the ``can_backend`` fixture, ``test_canlog_durability``'s ``wire_kind``, the HIL plugin's
 ``hrm_bus_kind``).  Where the kernel has ``vcan0`` and ``vcan1`` they run here like every
-other test.  Where it has not, ``HRM_VCAN_GUEST=on`` is set (off by default:
-:data:`SWITCH_DEFAULT`) and ``tools/vcan-guest/run-in-vcan-vm.sh`` can boot its guest
-(Debian's ``user-mode-linux``, ``kmod`` and ``iproute2`` installed), the session moves them
-to its end and runs them in :func:`guest_count` guests side by side (a guest has one CPU),
+other test.  Where it has not, ``HRM_VCAN_GUEST`` is not ``off`` (on by default,
+:data:`SWITCH_DEFAULT`) and ``tools/vcan-guest/run-in-vcan-vm.sh``
+can boot its guest (Debian's ``user-mode-linux``, ``kmod`` and ``iproute2`` installed),
+the session moves them to its end and runs them in :func:`guest_count` guests side by side
+(a guest has one CPU),
 each a pytest process with the same node ids over whole test modules (a module's fixtures
 stay in one guest), and each test's reports (setup, call, teardown, stall reruns) come back
 to this session as its own: the terminal, the summary and the exit status count them as if
 they had run here, a failure with its traceback and captured output.  A test a guest gave
 no report for (the guest did not boot, timed out, pytest in it ended early) fails, naming
-why, with the tail of that guest's output.  Without ``HRM_VCAN_GUEST=on``, or with a guest
+why, with the tail of that guest's output.  With ``HRM_VCAN_GUEST=off``, or with a guest
 that cannot be installed here, they skip, naming the reason.  A stall-tolerant test there is
 rerun only on a pause of the guest its stall probe saw (every :data:`GUEST_PROBE_PERIOD_S`).
 
@@ -77,11 +78,10 @@ DEADLINE_MARGIN_S = 30.0
 REPORT_ENV = "HRM_VCAN_GUEST_REPORT"
 #: ``on``: a guest runs the SocketCAN tests where the kernel has no vcan; ``off``: they skip
 SWITCH_ENV = "HRM_VCAN_GUEST"
-#: the switch unset: off, because the kill test (``tests/drivers/test_canlog_durability.py``,
-#: ``hrm run`` on 36 drives at 10 Hz) failed in 5 of 20 of its runs in the guest with no
-#: pause of the guest its stall probe saw: the guest's one CPU was busy all through it
-#: (docs/hil.md)
-SWITCH_DEFAULT = "off"
+#: the switch unset: on wherever the guest's packages are installed (``.ci/run`` installs
+#: them); two guests at ``SCHED_FIFO`` take a 2-core machine's CPUs for about two minutes
+#: (docs/hil.md), which ``off`` spares
+SWITCH_DEFAULT = "on"
 #: how many guests run side by side (default :func:`guest_count`)
 COUNT_ENV = "HRM_VCAN_GUESTS"
 #: a guest's measured wall time per test of a module (the rest: :data:`DEFAULT_COST_S`),
@@ -89,9 +89,14 @@ COUNT_ENV = "HRM_VCAN_GUESTS"
 MODULE_COST_S = {
     "tests/hil/test_plugin_plan.py": 60.0,
     "tests/hil/test_plugin_faults.py": 15.0,
-    "tests/drivers/test_canlog_durability.py": 40.0,
+    "tests/drivers/test_canlog_durability.py": 25.0,
 }
 DEFAULT_COST_S = 3.0
+#: modules a guest runs after its others: the fault tests (``tests/hil/test_plugin_faults.py``)
+#: run after the kill test in the same guest failed 8 of 8 there (the box's heartbeats and
+#: tension frames 1-2 s old when the host's stream began, no pause of the guest seen) and
+#: all 8 passed after the bus tests; the cause is not found (docs/hil.md)
+RUN_LAST = ("tests/drivers/test_canlog_durability.py",)
 POLL_S = 0.2
 SHUTDOWN_TIMEOUT_S = 30.0
 LOG_TAIL_LINES = 40
@@ -137,8 +142,7 @@ def guest_unavailable() -> str | None:
         raise pytest.UsageError(f"{SWITCH_ENV}={os.environ[SWITCH_ENV]!r}: expected on or off")
     if switch == "off":
         return (
-            f"{SWITCH_ENV}=on runs them in a User-Mode-Linux guest (off by default: the kill"
-            " test's 36 drives saturate the guest's CPU; docs/hil.md)"
+            f"{SWITCH_ENV}=off: they run in User-Mode-Linux guests unless it is off (docs/hil.md)"
         )
     if not sys.platform.startswith("linux"):
         return "the vcan guest is a Linux (User-Mode-Linux) guest"
@@ -188,10 +192,12 @@ def module_of(nodeid: str) -> str:
 def share_out(nodeids: Sequence[str], n: int) -> list[list[str]]:
     """The node ids in at most ``n`` groups of whole modules, the modules' costs
     (:data:`MODULE_COST_S`) as even as the longest first onto the lightest group makes
-    them; each group in the session's order.
+    them; each group in the session's order, the modules of :data:`RUN_LAST` last.
 
     >>> share_out(["a.py::x", "b.py::y", "a.py::z"], 2)
     [['a.py::x', 'a.py::z'], ['b.py::y']]
+    >>> share_out([f"{RUN_LAST[0]}::k", "b.py::y"], 1)
+    [['b.py::y', 'tests/drivers/test_canlog_durability.py::k']]
     """
     order = {nodeid: k for k, nodeid in enumerate(nodeids)}
     modules: dict[str, list[str]] = {}
@@ -207,7 +213,11 @@ def share_out(nodeids: Sequence[str], n: int) -> list[list[str]]:
         k = loads.index(min(loads))
         groups[k] += modules[module]
         loads[k] += cost(module)
-    return [sorted(g, key=order.__getitem__) for g in groups if g]
+
+    def place(nodeid: str) -> tuple[bool, int]:
+        return module_of(nodeid) in RUN_LAST, order[nodeid]
+
+    return [sorted(g, key=place) for g in groups if g]
 
 
 def guest_args(nodeids: Sequence[str], markexpr: str) -> list[str]:

@@ -27,7 +27,11 @@ Sub-commands:
   the points go into the base frame and every joint offset is observable (with a free
   frame ``alpha_offset_1`` is not); write the poses as a pose file into ``--log-dir``
   beside the run record, and fit them as above;
-* ``zero``, ``stiffness``: the rope-tension routines (``hrm_ctrl.cli._calibrate_tension``).
+* ``zero``, ``stiffness``: the rope-tension routines (``hrm_ctrl.cli._calibrate_tension``);
+* ``physics (--sim [--perturb SEED] [--physics EFFECTS] | --config BOX.toml)``: the link
+  masses and each joint's kinetic friction coefficient from the tension board at held
+  poses, the arm out of its fixture (``calibration.physics``; the payload given by
+  ``--payload-kg``, else the description's), saved as the calibration's ``physics``.
 
 Every routine starts from the active calibration for this robot (the description's values
 when there is none) and saves a new version with its own fields replaced, the others
@@ -77,8 +81,12 @@ from hrm_ctrl.cli._options import (
 )
 from hrm_ctrl.errors import CalibrationDataError, CalibrationFileError
 
-HELP = "calibration: the store (show, history, use) and the routines (kinematic, zero, stiffness)"
+HELP = (
+    "calibration: the store (show, history, use) and the routines (kinematic, zero, "
+    "stiffness, physics)"
+)
 DEFAULT_SAMPLES = 10
+DEFAULT_SIM_PHYSICS = "gravity,capstan"  # what the physics routine calibrates
 MAX_COLLECT = 1000
 
 
@@ -152,6 +160,40 @@ def register(parser: argparse.ArgumentParser) -> None:
 
     register_tension_routines(sub)  # zero, stiffness
 
+    p = sub.add_parser(
+        "physics",
+        help="link masses and each joint's friction from the tension board at held poses",
+        description="link masses and each joint's friction from the tension board at held "
+        "poses (calibration.physics; the arm out of its fixture)",
+    )
+    add_robot(p)
+    add_calibration(p, Uncalibrated.DRIVES, when="on real drives")
+    add_sim(p, arm=SimArm.PERTURB)
+    p.add_argument(
+        "--physics", default=DEFAULT_SIM_PHYSICS, metavar="EFFECTS",
+        help="with --sim: the simulated arm's physics, as hrm sim --physics (all, none or "
+        f"effects joined by commas: gravity, capstan, creep, backlash, sensor); default "
+        f"{DEFAULT_SIM_PHYSICS}",
+    )  # fmt: skip
+    add_bus(p)  # --config, --bus
+    p.add_argument(
+        "--holds", type=int, default=None, metavar="N",
+        help="held poses (default 12: about 50 s)",
+    )  # fmt: skip
+    p.add_argument(
+        "--seed", type=int, default=0, metavar="SEED",
+        help="seed of the drawn poses (default 0)",
+    )  # fmt: skip
+    p.add_argument(
+        "--payload-kg", type=float, default=None, metavar="KG",
+        help="the tip payload, weighed (default the description's [physics] payload_kg): "
+        "the arm's statics cannot tell it from the links' masses",
+    )  # fmt: skip
+    add_out(p, metavar="FILE", what="write this one calibration file")
+    add_log(p)
+    add_json(p, "the summary")
+    p.set_defaults(_run=run_physics)
+
 
 def run(args: argparse.Namespace) -> int:  # every sub-command sets its own _run
     raise CalibrationDataError("hrm calibrate: give a sub-command (show, history, use, ...)")
@@ -204,6 +246,14 @@ def format_calibration(cal: Any, description: Any, version: int, path: str) -> s
     for m in cal.motor_ids:
         ea = cal.rope_EA_N.get(m)
         lines.append(f"{m:>6} {cal.motor_zero_counts[m]:>12} {'' if ea is None else f'{ea:10.1f}'}")
+    ph = cal.physics
+    if ph is None:
+        lines.append("physics: none calibrated (the description's [physics] values)")
+    else:
+        lines.append(f"physics: payload {1000 * ph.payload_kg:.2f} g (given)")
+        lines.append(f"{'joint':>5} {'link mass g':>12} {'mu kinetic':>11}")
+        for j in range(len(ph.link_mass_kg)):
+            lines.append(f"{j + 1:>5} {1000 * ph.link_mass_kg[j]:>12.3f} {ph.mu_kinetic[j]:>11.4f}")
     res = ", ".join(f"{k} {v:.6g}" for k, v in cal.residuals.items()) or "none"
     lines.append(f"residuals: {res}")
     return "\n".join(lines)
@@ -633,3 +683,151 @@ def _collect_rest(
         write_atomic(pose_file, format_pose_csv(data.alpha_rad, data.theta_rad, data.points_mm))
         session.record_extra["pose_file"] = str(pose_file)
     return data, pose_file
+
+
+# ---- the physics routine ------------------------------------------------------------------
+
+
+def _check_physics_args(args: argparse.Namespace) -> Any:
+    """The routine's options checked before anything opens; the simulated arm's physics
+    (None without --sim)."""
+    from calibration.physics import MIN_HOLDS
+
+    if args.sim == (args.config is not None):
+        raise CalibrationDataError("physics: give --sim or --config BOX.toml")
+    if args.perturb is not None and not args.sim:
+        raise CalibrationDataError("--perturb goes with --sim")
+    if args.physics != DEFAULT_SIM_PHYSICS and not args.sim:
+        raise CalibrationDataError("--physics goes with --sim")
+    if args.holds is not None and not MIN_HOLDS <= args.holds <= 500:
+        raise CalibrationDataError(f"--holds must be {MIN_HOLDS}..500, got {args.holds}")
+    kg = args.payload_kg
+    if kg is not None and not (math.isfinite(kg) and 0.0 <= kg <= 1000.0):
+        raise CalibrationDataError(f"--payload-kg must be 0..1000, got {kg}")
+    if not args.sim:
+        return None
+    from sim_bus.physics import Physics
+
+    return Physics.of(args.physics)  # a bad one refused here, one line
+
+
+def run_physics(args: argparse.Namespace) -> int:
+    """``hrm calibrate physics``: the routine on its own session, saved as a version."""
+    import dataclasses
+    import time
+    from contextlib import closing
+
+    from calibration.apply import calibrated_actuation, calibrated_model, starting_point
+    from calibration.physics import DEFAULT_HOLDS, calibrate_physics
+    from calibration.workflows import physics_calibration
+    from drivers.bus import ensure_log_dir
+    from drivers.tension_sensor import TensionSensorReader
+    from hrm_ctrl.runtime.arm import Arm
+    from hrm_ctrl.runtime.box import NO_WATCHES, SessionOptions, caller_scheduling, open_box
+    from hrm_ctrl.runtime.simulated import SimulatedBox, simulated_arm
+
+    prog = "hrm calibrate physics"
+    physics = _check_physics_args(args)
+    t0 = time.monotonic()
+    store = _store(args)
+    active_file = store.path_of(store.active()) if store.active() is not None else None
+    refuse_overwriting_inputs(  # before anything is read or written
+        [Output("--out", args.out), Output("--log-dir", args.log_dir, folder=True)],
+        [
+            robot_input(args.robot),
+            Input("active calibration", active_file),
+            calibrations_input(args),
+            config_input(args.config),
+            *shipped_inputs(eds=True),
+        ],
+    )
+    if args.out is None:  # checked before the first move: the result has a place to go
+        store.check_can_save()
+    description = _description(args)
+    config = load_box(args)
+    sim_box = None
+    if args.sim:  # known before it starts: a calibration of another truth is not used
+        from hrm_ctrl.runtime.arm import simulated_box_identity
+
+        sim_box = simulated_box_identity(description, perturb=args.perturb)
+    base, active, note = starting_point(store, description, sim_box)
+    if note is not None:
+        print(f"{prog}: {note}", file=sys.stderr)
+    actuation = calibrated_actuation(description, base)
+    config.check_motors(actuation.motor_ids)
+    ensure_log_dir(args.log_dir)
+    arm = Arm(description, calibrated_model(description, base), active, rope_layer=actuation)
+    ref = arm.calibration_ref()
+    allow = args.sim or args.uncalibrated
+    if ref is None and not allow:
+        raise CalibrationFileError(
+            f"{store.folder}: no calibration for this robot: run hrm calibrate zero, "
+            "stiffness and kinematic first (or --uncalibrated to enable the drives anyway)"
+        )
+    sim = None
+    if args.sim:  # the simulated arm out of its fixture, with its physics
+        sim = SimulatedBox(dataclasses.replace(simulated_arm(arm, perturb=args.perturb),
+                                               physics=physics))  # fmt: skip
+    elif config.tension is None:  # refused before any bus opens
+        raise CalibrationDataError(
+            f"{config.source}: no [tension] table: physics needs the tension sensors"
+        )
+    options = SessionOptions(
+        log_dir=args.log_dir,
+        log_suffix=f".{args.log_format}",
+        calibration=ref,
+        allow_uncalibrated=allow,
+        record_extra={"routine": "physics", "simulated_box": bool(args.sim)},
+    )
+    out = sys.stderr if args.json else sys.stdout
+    # no feedback watches: the routine guards the tensions itself (its own reader)
+    with open_box(
+        config, actuation, options, sim=sim, watches=NO_WATCHES, bring_up=False, prog=prog
+    ) as box:
+        t = box.config.tension
+        with box.session.thread_scheduling():
+            opened = TensionSensorReader(
+                t.port, actuation.n_motors, baudrate=t.baudrate, stale_after_s=t.stale_s
+            ).open()
+        with closing(opened) as reader:
+            box.bring_up()
+            with caller_scheduling(box.session):
+                result = calibrate_physics(
+                    box.session, reader, actuation, period_s=box.config.control.period_s,
+                    holds=DEFAULT_HOLDS if args.holds is None else args.holds,
+                    seed=args.seed, payload_kg=args.payload_kg,
+                    progress=lambda line: print(line, file=out, flush=True),
+                )  # fmt: skip
+    fit = result.fit
+    residuals = {**fit.residuals(), "routine_s": round(result.elapsed_s, 3)}
+    new = physics_calibration(base, fit, residuals)
+    saved = save_calibration(args, store, new, description)
+    summary = {
+        "link_mass_kg": fit.link_mass_kg.tolist(),
+        "payload_kg": fit.payload_kg,
+        "mu_kinetic": fit.mu_kinetic.tolist(),
+        "std_mass_kg": fit.std_mass_kg.tolist(),
+        "std_mu": fit.std_mu.tolist(),
+        "holds": fit.n_holds,
+        "holds_dropped": fit.n_dropped,
+        "balance_rms_before_Nmm": fit.rms_before_Nmm,
+        "balance_rms_after_Nmm": fit.rms_after_Nmm,
+        "routine_s": result.elapsed_s,
+        "total_s": time.monotonic() - t0,
+        "version": saved.version,
+        "file": saved.where,
+        "active": args.out is None and store.active() == saved.version,
+        "in_range": saved.usable,
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"physics: {fit.n_holds} holds ({fit.n_dropped} dropped), link masses "
+            f"{1000 * fit.link_mass_kg.min():.1f} .. {1000 * fit.link_mass_kg.max():.1f} g "
+            f"(payload {1000 * fit.payload_kg:.1f} g, given), friction "
+            f"{fit.mu_kinetic.min():.3f} .. {fit.mu_kinetic.max():.3f}; balance rms "
+            f"{fit.rms_before_Nmm:.2f} -> {fit.rms_after_Nmm:.2f} N mm; {result.elapsed_s:.1f} s"
+        )
+        print(f"calibration {saved.where}")
+    return 0 if saved.usable else EXIT_NOT_USABLE

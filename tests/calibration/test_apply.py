@@ -192,6 +192,7 @@ def test_updated_carries_the_other_fields(model):
         "motor_zero_counts",
         "rope_EA_N",
         "box",  # the box a routine ran on (issue 34)
+        "physics",  # link masses, payload, friction (issue 38)
     }
     with pytest.raises(TypeError, match="robot_sha256"):
         updated(a, routine="manual", residuals={}, robot_sha256="0" * 64)

@@ -84,7 +84,7 @@ def test_round_trip(tmp_path):
     with pytest.raises(AttributeError):
         back.links_mm = back.links_mm  # type: ignore[misc]
     doc = json.loads((tmp_path / "cal" / "v0001.json").read_text())
-    assert doc["format"] == "hrm-calibration/2" and doc["version"] == 1
+    assert doc["format"] == "hrm-calibration/3" and doc["version"] == 1
     assert doc["sha256"] == checksum(doc)
     assert store.load_for(ROBOT) == cal
 
@@ -191,7 +191,7 @@ def test_a_copied_or_renamed_file_is_refused(tmp_path):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (lambda d: d.update(format="hrm-calibration/3"), "format is .hrm-calibration/3."),
+        (lambda d: d.update(format="hrm-calibration/4"), "format is .hrm-calibration/4."),
         (lambda d: d["links_mm"].pop(), "links_mm has 11 values, not 12"),
         (lambda d: d["theta_offset_rad"].append(0.0), "theta_offset_rad has 13 values"),
         (lambda d: d["alpha_offset_rad"].__setitem__(2, float("nan")), r"alpha_offset_rad\[2\]"),

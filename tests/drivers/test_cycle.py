@@ -29,8 +29,14 @@ from tests.drivers.driver_rig import (
     set_sim_state,
     wait_until,
 )
+from tests.vcan_guest import GUEST_RATE_HZ
 
 NODES = ([1, 2], [3])
+#: over SocketCAN in the vcan guest (one CPU, system calls of 30-40 us) the per-SYNC test
+#: runs at the guest's rate, as the other timing tests there: at 100 Hz it once saw 39
+#: node-cycles without feedback in 33 cycles there (docs/hil.md); the rig's TPDO tolerance
+#: at about the same blind time (6 cycles, 240 ms)
+GUEST_CONTROL = {"rate_hz": GUEST_RATE_HZ, "missing_tpdo_cycles": 6}
 
 
 def sdo_controlword_times(rig: Rig, controlword: int) -> list[dict[int, float]]:
@@ -72,7 +78,7 @@ def test_bring_up_configures_and_enables_every_drive(rig_factory: Callable[..., 
 def test_each_node_receives_the_setpoints_in_order_one_per_sync(
     rig_factory: Callable[..., Rig],
 ) -> None:
-    rig = rig_factory()
+    rig = rig_factory(guest_control=GUEST_CONTROL)
     box = rig.brought_up_box()
     src = JogSource(rig.limits, "j01r1", velocity_counts_per_s=50_000.0, duration_s=0.15)
     result = box.stream(src)

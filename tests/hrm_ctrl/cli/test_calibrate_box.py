@@ -83,7 +83,7 @@ def test_a_simulated_calibration_stays_with_its_simulated_arm(
     # the file names the box: simulated, its drives' identities those of truth 3
     assert cal.box is not None and cal.box.simulated
     assert cal.box == simulated_box_identity(model, perturb=3)
-    assert json.loads(store.path_of(1).read_text())["format"] == "hrm-calibration/2"
+    assert json.loads(store.path_of(1).read_text())["format"] == "hrm-calibration/3"
 
     # history and show print the box
     assert main(["calibrate", "history"]) == 0
@@ -180,12 +180,12 @@ def test_a_joint_slack_at_the_enable_names_the_calibration(
 
 
 def _old_file(store_dir: Path) -> None:
-    """Version 1 in the previous format (``hrm-calibration/1``: no box), active."""
+    """Version 1 in an old format (``hrm-calibration/1``: no box, no physics), active."""
     from calibration.apply import nominal_calibration
     from calibration.store import checksum, to_json
 
     doc = json.loads(to_json(nominal_calibration(default_robot()), 1))
-    del doc["box"]
+    del doc["box"], doc["physics"]
     doc["format"] = "hrm-calibration/1"
     doc["sha256"] = checksum(doc)
     store_dir.mkdir(parents=True)
