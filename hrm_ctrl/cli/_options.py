@@ -279,14 +279,18 @@ def add_sim_arm(
         )  # fmt: skip
 
 
-def add_physics(parser: argparse.ArgumentParser, *, when: str | None = "with --sim") -> None:
+def add_physics(
+    parser: argparse.ArgumentParser, *, when: str | None = "with --sim", default: str | None = None
+) -> None:
     """``--physics EFFECTS``: the simulated arm's physics, as :meth:`sim_bus.physics.Physics.of`
-    reads it (``when``: the condition it goes with; None: ``hrm sim``'s own arm)."""
+    reads it (``when``: the condition it goes with; None: ``hrm sim``'s own arm), ``default``
+    (None: none)."""
     parser.add_argument(
-        "--physics", default=None, metavar="EFFECTS",
+        "--physics", default=default, metavar="EFFECTS",
         help=when_prefix(
             when, "the simulated arm's physics: all, none or effects joined by commas "
-            "(gravity, capstan, creep, backlash, sensor; defaults in docs/sim.md); default none",
+            "(gravity, capstan, creep, backlash, sensor; defaults in docs/sim.md); default "
+            f"{default or 'none'}",
         ),
     )  # fmt: skip
 

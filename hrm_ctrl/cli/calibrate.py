@@ -76,6 +76,7 @@ from hrm_ctrl.cli._options import (
     add_json,
     add_log,
     add_out,
+    add_physics,
     add_robot,
     add_sim,
 )
@@ -169,12 +170,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_robot(p)
     add_calibration(p, Uncalibrated.DRIVES, when="on real drives")
     add_sim(p, arm=SimArm.PERTURB)
-    p.add_argument(
-        "--physics", default=DEFAULT_SIM_PHYSICS, metavar="EFFECTS",
-        help="with --sim: the simulated arm's physics, as hrm sim --physics (all, none or "
-        f"effects joined by commas: gravity, capstan, creep, backlash, sensor); default "
-        f"{DEFAULT_SIM_PHYSICS}",
-    )  # fmt: skip
+    add_physics(p, default=DEFAULT_SIM_PHYSICS)  # --physics EFFECTS, as hrm sim --physics
     add_bus(p)  # --config, --bus
     p.add_argument(
         "--holds", type=int, default=None, metavar="N",
