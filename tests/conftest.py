@@ -30,8 +30,11 @@ from __future__ import annotations
 import gc
 import itertools
 import os
+import signal
 import socket
+import threading
 import uuid
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -71,6 +74,30 @@ def quiet_heap() -> None:
         gc.unfreeze()
         gc.collect()
     gc.freeze()
+
+
+class SigintHandlerLeaked(pytest.PytestWarning):
+    """A test left another SIGINT handler than it found (restored after it)."""
+
+
+@pytest.fixture(autouse=True)
+def sigint_handler_kept(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Each test finds SIGINT's handler as the one before it left it: a handler left
+    behind (a box runner's "stop on SIGINT", an ignored signal) makes a later test's
+    ``_thread.interrupt_main`` (Ctrl-C as a terminal sends it) do nothing.  A leak is
+    restored and named in the warnings summary."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.getsignal(signal.SIGINT)
+    yield
+    after = signal.getsignal(signal.SIGINT)
+    if after is not before:
+        signal.signal(signal.SIGINT, before)
+        warnings.warn(
+            SigintHandlerLeaked(f"{request.node.nodeid} left SIGINT's handler {after!r}"),
+            stacklevel=1,
+        )
 
 
 @pytest.fixture(scope="session", autouse=True)
