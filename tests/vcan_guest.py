@@ -38,6 +38,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import IO, Any
 
@@ -184,6 +185,29 @@ def guest_count(n_cpus: int | None = None) -> int:
     return max(1, min(2, n_cpus))
 
 
+def guest_cpus(n: int, cpus: Sequence[int] | None = None) -> list[int | None]:
+    """The host CPU each of ``n`` guests is kept on: the k-th of this process's CPUs for
+    guest k, None (any) where there are fewer CPUs than guests.  A guest's system call is
+    a ptrace hand-over between its kernel's host process and its user process: kept on
+    one CPU the hand-over is a context switch, across two a wake-up of the other CPU, and
+    the kill test's guest took 76 s unpinned and 47 s pinned with a third of its CPU taken
+    by a busier process (docs/hil.md).
+
+    >>> guest_cpus(2, [0, 1]), guest_cpus(1, [3, 5]), guest_cpus(3, [0, 1])
+    ([0, 1], [3], [None, None, None])
+    """
+    if cpus is None:
+        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    if len(cpus) < n:
+        return [None] * n
+    return list(cpus[:n])
+
+
+def _keep_on_cpu(cpu: int) -> None:
+    """(in the guest's runner before it starts) keep it and its children on ``cpu``"""
+    os.sched_setaffinity(0, {cpu})
+
+
 def module_of(nodeid: str) -> str:
     """``'tests/a.py'`` of ``'tests/a.py::t[socketcan]'``."""
     return nodeid.split("::", 1)[0]
@@ -249,6 +273,8 @@ class GuestRun:
     nodeids: list[str]
     markexpr: str
     timeout_s: float = GUEST_TIMEOUT_S
+    #: the host CPU the guest's processes are kept on (:func:`guest_cpus`), None: any
+    cpu: int | None = None
     workdir: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="hrm-vcan-")))
     proc: subprocess.Popen[bytes] | None = None
     log: IO[bytes] | None = None
@@ -290,6 +316,7 @@ class GuestRun:
             stdout=self.log,
             stderr=subprocess.STDOUT,
             start_new_session=True,  # a Ctrl-C of this session reaches it through stop()
+            preexec_fn=None if self.cpu is None else partial(_keep_on_cpu, self.cpu),
         )
 
     def _read(self) -> None:
@@ -437,7 +464,10 @@ def split_for_guest(config: pytest.Config, items: list[pytest.Item]) -> None:
     timeout_s = guest_timeout_s()
     groups = share_out([item.nodeid for item in vcan], guest_count())
     config.stash[GUEST] = Guests(
-        [GuestRun(f"guest {k + 1}", group, markexpr, timeout_s) for k, group in enumerate(groups)]
+        [
+            GuestRun(f"guest {k + 1}", group, markexpr, timeout_s, cpu)
+            for k, (group, cpu) in enumerate(zip(groups, guest_cpus(len(groups)), strict=True))
+        ]
     )
     for item in vcan:
         item.stash[IN_GUEST] = True
