@@ -27,12 +27,16 @@ the switch interval from the process entry, here pytest.
 
 from __future__ import annotations
 
+import fcntl
 import gc
 import itertools
 import os
+import shutil
 import signal
 import socket
+import tempfile
 import threading
+import time
 import uuid
 import warnings
 from collections.abc import Callable, Iterator
@@ -107,6 +111,66 @@ def process_wide_settings() -> Iterator[None]:
         yield
 
 
+@pytest.fixture
+def ipc_dir() -> Iterator[Path]:
+    """A folder of a short path for hrm_ipc's sockets, removed after the test: a socket
+    path has at most 107 bytes, and a pytest-xdist worker's ``tmp_path`` is 10 longer than
+    a single session's (``popen-gw0/``)."""
+    path = Path(tempfile.mkdtemp(prefix="hrm-ipc-"))
+    try:
+        yield path
+    finally:
+        shutil.rmtree(path, ignore_errors=True)
+
+
+#: the longest a test waits for its turn beside another worker's tests (the suite's limit
+#: per test is 300 s; a test marked ``exclusive`` waits for the one running beside it)
+TURN_TIMEOUT_S = 600.0
+TURN_POLL_S = 0.05
+
+
+def _flock_within(fd: int, how: int, timeout_s: float, what: str) -> None:
+    """``flock(fd, how)``, failing the test after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            fcntl.flock(fd, how | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                pytest.fail(f"waited {timeout_s:g} s for {what}: another worker's test held it")
+            time.sleep(TURN_POLL_S)
+
+
+@pytest.fixture(autouse=True)
+def exclusive_among_workers(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[None]:
+    """With pytest-xdist, a test marked ``exclusive`` (the load tests' CPU burners, the HIL
+    plan's box on a CPU of its own) runs with no other worker's test beside it; the others
+    run side by side.  A readers-writer lock of two ``flock`` files of this run: a test
+    passes the turnstile, then holds the room shared; an exclusive one holds the turnstile
+    (so no new test enters) and the room alone."""
+    config = request.config
+    if not vcan_guest.is_xdist_worker(config):
+        yield
+        return
+    base = tmp_path_factory.getbasetemp().parent / "hrm-turn"  # the workers' common folder
+    exclusive = request.node.get_closest_marker("exclusive") is not None
+    fds = [os.open(f"{base}.{name}", os.O_RDWR | os.O_CREAT, 0o600) for name in ("turn", "room")]
+    turn, room = fds
+    try:
+        _flock_within(turn, fcntl.LOCK_EX, TURN_TIMEOUT_S, "the turnstile")
+        if not exclusive:
+            fcntl.flock(turn, fcntl.LOCK_UN)
+        _flock_within(room, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH, TURN_TIMEOUT_S,
+                      "the room")  # fmt: skip
+        yield
+    finally:
+        for fd in fds:
+            os.close(fd)  # (closing releases its lock)
+
+
 def _free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -138,6 +202,16 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
 
 def pytest_unconfigure(config: pytest.Config) -> None:
     vcan_guest.stop_guest(config)
+
+
+@pytest.hookimpl(optionalhook=True)  # pytest-xdist's controller
+def pytest_testnodedown(node: Any, error: object) -> None:
+    vcan_guest.note_worker_tests(node.config, getattr(node, "workeroutput", None))
+
+
+@pytest.hookimpl(tryfirst=True)  # before the terminal's summary counts the reports
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    vcan_guest.run_guests_after_workers(session)
 
 
 BusFactory = Callable[[], dict[str, Any]]

@@ -43,3 +43,27 @@ def test_the_guests_pytest_runs_the_stall_probe_at_the_guests_period() -> None:
     # the guest's shortest window (the stop tests' 2 cycles at its rigs' rate) is longer than
     # two of the probe's periods: a pause a period longer than it is caught however it falls
     assert 2 / vcan_guest.GUEST_RATE_HZ > 2 * vcan_guest.GUEST_PROBE_PERIOD_S
+
+
+def test_the_guests_pytest_is_never_distributed() -> None:
+    args = vcan_guest.guest_args(["tests/a.py::t[socketcan]"], "")
+    assert args[args.index("-n") + 1] == "0", args
+
+
+def test_the_controller_keeps_each_workers_socketcan_tests_once_with_their_place(
+    pytestconfig: pytest.Config, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """pytest-xdist's workers each name the same SocketCAN tests (their collections are
+    equal); the controller keeps each once, in order, with its location for the reports."""
+    monkeypatch.delitem(pytestconfig.stash, vcan_guest.WORKER_TESTS, raising=False)
+    named = [["tests/a.py::t[socketcan]", ["tests/a.py", 3, "t[socketcan]"]],
+             ["tests/b.py::u[socketcan]", ["tests/b.py", None, "u[socketcan]"]]]  # fmt: skip
+    for _worker in range(2):
+        vcan_guest.note_worker_tests(pytestconfig, {vcan_guest.WORKER_OUTPUT_KEY: named})
+    vcan_guest.note_worker_tests(pytestconfig, None)  # a worker that crashed names none
+    tests = pytestconfig.stash[vcan_guest.WORKER_TESTS]
+    assert tests == {
+        "tests/a.py::t[socketcan]": ("tests/a.py", 3, "t[socketcan]"),
+        "tests/b.py::u[socketcan]": ("tests/b.py", None, "u[socketcan]"),
+    }
+    del pytestconfig.stash[vcan_guest.WORKER_TESTS]

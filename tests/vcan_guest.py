@@ -102,6 +102,10 @@ POLL_S = 0.2
 SHUTDOWN_TIMEOUT_S = 30.0
 LOG_TAIL_LINES = 40
 GUEST = pytest.StashKey["Guests"]()
+#: pytest-xdist: a worker's output naming the SocketCAN tests it left to the guests
+WORKER_OUTPUT_KEY = "hrm_vcan_tests"
+#: pytest-xdist's controller: those tests (node id: location) for the guests
+WORKER_TESTS = pytest.StashKey[dict[str, "Location"]]()
 IN_GUEST = pytest.StashKey[bool]()
 
 
@@ -247,7 +251,8 @@ def share_out(nodeids: Sequence[str], n: int) -> list[list[str]]:
 def guest_args(nodeids: Sequence[str], markexpr: str) -> list[str]:
     """The pytest command run in the guest: these node ids, this session's marker
     expression (the ini file's ``addopts`` apply there as here)."""
-    args = [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-rN"]
+    # one process there (-n 0: the ini's pytest-xdist workers are the host's)
+    args = [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-n", "0", "-rN"]
     # the stall probe wakes every GUEST_PROBE_PERIOD_S there, not every 1 ms
     args += [f"--stall-probe-period={GUEST_PROBE_PERIOD_S:g}"]
     if markexpr:
@@ -445,6 +450,24 @@ class Guests:
             run.stop()
 
 
+def make_guests(config: pytest.Config, nodeids: Sequence[str]) -> Guests:
+    """The guests that run ``nodeids`` (:func:`share_out`), each on a CPU of its own."""
+    markexpr = str(config.getoption("markexpr") or "")
+    timeout_s = guest_timeout_s()
+    groups = share_out(nodeids, guest_count())
+    return Guests(
+        [
+            GuestRun(f"guest {k + 1}", group, markexpr, timeout_s, cpu)
+            for k, (group, cpu) in enumerate(zip(groups, guest_cpus(len(groups)), strict=True))
+        ]
+    )
+
+
+def is_xdist_worker(config: pytest.Config) -> bool:
+    """Whether this session is a pytest-xdist worker (xdist gives it ``workerinput``)."""
+    return hasattr(config, "workerinput")
+
+
 def split_for_guest(config: pytest.Config, items: list[pytest.Item]) -> None:
     """``pytest_collection_modifyitems``: the SocketCAN tests to the end, run in the guests
     (nothing changes where the kernel has vcan or in a guest itself); where no guest can
@@ -459,20 +482,20 @@ def split_for_guest(config: pytest.Config, items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.skip(reason=reason))
         return
     here = [item for item in items if not needs_vcan(item)]
-    items[:] = here + vcan
-    markexpr = str(config.getoption("markexpr") or "")
-    timeout_s = guest_timeout_s()
-    groups = share_out([item.nodeid for item in vcan], guest_count())
-    config.stash[GUEST] = Guests(
-        [
-            GuestRun(f"guest {k + 1}", group, markexpr, timeout_s, cpu)
-            for k, (group, cpu) in enumerate(zip(groups, guest_cpus(len(groups)), strict=True))
+    if is_xdist_worker(config):
+        # pytest-xdist: the controller runs them once every worker has ended
+        # (:func:`run_guests_after_workers`); each worker names them (all name the same)
+        config.workeroutput[WORKER_OUTPUT_KEY] = [  # type: ignore[attr-defined]
+            [item.nodeid, list(item.location)] for item in vcan
         ]
-    )
+        items[:] = here
+        return
+    items[:] = here + vcan
+    config.stash[GUEST] = make_guests(config, [item.nodeid for item in vcan])
     for item in vcan:
         item.stash[IN_GUEST] = True
         # the outer item waits for its own report only; its guest has its own deadline
-        item.add_marker(pytest.mark.timeout(timeout_s + 2 * DEADLINE_MARGIN_S))
+        item.add_marker(pytest.mark.timeout(guest_timeout_s() + 2 * DEADLINE_MARGIN_S))
 
 
 def run_in_guest(item: pytest.Item) -> bool | None:
@@ -485,27 +508,65 @@ def run_in_guest(item: pytest.Item) -> bool | None:
         # bus kind) would take the guests' CPU: the guests' items use none of them
         item.session._setupstate.teardown_exact(None)
         guests.start()
-    run = guests.run_of(item.nodeid)
-    ihook = item.ihook
-    ihook.pytest_runtest_logstart(nodeid=item.nodeid, location=item.location)
-    data = run.wait_for(item.nodeid)
+    relay(item.config, guests.run_of(item.nodeid), item.nodeid, item.location)
+    return True
+
+
+Location = tuple[str, int | None, str]
+
+
+def relay(config: pytest.Config, run: GuestRun, nodeid: str, location: Location) -> bool:
+    """Wait for ``nodeid``'s reports from its guest and report them as this session's
+    (a failed call naming why where there are none); whether it failed."""
+    hook = config.hook
+    hook.pytest_runtest_logstart(nodeid=nodeid, location=location)
+    failed = False
+    data = run.wait_for(nodeid)
     if data is None:
         for when in ("setup", "call", "teardown"):
             outcome = "failed" if when == "call" else "passed"
             longrepr = run.why_no_report() if when == "call" else None
-            rep = pytest.TestReport(
-                item.nodeid, item.location, {}, outcome, longrepr, when, duration=0.0
-            )
-            ihook.pytest_runtest_logreport(report=rep)
+            rep = pytest.TestReport(nodeid, location, {}, outcome, longrepr, when, duration=0.0)
+            hook.pytest_runtest_logreport(report=rep)
+        failed = True
     else:
         for d in data:
-            rep = item.config.hook.pytest_report_from_serializable(config=item.config, data=d)
+            rep = hook.pytest_report_from_serializable(config=config, data=d)
             if rep.skipped and isinstance(rep.longrepr, list):  # JSON made the tuple a list
                 rep.longrepr = tuple(rep.longrepr)
-            _relay_stall_rerun(item.config, rep)
-            ihook.pytest_runtest_logreport(report=rep)
-    ihook.pytest_runtest_logfinish(nodeid=item.nodeid, location=item.location)
-    return True
+            _relay_stall_rerun(config, rep)
+            hook.pytest_runtest_logreport(report=rep)
+            failed = failed or rep.failed
+    hook.pytest_runtest_logfinish(nodeid=nodeid, location=location)
+    return failed
+
+
+def note_worker_tests(config: pytest.Config, workeroutput: dict[str, Any] | None) -> None:
+    """``pytest_testnodedown`` (pytest-xdist's controller): the SocketCAN tests a worker
+    left to the guests (:func:`split_for_guest`)."""
+    named = (workeroutput or {}).get(WORKER_OUTPUT_KEY) or []
+    tests = config.stash.setdefault(WORKER_TESTS, {})
+    for nodeid, (path, lineno, name) in named:
+        tests.setdefault(nodeid, (path, lineno, name))
+
+
+def run_guests_after_workers(session: pytest.Session) -> None:
+    """``pytest_sessionfinish`` (pytest-xdist's controller, every worker ended): the
+    guests run the SocketCAN tests the workers named, their reports are this session's,
+    and a failure among them fails the session."""
+    config = session.config
+    tests = config.stash.get(WORKER_TESTS, {})
+    if not tests or session.shouldstop or session.shouldfail:
+        return
+    guests = config.stash[GUEST] = make_guests(config, list(tests))
+    guests.start()
+    failed = 0
+    for run in guests.runs:
+        for nodeid in run.nodeids:
+            failed += relay(config, run, nodeid, tests[nodeid])
+    session.testsfailed += failed
+    if failed and session.exitstatus == pytest.ExitCode.OK:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
 def _relay_stall_rerun(config: pytest.Config, rep: pytest.TestReport) -> None:

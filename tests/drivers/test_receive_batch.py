@@ -116,11 +116,11 @@ def test_a_batch_does_what_its_frames_do_one_by_one(
     assert many == one
 
 
-def test_a_poller_reads_hrm_ipc_in_batches_into_the_monitor(tmp_path: Path) -> None:
+def test_a_poller_reads_hrm_ipc_in_batches_into_the_monitor(tmp_path: Path, ipc_dir: Path) -> None:
     """The supervisor's poller on an ``hrm_ipc`` end: whole datagrams into the batch path,
     every frame logged once, frames of our own end (``receive_own_messages``) taken as
     echoes, a closed bus a kept exception instead of a raise."""
-    box, host = open_ends("batch-poll", 2, tmp_path)
+    box, host = open_ends("batch-poll", 2, ipc_dir)
     bus, log, port, mon, rx, _net, _reports = rig(tmp_path)
     assert pollable(host)
     poller = BusPoller(host, rx, "bus0")
@@ -145,8 +145,8 @@ def test_a_poller_reads_hrm_ipc_in_batches_into_the_monitor(tmp_path: Path) -> N
     assert port.name == "bus0"
 
 
-def test_hrm_ipc_refuses_a_batch_it_cannot_carry(tmp_path: Path) -> None:
-    a, b = open_ends("batch-refuse", 2, tmp_path)
+def test_hrm_ipc_refuses_a_batch_it_cannot_carry(ipc_dir: Path) -> None:
+    a, b = open_ends("batch-refuse", 2, ipc_dir)
     try:
         good = from_messages([cia301.make_sync()] * 6)
         bad = good.copy()
@@ -166,7 +166,7 @@ def test_hrm_ipc_refuses_a_batch_it_cannot_carry(tmp_path: Path) -> None:
 
 
 def test_the_supervisor_reads_its_buses_and_a_dead_one_is_a_stop_cause_not_a_spin(
-    tmp_path: Path,
+    tmp_path: Path, ipc_dir: Path
 ) -> None:
     """The supervisor's own thread waits on an hrm_ipc end (BusPoller): frames reach the
     monitor between deadlines; a bus that dies under it is reported as a receive failure
@@ -179,7 +179,7 @@ def test_the_supervisor_reads_its_buses_and_a_dead_one_is_a_stop_cause_not_a_spi
     from drivers.safety.supervisor import Supervisor
     from tests.drivers.safety.test_supervisor import HB_PERIOD_S, HOST, Limits, T
 
-    box, host = open_ends("sup-poll", 2, tmp_path)
+    box, host = open_ends("sup-poll", 2, ipc_dir)
     bus, log, _port, mon, rx, _net, _reports = rig(tmp_path)
     poller = BusPoller(host, rx, "bus0")
     layout = BusLayout(BusPort("bus0", host), np.array([0, 1]), np.array([1, 2]), poller)
@@ -217,7 +217,7 @@ def test_the_supervisor_reads_its_buses_and_a_dead_one_is_a_stop_cause_not_a_spi
 
 
 def test_a_supervisor_woken_late_reads_what_arrived_before_it_judges_the_cycle(
-    tmp_path: Path,
+    tmp_path: Path, ipc_dir: Path
 ) -> None:
     """A supervisor held off the CPU past its deadline (here: a step that takes 3 periods)
     reads the frames that arrived meanwhile before the next step: a TPDO waiting in the
@@ -229,7 +229,7 @@ def test_a_supervisor_woken_late_reads_what_arrived_before_it_judges_the_cycle(
     from drivers.safety.supervisor import Supervisor
     from tests.drivers.safety.test_supervisor import HB_PERIOD_S, HOST, Limits, T
 
-    box, host = open_ends("sup-late", 2, tmp_path)
+    box, host = open_ends("sup-late", 2, ipc_dir)
     bus, log, _port, mon, rx, _net, _reports = rig(tmp_path)
     poller = BusPoller(host, rx, "bus0")
     layout = BusLayout(BusPort("bus0", host), np.array([0, 1]), np.array([1, 2]), poller)
@@ -264,7 +264,9 @@ def test_a_supervisor_woken_late_reads_what_arrived_before_it_judges_the_cycle(
         log.stop()
 
 
-def test_the_batch_paths_are_taken_by_what_the_bus_and_receiver_are(tmp_path: Path) -> None:
+def test_the_batch_paths_are_taken_by_what_the_bus_and_receiver_are(
+    tmp_path: Path, ipc_dir: Path
+) -> None:
     """The kinds of bus and receiver that move batches are Protocols (no probing):
     ``hrm_ipc`` sends and receives batches, python-can's virtual bus does neither; the
     port hands records to a bus that takes them unless it must tell echoes apart; the
@@ -272,7 +274,7 @@ def test_the_batch_paths_are_taken_by_what_the_bus_and_receiver_are(tmp_path: Pa
     from drivers.bus import BatchSendingBus, BusPort, RecordSendingBus
     from drivers.receive import BatchReceivingBus, BatchSink, FrameSink
 
-    a, b = open_ends("batch-kinds", 2, tmp_path)
+    a, b = open_ends("batch-kinds", 2, ipc_dir)
     virtual = can.Bus(interface="virtual", channel="batch-kinds")
     try:
         assert isinstance(a, RecordSendingBus) and isinstance(a, BatchReceivingBus)

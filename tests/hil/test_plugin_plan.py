@@ -38,7 +38,8 @@ FIGURES = os.environ.get("HRM_HIL_FIGURES")  # a file: append each run's ending 
 
 # over the cross-process bus (udp_multicast stops the same way at production settings on
 # the loaded 2-core machine: docs/hil.md), SocketCAN where the kernel has vcan0/vcan1
-pytestmark = pytest.mark.hrm_buses("ipc", "socketcan")
+# alone: the box process takes a CPU of its own, as separate hardware (tests/conftest.py)
+pytestmark = [pytest.mark.hrm_buses("ipc", "socketcan"), pytest.mark.exclusive]
 
 #: In the vcan guest (``tools/vcan-guest``: one CPU, 30-40 us per system call) python-can
 #: carries 1,500-2,200 frames/s; the 36-drive box at 100 Hz needs about 7,000, and even at

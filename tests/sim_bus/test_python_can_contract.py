@@ -55,9 +55,9 @@ class Opener:
 
 
 @pytest.fixture(params=INTERFACES)
-def opener(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Opener]:
+def opener(request: pytest.FixtureRequest, ipc_dir: Path) -> Iterator[Opener]:
     interface = request.param
-    extra: dict[str, Any] = {"directory": str(tmp_path)} if interface == "hrm_ipc" else {}
+    extra: dict[str, Any] = {"directory": str(ipc_dir)} if interface == "hrm_ipc" else {}
     open_bus = Opener(interface, f"b2b-{uuid.uuid4().hex[:8]}", extra)
     yield open_bus
     for bus in open_bus.opened:

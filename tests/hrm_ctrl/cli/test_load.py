@@ -19,7 +19,8 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.load
+# alone: the burners would starve another worker's test beside it (tests/conftest.py)
+pytestmark = [pytest.mark.load, pytest.mark.exclusive]
 
 PYTHON = sys.executable
 BURNERS = 2
