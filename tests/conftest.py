@@ -183,6 +183,10 @@ def vcan_available(name: str = "vcan0") -> bool:
 
 @pytest.hookimpl(trylast=True)  # after -k and -m deselect: the guests run only what is left
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if vcan_guest.is_xdist_worker(config):
+        # the exclusive tests first (the same order in every worker): an exclusive module
+        # sent beside a long test (the demo's) waited for it with its own worker idle
+        items.sort(key=lambda item: item.get_closest_marker("exclusive") is None)
     vcan_guest.split_for_guest(config, items)
 
 
