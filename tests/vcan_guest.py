@@ -7,7 +7,9 @@ other test.  Where it has not, ``HRM_VCAN_GUEST`` is not ``off`` (on by default,
 :data:`SWITCH_DEFAULT`) and ``tools/vcan-guest/run-in-vcan-vm.sh``
 can boot its guest (Debian's ``user-mode-linux``, ``kmod`` and ``iproute2`` installed),
 the session moves them to its end and runs them in :func:`guest_count` guests side by side
-(a guest has one CPU),
+(a guest has one CPU, and is kept on a host CPU of its own: :func:`guest_cpus`); with the
+suite's pytest-xdist workers, each worker names them and leaves them out, and the controller
+runs them once every worker has ended (:func:`run_guests_after_workers`),
 each a pytest process with the same node ids over whole test modules (a module's fixtures
 stay in one guest), and each test's reports (setup, call, teardown, stall reruns) come back
 to this session as its own: the terminal, the summary and the exit status count them as if
@@ -251,7 +253,7 @@ def share_out(nodeids: Sequence[str], n: int) -> list[list[str]]:
 def guest_args(nodeids: Sequence[str], markexpr: str) -> list[str]:
     """The pytest command run in the guest: these node ids, this session's marker
     expression (the ini file's ``addopts`` apply there as here)."""
-    # one process there (-n 0: the ini's pytest-xdist workers are the host's)
+    # one process there (-n 0: pytest-xdist's workers, where asked for, are the host's)
     args = [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-n", "0", "-rN"]
     # the stall probe wakes every GUEST_PROBE_PERIOD_S there, not every 1 ms
     args += [f"--stall-probe-period={GUEST_PROBE_PERIOD_S:g}"]
@@ -556,8 +558,9 @@ def run_guests_after_workers(session: pytest.Session) -> None:
     and a failure among them fails the session."""
     config = session.config
     tests = config.stash.get(WORKER_TESTS, {})
-    if not tests or session.shouldstop or session.shouldfail:
-        return
+    stopped = session.exitstatus == pytest.ExitCode.INTERRUPTED
+    if not tests or stopped or session.shouldstop or session.shouldfail:
+        return  # (an interrupted session, or one stopped at its first failures: -x)
     guests = config.stash[GUEST] = make_guests(config, list(tests))
     guests.start()
     failed = 0
