@@ -8,7 +8,7 @@ other test.  Where it has not, ``HRM_VCAN_GUEST`` is not ``off`` (on by default,
 can boot its guest (Debian's ``user-mode-linux``, ``kmod`` and ``iproute2`` installed),
 the session moves them to its end and runs them in :func:`guest_count` guests side by side
 (a guest has one CPU, and is kept on a host CPU of its own: :func:`guest_cpus`); with the
-suite's pytest-xdist workers, each worker names them and leaves them out, and the controller
+pytest-xdist workers (``-n 2``), each worker names them and leaves them out, and the controller
 runs them once every worker has ended (:func:`run_guests_after_workers`),
 each a pytest process with the same node ids over whole test modules (a module's fixtures
 stay in one guest), and each test's reports (setup, call, teardown, stall reruns) come back
