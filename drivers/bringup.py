@@ -21,6 +21,7 @@ names needed in messages) and explicit settings; none keeps state.
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -187,6 +188,39 @@ def sdo_read(link: DriveLink, index: int, subindex: int = 0) -> Any:
         raise SdoError(f"{link.label}: cannot read 0x{index:04X}:{subindex:02X} ({exc})") from exc
     except DriverError as exc:  # the request could not be sent (bus failure)
         raise SdoError(f"{link.label}: SDO read 0x{index:04X}:{subindex:02X}: {exc}") from exc
+
+
+def sdo_answers(link: DriveLink, wait_s: float, index: int = cia301.OD_DEVICE_TYPE) -> int:
+    """How many answers one SDO upload request of ``index``:00 gets within ``wait_s``
+    (counted until then, or until a second one): 1 from a drive, 0 from none, 2 when more
+    than one device answers as the node (a second box or a node-id clash: canopen's client
+    takes the first answer and drops the others unseen).  Sent and counted as raw frames,
+    so no other SDO transfer with the node may be under way; an upload response or abort
+    naming ``index``:00 counts.  A request that cannot be sent: :class:`SdoError`."""
+    request = bytes(cia301.make_sdo_upload_request(link.node_id, index, 0).data)
+    answer_id = cia301.COB_SDO_TX + link.node_id
+    kinds = (cia301.SDO_SCS_INITIATE_UPLOAD, cia301.SDO_CS_ABORT)
+    heard = threading.Condition()
+    count = 0
+
+    def on_answer(_cid: int, data: bytes | bytearray, _ts: float) -> None:
+        nonlocal count
+        if len(data) == 8 and data[0] >> 5 in kinds and bytes(data[1:4]) == request[1:4]:
+            with heard:
+                count += 1
+                heard.notify_all()
+
+    network = link.node.network
+    network.subscribe(answer_id, on_answer)
+    try:
+        link.node.sdo.send_request(request)
+        with heard:
+            heard.wait_for(lambda: count >= 2, timeout=wait_s)
+            return count
+    except (canopen.SdoCommunicationError, DriverError) as exc:
+        raise SdoError(f"{link.label}: SDO read 0x{index:04X}:00 (answer count): {exc}") from exc
+    finally:
+        network.unsubscribe(answer_id, on_answer)
 
 
 def _var(link: DriveLink, index: int) -> Any:

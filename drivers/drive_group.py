@@ -5,7 +5,9 @@ The session (:mod:`drivers.session`) decides which step comes when; a
 :class:`DriveGroup` carries each one out on every drive and says what it found:
 
 - after an NMT reset, every node's boot-up within the boot-up timeout (the error lists
-  the missing ones), and no node that booted twice (two devices answering as one);
+  the missing ones), and no node that booted twice (two devices answering as one; a
+  second boot-up that comes after the configuration began is a second device when the
+  node answers one SDO request twice: :meth:`DriveGroup.refuse_late_duplicates`);
 - the SDO configuration (:meth:`DriveGroup.configure`, :func:`drivers.bringup.configure_drive`
   per drive: PDO mappings, heartbeat times, software limits 0x607D from the rope layer,
   interpolation period, CSP);
@@ -42,6 +44,7 @@ from drivers.bringup import (
     read_state,
     read_status,
     reset_to_ready,
+    sdo_answers,
     sdo_read,
 )
 from drivers.config import ControlConfig
@@ -168,6 +171,39 @@ class DriveGroup:
         two devices answer as that node (a second box, or a simulator, on the same bus; a
         node-id clash), and each SDO request would get two answers."""
         text = duplicate_boot_text(self.monitor.describe_duplicate_boot())
+        if text is not None:
+            self.events.add("error", text)
+            raise BootupError(text)
+
+    def refuse_late_duplicates(self) -> None:
+        """:class:`BootupError` (logged) naming the nodes that booted again after every
+        node's first boot-up (:attr:`NodeMonitor.rebooted`: since the configuration
+        began) and answer one SDO request more than once (:func:`sdo_answers`, waiting
+        ``sdo_timeout_s``): a second device's boot-ups, late (a second box whose
+        answers came after the boot-up window), while the configured device keeps
+        answering.  A node that answers once rebooted by itself (a brown-out): left to
+        the enable's refusal, which names it so."""
+        mon = self.monitor
+        slot = self.slots.slot
+        suspects = [link for link in self.links if mon.rebooted[slot[link.motor]]]
+        if not suspects:
+            return
+        wait_s = self.control.sdo_timeout_s
+        answers = run_parallel(
+            "second-device check",
+            lambda link: sdo_answers(link, wait_s),
+            suspects,
+            wait_s + self.budget_s(1),
+            label=lambda link: link.label,
+            on_error=lambda text: self.events.add("error", text),
+        )
+        twice = [
+            f"{mon.labels[slot[link.motor]]}: {int(mon.bootups[slot[link.motor]])} boot-ups, "
+            f"{n} answers to one SDO request"
+            for link, n in zip(suspects, answers, strict=True)
+            if n > 1
+        ]
+        text = duplicate_boot_text(twice)
         if text is not None:
             self.events.add("error", text)
             raise BootupError(text)

@@ -8,7 +8,9 @@ before it resets drives, refuses an enable on, and names beside a stop.
 * After the reset, host-direction frames this host did not send (:func:`foreign_frames`)
   refuse the enable.
 * A node that boots more than once after one reset is two devices answering as one
-  (:func:`duplicate_boot_text`).
+  (:func:`duplicate_boot_text`); one whose second boot-up comes after the configuration
+  began is when it also answers one SDO request twice
+  (:meth:`drivers.drive_group.DriveGroup.refuse_late_duplicates`).
 * A stopped stream's buses carrying at least a frame per cycle of nodes not in the
   configuration (:func:`unconfigured_traffic`): a babbling device is named beside the
   watchdog it tripped.

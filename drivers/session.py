@@ -388,7 +388,8 @@ class DriveSession:
         that does not reach the state, fails the whole enable: every drive then gets a
         quick stop by SDO and NMT pre-operational (-> FAULT).  Refused, before anything is
         sent, without a calibration unless ``allow_uncalibrated``; refused (still READY,
-        nothing but statusword reads sent) when a stop cause came since the drives were
+        nothing but SDO reads sent) when a node that booted again since answers as two
+        devices (:class:`BootupError`), a stop cause came since the drives were
         configured or a drive is in FAULT: a fault is reset only on purpose
         (:meth:`reset_fault`).  A stop cause during the enable itself (an EMCY, a
         watch's cause, :meth:`request_stop`) quick-stops every axis as soon as the
@@ -441,9 +442,14 @@ class DriveSession:
         return actual
 
     def _refuse_enable_after_causes(self) -> None:
-        """Before :meth:`enable` sends anything: refuse (still READY) when a stop cause
-        was reported since the drives were configured (an EMCY, a bad frame, a watch's
-        cause: :meth:`reset_fault` clears them) or a drive is in FAULT (read by SDO)."""
+        """Before :meth:`enable` sends anything: refuse (still READY) when a node that
+        booted again since the configuration began answers one SDO request twice (a
+        second box whose boot-ups came late: :class:`BootupError` naming the duplicate
+        nodes, :meth:`DriveGroup.refuse_late_duplicates`), when a stop cause was
+        reported since the drives were configured (a node that rebooted by itself, an
+        EMCY, a bad frame, a watch's cause: :meth:`reset_fault` clears them) or a drive
+        is in FAULT (read by SDO)."""
+        self.drives.refuse_late_duplicates()
         why = self.supervisor.cause_since_configured()
         if why is not None:
             self._refuse_enable(f"enable refused: {why}")

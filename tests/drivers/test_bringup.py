@@ -4,21 +4,23 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
+import can
 import pytest
 
 from drivers.bringup import BootupError, SdoError, StateTimeoutError
 from drivers.busload import BusLoadError, highest_usable_rate
 from drivers.protocol import cia402 as c
 from drivers.safety.subset import ActuationSubset
-from drivers.session import DriveSession
+from drivers.session import DriveSession, SessionState
 from hrm_ctrl.errors import DriverError
 from hrm_ctrl.ropes.actuation import Actuation
 from sim_bus.box import SimBox
-from tests.drivers.driver_rig import Rig, make_config
+from tests.drivers.driver_rig import Rig, make_config, wait_until
 
 
 def test_missing_nodes_are_listed(rig_factory: Callable[..., Rig]) -> None:
@@ -159,6 +161,68 @@ def test_a_second_box_on_the_bus_is_named_before_any_drive_moves(
         msg = str(info.value)
         assert msg.startswith("more than one device answers as the same node")
         assert "2 boot-ups" in msg and "\n" not in msg
+        for sim in (rig.sim, second):
+            assert c.State402.OPERATION_ENABLED not in {
+                c.decode_state(sw) for sw in sim.statuswords().values()
+            }
+        sent = {m.arbitration_id for sn in rig.sniffers for m in sn.snapshot()}
+        assert not any(0x200 < cid <= 0x27F for cid in sent)  # no RPDO
+    finally:
+        second.stop()
+
+
+class _HeldBack:
+    """A simulated box's frames held back (none reaches the bus) until :meth:`release`
+    sends them, in order: a box whose thread ran late (the vcan guest, one CPU)."""
+
+    def __init__(self, box: SimBox) -> None:
+        self.frames: list[tuple[Callable[[can.Message], None], can.Message]] = []
+        self.lock = threading.Lock()
+        self.holding = True
+        for drive in box.drives.values():
+            send = drive._send_fn
+            drive._send_fn = lambda msg, send=send: self._send(send, msg)  # type: ignore[method-assign]
+
+    def _send(self, send: Callable[[can.Message], None], msg: can.Message) -> None:
+        with self.lock:
+            if self.holding:
+                self.frames.append((send, msg))
+                return
+        send(msg)
+
+    def release(self) -> None:
+        with self.lock:
+            self.holding = False
+            frames, self.frames = self.frames, []
+        for send, msg in frames:
+            send(msg)
+
+
+def test_a_second_box_heard_only_after_the_configuration_is_named_at_the_enable(
+    rig_factory: Callable[..., Rig], actuation: Actuation
+) -> None:
+    """The second box's boot-ups (and its SDO answers) come after every node's first
+    boot-up and the whole configuration (seen once in the vcan guest: the enable was then
+    refused as 'rebooted since the drives were configured').  The enable names the
+    duplicate nodes: each still answers one SDO request twice; no drive is enabled."""
+    rig = rig_factory()
+    second = SimBox(rig.config, actuation=actuation)
+    second.start()
+    late = _HeldBack(second)
+    try:
+        box = rig.open_box()
+        box.configure()
+        n_held = len(late.frames)
+        late.release()
+        assert n_held >= len(second.drives)  # at least its boot-ups after the reset
+        assert wait_until(lambda: bool(box.monitor.rebooted.all()))
+        with pytest.raises(BootupError) as info:
+            box.enable()
+        msg = str(info.value)
+        assert msg.startswith("more than one device answers as the same node")
+        assert "2 boot-ups" in msg and "answers to one SDO request" in msg
+        assert "\n" not in msg
+        assert box.state is SessionState.READY  # refused before anything but SDO reads
         for sim in (rig.sim, second):
             assert c.State402.OPERATION_ENABLED not in {
                 c.decode_state(sw) for sw in sim.statuswords().values()
