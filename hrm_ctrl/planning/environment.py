@@ -171,8 +171,10 @@ class Pipe:
 
     @cached_property
     def _segments(self) -> np.ndarray:
-        """Per segment of the resampled axis one row (S, 7): its start A, A -> B and |AB|^2
-        (1 where 0), the constants of :meth:`_nearest`, gathered in one indexing."""
+        """The segments of the resampled axis as the rows (7, S) of their constants for
+        :meth:`_nearest`: each segment's start A (rows 0-2), A -> B (3-5) and |AB|^2 (6, 1
+        where 0), component by component, so that one indexing gathers every constant of
+        the points' segments in contiguous (7, P, 4) blocks."""
         dense = self._dense[0]
         if len(dense) < 2:  # segs are clipped to -1 then: the one sample, a point
             table = np.hstack((dense, np.zeros_like(dense), np.ones((len(dense), 1))))
@@ -181,6 +183,7 @@ class Pipe:
             AB = dense[1:] - A
             L2 = np.einsum("sj,sj->s", AB, AB)
             table = np.hstack((A, AB, np.where(L2 > 0, L2, 1.0)[:, None]))
+        table = np.ascontiguousarray(table.T)
         table.setflags(write=False)
         return table
 
@@ -193,21 +196,37 @@ class Pipe:
     def _nearest(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(P, 3) points and their nearest samples ``v`` (:meth:`_samples`) -> q - C (P, 3)
         and |q - C| (P,), C the nearest axis points: the segments on either side of the
-        samples (four per point) projected in one batch."""
+        samples (four per point) projected in one batch, component by component (each
+        operation on a contiguous (P, 4) block: a fraction of the cost of (P, 4, 3)
+        arrays' sums over their last axis).
+
+        >>> axis = KnownPath.from_points(np.array([[0, 0, 0], [100, 0, 0]], float))
+        >>> p = Pipe(axis, 70.0)
+        >>> q = np.array([[50.0, 3, 4], [120, 0, 0]])
+        >>> rel, dist = p._nearest(q, p._samples(q))
+        >>> rel.tolist(), dist.tolist()
+        ([[0.0, 3.0, 4.0], [20.0, 0.0, 0.0]], [5.0, 20.0])
+        """
+        table = self._segments
         segs = np.concatenate((v - 1, v), axis=1)  # (P, 4)
-        np.minimum(np.maximum(segs, 0, out=segs), len(self._segments) - 1, out=segs)
-        seg = self._segments[segs]  # (P, 4, 7)
-        AB = seg[..., 3:6]
-        rel = q[:, None, :] - seg[..., :3]  # from each segment's start ...
-        t = np.einsum("pkj,pkj->pk", rel, AB)
-        t /= seg[..., 6]
+        np.minimum(np.maximum(segs, 0, out=segs), table.shape[1] - 1, out=segs)
+        seg = table[:, segs]  # (7, P, 4)
+        AB = seg[3:6]
+        rel = q.T[:, :, None] - seg[:3]  # (3, P, 4): from each segment's start ...
+        t = rel[0] * AB[0]  # the sums in einsum's order over (..., 3): 0 + 2, then 1
+        t += rel[2] * AB[2]
+        t += rel[1] * AB[1]
+        t /= seg[6]
         np.minimum(np.maximum(t, 0.0, out=t), 1.0, out=t)
-        AB *= t[..., None]
+        AB *= t
         rel -= AB  # ... then from its nearest point
-        dist = np.sqrt(np.einsum("pkj,pkj->pk", rel, rel))
+        d2 = rel[0] * rel[0]
+        d2 += rel[2] * rel[2]
+        d2 += rel[1] * rel[1]
+        dist = np.sqrt(d2, out=d2)
         best = np.argmin(dist, axis=1)
         i = np.arange(len(q))
-        return rel[i, best], dist[i, best]
+        return rel[:, i, best].T, dist[i, best]
 
     def _inside_distance_and_gradient(
         self, q: np.ndarray, v: np.ndarray

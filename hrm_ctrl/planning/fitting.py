@@ -56,21 +56,22 @@ def _crossing(E: list[float], D: list[float], r: float) -> float:
 
 
 def _last_at_least(
-    curve: np.ndarray, cum: list[float], P: list[float], r: float, k: int, slack: float
+    curve: np.ndarray, cum: np.ndarray, P: list[float], r: float, k: int, slack: float
 ) -> int:
     """Largest k' <= k with ``|curve[k'] - P| >= r``; -1 if none or the first point is
     within r of P (the bisection's bracket needs it at least r away).
 
     Walked backwards by arc length: a point ``delta`` before one at distance d along the
     curve is at most ``d + delta`` from P, so the points less than ``r - d`` before it are
-    skipped (``cum``: the arc length at each point)."""
+    skipped (``cum``: the arc length at each point, searched in place: a few of its
+    entries are read, never all)."""
     if math.dist(curve[0].tolist(), P) < r:
         return -1
     while k >= 0:
         d = math.dist(curve[k].tolist(), P)
         if d >= r:
             return k
-        k = min(bisect.bisect_right(cum, cum[k] - (r - d) + slack) - 1, k - 1)
+        k = min(bisect.bisect_right(cum, float(cum[k]) - (r - d) + slack) - 1, k - 1)
     return -1
 
 
@@ -83,26 +84,32 @@ def circle_point_nearest(
     >>> circle_point_nearest(np.zeros(3), O3, 5.0, 5.0, ref).round(9).tolist()
     [3.0, 0.0, 4.0]
     """
-    v = O3 - O1
-    D = float(np.linalg.norm(v))
+    (x1, y1, z1), (x3, y3, z3) = O1.tolist(), O3.tolist()
+    vx, vy, vz = x3 - x1, y3 - y1, z3 - z1
+    D = math.sqrt(vx * vx + vy * vy + vz * vz)
     if D > l1 + l2 or D < abs(l1 - l2) or D == 0.0:
         raise PlanningError(
             f"joint 2 has no place: O1-O3 is {D:.3f} mm, links 1 and 2 span "
             f"{abs(l1 - l2):.3f} to {l1 + l2:.3f} mm (backbone too long for the arm)"
         )
-    n = v / D
+    # on floats (3-vectors: a NumPy call costs more than its arithmetic)
+    nx, ny, nz = vx / D, vy / D, vz / D
     a = (D * D + l1 * l1 - l2 * l2) / (2.0 * D)
     r = math.sqrt(max(l1 * l1 - a * a, 0.0))
-    c = O1 + a * n
-    w = ref - c
-    w = w - (w @ n) * n
-    nw = float(np.linalg.norm(w))
+    cx, cy, cz = x1 + a * nx, y1 + a * ny, z1 + a * nz
+    rx, ry, rz = ref.tolist()
+    wx, wy, wz = rx - cx, ry - cy, rz - cz
+    wn = wx * nx + wy * ny + wz * nz
+    wx, wy, wz = wx - wn * nx, wy - wn * ny, wz - wn * nz
+    nw = math.sqrt(wx * wx + wy * wy + wz * wz)
     if nw < 1e-12:  # ref on the axis: any point; take one perpendicular to n
+        n = np.array([nx, ny, nz])
         w = np.cross(n, [0.0, 0.0, 1.0])
         if np.linalg.norm(w) < 1e-9:
             w = np.cross(n, [0.0, 1.0, 0.0])
-        nw = float(np.linalg.norm(w))
-    return c + r * w / nw
+        wx, wy, wz = w.tolist()
+        nw = math.sqrt(wx * wx + wy * wy + wz * wz)
+    return np.array([cx + r * wx / nw, cy + r * wy / nw, cz + r * wz / nw])
 
 
 def point_at_arc(curve: np.ndarray, s: float) -> np.ndarray:
@@ -111,16 +118,27 @@ def point_at_arc(curve: np.ndarray, s: float) -> np.ndarray:
 
 
 def _arc_lengths(curve: np.ndarray) -> np.ndarray:
-    """Arc length (m,) of a polyline (m, 3) at each of its points."""
-    return np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(curve, axis=0), axis=1))))
+    """Arc length (m,) of a polyline (m, 3) at each of its points.
+
+    >>> _arc_lengths(np.array([[0.0, 0, 0], [3, 4, 0], [3, 4, 12]])).tolist()
+    [0.0, 5.0, 17.0]
+    """
+    D = curve[1:] - curve[:-1]
+    D *= D
+    cum = np.empty(len(curve))
+    cum[:1] = 0.0
+    np.cumsum(np.sqrt(np.add.reduce(D, axis=1)), out=cum[1:])  # np.linalg.norm's sum
+    return cum
 
 
 def _point_at_arc(curve: np.ndarray, cum: np.ndarray, s: float) -> np.ndarray:
     s = min(max(s, 0.0), float(cum[-1]))
     j = min(int(np.searchsorted(cum, s, side="right")) - 1, len(cum) - 2)
-    seg = float(np.linalg.norm(np.diff(curve[j : j + 2], axis=0), axis=1)[0])
-    t = (s - cum[j]) / seg if seg > 0 else 0.0
-    return curve[j] + t * (curve[j + 1] - curve[j])
+    (ax, ay, az), (bx, by, bz) = curve[j].tolist(), curve[j + 1].tolist()
+    dx, dy, dz = bx - ax, by - ay, bz - az
+    seg = math.sqrt(dx * dx + dy * dy + dz * dz)
+    t = (s - float(cum[j])) / seg if seg > 0 else 0.0
+    return np.array([ax + t * dx, ay + t * dy, az + t * dz])
 
 
 def fit_joint_centres(curve: np.ndarray, links: np.ndarray) -> np.ndarray:
@@ -149,13 +167,12 @@ def fit_joint_centres_on_segments(
     seg[n] = len(curve) - 2
     O[n] = curve[-1]
     O[0] = curve[0]
-    cum_a = _arc_lengths(curve)
-    cum = cum_a.tolist()
+    cum = _arc_lengths(curve)  # searched in place (bisect): a few entries read per joint
     # a point nearer P along the curve than r is nearer than r (chord <= arc): the
     # crossing is searched backwards from the last point at least r before P
-    slack = 1e-9 * (1.0 + cum[-1])
+    s_P = float(cum[-1])
+    slack = 1e-9 * (1.0 + s_P)
     P = curve[-1].tolist()
-    s_P = cum[-1]
     j = len(curve) - 2  # P lies on segment [curve[j], curve[j + 1]]
     for i in range(n - 1, 1, -1):  # O_{i+1} (0-based index i) from O_{i+2}
         r = float(links[i])
@@ -170,12 +187,12 @@ def fit_joint_centres_on_segments(
         D = [B[0] - A[0], B[1] - A[1], B[2] - A[2]]
         t = _crossing([A[0] - P[0], A[1] - P[1], A[2] - P[2]], D, r)
         P = [A[0] + t * D[0], A[1] + t * D[1], A[2] + t * D[2]]
-        s_P = cum[k] + t * math.hypot(*D)
+        s_P = float(cum[k]) + t * math.hypot(*D)
         O[i] = P
         seg[i] = k
         j = k
     if n >= 2:
-        ref = _point_at_arc(curve, cum_a, float(links[0]))
+        ref = _point_at_arc(curve, cum, float(links[0]))
         O[1] = circle_point_nearest(O[0], O[2], float(links[0]), float(links[1]), ref)
         seg[1] = -1
     return O, seg

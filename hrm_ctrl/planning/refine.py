@@ -46,7 +46,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from hrm_ctrl.errors import PlanningError
-from hrm_ctrl.kinematics import R_BASE_PAPER, frames
+from hrm_ctrl.kinematics import R_BASE_PAPER, base_rows, turned_by_joint
 from hrm_ctrl.model import RobotModel
 from hrm_ctrl.planning.backbone import solve3
 
@@ -164,15 +164,42 @@ def joint_axes(model: RobotModel, q: np.ndarray) -> tuple[np.ndarray, np.ndarray
     (24, 3), for one configuration ``q = (alpha, theta)``.
 
     alpha_k turns about the y axis of the frame before joint k; theta_k about the x axis
-    after alpha_k, which ``Rot_x(theta_k)`` keeps: frame k's x axis.
+    after alpha_k, which ``Rot_x(theta_k)`` keeps: frame k's x axis.  The chain of
+    Eq. (3) on floats (:func:`~hrm_ctrl.kinematics.turned_by_joint`, as
+    :func:`~hrm_ctrl.kinematics.frames` for one configuration), the axes read off each
+    frame's rows as it is made (the refinement evaluates a few configurations a step).
+
+    >>> from hrm_ctrl.kinematics import frames
+    >>> from hrm_ctrl.model import default_robot
+    >>> m = default_robot()
+    >>> q = np.random.default_rng(3).uniform(-1.0, 1.0, 24)
+    >>> O, W, C = joint_axes(m, q)
+    >>> R, O2 = frames(m, q[:12], q[12:])
+    >>> bool((O == O2).all() and (W[12:] == R[:, :, 0]).all() and (W[1:12] == R[:-1, :, 1]).all())
+    True
     """
     n = model.n_joints
-    R, O = frames(model, q[:n], q[n:])
-    W = np.empty((2 * n, 3))
-    W[0] = _first_axis(model)
-    W[1:n] = R[:-1, :, 1]
-    W[n:] = R[:, :, 0]
-    return O, W, np.concatenate((O[:n], O[:n]))
+    if q.shape != (2 * n,):
+        raise ValueError(f"q must have shape ({2 * n},), got {q.shape}")
+    c, s = np.cos(q).tolist(), np.sin(q).tolist()
+    r = _base_rows(model)
+    ox, oy, oz = model.base_position.tolist()
+    O = [ox, oy, oz]
+    Wa = _first_axis(model).tolist()  # alpha_1's axis, then frame k's y axis for alpha_k+1
+    Wt: list[float] = []  # frame k's x axis for theta_k
+    for k, length in enumerate(model.links.tolist()):
+        r = turned_by_joint(r, c[k], s[k], c[n + k], s[n + k])
+        Wa += (r[1], r[4], r[7])
+        Wt += (r[0], r[3], r[6])
+        ox, oy, oz = ox + r[2] * length, oy + r[5] * length, oz + r[8] * length
+        O += (ox, oy, oz)
+    del Wa[3 * n :]  # frame 12's y axis turns no joint
+    W = np.array(Wa + Wt).reshape(2 * n, 3)
+    C = np.array(O[: 3 * n] * 2).reshape(2 * n, 3)
+    return np.array(O).reshape(n + 1, 3), W, C
+
+
+_base_rows = lru_cache(maxsize=8)(base_rows)  # per model: the rotation before joint 1
 
 
 @lru_cache(maxsize=8)
