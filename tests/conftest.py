@@ -181,12 +181,47 @@ def vcan_available(name: str = "vcan0") -> bool:
     return Path(f"/sys/class/net/{name}").exists()
 
 
+#: The modules of the longest tests, with their seconds in a whole run in one process on
+#: the idle development machine.  pytest-xdist's ``loadfile`` hands the modules out in the
+#: workers' order, each to the first worker free: these go first (longest first), so the
+#: run does not end with one worker in a long module and the other idle.  A module not
+#: here, or a figure gone stale, changes the order only.
+LONG_MODULES_S = {
+    "tests/hrm_ctrl/cli/test_demo.py": 85,
+    "tests/drivers/test_canlog_durability.py": 58,
+    "tests/hrm_ctrl/cli/console/test_console_wayback.py": 52,
+    "tests/hrm_ctrl/cli/test_calibrate.py": 50,
+    "tests/calibration/test_physics.py": 47,
+    "tests/hrm_ctrl/cli/console/test_console_drive_cabins.py": 40,
+    "tests/hrm_ctrl/cli/test_run_limits.py": 37,
+    "tests/hrm_ctrl/ropes/test_estimator_compensated.py": 35,
+    "tests/hrm_ctrl/cli/test_calibrate_physics.py": 32,
+    "tests/hrm_ctrl/cli/test_calibrate_box.py": 30,
+    "tests/hil/test_plugin.py": 30,
+    "tests/calibration/test_zero.py": 26,
+    "tests/hrm_ctrl/cli/console/test_console_drive.py": 25,
+    "tests/hrm_ctrl/cli/test_view.py": 23,
+    "tests/hrm_ctrl/ropes/test_feedforward.py": 21,
+    "tests/hrm_ctrl/cli/test_run_physics.py": 21,
+    "tests/hrm_ctrl/cli/console/test_console_cli.py": 21,
+    "tests/hrm_ctrl/cli/test_run_watches.py": 19,
+    "tests/hrm_ctrl/planning/test_scan.py": 18,
+    "tests/hrm_ctrl/cli/test_collect_resume.py": 17,
+}
+
+
+def worker_order(item: pytest.Item) -> tuple[bool, int]:
+    """The sort key of a worker's items: the exclusive tests first (an exclusive module sent
+    beside a long test, the demo's, waited for it with its own worker idle), then the
+    modules of :data:`LONG_MODULES_S`, longest first; the others keep their order."""
+    exclusive = item.get_closest_marker("exclusive") is not None
+    return not exclusive, -LONG_MODULES_S.get(item.nodeid.split("::")[0], 0)
+
+
 @pytest.hookimpl(trylast=True)  # after -k and -m deselect: the guests run only what is left
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     if vcan_guest.is_xdist_worker(config):
-        # the exclusive tests first (the same order in every worker): an exclusive module
-        # sent beside a long test (the demo's) waited for it with its own worker idle
-        items.sort(key=lambda item: item.get_closest_marker("exclusive") is None)
+        items.sort(key=worker_order)  # the same order in every worker (a stable sort)
     vcan_guest.split_for_guest(config, items)
 
 

