@@ -21,7 +21,7 @@ Each watch reports once and ends; :class:`FeedbackWatches` starts and stops a se
 them and summarises them for the run record.
 
 >>> import numpy as np
->>> from drivers.safety.monitor import FeedbackSnapshot, NodeMonitor
+>>> from drivers.safety.monitor import NodeMonitor
 >>> mon = NodeMonitor(["m0", "m1"], 3, 0.3)
 >>> take_snapshot(mon) is None          # no feedback yet
 True
