@@ -394,6 +394,11 @@ class NodeMonitor:
         self._snap_has_targets[k] = has_targets
         self._snap_version += 1  # published
 
+    @property
+    def clean_cycles(self) -> int:
+        """Clean cycles recorded so far (:meth:`feedback_snapshot`)."""
+        return self._snap_version
+
     def feedback_snapshot(self, tries: int = 4) -> FeedbackSnapshot | None:
         """The feedback of the last clean cycle (copies), or None when there was none
         yet (or the receive path published ``tries`` times while it was copied: it

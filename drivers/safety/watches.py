@@ -124,6 +124,7 @@ class RopeWatch:
         self.missed = 0  # SYNCs sent since the last wake, no new clean cycle among them
         self.repeated = 0  # no new SYNC since the last wake
         self.cpu_s: list[float] = []  # thread CPU time of each evaluation
+        self._clean0 = monitor.clean_cycles
         self._last_seq = -1  # the SYNC last checked
         self._seen_seq = -1  # the SYNC last sent at the last wake
         self._stop = threading.Event()
@@ -179,6 +180,8 @@ class RopeWatch:
             "evaluations": self.evaluations,
             "missed_snapshots": self.missed,
             "repeated_syncs": self.repeated,
+            # the cycles the receive path recorded as clean meanwhile (all it could check)
+            "clean_cycles": self.monitor.clean_cycles - self._clean0,
             "cpu_per_evaluation_ms": None
             if cpu.size == 0
             else {

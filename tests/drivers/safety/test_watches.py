@@ -218,6 +218,7 @@ def test_the_rope_watch_checks_each_sync_once_and_reports_a_failing_check() -> N
     assert "inverse blew up" in text
     s = w.summary()
     assert s["evaluations"] == 2 and s["check"] == {"calls": 2}
+    assert (s["missed_snapshots"], s["repeated_syncs"], s["clean_cycles"]) == (1, 1, 1)
     assert s["cpu_per_evaluation_ms"]["max"] >= 0
 
 
