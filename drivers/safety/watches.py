@@ -126,7 +126,7 @@ class RopeWatch:
         self.cpu_s: list[float] = []  # thread CPU time of each evaluation
         self._clean0 = monitor.clean_cycles
         self._last_seq = -1  # the SYNC last checked
-        self._seen_seq = -1  # the SYNC last sent at the last wake
+        self._seen_seq = monitor.seq  # the SYNC last sent at the last wake (or when made)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
