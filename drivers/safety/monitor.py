@@ -7,6 +7,11 @@ with NumPy over all nodes at once and returns the causes that must stop the
 box (an empty list when all is well).  Callbacks that see a cause between cycles
 set :attr:`NodeMonitor.wake` so the supervisor reacts at once.
 
+The receive path also keeps the feedback of the last clean cycle (every node's TPDO
+of one SYNC, with the targets that SYNC applied): the last TPDO of such a cycle copies
+the positions into a preallocated buffer that a watch reads at any time
+(:meth:`NodeMonitor.feedback_snapshot`, :func:`drivers.safety.watches.take_snapshot`).
+
 >>> mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=1, heartbeat_timeout_s=0.3)
 >>> mon.on_tpdo(0, bytes.fromhex("370264000000"), seq=0)
 >>> [c.text for c in mon.check(now=0.0, last_seq=0, heartbeats_armed_at=None)]
@@ -22,6 +27,7 @@ import select
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -128,6 +134,16 @@ class WakeEvent:
             os.close(fd)
 
 
+@dataclass(frozen=True)
+class FeedbackSnapshot:
+    """Every node's actual position after SYNC ``seq`` (its one answer to it) and the
+    targets that SYNC applied (None: the supervisor gave none with it)."""
+
+    seq: int
+    counts: np.ndarray
+    reference: np.ndarray | None
+
+
 def _relative(t: float, reset_at: float) -> str:
     """``0.250 s before the reset`` / ``... after the reset``."""
     if t < reset_at:
@@ -162,6 +178,26 @@ class NodeMonitor:
         self._answers = np.zeros(n, dtype=np.int64)  # work buffers of sync_sent
         self._answered = np.zeros(n, dtype=bool)
         self._labelled = np.zeros(n, dtype=bool)
+        # The targets SYNC ``sync_mark`` applied (given to sync_sent; valid when flagged).
+        self._sync_targets = np.zeros(n, dtype=np.int64)
+        self._sync_has_targets = False
+        # The TPDO stores of the receive threads (one per bus) against each other, so the
+        # last TPDO of a cycle sees every other one whole (never a position without its
+        # count); never taken by the supervisor or a watch.
+        self._rx_lock = threading.Lock()
+        self._label = -1  # the SYNC label of the TPDOs counted in _label_count
+        self._label_count = 0
+        # The feedback of the last clean cycle (_record_snapshot): two slots written in
+        # turn, slot ``v & 1`` published when ``_snap_version`` is v (0: none yet), so a
+        # reader (feedback_snapshot) copies one slot while the next is written into the
+        # other, and the receive path never waits for a reader.
+        self._snap_version = 0
+        self._snap_seq = [-1, -1]
+        self._snap_has_targets = [False, False]
+        self._snap_counts = np.zeros((2, n), dtype=np.int64)
+        self._snap_targets = np.zeros((2, n), dtype=np.int64)
+        self._snap_answers = np.zeros(n, dtype=np.int64)  # work buffer
+        self._snap_ok = np.zeros(n, dtype=bool)  # work buffer
         # ``clock()`` when the receive thread handled the last heartbeat (so a stamp can
         # be newer than the ``now`` a concurrent check was given: see check())
         self.hb_time = np.full(n, -math.inf)
@@ -221,14 +257,15 @@ class NodeMonitor:
         """A stop cause found outside the receive callbacks (e.g. a failed send)."""
         self._queue(StopCause(kind, text, None, self.clock()))
 
-    def sync_sent(self, seq: int) -> None:
-        """SYNC ``seq`` is about to go out (the supervisor): label what arrives from now on
-        with it, and note each node's TPDO count and whether the cycle before was clean:
-        every node answered SYNC ``seq - 1`` exactly once before this one went out.  A TPDO
-        is labelled with the SYNC last sent when it arrives, so a drive that answers a
-        SYNC late answers it under the next one's label: a watch that wants the feedback
-        of one SYNC (:func:`drivers.safety.watches.take_snapshot`) takes it only after a
-        clean cycle, once every node has answered exactly once since.
+    def sync_sent(self, seq: int, targets: np.ndarray | None = None) -> None:
+        """SYNC ``seq`` is about to go out (the supervisor), applying ``targets`` (the
+        counts whose RPDOs went out before it; None: none given): label what arrives from
+        now on with it, and note each node's TPDO count and whether the cycle before was
+        clean: every node answered SYNC ``seq - 1`` exactly once before this one went out.
+        A TPDO is labelled with the SYNC last sent when it arrives, so a drive that answers
+        a SYNC late answers it under the next one's label: the feedback of one SYNC
+        (:meth:`feedback_snapshot`) is recorded only after a clean cycle, once every node
+        has answered exactly once since.
 
         >>> mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=3, heartbeat_timeout_s=0.3)
         >>> mon.sync_sent(0)
@@ -248,15 +285,25 @@ class NodeMonitor:
         np.equal(self._answers, 1, out=self._answered)
         np.equal(self.rx_seq, seq - 1, out=self._labelled)
         self.prev_complete = (
-            was == seq - 1 and bool(self._answered.all()) and bool(self._labelled.all())
+            was == seq - 1
+            and bool(self._answered.all())
+            and bool(self._labelled.all())
+            # n TPDOs under its label, no more: a receive batch holding one node's two
+            # answers counts once in n_tpdo
+            and self._label == seq - 1
+            and self._label_count == len(self.labels)
         )
+        if targets is not None:
+            np.copyto(self._sync_targets, targets)
+        self._sync_has_targets = targets is not None
         np.copyto(self.n_at_sync, self.n_tpdo)
         self.sync_mark = seq
         self.seq = seq
 
     def on_tpdo(self, idx: int, data: bytes | bytearray, seq: int | None = None) -> None:
         """TPDO1 (statusword, position actual) from the node in slot ``idx`` (the
-        receive path's hot spot: one ``struct`` unpack, four array stores)."""
+        receive path's hot spot: one ``struct`` unpack, four array stores; once a cycle,
+        at the n-th TPDO of one SYNC, :meth:`_record_snapshot`)."""
         if len(data) == _TPDO_SIZE:
             sw, pos = _TPDO_UNPACK(data)
         else:
@@ -265,10 +312,18 @@ class NodeMonitor:
             except FrameError as exc:
                 self._async_cause(StopKind.BAD_FRAME, idx, str(exc))
                 return
-        self.statusword[idx] = sw
-        self.position[idx] = pos
-        self.rx_seq[idx] = self.seq if seq is None else seq
-        self.n_tpdo[idx] += 1
+        with self._rx_lock:
+            label = self.seq if seq is None else seq
+            self.statusword[idx] = sw
+            self.position[idx] = pos
+            self.rx_seq[idx] = label
+            self.n_tpdo[idx] += 1
+            if label != self._label:
+                self._label, self._label_count = label, 1
+            else:
+                self._label_count += 1
+            if self._label_count == len(self.labels):
+                self._record_snapshot(label)
         if sw & SW_FAULT and self.armed:
             self._async_cause(StopKind.FAULT, idx, f"statusword 0x{sw:04X} has the fault bit set")
 
@@ -289,10 +344,18 @@ class NodeMonitor:
         """
         v = frames.view(TPDO_VIEW)
         sw = v["statusword"]
-        self.statusword[slots] = sw
-        self.position[slots] = v["position"]
-        self.rx_seq[slots] = self.seq
-        self.n_tpdo[slots] += 1  # (a node twice in one batch counts once)
+        with self._rx_lock:
+            label = self.seq
+            self.statusword[slots] = sw
+            self.position[slots] = v["position"]
+            self.rx_seq[slots] = label
+            self.n_tpdo[slots] += 1  # (a node twice in one batch counts once ...)
+            if label != self._label:  # (... but twice here: no snapshot of that cycle)
+                self._label, self._label_count = label, len(slots)
+            else:
+                self._label_count += len(slots)
+            if self._label_count == len(self.labels):
+                self._record_snapshot(label)
         if self.armed:
             bad = np.flatnonzero(sw & SW_FAULT)
             for k in bad.tolist():
@@ -301,6 +364,73 @@ class NodeMonitor:
                     int(slots[k]),
                     f"statusword 0x{int(sw[k]):04X} has the fault bit set",
                 )
+
+    def _record_snapshot(self, label: int) -> None:
+        """The receive path (under ``_rx_lock``) when the n-th TPDO labelled SYNC
+        ``label`` is in: record every node's position as that SYNC's feedback when the
+        cycle is clean (the rules of :meth:`sync_sent`: the cycle before was clean, and
+        every node has answered exactly once since SYNC ``label`` went out, under its
+        label), with the targets it applied, in the slot not published, then publish it.
+        A few NumPy calls into preallocated buffers, once a cycle.  The supervisor notes
+        the next SYNC without waiting for this: notes changed meanwhile
+        (``sync_mark`` no longer ``label``) leave the slot unpublished."""
+        if label < 0 or self.sync_mark != label or not self.prev_complete:
+            return
+        np.subtract(self.n_tpdo, self.n_at_sync, out=self._snap_answers)
+        np.equal(self._snap_answers, 1, out=self._snap_ok)
+        if not self._snap_ok.all():
+            return
+        np.equal(self.rx_seq, label, out=self._snap_ok)
+        if not self._snap_ok.all():
+            return
+        k = (self._snap_version + 1) & 1
+        np.copyto(self._snap_counts[k], self.position)
+        has_targets = self._sync_has_targets
+        if has_targets:
+            np.copyto(self._snap_targets[k], self._sync_targets)
+        if self.sync_mark != label:  # the next SYNC's notes began: targets may be its
+            return
+        self._snap_seq[k] = label
+        self._snap_has_targets[k] = has_targets
+        self._snap_version += 1  # published
+
+    @property
+    def clean_cycles(self) -> int:
+        """Clean cycles recorded so far (:meth:`feedback_snapshot`)."""
+        return self._snap_version
+
+    def feedback_snapshot(self, tries: int = 4) -> FeedbackSnapshot | None:
+        """The feedback of the last clean cycle (copies), or None when there was none
+        yet (or the receive path published ``tries`` times while it was copied: it
+        publishes once a SYNC).
+
+        >>> mon = NodeMonitor(["m0", "m1"], missing_tpdo_cycles=3, heartbeat_timeout_s=0.3)
+        >>> for seq in (0, 1):                   # SYNC 0 answered by each: SYNC 1 clean
+        ...     mon.sync_sent(seq, np.array([100, 200]))
+        ...     for i in (0, 1):
+        ...         mon.on_tpdo(i, bytes.fromhex("370264000000"))
+        >>> snap = mon.feedback_snapshot()
+        >>> snap.seq, snap.counts.tolist(), snap.reference.tolist()
+        (1, [100, 100], [100, 200])
+        >>> mon.sync_sent(2)
+        >>> mon.on_tpdo(0, bytes.fromhex("370264000000"))   # node 1 not in: no record
+        >>> mon.sync_sent(3)
+        >>> for i in (0, 1):                     # SYNC 2 was not clean: nor is SYNC 3
+        ...     mon.on_tpdo(i, bytes.fromhex("370264000000"))
+        >>> mon.feedback_snapshot().seq          # the last clean cycle's
+        1
+        """
+        for _ in range(max(1, tries)):
+            v = self._snap_version
+            if v == 0:
+                return None
+            k = v & 1
+            seq = self._snap_seq[k]
+            counts = self._snap_counts[k].copy()
+            ref = self._snap_targets[k].copy() if self._snap_has_targets[k] else None
+            if self._snap_version == v:  # not written meanwhile (the other slot is)
+                return FeedbackSnapshot(seq, counts, ref)
+        return None
 
     def guard(self, slots: Sequence[int]) -> None:
         """The nodes in ``slots`` are guarded (node guarding instead of heartbeats): their

@@ -778,9 +778,11 @@ class Supervisor:
         if wait > 0.0:
             self.sleep(min(wait, self.sync_delay_s))
 
-    def _send_syncs(self, stopping: bool = False) -> list[StopCause]:
+    def _send_syncs(self, targets: np.ndarray, stopping: bool = False) -> list[StopCause]:
+        """One SYNC on every bus, applying ``targets`` (whose RPDOs went out before it:
+        noted with the SYNC for the feedback watches, :meth:`NodeMonitor.sync_sent`)."""
         self.seq += 1
-        self.monitor.sync_sent(self.seq)
+        self.monitor.sync_sent(self.seq, targets)
         failed: list[StopCause] = []
         for layout in self.layouts:
             try:
@@ -798,7 +800,7 @@ class Supervisor:
         stopping = controlword == cia402.CW_QUICK_STOP
         failed = self._send_rpdos(controlword, targets, stopping)
         self.sleep(self.sync_delay_s)
-        return failed + self._send_syncs(stopping)
+        return failed + self._send_syncs(targets, stopping)
 
     def _stream_cycle(self, now: float, deadline: float) -> None:
         stream = self._stream
@@ -812,7 +814,8 @@ class Supervisor:
             self._begin_stop(causes, now)
             return
         self._after_rpdo_burst()
-        causes = self._send_syncs()
+        # the SYNC applies the pending targets; without any the drives hold the last
+        causes = self._send_syncs(stream.pending if stream.pending is not None else stream.applied)
         t_sync = self.clock()
         self._recent_syncs.append(t_sync)
         stream.due_seq = self.seq

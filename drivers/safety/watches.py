@@ -10,9 +10,10 @@ the interpreter lock (held at most one switch interval, 0.2 ms, at a time).
   its slack threshold or above its limit, a stale sensor, or bad data past a rate
   (``[tension]`` in the bus configuration) -> :attr:`StopKind.TENSION`, naming the rope
   or the port.
-* **Rope consistency** (:class:`RopeWatch`, every ``every`` control periods): a snapshot
-  of the feedback of one SYNC (:attr:`NodeMonitor.position`, every node's TPDO of the
-  same SYNC) and of the targets the drives were commanded for it goes to a
+* **Rope consistency** (:class:`RopeWatch`, every ``every`` control periods): the
+  feedback of one SYNC (every node's TPDO of the same SYNC) and the targets that SYNC
+  applied, as the receive path recorded them at the last clean cycle
+  (:meth:`NodeMonitor.feedback_snapshot`, :func:`take_snapshot`), go to a
   :class:`RopeCheck` (the rope layer's estimator, injected by the console: the drivers
   know no rope geometry) -> :attr:`StopKind.ROPE`, naming the joint and its ropes.
 
@@ -22,17 +23,17 @@ them and summarises them for the run record.
 >>> import numpy as np
 >>> from drivers.safety.monitor import NodeMonitor
 >>> mon = NodeMonitor(["m0", "m1"], 3, 0.3)
->>> take_snapshot(mon, lambda: None) is None          # no feedback yet
+>>> take_snapshot(mon) is None          # no feedback yet
 True
->>> mon.sync_sent(3)
+>>> mon.sync_sent(3, np.array([1000, 1000]))
 >>> for i in range(2):          # every node answers SYNC 3 once: a clean cycle
 ...     mon.on_tpdo(i, bytes.fromhex("3702e8030000"))
->>> mon.sync_sent(4)
->>> for i in range(2):
+>>> mon.sync_sent(4, np.array([1000, 1001]))
+>>> for i in range(2):          # ... and SYNC 4: its feedback is recorded
 ...     mon.on_tpdo(i, bytes.fromhex("3702e8030000"))
->>> snap = take_snapshot(mon, lambda: np.array([1000, 1000]))
+>>> snap = take_snapshot(mon)
 >>> snap.seq, snap.counts.tolist(), snap.reference.tolist()
-(4, [1000, 1000], [1000, 1000])
+(4, [1000, 1000], [1000, 1001])
 """
 
 from __future__ import annotations
@@ -41,19 +42,16 @@ import threading
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
 from drivers.interrupts import deferred_interrupts
 from drivers.safety.causes import StopKind
-from drivers.safety.monitor import NodeMonitor
+from drivers.safety.monitor import FeedbackSnapshot, NodeMonitor
 from hrm_ctrl.errors import DriverError
 
 ROPE_EVERY_CYCLES = 5  # rope-consistency evaluations: every 5th control period (20 Hz)
-SNAPSHOT_TRIES = 4  # attempts at a snapshot of one SYNC's feedback per evaluation
-SNAPSHOT_RETRY_S = 0.001  # between attempts (the TPDOs of a SYNC arrive within ~2 ms)
 JOIN_TIMEOUT_S = 2.0
 
 
@@ -84,24 +82,12 @@ class Watch(Protocol):
     def summary(self) -> dict[str, Any]: ...
 
 
-@dataclass(frozen=True)
-class FeedbackSnapshot:
-    """Every node's actual position after SYNC ``seq`` and the targets applied at it."""
-
-    seq: int
-    counts: np.ndarray
-    reference: np.ndarray | None
-
-
-def take_snapshot(
-    monitor: NodeMonitor,
-    reference: Callable[[], np.ndarray | None],
-    tries: int = SNAPSHOT_TRIES,
-    retry_s: float = SNAPSHOT_RETRY_S,
-) -> FeedbackSnapshot | None:
-    """The feedback of one SYNC, or None when no attempt found every node's TPDO of
-    the same (latest) SYNC.  A snapshot mixing two SYNCs would show a moving arm's ropes
-    one period apart (up to 0.05 mm at the demo's speed: five sigma of the check).
+def take_snapshot(monitor: NodeMonitor, max_age: int | None = None) -> FeedbackSnapshot | None:
+    """The feedback of one SYNC: the last clean cycle's, as the receive path recorded it
+    at its last TPDO (:meth:`NodeMonitor.feedback_snapshot`), or None when there was
+    none (or it is more than ``max_age`` SYNCs older than the last one sent).  A
+    snapshot mixing two SYNCs would show a moving arm's ropes one period apart (up to
+    0.05 mm at the demo's speed: five sigma of the check).
 
     A TPDO is labelled with the SYNC last sent when it arrives, so a late answer to the
     SYNC before carries this one's label: the feedback counts as this SYNC's only when
@@ -110,61 +96,37 @@ def take_snapshot(
     answers every SYNC exactly one period late, for good, is not told apart.)  Seen
     without it: a loaded in-process box answered a SYNC late, then began the next burst
     and stalled in it, and a snapshot of half the one and half the other stopped a run
-    on a rope consistency figure of 7.6."""
-    for k in range(max(1, tries)):
-        seq = monitor.seq
-        mark = monitor.sync_mark
-        n0 = monitor.n_at_sync.copy()
-        complete = monitor.prev_complete
-        rx = monitor.rx_seq.copy()
-        counts = monitor.position.copy()
-        answers = monitor.n_tpdo - n0
-        ref = reference()
-        one_each = complete and mark == seq and bool(np.all(answers == 1))
-        if seq >= 0 and monitor.seq == seq and one_each and bool(np.all(rx == seq)):
-            # A TPDO is labelled with the SYNC last sent when it arrives, so a box that
-            # answers a SYNC more than a period late shows its previous position under the
-            # new SYNC until its next TPDO overwrites it: it then comes in the same burst.
-            # Positions that change under the same SYNC were such a mix: try again.
-            time.sleep(retry_s)
-            if (
-                monitor.seq == seq
-                and monitor.sync_mark == seq
-                and np.array_equal(monitor.position, counts)
-                and np.array_equal(monitor.n_tpdo - n0, answers)
-            ):
-                ref = None if ref is None else np.array(ref, dtype=np.int64)
-                return FeedbackSnapshot(int(seq), counts, ref)
-        elif k + 1 < tries:
-            time.sleep(retry_s)
-    return None
+    on a rope consistency figure of 7.6.  Recorded by the receive path itself, a
+    snapshot is there whenever a clean cycle was: taken by a watch thread that raced
+    the receive thread for it, half its wakes under load had found none."""
+    snap = monitor.feedback_snapshot()
+    if snap is None or (max_age is not None and snap.seq < monitor.seq - max_age):
+        return None
+    return snap
 
 
 class RopeWatch:
-    """Rope-consistency watch thread (see the module docstring): every ``period_s`` a
-    snapshot of the feedback goes to ``check``; a fault (or a check that raises) is
-    reported once as :attr:`StopKind.ROPE` and the watch ends.  A SYNC already checked
-    (drives holding, no stream) is not checked again."""
+    """Rope-consistency watch thread (see the module docstring): every ``period_s`` the
+    feedback of the last clean cycle and the targets it applied go to ``check``; a
+    fault (or a check that raises) is reported once as :attr:`StopKind.ROPE` and the
+    watch ends.  A SYNC already checked is not checked again: a wake with no SYNC sent
+    since the one before (drives holding, no stream) counts in ``repeated``, one with
+    SYNCs sent but none of them a clean cycle (the box behind) in ``missed``."""
 
-    def __init__(
-        self,
-        monitor: NodeMonitor,
-        check: RopeCheck,
-        reference: Callable[[], np.ndarray | None],
-        period_s: float,
-    ) -> None:
+    def __init__(self, monitor: NodeMonitor, check: RopeCheck, period_s: float) -> None:
         if not period_s > 0:
             raise DriverError(f"rope watch period must be > 0 s, got {period_s!r}")
         self.monitor = monitor
         self.check = check
-        self.reference = reference
         self.period_s = float(period_s)
         self.fault: str | None = None
         self.evaluations = 0
-        self.missed = 0  # no snapshot of one SYNC could be taken
-        self.repeated = 0  # no new SYNC since the last evaluation
+        self.missed = 0  # SYNCs sent since the last wake, no new clean cycle among them
+        self.repeated = 0  # no new SYNC since the last wake
         self.cpu_s: list[float] = []  # thread CPU time of each evaluation
-        self._last_seq = -1
+        self._clean0 = monitor.clean_cycles
+        self._last_seq = -1  # the SYNC last checked
+        self._seen_seq = monitor.seq  # the SYNC last sent at the last wake (or when made)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -180,13 +142,16 @@ class RopeWatch:
 
     def step(self) -> str | None:
         """One evaluation (the thread's work): a one-line fault, or None."""
-        snap = take_snapshot(self.monitor, self.reference)
-        if snap is None:
-            self.missed += 1
+        sent = self.monitor.seq
+        snap = take_snapshot(self.monitor)
+        if snap is None or snap.seq <= self._last_seq:
+            if sent == self._seen_seq:
+                self.repeated += 1
+            else:
+                self.missed += 1
+            self._seen_seq = sent
             return None
-        if snap.seq == self._last_seq:
-            self.repeated += 1
-            return None
+        self._seen_seq = sent
         self._last_seq = snap.seq
         t0 = time.thread_time()
         try:
@@ -215,6 +180,8 @@ class RopeWatch:
             "evaluations": self.evaluations,
             "missed_snapshots": self.missed,
             "repeated_syncs": self.repeated,
+            # the cycles the receive path recorded as clean meanwhile (all it could check)
+            "clean_cycles": self.monitor.clean_cycles - self._clean0,
             "cpu_per_evaluation_ms": None
             if cpu.size == 0
             else {

@@ -219,7 +219,9 @@ def box_feedback(session: Any, watches: Any) -> Feedback:
     from drivers.safety.watches import take_snapshot
 
     def read() -> tuple[np.ndarray, np.ndarray | None] | None:
-        snap = take_snapshot(session.monitor, lambda: None)
+        # the newest only: of the last SYNC, or of the one before while the last one's
+        # answers are still coming in
+        snap = take_snapshot(session.monitor, max_age=1)
         if snap is None:
             return None
         counts = np.asarray(snap.counts, dtype=np.int64)

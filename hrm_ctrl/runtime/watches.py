@@ -170,7 +170,7 @@ def watches_of(
         check = RopeConsistencyCheck(actuation, rate_hz=1.0 / period_s, compensation=compensation)
         watches.add(
             "rope_consistency",
-            RopeWatch(monitor, check, lambda: session.supervisor.targets, period_s),
+            RopeWatch(monitor, check, period_s),
         )
     return watches
 

@@ -32,33 +32,36 @@ def tpdo(position: int) -> bytes:
     return bytes.fromhex("3702") + position.to_bytes(4, "little", signed=True)
 
 
-def clean_sync(mon: NodeMonitor, seq: int) -> None:
-    """SYNC ``seq - 1`` answered once by every node, then SYNC ``seq`` sent."""
+def clean_sync(mon: NodeMonitor, seq: int, targets: np.ndarray | None = None) -> None:
+    """SYNC ``seq - 1`` answered once by every node, then SYNC ``seq`` sent (applying
+    ``targets``)."""
     mon.sync_sent(seq - 1)
     for i in range(mon.n):
         mon.on_tpdo(i, TPDO)
-    mon.sync_sent(seq)
+    mon.sync_sent(seq, targets)
 
 
 def test_a_snapshot_is_of_one_sync_only() -> None:
     mon = monitor()
-    clean_sync(mon, 7)
+    clean_sync(mon, 7, np.array([1, 2, 3]))
     mon.on_tpdo(0, TPDO)
     mon.on_tpdo(1, TPDO)  # node 2's TPDO of SYNC 7 not in yet
-    assert take_snapshot(mon, lambda: None, tries=2, retry_s=0.0) is None
+    assert take_snapshot(mon) is None
     mon.on_tpdo(2, bytes.fromhex("3702d0070000"))
-    snap = take_snapshot(mon, lambda: np.array([1, 2, 3]))
+    snap = take_snapshot(mon)
     assert snap is not None and snap.seq == 7
     assert snap.counts.tolist() == [1000, 1000, 2000] and snap.reference.tolist() == [1, 2, 3]
     mon.position[0] = 5  # the snapshot is a copy
     assert snap.counts[0] == 1000
+    assert take_snapshot(mon).counts.tolist() == [1000, 1000, 2000]  # and so is the record
 
 
 def test_a_late_answer_and_half_the_next_burst_is_no_snapshot() -> None:
     """A box that answers SYNC 8 only after SYNC 9 went out (its answers labelled 9), then
     sends node 0's answer to SYNC 9 and stalls: every label is 9 and the positions hold
     still, but they are of two SYNCs (1100 and 1200).  Seen on a loaded machine: a rope
-    consistency stop (figure 7.6) on such a mix.  Not taken until a clean cycle."""
+    consistency stop (figure 7.6) on such a mix.  Not taken until a clean cycle: until
+    then the last clean cycle's stays the snapshot."""
     mon = monitor()
     clean_sync(mon, 8)  # SYNC 7 answered, SYNC 8 out
     mon.sync_sent(9)  # SYNC 8 not answered yet
@@ -67,19 +70,102 @@ def test_a_late_answer_and_half_the_next_burst_is_no_snapshot() -> None:
         mon.on_tpdo(i, tpdo(1100))  # the late answers to SYNC 8, labelled 9
     mon.on_tpdo(0, tpdo(1200))  # node 0's answer to SYNC 9; the box stalls
     assert mon.rx_seq.tolist() == [9, 9, 9]
-    assert take_snapshot(mon, lambda: None, tries=2, retry_s=0.0) is None
+    assert take_snapshot(mon) is None
     mon.on_tpdo(1, tpdo(1200))
     mon.on_tpdo(2, tpdo(1200))  # every node has answered SYNC 9 too: twice each
-    assert take_snapshot(mon, lambda: None, tries=2, retry_s=0.0) is None
+    assert take_snapshot(mon) is None
     mon.sync_sent(10)  # SYNC 9's cycle was not clean (two answers each)
     for i in range(3):
         mon.on_tpdo(i, tpdo(1300))
-    assert take_snapshot(mon, lambda: None, tries=2, retry_s=0.0) is None
+    assert take_snapshot(mon) is None
     mon.sync_sent(11)  # SYNC 10 answered once by each: clean
     for i in range(3):
         mon.on_tpdo(i, tpdo(1400))
-    snap = take_snapshot(mon, lambda: None)
+    snap = take_snapshot(mon)
     assert snap is not None and snap.seq == 11 and snap.counts.tolist() == [1400] * 3
+    mon.sync_sent(12)
+    mon.on_tpdo(0, tpdo(1500))  # SYNC 12 half answered: SYNC 11's stays, of one SYNC
+    assert take_snapshot(mon).counts.tolist() == [1400] * 3
+    assert take_snapshot(mon, max_age=0) is None  # not of the last SYNC sent
+
+
+def test_a_batch_with_a_node_twice_is_no_snapshot() -> None:
+    """A receive batch holding one node's late answer and its next one (the monitor counts
+    that node's TPDOs once): the cycle is not taken for clean."""
+    from drivers.protocol.batch import from_messages
+    from drivers.protocol.cia402 import make_tpdo_feedback
+
+    mon = monitor()
+    clean_sync(mon, 5)
+    frames = from_messages(
+        [make_tpdo_feedback(n, 0x0237, p) for n, p in ((1, 10), (2, 10), (2, 20), (3, 10))]
+    )
+    mon.on_tpdo_batch(np.array([0, 1, 1, 2]), frames)
+    assert mon.n_tpdo.tolist() == [2, 2, 2] and mon.position.tolist() == [10, 20, 10]
+    assert take_snapshot(mon) is None
+    mon.sync_sent(6)  # nor is the next cycle (SYNC 5's was not clean)
+    mon.on_tpdo_batch(np.array([0, 1, 2]), frames[[0, 1, 3]])
+    assert take_snapshot(mon) is None
+    mon.sync_sent(7, np.array([7, 7, 7]))
+    mon.on_tpdo_batch(np.array([0, 1, 2]), frames[[0, 1, 3]])
+    snap = take_snapshot(mon)
+    assert snap is not None and (snap.seq, snap.reference.tolist()) == (7, [7, 7, 7])
+
+
+def test_snapshots_read_while_two_receive_threads_record_them_are_of_one_sync() -> None:
+    """Two receive threads (two buses) answer each SYNC, a third thread sends the SYNCs
+    and the reader copies snapshots meanwhile: every snapshot it reads is whole, the
+    positions and the targets all of its SYNC."""
+    n, syncs = 8, 400
+    mon = monitor(n)
+    stop = threading.Event()
+    seen: list[int] = []
+    bad: list[tuple[int, list[int], list[int] | None]] = []
+
+    def reader() -> None:
+        while not stop.is_set():
+            snap = take_snapshot(mon)
+            if snap is None:
+                continue
+            ok = snap.counts.tolist() == [snap.seq * 10 + i for i in range(n)]
+            ok = ok and snap.reference is not None and bool(np.all(snap.reference == -snap.seq))
+            if not ok:
+                bad.append((snap.seq, snap.counts.tolist(), snap.reference))
+            seen.append(snap.seq)
+
+    def bus(slots: range, go: threading.Event, done: threading.Event) -> None:
+        while not stop.is_set():
+            if not go.wait(0.1):
+                continue
+            go.clear()
+            for i in slots:
+                mon.on_tpdo(i, tpdo(mon.seq * 10 + i))
+            done.set()
+
+    go = [threading.Event(), threading.Event()]
+    done = [threading.Event(), threading.Event()]
+    threads = [
+        threading.Thread(target=reader),
+        threading.Thread(target=bus, args=(range(0, n, 2), go[0], done[0])),
+        threading.Thread(target=bus, args=(range(1, n, 2), go[1], done[1])),
+    ]
+    for t in threads:
+        t.start()
+    try:
+        for seq in range(syncs):
+            mon.sync_sent(seq, np.full(n, -seq))
+            for g in go:
+                g.set()
+            for d in done:
+                assert d.wait(5.0)
+                d.clear()
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(5.0)
+    assert bad == []
+    assert seen and take_snapshot(mon).seq == syncs - 1  # each cycle clean: the last one
+    assert seen == sorted(seen)
 
 
 class Check:
@@ -105,34 +191,43 @@ class Check:
 
 def test_the_rope_watch_checks_each_sync_once_and_reports_a_failing_check() -> None:
     mon = monitor()
-    clean_sync(mon, 3)
+    clean_sync(mon, 3, np.full(3, 1000))
     for i in range(3):
         mon.on_tpdo(i, TPDO)
     check = Check()
-    w = RopeWatch(mon, check, lambda: np.full(3, 1000), period_s=0.05)
+    w = RopeWatch(mon, check, period_s=0.05)
     assert w.step() is None and w.step() is None  # the second: same SYNC, not checked again
-    assert (len(check.calls), w.evaluations, w.repeated) == (1, 1, 1)
-    mon.sync_sent(4)
+    assert (len(check.calls), w.evaluations, w.repeated, w.missed) == (1, 1, 1, 0)
+    assert check.calls[0][1].tolist() == [1000] * 3  # the targets SYNC 3 applied
+    mon.sync_sent(4, np.full(3, 1000))
+    mon.on_tpdo(0, TPDO)  # SYNC 4 sent, not answered by all: no new clean cycle
+    assert w.step() is None and (w.evaluations, w.repeated, w.missed) == (1, 1, 1)
+    mon.sync_sent(5, np.full(3, 1000))
+    mon.sync_sent(6, np.full(3, 1000))
     for i in range(3):
         mon.on_tpdo(i, TPDO)
-    mon.position[1] = 1600
+    mon.sync_sent(7, np.full(3, 1000))
+    mon.on_tpdo(0, TPDO)
+    mon.on_tpdo(1, tpdo(1600))
+    mon.on_tpdo(2, TPDO)
     assert w.step() == "rope consistency: rope 1 off"
-    w2 = RopeWatch(mon, Check(raises=True), lambda: None, period_s=0.05)
+    assert check.calls[-1][0].tolist() == [1000, 1600, 1000]
+    w2 = RopeWatch(mon, Check(raises=True), period_s=0.05)
     text = w2.step()
-    assert text is not None and text.startswith("rope consistency check failed at SYNC 4: ")
+    assert text is not None and text.startswith("rope consistency check failed at SYNC 7: ")
     assert "inverse blew up" in text
     s = w.summary()
     assert s["evaluations"] == 2 and s["check"] == {"calls": 2}
+    assert (s["missed_snapshots"], s["repeated_syncs"], s["clean_cycles"]) == (1, 1, 1)
     assert s["cpu_per_evaluation_ms"]["max"] >= 0
 
 
 def test_the_rope_watch_thread_reports_once_through_the_monitor() -> None:
     mon = monitor()
-    clean_sync(mon, 1)
-    for i in range(3):
-        mon.on_tpdo(i, TPDO)
-    mon.position[:] = [0, 0, 900]
-    w = RopeWatch(mon, Check(), lambda: np.zeros(3, np.int64), period_s=0.01)
+    clean_sync(mon, 1, np.zeros(3, np.int64))
+    for i, position in enumerate([0, 0, 900]):
+        mon.on_tpdo(i, tpdo(position))
+    w = RopeWatch(mon, Check(), period_s=0.01)
     group = FeedbackWatches()
     closed: list[str] = []
     group.add("rope_consistency", w, close=lambda: closed.append("x"))
@@ -145,24 +240,24 @@ def test_the_rope_watch_thread_reports_once_through_the_monitor() -> None:
     assert group.summary()["rope_consistency"]["fault"] == "rope consistency: rope 2 off"
 
 
-def test_a_rope_watch_whose_reference_raises_reports_it_as_a_stop_cause() -> None:
-    """The reference (the path's counts) or the snapshot raising: the watch thread does not
-    die silently (it is the only one looking at the ropes): it stops every axis."""
+def test_a_rope_watch_whose_snapshot_raises_reports_it_as_a_stop_cause() -> None:
+    """The snapshot raising: the watch thread does not die silently (it is the only one
+    looking at the ropes): it stops every axis."""
     mon = monitor()
     mon.seq = 1
-    mon.rx_seq[:] = 1
 
-    def broken() -> np.ndarray:
-        raise ValueError("no reference")
+    def broken(tries: int = 4) -> Any:
+        raise ValueError("no snapshot")
 
-    w = RopeWatch(mon, Check(), broken, period_s=0.01).start()
+    mon.feedback_snapshot = broken  # type: ignore[method-assign]
+    w = RopeWatch(mon, Check(), period_s=0.01).start()
     try:
         assert wait_until(lambda: w.fault is not None, 2.0)
     finally:
         w.stop()
     causes = mon.drain()
     assert [c.kind for c in causes] == [StopKind.ROPE]
-    assert "rope watch failed" in causes[0].text and "no reference" in causes[0].text
+    assert "rope watch failed" in causes[0].text and "no snapshot" in causes[0].text
 
 
 # ------------------------------------------------------------ on the simulated drives
@@ -247,7 +342,7 @@ def test_an_encoder_shift_stops_every_axis_naming_the_rope(rig_factory) -> None:
             return {}
 
     def make(box: Any) -> RopeWatch:
-        return RopeWatch(box.monitor, ByName(), lambda: box.supervisor.targets, period_s=0.05)
+        return RopeWatch(box.monitor, ByName(), period_s=0.05)
 
     err, watch = stream_with(
         rig, make, lambda w: w.evaluations >= 5, lambda: rig.sim.shift_encoder("j01r1", 1075)
