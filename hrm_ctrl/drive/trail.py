@@ -157,7 +157,15 @@ class Trail:
 
     # changes
     def _append(self, p: np.ndarray) -> None:
-        if self._n == self._cap:
+        self._put(self._n, p)
+
+    def _put(self, k: int, p: np.ndarray) -> None:
+        """Point ``k`` (at most :attr:`n_points`) set to ``p`` with its arc length, the
+        trail ending there (``p`` within 1e-9 mm of point ``k - 1``: ending at that one).
+        The point is written before the count changes, so a reader on another thread (the
+        shape watch's copy of :attr:`points`) sees a trail with its end, never one cut
+        back by the segment a straight advance lengthens in place."""
+        if k == self._cap:
             if self._cap >= MAX_PATH_POINTS:
                 raise DriveError(
                     f"trail: more than the {MAX_PATH_POINTS} points a path may have; "
@@ -167,18 +175,19 @@ class Trail:
             p2, s2 = np.empty((grow, 3)), np.empty(grow)
             p2[: self._n], s2[: self._n] = self._p[: self._n], self._s[: self._n]
             self._p, self._s, self._cap = p2, s2, grow
-        if self._n == 0:
+        if k == 0:
             s = 0.0
         else:
-            d = float(np.linalg.norm(p - self._p[self._n - 1]))
+            d = float(np.linalg.norm(p - self._p[k - 1]))
             if d <= 1e-9:
+                self._n = k
                 return
-            s = float(self._s[self._n - 1]) + d
+            s = float(self._s[k - 1]) + d
         if s > MAX_PATH_LENGTH_MM:
             raise DriveError(f"trail: longer than the {MAX_PATH_LENGTH_MM:g} mm a path may be")
-        self._p[self._n] = p
-        self._s[self._n] = s
-        self._n += 1
+        self._p[k] = p
+        self._s[k] = s
+        self._n = k + 1
 
     def extend(self, ds_mm: float, yaw_per_mm: float, pitch_per_mm: float) -> None:
         """Grow the trail by ``ds_mm`` (> 0) at its end, turning the heading by
@@ -192,8 +201,9 @@ class Trail:
         if not kappa > 1e-12:  # straight (a turn of less than 1e-9 rad a km is none)
             end = self._p[self._n - 1] + ds_mm * h
             if self._straight_end and self._n >= 2:
-                self._n -= 1  # lengthen the last straight segment in place
-            self._append(end)
+                self._put(self._n - 1, end)  # lengthen the last straight segment in place
+            else:
+                self._append(end)
             self._straight_end = True
             return
         # the turn: a rotation by angle phi = |w| ds about the axis w
@@ -225,8 +235,7 @@ class Trail:
             k = 1
             p = self._p[0].copy()
         h = self._p[k] - self._p[k - 1] if k < self._n else self._heading
-        self._n = k
-        self._append(p)
+        self._put(k, p)
         self._heading = _unit(h)
         self._up = _unit(self._up - (self._up @ self._heading) * self._heading)
         self._straight_end = False

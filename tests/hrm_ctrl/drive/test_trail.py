@@ -96,3 +96,44 @@ def test_the_trail_round_trips_save_plan_play(
     assert rc == 0, err
     summary = json.loads(out)
     assert summary["steps"] == len(doc["steps"]) and summary["playback"]["cycles"] > 0
+
+
+def test_a_reader_on_another_thread_always_sees_the_trail_with_its_end() -> None:
+    """The shape watch copies :attr:`Trail.points` on its own thread while the control
+    thread advances: a straight advance lengthens the last segment in place, and a copy
+    taken while it did once lacked that segment (the tip read as 71.6 mm off the trail
+    in a whole run).  With the interpreter switching threads every microsecond, every
+    copy's end is as far along as the one before."""
+    import sys
+    import threading
+
+    t = Trail.starting_at(ENTRY, np.array([1.0, 0.0, 0.0]))
+    t.extend(1.0, 0.0, 0.0)
+    done = threading.Event()
+    went_back: list[float] = []
+    copies = 0
+
+    def read() -> None:
+        nonlocal copies
+        last = 0.0
+        while not done.is_set():
+            end = float(np.array(t.points)[-1, 0] - ENTRY[0])
+            if end < last:
+                went_back.append(last - end)
+            last = end
+            copies += 1
+
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    reader = threading.Thread(target=read, daemon=True)
+    try:
+        reader.start()
+        for _ in range(20_000):
+            t.extend(0.05, 0.0, 0.0)
+    finally:
+        done.set()
+        reader.join(5.0)
+        sys.setswitchinterval(interval)
+    assert copies > 100
+    assert went_back == []
+    assert t.n_points == 2 and t.length == pytest.approx(1001.0)
