@@ -181,32 +181,35 @@ def vcan_available(name: str = "vcan0") -> bool:
     return Path(f"/sys/class/net/{name}").exists()
 
 
-#: The modules of the longest tests, with their seconds in a whole run in one process on
-#: the idle development machine.  pytest-xdist's ``loadfile`` hands the modules out in the
-#: workers' order, each to the first worker free: these go first (longest first), so the
-#: run does not end with one worker in a long module and the other idle.  A module not
-#: here, or a figure gone stale, changes the order only.
+#: The modules of the longest tests, with their seconds in a whole run on two workers on
+#: the idle development machine (the waits for an exclusive test left out).
+#: pytest-xdist's ``loadfile`` hands the modules out in the workers' order, each to the
+#: first worker free: these go first (longest first), so the run does not end with one
+#: worker in a long module and the other idle.  A module not here, or a figure gone
+#: stale, changes the order only.
 LONG_MODULES_S = {
-    "tests/hrm_ctrl/cli/test_demo.py": 85,
-    "tests/drivers/test_canlog_durability.py": 58,
-    "tests/hrm_ctrl/cli/console/test_console_wayback.py": 52,
-    "tests/hrm_ctrl/cli/test_calibrate.py": 50,
-    "tests/calibration/test_physics.py": 47,
-    "tests/hrm_ctrl/cli/console/test_console_drive_cabins.py": 40,
-    "tests/hrm_ctrl/cli/test_run_limits.py": 37,
-    "tests/hrm_ctrl/ropes/test_estimator_compensated.py": 35,
-    "tests/hrm_ctrl/cli/test_calibrate_physics.py": 32,
-    "tests/hrm_ctrl/cli/test_calibrate_box.py": 30,
-    "tests/hil/test_plugin.py": 30,
-    "tests/calibration/test_zero.py": 26,
-    "tests/hrm_ctrl/cli/console/test_console_drive.py": 25,
-    "tests/hrm_ctrl/cli/test_view.py": 23,
-    "tests/hrm_ctrl/ropes/test_feedforward.py": 21,
-    "tests/hrm_ctrl/cli/test_run_physics.py": 21,
-    "tests/hrm_ctrl/cli/console/test_console_cli.py": 21,
-    "tests/hrm_ctrl/cli/test_run_watches.py": 19,
-    "tests/hrm_ctrl/planning/test_scan.py": 18,
-    "tests/hrm_ctrl/cli/test_collect_resume.py": 17,
+    "tests/hrm_ctrl/cli/test_demo.py": 96,
+    "tests/hrm_ctrl/cli/test_calibrate_physics.py": 59,
+    "tests/hil/test_plugin.py": 57,
+    "tests/hrm_ctrl/cli/test_calibrate.py": 54,
+    "tests/hrm_ctrl/cli/console/test_console_wayback.py": 51,
+    "tests/hrm_ctrl/ropes/test_estimator_compensated.py": 49,
+    "tests/calibration/test_physics.py": 48,
+    "tests/hrm_ctrl/cli/test_run_limits.py": 46,
+    "tests/hrm_ctrl/cli/console/test_console_drive_cabins.py": 45,
+    "tests/hrm_ctrl/cli/test_calibrate_box.py": 44,
+    "tests/hrm_ctrl/planning/test_scan.py": 38,
+    "tests/hrm_ctrl/cli/console/test_console_session.py": 38,
+    "tests/hrm_ctrl/ropes/test_feedforward.py": 35,
+    "tests/hrm_ctrl/cli/test_view.py": 31,
+    "tests/drivers/test_canlog_durability.py": 31,
+    "tests/calibration/test_zero.py": 31,
+    "tests/drivers/safety/test_supervisor_stops.py": 30,
+    "tests/drivers/safety/test_supervisor_foreign.py": 29,
+    "tests/hrm_ctrl/cli/test_run_watches.py": 24,
+    "tests/drivers/test_session.py": 23,
+    "tests/hrm_ctrl/cli/test_signals.py": 22,
+    "tests/hrm_ctrl/cli/console/test_console_cli.py": 22,
 }
 
 
