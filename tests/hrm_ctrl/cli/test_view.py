@@ -228,6 +228,10 @@ def _norms_of_step(doc: Any, k: int) -> np.ndarray:
 
 @needs_browser
 @STALL_TOLERANT
+# alone among the pytest-xdist workers (tests/conftest.py): a browser rendering beside a
+# simulated box that streams at 100 Hz; beside the other worker's boxes under SCHED_FIFO
+# the tension board's frames came 502 ms apart here (limit 500 ms), no machine stall seen
+@pytest.mark.exclusive
 def test_live_view_shows_the_estimated_arm_moving_with_the_simulated_arm(
     plan_file: Path, browser: Any, tmp_path: Path
 ) -> None:
