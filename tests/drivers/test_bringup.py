@@ -161,14 +161,19 @@ def test_a_second_box_on_the_bus_is_named_before_any_drive_moves(
         msg = str(info.value)
         assert msg.startswith("more than one device answers as the same node")
         assert "2 boot-ups" in msg and "\n" not in msg
-        for sim in (rig.sim, second):
-            assert c.State402.OPERATION_ENABLED not in {
-                c.decode_state(sw) for sw in sim.statuswords().values()
-            }
-        sent = {m.arbitration_id for sn in rig.sniffers for m in sn.snapshot()}
-        assert not any(0x200 < cid <= 0x27F for cid in sent)  # no RPDO
+        assert_no_drive_moved(rig, second)
     finally:
         second.stop()
+
+
+def assert_no_drive_moved(rig: Rig, second: SimBox) -> None:
+    """No drive of either box enabled, and no RPDO (setpoint) on the wire."""
+    for sim in (rig.sim, second):
+        assert c.State402.OPERATION_ENABLED not in {
+            c.decode_state(sw) for sw in sim.statuswords().values()
+        }
+    sent = {m.arbitration_id for sn in rig.sniffers for m in sn.snapshot()}
+    assert not any(0x200 < cid <= 0x27F for cid in sent)  # no RPDO
 
 
 class _HeldBack:
@@ -223,11 +228,6 @@ def test_a_second_box_heard_only_after_the_configuration_is_named_at_the_enable(
         assert "2 boot-ups" in msg and "answers to one SDO request" in msg
         assert "\n" not in msg
         assert box.state is SessionState.READY  # refused before anything but SDO reads
-        for sim in (rig.sim, second):
-            assert c.State402.OPERATION_ENABLED not in {
-                c.decode_state(sw) for sw in sim.statuswords().values()
-            }
-        sent = {m.arbitration_id for sn in rig.sniffers for m in sn.snapshot()}
-        assert not any(0x200 < cid <= 0x27F for cid in sent)  # no RPDO
+        assert_no_drive_moved(rig, second)
     finally:
         second.stop()
